@@ -1,0 +1,128 @@
+"""`platoon build`: package the slaves as FMI 2.0 co-simulation FMUs with pythonfmu, then finish them.
+
+pythonfmu lays out the archive (its runtime binary, its Python glue, the slave script). We then
+replace its model description with a complete one, add documentation/index.html and the model
+package as resources, and write the archive reproducibly (sorted entries, fixed timestamps). The
+GUID is derived from a digest of every bundled source, so an FMU is rebuilt exactly when a source
+changes and a trace can name the model version it ran.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import sys
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from xml.etree import ElementTree
+
+import pythonfmu
+from pythonfmu.builder import FmuBuilder
+
+import fmus
+from fmus.documentation import documentation_html
+from fmus.modeldescription import guid_for, model_description
+
+PACKAGE_DIR = Path(fmus.__file__).resolve().parent
+FMU_NAMES = ("Vehicle", "VirtualTarget")
+DEFAULT_OUT = Path("build") / "fmus"
+_ZIP_TIME = (2020, 1, 1, 0, 0, 0)
+_BUNDLED_SUBPACKAGES = ("model", "slaves")
+
+
+@dataclass(frozen=True)
+class BuiltFmu:
+    name: str
+    path: Path
+    guid: str
+    rebuilt: bool
+
+
+def bundled_sources() -> list[Path]:
+    """The package files an FMU carries as resources (the model code must need nothing else)."""
+    files = [PACKAGE_DIR / "__init__.py"]
+    for sub in _BUNDLED_SUBPACKAGES:
+        files += sorted((PACKAGE_DIR / sub).glob("*.py"))
+    return files
+
+
+def source_digest() -> str:
+    """Digest of everything that shapes an FMU: bundled sources, builder modules, pythonfmu version."""
+    digest = hashlib.sha256(pythonfmu.__version__.encode())
+    for path in bundled_sources() + [PACKAGE_DIR / "build.py", PACKAGE_DIR / "modeldescription.py", PACKAGE_DIR / "documentation.py"]:
+        digest.update(str(path.relative_to(PACKAGE_DIR)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def expected_guid(name: str) -> str:
+    return guid_for(source_digest(), name)
+
+
+def fmu_guid(path: Path) -> str | None:
+    """GUID recorded in an FMU's model description, or None if unreadable."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            root = ElementTree.fromstring(archive.read("modelDescription.xml"))
+    except (OSError, KeyError, zipfile.BadZipFile, ElementTree.ParseError):
+        return None
+    return root.get("guid")
+
+
+def _slave_instance(name: str):
+    module = importlib.import_module(f"fmus.slaves.{name}")
+    return getattr(module, name)(instance_name="modelDescription")
+
+
+def _zip_entry(name: str) -> zipfile.ZipInfo:
+    info = zipfile.ZipInfo(name, date_time=_ZIP_TIME)
+    info.compress_type = zipfile.ZIP_DEFLATED
+    info.external_attr = 0o644 << 16
+    return info
+
+
+def _build_one(name: str, out_dir: Path, guid: str) -> Path:
+    version = fmus.__version__
+    with tempfile.TemporaryDirectory(prefix="platoon-build-") as scratch:
+        # pythonfmu imports the script by its stem from the script's folder.
+        sys.path.insert(0, str(PACKAGE_DIR / "slaves"))
+        try:
+            raw = FmuBuilder.build_FMU(PACKAGE_DIR / "slaves" / f"{name}.py", dest=scratch)
+        finally:
+            sys.path.remove(str(PACKAGE_DIR / "slaves"))
+            sys.modules.pop(name, None)
+        slave = _slave_instance(name)
+        entries: dict[str, bytes] = {}
+        with zipfile.ZipFile(raw) as archive:
+            for item in archive.infolist():
+                if item.filename != "modelDescription.xml" and not item.is_dir():
+                    entries[item.filename] = archive.read(item)
+    for path in bundled_sources():
+        entries[f"resources/fmus/{path.relative_to(PACKAGE_DIR).as_posix()}"] = path.read_bytes()
+    entries["modelDescription.xml"] = model_description(slave, guid, version)
+    entries["documentation/index.html"] = documentation_html(slave, version).encode()
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    target = out_dir / f"{name}.fmu"
+    partial = target.with_suffix(".fmu.partial")
+    with zipfile.ZipFile(partial, "w") as archive:
+        for entry in sorted(entries):
+            archive.writestr(_zip_entry(entry), entries[entry])
+    partial.replace(target)  # never leave a half-written FMU under the final name
+    return target
+
+
+def build_fmus(out_dir: Path = DEFAULT_OUT, force: bool = False) -> list[BuiltFmu]:
+    """Build every FMU into ``out_dir`` unless an up-to-date one (same GUID) is already there."""
+    digest = source_digest()
+    built = []
+    for name in FMU_NAMES:
+        guid = guid_for(digest, name)
+        path = Path(out_dir) / f"{name}.fmu"
+        if not force and path.exists() and fmu_guid(path) == guid:
+            built.append(BuiltFmu(name, path, guid, rebuilt=False))
+            continue
+        built.append(BuiltFmu(name, _build_one(name, Path(out_dir), guid), guid, rebuilt=True))
+    return built

@@ -1,0 +1,161 @@
+"""Vehicle dynamics: how a lateral-acceleration command and a speed command move a vehicle.
+
+Two models share one interface (state layout, ``derivative``, ``pose``, ``speed``) so a vehicle can
+switch between them by a parameter:
+
+* ``KinematicDynamics``: the paper's vehicle. State (x, y, heading, V); heading rate a/V; first-order
+  speed loop dV/dt = k_v (V_cmd - V).
+* ``M3piDynamics``: a Pololu m3pi differential drive. The speed loop runs in the controller (state
+  V_s), the lateral command is mapped to wheel speeds by the paper's eqs. 9-10, the wheel speeds are
+  limited and follow their commands with a first-order motor lag, and the body moves as a unicycle
+  driven by the two wheels. State (x, y, heading, v_right, v_left, V_s).
+
+Disturbances enter as the paper describes them: an added lateral acceleration (added to the command
+before it acts) and an added speed (the vehicle moves that much faster over ground than its speed
+state, for as long as the disturbance lasts; the speed loop does not see it).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from .guidance import speed_loop
+
+DYNAMICS_KINDS = ("kinematic", "m3pi")
+
+# Pololu m3pi (3pi base) constants. The 3pi is 9.5 cm across and its wheels (about 32 mm diameter,
+# 17 mm radius) sit inside that disc; Pololu does not publish the wheel track, so we estimate it
+# from the body: about 84 mm between wheel centres (95 mm body minus two ~6 mm half-wheel widths and
+# clearance). Top speed with the stock 30:1 motors is about 1 m/s. The motor time constant is an
+# estimate for small gear motors under load (tens of milliseconds).
+M3PI_TRACK = 0.084
+M3PI_WHEEL_RADIUS = 0.017
+M3PI_WHEEL_SPEED_MAX = 1.0
+M3PI_MOTOR_TIME_CONSTANT = 0.05
+
+
+def differential_wheel_speeds(speed: float, lateral_acceleration: float, track: float) -> tuple[float, float]:
+    """Right and left wheel speeds realising a turn of radius R_t = V^2/a (paper eqs. 9-10).
+
+    V_r = V (1 + W/(2 R_t)) and V_l = V (1 - W/(2 R_t)); written with a = V^2/R_t so that a = 0
+    (straight ahead, R_t infinite) needs no special case.
+    """
+    half_difference = 0.5 * track * lateral_acceleration / speed
+    return speed + half_difference, speed - half_difference
+
+
+@dataclass(frozen=True)
+class KinematicDynamics:
+    """The paper's kinematic vehicle (x, y, heading, speed)."""
+
+    k_v: float
+    track: float = M3PI_TRACK  # only used to report equivalent wheel speeds
+
+    kind = "kinematic"
+    state_names = ("x", "y", "heading", "speed")
+
+    def initial_state(self, x: float, y: float, heading: float, speed: float) -> list[float]:
+        return [x, y, heading, speed]
+
+    def pose(self, state: list[float]) -> tuple[float, float, float]:
+        return state[0], state[1], state[2]
+
+    def speed(self, state: list[float], speed_offset: float) -> float:
+        return state[3] + speed_offset
+
+    def derivative(
+        self, state: list[float], lateral_acceleration: float, commanded_speed: float, speed_offset: float
+    ) -> list[float]:
+        heading = state[2]
+        v = state[3] + speed_offset
+        return [
+            v * math.cos(heading),
+            v * math.sin(heading),
+            lateral_acceleration / v,
+            speed_loop(self.k_v, commanded_speed, state[3]),
+        ]
+
+    @staticmethod
+    def heading_rate(derivative: list[float]) -> float:
+        return derivative[2]
+
+    @staticmethod
+    def speed_rate(derivative: list[float]) -> float:
+        return derivative[3]
+
+    def wheel_speeds(self, state: list[float], lateral_acceleration: float, speed_offset: float) -> tuple[float, float]:
+        return differential_wheel_speeds(state[3] + speed_offset, lateral_acceleration, self.track)
+
+
+@dataclass(frozen=True)
+class M3piDynamics:
+    """A Pololu m3pi: speed loop in the controller, eqs. 9-10 to wheels, limits, motor lag, unicycle."""
+
+    k_v: float
+    track: float = M3PI_TRACK
+    wheel_speed_max: float = M3PI_WHEEL_SPEED_MAX
+    motor_time_constant: float = M3PI_MOTOR_TIME_CONSTANT
+
+    kind = "m3pi"
+    state_names = ("x", "y", "heading", "wheel_right", "wheel_left", "speed_setpoint")
+
+    def initial_state(self, x: float, y: float, heading: float, speed: float) -> list[float]:
+        return [x, y, heading, speed, speed, speed]
+
+    def pose(self, state: list[float]) -> tuple[float, float, float]:
+        return state[0], state[1], state[2]
+
+    def speed(self, state: list[float], speed_offset: float) -> float:
+        return 0.5 * (state[3] + state[4]) + speed_offset
+
+    def wheel_commands(self, setpoint: float, lateral_acceleration: float) -> tuple[float, float]:
+        """Wheel speed commands from eqs. 9-10, clipped to the motors' limits."""
+        right, left = differential_wheel_speeds(setpoint, lateral_acceleration, self.track)
+        limit = self.wheel_speed_max
+        return min(max(right, -limit), limit), min(max(left, -limit), limit)
+
+    def derivative(
+        self, state: list[float], lateral_acceleration: float, commanded_speed: float, speed_offset: float
+    ) -> list[float]:
+        heading = state[2]
+        right, left, setpoint = state[3], state[4], state[5]
+        right_cmd, left_cmd = self.wheel_commands(setpoint, lateral_acceleration)
+        v = 0.5 * (right + left) + speed_offset
+        lag = 1.0 / self.motor_time_constant
+        return [
+            v * math.cos(heading),
+            v * math.sin(heading),
+            (right - left) / self.track,
+            (right_cmd - right) * lag,
+            (left_cmd - left) * lag,
+            speed_loop(self.k_v, commanded_speed, setpoint),
+        ]
+
+    @staticmethod
+    def heading_rate(derivative: list[float]) -> float:
+        return derivative[2]
+
+    @staticmethod
+    def speed_rate(derivative: list[float]) -> float:
+        return 0.5 * (derivative[3] + derivative[4])
+
+    def wheel_speeds(self, state: list[float], lateral_acceleration: float, speed_offset: float) -> tuple[float, float]:
+        return state[3] + speed_offset, state[4] + speed_offset
+
+
+Dynamics = KinematicDynamics | M3piDynamics
+
+
+def make_dynamics(
+    kind: str,
+    k_v: float,
+    track: float = M3PI_TRACK,
+    wheel_speed_max: float = M3PI_WHEEL_SPEED_MAX,
+    motor_time_constant: float = M3PI_MOTOR_TIME_CONSTANT,
+) -> Dynamics:
+    if kind == "kinematic":
+        return KinematicDynamics(k_v, track)
+    if kind == "m3pi":
+        return M3piDynamics(k_v, track, wheel_speed_max, motor_time_constant)
+    raise ValueError(f"unknown dynamics {kind!r}; expected one of {', '.join(DYNAMICS_KINDS)}")

@@ -1,0 +1,97 @@
+"""From FMU parameter values (by their public names) to model objects.
+
+The FMU slaves and the monolithic reference both build their models here, from the same dictionary
+of parameter values, so a configuration means the same thing in every engine.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping
+
+from .coupling import COUPLING_MODES
+from .dynamics import DYNAMICS_KINDS, make_dynamics
+from .guidance import LAWS
+from .paths import PATH_KINDS, make_path
+from .target import VirtualTargetStepper
+from .vehicle import VehicleModel, VehicleStepper
+
+
+def _positive(values: Mapping[str, Any], names: tuple[str, ...]) -> list[str]:
+    return [
+        f"{name} = {values[name]}: must be a finite number > 0"
+        for name in names
+        if not (math.isfinite(values[name]) and values[name] > 0.0)
+    ]
+
+
+def _choice(values: Mapping[str, Any], name: str, allowed: tuple[str, ...]) -> list[str]:
+    if values[name] in allowed:
+        return []
+    return [f"{name} = {values[name]!r}: expected one of {', '.join(allowed)}"]
+
+
+def vehicle_parameter_errors(values: Mapping[str, Any]) -> list[str]:
+    """Every reason these Vehicle parameters cannot run, as sentences naming the parameter."""
+    return (
+        _choice(values, "law", LAWS)
+        + _choice(values, "dynamics", DYNAMICS_KINDS)
+        + _choice(values, "coupling", COUPLING_MODES)
+        + _positive(
+            values,
+            ("d_star", "k_v", "v_c", "max_substep", "initial.speed", "m3pi.track", "m3pi.wheel_speed_max",
+             "m3pi.motor_time_constant"),
+        )
+    )
+
+
+def target_parameter_errors(values: Mapping[str, Any]) -> list[str]:
+    """Every reason these VirtualTarget parameters cannot run."""
+    errors = _choice(values, "path.kind", PATH_KINDS) + _choice(values, "coupling", COUPLING_MODES)
+    if values["path.direction"] not in (1, -1):
+        errors.append(f"path.direction = {values['path.direction']}: expected 1 or -1")
+    errors += _positive(values, ("d_star", "max_substep"))
+    if values["path.kind"] == "circle":
+        errors += _positive(values, ("path.radius",))
+        if not errors and values["d_star"] > 2.0 * values["path.radius"]:
+            errors.append(
+                f"d_star = {values['d_star']}: must be <= 2 R = {2.0 * values['path.radius']} (a chord of the circle)"
+            )
+    return errors
+
+
+def vehicle_stepper(values: Mapping[str, Any], start_time: float) -> VehicleStepper:
+    dynamics = make_dynamics(
+        values["dynamics"],
+        values["k_v"],
+        values["m3pi.track"],
+        values["m3pi.wheel_speed_max"],
+        values["m3pi.motor_time_constant"],
+    )
+    model = VehicleModel(values["law"], values["d_star"], values["v_c"], bool(values["is_last"]), dynamics)
+    state = dynamics.initial_state(
+        values["initial.x"], values["initial.y"], values["initial.heading"], values["initial.speed"]
+    )
+    return VehicleStepper(model, values["coupling"], values["max_substep"], state, start_time)
+
+
+def target_path(values: Mapping[str, Any]):
+    return make_path(
+        values["path.kind"],
+        values["path.radius"],
+        values["path.x0"],
+        values["path.y0"],
+        values["path.heading"],
+        int(values["path.direction"]),
+    )
+
+
+def target_stepper(values: Mapping[str, Any], start_time: float) -> VirtualTargetStepper:
+    return VirtualTargetStepper(
+        target_path(values),
+        values["d_star"],
+        values["coupling"],
+        values["max_substep"],
+        values["initial.arc_length"],
+        start_time,
+    )

@@ -1,0 +1,116 @@
+"""The Vehicle FMU: trajectory shaping guidance plus kinematic or m3pi dynamics.
+
+Inputs follow the paper's Fig. 2: the target's pose and speed come from the vehicle ahead (lateral
+information flows backward); the speed and gap of the vehicle behind come from behind (velocity
+information flows forward). Rates and sample times travel with them so the vehicle can extrapolate
+its inputs inside a step (``coupling = "extrapolate"``).
+"""
+
+from __future__ import annotations
+
+import math
+
+from pythonfmu.default_experiment import DefaultExperiment
+
+from fmus.model.dynamics import M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEEL_SPEED_MAX
+from fmus.model.factory import vehicle_parameter_errors, vehicle_stepper
+from fmus.model.vehicle import VehicleStepper
+from fmus.slaves import defaults as d
+from fmus.slaves.base import PlatoonSlave, VariableInfo, real
+
+_INPUT_ATTRIBUTES = {
+    "target.x": "target_x",
+    "target.y": "target_y",
+    "target.heading": "target_heading",
+    "target.speed": "target_speed",
+    "target.speed_rate": "target_speed_rate",
+    "target.turn_rate": "target_turn_rate",
+    "target.time": "target_time",
+    "follower.speed": "follower_speed",
+    "follower.gap": "follower_gap",
+    "follower.speed_rate": "follower_speed_rate",
+    "follower.gap_rate": "follower_gap_rate",
+    "follower.time": "follower_time",
+    "disturbance.lateral_acceleration": "added_acceleration",
+    "disturbance.speed": "added_speed",
+}
+
+STATE_OUTPUT = ()  # depends on no input: a function of the state alone
+
+
+def _parameters() -> tuple[VariableInfo, ...]:
+    return (
+        VariableInfo("law", "String", "parameter", 'Guidance law: "sine" (paper eq. 5, exact on circles) or "regular" (eq. 2)', start="sine"),
+        real("d_star", "parameter", "Desired spacing d*: the speed command V_cmd = V_follower d*/d_follower drives the follower's gap to it", "m", start=d.D_STAR, min=0.0),
+        real("k_v", "parameter", "Speed loop gain: dV/dt = k_v (V_cmd - V)", "1/s", start=d.K_V, min=0.0),
+        real("v_c", "parameter", "Commanded speed V_c, used when this vehicle is last in the platoon", "m/s", start=d.SPEED, min=0.0),
+        VariableInfo("is_last", "Boolean", "parameter", "True for the last vehicle: it tracks V_c instead of the follower's spacing speed", start=True),
+        VariableInfo("dynamics", "String", "parameter", 'Vehicle dynamics: "kinematic" (the paper\'s vehicle) or "m3pi" (differential drive)', start="kinematic"),
+        VariableInfo("coupling", "String", "parameter", 'Inputs inside a step: "extrapolate" (arc for the target, rates for speed and gap; second order) or "hold" (zero-order hold)', start="extrapolate"),
+        real("max_substep", "parameter", "Longest internal RK4 substep; a communication step is split into equal substeps no longer than this", "s", start=d.MAX_SUBSTEP, min=0.0),
+        real("initial.x", "parameter", "Initial position, x", "m", start=d.VEHICLE_X),
+        real("initial.y", "parameter", "Initial position, y", "m", start=d.VEHICLE_Y),
+        real("initial.heading", "parameter", "Initial heading, counter-clockwise from the x axis", "rad", start=d.VEHICLE_HEADING),
+        real("initial.speed", "parameter", "Initial speed", "m/s", start=d.VEHICLE_SPEED, min=0.0),
+        real("m3pi.track", "parameter", "Distance W between the wheels (Pololu m3pi estimate; also used for the kinematic model's equivalent wheel speeds)", "m", start=M3PI_TRACK, min=0.0),
+        real("m3pi.wheel_speed_max", "parameter", "Wheel speed limit (m3pi)", "m/s", start=M3PI_WHEEL_SPEED_MAX, min=0.0),
+        real("m3pi.motor_time_constant", "parameter", "First-order motor lag of each wheel (m3pi)", "s", start=M3PI_MOTOR_TIME_CONSTANT, min=0.0),
+    )
+
+
+def _inputs() -> tuple[VariableInfo, ...]:
+    return (
+        real("target.x", "input", "Target position x (vehicle ahead, or the virtual target for vehicle 1)", "m", start=d.TARGET_X),
+        real("target.y", "input", "Target position y", "m", start=d.TARGET_Y),
+        real("target.heading", "input", "Target heading", "rad", start=d.TARGET_HEADING),
+        real("target.speed", "input", "Target speed", "m/s", start=d.SPEED, min=0.0),
+        real("target.speed_rate", "input", "Target speed rate dV/dt (for extrapolation)", "m/s2", start=0.0),
+        real("target.turn_rate", "input", "Target heading rate (for arc extrapolation)", "rad/s", start=d.TARGET_TURN_RATE),
+        real("target.time", "input", "Time the target values describe (the sender's 'time' output)", "s", start=0.0),
+        real("follower.speed", "input", "Speed of the vehicle behind (unused when is_last)", "m/s", start=d.SPEED, min=0.0),
+        real("follower.gap", "input", "Distance of the vehicle behind to this vehicle (unused when is_last)", "m", start=d.D_STAR, min=0.0),
+        real("follower.speed_rate", "input", "Speed rate of the vehicle behind (for extrapolation)", "m/s2", start=0.0),
+        real("follower.gap_rate", "input", "Rate of the gap of the vehicle behind (for extrapolation)", "m/s", start=0.0),
+        real("follower.time", "input", "Time the follower values describe (the sender's 'time' output)", "s", start=0.0),
+        real("disturbance.lateral_acceleration", "input", "Lateral acceleration added to the guidance command", "m/s2", start=0.0),
+        real("disturbance.speed", "input", "Speed added over ground (an external push the speed loop does not see)", "m/s", start=0.0),
+    )
+
+
+def _outputs() -> tuple[VariableInfo, ...]:
+    return (
+        real("x", "output", "Position x", "m", depends_on=STATE_OUTPUT),
+        real("y", "output", "Position y", "m", depends_on=STATE_OUTPUT),
+        real("heading", "output", "Heading, counter-clockwise from the x axis (not wrapped)", "rad", depends_on=STATE_OUTPUT),
+        real("speed", "output", "Speed over ground", "m/s"),
+        real("speed_rate", "output", "Rate of the speed over ground, dV/dt", "m/s2"),
+        real("turn_rate", "output", "Heading rate", "rad/s"),
+        real("lateral_acceleration", "output", "Lateral acceleration acting: guidance command plus disturbance", "m/s2"),
+        real("gap", "output", "Distance d to this vehicle's target", "m"),
+        real("gap_rate", "output", "Rate of the distance to the target, dd/dt", "m/s"),
+        real("wheel.right", "output", "Right wheel speed (m3pi state; kinematic: eq. 9 equivalent)", "m/s"),
+        real("wheel.left", "output", "Left wheel speed (m3pi state; kinematic: eq. 10 equivalent)", "m/s"),
+        real("time", "output", "Time the outputs describe", "s", depends_on=STATE_OUTPUT),
+    )
+
+
+class Vehicle(PlatoonSlave):
+    """Platoon vehicle: trajectory shaping guidance (regular or sine) on kinematic or m3pi dynamics."""
+
+    description = (
+        "Platoon vehicle chasing its target with (modified) trajectory shaping guidance "
+        "(Erekson, Sharma, Ratnoo, Gerdes: Multi-vehicle path following using modified trajectory shaping guidance)"
+    )
+    variables = _parameters() + _inputs() + _outputs()
+    input_attributes = _INPUT_ATTRIBUTES
+    default_experiment = DefaultExperiment(start_time=0.0, stop_time=d.STOP_TIME, step_size=d.STEP)
+
+    def parameter_errors(self) -> list[str]:
+        return vehicle_parameter_errors(self.values)
+
+    def make_stepper(self, start_time: float) -> VehicleStepper:
+        return vehicle_stepper(self.values, start_time)
+
+
+assert set(_INPUT_ATTRIBUTES) == {i.name for i in _inputs()}
+assert not any(math.isnan(i.start) for i in _inputs())

@@ -1,0 +1,195 @@
+"""The ``platoon`` command: build, run, report, analyze.
+
+Exit codes: 0 success; 1 a run failed (the trace up to the failure is kept); 2 bad input (config,
+option or file), with one line naming what is wrong and no traceback.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+
+from .config import Config, ConfigError, load_config
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="Platoon co-simulation: trajectory-shaping guidance FMUs, config-driven runs, MCAP traces.",
+)
+out = Console()
+err = Console(stderr=True)
+
+
+def _fail(code: int, message: str) -> None:
+    err.print(f"[bold red]error:[/] {message}", highlight=False)
+    raise typer.Exit(code)
+
+
+def _load(config: Path, overrides: list[str]) -> tuple[Config, str]:
+    try:
+        parsed, _ = load_config(config, overrides)
+    except ConfigError as error:
+        _fail(2, f"config {config}: {error}")
+    return parsed, config.read_text()
+
+
+@app.command()
+def build(
+    out_dir: Annotated[Path, typer.Option("--out", help="folder for Vehicle.fmu and VirtualTarget.fmu")] = Path("build/fmus"),
+    force: Annotated[bool, typer.Option(help="rebuild even if up to date")] = False,
+) -> None:
+    """Build the Vehicle and VirtualTarget FMUs (only when their sources changed)."""
+    from fmus.build import build_fmus
+
+    for built in build_fmus(out_dir, force=force):
+        state = "built" if built.rebuilt else "up to date"
+        out.print(f"{built.path}  {built.guid}  ({state})")
+
+
+def _progress_runner(steps: int, quiet: bool):
+    if quiet or not sys.stderr.isatty() and not sys.stdout.isatty():
+        return None, None
+    progress = Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        TextColumn("{task.percentage:>5.1f}%"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=err,
+        transient=True,
+    )
+    return progress, progress.add_task("simulating", total=steps)
+
+
+def _summary_table(summaries, config: Config, title: str) -> Table:
+    table = Table(title=title, title_justify="left")
+    for column in ("vehicle", "path offset [m]", "gap - d* [m]", "speed - V_c [m/s]", "max |path error| [m]"):
+        table.add_column(column, justify="right" if column != "vehicle" else "left")
+    for s in summaries:
+        table.add_row(
+            s.name, f"{s.path_offset:+.3e}", f"{s.gap - config.platoon.d_star:+.3e}",
+            f"{s.speed - config.platoon.speed:+.3e}", f"{s.path_error_max:.3e}",
+        )
+    return table
+
+
+def _execute(config: Config, text: str, trace: Path, engine: str, quiet: bool):
+    from .run import run_scenario
+    from .scenario import step_count
+
+    steps = step_count(config.simulation.stop_time, config.simulation.step)
+    progress, task = _progress_runner(steps, quiet)
+    tick = None
+    if progress is not None:
+        every = max(1, steps // 200)
+
+        def tick(k: int) -> None:
+            if k % every == 0 or k == steps:
+                progress.update(task, completed=k)
+
+        progress.start()
+    try:
+        return run_scenario(config, text, trace, engine=engine, tick=tick)
+    finally:
+        if progress is not None:
+            progress.stop()
+
+
+@app.command()
+def run(
+    config: Annotated[Path, typer.Argument(help="scenario TOML file, e.g. configs/paper/platoon.toml")],
+    trace: Annotated[Optional[Path], typer.Option("--out", help="trace file (default runs/<name>-<time>.mcap)")] = None,
+    overrides: Annotated[list[str], typer.Option("--set", help="override a key, e.g. --set platoon.law=regular")] = [],
+    monolithic: Annotated[bool, typer.Option("--monolithic", help="integrate the whole platoon as one system (reference)")] = False,
+    compare: Annotated[bool, typer.Option("--compare-monolithic", help="also run the monolithic reference and print the largest deviations")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar and no table")] = False,
+) -> None:
+    """Run a scenario: wire the FMUs as the paper's Fig. 2, step them, write an MCAP trace."""
+    from .metrics import summarize
+    from .run import default_trace_path
+    from .trace import load
+
+    parsed, text = _load(config, overrides)
+    engine = "monolithic" if monolithic else "fmi"
+    trace = trace or default_trace_path(parsed, engine)
+    result = _execute(parsed, text, trace, engine, quiet)
+    if result.status != "completed":
+        _fail(1, f"run {result.status}: {result.error} (trace up to that point: {result.trace})")
+    if not quiet:
+        summaries = summarize(load(result.trace), parsed)
+        out.print(_summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine}, last 10 % of {parsed.simulation.stop_time:g} s"))
+    out.print(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)")
+    if compare:
+        from .compare import deviations
+
+        reference_path = trace.with_name(trace.stem + "-monolithic.mcap")
+        reference = _execute(parsed, text, reference_path, "monolithic", quiet)
+        if reference.status != "completed":
+            _fail(1, f"monolithic reference {reference.status}: {reference.error}")
+        worst = deviations(load(result.trace), load(reference.trace))
+        out.print(
+            f"largest deviation from the monolithic run ({reference.trace}): "
+            f"position {worst.position:.3e} m ({worst.position_where}), gap {worst.gap:.3e} m, speed {worst.speed:.3e} m/s"
+        )
+
+
+@app.command()
+def report(
+    trace: Annotated[Path, typer.Argument(help="trace written by `platoon run`")],
+    as_json: Annotated[bool, typer.Option("--json", help="print the summary as JSON")] = False,
+    plots: Annotated[Optional[Path], typer.Option("--plots", help="write the paper's figure panels as PNG here")] = None,
+) -> None:
+    """Summarize a trace (path offset, gap, speed, max path error) and draw the paper's panels."""
+    from .config import config_from_mapping
+    from .metrics import report_json, summarize
+    from .trace import load
+
+    if not trace.is_file():
+        _fail(2, f"trace {trace}: no such file")
+    try:
+        loaded = load(trace)
+    except Exception as error:  # any reader failure means the file is not a usable trace
+        _fail(2, f"trace {trace}: not a readable MCAP trace ({error})")
+    if loaded.config is None:
+        _fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
+    config = config_from_mapping(loaded.config)
+    summaries = summarize(loaded, config)
+    if as_json:
+        out.print_json(json.dumps(report_json(summaries)))
+    else:
+        out.print(_summary_table(summaries, config, f"{trace.name}: {config.platoon.law} law ({loaded.run.get('status', '?')})"))
+    if plots is not None:
+        from .plots import write_plots
+
+        for path in write_plots(loaded, config, plots):
+            (err if as_json else out).print(f"wrote {path}")
+
+
+@app.command()
+def analyze(
+    config: Annotated[Path, typer.Argument(help="scenario TOML file")],
+    overrides: Annotated[list[str], typer.Option("--set", help="override a key")] = [],
+    string_stability: Annotated[bool, typer.Option(help="also run the scenario and report peak-error ratios")] = True,
+) -> None:
+    """Linearize about the circular equilibrium; eigenvalues next to the paper's eq. 9; string stability."""
+    from .analysis import eigen_report, string_stability_report
+
+    parsed, text = _load(config, overrides)
+    try:
+        report_text = eigen_report(parsed)
+    except ValueError as error:
+        _fail(2, f"config {config}: {error}")
+    out.print(report_text, highlight=False)
+    if string_stability:
+        out.print(string_stability_report(parsed, text), highlight=False)
+
+
+def main() -> None:  # pragma: no cover - console entry point
+    app()

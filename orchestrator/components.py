@@ -1,0 +1,210 @@
+"""Components the master steps: anything with named inputs and outputs that can advance in time.
+
+``Component`` is the one interface the master loop knows; ``FmuComponent`` implements it on an FMI 2.0
+co-simulation FMU through FMPy. A live endpoint (the Zenoh bridge) implements the same interface, so
+it can stand in for a vehicle FMU without the master noticing.
+
+FmuComponent keeps FMPy's bound fmi2 functions and preallocated ctypes arrays, so each step costs
+one fmi2SetReal, one fmi2DoStep and one fmi2GetReal call and no per-call allocation.
+"""
+
+from __future__ import annotations
+
+import shutil
+from collections import deque
+import tempfile
+from ctypes import byref
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol, Sequence
+
+from fmpy import extract, read_model_description
+from fmpy.fmi2 import (
+    FMU2Slave,
+    fmi2CallbackAllocateMemoryTYPE,
+    fmi2CallbackFreeMemoryTYPE,
+    fmi2CallbackFunctions,
+    fmi2CallbackLoggerTYPE,
+    fmi2Real,
+    fmi2True,
+    fmi2ValueReference,
+)
+from fmpy.fmi1 import FMICallException
+from fmpy.logging import addLoggerProxy
+from fmpy.simulation import calloc, free
+
+
+class ComponentError(RuntimeError):
+    """A component failed; the message names the component, the time and the reason."""
+
+    def __init__(self, component: str, time: float, reason: str) -> None:
+        super().__init__(f"{component} failed at t = {time:.6g} s: {reason}")
+        self.component, self.time, self.reason = component, time, reason
+
+
+class Component(Protocol):
+    name: str
+    inputs: list[str]
+    outputs: list[str]
+    input_defaults: list[float]
+
+    def initialize(self, start_time: float) -> None: ...
+    def set_inputs(self, values: Sequence[float]) -> None: ...
+    def get_outputs(self) -> list[float]: ...
+    def end_initialization(self) -> None: ...
+    def step(self, time: float, step: float) -> None: ...
+    def close(self) -> None: ...
+
+
+@dataclass
+class UnpackedFmu:
+    """An FMU extracted once; any number of instances share the folder."""
+
+    path: Path
+    directory: Path
+    description: Any
+    _owns_directory: bool = True
+
+    @classmethod
+    def open(cls, path: Path) -> "UnpackedFmu":
+        directory = Path(tempfile.mkdtemp(prefix=f"platoon-{Path(path).stem}-"))
+        extract(str(path), str(directory))
+        return cls(Path(path), directory, read_model_description(str(path)))
+
+    @property
+    def guid(self) -> str:
+        return self.description.guid
+
+    def variables(self) -> dict[str, Any]:
+        return {v.name: v for v in self.description.modelVariables}
+
+    def start_values(self) -> dict[str, Any]:
+        """Declared start values of parameters and inputs, typed."""
+        values = {}
+        for v in self.description.modelVariables:
+            if v.causality in ("parameter", "input") and v.start is not None:
+                values[v.name] = _typed(v.type, v.start)
+        return values
+
+    def cleanup(self) -> None:
+        if self._owns_directory:
+            shutil.rmtree(self.directory, ignore_errors=True)
+
+
+def _typed(kind: str, text: Any) -> Any:
+    if kind == "Real":
+        return float(text)
+    if kind == "Integer":
+        return int(text)
+    if kind == "Boolean":
+        return text in (True, "true", "1", 1)
+    return text
+
+
+class FmuComponent:
+    """One FMU instance behind the Component interface."""
+
+    def __init__(
+        self, name: str, fmu: UnpackedFmu, parameters: dict[str, Any], inputs: list[str] | None = None
+    ) -> None:
+        self.name = name
+        self.fmu = fmu
+        variables = fmu.variables()
+        unknown = sorted(set(parameters) - set(variables))
+        if unknown:
+            raise ValueError(f"{name}: {fmu.path.name} has no variable(s) {', '.join(unknown)}")
+        self.parameters = parameters
+        self.inputs = inputs if inputs is not None else [v.name for v in fmu.description.modelVariables if v.causality == "input"]
+        starts = fmu.start_values()
+        self.input_defaults = [float(starts[n]) for n in self.inputs]
+        self.outputs = [v.name for v in fmu.description.modelVariables if v.causality == "output"]
+        self._variables = variables
+        self.messages: deque[str] = deque(maxlen=50)  # the latest FMU log lines, for error reports
+        self._time = 0.0
+        self._slave = FMU2Slave(
+            guid=fmu.guid,
+            unzipDirectory=str(fmu.directory),
+            modelIdentifier=fmu.description.coSimulation.modelIdentifier,
+            instanceName=name,
+        )
+        self._callbacks = fmi2CallbackFunctions()
+        self._callbacks.logger = fmi2CallbackLoggerTYPE(self._log)
+        self._callbacks.allocateMemory = fmi2CallbackAllocateMemoryTYPE(calloc)
+        self._callbacks.freeMemory = fmi2CallbackFreeMemoryTYPE(free)
+        addLoggerProxy(byref(self._callbacks))
+        self._in_refs = (fmi2ValueReference * len(self.inputs))(*[variables[n].valueReference for n in self.inputs])
+        self._in_values = (fmi2Real * len(self.inputs))()
+        self._out_refs = (fmi2ValueReference * len(self.outputs))(*[variables[n].valueReference for n in self.outputs])
+        self._out_values = (fmi2Real * len(self.outputs))()
+        self._instantiated = False
+
+    def _log(self, env: Any, instance: bytes, status: int, category: bytes, message: bytes) -> None:
+        text = message.decode("utf-8", "replace") if message else ""
+        self.messages.append(text)
+
+    def _fail(self, error: Exception) -> ComponentError:
+        reason = self.messages[-1] if self.messages else str(error)
+        return ComponentError(self.name, self._time, reason)
+
+    def initialize(self, start_time: float) -> None:
+        """Instantiate, set up, apply parameters and enter initialization mode."""
+        self._time = start_time
+        slave = self._slave
+        try:
+            slave.instantiate(callbacks=self._callbacks, loggingOn=True)
+            self._instantiated = True
+            slave.setupExperiment(startTime=start_time)
+            self._set_parameters()
+            slave.enterInitializationMode()
+        except FMICallException as error:
+            raise self._fail(error) from None
+        except Exception as error:  # instantiation failure is a plain Exception in FMPy
+            raise self._fail(error) from None
+
+    def _set_parameters(self) -> None:
+        by_type: dict[str, tuple[list[int], list[Any]]] = {}
+        for name, value in self.parameters.items():
+            variable = self._variables[name]
+            refs, values = by_type.setdefault(variable.type, ([], []))
+            refs.append(variable.valueReference)
+            values.append(value)
+        setters = {
+            "Real": self._slave.setReal,
+            "Integer": self._slave.setInteger,
+            "Boolean": self._slave.setBoolean,
+            "String": self._slave.setString,
+        }
+        for kind, (refs, values) in by_type.items():
+            setters[kind](refs, values)
+
+    def end_initialization(self) -> None:
+        try:
+            self._slave.exitInitializationMode()
+        except FMICallException as error:
+            raise self._fail(error) from None
+
+    def set_inputs(self, values: Sequence[float]) -> None:
+        self._in_values[:] = values
+        status = self._slave.fmi2SetReal(self._slave.component, self._in_refs, len(self.inputs), self._in_values)
+        if status > 1:
+            raise self._fail(RuntimeError(f"fmi2SetReal returned status {status}"))
+
+    def get_outputs(self) -> list[float]:
+        self._slave.fmi2GetReal(self._slave.component, self._out_refs, len(self.outputs), self._out_values)
+        return self._out_values[:]
+
+    def step(self, time: float, step: float) -> None:
+        self._time = time
+        try:
+            self._slave.fmi2DoStep(self._slave.component, time, step, fmi2True)
+        except FMICallException as error:
+            raise self._fail(error) from None
+
+    def close(self) -> None:
+        if self._instantiated:
+            try:
+                self._slave.terminate()
+            except FMICallException:
+                pass
+            self._slave.freeInstance()
+            self._instantiated = False
