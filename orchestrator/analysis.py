@@ -1,0 +1,246 @@
+"""Linear stability about the circular equilibrium, and string stability from a disturbance run.
+
+The paper linearizes its relative coordinates x_i = (d_i, alpha_t_i, alpha_v_i, V_i) about
+x_eq = (d*, asin(d*/2R), -asin(d*/2R), V_c) and lists the 4n eigenvalues in closed form (eq. 9). We
+linearize numerically the very right-hand side our FMUs integrate (``fmus.model.platoon``), mapped
+to the paper's coordinates: alpha_t = gamma_t - lambda, alpha_v = gamma_v - lambda (the sign the
+paper's equations and equilibrium need; its text prints lambda - gamma_v). Only the kinematic vehicle
+has the paper's 4 states per vehicle, so the analysis uses kinematic dynamics.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from fmus.model.angles import wrap_angle
+from fmus.model.dynamics import KinematicDynamics
+from fmus.model.platoon import PlatoonSystem
+from fmus.model.target import VirtualTargetStepper
+from fmus.model.vehicle import VehicleModel, VehicleStepper
+
+from .config import Config
+from .scenario import path_of
+
+# Central differences with this relative perturbation: truncation ~1e-12, rounding ~1e-10.
+_PERTURBATION = 1e-6
+
+
+def platoon_system(config: Config, count: int | None = None, speed_chain_gap: str = "follower") -> PlatoonSystem:
+    """The config's platoon with kinematic vehicles, as one system (state: s, then x, y, heading, V)."""
+    n = count or config.platoon.count
+    p = config.platoon
+    path = path_of(config)
+    target = VirtualTargetStepper(path, p.d_star, "hold", config.simulation.max_substep, 0.0, 0.0)
+    vehicles = [
+        VehicleStepper(
+            VehicleModel(p.law, p.d_star, p.speed, i == n, KinematicDynamics(p.k_v)),
+            "hold", config.simulation.max_substep, [0.0, 0.0, 0.0, p.speed], 0.0,
+        )
+        for i in range(1, n + 1)
+    ]
+    return PlatoonSystem(target, vehicles, speed_chain_gap)
+
+
+def _absolute(system: PlatoonSystem, relative: np.ndarray) -> list[float]:
+    """Absolute state from relative coordinates, chaining each vehicle behind its target."""
+    x, y, heading = system.target.path.pose_at(0.0)
+    state = [0.0]
+    for i in range(len(system.vehicles)):
+        d, alpha_t, alpha_v, speed = relative[4 * i : 4 * i + 4]
+        los = heading - alpha_t
+        x, y = x - d * math.cos(los), y - d * math.sin(los)
+        heading = los + alpha_v
+        state += [x, y, heading, speed]
+    return state
+
+
+def _relative_rate(system: PlatoonSystem, state: list[float]) -> np.ndarray:
+    """d/dt of the relative coordinates, from the absolute right-hand side by exact kinematics."""
+    rate = system.derivative(0.0, state)
+    path = system.target.path
+    tx, ty, th = path.pose_at(state[0])
+    t_vx, t_vy = rate[0] * math.cos(th), rate[0] * math.sin(th)
+    t_turn = rate[0] * path.curvature(state[0])
+    result = []
+    for i in range(len(system.vehicles)):
+        x, y, heading, _ = state[1 + 4 * i : 5 + 4 * i]
+        vx, vy, turn, accel = rate[1 + 4 * i : 5 + 4 * i]
+        dx, dy, dvx, dvy = tx - x, ty - y, t_vx - vx, t_vy - vy
+        d2 = dx * dx + dy * dy
+        los_rate = (dx * dvy - dy * dvx) / d2
+        result += [(dx * dvx + dy * dvy) / math.sqrt(d2), t_turn - los_rate, turn - los_rate, accel]
+        tx, ty, th, t_vx, t_vy, t_turn = x, y, heading, vx, vy, turn
+    return np.array(result)
+
+
+def equilibrium(config: Config, count: int) -> np.ndarray:
+    alpha = math.asin(config.platoon.d_star / (2.0 * config.path.radius)) if config.path.kind == "circle" else 0.0
+    return np.tile([config.platoon.d_star, alpha, -alpha, config.platoon.speed], count)
+
+
+def jacobian(config: Config, count: int | None = None, speed_chain_gap: str = "follower") -> tuple[np.ndarray, float]:
+    """A = df/dx at the equilibrium (paper coordinates), and the residual |f(x_eq)|."""
+    n = count or config.platoon.count
+    system = platoon_system(config, n, speed_chain_gap)
+    x0 = equilibrium(config, n)
+    f0 = _relative_rate(system, _absolute(system, x0))
+    columns = []
+    for k in range(4 * n):
+        h = _PERTURBATION * max(1.0, abs(x0[k]))
+        up, down = x0.copy(), x0.copy()
+        up[k] += h
+        down[k] -= h
+        columns.append((_relative_rate(system, _absolute(system, up)) - _relative_rate(system, _absolute(system, down))) / (2 * h))
+    return np.array(columns).T, float(np.max(np.abs(f0)))
+
+
+@dataclass(frozen=True)
+class Family:
+    label: str
+    value: complex
+    count: int
+
+
+def paper_eigenvalues(config: Config, count: int) -> list[Family]:
+    """The paper's eq. 9, with beta left unknown (only beta = 0.95 at k_v = 0.5 is given)."""
+    p = config.platoon
+    k_v, v, d = p.k_v, p.speed, p.d_star
+    radius = config.path.radius if config.path.kind == "circle" else math.inf
+    alpha = math.sqrt(1.0 - (d / (2.0 * radius)) ** 2)
+    imag = v * math.sqrt(2.0 * (alpha**2 / d**2 + 1.0 / (4.0 * radius**2)))
+    families = [
+        Family("lambda_1 = -k_v", complex(-k_v), 1),
+        Family("lambda_2 = -V_c alpha/d*", complex(-v * alpha / d), 1),
+        Family("lambda_3..n+2 = -2 V_c alpha/d* + j ...", complex(-2 * v * alpha / d, imag), count),
+        Family("lambda_n+3..2n+2 = -2 V_c alpha/d* - j ...", complex(-2 * v * alpha / d, -imag), count),
+    ]
+    if count > 1 and abs(k_v - 0.5) < 1e-12:
+        families += [
+            Family("lambda_2n+3..3n+1 = -(1-beta) k_v, beta = 0.95", complex(-0.05 * k_v), count - 1),
+            Family("lambda_3n+2..4n = -beta k_v, beta = 0.95", complex(-0.95 * k_v), count - 1),
+        ]
+    return families
+
+
+# A family of k repeated eigenvalues is usually a Jordan block, whose computed eigenvalues scatter
+# over a radius ~(1e-10)^(1/k) from rounding alone. So a predicted value lambda with multiplicity k is
+# tested by rank instead: (A - lambda I)^k must have exactly k singular values at rounding level.
+_NULL = 1e-9  # singular values below this count as zero (A has entries ~1, errors ~1e-10)
+_GAP = 1e3  # the next singular value must be this much larger for the test to be decisive
+
+
+def multiplicity_test(a: np.ndarray, value: complex, count: int) -> str:
+    """'confirmed', 'not an eigenvalue', or 'inconclusive' for value with algebraic multiplicity count."""
+    identity = np.eye(len(a))
+    singular = np.linalg.svd(np.linalg.matrix_power(a - value * identity, count), compute_uv=False)
+    smallest = singular[-count]
+    following = singular[-count - 1] if count < len(singular) else math.inf
+    if smallest <= _NULL and following >= _GAP * max(smallest, 1e-300):
+        return "confirmed"
+    if np.linalg.svd(a - value * identity, compute_uv=False)[-1] > _NULL * _GAP:
+        return "not an eigenvalue"
+    return "inconclusive in double precision (try platoon.count <= 10; the families do not depend on n)"
+
+
+def our_families(config: Config, count: int) -> list[Family]:
+    """Our closed form: the paper's first four families, and the speed chain's roots of
+    s^2 + k_v s + k_v V_c alpha/d* (n-1 each), where the paper lists -(1-beta) k_v and -beta k_v."""
+    families = paper_eigenvalues(config, count)[:4]
+    if count > 1:
+        p = config.platoon
+        alpha = math.sqrt(1.0 - (p.d_star / (2.0 * config.path.radius)) ** 2)
+        for root in np.roots([1.0, p.k_v, p.k_v * p.speed * alpha / p.d_star]):
+            families.append(Family("speed chain: root of s^2 + k_v s + k_v V_c alpha/d*", complex(root), count - 1))
+    return families
+
+
+def _c(value: complex) -> str:
+    return f"{value.real:+.6f}{value.imag:+.6f}j"
+
+
+def eigen_report(config: Config) -> str:
+    if config.path.kind != "circle":
+        raise ValueError("path.kind = 'line': the analysis linearizes about the circular equilibrium; use a circle")
+    n = config.platoon.count
+    a, residual = jacobian(config)
+    eigenvalues = np.linalg.eigvals(a)
+    order = np.argsort(eigenvalues.real)
+    lines = [
+        f"Linearization of {config.name}: {n} kinematic vehicle(s), {config.platoon.law} law, "
+        f"R = {config.path.radius:g} m, d* = {config.platoon.d_star:g} m, V_c = {config.platoon.speed:g} m/s, k_v = {config.platoon.k_v:g} 1/s",
+        f"residual |f(x_eq)| = {residual:.3e}  ({'an equilibrium' if residual < 1e-9 else 'NOT an equilibrium of this law'})",
+        "eigenvalues (ours, from the model code):",
+    ]
+    for value in eigenvalues[order]:
+        lines.append(f"  {value.real:+.6f} {value.imag:+.6f}j")
+    lines.append("eigenvalue families, ours in closed form (a family of k is tested by the rank of (A - lambda I)^k):")
+    ours = our_families(config, n)
+    for family in ours:
+        lines.append(f"  {family.label:52s} {_c(family.value)} x{family.count}: {multiplicity_test(a, family.value, family.count)}")
+    lines.append("the paper's eq. 9, family by family:")
+    chain = ", ".join(_c(f.value) for f in ours[4:])
+    for family in paper_eigenvalues(config, n):
+        verdict = multiplicity_test(a, family.value, family.count)
+        if verdict == "confirmed":
+            verdict = "agrees"
+        elif verdict == "not an eigenvalue" and chain:
+            verdict = f"DIFFERS: not an eigenvalue; our speed-chain family is {chain}"
+        lines.append(f"  {family.label:52s} {_c(family.value)} x{family.count}: {verdict}")
+    if n > 1 and abs(config.platoon.k_v - 0.5) > 1e-12:
+        lines.append("  (the paper gives beta only for k_v = 0.5, so its last two families are not evaluated here)")
+    stable = bool(np.all(eigenvalues.real < 0))
+    lines.append(f"verdict: {'exponentially stable' if stable else 'UNSTABLE'} (largest real part {eigenvalues.real.max():+.6f})")
+    if n > 1:
+        own, _ = jacobian(config, speed_chain_gap="own")
+        worst = np.linalg.eigvals(own).real.max()
+        lines.append(
+            f"with the paper's printed V_cmd,i = V_(i+1) d*/d_i instead of d_(i+1): largest real part {worst:+.6f} "
+            f"({'unstable' if worst > 0 else 'stable'})"
+        )
+    return "\n".join(lines)
+
+
+def peak_ratios(peaks: list[float]) -> list[float]:
+    return [b / a if a > 0 else math.inf for a, b in zip(peaks, peaks[1:])]
+
+
+def string_stability_report(config: Config, config_text: str) -> str:
+    """Peak path, gap and speed errors per vehicle after the first disturbance, and their ratios."""
+    import tempfile
+    from pathlib import Path
+
+    from .metrics import path_errors
+    from .run import run_scenario
+    from .trace import load
+
+    if not config.disturbance:
+        return "string stability: the config has no [[disturbance]]; add one to measure peak-error ratios"
+    start = min(d.start for d in config.disturbance)
+    with tempfile.TemporaryDirectory() as scratch:
+        result = run_scenario(config, config_text, Path(scratch) / "analysis.mcap")
+        if result.status != "completed":
+            return f"string stability: the run {result.status}: {result.error}"
+        trace = load(result.trace)
+    reference_config = config.model_copy(update={"disturbance": []})
+    with tempfile.TemporaryDirectory() as scratch:
+        reference = load(run_scenario(reference_config, config_text, Path(scratch) / "reference.mcap").trace)
+    lines = [f"string stability (peak deviation from the undisturbed run after t = {start:g} s):",
+             f"  {'vehicle':10s} {'path [m]':>12s} {'gap [m]':>12s} {'speed [m/s]':>12s}"]
+    peaks = {"path": [], "gap": [], "speed": []}
+    for name in trace.vehicles():
+        a, b = trace.component(name), reference.component(name)
+        window = a["t"] >= start
+        path = np.abs(path_errors(config, a["x"], a["y"]) - path_errors(config, b["x"], b["y"]))[window].max()
+        gap = np.abs(a["gap"] - b["gap"])[window].max()
+        speed = np.abs(a["speed"] - b["speed"])[window].max()
+        peaks["path"].append(path)
+        peaks["gap"].append(gap)
+        peaks["speed"].append(speed)
+        lines.append(f"  {name:10s} {path:12.4e} {gap:12.4e} {speed:12.4e}")
+    for key, values in peaks.items():
+        ratios = ", ".join(f"{r:.3f}" for r in peak_ratios(values))
+        lines.append(f"  {key} ratios vehicle i+1 / i: {ratios}")
+    return "\n".join(lines)

@@ -28,7 +28,7 @@ err = Console(stderr=True)
 
 
 def _fail(code: int, message: str) -> None:
-    err.print(f"[bold red]error:[/] {message}", highlight=False)
+    err.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 
 
@@ -186,9 +186,9 @@ def analyze(
         report_text = eigen_report(parsed)
     except ValueError as error:
         _fail(2, f"config {config}: {error}")
-    out.print(report_text, highlight=False)
+    out.print(report_text, highlight=False, soft_wrap=True)
     if string_stability:
-        out.print(string_stability_report(parsed, text), highlight=False)
+        out.print(string_stability_report(parsed, text), highlight=False, soft_wrap=True)
 
 
 def main() -> None:  # pragma: no cover - console entry point
