@@ -206,5 +206,8 @@ class FmuComponent:
                 self._slave.terminate()
             except FMICallException:
                 pass
-            self._slave.freeInstance()
+            # Free the instance but keep the shared library loaded: a pythonfmu binary leaves objects
+            # in the host's interpreter, and unloading it (FMPy's freeInstance does) corrupts the heap
+            # at interpreter exit. The library is loaded once per process anyway.
+            self._slave.fmi2FreeInstance(self._slave.component)
             self._instantiated = False

@@ -112,7 +112,7 @@ class Config(_Strict):
             if item.vehicle > count:
                 raise _rule(f"disturbance[{index}].vehicle", item.vehicle, f"a vehicle number from 1 to platoon.count = {count}")
         for key in self.vehicles:
-            if not key.isdigit() or not 1 <= int(key) <= count:
+            if not key.isdigit() or key != str(int(key)) or not 1 <= int(key) <= count:
                 raise _rule(f"vehicles.{key}", key, f"a vehicle number from 1 to platoon.count = {count}")
         if self.simulation.step > self.simulation.stop_time:
             raise _rule("simulation.step", self.simulation.step, f"at most simulation.stop_time = {self.simulation.stop_time}")
@@ -197,11 +197,11 @@ def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -
     try:
         text = path.read_text()
     except OSError as error:
-        raise ConfigError(f"cannot read {path}: {error.strerror}") from None
+        raise ConfigError(f"cannot read the file: {error.strerror}") from None
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
-        raise ConfigError(f"{path}: not valid TOML: {error}") from None
+        raise ConfigError(f"not valid TOML: {error}") from None
     raw.setdefault("name", path.stem)
     for assignment in overrides:
         apply_override(raw, assignment)

@@ -125,19 +125,28 @@ class Master:
         return self.outputs
 
     def _check_finite(self) -> None:
-        for component, values in zip(self.components, self.outputs):
-            for name, value in zip(component.outputs, values):
-                if not math.isfinite(value):
-                    raise ComponentError(component.name, self.time, f"output {name} is {value}")
+        bad = [
+            f"{component.name}.{name} = {value}"
+            for component, values in zip(self.components, self.outputs)
+            for name, value in zip(component.outputs, values)
+            if not math.isfinite(value)
+        ]
+        if bad:
+            first = bad[0].split(".", 1)[0]
+            raise ComponentError(first, self.time, "initial outputs are not finite: " + ", ".join(bad[:6])
+                                 + (" ..." if len(bad) > 6 else "") + " (is a vehicle placed on its target?)")
 
     def run(self, stop_time: float, step: float, observer: Observer, steps: int, start_time: float = 0.0,
             tick: Callable[[int], None] | None = None) -> None:
         """Initialize and run ``steps`` steps of size ``step``, calling ``observer`` at every point."""
         observer(start_time, self.initialize(start_time))
         for k in range(steps):
+            # t_k = t_0 + k h exactly, and each step spans t_(k+1) - t_k: the FMUs' clocks stay on the
+            # grid (no accumulated rounding), as in libcosim's integer-nanosecond clock.
             self.time = start_time + k * step
-            outputs = self.step(step)
-            self.time = start_time + (k + 1) * step
+            following = start_time + (k + 1) * step
+            outputs = self.step(following - self.time)
+            self.time = following
             observer(self.time, outputs)
             if tick is not None:
                 tick(k + 1)

@@ -155,18 +155,19 @@ def _run_monolithic(
         writer.record(t, [[row[key] for key in keys] for row, keys in zip(rows, order)])
 
     y = system.initial_state()
-    system.set_disturbances(disturbances(0.0))
-    record(0.0, y)
-    for k in range(steps):
-        t = k * sim.step
+    t = 0.0
+    try:
         system.set_disturbances(disturbances(t))
-        try:
-            y = system.advance(t, y, sim.step, sim.max_substep)
-        except (ValueError, ZeroDivisionError, OverflowError) as failure:
-            raise ComponentError("platoon (monolithic)", t, str(failure)) from None
-        record((k + 1) * sim.step, y)
-        if tick is not None:
-            tick(k + 1)
+        record(t, y)
+        for k in range(steps):
+            t, t_next = k * sim.step, (k + 1) * sim.step
+            system.set_disturbances(disturbances(t))
+            y = system.advance(t, y, t_next - t, sim.max_substep)
+            record(t_next, y)
+            if tick is not None:
+                tick(k + 1)
+    except (ValueError, ZeroDivisionError, OverflowError) as failure:
+        raise ComponentError("platoon (monolithic)", t, str(failure)) from None
 
 
 def default_trace_path(config: Config, engine: str = "fmi") -> Path:

@@ -45,3 +45,25 @@ def run(tmp_path: Path, fmu_dir: Path):
         return load(out)
 
     return _run
+
+
+# pythonfmu FMUs run inside this interpreter, and its teardown after they ran intermittently
+# corrupts the heap (glibc: "corrupted double-linked list"), turning a green run into exit 134. The
+# CLI leaves with os._exit for the same reason (orchestrator/cli.py: main); here, once pytest has
+# reported everything, we do the same with pytest's own exit status.
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    session.config.stash[_EXIT_STATUS] = int(exitstatus)
+
+
+_EXIT_STATUS = pytest.StashKey[int]()
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_unconfigure(config: pytest.Config) -> None:
+    if _EXIT_STATUS in config.stash:
+        import os
+        import sys
+
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(config.stash[_EXIT_STATUS])

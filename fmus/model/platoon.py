@@ -101,4 +101,11 @@ class PlatoonSystem:
             vehicle.added_acceleration, vehicle.added_speed = acceleration, speed
 
     def advance(self, t: float, y: list[float], step: float, max_substep: float) -> list[float]:
-        return integrate(self.derivative, t, y, step, max_substep)
+        """Integrate from t to t + step; raises ValueError naming the vehicle if its motion breaks down."""
+        y = integrate(self.derivative, t, y, step, max_substep)
+        for index, (vehicle, state) in enumerate(zip(self.vehicles, self.split(y)), start=1):
+            try:
+                vehicle.check(state, t + step)
+            except ValueError as error:
+                raise ValueError(f"vehicle{index}: {error}") from None
+        return y

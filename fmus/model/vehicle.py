@@ -110,16 +110,20 @@ class VehicleStepper:
     def derivative(self, t: float, state: list[float]) -> list[float]:
         return self.evaluate(t, state)[0]
 
+    def check(self, state: list[float], time: float) -> None:
+        """Raise ValueError with the reason if ``state`` at ``time`` cannot go on (guidance needs V > 0)."""
+        if not all(math.isfinite(v) for v in state):
+            raise ValueError(f"the state became non-finite before t = {time:.6g} s")
+        speed = self.model.dynamics.speed(state, self.added_speed)
+        if speed <= 0.0:
+            raise ValueError(f"speed fell to {speed:.6g} m/s at t = {time:.6g} s; guidance needs V > 0")
+
     def step(self, t: float, h: float) -> None:
         """Advance from t to t + h; raises ValueError with the reason if the motion breaks down."""
         state = integrate(self.derivative, t, self.state, h, self.max_substep)
-        if not all(math.isfinite(v) for v in state):
-            raise ValueError(f"the state became non-finite during the step from t = {t:.6g} s")
+        self.check(state, t + h)
         self.state = state
         self.time = t + h
-        speed = self.model.dynamics.speed(state, self.added_speed)
-        if speed <= 0.0:
-            raise ValueError(f"speed fell to {speed:.6g} m/s at t = {self.time:.6g} s; guidance needs V > 0")
 
     def outputs(self) -> dict[str, float]:
         """Every output at the current time, from the state and the inputs seen at that time."""

@@ -151,8 +151,10 @@ class PlatoonSlave(Fmi2Slave):
         try:
             self.stepper.step(current_time, step_size)
         except (ValueError, ZeroDivisionError, OverflowError) as error:
+            # Returning False (not raising) keeps the instance alive, so the logged reason reaches the
+            # master; pythonfmu 0.7 destroys the slave on an exception before forwarding its log.
             self.log(f"{self.instance_name}: step from t = {current_time:.6g} s failed: {error}", Fmi2Status.error)
-            raise
+            return False
         self._outputs = None
         return True
 
