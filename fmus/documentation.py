@@ -21,7 +21,7 @@ d = |p<sub>t</sub> &minus; p| and &lambda; = atan2(y<sub>t</sub> &minus; y, x<su
 <li>sine law (paper eq. 5): a = V&sup2;/d &middot; (4 sin(&lambda; &minus; &gamma;<sub>v</sub>) + 2 sin(&lambda; &minus; &gamma;<sub>t</sub>))</li>
 <li>speed loop: dV/dt = k<sub>v</sub>(V<sub>cmd</sub> &minus; V), with V<sub>cmd</sub> = V<sub>i+1</sub> d*/d<sub>i+1</sub> (the follower's speed and gap) and V<sub>cmd</sub> = V<sub>c</sub> for the last vehicle</li>
 <li>kinematic dynamics: dx/dt = V cos &gamma;, dy/dt = V sin &gamma;, d&gamma;/dt = a/V</li>
-<li>m3pi dynamics: wheel commands V<sub>r,l</sub> = V<sub>s</sub>(1 &plusmn; W/(2R<sub>t</sub>)), R<sub>t</sub> = V<sub>s</sub>&sup2;/a (paper eqs. 9-10), clipped to &plusmn;wheel_speed_max,
+<li>m3pi dynamics: wheel commands V<sub>r,l</sub> = V<sub>s</sub>(1 &plusmn; W/(2R<sub>t</sub>)), R<sub>t</sub> = V<sub>s</sub>&sup2;/a (paper eqs. 10-11), clipped to &plusmn;wheel_speed_max,
 first-order motor lag, unicycle kinematics: V = (v<sub>r</sub> + v<sub>l</sub>)/2, d&gamma;/dt = (v<sub>r</sub> &minus; v<sub>l</sub>)/W</li>
 </ul>
 """,

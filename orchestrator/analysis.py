@@ -77,7 +77,10 @@ def _relative_rate(system: PlatoonSystem, state: list[float]) -> np.ndarray:
 
 
 def equilibrium(config: Config, count: int) -> np.ndarray:
-    alpha = math.asin(config.platoon.d_star / (2.0 * config.path.radius)) if config.path.kind == "circle" else 0.0
+    alpha = 0.0
+    if config.path.kind == "circle":
+        turn = 1.0 if config.path.direction == "ccw" else -1.0
+        alpha = turn * math.asin(config.platoon.d_star / (2.0 * config.path.radius))
     return np.tile([config.platoon.d_star, alpha, -alpha, config.platoon.speed], count)
 
 
@@ -157,6 +160,18 @@ def our_families(config: Config, count: int) -> list[Family]:
     return families
 
 
+# Real parts within this of zero are zero to the accuracy of the finite-difference Jacobian.
+_ZERO_REAL = 1e-7
+
+
+def stability_word(largest_real_part: float) -> str:
+    if largest_real_part < -_ZERO_REAL:
+        return "exponentially stable"
+    if largest_real_part <= _ZERO_REAL:
+        return "MARGINAL (an eigenvalue at zero: some state is not regulated)"
+    return "UNSTABLE"
+
+
 def _c(value: complex) -> str:
     return f"{value.real:+.6f}{value.imag:+.6f}j"
 
@@ -191,14 +206,14 @@ def eigen_report(config: Config) -> str:
         lines.append(f"  {family.label:52s} {_c(family.value)} x{family.count}: {verdict}")
     if n > 1 and abs(config.platoon.k_v - 0.5) > 1e-12:
         lines.append("  (the paper gives beta only for k_v = 0.5, so its last two families are not evaluated here)")
-    stable = bool(np.all(eigenvalues.real < 0))
-    lines.append(f"verdict: {'exponentially stable' if stable else 'UNSTABLE'} (largest real part {eigenvalues.real.max():+.6f})")
+    largest = float(eigenvalues.real.max())
+    lines.append(f"verdict: {stability_word(largest)} (largest real part {largest:+.6f})")
     if n > 1:
         own, _ = jacobian(config, speed_chain_gap="own")
         worst = np.linalg.eigvals(own).real.max()
         lines.append(
             f"with the paper's printed V_cmd,i = V_(i+1) d*/d_i instead of d_(i+1): largest real part {worst:+.6f} "
-            f"({'unstable' if worst > 0 else 'stable'})"
+            f"({stability_word(worst)})"
         )
     return "\n".join(lines)
 

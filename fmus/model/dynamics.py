@@ -6,7 +6,7 @@ switch between them by a parameter:
 * ``KinematicDynamics``: the paper's vehicle. State (x, y, heading, V); heading rate a/V; first-order
   speed loop dV/dt = k_v (V_cmd - V).
 * ``M3piDynamics``: a Pololu m3pi differential drive. The speed loop runs in the controller (state
-  V_s), the lateral command is mapped to wheel speeds by the paper's eqs. 9-10, the wheel speeds are
+  V_s), the lateral command is mapped to wheel speeds by the paper's eqs. 10-11, the wheel speeds are
   limited and follow their commands with a first-order motor lag, and the body moves as a unicycle
   driven by the two wheels. State (x, y, heading, v_right, v_left, V_s).
 
@@ -24,19 +24,19 @@ from .guidance import speed_loop
 
 DYNAMICS_KINDS = ("kinematic", "m3pi")
 
-# Pololu m3pi (3pi base) constants. The 3pi is 9.5 cm across and its wheels (about 32 mm diameter,
-# 17 mm radius) sit inside that disc; Pololu does not publish the wheel track, so we estimate it
+# Pololu m3pi (3pi base) constants. The 3pi is 9.5 cm across and its wheels (17 mm radius, per the
+# 3pi User's Guide) sit inside that disc; Pololu does not publish the wheel track, so we estimate it
 # from the body: about 84 mm between wheel centres (95 mm body minus two ~6 mm half-wheel widths and
 # clearance). Top speed with the stock 30:1 motors is about 1 m/s. The motor time constant is an
-# estimate for small gear motors under load (tens of milliseconds).
+# estimate for small gear motors under load (tens of milliseconds). Wheel speeds are linear (m/s);
+# divide by the 17 mm radius for rad/s.
 M3PI_TRACK = 0.084
-M3PI_WHEEL_RADIUS = 0.017
 M3PI_WHEEL_SPEED_MAX = 1.0
 M3PI_MOTOR_TIME_CONSTANT = 0.05
 
 
 def differential_wheel_speeds(speed: float, lateral_acceleration: float, track: float) -> tuple[float, float]:
-    """Right and left wheel speeds realising a turn of radius R_t = V^2/a (paper eqs. 9-10).
+    """Right and left wheel speeds realising a turn of radius R_t = V^2/a (paper eqs. 10-11).
 
     V_r = V (1 + W/(2 R_t)) and V_l = V (1 - W/(2 R_t)); written with a = V^2/R_t so that a = 0
     (straight ahead, R_t infinite) needs no special case.
@@ -90,7 +90,7 @@ class KinematicDynamics:
 
 @dataclass(frozen=True)
 class M3piDynamics:
-    """A Pololu m3pi: speed loop in the controller, eqs. 9-10 to wheels, limits, motor lag, unicycle."""
+    """A Pololu m3pi: speed loop in the controller, eqs. 10-11 to wheels, limits, motor lag, unicycle."""
 
     k_v: float
     track: float = M3PI_TRACK
@@ -110,7 +110,7 @@ class M3piDynamics:
         return 0.5 * (state[3] + state[4]) + speed_offset
 
     def wheel_commands(self, setpoint: float, lateral_acceleration: float) -> tuple[float, float]:
-        """Wheel speed commands from eqs. 9-10, clipped to the motors' limits."""
+        """Wheel speed commands from eqs. 10-11, clipped to the motors' limits."""
         right, left = differential_wheel_speeds(setpoint, lateral_acceleration, self.track)
         limit = self.wheel_speed_max
         return min(max(right, -limit), limit), min(max(left, -limit), limit)

@@ -13,7 +13,7 @@ The longitudinal side is one equation used twice: the speed that restores the sp
 (eq. 3) and, in a platoon, vehicle i is commanded ``spacing_speed(V_{i+1}, d_{i+1}, d*)``, the
 speed and gap of the vehicle *behind* it (velocity information flows forward). The paper's text
 prints d_i in that command, but its linearization (the A_tv block) needs d_{i+1}, and with d_i a
-platoon of four is unstable; see docs/model.md and tests/test_analysis.py.
+platoon of four is unstable; see docs/model.md, `platoon analyze` and tests/test_analysis.py.
 """
 
 from __future__ import annotations

@@ -26,6 +26,9 @@ class Path(Protocol):
     def arc_for_chord(self, chord: float) -> float:
         """Arc length between two points of the path that are ``chord`` apart in a straight line."""
 
+    def outward_normal(self, x: float, y: float) -> tuple[float, float]:
+        """Unit vector from the path towards positive signed distance, at (x, y)."""
+
 
 @dataclass(frozen=True)
 class CirclePath:

@@ -88,8 +88,8 @@ def _outputs() -> tuple[VariableInfo, ...]:
         real("lateral_acceleration", "output", "Lateral acceleration acting: guidance command plus disturbance", "m/s2"),
         real("gap", "output", "Distance d to this vehicle's target", "m"),
         real("gap_rate", "output", "Rate of the distance to the target, dd/dt", "m/s"),
-        real("wheel.right", "output", "Right wheel speed (m3pi state; kinematic: eq. 9 equivalent)", "m/s"),
-        real("wheel.left", "output", "Left wheel speed (m3pi state; kinematic: eq. 10 equivalent)", "m/s"),
+        real("wheel.right", "output", "Right wheel speed (m3pi state; kinematic: eq. 10 equivalent)", "m/s"),
+        real("wheel.left", "output", "Left wheel speed (m3pi state; kinematic: eq. 11 equivalent)", "m/s"),
         real("time", "output", "Time the outputs describe", "s", depends_on=STATE_OUTPUT),
     )
 
