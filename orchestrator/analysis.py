@@ -255,7 +255,14 @@ def string_stability_report(config: Config, config_text: str) -> str:
         peaks["gap"].append(gap)
         peaks["speed"].append(speed)
         lines.append(f"  {name:10s} {path:12.4e} {gap:12.4e} {speed:12.4e}")
-    for key, values in peaks.items():
-        ratios = ", ".join(f"{r:.3f}" for r in peak_ratios(values))
-        lines.append(f"  {key} ratios vehicle i+1 / i: {ratios}")
+    first = min(config.disturbance, key=lambda d: d.start).vehicle
+    # Lateral disturbances propagate backward (to the vehicles behind), speed ones forward.
+    behind = slice(first - 1, None)
+    for key in ("path", "gap"):
+        ratios = ", ".join(f"{r:.3f}" for r in peak_ratios(peaks[key][behind]))
+        lines.append(f"  {key} peak ratios behind vehicle {first}, vehicle i+1 / i: {ratios or 'none (last vehicle)'}")
+    ahead = peaks["speed"][:first][::-1]
+    ratios = ", ".join(f"{r:.3f}" for r in peak_ratios(ahead))
+    lines.append(f"  speed peak ratios ahead of vehicle {first}, vehicle i-1 / i: {ratios or 'none (first vehicle)'}")
+    lines.append("  (a ratio below 1 everywhere means the disturbance shrinks as it travels: string stable for this case)")
     return "\n".join(lines)

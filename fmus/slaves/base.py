@@ -62,6 +62,14 @@ class PlatoonSlave(Fmi2Slave):
         self.stepper: Any = None
         for info in self.variables:
             self._declare(info)
+        # Lookup tables for the hot path (get_real/set_real are called every step by every master).
+        self._name_of = {reference: variable.name for reference, variable in self.vars.items()}
+        kinds = {info.name: info for info in self.variables}
+        self._real_refs = {r for r, n in self._name_of.items() if kinds[n].type == "Real"}
+        self._settable_real_refs = {r for r in self._real_refs if kinds[self._name_of[r]].causality != "output"}
+        self._input_attribute_of = {
+            r: self.input_attributes[n] for r, n in self._name_of.items() if kinds[n].causality == "input"
+        }
 
     def _declare(self, info: VariableInfo) -> None:
         name = info.name
@@ -106,10 +114,33 @@ class PlatoonSlave(Fmi2Slave):
     def _apply_to(self, stepper: Any, name: str, value: Any) -> None:
         setattr(stepper, self.input_attributes[name], float(value))
 
-    def _output(self, name: str) -> float:
+    def _current_outputs(self) -> dict[str, float]:
         if self._outputs is None:
             self._outputs = self.stepper.outputs() if self.stepper is not None else self._provisional_outputs()
-        return self._outputs[name]
+        return self._outputs
+
+    def _output(self, name: str) -> float:
+        return self._current_outputs()[name]
+
+    def get_real(self, vrs: list[int]) -> list[float]:
+        """pythonfmu's get_real in one pass: outputs are computed at most once per change."""
+        if not self._real_refs.issuperset(vrs):
+            return super().get_real(vrs)  # raises pythonfmu's TypeError for the wrong type
+        outputs = self._current_outputs()
+        values = self.values
+        names = [self._name_of[r] for r in vrs]
+        return [float(outputs[n]) if n in outputs else float(values[n]) for n in names]
+
+    def set_real(self, vrs: list[int], values: list[float]) -> None:
+        """pythonfmu's set_real in one pass, forwarding inputs straight to the stepper."""
+        if not self._settable_real_refs.issuperset(vrs):
+            return super().set_real(vrs, values)
+        store, stepper, attributes = self.values, self.stepper, self._input_attribute_of
+        for reference, value in zip(vrs, values):
+            store[self._name_of[reference]] = value
+            if stepper is not None and reference in attributes:
+                setattr(stepper, attributes[reference], float(value))
+        self._outputs = None
 
     def _provisional_outputs(self) -> dict[str, float]:
         """Outputs during initialization mode, from the parameters and inputs set so far.
