@@ -47,17 +47,17 @@ def write_plots(trace: Trace, config: Config, directory: Path) -> list[Path]:
         _time_panel(trace, {v: path_errors(config, trace.component(v)["x"], trace.component(v)["y"]) for v in vehicles},
                     "path error (signed distance) [m]", f"Path errors: {label}", directory / "path_errors.png", config),
     ]
-    figure, axes = plt.subplots(figsize=(6.5, 6.5), dpi=120)
+    figure, axes = plt.subplots(figsize=(8.5, 6.5), dpi=120)
     path = path_of(config)
     target = trace.component("target")
     if config.path.kind == "circle":
         angles = np.linspace(0.0, 2.0 * np.pi, 400)
         axes.plot(config.path.center[0] + config.path.radius * np.cos(angles),
-                  config.path.center[1] + config.path.radius * np.sin(angles), "k--", linewidth=1.0, label="path")
+                  config.path.center[1] + config.path.radius * np.sin(angles), "k--", linewidth=1.2, label="path", zorder=5)
     else:
         s = np.linspace(np.min(target["arc_length"]) - 10 * config.platoon.d_star, np.max(target["arc_length"]), 2)
         points = np.array([path.pose_at(v)[:2] for v in s])
-        axes.plot(points[:, 0], points[:, 1], "k--", linewidth=1.0, label="path")
+        axes.plot(points[:, 0], points[:, 1], "k--", linewidth=1.2, label="path", zorder=5)
     for name in vehicles:
         channel = trace.component(name)
         line, = axes.plot(channel["x"], channel["y"], linewidth=1.0, label=name.replace("vehicle", "vehicle "))
@@ -68,7 +68,7 @@ def write_plots(trace: Trace, config: Config, directory: Path) -> list[Path]:
     axes.set_ylabel("y [m]")
     axes.set_title(f"X-Y positions: {label}")
     axes.grid(True, alpha=0.4)
-    axes.legend(loc="best", fontsize="small")
+    axes.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small")
     figure.tight_layout()
     figure.savefig(directory / "xy.png")
     plt.close(figure)
