@@ -1,7 +1,9 @@
-"""The ``platoon`` command: build, run, report, analyze.
+"""The ``platoon`` command: build, run, report, export, trace recover, analyze.
 
-Exit codes: 0 success; 1 a run failed (the trace up to the failure is kept); 2 bad input (config,
-option or file), with one line naming what is wrong and no traceback.
+Exit codes: 0 success; 1 a run failed (the trace up to the failure is kept), or a trace held nothing
+recoverable; 2 bad input (config, option or file), with one line naming what is wrong and no
+traceback; 130 a run stopped by SIGINT (Ctrl-C) and 143 by SIGTERM (128 + the signal number, as a
+shell reports a process killed by it), its trace finalized up to the stop.
 """
 
 from __future__ import annotations
@@ -112,16 +114,21 @@ def run(
     monolithic: Annotated[bool, typer.Option("--monolithic", help="integrate the whole platoon as one system (reference)")] = False,
     compare: Annotated[bool, typer.Option("--compare-monolithic", help="also run the monolithic reference and print the largest deviations")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar and no table")] = False,
+    trace_every: Annotated[Optional[int], typer.Option("--trace-every", min=1, help="record every K-th communication point (overrides simulation.trace_every)")] = None,
 ) -> None:
     """Run a scenario: wire the FMUs as the paper's Fig. 2, step them, write an MCAP trace."""
     from .metrics import summarize
     from .run import default_trace_path
     from .trace import load
 
+    if trace_every is not None:
+        overrides = [*overrides, f"simulation.trace_every={trace_every}"]
     parsed, text = _load(config, overrides)
     engine = "monolithic" if monolithic else "fmi"
     trace = trace or default_trace_path(parsed, engine)
     result = _execute(parsed, text, trace, engine, quiet)
+    if result.status == "interrupted":
+        _fail(128 + (result.signal or 2), f"run {result.status}: {result.error} (trace up to that point: {result.trace})")
     if result.status != "completed":
         _fail(1, f"run {result.status}: {result.error} (trace up to that point: {result.trace})")
     if not quiet:
@@ -151,14 +158,8 @@ def report(
     """Summarize a trace (path offset, gap, speed, max path error) and draw the paper's panels."""
     from .config import config_from_mapping
     from .metrics import report_json, summarize
-    from .trace import load
 
-    if not trace.is_file():
-        _fail(2, f"trace {trace}: no such file")
-    try:
-        loaded = load(trace)
-    except Exception as error:  # any reader failure means the file is not a usable trace
-        _fail(2, f"trace {trace}: not a readable MCAP trace ({error})")
+    loaded = _load_trace(trace)
     if loaded.config is None:
         _fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
     config = config_from_mapping(loaded.config)
@@ -172,6 +173,59 @@ def report(
 
         for path in write_plots(loaded, config, plots):
             (err if as_json else out).print(f"wrote {path}")
+
+
+def _load_trace(trace: Path):
+    from .trace import load
+
+    if not trace.is_file():
+        _fail(2, f"trace {trace}: no such file")
+    try:
+        return load(trace)
+    except Exception as error:  # any reader failure means the file is not a usable trace
+        _fail(2, f"trace {trace}: not a readable MCAP trace ({error})")
+
+
+@app.command()
+def export(
+    trace: Annotated[Path, typer.Argument(help="trace written by `platoon run`")],
+    csv_dir: Annotated[Path, typer.Option("--csv", help="folder for one CSV per component (header: t, then the outputs)")],
+) -> None:
+    """Export a trace: one CSV per component (t, then its outputs) and errors.csv (path, gap, speed errors)."""
+    from .trace import export_csv
+
+    loaded = _load_trace(trace)
+    for path in export_csv(loaded, csv_dir):
+        out.print(f"wrote {path}", highlight=False, soft_wrap=True)
+
+
+trace_app = typer.Typer(no_args_is_help=True, help="Work on trace files.")
+app.add_typer(trace_app, name="trace")
+
+
+@trace_app.command("recover")
+def trace_recover(
+    broken: Annotated[Path, typer.Argument(help="an unfinished trace (the run was killed)")],
+    fixed: Annotated[Optional[Path], typer.Option("--out", help="recovered trace (default BROKEN-recovered.mcap)")] = None,
+) -> None:
+    """Rewrite the complete chunks of an unfinished trace into a valid one (losing at most the last chunk)."""
+    from .trace import TraceError, recover
+
+    if not broken.is_file():
+        _fail(2, f"trace {broken}: no such file")
+    fixed = fixed or broken.with_name(broken.stem + "-recovered.mcap")
+    if fixed.resolve() == broken.resolve():
+        _fail(2, f"--out {fixed}: must differ from the trace being recovered")
+    try:
+        result = recover(broken, fixed)
+    except TraceError as error:
+        _fail(2, str(error))
+    if result.steps == 0:
+        _fail(1, f"trace {broken}: no complete communication point to recover ({result.chunks} complete chunks); wrote {fixed} with its metadata only")
+    span = f"t = 0 .. {result.last_time:.6g} s" if result.last_time is not None else "no time"
+    state = "a complete file" if result.finished else f"{result.chunks} complete chunks"
+    out.print(f"recovered {result.steps} communication points ({span}, {result.messages} messages) from {state}: {fixed}",
+              highlight=False, soft_wrap=True)
 
 
 @app.command()

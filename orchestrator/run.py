@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 import platform
+import signal
+import threading
 import time as clock
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,7 +28,8 @@ from .components import ComponentError, FmuComponent, UnpackedFmu
 from .config import Config
 from .master import Master
 from .scenario import Scenario, build_scenario, step_count
-from .trace import TraceWriter
+from .foxglove import SCENE_RATE, FoxgloveChannels
+from .trace import NullTraceWriter, TraceWriter
 
 ENGINES = ("fmi", "monolithic")
 
@@ -35,11 +38,12 @@ Tick = Callable[[int], None]
 
 @dataclass
 class RunResult:
-    trace: Path
+    trace: Path | None  # None when run without a trace
     steps: int
     wall_time: float
     status: str  # "completed" | "failed" | "interrupted"
     error: str | None = None
+    signal: int | None = None  # SIGINT or SIGTERM when interrupted
 
 
 def tool_versions() -> dict[str, str]:
@@ -73,15 +77,72 @@ def _monolithic_system(scenario: Scenario, fmus_by_kind: dict[str, UnpackedFmu])
     return PlatoonSystem(steppers[0], steppers[1:])
 
 
+class Interrupted(KeyboardInterrupt):
+    """A run stopped by a signal (SIGINT or SIGTERM) at a communication point."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+class _StopRequest:
+    """Signal handlers for the length of a run.
+
+    The first SIGINT or SIGTERM only raises a flag, which the observer checks after recording each
+    communication point: the run stops between two steps, never inside an FMU call (pythonfmu FMUs
+    run Python code, where a KeyboardInterrupt would turn into an FMU error). A second signal while
+    the loop still runs raises at once, in case a component hangs. After the loop, signals are only
+    noted until the trace is finalized; then the previous handlers come back.
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.signum = 0
+        self.armed = False
+        self._previous: dict[int, object] = {}
+
+    def _handler(self, signum: int, frame: object) -> None:
+        if self.signum and self.armed:
+            raise Interrupted(signum)
+        self.signum = self.signum or signum
+
+    def install(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return  # signal handlers can only be set from the main thread; the caller keeps its own
+        for signum in self.SIGNALS:
+            if signal.getsignal(signum) is signal.SIG_IGN:
+                continue  # ignored by whoever started us (e.g. SIGINT for a background job): keep it so
+            self._previous[signum] = signal.signal(signum, self._handler)
+        self.armed = True
+
+    def restore(self) -> None:
+        self.armed = False
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+        self._previous.clear()
+
+
+def _signal_text(signum: int) -> str:
+    return "interrupted by SIGINT (Ctrl-C)" if signum == signal.SIGINT else f"terminated by {signal.Signals(signum).name}"
+
+
 def run_scenario(
     config: Config,
     config_text: str,
-    out: Path,
+    out: Path | None,
     engine: str = "fmi",
     fmu_dir: Path = DEFAULT_OUT,
     tick: Tick | None = None,
+    foxglove: bool = True,
+    scene_rate: float = SCENE_RATE,
 ) -> RunResult:
-    """Run ``config`` with ``engine`` and write the trace to ``out``."""
+    """Run ``config`` with ``engine`` and write the trace to ``out`` (``None``: record nothing).
+
+    ``foxglove`` adds the Foxglove channels (scene at ``scene_rate`` Hz of simulated time, errors,
+    transforms, log). SIGINT and SIGTERM stop the run at the next communication point with status
+    "interrupted"; the trace is finalized with every point recorded up to there.
+    """
     if engine not in ENGINES:
         raise ValueError(f"unknown engine {engine!r}; expected one of {', '.join(ENGINES)}")
     scenario = build_scenario(config)
@@ -89,51 +150,98 @@ def run_scenario(
     steps = step_count(sim.stop_time, sim.step)
     fmus_by_kind = _open_fmus(fmu_dir)
     started = clock.perf_counter()
-    writer = None
+    writer: TraceWriter | NullTraceWriter | None = None
     master = None
-    status, error = "completed", None
+    status, error, signum, failed_at = "completed", None, None, None
+    stop = _StopRequest()
     try:
+        stop.install()
         kinds = {spec.name: fmus_by_kind[spec.fmu] for spec in scenario.components}
         outputs = {
             spec.name: [v.name for v in kinds[spec.name].description.modelVariables if v.causality == "output"]
             for spec in scenario.components
         }
-        writer = TraceWriter(
-            out,
-            [(spec.name, outputs[spec.name]) for spec in scenario.components],
-            {name: _descriptions(fmu) for name, fmu in kinds.items()},
-            every=sim.trace_every,
-        )
+        components = [(spec.name, outputs[spec.name]) for spec in scenario.components]
+        if out is None:
+            writer = NullTraceWriter()
+        else:
+            writer = TraceWriter(
+                out,
+                components,
+                {name: _descriptions(fmu) for name, fmu in kinds.items()},
+                every=sim.trace_every,
+                foxglove=FoxgloveChannels(config, components, scene_rate) if foxglove else None,
+            )
         writer.metadata("platoon.config", {"toml": config_text, "resolved": config.model_dump_json()})
         writer.metadata("platoon.fmus", {kind: fmu.guid for kind, fmu in fmus_by_kind.items()})
         writer.metadata("platoon.tool", tool_versions())
+        writer.metadata("platoon.start", {"engine": engine, "master": sim.master, "trace_every": str(sim.trace_every),
+                                          "scene_rate": repr(float(scene_rate)) if foxglove else "",
+                                          "started": clock.strftime("%Y-%m-%dT%H:%M:%S%z")})
+        writer.log(0.0, "Info", f"run started: {config.name}, {config.platoon.count} vehicles, {config.platoon.law} law, "
+                                f"{engine} engine ({sim.master}), step {sim.step:g} s, stop {sim.stop_time:g} s")
+        record = writer.record
+
+        def observe(t: float, values: list[list[float]]) -> None:
+            record(t, values)
+            if stop.signum:
+                raise Interrupted(stop.signum)
+
         if engine == "fmi":
-            components = [FmuComponent(spec.name, kinds[spec.name], spec.parameters) for spec in scenario.components]
-            master = Master(components, scenario.connections, scenario.schedules, sim.master)
-            master.run(sim.stop_time, sim.step, writer.record, steps, tick=tick)
+            fmu_components = [FmuComponent(spec.name, kinds[spec.name], spec.parameters) for spec in scenario.components]
+            master = Master(fmu_components, scenario.connections, scenario.schedules, sim.master)
+            master.run(sim.stop_time, sim.step, observe, steps, tick=tick)
         else:
-            _run_monolithic(scenario, fmus_by_kind, outputs, writer, steps, tick)
+            _run_monolithic(scenario, outputs, fmus_by_kind, observe, steps, tick)
     except ComponentError as failure:
-        status, error = "failed", str(failure)
-    except KeyboardInterrupt:
-        status, error = "interrupted", "interrupted by the user"
+        status, error, failed_at = "failed", str(failure), failure.time
+    except KeyboardInterrupt as interruption:
+        signum = getattr(interruption, "signum", signal.SIGINT)
+        status = "interrupted"
+    except Exception as unexpected:  # a bug, not a component failure: keep the trace, say so, re-raise
+        status, error = "failed", f"{type(unexpected).__name__}: {unexpected}"
+        raise
     finally:
-        if master is not None:
-            master.close()
-        if writer is not None:
-            writer.metadata("platoon.run", {"status": status, "error": error or "", "engine": engine,
-                                            "master": sim.master, "steps_recorded": writer.recorded + len(writer._rows)})
-            writer.close()
-        for fmu in fmus_by_kind.values():
-            fmu.cleanup()
-    return RunResult(Path(out), steps, clock.perf_counter() - started, status, error)
+        stop.armed = False  # from here on a signal is only noted: the trace gets finalized first
+        try:
+            if master is not None:
+                try:
+                    master.close()
+                except Exception as closing:  # still finalize the trace; say what went wrong
+                    if status == "completed":
+                        status, error = "failed", f"closing the FMUs failed: {closing}"
+            if writer is not None:
+                try:
+                    writer.flush()
+                except ComponentError as failure:  # a non-finite output in the last block
+                    status, error, failed_at = "failed", str(failure), failure.time
+                last = writer.last_time
+                if status == "interrupted":
+                    error = f"{_signal_text(signum)} at t = {last if last is not None else 0.0:.6g} s"
+                    writer.log(last or 0.0, "Warning", f"run {error}")
+                elif status == "failed":
+                    writer.log(failed_at if failed_at is not None else (last or 0.0), "Error", f"run failed: {error}")
+                else:
+                    writer.log(last or 0.0, "Info", f"run completed: {writer.rows_recorded} points recorded")
+                run_record = {"status": status, "error": error or "", "engine": engine, "master": sim.master,
+                              "steps_recorded": writer.rows_recorded,
+                              "last_time": "" if last is None else repr(float(last))}
+                if signum is not None:
+                    run_record["signal"] = signal.Signals(signum).name
+                writer.metadata("platoon.run", run_record)
+                writer.close()
+            for fmu in fmus_by_kind.values():
+                fmu.cleanup()
+        finally:
+            stop.restore()
+    return RunResult(Path(out) if out is not None else None, steps, clock.perf_counter() - started, status, error, signum)
 
 
 def _run_monolithic(
     scenario: Scenario,
-    fmus_by_kind: dict[str, UnpackedFmu],
     outputs: dict[str, list[str]],
-    writer: TraceWriter,
+    fmus_by_kind: dict[str, UnpackedFmu],
+    observe: Callable[[float, list[list[float]]], None],
     steps: int,
     tick: Tick | None,
 ) -> None:
@@ -152,7 +260,7 @@ def _run_monolithic(
 
     def record(t: float, y: list[float]) -> None:
         rows = system.outputs(t, y)
-        writer.record(t, [[row[key] for key in keys] for row, keys in zip(rows, order)])
+        observe(t, [[row[key] for key in keys] for row, keys in zip(rows, order)])
 
     y = system.initial_state()
     t = 0.0

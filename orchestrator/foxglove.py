@@ -1,0 +1,332 @@
+"""Channels for Foxglove (and Lichtblick): a 3D scene, frame transforms, plottable errors, a run log.
+
+Written next to the per-component ``/platoon/<component>`` channels by ``TraceWriter`` (see
+docs/foxglove.md and docs/trace-format.md):
+
+* ``/platoon/errors`` (JSON, schema ``platoon.errors``): at every recorded communication point, per
+  vehicle ``path_error`` (signed distance to the configured path, m), ``gap_error`` (d - d*, m) and
+  ``speed_error`` (V - V_c, m/s); plottable as ``/platoon/errors.vehicle1.path_error``.
+* ``/platoon/scene`` (``foxglove.SceneUpdate``, protobuf): the whole scene in every message (the path
+  as a line, each vehicle as a box with a heading arrow, a label and a short history line, the target
+  as a sphere), so that a seek shows everything; published at ``scene_rate`` Hz of simulated time.
+* ``/platoon/tf`` (``foxglove.FrameTransforms``): ``world`` -> ``target``, ``world`` -> ``vehicleN`` at
+  the scene's rate, so every entity's frame ``world`` is defined and a 3D panel can follow a vehicle.
+* ``/platoon/log`` (``foxglove.Log``): run started, completed, failed (with the error) or interrupted.
+
+The Foxglove message classes and their schemas come from foxglove-sdk (``foxglove.messages``), which
+encodes them as protobuf with schema names ``foxglove.SceneUpdate`` etc.; this module never writes a
+schema by hand. ``layout(n)`` builds the Foxglove layout shipped as ``layouts/platoon.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import deque
+from typing import Any, Callable, Sequence
+
+from foxglove import messages as fg
+
+from .config import Config
+from .scenario import path_of
+from .trace import number_texts
+
+ERRORS_TOPIC = "/platoon/errors"
+SCENE_TOPIC = "/platoon/scene"
+TF_TOPIC = "/platoon/tf"
+LOG_TOPIC = "/platoon/log"
+ROOT_FRAME = "world"
+ERROR_FIELDS = ("path_error", "gap_error", "speed_error")
+
+SCENE_RATE = 10.0  # Hz of simulated time
+HISTORY = 5.0  # s of simulated time behind each vehicle
+PATH_POINTS = 180  # points of a circle path's line loop
+
+# Matplotlib's tab10 (also the colours of `platoon report --plots`), as 0..1 RGB.
+PALETTE = [
+    (0.122, 0.467, 0.706), (1.000, 0.498, 0.055), (0.173, 0.627, 0.173), (0.839, 0.153, 0.157),
+    (0.580, 0.404, 0.741), (0.549, 0.337, 0.294), (0.890, 0.467, 0.761), (0.498, 0.498, 0.498),
+    (0.737, 0.741, 0.133), (0.090, 0.745, 0.812),
+]
+
+Write = Callable[[int, int, bytes], None]  # (channel id, log time ns, data)
+
+
+def errors_schema(vehicles: Sequence[str]) -> bytes:
+    """JSON Schema of ``/platoon/errors``: plain numbers only (a nullable type would not plot)."""
+    fields = {
+        "path_error": {"type": "number", "description": "signed distance to the path, m (circle: r - R)"},
+        "gap_error": {"type": "number", "description": "d - d*, m"},
+        "speed_error": {"type": "number", "description": "V - V_c, m/s"},
+    }
+    properties: dict[str, Any] = {"t": {"type": "number", "description": "simulation time [s]"}}
+    for name in vehicles:
+        properties[name] = {
+            "type": "object",
+            "properties": fields,
+            "required": list(ERROR_FIELDS),
+            "additionalProperties": False,
+        }
+    return json.dumps(
+        {
+            "$schema": "https://json-schema.org/draft/2020-12/schema",
+            "title": "platoon.errors",
+            "type": "object",
+            "properties": properties,
+            "required": ["t", *vehicles],
+            "additionalProperties": False,
+        }
+    ).encode()
+
+
+def _quaternion(yaw: float) -> fg.Quaternion:
+    return fg.Quaternion(x=0.0, y=0.0, z=math.sin(0.5 * yaw), w=math.cos(0.5 * yaw))
+
+
+def _color(rgb: tuple[float, float, float], alpha: float = 1.0) -> fg.Color:
+    return fg.Color(r=rgb[0], g=rgb[1], b=rgb[2], a=alpha)
+
+
+def _timestamp(stamp: int) -> fg.Timestamp:
+    return fg.Timestamp(sec=stamp // 1_000_000_000, nsec=stamp % 1_000_000_000)
+
+
+class FoxgloveChannels:
+    """Derived channels of one run. ``TraceWriter`` calls ``register`` once, ``row`` per recorded row."""
+
+    def __init__(
+        self,
+        config: Config,
+        components: Sequence[tuple[str, Sequence[str]]],
+        scene_rate: float = SCENE_RATE,
+        history: float = HISTORY,
+    ) -> None:
+        self.config = config
+        self.path = path_of(config)
+        self.names = [name for name, _ in components]
+        self.vehicles = [name for name in self.names if name.startswith("vehicle")]
+        self._index = {name: i for i, name in enumerate(self.names)}
+        outputs = {name: list(keys) for name, keys in components}
+        # positions of x, y, heading (every component) and of gap, speed (vehicles) among the outputs
+        self._pose = {name: tuple(outputs[name].index(k) for k in ("x", "y", "heading")) for name in self.names}
+        self._gap_speed = {name: (outputs[name].index("gap"), outputs[name].index("speed")) for name in self.vehicles}
+        self.d_star = config.platoon.d_star
+        self.v_c = config.platoon.speed
+        self.period = 1.0 / scene_rate if scene_rate > 0 else math.inf
+        self._next_scene = 0.0
+        self._history = {name: deque(maxlen=max(2, int(round(history * scene_rate)))) for name in self.vehicles}
+        size = min(4.5, 0.15 * self.d_star)  # a car on the paper's circle, a 10 cm robot for the m3pi runs
+        self._size = size
+        self._box = fg.Vector3(x=size, y=0.45 * size, z=0.35 * size)
+        self._colors = {name: PALETTE[i % len(PALETTE)] for i, name in enumerate(self.vehicles)}
+        self._path_points = self._circle_points() if self.config.path.kind == "circle" else None
+        self._errors_template = ('{"t":%s' + "".join(
+            f',"{name}":{{"path_error":%s,"gap_error":%s,"speed_error":%s}}' for name in self.vehicles) + "}").encode()
+        self._white = _color((1.0, 1.0, 1.0))
+        self._grey = _color((0.6, 0.6, 0.6))
+        self._solid = {name: _color(rgb) for name, rgb in self._colors.items()}
+        self._faded = {name: _color(rgb, 0.6) for name, rgb in self._colors.items()}
+        self._level = _quaternion(0.0)
+        self.channels: dict[str, int] = {}
+        self.scenes = 0
+
+    # --- registration -------------------------------------------------------------------------
+
+    def register(self, writer: Any) -> None:
+        """Register schemas and channels on an ``mcap.writer.Writer`` (before any message)."""
+        errors = writer.register_schema(name="platoon.errors", encoding="jsonschema", data=errors_schema(self.vehicles))
+        self.channels["errors"] = writer.register_channel(
+            topic=ERRORS_TOPIC, message_encoding="json", schema_id=errors, metadata={"platoon.kind": "errors"})
+        for key, topic, kind in (("scene", SCENE_TOPIC, fg.SceneUpdate), ("tf", TF_TOPIC, fg.FrameTransforms),
+                                 ("log", LOG_TOPIC, fg.Log)):
+            schema = kind.get_schema()
+            schema_id = writer.register_schema(name=schema.name, encoding=schema.encoding, data=bytes(schema.data))
+            self.channels[key] = writer.register_channel(
+                topic=topic, message_encoding="protobuf", schema_id=schema_id, metadata={"platoon.kind": "foxglove"})
+
+    # --- per block ----------------------------------------------------------------------------
+
+    def row(self, time: float, stamp: int, outputs: Sequence[Sequence[float]]) -> list[tuple[int, bytes]]:
+        """(channel, data) at one recorded row: the errors; the scene and transforms when one is due."""
+        messages = [(self.channels["errors"], self.errors_message(time, outputs))]
+        if time >= self._next_scene - 1e-9:
+            messages.extend(self._scene(stamp, outputs))
+            while self._next_scene <= time + 1e-9:
+                self._next_scene += self.period
+        return messages
+
+    def errors_message(self, time: float, outputs: Sequence[Sequence[float]]) -> bytes:
+        """The ``/platoon/errors`` JSON at one row; raises ValueError rather than write nan or inf."""
+        distance = self.path.signed_distance
+        values = [float(time)]
+        for name in self.vehicles:
+            row = outputs[self._index[name]]
+            ix, iy, _ = self._pose[name]
+            ig, iv = self._gap_speed[name]
+            values.append(float(distance(row[ix], row[iy])))
+            values.append(float(row[ig]) - self.d_star)
+            values.append(float(row[iv]) - self.v_c)
+        if not math.isfinite(sum(values)):
+            raise ValueError(f"an error at t = {time:g} s is not finite")
+        return self._errors_template % tuple(number_texts(values))
+
+    def _circle_points(self) -> list[fg.Point3]:
+        p = self.config.path
+        return [
+            fg.Point3(x=p.center[0] + p.radius * math.cos(a), y=p.center[1] + p.radius * math.sin(a), z=0.0)
+            for a in (2.0 * math.pi * k / PATH_POINTS for k in range(PATH_POINTS))
+        ]
+
+    def _line_points(self, poses: list[tuple[float, float, float]]) -> list[fg.Point3]:
+        p = self.config.path
+        ux, uy = math.cos(p.heading), math.sin(p.heading)
+        along = [(x - p.center[0]) * ux + (y - p.center[1]) * uy for x, y, _ in poses]
+        margin = 2.0 * self.d_star
+        low, high = min(along) - margin, max(along) + margin
+        return [fg.Point3(x=p.center[0] + s * ux, y=p.center[1] + s * uy, z=0.0) for s in (low, high)]
+
+    def _scene(self, stamp: int, outputs: Sequence[Sequence[float]]) -> list[tuple[int, bytes]]:
+        when = _timestamp(stamp)
+        poses = []
+        for name in self.names:
+            values = outputs[self._index[name]]
+            ix, iy, ih = self._pose[name]
+            poses.append((values[ix], values[iy], values[ih]))
+        size = self._size
+        thickness = 0.08 * size
+        points = self._path_points if self._path_points is not None else self._line_points(poses)
+        entities = [
+            fg.SceneEntity(
+                timestamp=when, frame_id=ROOT_FRAME, id="path",
+                lines=[fg.LinePrimitive(
+                    type=fg.LinePrimitiveLineType.LineLoop if self._path_points is not None else fg.LinePrimitiveLineType.LineStrip,
+                    thickness=thickness, scale_invariant=False, points=points, color=self._grey)],
+            )
+        ]
+        transforms = []
+        for name, (x, y, heading) in zip(self.names, poses):
+            pose = fg.Pose(position=fg.Vector3(x=x, y=y, z=0.0), orientation=_quaternion(heading))
+            transforms.append(fg.FrameTransform(
+                timestamp=when, parent_frame_id=ROOT_FRAME, child_frame_id=name,
+                translation=fg.Vector3(x=x, y=y, z=0.0), rotation=_quaternion(heading)))
+            label = fg.TextPrimitive(
+                pose=fg.Pose(position=fg.Vector3(x=x, y=y, z=0.8 * size), orientation=self._level),
+                billboard=True, font_size=14.0, scale_invariant=True, color=self._white, text=name)
+            if name in self._history:
+                color = self._solid[name]
+                history = self._history[name]
+                history.append(fg.Point3(x=x, y=y, z=0.0))
+                entities.append(fg.SceneEntity(
+                    timestamp=when, frame_id=ROOT_FRAME, id=name,
+                    cubes=[fg.CubePrimitive(pose=pose, size=self._box, color=color)],
+                    arrows=[fg.ArrowPrimitive(pose=pose, shaft_length=0.9 * size, shaft_diameter=0.1 * size,
+                                              head_length=0.4 * size, head_diameter=0.25 * size, color=color)],
+                    lines=[fg.LinePrimitive(type=fg.LinePrimitiveLineType.LineStrip, thickness=0.5 * thickness,
+                                            scale_invariant=False, points=list(history), color=self._faded[name])],
+                    texts=[label],
+                ))
+            else:  # the virtual target
+                entities.append(fg.SceneEntity(
+                    timestamp=when, frame_id=ROOT_FRAME, id=name,
+                    spheres=[fg.SpherePrimitive(pose=pose, size=fg.Vector3(x=0.5 * size, y=0.5 * size, z=0.5 * size),
+                                                color=self._white)],
+                    arrows=[fg.ArrowPrimitive(pose=pose, shaft_length=0.6 * size, shaft_diameter=0.08 * size,
+                                              head_length=0.3 * size, head_diameter=0.2 * size, color=self._white)],
+                    texts=[label],
+                ))
+        self.scenes += 1
+        return [(self.channels["tf"], fg.FrameTransforms(transforms=transforms).encode()),
+                (self.channels["scene"], fg.SceneUpdate(entities=entities).encode())]
+
+    # --- log ----------------------------------------------------------------------------------
+
+    def log(self, write: Write, time: float, level: str, message: str) -> None:
+        """One ``foxglove.Log`` line at simulation ``time``; level Info, Warning or Error."""
+        stamp = int(round(max(time, 0.0) * 1e9))
+        write(self.channels["log"], stamp, fg.Log(
+            timestamp=_timestamp(stamp), level=getattr(fg.LogLevel, level), message=message,
+            name="platoon", file="", line=0).encode())
+
+
+# --- the layout ---------------------------------------------------------------------------------
+
+def _plot(title: str, field: str, vehicles: int) -> dict[str, Any]:
+    return {
+        "title": title,
+        "paths": [
+            {
+                "value": f"{ERRORS_TOPIC}.vehicle{i}.{field}",
+                "enabled": True,
+                "timestampMethod": "receiveTime",
+                "label": f"vehicle {i}",
+            }
+            for i in range(1, vehicles + 1)
+        ],
+        "showXAxisLabels": True,
+        "showYAxisLabels": True,
+        "showLegend": True,
+        "legendDisplay": "floating",
+        "showPlotValuesInLegend": True,
+        "isSynced": True,
+        "xAxisVal": "timestamp",
+        "sidebarDimension": 240,
+    }
+
+
+def layout(vehicles: int = 6) -> dict[str, Any]:
+    """The classic Foxglove layout: a 3D panel beside Plot panels of path, gap and speed errors."""
+    topics = {SCENE_TOPIC: {"visible": True}, TF_TOPIC: {"visible": True}}
+    three_d = {
+        "cameraState": {
+            "distance": 250.0, "perspective": False, "phi": 0.0, "thetaOffset": 0.0,
+            "targetOffset": [0.0, 0.0, 0.0], "target": [0.0, 0.0, 0.0],
+            "targetOrientation": [0.0, 0.0, 0.0, 1.0], "fovy": 45.0, "near": 0.5, "far": 5000.0,
+        },
+        "followMode": "follow-none",
+        "followTf": ROOT_FRAME,
+        "scene": {"enableStats": False, "transforms": {"showLabel": False, "axisScale": 1.0}},
+        "transforms": {},
+        "topics": topics,
+        "layers": {
+            "grid": {"visible": True, "frameLocked": True, "label": "Grid", "instanceId": "grid",
+                     "layerId": "foxglove.Grid", "size": 200, "divisions": 20, "lineWidth": 1,
+                     "color": "#248eff40", "position": [0, 0, 0], "rotation": [0, 0, 0], "order": 1},
+        },
+        "publish": {"type": "point", "poseTopic": "/move_base_simple/goal", "pointTopic": "/clicked_point",
+                    "poseEstimateTopic": "/initialpose", "poseEstimateXDeviation": 0.5,
+                    "poseEstimateYDeviation": 0.5, "poseEstimateThetaDeviation": 0.26179939},
+        "imageMode": {},
+    }
+    return {
+        "configById": {
+            "3D!platoon": three_d,
+            "Plot!path": _plot("path error [m]", "path_error", vehicles),
+            "Plot!gap": _plot("gap error d - d* [m]", "gap_error", vehicles),
+            "Plot!speed": _plot("speed error V - V_c [m/s]", "speed_error", vehicles),
+            "RosOut!log": {"searchTerms": [], "minLogLevel": 1, "topicToRender": LOG_TOPIC},
+        },
+        "globalVariables": {},
+        "userNodes": {},
+        "playbackConfig": {"speed": 1.0},
+        "layout": {
+            "first": {"first": "3D!platoon", "second": "RosOut!log", "direction": "column", "splitPercentage": 80},
+            "second": {
+                "first": "Plot!path",
+                "second": {"first": "Plot!gap", "second": "Plot!speed", "direction": "column"},
+                "direction": "column",
+                "splitPercentage": 33.3,
+            },
+            "direction": "row",
+            "splitPercentage": 55,
+        },
+    }
+
+
+def layout_json(vehicles: int = 6) -> str:
+    return json.dumps(layout(vehicles), indent=2) + "\n"
+
+
+if __name__ == "__main__":  # python -m orchestrator.foxglove [VEHICLES] > layouts/platoon.json
+    import sys
+
+    print(layout_json(int(sys.argv[1]) if len(sys.argv) > 1 else 6), end="")

@@ -1,0 +1,513 @@
+"""Traces as a product (issue 4): Foxglove channels, read-back, CSV export, an independent reader,
+nothing lost on SIGINT / SIGTERM / SIGKILL / FMU failure, decimation.
+
+The signal tests run the installed ``platoon`` console script in a real subprocess on a long
+scenario and signal it once its trace holds data. The independent check reads our files with
+Foxglove's TypeScript ``@mcap/core`` under Node (tests/mcap_js), installed from the npm registry on
+first use; it is skipped, saying why, only when npm cannot reach the registry.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from orchestrator.config import load_config
+from orchestrator.foxglove import ERRORS_TOPIC, LOG_TOPIC, SCENE_TOPIC, TF_TOPIC, layout_json
+from orchestrator.components import ComponentError
+from orchestrator.metrics import path_errors
+from orchestrator.run import run_scenario
+from orchestrator.trace import Trace, TraceError, TraceWriter, _template, export_csv, load, number_texts, recover
+
+REPO = Path(__file__).resolve().parents[1]
+PLATOON = Path(sys.executable).parent / "platoon"
+PAPER = REPO / "configs" / "paper" / "platoon.toml"
+MCAP_JS = REPO / "tests" / "mcap_js"
+COMPONENTS = ["target", "vehicle1", "vehicle2", "vehicle3", "vehicle4"]
+VEHICLES = COMPONENTS[1:]
+SHORT_STOP = 5.0
+
+
+def paper(*overrides: str):
+    config, _ = load_config(PAPER, list(overrides))
+    return config
+
+
+def env() -> dict[str, str]:
+    out = {**os.environ, "COLUMNS": "80", "NO_COLOR": "1", "TERM": "dumb"}
+    out.pop("FORCE_COLOR", None)
+    return out
+
+
+def platoon(*args: object, cwd: Path, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([str(PLATOON), *map(str, args)], cwd=cwd, env=env(), capture_output=True, text=True,
+                          timeout=timeout)
+
+
+# --- a short run, read back ------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def short(tmp_path_factory: pytest.TempPathFactory, fmu_dir: Path) -> Trace:
+    out = tmp_path_factory.mktemp("traces") / "short.mcap"
+    result = run_scenario(paper(f"simulation.stop_time={SHORT_STOP}"), PAPER.read_text(), out, fmu_dir=fmu_dir)
+    assert result.status == "completed", result.error
+    return load(out)
+
+
+def test_channels_schemas_and_counts(short: Trace) -> None:
+    rows = int(round(SHORT_STOP / 0.01)) + 1
+    expected = {f"/platoon/{name}": (f"platoon.{name}", "json", rows) for name in COMPONENTS}
+    expected[ERRORS_TOPIC] = ("platoon.errors", "json", rows)
+    scenes = int(round(SHORT_STOP * 10)) + 1  # 10 Hz of simulated time, t = 0 included
+    expected[SCENE_TOPIC] = ("foxglove.SceneUpdate", "protobuf", scenes)
+    expected[TF_TOPIC] = ("foxglove.FrameTransforms", "protobuf", scenes)
+    expected[LOG_TOPIC] = ("foxglove.Log", "protobuf", 2)  # started, completed
+    assert {t: (i.schema, i.message_encoding, i.messages) for t, i in short.topics.items()} == expected
+
+
+def test_load_keeps_components_apart_from_derived_channels(short: Trace) -> None:
+    assert list(short.channels) == COMPONENTS  # /platoon/errors, scene, tf and log are not components
+    assert short.vehicles() == VEHICLES
+    for name in COMPONENTS:
+        t = short.component(name)["t"]
+        assert t[0] == 0.0 and t[-1] == pytest.approx(SHORT_STOP) and np.all(np.diff(t) > 0)
+    assert short.run["status"] == "completed"
+    assert set(short.run) >= {"status", "error", "engine", "master", "steps_recorded"}
+    assert short.run["steps_recorded"] == str(len(short.component("target")["t"]))
+    assert [line.level for line in short.log] == ["Info", "Info"]
+    assert short.log[0].t == 0.0 and short.log[-1].t == pytest.approx(SHORT_STOP)
+    assert "run completed" in short.log[-1].message
+
+
+def test_errors_channel_matches_the_path_and_config(short: Trace) -> None:
+    config = paper(f"simulation.stop_time={SHORT_STOP}")
+    errors = short.errors
+    assert np.array_equal(errors["t"], short.component("target")["t"])
+    for name in VEHICLES:
+        channel = short.component(name)
+        assert np.array_equal(errors[f"{name}.path_error"], path_errors(config, channel["x"], channel["y"]))
+        assert np.array_equal(errors[f"{name}.gap_error"], channel["gap"] - config.platoon.d_star)
+        assert np.array_equal(errors[f"{name}.speed_error"], channel["speed"] - config.platoon.speed)
+    assert all(np.all(np.isfinite(column)) for column in errors.values())
+    # vehicle 1 starts 5 m outside the circle (configs/paper/platoon.toml)
+    assert errors["vehicle1.path_error"][0] == pytest.approx(5.0)
+
+
+def _protobuf_messages(path: Path, topics: list[str]):
+    """Decode Foxglove channels with the protobuf schemas stored in the file, as Foxglove does."""
+    pytest.importorskip("google.protobuf")
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+    from mcap.reader import make_reader
+
+    classes = {}
+    with open(path, "rb") as stream:
+        for schema, channel, message in make_reader(stream, validate_crcs=True).iter_messages(topics=topics, log_time_order=True):
+            if schema.id not in classes:
+                pool = descriptor_pool.DescriptorPool()
+                for file in descriptor_pb2.FileDescriptorSet.FromString(schema.data).file:
+                    pool.Add(file)
+                classes[schema.id] = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name))
+            yield channel.topic, message.log_time, classes[schema.id].FromString(message.data)
+
+
+def test_scene_carries_the_whole_scene_in_a_defined_frame(short: Trace) -> None:
+    scenes = transforms = 0
+    for topic, log_time, message in _protobuf_messages(short.path, [SCENE_TOPIC, TF_TOPIC]):
+        assert log_time % 100_000_000 == 0  # 10 Hz of simulated time
+        if topic == TF_TOPIC:
+            transforms += 1
+            assert [(f.parent_frame_id, f.child_frame_id) for f in message.transforms] == [("world", n) for n in COMPONENTS]
+            continue
+        scenes += 1
+        entities = {entity.id: entity for entity in message.entities}
+        assert set(entities) == {"path", *COMPONENTS}  # every message: the path, the target, every vehicle
+        assert {entity.frame_id for entity in message.entities} == {"world"}  # a frame /platoon/tf defines
+        for entity in message.entities:
+            stamp = entity.timestamp.seconds * 1_000_000_000 + entity.timestamp.nanos
+            assert stamp == log_time
+        assert len(entities["path"].lines[0].points) == 180
+        radii = [math.hypot(p.x, p.y) for p in entities["path"].lines[0].points]
+        assert max(abs(r - 50.0) for r in radii) < 1e-9
+        for name in VEHICLES:
+            vehicle = entities[name]
+            assert len(vehicle.cubes) == 1 and len(vehicle.arrows) == 1 and vehicle.texts[0].text == name
+            history = vehicle.lines[0].points
+            assert 1 <= len(history) <= 50  # 5 s of simulated time at 10 Hz
+            pose = vehicle.cubes[0].pose.position
+            assert (history[-1].x, history[-1].y) == (pose.x, pose.y)
+        assert len(entities["target"].spheres) == 1
+    assert scenes == transforms == int(round(SHORT_STOP * 10)) + 1
+
+
+def test_scene_poses_are_the_recorded_positions(short: Trace) -> None:
+    x = dict(zip(np.round(short.component("vehicle2")["t"] * 1e9).astype(np.int64).tolist(), short.component("vehicle2")["x"]))
+    for _, log_time, message in _protobuf_messages(short.path, [SCENE_TOPIC]):
+        vehicle = next(e for e in message.entities if e.id == "vehicle2")
+        assert vehicle.cubes[0].pose.position.x == x[log_time]
+
+
+def test_layout_file_is_the_generated_classic_layout(short: Trace) -> None:
+    text = (REPO / "layouts" / "platoon.json").read_text()
+    assert text == layout_json(6), "regenerate: python -m orchestrator.foxglove 6 > layouts/platoon.json"
+    layout = json.loads(text)
+    assert {"configById", "layout", "globalVariables"} <= set(layout)
+    panels = layout["configById"]
+    three_d = next(v for k, v in panels.items() if k.startswith("3D!"))
+    assert three_d["topics"][SCENE_TOPIC]["visible"] is True
+    plotted = {path["value"] for k, v in panels.items() if k.startswith("Plot!") for path in v["paths"]}
+    for name in VEHICLES:  # every series of the 4-vehicle trace resolves to a column of /platoon/errors
+        for field in ("path_error", "gap_error", "speed_error"):
+            assert f"{ERRORS_TOPIC}.{name}.{field}" in plotted
+            assert f"{name}.{field}" in short.errors
+
+    def leaves(node):
+        return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
+
+    assert sorted(leaves(layout["layout"])) == sorted(panels)  # the tree shows every configured panel
+
+
+def test_export_csv(short: Trace, tmp_path: Path) -> None:
+    files = export_csv(short, tmp_path)
+    assert sorted(p.name for p in files) == sorted([f"{n}.csv" for n in COMPONENTS] + ["errors.csv"])
+    for name in COMPONENTS:
+        with open(tmp_path / f"{name}.csv", newline="") as stream:
+            rows = list(csv.reader(stream))
+        columns = short.component(name)
+        assert rows[0] == list(columns)  # header: t, then the variable names
+        assert rows[0][0] == "t"
+        values = np.array([[float(v) for v in row] for row in rows[1:]])
+        for i, key in enumerate(rows[0]):
+            assert np.array_equal(values[:, i], columns[key])  # exact: repr round-trips
+
+
+def test_json_encoding_is_exact_json() -> None:
+    keys = ["t", "x", "wheel.right", 'odd"%name']
+    for values in ([0.0, 1e-7, 1e22, -0.0], [5e-324, 1.7976931348623157e308, 0.1 + 0.2, -123.456],
+                   [np.float64(1.25), 3, 2.5e-310, 1 / 3]):
+        text = _template(keys).encode() % tuple(number_texts(list(values)))
+        decoded = json.loads(text)
+        assert list(decoded) == keys
+        assert [float(decoded[k]).hex() for k in keys] == [float(v).hex() for v in values]  # bit for bit
+
+
+def test_fast_message_path_writes_what_mcap_add_message_writes(tmp_path: Path, monkeypatch, short: Trace) -> None:
+    """The encoder appends Message records to the mcap writer's chunk itself; same bytes as the library's."""
+    import orchestrator.trace as trace_module
+
+    config = paper(f"simulation.stop_time={SHORT_STOP}")
+    components = [(name, [k for k in short.component(name) if k != "t"]) for name in COMPONENTS]
+    rows = [(t, [[short.component(n)[k][i] for k in outputs] for n, outputs in components])
+            for i, t in enumerate(short.component("target")["t"].tolist())]
+
+    def write(path: Path, chunk_size: int = 1 << 30) -> bytes:
+        from orchestrator.foxglove import FoxgloveChannels
+
+        writer = TraceWriter(path, components, every=1, foxglove=FoxgloveChannels(config, components),
+                             flush_interval=1e9, chunk_size=chunk_size)
+        writer.metadata("m", {"k": "v"})
+        for t, outputs in rows:
+            writer.record(t, [[float(v) for v in values] for values in outputs])
+        writer.log(SHORT_STOP, "Info", "done")
+        writer.close()
+        return path.read_bytes()
+
+    fast = write(tmp_path / "fast.mcap")
+    write(tmp_path / "chunked.mcap", chunk_size=1 << 16)  # many chunks: indexes kept packed in memory
+    chunked = load(tmp_path / "chunked.mcap")
+    assert {t: i.messages for t, i in chunked.topics.items()} == {t: i.messages for t, i in short.topics.items() if t != LOG_TOPIC} | {LOG_TOPIC: 1}
+    assert chunked.component("vehicle4")["gap"].tolist() == short.component("vehicle4")["gap"].tolist()
+    from mcap.reader import make_reader
+
+    with open(tmp_path / "chunked.mcap", "rb") as stream:
+        assert len(make_reader(stream).get_summary().chunk_indexes) > 5
+    monkeypatch.setattr(trace_module, "_fast_path", lambda writer: None)
+    slow = write(tmp_path / "slow.mcap")
+    assert fast == slow
+    assert load(tmp_path / "fast.mcap").component("vehicle3")["x"].tolist() == short.component("vehicle3")["x"].tolist()
+
+
+def test_non_finite_output_ends_the_trace_before_it(tmp_path: Path) -> None:
+    path = tmp_path / "nan.mcap"
+    writer = TraceWriter(path, [("a", ["x"]), ("b", ["y", "z"])], block=1000)
+    for k in range(5):
+        writer.record(k * 0.1, [[float(k)], [1.0, math.nan if k == 3 else 2.0]])
+    with pytest.raises(ComponentError, match=r"b failed at t = 0.3 s: output z = nan is not finite"):
+        writer.flush()
+    writer.close()
+    trace = load(path)
+    assert trace.component("a")["t"].tolist() == [0.0, 0.1, 0.2]
+    assert trace.component("b")["z"].tolist() == [2.0, 2.0, 2.0]
+
+
+def test_traces_without_channel_kinds_still_load(tmp_path: Path) -> None:
+    """Files written before channels carried ``platoon.kind``: every JSON /platoon/ channel is a component."""
+    from mcap.writer import CompressionType, Writer
+
+    path = tmp_path / "old.mcap"
+    with open(path, "wb") as stream:
+        writer = Writer(stream, compression=CompressionType.ZSTD)
+        writer.start()
+        schema = writer.register_schema("platoon.target", "jsonschema", b'{"type":"object"}')
+        channel = writer.register_channel("/platoon/target", "json", schema)
+        for k in range(3):
+            writer.add_message(channel, k * 10_000_000, json.dumps({"t": k * 0.01, "x": float(k)}).encode(), k * 10_000_000)
+        writer.finish()
+    trace = load(path)
+    assert list(trace.channels) == ["target"] and trace.component("target")["x"].tolist() == [0.0, 1.0, 2.0]
+
+
+def test_run_without_a_trace(fmu_dir: Path) -> None:
+    result = run_scenario(paper("simulation.stop_time=0.5"), "", None, fmu_dir=fmu_dir)
+    assert result.status == "completed" and result.trace is None and result.steps == 50
+
+
+# --- an FMU that fails mid-run ------------------------------------------------------------------
+
+SPEED_TO_ZERO = """
+[[disturbance]]
+vehicle = 4
+kind = "speed"
+start = 1.0
+duration = 0.5
+value = -100.0
+"""
+
+
+def test_fmu_failure_leaves_a_readable_trace_with_the_error_logged(tmp_path: Path, fmu_dir: Path) -> None:
+    source = tmp_path / "speed_to_zero.toml"
+    source.write_text(PAPER.read_text() + SPEED_TO_ZERO)
+    config, _ = load_config(source, ["simulation.stop_time=2.0"])
+    out = tmp_path / "failed.mcap"
+    result = run_scenario(config, source.read_text(), out, fmu_dir=fmu_dir)
+    assert result.status == "failed"
+    trace = load(out)
+    assert trace.run["status"] == "failed" and trace.run["error"].startswith("vehicle4 failed at t = 1 s")
+    for name in COMPONENTS:
+        t = trace.component(name)["t"]
+        assert len(t) == 101 and t[-1] == pytest.approx(1.0)
+    assert len(trace.errors["t"]) == 101
+    last = trace.log[-1]
+    assert last.level == "Error" and last.t == pytest.approx(1.0)
+    assert last.message == f"run failed: {trace.run['error']}"
+
+
+# --- decimation through the CLI ------------------------------------------------------------------
+
+def test_trace_every_option_and_export_command(tmp_path: Path) -> None:
+    out = tmp_path / "decimated.mcap"
+    result = platoon("run", PAPER, "--set", "simulation.stop_time=2.0", "--trace-every", "10", "--out", out, "-q",
+                     cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    trace = load(out)
+    assert trace.config["simulation"]["trace_every"] == 10
+    for name in COMPONENTS:
+        assert np.allclose(trace.component(name)["t"], np.arange(21) * 0.1, rtol=0, atol=1e-12)
+    assert len(trace.errors["t"]) == 21
+    exported = platoon("export", out, "--csv", tmp_path / "csv", cwd=tmp_path)
+    assert exported.returncode == 0, exported.stderr
+    with open(tmp_path / "csv" / "vehicle3.csv", newline="") as stream:
+        rows = list(csv.reader(stream))
+    assert rows[0] == list(trace.component("vehicle3")) and len(rows) == 22
+    missing = platoon("export", tmp_path / "nothing.mcap", "--csv", tmp_path / "x", cwd=tmp_path)
+    assert missing.returncode == 2 and "no such file" in missing.stderr
+
+
+# --- signals on a real subprocess ------------------------------------------------------------------
+
+LONG = ("--set", "simulation.stop_time=10000")
+
+
+def start_long_run(trace: Path, cwd: Path) -> subprocess.Popen[str]:
+    """`platoon run` of a 10000 s scenario; returns once it has run ~2 s and its trace holds chunks."""
+    process = subprocess.Popen(
+        [str(PLATOON), "run", str(PAPER), *LONG, "--out", str(trace), "-q"], cwd=cwd, env=env(),
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        # a test runner started in the background may hand down SIGINT ignored; a user's shell does not
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+    started = time.monotonic()
+    while time.monotonic() - started < 60:
+        if process.poll() is not None:
+            raise AssertionError(f"run ended early ({process.returncode}): {process.stderr.read()}")
+        if time.monotonic() - started > 2.0 and trace.is_file() and trace.stat().st_size > 200_000:
+            return process
+        time.sleep(0.05)
+    process.kill()
+    raise AssertionError("the trace did not grow within 60 s")
+
+
+def assert_consistent(trace: Trace, step: float = 0.01) -> float:
+    """Every component and the errors end at the same time, on the grid, with no gap; returns it."""
+    reference = trace.component("target")["t"]
+    assert len(reference) > 10 and reference[-1] > 0
+    assert np.allclose(np.diff(reference), step, rtol=0, atol=1e-9)  # increasing, no gaps
+    for name in COMPONENTS:
+        assert np.array_equal(trace.component(name)["t"], reference), name
+        assert np.array_equal(trace.component(name)["time"], reference), name
+    assert np.array_equal(trace.errors["t"], reference)
+    return float(reference[-1])
+
+
+@pytest.fixture(scope="module")
+def signalled(tmp_path_factory: pytest.TempPathFactory):
+    """SIGINT and SIGTERM runs: {signal: (completed process, trace path)}."""
+    folder = tmp_path_factory.mktemp("signals")
+    results = {}
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        trace = folder / f"{signal.Signals(signum).name}.mcap"
+        process = start_long_run(trace, folder)
+        process.send_signal(signum)
+        stdout, stderr = process.communicate(timeout=60)
+        results[signum] = (process.returncode, stderr, trace)
+    return results
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_signal_finalizes_the_trace(signalled, signum: int) -> None:
+    code, stderr, path = signalled[signum]
+    assert code == 128 + signum, stderr  # 130 for SIGINT, 143 for SIGTERM
+    assert "Traceback" not in stderr
+    assert stderr.startswith("error: run interrupted: ") and str(path) in stderr, stderr
+    trace = load(path)  # finalized: footer, summary, indexes
+    last = assert_consistent(trace)
+    assert trace.run["status"] == "interrupted"
+    assert trace.run["signal"] == signal.Signals(signum).name
+    assert float(trace.run["last_time"]) == last
+    assert trace.run["steps_recorded"] == str(len(trace.component("target")["t"]))
+    assert f"at t = {last:.6g} s" in trace.run["error"]
+    assert trace.log[-1].level == "Warning" and signal.Signals(signum).name in trace.log[-1].message
+    assert trace.topics[SCENE_TOPIC].messages == int(last * 10 + 1e-6) + 1
+
+
+@pytest.fixture(scope="module")
+def killed(tmp_path_factory: pytest.TempPathFactory):
+    """A run killed with SIGKILL: (broken path, CLI result, recovered path, Recovery)."""
+    folder = tmp_path_factory.mktemp("killed")
+    broken = folder / "killed.mcap"
+    process = start_long_run(broken, folder)
+    process.send_signal(signal.SIGKILL)
+    process.communicate(timeout=60)
+    assert process.returncode == -signal.SIGKILL
+    fixed = folder / "fixed.mcap"
+    cli = platoon("trace", "recover", broken, "--out", fixed, cwd=folder)
+    details = recover(broken, folder / "fixed-again.mcap")
+    return broken, cli, fixed, details
+
+
+def test_killed_trace_is_unfinished_and_says_how_to_recover(killed) -> None:
+    broken = killed[0]
+    with pytest.raises(TraceError, match="platoon trace recover"):
+        load(broken)
+
+
+def test_recover_after_sigkill(killed) -> None:
+    broken, cli, fixed, details = killed
+    assert cli.returncode == 0, cli.stderr
+    assert f"recovered {details.steps} communication points" in cli.stdout and str(fixed) in cli.stdout
+    assert not details.finished and details.chunks >= 1
+    trace = load(fixed)
+    last = assert_consistent(trace)
+    assert details.steps == len(trace.component("target")["t"]) and details.last_time == pytest.approx(last)
+    # at most the part of one row that a chunk boundary cut is dropped: 5 components + errors channel
+    assert details.dropped < len(COMPONENTS) + 1 + 3
+    assert trace.run["status"] == "recovered" and trace.run["engine"] == "fmi"
+    assert trace.run["steps_recorded"] == str(details.steps)
+    assert trace.config["simulation"]["stop_time"] == 10000.0
+    assert trace.topics[SCENE_TOPIC].messages >= int(last * 10) - 1  # scenes survive up to the end too
+    assert trace.log[0].message.startswith("run started")
+
+
+def test_recover_cli_bad_input(tmp_path: Path) -> None:
+    bogus = tmp_path / "bogus.mcap"
+    bogus.write_text("not an MCAP file at all\n")
+    result = platoon("trace", "recover", bogus, cwd=tmp_path)
+    assert result.returncode == 2 and "not an MCAP file" in result.stderr, result.stderr
+    missing = platoon("trace", "recover", tmp_path / "none.mcap", cwd=tmp_path)
+    assert missing.returncode == 2 and "no such file" in missing.stderr
+
+
+# --- an independent reader: @mcap/core (TypeScript) under Node --------------------------------------
+
+@pytest.fixture(scope="module")
+def mcap_js() -> Path:
+    node, npm = shutil.which("node"), shutil.which("npm")
+    if node is None or npm is None:
+        pytest.skip("node/npm not installed: the independent @mcap/core reader cannot run")
+    if not (MCAP_JS / "node_modules" / "@mcap" / "core").is_dir():
+        try:
+            done = subprocess.run([npm, "ci", "--no-audit", "--no-fund"], cwd=MCAP_JS, capture_output=True, text=True,
+                                  timeout=300)
+        except subprocess.TimeoutExpired:
+            pytest.skip("npm ci timed out: the npm registry is not reachable")
+        if done.returncode != 0:
+            text = done.stderr + done.stdout
+            if any(s in text for s in ("ENOTFOUND", "ECONNREFUSED", "ETIMEDOUT", "EAI_AGAIN", "network", "ECONNRESET")):
+                pytest.skip(f"npm cannot reach the registry: {text.strip().splitlines()[-1]}")
+            raise AssertionError(f"npm ci failed:\n{text}")
+    return MCAP_JS / "read_mcap.mjs"
+
+
+def read_js(script: Path, path: Path) -> dict:
+    done = subprocess.run(["node", str(script), str(path)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)
+
+
+def _flatten(record: dict, prefix: str = "") -> dict:
+    flat = {}
+    for key, value in record.items():
+        flat.update(_flatten(value, f"{prefix}{key}.") if isinstance(value, dict) else {prefix + key: value})
+    return flat
+
+
+def test_independent_reader_sees_the_same_trace(mcap_js: Path, short: Trace) -> None:
+    js = read_js(mcap_js, short.path)
+    stream, indexed = js["stream"], js["indexed"]
+    assert stream["done"] and stream["records"]["Footer"] == 1
+    counts = {topic: info.messages for topic, info in short.topics.items()}
+    assert stream["counts"] == counts  # every record in file order, CRCs checked
+    assert {t: i["count"] for t, i in indexed["topics"].items()} == counts  # through the indexes
+    assert {t: int(n) for t, n in indexed["statistics"]["channelMessageCounts"].items()} == counts
+    for topic, info in short.topics.items():
+        assert indexed["topics"][topic]["schema"] == info.schema
+        assert indexed["topics"][topic]["messageEncoding"] == info.message_encoding
+    assert indexed["metadata"] == short.metadata
+    assert indexed["chunks"] >= 1 and indexed["library"] == "platoon-cosim"
+    for name in COMPONENTS:
+        messages = indexed["json"][f"/platoon/{name}"]
+        columns = short.component(name)
+        assert [int(m[0]) for m in messages] == [int(round(t * 1e9)) for t in columns["t"]]  # log_time = t in ns
+        assert [m[0] for m in messages] == [m[1] for m in messages]  # publish_time too
+        for key, column in columns.items():
+            assert np.array_equal(np.array([m[3][key] for m in messages], dtype=float), column), (name, key)
+    errors = [_flatten(m[3]) for m in indexed["json"][ERRORS_TOPIC]]
+    for key, column in short.errors.items():
+        assert np.array_equal(np.array([e[key] for e in errors], dtype=float), column), key
+
+
+def test_independent_reader_on_interrupted_and_recovered_traces(mcap_js: Path, signalled, killed) -> None:
+    _, _, interrupted = signalled[signal.SIGTERM]
+    broken, _, fixed, details = killed
+    for path in (interrupted, fixed):
+        js = read_js(mcap_js, path)
+        ours = load(path)
+        assert js["stream"]["done"]
+        assert js["stream"]["counts"] == {t: i.messages for t, i in ours.topics.items()}
+        assert {t: i["count"] for t, i in js["indexed"]["topics"].items()} == js["stream"]["counts"]
+        target = js["indexed"]["json"]["/platoon/target"]
+        assert np.array_equal(np.array([m[3]["x"] for m in target]), ours.component("target")["x"])
+    # the unfinished file itself: the independent stream reader finds the same complete chunks
+    js = read_js(mcap_js, broken)
+    assert not js["stream"]["done"]
+    assert sum(js["stream"]["counts"].values()) == details.messages + details.dropped
