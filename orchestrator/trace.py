@@ -15,50 +15,31 @@ Rows are buffered and encoded in blocks, so a run's hot loop only appends the ou
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import struct
 import time as clock
-from dataclasses import dataclass, field
 from itertools import chain
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
-import numpy as np
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
-from mcap.records import Channel, Chunk, DataEnd, Footer, Message, MessageIndex, Metadata, Schema
 from mcap.data_stream import RecordBuilder
-from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.records import Message, MessageIndex, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
 from .components import ComponentError
+from .trace_format import (
+    SCHEMA_ENCODING,
+    MESSAGE_ENCODING,
+    KIND_KEY,
+    CHUNK_SIZE,
+    FLUSH_INTERVAL,
+    BLOCK,
+    channel_name,
+)
 
 if TYPE_CHECKING:
     from .foxglove import FoxgloveChannels
-
-CHANNEL_PREFIX = "/platoon/"
-SCHEMA_ENCODING = "jsonschema"
-MESSAGE_ENCODING = "json"
-KIND_KEY = "platoon.kind"  # channel metadata: "component", "errors" or "foxglove"
-ERRORS_TOPIC = CHANNEL_PREFIX + "errors"
-LOG_TOPIC = CHANNEL_PREFIX + "log"
-
-CHUNK_SIZE = 1 << 20  # bytes of uncompressed records per chunk, at most
-FLUSH_INTERVAL = 1.0  # s of wall time: a chunk is closed and the file flushed at least this often
-BLOCK = 500  # rows buffered before they are encoded
-MAGIC = b"\x89MCAP0\r\n"
-FOOTER_LENGTH = 1 + 8 + 8 + 8 + 4  # opcode, record length, summary start, summary offset start, crc
-
-
-class TraceError(ValueError):
-    """A file that is not a usable trace; the message says why and what to do."""
-
-
-def channel_name(component: str) -> str:
-    return CHANNEL_PREFIX + component
-
 
 def _schema(component: str, outputs: Sequence[str], descriptions: dict[str, str]) -> bytes:
     properties = {"t": {"type": "number", "description": "simulation time [s]"}}
@@ -406,314 +387,8 @@ class NullTraceWriter:
         pass
 
 
-# --- reading ---------------------------------------------------------------------------------------
+# The reading side, re-exported so ``orchestrator.trace`` stays the one place to import from.
+from .trace_reader import LogLine, TopicInfo, Trace, decode_log, export_csv, load  # noqa: E402,F401
+from .trace_recovery import Recovery, recover  # noqa: E402,F401
+from .trace_format import TraceError  # noqa: E402,F401
 
-@dataclass(frozen=True)
-class TopicInfo:
-    topic: str
-    schema: str
-    message_encoding: str
-    kind: str  # "component", "errors", "foxglove" or "other"
-    messages: int
-
-
-@dataclass(frozen=True)
-class LogLine:
-    t: float
-    level: str
-    message: str
-
-
-@dataclass
-class Trace:
-    """A trace read back: per component, a dict of numpy arrays keyed by ``t`` and output names.
-
-    ``channels`` holds only the components (``/platoon/<component>``); ``errors`` the flattened
-    ``/platoon/errors`` columns (``t``, ``vehicle1.path_error`` ...); ``log`` the ``/platoon/log``
-    lines; ``topics`` every channel of the file with its schema and message count.
-    """
-
-    path: Path
-    channels: dict[str, dict[str, np.ndarray]]
-    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
-    errors: dict[str, np.ndarray] = field(default_factory=dict)
-    log: list[LogLine] = field(default_factory=list)
-    topics: dict[str, TopicInfo] = field(default_factory=dict)
-
-    @property
-    def config(self) -> dict[str, Any] | None:
-        record = self.metadata.get("platoon.config")
-        return json.loads(record["resolved"]) if record and "resolved" in record else None
-
-    @property
-    def run(self) -> dict[str, str]:
-        return self.metadata.get("platoon.run", {})
-
-    def component(self, name: str) -> dict[str, np.ndarray]:
-        return self.channels[name]
-
-    def vehicles(self) -> list[str]:
-        names = [n for n in self.channels if n.startswith("vehicle") and n[len("vehicle"):].isdigit()]
-        return sorted(names, key=lambda n: int(n[len("vehicle"):]))
-
-
-def _kind(channel: Channel, schema: Schema | None) -> str:
-    if KIND_KEY in channel.metadata:
-        return channel.metadata[KIND_KEY]
-    # traces written before channel kinds existed: every JSON /platoon/ channel was a component
-    if channel.topic.startswith(CHANNEL_PREFIX) and channel.message_encoding == MESSAGE_ENCODING:
-        return "errors" if channel.topic == ERRORS_TOPIC else "component"
-    return "foxglove" if schema is not None and schema.name.startswith("foxglove.") else "other"
-
-
-def _flatten(record: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    flat: dict[str, Any] = {}
-    for key, value in record.items():
-        if isinstance(value, dict):
-            flat.update(_flatten(value, f"{prefix}{key}."))
-        else:
-            flat[prefix + key] = value
-    return flat
-
-
-def _columns(keys: list[str], rows: list[list[float]]) -> dict[str, np.ndarray]:
-    if not rows:
-        return {key: np.zeros(0) for key in keys}
-    array = np.asarray(rows, dtype=float)
-    return {key: array[:, i].copy() for i, key in enumerate(keys)}
-
-
-def load(path: str | Path) -> Trace:
-    """Read a finished trace (CRCs checked) into numpy arrays, with its metadata, errors and log."""
-    path = Path(path)
-    with open(path, "rb") as stream:
-        head = stream.read(len(MAGIC))
-        stream.seek(max(0, path.stat().st_size - len(MAGIC)))
-        tail = stream.read(len(MAGIC))
-        stream.seek(0)
-        if head != MAGIC:
-            raise TraceError("not an MCAP file (no MCAP magic at its start)")
-        if tail != MAGIC or path.stat().st_size < 2 * len(MAGIC) + FOOTER_LENGTH:
-            raise TraceError(f"unfinished MCAP file (no footer: the writing process was killed?); "
-                             f"recover its complete chunks with `platoon trace recover {path}`")
-        reader = make_reader(stream, validate_crcs=True)
-        try:
-            summary = reader.get_summary()
-        except Exception as error:  # a damaged footer or summary
-            raise TraceError(f"damaged MCAP file ({error}); try `platoon trace recover {path}`") from None
-        if summary is None:
-            raise TraceError(f"no summary section (unfinished file?); try `platoon trace recover {path}`")
-        kinds = {cid: _kind(ch, summary.schemas.get(ch.schema_id)) for cid, ch in summary.channels.items()}
-        counts = summary.statistics.channel_message_counts if summary.statistics else {}
-        topics = {
-            ch.topic: TopicInfo(ch.topic, summary.schemas[ch.schema_id].name if ch.schema_id in summary.schemas else "",
-                                ch.message_encoding, kinds[cid], counts.get(cid, 0))
-            for cid, ch in summary.channels.items()
-        }
-        wanted = [ch.topic for cid, ch in summary.channels.items() if kinds[cid] in ("component", "errors") or ch.topic == LOG_TOPIC]
-        rows: dict[str, list[list[float]]] = {}
-        keys: dict[str, list[str]] = {}
-        error_rows: list[list[float]] = []
-        error_keys: list[str] = []
-        log: list[LogLine] = []
-        for _, channel, message in reader.iter_messages(topics=wanted, log_time_order=True):
-            kind = kinds[channel.id]
-            if kind == "component":
-                name = channel.topic[len(CHANNEL_PREFIX):] if channel.topic.startswith(CHANNEL_PREFIX) else channel.topic
-                record = json.loads(message.data)
-                if name not in keys:
-                    keys[name] = list(record)
-                    rows[name] = []
-                rows[name].append([record[k] for k in keys[name]])
-            elif kind == "errors":
-                record = _flatten(json.loads(message.data))
-                if not error_keys:
-                    error_keys = list(record)
-                error_rows.append([record[k] for k in error_keys])
-            elif channel.topic == LOG_TOPIC:
-                log.append(decode_log(message.data))
-        metadata = {item.name: dict(item.metadata) for item in reader.iter_metadata()}
-    for cid, ch in summary.channels.items():  # a component with no message yet still appears, empty
-        if kinds[cid] == "component":
-            name = ch.topic[len(CHANNEL_PREFIX):]
-            if name not in rows:
-                schema = summary.schemas.get(ch.schema_id)
-                keys[name] = list(json.loads(schema.data)["properties"]) if schema is not None else ["t"]
-                rows[name] = []
-    channels = {name: _columns(keys[name], rows[name]) for name in rows}
-    errors = _columns(error_keys, error_rows) if error_keys else {}
-    return Trace(path, channels, metadata, errors, log, topics)
-
-
-_LEVELS = {0: "Unknown", 1: "Debug", 2: "Info", 3: "Warning", 4: "Error", 5: "Fatal"}
-
-
-def _varint(data: bytes, at: int) -> tuple[int, int]:
-    value, shift = 0, 0
-    while True:
-        byte = data[at]
-        value |= (byte & 0x7F) << shift
-        at += 1
-        if not byte & 0x80:
-            return value, at
-        shift += 7
-
-
-def decode_log(data: bytes) -> LogLine:
-    """A ``foxglove.Log`` protobuf message: timestamp (1), level (2) and message (3); the rest skipped."""
-    fields: dict[int, Any] = {}
-    at = 0
-    while at < len(data):
-        tag, at = _varint(data, at)
-        number, wire = tag >> 3, tag & 7
-        if wire == 0:
-            fields[number], at = _varint(data, at)
-        elif wire == 2:
-            length, at = _varint(data, at)
-            fields[number] = data[at:at + length]
-            at += length
-        elif wire == 5:
-            at += 4
-        elif wire == 1:
-            at += 8
-        else:
-            raise ValueError(f"unexpected protobuf wire type {wire}")
-    sec = nsec = 0
-    stamp = fields.get(1, b"")
-    at = 0
-    while at < len(stamp):
-        tag, at = _varint(stamp, at)
-        value, at = _varint(stamp, at)
-        if tag >> 3 == 1:
-            sec = value
-        elif tag >> 3 == 2:
-            nsec = value
-    return LogLine(sec + nsec * 1e-9, _LEVELS.get(fields.get(2, 0), "Unknown"), fields.get(3, b"").decode("utf-8", "replace"))
-
-
-# --- export ----------------------------------------------------------------------------------------
-
-def export_csv(trace: Trace, directory: str | Path) -> list[Path]:
-    """One ``<component>.csv`` per component (header ``t`` then the outputs), and ``errors.csv``.
-
-    Values are written with ``repr``, which round-trips every float exactly.
-    """
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    tables = dict(trace.channels)
-    if trace.errors:
-        tables["errors"] = trace.errors
-    written = []
-    for name, columns in tables.items():
-        path = directory / f"{name}.csv"
-        keys = list(columns)
-        with open(path, "w", newline="") as stream:
-            out = csv.writer(stream)
-            out.writerow(keys)
-            for row in zip(*(columns[k].tolist() for k in keys)):
-                out.writerow([repr(v) for v in row])
-        written.append(path)
-    return written
-
-
-# --- recovery --------------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class Recovery:
-    source: Path
-    destination: Path
-    chunks: int  # complete chunks read
-    messages: int  # messages written
-    dropped: int  # messages of complete chunks dropped past the last complete row
-    steps: int  # rows (communication points) recovered
-    last_time: float | None
-    finished: bool  # the source had its footer (nothing was missing)
-
-
-def recover(source: str | Path, destination: str | Path) -> Recovery:
-    """Rewrite what an unfinished trace holds into a valid, indexed file.
-
-    Reads records in file order with a non-seeking reader, keeps every chunk whose CRC checks and
-    stops at the first record that is cut short or damaged. The result is trimmed to the last
-    communication point that every component channel reached (a chunk may end inside a row), so all
-    channels end at the same time. Metadata records are kept; if the run's ``platoon.run`` record
-    is missing (the process was killed), one with status ``recovered`` is added.
-    """
-    source, destination = Path(source), Path(destination)
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
-    messages: list[Message] = []
-    metadata: list[Metadata] = []
-    chunks = 0
-    finished = False
-    with open(source, "rb") as stream:
-        reader = StreamReader(stream, emit_chunks=True, validate_crcs=False, record_size_limit=1 << 30)
-        try:
-            for record in reader.records:
-                if isinstance(record, Chunk):
-                    try:
-                        inner = breakup_chunk(record, validate_crc=True)
-                    except Exception:
-                        break
-                    chunks += 1
-                    records = inner
-                else:
-                    records = [record]
-                for item in records:
-                    if isinstance(item, Schema):
-                        schemas[item.id] = item
-                    elif isinstance(item, Channel):
-                        channels[item.id] = item
-                    elif isinstance(item, Message):
-                        messages.append(item)
-                    elif isinstance(item, Metadata):
-                        metadata.append(item)
-                if isinstance(record, (DataEnd, Footer)):
-                    finished = True
-                    break
-        except McapError as error:
-            if "magic" in str(error).lower() and chunks == 0 and not channels:
-                raise TraceError(f"{source}: not an MCAP file ({error})") from None
-        except Exception:  # cut short: EOF inside a record, a garbage length, ...
-            pass
-    components = {cid for cid, ch in channels.items() if _kind(ch, schemas.get(ch.schema_id)) == "component"}
-    last: dict[int, int] = {}
-    for message in messages:
-        if message.channel_id in components:
-            last[message.channel_id] = max(last.get(message.channel_id, -1), message.log_time)
-    if components:
-        complete = min(last.get(cid, -1) for cid in components)  # -1: some component has no message
-        kept = [m for m in messages if m.log_time <= complete]
-    else:
-        complete, kept = None, messages
-    dropped = len(messages) - len(kept)
-    destination.parent.mkdir(parents=True, exist_ok=True)
-    with open(destination, "wb") as stream:
-        writer = Writer(stream, compression=CompressionType.ZSTD, chunk_size=CHUNK_SIZE)
-        writer.start(profile="", library="platoon-cosim (recovered)")
-        schema_ids = {sid: writer.register_schema(s.name, s.encoding, s.data) for sid, s in sorted(schemas.items())}
-        channel_ids = {
-            cid: writer.register_channel(c.topic, c.message_encoding, schema_ids.get(c.schema_id, 0), dict(c.metadata))
-            for cid, c in sorted(channels.items())
-        }
-        kept.sort(key=lambda m: m.log_time)  # stable: file order within one time
-        for m in kept:
-            writer.add_message(channel_ids[m.channel_id], m.log_time, m.data, m.publish_time, m.sequence)
-        names = {item.name for item in metadata}
-        for item in metadata:
-            writer.add_metadata(item.name, dict(item.metadata))
-        first = min(components) if components else None
-        steps = sum(1 for m in kept if m.channel_id == first)
-        last_time = complete * 1e-9 if complete is not None and complete >= 0 else None
-        if "platoon.run" not in names:
-            start = next((dict(item.metadata) for item in metadata if item.name == "platoon.start"), {})
-            writer.add_metadata("platoon.run", {
-                "status": "recovered",
-                "error": f"the run ended without finalizing its trace (killed?); recovered from {source.name}",
-                "engine": start.get("engine", ""),
-                "master": start.get("master", ""),
-                "steps_recorded": str(steps),
-                "last_time": "" if last_time is None else repr(last_time),
-            })
-        writer.finish()
-    return Recovery(source, destination, chunks, len(kept), dropped, steps, last_time, finished)

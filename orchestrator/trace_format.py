@@ -1,0 +1,40 @@
+"""The trace format's names and shared rules: channel topics, channel kinds, MCAP framing.
+
+docs/trace-format.md describes the format; the writer (``trace``), the reader (``trace_reader``) and
+the recovery (``trace_recovery``) all take their constants from here.
+"""
+
+from __future__ import annotations
+
+from mcap.records import Channel, Schema
+
+CHANNEL_PREFIX = "/platoon/"
+SCHEMA_ENCODING = "jsonschema"
+MESSAGE_ENCODING = "json"
+KIND_KEY = "platoon.kind"  # channel metadata: "component", "errors" or "foxglove"
+ERRORS_TOPIC = CHANNEL_PREFIX + "errors"
+LOG_TOPIC = CHANNEL_PREFIX + "log"
+
+CHUNK_SIZE = 1 << 20  # bytes of uncompressed records per chunk, at most
+FLUSH_INTERVAL = 1.0  # s of wall time: a chunk is closed and the file flushed at least this often
+BLOCK = 500  # rows buffered before they are encoded
+MAGIC = b"\x89MCAP0\r\n"
+FOOTER_LENGTH = 1 + 8 + 8 + 8 + 4  # opcode, record length, summary start, summary offset start, crc
+
+
+class TraceError(ValueError):
+    """A file that is not a usable trace; the message says why and what to do."""
+
+
+def channel_name(component: str) -> str:
+    return CHANNEL_PREFIX + component
+
+
+def channel_kind(channel: Channel, schema: Schema | None) -> str:
+    """"component", "errors", "foxglove" or "other": what a channel of a trace holds."""
+    if KIND_KEY in channel.metadata:
+        return channel.metadata[KIND_KEY]
+    # traces written before channel kinds existed: every JSON /platoon/ channel was a component
+    if channel.topic.startswith(CHANNEL_PREFIX) and channel.message_encoding == MESSAGE_ENCODING:
+        return "errors" if channel.topic == ERRORS_TOPIC else "component"
+    return "foxglove" if schema is not None and schema.name.startswith("foxglove.") else "other"

@@ -1,0 +1,223 @@
+"""Reading traces back: components as numpy arrays, the error channel, log lines, metadata; CSV export."""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+
+from .trace_format import (
+    CHANNEL_PREFIX,
+    LOG_TOPIC,
+    MAGIC,
+    FOOTER_LENGTH,
+    TraceError,
+    channel_kind,
+)
+
+
+# --- reading ---------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class TopicInfo:
+    topic: str
+    schema: str
+    message_encoding: str
+    kind: str  # "component", "errors", "foxglove" or "other"
+    messages: int
+
+
+@dataclass(frozen=True)
+class LogLine:
+    t: float
+    level: str
+    message: str
+
+
+@dataclass
+class Trace:
+    """A trace read back: per component, a dict of numpy arrays keyed by ``t`` and output names.
+
+    ``channels`` holds only the components (``/platoon/<component>``); ``errors`` the flattened
+    ``/platoon/errors`` columns (``t``, ``vehicle1.path_error`` ...); ``log`` the ``/platoon/log``
+    lines; ``topics`` every channel of the file with its schema and message count.
+    """
+
+    path: Path
+    channels: dict[str, dict[str, np.ndarray]]
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    errors: dict[str, np.ndarray] = field(default_factory=dict)
+    log: list[LogLine] = field(default_factory=list)
+    topics: dict[str, TopicInfo] = field(default_factory=dict)
+
+    @property
+    def config(self) -> dict[str, Any] | None:
+        record = self.metadata.get("platoon.config")
+        return json.loads(record["resolved"]) if record and "resolved" in record else None
+
+    @property
+    def run(self) -> dict[str, str]:
+        return self.metadata.get("platoon.run", {})
+
+    def component(self, name: str) -> dict[str, np.ndarray]:
+        return self.channels[name]
+
+    def vehicles(self) -> list[str]:
+        names = [n for n in self.channels if n.startswith("vehicle") and n[len("vehicle"):].isdigit()]
+        return sorted(names, key=lambda n: int(n[len("vehicle"):]))
+
+
+def _flatten(record: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    flat: dict[str, Any] = {}
+    for key, value in record.items():
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            flat[prefix + key] = value
+    return flat
+
+
+def _columns(keys: list[str], rows: list[list[float]]) -> dict[str, np.ndarray]:
+    if not rows:
+        return {key: np.zeros(0) for key in keys}
+    array = np.asarray(rows, dtype=float)
+    return {key: array[:, i].copy() for i, key in enumerate(keys)}
+
+
+def load(path: str | Path) -> Trace:
+    """Read a finished trace (CRCs checked) into numpy arrays, with its metadata, errors and log."""
+    path = Path(path)
+    with open(path, "rb") as stream:
+        head = stream.read(len(MAGIC))
+        stream.seek(max(0, path.stat().st_size - len(MAGIC)))
+        tail = stream.read(len(MAGIC))
+        stream.seek(0)
+        if head != MAGIC:
+            raise TraceError("not an MCAP file (no MCAP magic at its start)")
+        if tail != MAGIC or path.stat().st_size < 2 * len(MAGIC) + FOOTER_LENGTH:
+            raise TraceError(f"unfinished MCAP file (no footer: the writing process was killed?); "
+                             f"recover its complete chunks with `platoon trace recover {path}`")
+        reader = make_reader(stream, validate_crcs=True)
+        try:
+            summary = reader.get_summary()
+        except Exception as error:  # a damaged footer or summary
+            raise TraceError(f"damaged MCAP file ({error}); try `platoon trace recover {path}`") from None
+        if summary is None:
+            raise TraceError(f"no summary section (unfinished file?); try `platoon trace recover {path}`")
+        kinds = {cid: channel_kind(ch, summary.schemas.get(ch.schema_id)) for cid, ch in summary.channels.items()}
+        counts = summary.statistics.channel_message_counts if summary.statistics else {}
+        topics = {
+            ch.topic: TopicInfo(ch.topic, summary.schemas[ch.schema_id].name if ch.schema_id in summary.schemas else "",
+                                ch.message_encoding, kinds[cid], counts.get(cid, 0))
+            for cid, ch in summary.channels.items()
+        }
+        wanted = [ch.topic for cid, ch in summary.channels.items() if kinds[cid] in ("component", "errors") or ch.topic == LOG_TOPIC]
+        rows: dict[str, list[list[float]]] = {}
+        keys: dict[str, list[str]] = {}
+        error_rows: list[list[float]] = []
+        error_keys: list[str] = []
+        log: list[LogLine] = []
+        for _, channel, message in reader.iter_messages(topics=wanted, log_time_order=True):
+            kind = kinds[channel.id]
+            if kind == "component":
+                name = channel.topic[len(CHANNEL_PREFIX):] if channel.topic.startswith(CHANNEL_PREFIX) else channel.topic
+                record = json.loads(message.data)
+                if name not in keys:
+                    keys[name] = list(record)
+                    rows[name] = []
+                rows[name].append([record[k] for k in keys[name]])
+            elif kind == "errors":
+                record = _flatten(json.loads(message.data))
+                if not error_keys:
+                    error_keys = list(record)
+                error_rows.append([record[k] for k in error_keys])
+            elif channel.topic == LOG_TOPIC:
+                log.append(decode_log(message.data))
+        metadata = {item.name: dict(item.metadata) for item in reader.iter_metadata()}
+    for cid, ch in summary.channels.items():  # a component with no message yet still appears, empty
+        if kinds[cid] == "component":
+            name = ch.topic[len(CHANNEL_PREFIX):]
+            if name not in rows:
+                schema = summary.schemas.get(ch.schema_id)
+                keys[name] = list(json.loads(schema.data)["properties"]) if schema is not None else ["t"]
+                rows[name] = []
+    channels = {name: _columns(keys[name], rows[name]) for name in rows}
+    errors = _columns(error_keys, error_rows) if error_keys else {}
+    return Trace(path, channels, metadata, errors, log, topics)
+
+
+_LEVELS = {0: "Unknown", 1: "Debug", 2: "Info", 3: "Warning", 4: "Error", 5: "Fatal"}
+
+
+def _varint(data: bytes, at: int) -> tuple[int, int]:
+    value, shift = 0, 0
+    while True:
+        byte = data[at]
+        value |= (byte & 0x7F) << shift
+        at += 1
+        if not byte & 0x80:
+            return value, at
+        shift += 7
+
+
+def decode_log(data: bytes) -> LogLine:
+    """A ``foxglove.Log`` protobuf message: timestamp (1), level (2) and message (3); the rest skipped."""
+    fields: dict[int, Any] = {}
+    at = 0
+    while at < len(data):
+        tag, at = _varint(data, at)
+        number, wire = tag >> 3, tag & 7
+        if wire == 0:
+            fields[number], at = _varint(data, at)
+        elif wire == 2:
+            length, at = _varint(data, at)
+            fields[number] = data[at:at + length]
+            at += length
+        elif wire == 5:
+            at += 4
+        elif wire == 1:
+            at += 8
+        else:
+            raise ValueError(f"unexpected protobuf wire type {wire}")
+    sec = nsec = 0
+    stamp = fields.get(1, b"")
+    at = 0
+    while at < len(stamp):
+        tag, at = _varint(stamp, at)
+        value, at = _varint(stamp, at)
+        if tag >> 3 == 1:
+            sec = value
+        elif tag >> 3 == 2:
+            nsec = value
+    return LogLine(sec + nsec * 1e-9, _LEVELS.get(fields.get(2, 0), "Unknown"), fields.get(3, b"").decode("utf-8", "replace"))
+
+
+# --- export ----------------------------------------------------------------------------------------
+
+def export_csv(trace: Trace, directory: str | Path) -> list[Path]:
+    """One ``<component>.csv`` per component (header ``t`` then the outputs), and ``errors.csv``.
+
+    Values are written with ``repr``, which round-trips every float exactly.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    tables = dict(trace.channels)
+    if trace.errors:
+        tables["errors"] = trace.errors
+    written = []
+    for name, columns in tables.items():
+        path = directory / f"{name}.csv"
+        keys = list(columns)
+        with open(path, "w", newline="") as stream:
+            out = csv.writer(stream)
+            out.writerow(keys)
+            for row in zip(*(columns[k].tolist() for k in keys)):
+                out.writerow([repr(v) for v in row])
+        written.append(path)
+    return written
