@@ -94,10 +94,11 @@ def _execute(config: Config, text: str, trace: Path, engine: str, quiet: bool):
     if progress is not None:
         every = max(1, steps // 200)
 
-        def tick(k: int) -> None:
+        def update(k: int) -> None:
             if k % every == 0 or k == steps:
                 progress.update(task, completed=k)
 
+        tick = update
         progress.start()
     try:
         return run_scenario(config, text, trace, engine=engine, tick=tick)
