@@ -116,6 +116,7 @@ def run(
     compare: Annotated[bool, typer.Option("--compare-monolithic", help="also run the monolithic reference and print the largest deviations")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar and no table")] = False,
     trace_every: Annotated[Optional[int], typer.Option("--trace-every", min=1, help="record every K-th communication point (overrides simulation.trace_every)")] = None,
+    engine_name: Annotated[Optional[str], typer.Option("--engine", help="native (compiled stepping core; default when built) or python (FMPy); same results")] = None,
 ) -> None:
     """Run a scenario: wire the FMUs as the paper's Fig. 2, step them, write an MCAP trace."""
     from .metrics import summarize
@@ -125,7 +126,13 @@ def run(
     if trace_every is not None:
         overrides = [*overrides, f"simulation.trace_every={trace_every}"]
     parsed, text = _load(config, overrides)
-    engine = "monolithic" if monolithic else "fmi"
+    from .run import default_engine
+
+    if engine_name not in (None, "native", "python"):
+        _fail(2, f"--engine {engine_name!r}: expected native or python")
+    if engine_name == "native" and default_engine() != "native":
+        _fail(2, "--engine native: the compiled core is not built here (reinstall with a C compiler: pip install -e .)")
+    engine = "monolithic" if monolithic else (engine_name or default_engine())
     trace = trace or default_trace_path(parsed, engine)
     result = _execute(parsed, text, trace, engine, quiet)
     if result.status == "interrupted":

@@ -27,11 +27,19 @@ from . import __version__
 from .components import ComponentError, FmuComponent, UnpackedFmu
 from .config import Config
 from .master import Master
+from .native import NativeComponent, NativeMaster, available as native_available
 from .scenario import Scenario, build_scenario, step_count
 from .foxglove import SCENE_RATE, FoxgloveChannels
 from .trace import NullTraceWriter, TraceWriter
 
-ENGINES = ("fmi", "monolithic")
+# "native": the compiled stepping core (orchestrator/native); "python": the same master in Python on
+# FMPy; "monolithic": the whole platoon as one system, no FMUs stepped (the accuracy reference).
+ENGINES = ("native", "python", "monolithic")
+
+
+def default_engine() -> str:
+    """The native engine when its extension is built (bit-identical results), else the Python one."""
+    return "native" if native_available() else "python"
 
 Tick = Callable[[int], None]
 
@@ -131,7 +139,7 @@ def run_scenario(
     config: Config,
     config_text: str,
     out: Path | None,
-    engine: str = "fmi",
+    engine: str | None = None,
     fmu_dir: Path = DEFAULT_OUT,
     tick: Tick | None = None,
     foxglove: bool = True,
@@ -143,6 +151,7 @@ def run_scenario(
     transforms, log). SIGINT and SIGTERM stop the run at the next communication point with status
     "interrupted"; the trace is finalized with every point recorded up to there.
     """
+    engine = engine or default_engine()
     if engine not in ENGINES:
         raise ValueError(f"unknown engine {engine!r}; expected one of {', '.join(ENGINES)}")
     scenario = build_scenario(config)
@@ -187,9 +196,13 @@ def run_scenario(
             if stop.signum:
                 raise Interrupted(stop.signum)
 
-        if engine == "fmi":
+        if engine == "python":
             fmu_components = [FmuComponent(spec.name, kinds[spec.name], spec.parameters) for spec in scenario.components]
             master = Master(fmu_components, scenario.connections, scenario.schedules, sim.master)
+            master.run(sim.stop_time, sim.step, observe, steps, tick=tick)
+        elif engine == "native":
+            native_components = [NativeComponent(spec.name, kinds[spec.name], spec.parameters) for spec in scenario.components]
+            master = NativeMaster(native_components, scenario.connections, scenario.schedules, sim.master)
             master.run(sim.stop_time, sim.step, observe, steps, tick=tick)
         else:
             _run_monolithic(scenario, outputs, fmus_by_kind, observe, steps, tick)
@@ -278,7 +291,7 @@ def _run_monolithic(
         raise ComponentError("platoon (monolithic)", t, str(failure)) from None
 
 
-def default_trace_path(config: Config, engine: str = "fmi") -> Path:
+def default_trace_path(config: Config, engine: str | None = None) -> Path:
     stamp = clock.strftime("%Y%m%d-%H%M%S")
     suffix = "-monolithic" if engine == "monolithic" else ""
     return Path("runs") / f"{config.name}{suffix}-{stamp}.mcap"

@@ -35,11 +35,11 @@ def make_config(**sections: Any) -> Config:
 
 @pytest.fixture
 def run(tmp_path: Path, fmu_dir: Path):
-    """run(config, engine="fmi") -> Trace, written under the test's tmp folder."""
+    """run(config, engine=None) -> Trace (default engine: native when built), under the test's tmp folder."""
     counter = iter(range(1000))
 
-    def _run(config: Config, engine: str = "fmi") -> Trace:
-        out = tmp_path / f"{config.name}-{engine}-{next(counter)}.mcap"
+    def _run(config: Config, engine: str | None = None) -> Trace:
+        out = tmp_path / f"{config.name}-{engine or 'default'}-{next(counter)}.mcap"
         result = run_scenario(config, "", out, engine=engine, fmu_dir=fmu_dir)
         assert result.status == "completed", result.error
         return load(out)

@@ -3,7 +3,7 @@
 The same scenario (``build_scenario``: components, parameters, ``platoon_connections`` wiring,
 disturbance schedules) is run twice on the same FMU files:
 
-* by our orchestrator, ``run_scenario(engine="fmi")`` with the Jacobi master (FMPy underneath), and
+* by our orchestrator, ``run_scenario(engine="python")`` with the Jacobi master (FMPy underneath), and
 * by libcosim through libcosimpy: one ``CosimLocalSlave`` per component, every parameter applied as
   an initial value of its declared type, every connection made with ``connect_real_variables``,
   libcosim's fixed-step (Jacobi) algorithm at ``config.simulation.step``. Disturbance pulses are
@@ -310,7 +310,7 @@ def test_libcosim_matches_orchestrator_jacobi(case: str, fmus, tmp_path: Path) -
     config = paper_config(**CASES[case])
     scenario = build_scenario(config)
 
-    result = run_scenario(config, "", tmp_path / "ours.mcap", engine="fmi", fmu_dir=fmu_dir)
+    result = run_scenario(config, "", tmp_path / "ours.mcap", engine="python", fmu_dir=fmu_dir)
     assert result.status == "completed", result.error
     ours = load(tmp_path / "ours.mcap").channels
 

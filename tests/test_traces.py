@@ -421,7 +421,7 @@ def test_recover_after_sigkill(killed) -> None:
     assert details.steps == len(trace.component("target")["t"]) and details.last_time == pytest.approx(last)
     # at most the part of one row that a chunk boundary cut is dropped: 5 components + errors channel
     assert details.dropped < len(COMPONENTS) + 1 + 3
-    assert trace.run["status"] == "recovered" and trace.run["engine"] == "fmi"
+    assert trace.run["status"] == "recovered" and trace.run["engine"] in ("native", "python")
     assert trace.run["steps_recorded"] == str(details.steps)
     assert trace.config["simulation"]["stop_time"] == 10000.0
     assert trace.topics[SCENE_TOPIC].messages >= int(last * 10) - 1  # scenes survive up to the end too
