@@ -19,6 +19,18 @@ REPO = Path(__file__).resolve().parents[1]
 PAPER_START = {"radial_offset": 5.0, "heading_error": 0.1, "speed_factor": 0.8}
 
 
+# Appended to a paper config: a -100 m/s speed pulse on vehicle 4 at t = 1 s drives its speed below
+# zero in the next step, a real mid-run FMU failure.
+SPEED_TO_ZERO = """
+[[disturbance]]
+vehicle = 4
+kind = "speed"
+start = 1.0
+duration = 0.5
+value = -100.0
+"""
+
+
 @pytest.fixture(scope="session")
 def fmu_dir() -> Path:
     """The FMUs, built (or found up to date) in the repository's build folder, as users get them."""

@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 
 from orchestrator.trace import load
+from tests.conftest import SPEED_TO_ZERO
 
 REPO = Path(__file__).resolve().parents[1]
 PLATOON = Path(sys.executable).parent / "platoon"
@@ -222,14 +223,6 @@ def test_run_failure_at_start_exits_1_and_keeps_trace(workdir: Path, tmp_path: P
     assert loaded.config["vehicles"]["1"]["initial"]["x"] == 50.0
 
 
-SPEED_TO_ZERO = """
-[[disturbance]]
-vehicle = 4
-kind = "speed"
-start = 1.0
-duration = 0.5
-value = -100.0
-"""
 
 
 def test_run_failure_mid_run_exits_1_and_keeps_trace(workdir: Path, tmp_path: Path) -> None:

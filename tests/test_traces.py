@@ -29,6 +29,7 @@ from orchestrator.components import ComponentError
 from orchestrator.metrics import path_errors
 from orchestrator.run import run_scenario
 from orchestrator.trace import Trace, TraceError, TraceWriter, _template, export_csv, load, number_texts, recover
+from tests.conftest import SPEED_TO_ZERO
 
 REPO = Path(__file__).resolve().parents[1]
 PLATOON = Path(sys.executable).parent / "platoon"
@@ -274,14 +275,6 @@ def test_run_without_a_trace(fmu_dir: Path) -> None:
 
 # --- an FMU that fails mid-run ------------------------------------------------------------------
 
-SPEED_TO_ZERO = """
-[[disturbance]]
-vehicle = 4
-kind = "speed"
-start = 1.0
-duration = 0.5
-value = -100.0
-"""
 
 
 def test_fmu_failure_leaves_a_readable_trace_with_the_error_logged(tmp_path: Path, fmu_dir: Path) -> None:
