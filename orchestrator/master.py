@@ -28,11 +28,55 @@ Observer = Callable[[float, list[list[float]]], None]
 
 
 @dataclass
-class _Route:
+class Route:
     """Where each input of one component comes from."""
 
     connected: list[tuple[int, int, int]]  # (input index, source component index, output index)
     scheduled: list[tuple[int, ScheduledInput]]
+
+
+def resolve_routes(
+    components: Sequence[Component], connections: Sequence[Connection], schedules: Sequence[ScheduledInput]
+) -> list[Route]:
+    """The wiring as index arrays per destination; names that do not exist are a ValueError."""
+    index = {c.name: i for i, c in enumerate(components)}
+
+    def lookup(name: str, what: object) -> int:
+        if name not in index:
+            raise ValueError(f"{what}: no component named {name!r}")
+        return index[name]
+
+    def position(names: list[str], name: str, what: object) -> int:
+        if name not in names:
+            raise ValueError(f"{what}: no variable {name!r}")
+        return names.index(name)
+
+    routes = [Route([], []) for _ in components]
+    for connection in connections:
+        source = lookup(connection.source, connection)
+        destination = lookup(connection.destination, connection)
+        out = position(components[source].outputs, connection.output, connection)
+        inp = position(components[destination].inputs, connection.input, connection)
+        routes[destination].connected.append((inp, source, out))
+    for schedule in schedules:
+        destination = lookup(schedule.component, schedule)
+        inp = position(components[destination].inputs, schedule.input, schedule)
+        routes[destination].scheduled.append((inp, schedule))
+    return routes
+
+
+def check_finite(components: Sequence[Component], outputs: Sequence[Sequence[float]], time: float) -> None:
+    """Non-finite initial outputs fail the run, attributed to the first component holding one."""
+    bad = [
+        f"{component.name}.{name} = {value}"
+        for component, values in zip(components, outputs)
+        for name, value in zip(component.outputs, values)
+        if not math.isfinite(value)
+    ]
+    if bad:
+        first = bad[0].split(".", 1)[0]
+        raise ComponentError(first, time, "initial outputs are not finite: " + ", ".join(bad[:6])
+                             + (" ..." if len(bad) > 6 else "") + " (is a vehicle placed on its target?)")
 
 
 class Master:
@@ -47,33 +91,10 @@ class Master:
             raise ValueError(f"unknown master {algorithm!r}; expected one of {', '.join(MASTERS)}")
         self.components = list(components)
         self.algorithm = algorithm
-        index = {c.name: i for i, c in enumerate(self.components)}
-        self.routes = [_Route([], []) for _ in self.components]
-        for connection in connections:
-            source = self._lookup(index, connection.source, connection)
-            destination = self._lookup(index, connection.destination, connection)
-            out = self._position(self.components[source].outputs, connection.output, connection)
-            inp = self._position(self.components[destination].inputs, connection.input, connection)
-            self.routes[destination].connected.append((inp, source, out))
-        for schedule in schedules:
-            destination = self._lookup(index, schedule.component, schedule)
-            inp = self._position(self.components[destination].inputs, schedule.input, schedule)
-            self.routes[destination].scheduled.append((inp, schedule))
+        self.routes = resolve_routes(self.components, connections, schedules)
         self.inputs = [list(c.input_defaults) for c in self.components]
         self.outputs: list[list[float]] = [[] for _ in self.components]
         self.time = 0.0
-
-    @staticmethod
-    def _lookup(index: dict[str, int], name: str, what: object) -> int:
-        if name not in index:
-            raise ValueError(f"{what}: no component named {name!r}")
-        return index[name]
-
-    @staticmethod
-    def _position(names: list[str], name: str, what: object) -> int:
-        if name not in names:
-            raise ValueError(f"{what}: no variable {name!r}")
-        return names.index(name)
 
     def _transfer(self, c: int, t: float) -> None:
         vector = self.inputs[c]
@@ -105,7 +126,7 @@ class Master:
         for component in self.components:
             component.end_initialization()
         self.outputs = [c.get_outputs() for c in self.components]
-        self._check_finite()
+        check_finite(self.components, self.outputs, self.time)
         return self.outputs
 
     def step(self, step: float) -> list[list[float]]:
@@ -123,18 +144,6 @@ class Master:
                 component.step(t, step)
                 self.outputs[c] = component.get_outputs()
         return self.outputs
-
-    def _check_finite(self) -> None:
-        bad = [
-            f"{component.name}.{name} = {value}"
-            for component, values in zip(self.components, self.outputs)
-            for name, value in zip(component.outputs, values)
-            if not math.isfinite(value)
-        ]
-        if bad:
-            first = bad[0].split(".", 1)[0]
-            raise ComponentError(first, self.time, "initial outputs are not finite: " + ", ".join(bad[:6])
-                                 + (" ..." if len(bad) > 6 else "") + " (is a vehicle placed on its target?)")
 
     def run(self, stop_time: float, step: float, observer: Observer, steps: int, start_time: float = 0.0,
             tick: Callable[[int], None] | None = None) -> None:

@@ -22,14 +22,13 @@ The C core holds the GIL: pythonfmu FMUs run their Python model in this interpre
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from ..components import ComponentError, UnpackedFmu
-from ..master import MASTERS, Observer
+from ..master import MASTERS, Observer, check_finite, resolve_routes
 from ..scenario import _TIME_TOLERANCE, ScheduledInput
 from ..wiring import Connection
 
@@ -123,26 +122,18 @@ class NativeMaster:
             raise ValueError(f"unknown master {algorithm!r}; expected one of {', '.join(MASTERS)}")
         self.components = [_as_native(c) for c in components]
         self.algorithm = algorithm
-        index = {c.name: i for i, c in enumerate(self.components)}
         offsets, total = [], 0
         for component in self.components:
             offsets.append(total)
             total += len(component.outputs)
         self._slices = [(offset, offset + len(c.outputs)) for offset, c in zip(offsets, self.components)]
         self.width = 1 + total
-        connected: list[list[tuple[int, int]]] = [[] for _ in self.components]
-        scheduled: list[list[tuple[int, float, float, float, float]]] = [[] for _ in self.components]
-        for connection in connections:  # the checks and messages of Master.__init__
-            source = _lookup(index, connection.source, connection)
-            destination = _lookup(index, connection.destination, connection)
-            out = _position(self.components[source].outputs, connection.output, connection)
-            inp = _position(self.components[destination].inputs, connection.input, connection)
-            connected[destination].append((inp, offsets[source] + out))
-        for schedule in schedules:
-            destination = _lookup(index, schedule.component, schedule)
-            inp = _position(self.components[destination].inputs, schedule.input, schedule)
-            scheduled[destination].append((inp, float(schedule.start), float(schedule.duration), float(schedule.value),
-                                           _TIME_TOLERANCE))
+        routes = resolve_routes(self.components, connections, schedules)  # Master's checks and messages
+        connected = [[(inp, offsets[source] + out) for inp, source, out in r.connected] for r in routes]
+        scheduled = [
+            [(inp, float(s.start), float(s.duration), float(s.value), _TIME_TOLERANCE) for inp, s in r.scheduled]
+            for r in routes
+        ]
         description = [
             (c.name, c.library(), c.fmu.guid, c.resource_uri(), c.refs(c.inputs), c.refs(c.outputs),
              list(c.input_defaults), c.parameter_groups(), connected[i], scheduled[i])
@@ -168,7 +159,7 @@ class NativeMaster:
         self.time = start_time
         self._core.initialize(float(start_time))
         outputs = self._core.outputs()
-        _check_finite(self.components, outputs, start_time)
+        check_finite(self.components, outputs, start_time)
         return outputs
 
     def step(self, step: float) -> list[list[float]]:
@@ -255,28 +246,3 @@ class NativeMaster:
     def close(self) -> None:
         self._core.close()
 
-
-def _lookup(index: dict[str, int], name: str, what: object) -> int:
-    if name not in index:
-        raise ValueError(f"{what}: no component named {name!r}")
-    return index[name]
-
-
-def _position(names: list[str], name: str, what: object) -> int:
-    if name not in names:
-        raise ValueError(f"{what}: no variable {name!r}")
-    return names.index(name)
-
-
-def _check_finite(components: Sequence[NativeComponent], outputs: list[list[float]], time: float) -> None:
-    """Master._check_finite: non-finite initial outputs are a failure of the first component holding one."""
-    bad = [
-        f"{component.name}.{name} = {value}"
-        for component, values in zip(components, outputs)
-        for name, value in zip(component.outputs, values)
-        if not math.isfinite(value)
-    ]
-    if bad:
-        first = bad[0].split(".", 1)[0]
-        raise ComponentError(first, time, "initial outputs are not finite: " + ", ".join(bad[:6])
-                             + (" ..." if len(bad) > 6 else "") + " (is a vehicle placed on its target?)")
