@@ -101,6 +101,20 @@ def _typed(kind: str, text: Any) -> Any:
     return text
 
 
+def parameters_by_type(variables: dict[str, Any], parameters: dict[str, Any]) -> dict[str, tuple[list[int], list[Any]]]:
+    """Parameter value references and values grouped by FMI type, types in order of first appearance.
+
+    Both engines set parameters in this order, which keeps their runs bit-identical.
+    """
+    groups: dict[str, tuple[list[int], list[Any]]] = {}
+    for name, value in parameters.items():
+        variable = variables[name]
+        refs, values = groups.setdefault(variable.type, ([], []))
+        refs.append(variable.valueReference)
+        values.append(value)
+    return groups
+
+
 class FmuComponent:
     """One FMU instance behind the Component interface."""
 
@@ -162,12 +176,7 @@ class FmuComponent:
             raise self._fail(error) from None
 
     def _set_parameters(self) -> None:
-        by_type: dict[str, tuple[list[int], list[Any]]] = {}
-        for name, value in self.parameters.items():
-            variable = self._variables[name]
-            refs, values = by_type.setdefault(variable.type, ([], []))
-            refs.append(variable.valueReference)
-            values.append(value)
+        by_type = parameters_by_type(self._variables, self.parameters)
         setters = {
             "Real": self._slave.setReal,
             "Integer": self._slave.setInteger,

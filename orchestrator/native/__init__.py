@@ -27,7 +27,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ..components import ComponentError, UnpackedFmu
+from ..components import ComponentError, UnpackedFmu, parameters_by_type
 from ..master import MASTERS, Observer, check_finite, resolve_routes
 from ..scenario import _TIME_TOLERANCE, ScheduledInput
 from ..wiring import Connection
@@ -85,13 +85,8 @@ class NativeComponent:
         return (self.fmu.directory / "resources").as_uri()  # what FMPy's instantiate passes
 
     def parameter_groups(self) -> list[tuple[str, list[int], list[Any]]]:
-        """Parameters by type, types in order of first appearance (FmuComponent._set_parameters)."""
-        groups: dict[str, tuple[list[int], list[Any]]] = {}
-        for name, value in self.parameters.items():
-            variable = self._variables[name]
-            refs, values = groups.setdefault(variable.type, ([], []))
-            refs.append(variable.valueReference)
-            values.append(value)
+        """Parameters by type, in the order FmuComponent sets them."""
+        groups = parameters_by_type(self._variables, self.parameters)
         return [(kind, refs, values) for kind, (refs, values) in groups.items()]
 
     def refs(self, names: Sequence[str]) -> list[int]:
