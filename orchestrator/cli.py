@@ -84,7 +84,7 @@ def _summary_table(summaries, config: Config, title: str) -> Table:
     return table
 
 
-def _execute(config: Config, text: str, trace: Path, engine: str, quiet: bool):
+def _execute(config: Config, text: str, trace: Path, engine: str, quiet: bool, trace_writer: str = "auto"):
     from .run import run_scenario
     from .scenario import step_count
 
@@ -101,7 +101,7 @@ def _execute(config: Config, text: str, trace: Path, engine: str, quiet: bool):
         tick = update
         progress.start()
     try:
-        return run_scenario(config, text, trace, engine=engine, tick=tick)
+        return run_scenario(config, text, trace, engine=engine, tick=tick, trace_writer=trace_writer)
     finally:
         if progress is not None:
             progress.stop()
@@ -117,6 +117,7 @@ def run(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar and no table")] = False,
     trace_every: Annotated[Optional[int], typer.Option("--trace-every", min=1, help="record every K-th communication point (overrides simulation.trace_every)")] = None,
     engine_name: Annotated[Optional[str], typer.Option("--engine", help="native (compiled stepping core; default when built) or python (FMPy); same results")] = None,
+    trace_writer: Annotated[str, typer.Option("--trace-writer", help="where the trace is encoded: process (a second process), inline, or auto (a second process for long runs on a multi-core machine); same file")] = "auto",
 ) -> None:
     """Run a scenario: wire the FMUs as the paper's Fig. 2, step them, write an MCAP trace."""
     from .metrics import summarize
@@ -132,9 +133,13 @@ def run(
         _fail(2, f"--engine {engine_name!r}: expected native or python")
     if engine_name == "native" and default_engine() != "native":
         _fail(2, "--engine native: the compiled core is not built here (reinstall with a C compiler: pip install -e .)")
+    from .run import TRACE_WRITERS
+
+    if trace_writer not in TRACE_WRITERS:
+        _fail(2, f"--trace-writer {trace_writer!r}: expected one of {', '.join(TRACE_WRITERS)}")
     engine = "monolithic" if monolithic else (engine_name or default_engine())
     trace = trace or default_trace_path(parsed, engine)
-    result = _execute(parsed, text, trace, engine, quiet)
+    result = _execute(parsed, text, trace, engine, quiet, trace_writer)
     if result.status == "interrupted":
         _fail(128 + (result.signal or 2), f"run {result.status}: {result.error} (trace up to that point: {result.trace})")
     if result.status != "completed":

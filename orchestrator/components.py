@@ -33,13 +33,7 @@ from fmpy.fmi1 import FMICallException
 from fmpy.logging import addLoggerProxy
 from fmpy.simulation import calloc, free
 
-
-class ComponentError(RuntimeError):
-    """A component failed; the message names the component, the time and the reason."""
-
-    def __init__(self, component: str, time: float, reason: str) -> None:
-        super().__init__(f"{component} failed at t = {time:.6g} s: {reason}")
-        self.component, self.time, self.reason = component, time, reason
+from .errors import ComponentError  # noqa: F401  (re-exported: the engines raise it from here)
 
 
 class Component(Protocol):

@@ -7,11 +7,12 @@ Whatever happens, the trace keeps every step recorded so far and says how the ru
 from __future__ import annotations
 
 import json
+import os
 import platform
 import signal
 import threading
 import time as clock
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -31,10 +32,28 @@ from .native import NativeComponent, NativeMaster, available as native_available
 from .scenario import Scenario, build_scenario, step_count
 from .foxglove import SCENE_RATE, FoxgloveChannels
 from .trace import NullTraceWriter, TraceWriter
+from .trace_format import BLOCK, FLUSH_INTERVAL
+from .trace_worker import WORKER_BLOCK, TraceWorker
+
+# Where the trace is encoded: "inline" in the stepping process, "process" in a second process
+# (orchestrator/trace_worker.py), "auto": a second process when the machine has a spare core and the
+# run records enough messages that encoding them outweighs the worker's start-up (about 0.5-1 s).
+TRACE_WRITERS = ("auto", "inline", "process")
+WORKER_MESSAGES = 20_000  # recorded rows x components from which "auto" picks "process"
 
 # "native": the compiled stepping core (orchestrator/native); "python": the same master in Python on
 # FMPy; "monolithic": the whole platoon as one system, no FMUs stepped (the accuracy reference).
 ENGINES = ("native", "python", "monolithic")
+
+
+def choose_trace_writer(requested: str, rows: int, components: int) -> str:
+    """"inline" or "process" for a run recording ``rows`` points of ``components`` components."""
+    if requested not in TRACE_WRITERS:
+        raise ValueError(f"unknown trace writer {requested!r}; expected one of {', '.join(TRACE_WRITERS)}")
+    if requested != "auto":
+        return requested
+    spare_core = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1) >= 2
+    return "process" if spare_core and rows * components >= WORKER_MESSAGES else "inline"
 
 
 def default_engine() -> str:
@@ -52,6 +71,9 @@ class RunResult:
     status: str  # "completed" | "failed" | "interrupted"
     error: str | None = None
     signal: int | None = None  # SIGINT or SIGTERM when interrupted
+    # wall seconds by phase: "setup" (trace writer, metadata), "initialize" (instantiate, initialization
+    # mode), "steps" (the stepping loop, recording included), "finish" (FMUs closed, trace finalized)
+    timings: dict[str, float] = field(default_factory=dict)
 
 
 def tool_versions() -> dict[str, str]:
@@ -115,6 +137,11 @@ class _StopRequest:
             raise Interrupted(signum)
         self.signum = self.signum or signum
 
+    def check(self) -> None:
+        """Raise ``Interrupted`` once a signal arrived: called between two steps (never inside an FMU)."""
+        if self.signum:
+            raise Interrupted(self.signum)
+
     def install(self) -> None:
         if threading.current_thread() is not threading.main_thread():
             return  # signal handlers can only be set from the main thread; the caller keeps its own
@@ -144,12 +171,14 @@ def run_scenario(
     tick: Tick | None = None,
     foxglove: bool = True,
     scene_rate: float = SCENE_RATE,
+    trace_writer: str = "auto",
 ) -> RunResult:
     """Run ``config`` with ``engine`` and write the trace to ``out`` (``None``: record nothing).
 
     ``foxglove`` adds the Foxglove channels (scene at ``scene_rate`` Hz of simulated time, errors,
     transforms, log). SIGINT and SIGTERM stop the run at the next communication point with status
-    "interrupted"; the trace is finalized with every point recorded up to there.
+    "interrupted"; the trace is finalized with every point recorded up to there. ``trace_writer``:
+    where the trace is encoded (``TRACE_WRITERS``); both give the same file.
     """
     engine = engine or default_engine()
     if engine not in ENGINES:
@@ -157,9 +186,11 @@ def run_scenario(
     scenario = build_scenario(config)
     sim = config.simulation
     steps = step_count(sim.stop_time, sim.step)
+    writer_kind = choose_trace_writer(trace_writer, steps // sim.trace_every + 1, len(scenario.components))
     fmus_by_kind = _open_fmus(fmu_dir)
     started = clock.perf_counter()
-    writer: TraceWriter | NullTraceWriter | None = None
+    marks = {"start": started}  # phase boundaries, for RunResult.timings
+    writer: TraceWriter | TraceWorker | NullTraceWriter | None = None
     master = None
     status, error, signum, failed_at = "completed", None, None, None
     stop = _StopRequest()
@@ -173,6 +204,10 @@ def run_scenario(
         components = [(spec.name, outputs[spec.name]) for spec in scenario.components]
         if out is None:
             writer = NullTraceWriter()
+        elif writer_kind == "process":
+            writer = TraceWorker(out, components, {name: _descriptions(fmu) for name, fmu in kinds.items()},
+                                 every=sim.trace_every,
+                                 foxglove=(config, components, scene_rate) if foxglove else None)
         else:
             writer = TraceWriter(
                 out,
@@ -185,25 +220,33 @@ def run_scenario(
         writer.metadata("platoon.fmus", {kind: fmu.guid for kind, fmu in fmus_by_kind.items()})
         writer.metadata("platoon.tool", tool_versions())
         writer.metadata("platoon.start", {"engine": engine, "master": sim.master, "trace_every": str(sim.trace_every),
+                                          "trace_writer": writer_kind,
                                           "scene_rate": repr(float(scene_rate)) if foxglove else "",
                                           "started": clock.strftime("%Y-%m-%dT%H:%M:%S%z")})
         writer.log(0.0, "Info", f"run started: {config.name}, {config.platoon.count} vehicles, {config.platoon.law} law, "
                                 f"{engine} engine ({sim.master}), step {sim.step:g} s, stop {sim.stop_time:g} s")
         record = writer.record
+        marks["setup"] = clock.perf_counter()
 
         def observe(t: float, values: list[list[float]]) -> None:
+            if "initialize" not in marks:  # the first call: the initial point, right after initialization
+                marks["initialize"] = clock.perf_counter()
             record(t, values)
-            if stop.signum:
-                raise Interrupted(stop.signum)
+            stop.check()
 
         if engine == "python":
             fmu_components = [FmuComponent(spec.name, kinds[spec.name], spec.parameters) for spec in scenario.components]
             master = Master(fmu_components, scenario.connections, scenario.schedules, sim.master)
             master.run(sim.stop_time, sim.step, observe, steps, tick=tick)
         elif engine == "native":
+            # the C loop fills blocks of decimated rows; the writer encodes them (here or in its worker)
             native_components = [NativeComponent(spec.name, kinds[spec.name], spec.parameters) for spec in scenario.components]
             master = NativeMaster(native_components, scenario.connections, scenario.schedules, sim.master)
-            master.run(sim.stop_time, sim.step, observe, steps, tick=tick)
+            master.initialize(0.0)
+            marks["initialize"] = clock.perf_counter()
+            master.run_blocks(sim.step, steps, None if out is None else writer.write_block, every=sim.trace_every,
+                              block=WORKER_BLOCK if writer_kind == "process" else BLOCK, tick=tick, check=stop.check,
+                              deliver_interval=FLUSH_INTERVAL / 2, initialize=False)
         else:
             _run_monolithic(scenario, outputs, fmus_by_kind, observe, steps, tick)
     except ComponentError as failure:
@@ -215,6 +258,7 @@ def run_scenario(
         status, error = "failed", f"{type(unexpected).__name__}: {unexpected}"
         raise
     finally:
+        marks["steps"] = clock.perf_counter()
         stop.armed = False  # from here on a signal is only noted: the trace gets finalized first
         try:
             if master is not None:
@@ -247,7 +291,19 @@ def run_scenario(
                 fmu.cleanup()
         finally:
             stop.restore()
-    return RunResult(Path(out) if out is not None else None, steps, clock.perf_counter() - started, status, error, signum)
+    marks["finish"] = clock.perf_counter()
+    return RunResult(Path(out) if out is not None else None, steps, marks["finish"] - started, status, error, signum,
+                     _phase_durations(marks))
+
+
+def _phase_durations(marks: dict[str, float]) -> dict[str, float]:
+    """Seconds per phase from the marks reached (a run that failed early has fewer)."""
+    durations, previous = {}, marks["start"]
+    for phase in ("setup", "initialize", "steps", "finish"):
+        if phase in marks:
+            durations[phase] = marks[phase] - previous
+            previous = marks[phase]
+    return durations
 
 
 def _run_monolithic(

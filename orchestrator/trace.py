@@ -23,11 +23,12 @@ from itertools import chain
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
+import numpy as np
 from mcap.data_stream import RecordBuilder
 from mcap.records import Message, MessageIndex, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
-from .components import ComponentError
+from .errors import ComponentError
 from .trace_format import (
     SCHEMA_ENCODING,
     MESSAGE_ENCODING,
@@ -227,21 +228,19 @@ class _Encoder:
                 indexes[position] = _PackedRecord(indexes[position])
             self._packed = len(indexes)
 
-    def rows(self, rows: Sequence[tuple[float, Sequence[Sequence[float]]]]) -> None:
-        """Write rows (all finite); close the chunk and flush the file if ``flush_interval`` passed."""
+    def rows(self, rows: Sequence[Sequence[float]]) -> None:
+        """Write flat rows ``[t, outputs of component 0, ...]`` (all finite); close the chunk if due."""
         channels, templates, foxglove = self._channels, self._templates, self.foxglove
         spans = self._spans
-        for time, outputs in rows:
+        for row in rows:
+            time = row[0]
             stamp = int(round(time * 1e9))
-            flat = [time]
-            for values in outputs:
-                flat.extend(values)
-            texts = number_texts(flat)  # one conversion per row: the costly part of JSON
+            texts = number_texts(row)  # one conversion per row: the costly part of JSON
             first = texts[0]
             messages = [(channel, template % (first, *texts[start:end]))
                         for channel, template, (start, end) in zip(channels, templates, spans)]
             if foxglove is not None:
-                messages.extend(foxglove.row(time, stamp, outputs))
+                messages.extend(foxglove.row(time, stamp, [row[start:end] for start, end in spans]))
             self._add(stamp, self.recorded, messages)
             self.recorded += 1
             self.last_time = time
@@ -272,8 +271,33 @@ class _Encoder:
         self._file.close()
 
 
+def first_non_finite(rows: np.ndarray) -> int | None:
+    """Index of the first row of a float64 block holding nan or inf, or None."""
+    finite = np.isfinite(rows).all(axis=1)
+    if finite.all():
+        return None
+    return int(np.argmin(finite))
+
+
+def non_finite_error(components: Sequence[tuple[str, Sequence[str]]], row: Sequence[float]) -> ComponentError:
+    """The error for a flat row ``[t, outputs...]`` holding a non-finite output: which component, which output."""
+    time, position = float(row[0]), 1
+    for name, outputs in components:
+        for key in outputs:
+            if not math.isfinite(row[position]):
+                return ComponentError(name, time, f"output {key} = {row[position]} is not finite (the trace ends before it)")
+            position += 1
+    return ComponentError(components[0][0], time, "outputs overflow")
+
+
 class TraceWriter:
-    """Writes a run's trace; ``record`` is cheap, ``flush`` hands buffered rows to the encoder."""
+    """Writes a run's trace in this process.
+
+    Two ways in: ``record(t, outputs)`` per communication point (decimated by ``every``; rows are
+    buffered and encoded in blocks), and ``write_block(rows)`` for blocks of flat rows a native loop
+    already decimated. Either way a row holding a non-finite output is not written: the rows before it
+    are, and ``ComponentError`` names the component, the output and the time.
+    """
 
     def __init__(
         self,
@@ -290,12 +314,11 @@ class TraceWriter:
         self.components = [(name, list(outputs)) for name, outputs in components]
         self._encoder = _Encoder(self.path, self.components, descriptions, foxglove, flush_interval, chunk_size)
         self.foxglove = foxglove
-        self._keys = [["t", *outputs] for _, outputs in self.components]
         self.every = every
         self.block = block
         self.flush_interval = flush_interval
         self._count = 0
-        self._rows: list[tuple[float, list[list[float]]]] = []
+        self._rows: list[list[float]] = []
         self.recorded = 0  # rows handed to the encoder so far
         self.last_time: float | None = None  # simulation time of the last row handed over
         self._last_flush = clock.monotonic()
@@ -304,18 +327,29 @@ class TraceWriter:
     def record(self, time: float, outputs: Sequence[Sequence[float]]) -> None:
         """Keep the outputs at ``time`` (every ``every``-th call) for the next flush."""
         if self._count % self.every == 0:
+            row = [time]
+            for values in outputs:
+                row.extend(values)
             rows = self._rows
-            rows.append((time, [list(values) for values in outputs]))
+            rows.append(row)
             if len(rows) >= self.block or clock.monotonic() - self._last_flush >= self.flush_interval:
                 self.flush()
         self._count += 1
+
+    def write_block(self, rows: np.ndarray) -> None:
+        """Write a float64 block of flat rows ``[t, outputs...]`` (already decimated) after any buffered rows."""
+        self.flush()
+        bad = first_non_finite(rows)
+        self._deliver((rows if bad is None else rows[:bad]).tolist())
+        if bad is not None:
+            raise non_finite_error(self.components, rows[bad].tolist())
 
     @property
     def rows_recorded(self) -> int:
         """Rows recorded so far, handed over or still buffered."""
         return self.recorded + len(self._rows)
 
-    def _deliver(self, rows: list[tuple[float, list[list[float]]]]) -> None:
+    def _deliver(self, rows: list[list[float]]) -> None:
         if rows:
             self._encoder.rows(rows)
             self.recorded += len(rows)
@@ -324,26 +358,14 @@ class TraceWriter:
             self._encoder.tick()
 
     def flush(self) -> None:
-        """Hand the buffered rows to the encoder.
-
-        A row holding a non-finite output is not written: the rows before it are, the rest of the
-        buffer is dropped, and ``ComponentError`` names the component, the output and the time.
-        """
+        """Hand the buffered rows to the encoder (up to the first non-finite one, which raises)."""
         rows, self._rows = self._rows, []
         self._last_flush = clock.monotonic()
-        for index, (time, outputs) in enumerate(rows):
-            for values in outputs:
-                if not math.isfinite(sum(values)):
-                    self._deliver(rows[:index])
-                    self._non_finite(time, outputs)
+        for index, row in enumerate(rows):
+            if not math.isfinite(sum(row)):
+                self._deliver(rows[:index])
+                raise non_finite_error(self.components, row)
         self._deliver(rows)
-
-    def _non_finite(self, time: float, outputs: Sequence[Sequence[float]]) -> None:
-        for (name, _), values, keys in zip(self.components, outputs, self._keys):
-            for key, value in zip(keys[1:], values):
-                if not math.isfinite(value):
-                    raise ComponentError(name, time, f"output {key} = {value} is not finite (the trace ends before it)")
-        raise ComponentError(self.components[0][0], time, "outputs overflow")
 
     def log(self, time: float, level: str, message: str) -> None:
         """A line on ``/platoon/log`` (foxglove.Log) at simulation ``time``: Info, Warning or Error."""
@@ -372,6 +394,9 @@ class NullTraceWriter:
     last_time = None
 
     def record(self, time: float, outputs: Sequence[Sequence[float]]) -> None:
+        pass
+
+    def write_block(self, rows: Any) -> None:
         pass
 
     def flush(self) -> None:

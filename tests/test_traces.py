@@ -277,14 +277,17 @@ def test_run_without_a_trace(fmu_dir: Path) -> None:
 
 
 
-def test_fmu_failure_leaves_a_readable_trace_with_the_error_logged(tmp_path: Path, fmu_dir: Path) -> None:
+@pytest.mark.parametrize("engine, writer", [("native", "inline"), ("native", "process"), ("python", "process")])
+def test_fmu_failure_leaves_a_readable_trace_with_the_error_logged(tmp_path: Path, fmu_dir: Path, engine: str,
+                                                                   writer: str) -> None:
     source = tmp_path / "speed_to_zero.toml"
     source.write_text(PAPER.read_text() + SPEED_TO_ZERO)
     config, _ = load_config(source, ["simulation.stop_time=2.0"])
     out = tmp_path / "failed.mcap"
-    result = run_scenario(config, source.read_text(), out, fmu_dir=fmu_dir)
+    result = run_scenario(config, source.read_text(), out, engine=engine, fmu_dir=fmu_dir, trace_writer=writer)
     assert result.status == "failed"
     trace = load(out)
+    assert trace.metadata["platoon.start"]["trace_writer"] == writer
     assert trace.run["status"] == "failed" and trace.run["error"].startswith("vehicle4 failed at t = 1 s")
     for name in COMPONENTS:
         t = trace.component(name)["t"]
@@ -293,6 +296,94 @@ def test_fmu_failure_leaves_a_readable_trace_with_the_error_logged(tmp_path: Pat
     last = trace.log[-1]
     assert last.level == "Error" and last.t == pytest.approx(1.0)
     assert last.message == f"run failed: {trace.run['error']}"
+
+
+# --- the trace written by a second process ------------------------------------------------------
+
+def raw_messages(path: Path) -> tuple[list[tuple[str, int, int, bytes]], dict[str, dict[str, str]]]:
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as stream:
+        reader = make_reader(stream, validate_crcs=True)
+        messages = [(c.topic, m.log_time, m.sequence, m.data) for _, c, m in reader.iter_messages(log_time_order=False)]
+        metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+    return messages, metadata
+
+
+@pytest.mark.parametrize("engine, every", [("native", 1), ("native", 7), ("python", 3)])
+def test_process_writer_writes_the_inline_file(tmp_path: Path, fmu_dir: Path, engine: str, every: int) -> None:
+    """Same messages, byte for byte and in the same order; only the writer's name and start time differ."""
+    config = paper("simulation.stop_time=3.0", f"simulation.trace_every={every}")
+    files = {}
+    for writer in ("inline", "process"):
+        files[writer] = tmp_path / f"{writer}.mcap"
+        result = run_scenario(config, PAPER.read_text(), files[writer], engine=engine, fmu_dir=fmu_dir, trace_writer=writer)
+        assert result.status == "completed", result.error
+    inline, inline_metadata = raw_messages(files["inline"])
+    process, process_metadata = raw_messages(files["process"])
+    assert len(inline) == len(process) > 300 // every * len(COMPONENTS)
+    assert inline == process
+    for metadata in (inline_metadata, process_metadata):
+        metadata["platoon.start"].pop("started")
+        metadata["platoon.start"].pop("trace_writer")
+    assert inline_metadata == process_metadata
+
+
+def test_auto_picks_a_second_process_for_long_runs_only() -> None:
+    from orchestrator.run import WORKER_MESSAGES, choose_trace_writer
+
+    spare = len(os.sched_getaffinity(0)) >= 2
+    assert choose_trace_writer("auto", WORKER_MESSAGES // 5, 5) == ("process" if spare else "inline")
+    assert choose_trace_writer("auto", WORKER_MESSAGES // 5 - 1, 5) == "inline"
+    assert choose_trace_writer("inline", 10**9, 5) == "inline"
+    assert choose_trace_writer("process", 1, 5) == "process"
+    with pytest.raises(ValueError, match="unknown trace writer 'threads'"):
+        choose_trace_writer("threads", 1, 5)
+
+
+def test_non_finite_block_ends_the_trace_before_it(tmp_path: Path) -> None:
+    from orchestrator.trace_worker import TraceWorker
+
+    rows = np.array([[k * 0.1, float(k), 1.0, 2.0] for k in range(5)])
+    rows[3, 3] = math.inf
+    for make in (TraceWriter, TraceWorker):
+        path = tmp_path / f"{make.__name__}.mcap"
+        writer = make(path, [("a", ["x"]), ("b", ["y", "z"])])
+        with pytest.raises(ComponentError, match=r"b failed at t = 0.3 s: output z = inf is not finite"):
+            writer.write_block(rows)
+        assert writer.rows_recorded == 3 and writer.last_time == pytest.approx(0.2)
+        writer.close()
+        trace = load(path)
+        assert trace.component("a")["x"].tolist() == [0.0, 1.0, 2.0], make.__name__
+
+
+def test_trace_writer_process_death_is_reported_and_the_chunks_stay(tmp_path: Path) -> None:
+    from orchestrator.trace_worker import TraceWorker, TraceWorkerError
+
+    path = tmp_path / "lost-writer.mcap"
+    writer = TraceWorker(path, [("a", ["x"])], flush_interval=0.0)
+    writer.write_block(np.array([[k * 0.1, float(k)] for k in range(100)]))
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and path.stat().st_size < 200:  # the worker wrote a chunk
+        time.sleep(0.02)
+    writer._process.kill()
+    writer._process.wait()
+    with pytest.raises(TraceWorkerError, match="trace writer process failed.*platoon trace recover"):
+        for k in range(100):  # the broken pipe shows at the next hand-over
+            writer.write_block(np.array([[10.0 + k, 1.0]]))
+    writer.close()  # already reported: no second error
+    recovered = recover(path, tmp_path / "fixed.mcap")
+    assert recovered.steps >= 1 and load(tmp_path / "fixed.mcap").component("a")["x"][0] == 0.0
+
+
+def test_trace_writer_process_reports_a_bad_argument(tmp_path: Path) -> None:
+    """An error inside the worker (here: a component list the writer rejects) surfaces in the caller."""
+    from orchestrator.trace_worker import TraceWorker, TraceWorkerError
+
+    writer = TraceWorker(tmp_path / "bad.mcap", [("a", ["x"])], foxglove=("not a config", [("a", ["x"])], 10.0))
+    with pytest.raises(TraceWorkerError, match="AttributeError"):
+        writer.metadata("m", {"k": "v"})
+        writer.close()
 
 
 # --- decimation through the CLI ------------------------------------------------------------------
@@ -321,11 +412,12 @@ def test_trace_every_option_and_export_command(tmp_path: Path) -> None:
 LONG = ("--set", "simulation.stop_time=10000")
 
 
-def start_long_run(trace: Path, cwd: Path) -> subprocess.Popen[str]:
-    """`platoon run` of a 10000 s scenario; returns once it has run ~2 s and its trace holds chunks."""
+def start_long_run(trace: Path, cwd: Path, writer: str) -> subprocess.Popen[str]:
+    """`platoon run` of a 10000 s scenario in its own process group (as a shell job is), with the trace
+    encoded by ``writer`` ("inline" or "process"); returns once it has run ~2 s and its trace holds chunks."""
     process = subprocess.Popen(
-        [str(PLATOON), "run", str(PAPER), *LONG, "--out", str(trace), "-q"], cwd=cwd, env=env(),
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        [str(PLATOON), "run", str(PAPER), *LONG, "--out", str(trace), "-q", "--trace-writer", writer], cwd=cwd,
+        env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
         # a test runner started in the background may hand down SIGINT ignored; a user's shell does not
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
@@ -336,8 +428,28 @@ def start_long_run(trace: Path, cwd: Path) -> subprocess.Popen[str]:
         if time.monotonic() - started > 2.0 and trace.is_file() and trace.stat().st_size > 200_000:
             return process
         time.sleep(0.05)
-    process.kill()
+    os.killpg(process.pid, signal.SIGKILL)
     raise AssertionError("the trace did not grow within 60 s")
+
+
+def group_members(process: subprocess.Popen[str]) -> list[int]:
+    """Process ids in the run's process group (the run and its trace writer, if any)."""
+    members = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                if os.getpgid(int(entry.name)) == process.pid:
+                    members.append(int(entry.name))
+            except ProcessLookupError:
+                pass
+    return members
+
+
+def wait_group_gone(process: subprocess.Popen[str], timeout: float = 60) -> None:
+    deadline = time.monotonic() + timeout
+    while group_members(process) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not group_members(process), "a process of the run outlived it"
 
 
 def assert_consistent(trace: Trace, step: float = 0.01) -> float:
@@ -352,28 +464,46 @@ def assert_consistent(trace: Trace, step: float = 0.01) -> float:
     return float(reference[-1])
 
 
+# (signal, sent to the whole process group as a terminal's Ctrl-C is, trace writer)
+SIGNAL_CASES = {
+    "SIGINT-group-process": (signal.SIGINT, True, "process"),
+    "SIGTERM-process": (signal.SIGTERM, False, "process"),
+    "SIGINT-inline": (signal.SIGINT, False, "inline"),
+}
+
+
 @pytest.fixture(scope="module")
 def signalled(tmp_path_factory: pytest.TempPathFactory):
-    """SIGINT and SIGTERM runs: {signal: (completed process, trace path)}."""
+    """Signalled runs: {case: (exit code, stderr, trace path)}."""
     folder = tmp_path_factory.mktemp("signals")
     results = {}
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        trace = folder / f"{signal.Signals(signum).name}.mcap"
-        process = start_long_run(trace, folder)
-        process.send_signal(signum)
-        stdout, stderr = process.communicate(timeout=60)
-        results[signum] = (process.returncode, stderr, trace)
+    for case, (signum, group, writer) in SIGNAL_CASES.items():
+        trace = folder / f"{case}.mcap"
+        process = start_long_run(trace, folder, writer)
+        try:
+            if group:
+                os.killpg(process.pid, signum)
+            else:
+                process.send_signal(signum)
+            stdout, stderr = process.communicate(timeout=60)
+            wait_group_gone(process)  # the trace writer finished too
+        except BaseException:
+            os.killpg(process.pid, signal.SIGKILL)
+            raise
+        results[case] = (process.returncode, stderr, trace)
     return results
 
 
-@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
-def test_signal_finalizes_the_trace(signalled, signum: int) -> None:
-    code, stderr, path = signalled[signum]
+@pytest.mark.parametrize("case", list(SIGNAL_CASES))
+def test_signal_finalizes_the_trace(signalled, case: str) -> None:
+    signum, _, writer = SIGNAL_CASES[case]
+    code, stderr, path = signalled[case]
     assert code == 128 + signum, stderr  # 130 for SIGINT, 143 for SIGTERM
     assert "Traceback" not in stderr
     assert stderr.startswith("error: run interrupted: ") and str(path) in stderr, stderr
     trace = load(path)  # finalized: footer, summary, indexes
     last = assert_consistent(trace)
+    assert trace.metadata["platoon.start"]["trace_writer"] == writer
     assert trace.run["status"] == "interrupted"
     assert trace.run["signal"] == signal.Signals(signum).name
     assert float(trace.run["last_time"]) == last
@@ -383,15 +513,19 @@ def test_signal_finalizes_the_trace(signalled, signum: int) -> None:
     assert trace.topics[SCENE_TOPIC].messages == int(last * 10 + 1e-6) + 1
 
 
-@pytest.fixture(scope="module")
-def killed(tmp_path_factory: pytest.TempPathFactory):
-    """A run killed with SIGKILL: (broken path, CLI result, recovered path, Recovery)."""
-    folder = tmp_path_factory.mktemp("killed")
+@pytest.fixture(scope="module", params=["process", "inline"])
+def killed(request, tmp_path_factory: pytest.TempPathFactory):
+    """A run whose whole process group was killed with SIGKILL: (broken path, CLI result, recovered path, Recovery)."""
+    folder = tmp_path_factory.mktemp(f"killed-{request.param}")
     broken = folder / "killed.mcap"
-    process = start_long_run(broken, folder)
-    process.send_signal(signal.SIGKILL)
+    process = start_long_run(broken, folder, request.param)
+    try:
+        assert len(group_members(process)) == (2 if request.param == "process" else 1)  # the run (and its writer)
+    finally:
+        os.killpg(process.pid, signal.SIGKILL)  # never leave a 10000 s run behind
     process.communicate(timeout=60)
     assert process.returncode == -signal.SIGKILL
+    wait_group_gone(process)
     fixed = folder / "fixed.mcap"
     cli = platoon("trace", "recover", broken, "--out", fixed, cwd=folder)
     details = recover(broken, folder / "fixed-again.mcap")
@@ -419,6 +553,26 @@ def test_recover_after_sigkill(killed) -> None:
     assert trace.config["simulation"]["stop_time"] == 10000.0
     assert trace.topics[SCENE_TOPIC].messages >= int(last * 10) - 1  # scenes survive up to the end too
     assert trace.log[0].message.startswith("run started")
+
+
+def test_orphaned_trace_writer_finalizes_what_it_received(tmp_path: Path) -> None:
+    """SIGKILL of the stepping process alone: its trace writer process keeps and finalizes every point."""
+    path = tmp_path / "orphaned.mcap"
+    process = start_long_run(path, tmp_path, "process")
+    process.send_signal(signal.SIGKILL)
+    process.communicate(timeout=60)
+    try:
+        wait_group_gone(process)
+    finally:
+        if group_members(process):
+            os.killpg(process.pid, signal.SIGKILL)
+    trace = load(path)  # finalized by the worker: no recovery needed
+    last = assert_consistent(trace)
+    assert last > 1.0
+    assert trace.run["status"] == "aborted" and "killed?" in trace.run["error"]
+    assert trace.run["steps_recorded"] == str(len(trace.component("target")["t"]))
+    assert trace.log[-1].level == "Error" and trace.log[-1].message.startswith("run aborted")
+    assert trace.topics[SCENE_TOPIC].messages == int(last * 10 + 1e-6) + 1
 
 
 def test_recover_cli_bad_input(tmp_path: Path) -> None:
@@ -490,7 +644,7 @@ def test_independent_reader_sees_the_same_trace(mcap_js: Path, short: Trace) -> 
 
 
 def test_independent_reader_on_interrupted_and_recovered_traces(mcap_js: Path, signalled, killed) -> None:
-    _, _, interrupted = signalled[signal.SIGTERM]
+    _, _, interrupted = signalled["SIGTERM-process"]
     broken, _, fixed, details = killed
     for path in (interrupted, fixed):
         js = read_js(mcap_js, path)

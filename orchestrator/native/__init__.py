@@ -22,6 +22,7 @@ The C core holds the GIL: pythonfmu FMUs run their Python model in this interpre
 
 from __future__ import annotations
 
+import time as clock
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
@@ -42,6 +43,7 @@ else:
 
 BLOCK = 256  # steps per return to Python in run() (observer path)
 TRACE_BLOCK = 500  # rows per block in run_blocks(), as the trace writer's block
+CALL_STEPS = 64  # steps per call into C when blocks are also delivered on a wall-time interval
 
 Sink = Callable[[np.ndarray], None]
 
@@ -185,14 +187,19 @@ class NativeMaster:
 
     def run_blocks(self, step: float, steps: int, sink: Sink | None, every: int = 1, block: int = TRACE_BLOCK,
                    start_time: float = 0.0, tick: Callable[[int], None] | None = None,
-                   initialize: bool = True) -> None:
+                   initialize: bool = True, check: Callable[[], object] | None = None,
+                   deliver_interval: float | None = None) -> None:
         """Initialize and run ``steps`` steps; ``sink(rows)`` gets each block of recorded rows.
 
         ``rows`` is a float64 array view of shape (n, width): ``[t, outputs of component 0, ...]``,
         the initial point first, then every ``every``-th communication point (the trace writer's
         decimation), at most ``block`` rows; it is overwritten after ``sink`` returns (copy to keep).
-        ``sink=None`` records nothing (tracing off). ``tick(k)`` is called once per block.
+        ``sink=None`` records nothing (tracing off). ``tick(k)`` is called after each call into C.
         ``initialize=False``: the caller already called ``initialize(start_time)``.
+        ``check()`` runs after every step: if it raises, the run stops there (between two steps),
+        the rows recorded so far go to ``sink`` and the exception propagates.
+        ``deliver_interval`` (s of wall time): a partial block goes to ``sink`` when this much time
+        passed since the last one, so that a consumer writing to disk never lags far behind.
         """
         if every < 1:
             raise ValueError("every must be >= 1")
@@ -205,7 +212,7 @@ class NativeMaster:
             while k < steps:
                 stop = min(steps, k + chunk)
                 try:
-                    core.run(t0, h, k, stop)
+                    core.run(t0, h, k, stop, None, 1, 0, check)
                 finally:
                     self.time = t0 + (k + core.steps_done) * h
                 k = stop
@@ -217,11 +224,13 @@ class NativeMaster:
         buffer[0, 1:] = [value for values in initial for value in values]
         row, k = 1, 0
         capacity = buffer.shape[0]
+        call_steps = CALL_STEPS if deliver_interval is not None else steps
+        delivered = clock.monotonic()
         while k < steps:
             # as many steps as fill the buffer: rows are recorded after steps k with (k + 1) % every == 0
-            stop = min(steps, (k // every + capacity - row) * every)  # the step that fills the buffer
+            stop = min(steps, (k // every + capacity - row) * every, k + call_steps)
             try:
-                core.run(t0, h, k, stop, buffer, every, row)
+                core.run(t0, h, k, stop, buffer, every, row, check)
             except BaseException:
                 self.time = t0 + (k + core.steps_done) * h
                 done = row + core.rows_done
@@ -231,10 +240,12 @@ class NativeMaster:
             row += core.rows_done
             k = stop
             self.time = t0 + k * h
-            if row == capacity or k == steps:
+            due = deliver_interval is not None and clock.monotonic() - delivered >= deliver_interval
+            if row == capacity or k == steps or (due and row):
                 if row:
                     sink(buffer[:row])
                 row = 0
+                delivered = clock.monotonic()
             if tick is not None:
                 tick(k)
 

@@ -798,22 +798,24 @@ static PyObject *Core_step(Core *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
-/* run(t0, h, k_start, k_stop, buffer=None, every=1, row=0) -> rows written.
+/* run(t0, h, k_start, k_stop, buffer=None, every=1, row=0, check=None) -> rows written.
  *
  * Steps k = k_start .. k_stop-1 from t_k = t0 + k h to t_(k+1) = t0 + (k+1) h (Master.run). After
  * step k, when (k + 1) % every == 0, the row [t_(k+1), outputs...] is written to the C-contiguous
  * float64 buffer at row index row, row+1, ... The buffer must hold every row asked for. On a failure
- * (or a Python signal handler raising between two steps) the exception is raised and
- * steps_done/rows_done say how far the call got; the rows written until then are valid. */
+ * (or a Python signal handler raising between two steps, or check() raising: it is called after every
+ * step, so a handler that only sets a flag can stop the run at a step boundary, never inside an FMU's
+ * Python code) the exception is raised and steps_done/rows_done say how far the call got; the rows
+ * written until then are valid. */
 static PyObject *Core_run(Core *self, PyObject *args, PyObject *kwargs) {
-    static char *keywords[] = {"t0", "h", "k_start", "k_stop", "buffer", "every", "row", NULL};
+    static char *keywords[] = {"t0", "h", "k_start", "k_stop", "buffer", "every", "row", "check", NULL};
     double t0, h;
     Py_ssize_t k_start, k_stop, every = 1, row = 0;
-    PyObject *buffer_object = Py_None;
+    PyObject *buffer_object = Py_None, *check = Py_None;
     self->steps_done = 0;
     self->rows_done = 0;
-    if (!PyArg_ParseTupleAndKeywords(args, kwargs, "ddnn|Onn", keywords, &t0, &h, &k_start, &k_stop, &buffer_object,
-                                     &every, &row))
+    if (!PyArg_ParseTupleAndKeywords(args, kwargs, "ddnn|OnnO", keywords, &t0, &h, &k_start, &k_stop,
+                                     &buffer_object, &every, &row, &check))
         return NULL;
     if (require_state(self, 1) < 0)
         return NULL;
@@ -867,6 +869,14 @@ static PyObject *Core_run(Core *self, PyObject *args, PyObject *kwargs) {
         if (PyErr_CheckSignals() < 0) { /* a handler that raises stops the run between two steps */
             failed = 1;
             break;
+        }
+        if (check != Py_None) {
+            PyObject *result = PyObject_CallNoArgs(check);
+            if (result == NULL) {
+                failed = 1;
+                break;
+            }
+            Py_DECREF(result);
         }
     }
     if (have_buffer)
@@ -973,7 +983,7 @@ static PyMethodDef Core_methods[] = {
     {"initialize", (PyCFunction)Core_initialize, METH_O, "initialize(start_time): Master.initialize in C"},
     {"step", (PyCFunction)Core_step, METH_VARARGS, "step(t, h): one Master.step at communication point t"},
     {"run", (PyCFunction)(void (*)(void))Core_run, METH_VARARGS | METH_KEYWORDS,
-     "run(t0, h, k_start, k_stop, buffer=None, every=1, row=0) -> rows written"},
+     "run(t0, h, k_start, k_stop, buffer=None, every=1, row=0, check=None) -> rows written"},
     {"outputs", (PyCFunction)Core_outputs, METH_NOARGS, "outputs() -> every component's outputs, as lists"},
     {"messages", (PyCFunction)Core_messages, METH_O, "messages(c) -> latest log lines of component c"},
     {"close", (PyCFunction)Core_close, METH_NOARGS, "close(): terminate and free every instance"},

@@ -1,0 +1,302 @@
+"""Encode a run's trace in a second process: the stepping process only checks and ships float64 blocks.
+
+Encoding a trace point costs about as much as stepping our Python FMUs (JSON per component, the
+Foxglove scene, MCAP framing; docs/performance.md), so a trace written in the stepping process slows
+every-step tracing down by 1.5-1.8x. ``TraceWorker`` has ``TraceWriter``'s interface (``record``,
+``write_block``, ``log``, ``metadata``, ``flush``, ``close``, ``rows_recorded``, ``last_time``) but runs
+the real ``TraceWriter`` in a worker process: a fresh ``python -m orchestrator.trace_worker``, which
+inherits none of the FMUs loaded here and imports only what writing needs, while the stepping process
+unpacks and instantiates its FMUs. The stepping process keeps what must stay on its side:
+
+* the non-finite check, vectorized per block, so a bad output still ends the run with
+  ``ComponentError`` at the right point, and the rows before it are written;
+* the decimation (``every``) and the counts that the run's final metadata reports.
+
+Blocks, log lines and metadata go down one pipe in order, so the file is the same as one written in
+process (tests/test_traces.py compares them message by message). The pipe is widened to 1 MiB where
+Linux allows, which lets the worker lag by many blocks before the stepping process has to wait.
+
+Nothing is lost when things go wrong:
+
+* Ctrl-C reaches the whole process group; the worker ignores SIGINT and SIGTERM and finishes when
+  the stepping process closes the trace (with the run's final status) after its own handling.
+* If the stepping process dies without closing (SIGKILL, a crash), the worker sees the pipe close,
+  writes every block it received, records the run as ``aborted`` and finalizes the file.
+* If the worker dies, the stepping process raises ``TraceWorkerError`` at its next hand-over; the
+  complete chunks on disk can be recovered with ``platoon trace recover``.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import signal
+import subprocess
+import sys
+import time as clock
+import traceback
+from itertools import chain
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any, Sequence
+
+if __name__ == "__main__":  # the worker: ignore a Ctrl-C to the process group before the slow imports below
+    for _signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(_signum, signal.SIG_IGN)  # the stepping process decides when and how the trace ends
+
+import numpy as np
+
+from .errors import ComponentError
+from .trace import TraceWriter, first_non_finite, non_finite_error
+from .trace_format import CHUNK_SIZE, FLUSH_INTERVAL
+
+WORKER_BLOCK = 64  # rows per hand-over: small, so the worker's backlog when the run ends stays short
+PIPE_BYTES = 1 << 20  # requested pipe capacity (Linux F_SETPIPE_SZ; /proc/sys/fs/pipe-max-size allows 1 MiB)
+_F_SETPIPE_SZ = 1031
+CLOSE_TIMEOUT = 600.0  # s to wait for the worker to finish encoding its backlog
+
+
+class TraceWorkerError(RuntimeError):
+    """The trace worker process failed or died; the message says what happened and where the file is."""
+
+
+def _widen(connection: Connection) -> None:
+    try:
+        fcntl.fcntl(connection.fileno(), _F_SETPIPE_SZ, PIPE_BYTES)
+    except OSError:  # not Linux, or above the system's limit: the default 64 KiB still works, with more waiting
+        pass
+
+
+def _serve(inbox: Connection, outbox: Connection) -> None:
+    """The worker: build the writer, then apply what arrives in order until told to close (or orphaned)."""
+    try:
+        _, arguments = inbox.recv()
+        foxglove_arguments = arguments.pop("foxglove")
+        foxglove = None
+        if foxglove_arguments is not None:
+            from .foxglove import FoxgloveChannels
+
+            foxglove = FoxgloveChannels(*foxglove_arguments)
+        writer = TraceWriter(foxglove=foxglove, **arguments)
+    except BaseException:
+        outbox.send(("error", traceback.format_exc()))
+        return
+    try:
+        while True:
+            try:
+                kind, payload = inbox.recv()
+            except EOFError:  # the stepping process is gone without closing: keep everything it sent
+                _abandon(writer)
+                return
+            if kind == "rows":
+                writer.write_block(payload)
+            elif kind == "call":
+                name, args = payload
+                getattr(writer, name)(*args)
+            elif kind == "close":
+                writer.close()
+                outbox.send(("closed", writer.recorded))
+                return
+            else:
+                raise ValueError(f"unexpected message {kind!r}")
+    except BaseException:
+        text = traceback.format_exc()
+        try:
+            writer.close()  # what was written stays readable
+        finally:
+            try:
+                outbox.send(("error", text))
+            except OSError:
+                pass
+
+
+def _start_worker() -> tuple[subprocess.Popen[bytes], Connection, Connection]:
+    """Start ``python -m orchestrator.trace_worker INBOX STATUS`` with two pipes: blocks in, status out."""
+    inbox_read, inbox_write = os.pipe()
+    status_read, status_write = os.pipe()
+    try:
+        process = subprocess.Popen([sys.executable, "-m", "orchestrator.trace_worker", str(inbox_read), str(status_write)],
+                                   pass_fds=(inbox_read, status_write), stdin=subprocess.DEVNULL)
+    except BaseException:
+        for fd in (inbox_read, inbox_write, status_read, status_write):
+            os.close(fd)
+        raise
+    os.close(inbox_read)
+    os.close(status_write)
+    outbox = Connection(inbox_write, readable=False)
+    _widen(outbox)
+    return process, outbox, Connection(status_read, writable=False)
+
+
+def _abandon(writer: TraceWriter) -> None:
+    last = writer.last_time
+    reason = "the stepping process ended without closing the trace (killed?); every point it handed over is kept"
+    writer.log(last or 0.0, "Error", f"run aborted: {reason}")
+    writer.metadata("platoon.run", {"status": "aborted", "error": reason, "steps_recorded": writer.rows_recorded,
+                                    "last_time": "" if last is None else repr(float(last))})
+    writer.close()
+
+
+class TraceWorker:
+    """A ``TraceWriter`` running in a worker process; same interface, same file.
+
+    ``foxglove`` is ``(config, components, scene_rate)``: the worker builds the ``FoxgloveChannels``.
+    The constructor creates the file (so a path that cannot be written fails here) and starts the
+    worker without waiting for it: its start-up overlaps the FMUs' instantiation.
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        components: Sequence[tuple[str, Sequence[str]]],
+        descriptions: dict[str, dict[str, str]] | None = None,
+        every: int = 1,
+        block: int = WORKER_BLOCK,
+        foxglove: tuple[Any, ...] | None = None,
+        flush_interval: float = FLUSH_INTERVAL,
+        chunk_size: int = CHUNK_SIZE,
+    ) -> None:
+        self.path = Path(path)
+        self.components = [(name, list(outputs)) for name, outputs in components]
+        self.every = every
+        self.flush_interval = flush_interval
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        open(self.path, "wb").close()
+        width = 1 + sum(len(outputs) for _, outputs in self.components)
+        self._buffer = np.empty((max(block, 1), width))
+        self._filled = 0
+        self._count = 0
+        self.recorded = 0  # rows handed to the worker
+        self.last_time: float | None = None
+        self._last_flush = clock.monotonic()
+        self._failure: TraceWorkerError | None = None
+        self._closed = False
+        self._process, self._outbox, self._status = _start_worker()
+        self._send(("arguments", {"path": self.path, "components": self.components, "descriptions": descriptions,
+                                  "foxglove": foxglove, "flush_interval": flush_interval, "chunk_size": chunk_size}))
+
+    # --- what the worker says -------------------------------------------------------------------
+
+    def _fail(self, text: str) -> TraceWorkerError:
+        self._closed = True
+        self._reap()
+        self._failure = TraceWorkerError(f"the trace writer process failed; {self.path} holds its complete chunks "
+                                         f"(`platoon trace recover {self.path}` if it is unfinished):\n{text}")
+        return self._failure
+
+    def _read_status(self) -> tuple[str, Any]:
+        try:
+            return self._status.recv()
+        except (EOFError, OSError):
+            self._reap()
+            return "error", f"the worker process ended unexpectedly (exit code {self._process.returncode})"
+
+    def _reap(self) -> None:
+        try:
+            self._process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            self._process.kill()
+            self._process.wait()
+
+    def _check(self) -> None:
+        """Raise if the worker reported a failure (no waiting)."""
+        if self._failure is not None:
+            raise self._failure
+        while self._status.poll():
+            kind, value = self._read_status()
+            if kind == "error":
+                raise self._fail(value)
+
+    def _send(self, message: tuple[str, Any]) -> None:
+        self._check()
+        try:
+            self._outbox.send(message)
+        except OSError:  # broken pipe: the worker is gone; say why if it told us
+            kind, value = self._read_status()
+            raise self._fail(value if kind == "error" else "the worker process ended unexpectedly") from None
+
+    # --- TraceWriter's interface ----------------------------------------------------------------
+
+    def record(self, time: float, outputs: Sequence[Sequence[float]]) -> None:
+        """Keep the outputs at ``time`` (every ``every``-th call); ship the block when full or due."""
+        if self._count % self.every == 0:
+            row = self._buffer[self._filled]
+            row[0] = time
+            row[1:] = list(chain.from_iterable(outputs))
+            self._filled += 1
+            if self._filled == len(self._buffer) or clock.monotonic() - self._last_flush >= self.flush_interval:
+                self.flush()
+        self._count += 1
+
+    def write_block(self, rows: np.ndarray) -> None:
+        """Ship a float64 block of flat rows ``[t, outputs...]`` (already decimated), after buffered rows."""
+        self.flush()
+        self._ship(rows)
+
+    def _ship(self, rows: np.ndarray) -> None:
+        if self._failure is not None or self._closed:
+            return
+        bad = first_non_finite(rows)
+        good = rows if bad is None else rows[:bad]
+        if len(good):
+            self._send(("rows", np.ascontiguousarray(good)))
+            self.recorded += len(good)
+            self.last_time = float(good[-1, 0])
+        if bad is not None:
+            raise non_finite_error(self.components, rows[bad].tolist())
+
+    @property
+    def rows_recorded(self) -> int:
+        return self.recorded + self._filled
+
+    def flush(self) -> None:
+        filled, self._filled = self._filled, 0
+        self._last_flush = clock.monotonic()
+        if filled:
+            self._ship(self._buffer[:filled])
+
+    def log(self, time: float, level: str, message: str) -> None:
+        if self._failure is None and not self._closed:
+            self._send(("call", ("log", (time, level, message))))
+
+    def metadata(self, name: str, values: dict[str, Any]) -> None:
+        if self._failure is None and not self._closed:
+            self._send(("call", ("metadata", (name, values))))
+
+    def close(self) -> None:
+        """Ship what is buffered, let the worker encode its backlog and finalize the file; raise if it failed."""
+        if self._closed:
+            return  # a failure was raised where it was found
+        try:
+            self.flush()
+        finally:
+            self._finish()
+
+    def _finish(self) -> None:
+        self._send(("close", None))
+        self._closed = True
+        deadline = clock.monotonic() + CLOSE_TIMEOUT
+        while True:
+            if not self._status.poll(max(0.0, deadline - clock.monotonic())):
+                self._process.kill()
+                raise self._fail(f"the worker did not finish within {CLOSE_TIMEOUT:g} s")
+            kind, value = self._read_status()
+            if kind == "closed":
+                break
+            if kind == "error":
+                raise self._fail(value)
+        self._reap()
+        self._outbox.close()
+        self._status.close()
+
+
+def main(argv: list[str]) -> int:
+    """Entry point of the worker process: ``python -m orchestrator.trace_worker INBOX_FD STATUS_FD``."""
+    inbox = Connection(int(argv[0]), writable=False)
+    outbox = Connection(int(argv[1]), readable=False)
+    _serve(inbox, outbox)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
