@@ -114,9 +114,13 @@ def _start_worker() -> tuple[subprocess.Popen[bytes], Connection, Connection]:
     """Start ``python -m orchestrator.trace_worker INBOX STATUS`` with two pipes: blocks in, status out."""
     inbox_read, inbox_write = os.pipe()
     status_read, status_write = os.pipe()
+    # the worker imports this very package, wherever it was imported from (an install, or a checkout
+    # on sys.path as the benchmarks do it)
+    root = str(Path(__file__).resolve().parents[1])
+    environment = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
     try:
         process = subprocess.Popen([sys.executable, "-m", "orchestrator.trace_worker", str(inbox_read), str(status_write)],
-                                   pass_fds=(inbox_read, status_write), stdin=subprocess.DEVNULL)
+                                   pass_fds=(inbox_read, status_write), stdin=subprocess.DEVNULL, env=environment)
     except BaseException:
         for fd in (inbox_read, inbox_write, status_read, status_write):
             os.close(fd)
