@@ -107,6 +107,16 @@ def _execute(config: Config, text: str, trace: Path, engine: str, quiet: bool, t
             progress.stop()
 
 
+def _check_writable(trace: Path) -> None:
+    """Fail before any work when the trace cannot be created (missing permission, a file as folder ...)."""
+    try:
+        trace.parent.mkdir(parents=True, exist_ok=True)
+        with open(trace, "ab"):
+            pass
+    except OSError as error:
+        _fail(2, f"--out {trace}: cannot write the trace there: {error.strerror or error}")
+
+
 @app.command()
 def run(
     config: Annotated[Path, typer.Argument(help="scenario TOML file, e.g. configs/paper/platoon.toml")],
@@ -139,6 +149,7 @@ def run(
         _fail(2, f"--trace-writer {trace_writer!r}: expected one of {', '.join(TRACE_WRITERS)}")
     engine = "monolithic" if monolithic else (engine_name or default_engine())
     trace = trace or default_trace_path(parsed, engine)
+    _check_writable(trace)
     result = _execute(parsed, text, trace, engine, quiet, trace_writer)
     if result.status == "interrupted":
         _fail(128 + (result.signal or 2), f"run {result.status}: {result.error} (trace up to that point: {result.trace})")

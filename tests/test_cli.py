@@ -118,6 +118,23 @@ def test_missing_config_file_exits_2(workdir: Path, tmp_path: Path) -> None:
     assert str(missing) in line and "No such file" in line, line
 
 
+@pytest.mark.parametrize("option, value, expected", [
+    ("--out", "{file}/inside.mcap", "--out {file}/inside.mcap: cannot write the trace there"),
+    ("--trace-writer", "threads", "--trace-writer 'threads': expected one of auto, inline, process"),
+    ("--engine", "fortran", "--engine 'fortran': expected native or python"),
+])
+def test_bad_run_option_exits_2_with_one_clear_line(option: str, value: str, expected: str, workdir: Path,
+                                                    tmp_path: Path) -> None:
+    (tmp_path / "file").write_text("a file, not a folder")
+    value = value.format(file=tmp_path / "file")
+    expected = expected.format(file=tmp_path / "file")
+    arguments = [option, value] if option == "--out" else [option, value, "--out", tmp_path / "never.mcap"]
+    result = platoon("run", PAPER, *SHORT, *arguments, cwd=workdir)
+    assert result.returncode == 2, result.stderr
+    assert expected in error_line(result)
+    assert not (tmp_path / "never.mcap").exists()
+
+
 # --- a run, its summary, its report ------------------------------------------------------------
 
 @pytest.fixture(scope="module")
