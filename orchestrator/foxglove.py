@@ -23,13 +23,15 @@ from __future__ import annotations
 import json
 import math
 from collections import deque
-from typing import Any, Callable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from foxglove import messages as fg
 
-from .config import Config
-from .scenario import path_of
-from .trace import number_texts
+from .trace_writer import number_texts
+
+if TYPE_CHECKING:
+    from .config import Config
 
 ERRORS_TOPIC = "/platoon/errors"
 SCENE_TOPIC = "/platoon/scene"
@@ -91,18 +93,44 @@ def _timestamp(stamp: int) -> fg.Timestamp:
     return fg.Timestamp(sec=stamp // 1_000_000_000, nsec=stamp % 1_000_000_000)
 
 
+@dataclass(frozen=True)
+class SceneSettings:
+    """What the Foxglove channels take from a run's config: the path and the platoon's set-points.
+
+    Plain and picklable, so that the trace worker process (orchestrator/trace_serve.py) gets it without
+    importing the config's validation library.
+    """
+
+    path: Any  # the fmus.model path (signed distance, geometry)
+    path_kind: str
+    center: tuple[float, float]
+    radius: float
+    heading: float
+    d_star: float
+    v_c: float
+
+    @classmethod
+    def of(cls, config: "Config") -> "SceneSettings":
+        from .scenario import path_of
+
+        p = config.path
+        return cls(path_of(config), p.kind, (float(p.center[0]), float(p.center[1])), float(p.radius),
+                   float(p.heading), float(config.platoon.d_star), float(config.platoon.speed))
+
+
 class FoxgloveChannels:
     """Derived channels of one run. ``TraceWriter`` calls ``register`` once, ``row`` per recorded row."""
 
     def __init__(
         self,
-        config: Config,
+        settings: "SceneSettings | Config",
         components: Sequence[tuple[str, Sequence[str]]],
         scene_rate: float = SCENE_RATE,
         history: float = HISTORY,
     ) -> None:
-        self.config = config
-        self.path = path_of(config)
+        settings = settings if isinstance(settings, SceneSettings) else SceneSettings.of(settings)
+        self.settings = settings
+        self.path = settings.path
         self.names = [name for name, _ in components]
         self.vehicles = [name for name in self.names if name.startswith("vehicle")]
         self._index = {name: i for i, name in enumerate(self.names)}
@@ -110,8 +138,8 @@ class FoxgloveChannels:
         # positions of x, y, heading (every component) and of gap, speed (vehicles) among the outputs
         self._pose = {name: tuple(outputs[name].index(k) for k in ("x", "y", "heading")) for name in self.names}
         self._gap_speed = {name: (outputs[name].index("gap"), outputs[name].index("speed")) for name in self.vehicles}
-        self.d_star = config.platoon.d_star
-        self.v_c = config.platoon.speed
+        self.d_star = settings.d_star
+        self.v_c = settings.v_c
         self.period = 1.0 / scene_rate if scene_rate > 0 else math.inf
         self._next_scene = 0.0
         self._history = {name: deque(maxlen=max(2, int(round(history * scene_rate)))) for name in self.vehicles}
@@ -119,7 +147,7 @@ class FoxgloveChannels:
         self._size = size
         self._box = fg.Vector3(x=size, y=0.45 * size, z=0.35 * size)
         self._colors = {name: PALETTE[i % len(PALETTE)] for i, name in enumerate(self.vehicles)}
-        self._path_points = self._circle_points() if self.config.path.kind == "circle" else None
+        self._path_points = self._circle_points() if settings.path_kind == "circle" else None
         self._errors_template = ('{"t":%s' + "".join(
             f',"{name}":{{"path_error":%s,"gap_error":%s,"speed_error":%s}}' for name in self.vehicles) + "}").encode()
         self._white = _color((1.0, 1.0, 1.0))
@@ -171,14 +199,14 @@ class FoxgloveChannels:
         return self._errors_template % tuple(number_texts(values))
 
     def _circle_points(self) -> list[fg.Point3]:
-        p = self.config.path
+        p = self.settings
         return [
             fg.Point3(x=p.center[0] + p.radius * math.cos(a), y=p.center[1] + p.radius * math.sin(a), z=0.0)
             for a in (2.0 * math.pi * k / PATH_POINTS for k in range(PATH_POINTS))
         ]
 
     def _line_points(self, poses: list[tuple[float, float, float]]) -> list[fg.Point3]:
-        p = self.config.path
+        p = self.settings
         ux, uy = math.cos(p.heading), math.sin(p.heading)
         along = [(x - p.center[0]) * ux + (y - p.center[1]) * uy for x, y, _ in poses]
         margin = 2.0 * self.d_star

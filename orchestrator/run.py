@@ -30,10 +30,10 @@ from .config import Config
 from .master import Master
 from .native import NativeComponent, NativeMaster, available as native_available
 from .scenario import Scenario, build_scenario, step_count
-from .foxglove import SCENE_RATE, FoxgloveChannels
-from .trace import NullTraceWriter, TraceWriter
+from .foxglove import SCENE_RATE, FoxgloveChannels, SceneSettings
+from .trace_writer import NullTraceWriter, TraceWriter
 from .trace_format import BLOCK, FLUSH_INTERVAL
-from .trace_worker import WORKER_BLOCK, TraceWorker
+from .trace_worker import WORKER_BLOCK, TraceWorker, start_trace_process
 
 # Where the trace is encoded: "inline" in the stepping process, "process" in a second process
 # (orchestrator/trace_worker.py), "auto": a second process when the machine has a spare core and the
@@ -187,7 +187,14 @@ def run_scenario(
     sim = config.simulation
     steps = step_count(sim.stop_time, sim.step)
     writer_kind = choose_trace_writer(trace_writer, steps // sim.trace_every + 1, len(scenario.components))
-    fmus_by_kind = _open_fmus(fmu_dir)
+    # the trace writer process starts first: its start-up overlaps unpacking and instantiating the FMUs
+    trace_process = start_trace_process() if out is not None and writer_kind == "process" else None
+    try:
+        fmus_by_kind = _open_fmus(fmu_dir)
+    except BaseException:
+        if trace_process is not None:
+            trace_process.close()
+        raise
     started = clock.perf_counter()
     marks = {"start": started}  # phase boundaries, for RunResult.timings
     writer: TraceWriter | TraceWorker | NullTraceWriter | None = None
@@ -206,8 +213,8 @@ def run_scenario(
             writer = NullTraceWriter()
         elif writer_kind == "process":
             writer = TraceWorker(out, components, {name: _descriptions(fmu) for name, fmu in kinds.items()},
-                                 every=sim.trace_every,
-                                 foxglove=(config, components, scene_rate) if foxglove else None)
+                                 every=sim.trace_every, process=trace_process,
+                                 foxglove=(SceneSettings.of(config), components, scene_rate) if foxglove else None)
         else:
             writer = TraceWriter(
                 out,
@@ -287,6 +294,8 @@ def run_scenario(
                     run_record["signal"] = signal.Signals(signum).name
                 writer.metadata("platoon.run", run_record)
                 writer.close()
+            if trace_process is not None:
+                trace_process.close()  # only if no writer took it (the writer was never created)
             for fmu in fmus_by_kind.values():
                 fmu.cleanup()
         finally:

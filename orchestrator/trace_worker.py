@@ -4,9 +4,10 @@ Encoding a trace point costs about as much as stepping our Python FMUs (JSON per
 Foxglove scene, MCAP framing; docs/performance.md), so a trace written in the stepping process slows
 every-step tracing down by 1.5-1.8x. ``TraceWorker`` has ``TraceWriter``'s interface (``record``,
 ``write_block``, ``log``, ``metadata``, ``flush``, ``close``, ``rows_recorded``, ``last_time``) but runs
-the real ``TraceWriter`` in a worker process: a fresh ``python -m orchestrator.trace_worker``, which
-inherits none of the FMUs loaded here and imports only what writing needs, while the stepping process
-unpacks and instantiates its FMUs. The stepping process keeps what must stay on its side:
+the real ``TraceWriter`` in a worker process: a fresh ``python -m orchestrator.trace_serve``, which
+inherits none of the FMUs loaded here and imports only what writing needs (about 0.2 s), while the
+stepping process unpacks and instantiates its FMUs (``start_trace_process`` lets a run start it before
+anything else). The stepping process keeps what must stay on its side:
 
 * the non-finite check, vectorized per block, so a bad output still ends the run with
   ``ComponentError`` at the right point, and the rows before it are written;
@@ -30,25 +31,18 @@ from __future__ import annotations
 
 import fcntl
 import os
-import signal
 import subprocess
 import sys
 import time as clock
-import traceback
 from itertools import chain
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, Sequence
 
-if __name__ == "__main__":  # the worker: ignore a Ctrl-C to the process group before the slow imports below
-    for _signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(_signum, signal.SIG_IGN)  # the stepping process decides when and how the trace ends
-
 import numpy as np
 
-from .errors import ComponentError
-from .trace import TraceWriter, first_non_finite, non_finite_error
 from .trace_format import CHUNK_SIZE, FLUSH_INTERVAL
+from .trace_writer import non_finite_error
 
 WORKER_BLOCK = 64  # rows per hand-over: small, so the worker's backlog when the run ends stays short
 PIPE_BYTES = 1 << 20  # requested pipe capacity (Linux F_SETPIPE_SZ; /proc/sys/fs/pipe-max-size allows 1 MiB)
@@ -67,51 +61,45 @@ def _widen(connection: Connection) -> None:
         pass
 
 
-def _serve(inbox: Connection, outbox: Connection) -> None:
-    """The worker: build the writer, then apply what arrives in order until told to close (or orphaned)."""
-    try:
-        _, arguments = inbox.recv()
-        foxglove_arguments = arguments.pop("foxglove")
-        foxglove = None
-        if foxglove_arguments is not None:
-            from .foxglove import FoxgloveChannels
+def first_non_finite(rows: np.ndarray) -> int | None:
+    """Index of the first row of a float64 block holding nan or inf, or None."""
+    finite = np.isfinite(rows).all(axis=1)
+    if finite.all():
+        return None
+    return int(np.argmin(finite))
 
-            foxglove = FoxgloveChannels(*foxglove_arguments)
-        writer = TraceWriter(foxglove=foxglove, **arguments)
-    except BaseException:
-        outbox.send(("error", traceback.format_exc()))
-        return
-    try:
-        while True:
-            try:
-                kind, payload = inbox.recv()
-            except EOFError:  # the stepping process is gone without closing: keep everything it sent
-                _abandon(writer)
-                return
-            if kind == "rows":
-                writer.write_block(payload)
-            elif kind == "call":
-                name, args = payload
-                getattr(writer, name)(*args)
-            elif kind == "close":
-                writer.close()
-                outbox.send(("closed", writer.recorded))
-                return
-            else:
-                raise ValueError(f"unexpected message {kind!r}")
-    except BaseException:
-        text = traceback.format_exc()
+
+class TraceProcess:
+    """A trace writer process, started and waiting for its writer's arguments (``TraceWorker`` sends them).
+
+    ``start_trace_process()`` at the very start of a run lets the worker's start-up overlap everything
+    the stepping process does before its first step; ``close()`` ends an unused one.
+    """
+
+    def __init__(self) -> None:
+        self.process, self.outbox, self.status = _start_worker()
+        self.taken = False
+
+    def close(self) -> None:
+        """End the worker if no ``TraceWorker`` took it (it sees the pipe close before any argument)."""
+        if self.taken:
+            return
+        self.taken = True
+        self.outbox.close()
         try:
-            writer.close()  # what was written stays readable
-        finally:
-            try:
-                outbox.send(("error", text))
-            except OSError:
-                pass
+            self.process.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+        self.status.close()
+
+
+def start_trace_process() -> TraceProcess:
+    return TraceProcess()
 
 
 def _start_worker() -> tuple[subprocess.Popen[bytes], Connection, Connection]:
-    """Start ``python -m orchestrator.trace_worker INBOX STATUS`` with two pipes: blocks in, status out."""
+    """Start ``python -m orchestrator.trace_serve INBOX STATUS`` with two pipes: blocks in, status out."""
     inbox_read, inbox_write = os.pipe()
     status_read, status_write = os.pipe()
     # the worker imports this very package, wherever it was imported from (an install, or a checkout
@@ -119,7 +107,7 @@ def _start_worker() -> tuple[subprocess.Popen[bytes], Connection, Connection]:
     root = str(Path(__file__).resolve().parents[1])
     environment = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
     try:
-        process = subprocess.Popen([sys.executable, "-m", "orchestrator.trace_worker", str(inbox_read), str(status_write)],
+        process = subprocess.Popen([sys.executable, "-m", "orchestrator.trace_serve", str(inbox_read), str(status_write)],
                                    pass_fds=(inbox_read, status_write), stdin=subprocess.DEVNULL, env=environment)
     except BaseException:
         for fd in (inbox_read, inbox_write, status_read, status_write):
@@ -132,21 +120,13 @@ def _start_worker() -> tuple[subprocess.Popen[bytes], Connection, Connection]:
     return process, outbox, Connection(status_read, writable=False)
 
 
-def _abandon(writer: TraceWriter) -> None:
-    last = writer.last_time
-    reason = "the stepping process ended without closing the trace (killed?); every point it handed over is kept"
-    writer.log(last or 0.0, "Error", f"run aborted: {reason}")
-    writer.metadata("platoon.run", {"status": "aborted", "error": reason, "steps_recorded": writer.rows_recorded,
-                                    "last_time": "" if last is None else repr(float(last))})
-    writer.close()
-
-
 class TraceWorker:
     """A ``TraceWriter`` running in a worker process; same interface, same file.
 
-    ``foxglove`` is ``(config, components, scene_rate)``: the worker builds the ``FoxgloveChannels``.
-    The constructor creates the file (so a path that cannot be written fails here) and starts the
-    worker without waiting for it: its start-up overlaps the FMUs' instantiation.
+    ``foxglove`` is ``(SceneSettings, components, scene_rate)``: the worker builds the
+    ``FoxgloveChannels``. The constructor creates the file (so a path that cannot be written fails
+    here) and hands the worker its arguments without waiting for it. ``process``: a worker started
+    earlier with ``start_trace_process()`` (default: start one now).
     """
 
     def __init__(
@@ -159,6 +139,7 @@ class TraceWorker:
         foxglove: tuple[Any, ...] | None = None,
         flush_interval: float = FLUSH_INTERVAL,
         chunk_size: int = CHUNK_SIZE,
+        process: TraceProcess | None = None,
     ) -> None:
         self.path = Path(path)
         self.components = [(name, list(outputs)) for name, outputs in components]
@@ -175,7 +156,11 @@ class TraceWorker:
         self._last_flush = clock.monotonic()
         self._failure: TraceWorkerError | None = None
         self._closed = False
-        self._process, self._outbox, self._status = _start_worker()
+        process = process or TraceProcess()
+        if process.taken:
+            raise ValueError("this trace process already serves a writer")
+        process.taken = True
+        self._process, self._outbox, self._status = process.process, process.outbox, process.status
         self._send(("arguments", {"path": self.path, "components": self.components, "descriptions": descriptions,
                                   "foxglove": foxglove, "flush_interval": flush_interval, "chunk_size": chunk_size}))
 
@@ -243,7 +228,7 @@ class TraceWorker:
         bad = first_non_finite(rows)
         good = rows if bad is None else rows[:bad]
         if len(good):
-            self._send(("rows", np.ascontiguousarray(good)))
+            self._send(("rows", (good.shape[1], np.ascontiguousarray(good, dtype=np.float64).tobytes())))
             self.recorded += len(good)
             self.last_time = float(good[-1, 0])
         if bad is not None:
@@ -293,14 +278,3 @@ class TraceWorker:
         self._outbox.close()
         self._status.close()
 
-
-def main(argv: list[str]) -> int:
-    """Entry point of the worker process: ``python -m orchestrator.trace_worker INBOX_FD STATUS_FD``."""
-    inbox = Connection(int(argv[0]), writable=False)
-    outbox = Connection(int(argv[1]), readable=False)
-    _serve(inbox, outbox)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))

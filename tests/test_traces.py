@@ -28,7 +28,8 @@ from orchestrator.foxglove import ERRORS_TOPIC, LOG_TOPIC, SCENE_TOPIC, TF_TOPIC
 from orchestrator.components import ComponentError
 from orchestrator.metrics import path_errors
 from orchestrator.run import run_scenario
-from orchestrator.trace import Trace, TraceError, TraceWriter, _template, export_csv, load, number_texts, recover
+from orchestrator.trace import Trace, TraceError, TraceWriter, export_csv, load, number_texts, recover
+from orchestrator.trace_writer import _template
 from tests.conftest import SPEED_TO_ZERO
 
 REPO = Path(__file__).resolve().parents[1]
@@ -204,7 +205,7 @@ def test_json_encoding_is_exact_json() -> None:
 
 def test_fast_message_path_writes_what_mcap_add_message_writes(tmp_path: Path, monkeypatch, short: Trace) -> None:
     """The encoder appends Message records to the mcap writer's chunk itself; same bytes as the library's."""
-    import orchestrator.trace as trace_module
+    import orchestrator.trace_writer as trace_module
 
     config = paper(f"simulation.stop_time={SHORT_STOP}")
     components = [(name, [k for k in short.component(name) if k != "t"]) for name in COMPONENTS]

@@ -1,0 +1,100 @@
+"""The trace writer process: ``python -m orchestrator.trace_serve INBOX_FD STATUS_FD``.
+
+Started by ``orchestrator.trace_worker.TraceWorker`` (see there for why). It reads, in order, from the
+inbox pipe: the writer's arguments, then blocks of rows, log lines and metadata, then "close"; it
+answers on the status pipe ("closed" or "error" with a traceback). It imports only the writer (no
+numpy, no config validation), so that it is ready while the stepping process still loads its FMUs.
+
+Rows arrive as raw float64 bytes (``width`` values per row), already checked finite and decimated by
+the stepping process. If the inbox closes without "close" (the stepping process was killed), the
+worker writes every row it received, records the run as ``aborted`` and finalizes the file.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+
+if __name__ == "__main__":  # before the imports below: a Ctrl-C to the process group must not stop us
+    for _signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(_signum, signal.SIG_IGN)  # the stepping process decides when and how the trace ends
+
+import traceback  # noqa: E402
+from multiprocessing.connection import Connection  # noqa: E402
+from typing import Any  # noqa: E402
+
+from .trace_writer import TraceWriter  # noqa: E402
+
+ABORTED = "the stepping process ended without closing the trace (killed?); every point it handed over is kept"
+
+
+def rows_of(width: int, data: bytes) -> list[list[float]]:
+    """Rows of ``width`` values from raw native-endian float64 bytes."""
+    flat = memoryview(data).cast("d").tolist()
+    return [flat[start:start + width] for start in range(0, len(flat), width)]
+
+
+def serve(inbox: Connection, outbox: Connection) -> None:
+    """Build the writer, then apply what arrives in order until told to close (or orphaned)."""
+    try:
+        try:
+            kind, arguments = inbox.recv()
+        except EOFError:  # the run ended before it had anything to trace (e.g. a config error)
+            return
+        if kind != "arguments":
+            raise ValueError(f"expected the writer's arguments first, got {kind!r}")
+        foxglove = arguments.pop("foxglove")
+        if foxglove is not None:
+            from .foxglove import FoxgloveChannels
+
+            foxglove = FoxgloveChannels(*foxglove)
+        writer = TraceWriter(foxglove=foxglove, **arguments)
+    except BaseException:
+        outbox.send(("error", traceback.format_exc()))
+        return
+    try:
+        while True:
+            try:
+                kind, payload = inbox.recv()
+            except EOFError:  # the stepping process is gone without closing: keep everything it sent
+                abandon(writer)
+                return
+            if kind == "rows":
+                writer.write_rows(rows_of(*payload))
+            elif kind == "call":
+                name, args = payload
+                getattr(writer, name)(*args)
+            elif kind == "close":
+                writer.close()
+                outbox.send(("closed", writer.recorded))
+                return
+            else:
+                raise ValueError(f"unexpected message {kind!r}")
+    except BaseException:
+        text = traceback.format_exc()
+        try:
+            writer.close()  # what was written stays readable
+        finally:
+            try:
+                outbox.send(("error", text))
+            except OSError:
+                pass
+
+
+def abandon(writer: TraceWriter) -> None:
+    """Finalize the file of a run whose stepping process died: say so in the log and the run record."""
+    last = writer.last_time
+    writer.log(last or 0.0, "Error", f"run aborted: {ABORTED}")
+    record: dict[str, Any] = {"status": "aborted", "error": ABORTED, "steps_recorded": writer.rows_recorded,
+                              "last_time": "" if last is None else repr(float(last))}
+    writer.metadata("platoon.run", record)
+    writer.close()
+
+
+def main(argv: list[str]) -> int:
+    serve(Connection(int(argv[0]), writable=False), Connection(int(argv[1]), readable=False))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

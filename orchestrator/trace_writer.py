@@ -1,0 +1,462 @@
+"""Writing run traces in MCAP (the format: docs/trace-format.md; the reading side: trace_reader).
+
+One JSON channel per component (``/platoon/<component>``: ``t`` and every output of the component by
+its FMU variable name, one message per recorded communication point), the Foxglove channels of a
+``FoxgloveChannels`` (orchestrator/foxglove.py), and metadata; log_time and publish_time are the
+simulation time in nanoseconds. Files are chunked, zstd-compressed and indexed; a chunk is closed at
+least every ``flush_interval`` seconds of wall time, so a killed run loses at most that much.
+
+Rows are buffered and encoded in blocks, so a run's hot loop only appends the outputs to a list (or
+fills a float64 block, in the native engine). This module imports neither numpy nor the config: the
+trace worker process (orchestrator/trace_serve.py) runs it and should start fast.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+import time as clock
+from contextlib import contextmanager
+from itertools import chain
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Sequence
+
+import mcap.writer as _mcap_writer
+from mcap.data_stream import RecordBuilder
+from mcap.records import Message, MessageIndex, Metadata, Schema
+from mcap.writer import CompressionType, Writer
+
+from .errors import ComponentError
+from .trace_format import (
+    SCHEMA_ENCODING,
+    MESSAGE_ENCODING,
+    KIND_KEY,
+    CHUNK_SIZE,
+    FLUSH_INTERVAL,
+    BLOCK,
+    channel_name,
+)
+
+if TYPE_CHECKING:
+    from .foxglove import FoxgloveChannels
+
+def _schema(component: str, outputs: Sequence[str], descriptions: dict[str, str]) -> bytes:
+    properties = {"t": {"type": "number", "description": "simulation time [s]"}}
+    for name in outputs:
+        properties[name] = {"type": "number", "description": descriptions.get(name, name)}
+    return json.dumps(
+        {
+            "$schema": "https://json-schema.org/draft/2020-12/schema",
+            "title": f"platoon.{component}",
+            "type": "object",
+            "properties": properties,
+            "required": ["t", *outputs],
+            "additionalProperties": False,
+        }
+    ).encode()
+
+
+try:  # orjson writes floats (Rust, ryu) several times faster than float.__repr__, same values
+    import orjson
+
+    def number_texts(values: list[float]) -> list[bytes]:
+        """JSON text of each number: shortest text that reads back as exactly the same float."""
+        try:
+            return orjson.dumps(values)[1:-1].split(b",")
+        except TypeError:  # a number type orjson does not take (e.g. numpy scalar): its float value
+            return orjson.dumps([float(v) for v in values])[1:-1].split(b",")
+
+except ImportError:  # pragma: no cover - orjson is a dependency; this keeps a bare install working
+
+    def number_texts(values: list[float]) -> list[bytes]:
+        """JSON text of each number: shortest text that reads back as exactly the same float."""
+        return [float.__repr__(float(v)).encode() for v in values]
+
+
+def _template(keys: Sequence[str]) -> str:
+    """A %-format that, filled with the values' JSON texts, is the JSON object of ``keys`` to values."""
+    return "{" + ",".join(json.dumps(key).replace("%", "%%") + ":%s" for key in keys) + "}"
+
+
+class _MessageIndex(MessageIndex):
+    """A MessageIndex that packs its entries in one call (the library writes them one by one)."""
+
+    def write(self, stream) -> None:
+        stream.start_record(_MESSAGE_INDEX_OPCODE)
+        stream.write2(self.channel_id)
+        stream.write4(len(self.records) * 16)
+        stream.write(struct.pack(f"<{2 * len(self.records)}Q", *chain.from_iterable(self.records)))
+        stream.finish_record()
+
+
+class _PackedRecord:
+    """A summary record kept as its bytes: a ChunkIndex object with its offsets dict costs ~10 KB of
+    memory for a hundred channels, its record ~1 KB, and the writer keeps one per chunk until the end."""
+
+    __slots__ = ("data",)
+
+    def __init__(self, record: Any) -> None:
+        builder = RecordBuilder()
+        record.write(builder)
+        self.data = builder.end()
+
+    def write(self, stream: Any) -> None:
+        stream.write(self.data)
+
+
+_MESSAGE_INDEX_OPCODE = 0x07
+_MESSAGE_OPCODE = 0x05
+# a Message record's header: opcode, record length, channel id | sequence, log time, publish time
+_MESSAGE_HEADER_START = struct.Struct("<BQH")
+_MESSAGE_HEADER_TAIL = struct.Struct("<IQQ")
+_MESSAGE_HEADER_SIZE = _MESSAGE_HEADER_START.size + _MESSAGE_HEADER_TAIL.size
+
+
+ZSTD_LEVEL = 1  # chunk compression level; mcap's writer always uses zstandard's default, 3
+
+
+class _LevelledZstd:
+    """Stands in for the ``zstandard`` module in mcap's writer: ``compress`` at ``ZSTD_LEVEL``.
+
+    On our JSON chunks level 1 compresses about 3x faster than level 3, and as small or smaller
+    (68 against 222 MB/s; ratio 3.8 against 4.2 on a 4 MiB sample, on this 2-core machine); chunk
+    compression was the largest single cost of writing a trace. Any zstd reader reads either.
+    """
+
+    def __init__(self, level: int) -> None:
+        import zstandard
+
+        self._compressor = zstandard.ZstdCompressor(level=level)
+
+    def compress(self, data: bytes) -> bytes:
+        return self._compressor.compress(data)
+
+
+_LEVELLED_ZSTD: _LevelledZstd | None = None
+
+
+@contextmanager
+def _fast_chunk_compression():
+    """While mcap's writer finishes a chunk (in this thread), it compresses at ``ZSTD_LEVEL``.
+
+    The writer has no compression-level option and looks ``zstandard`` up in its module globals, so
+    the name is swapped for the length of the call and put back; if the library changes that, its
+    own default level is used.
+    """
+    global _LEVELLED_ZSTD
+    real = getattr(_mcap_writer, "zstandard", None)
+    if real is None:
+        yield
+        return
+    if _LEVELLED_ZSTD is None:
+        _LEVELLED_ZSTD = _LevelledZstd(ZSTD_LEVEL)
+    _mcap_writer.zstandard = _LEVELLED_ZSTD
+    try:
+        yield
+    finally:
+        _mcap_writer.zstandard = real
+
+
+def _cover(holder: Any, stamp: int, first: bool) -> None:
+    """Widen ``holder``'s message_start_time / message_end_time to ``stamp`` (set both for its first message)."""
+    if first:
+        holder.message_start_time = holder.message_end_time = stamp
+    else:
+        holder.message_start_time = min(holder.message_start_time, stamp)
+        holder.message_end_time = max(holder.message_end_time, stamp)
+
+
+def _fast_path(writer: Writer):
+    """The open chunk of an ``mcap`` Writer, to append Message records without a Python object each.
+
+    ``Writer.add_message`` costs about as much per message as encoding its JSON; the records written
+    here are byte for byte what it writes (tests/test_traces.py compares the files), with the same
+    message indexes and statistics. Relies on the writer's private chunk builder: if a future
+    ``mcap`` release changes it, this returns None and the public ``add_message`` is used.
+    """
+    try:
+        builder = writer._Writer__chunk_builder  # type: ignore[attr-defined]
+        statistics = writer._Writer__statistics  # type: ignore[attr-defined]
+        finalize = writer._Writer__finalize_chunk  # type: ignore[attr-defined]
+        builder.record_writer._buffer.tell
+        builder.message_indices, builder.num_messages, builder.message_start_time, builder.message_end_time
+        statistics.channel_message_counts, statistics.message_count
+        statistics.message_start_time, statistics.message_end_time
+    except AttributeError:
+        return None
+    if builder is None:
+        return None
+    return builder, statistics, finalize
+
+
+class _Encoder:
+    """Encodes rows into the MCAP file."""
+
+    def __init__(
+        self,
+        path: Path,
+        components: Sequence[tuple[str, Sequence[str]]],
+        descriptions: dict[str, dict[str, str]] | None,
+        foxglove: "FoxgloveChannels | None",
+        flush_interval: float,
+        chunk_size: int,
+        fast: bool = True,
+    ) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = open(self.path, "wb")
+        self._writer = Writer(self._file, compression=CompressionType.ZSTD, chunk_size=chunk_size)
+        self._writer.start(profile="", library="platoon-cosim")
+        self.components = [(name, list(outputs)) for name, outputs in components]
+        self._channels = []
+        for name, outputs in self.components:
+            schema_id = self._writer.register_schema(
+                name=f"platoon.{name}",
+                encoding=SCHEMA_ENCODING,
+                data=_schema(name, outputs, (descriptions or {}).get(name, {})),
+            )
+            self._channels.append(
+                self._writer.register_channel(topic=channel_name(name), message_encoding=MESSAGE_ENCODING,
+                                              schema_id=schema_id, metadata={KIND_KEY: "component"})
+            )
+        self.foxglove = foxglove
+        if foxglove is not None:
+            foxglove.register(self._writer)
+        self._templates = [_template(["t", *outputs]).encode() for _, outputs in self.components]
+        self._spans, start = [], 1
+        for _, outputs in self.components:  # where each component's values sit in a row's flat list
+            self._spans.append((start, start + len(outputs)))
+            start += len(outputs)
+        self._chunk_size = chunk_size
+        self._fast = _fast_path(self._writer) if fast else None
+        self._chunk_indexes = getattr(self._writer, "_Writer__chunk_indices", None)
+        self._packed = 0
+        self.flush_interval = flush_interval
+        self.recorded = 0
+        self.last_time: float | None = None
+        self._last_chunk = clock.monotonic()
+
+    def _write(self, channel: int, stamp: int, data: bytes) -> None:
+        self._add(stamp, self.recorded, ((channel, data),))
+
+    def _add(self, stamp: int, sequence: int, messages: Sequence[tuple[int, bytes]]) -> None:
+        """Add messages that share one log time (= publish time) and sequence number."""
+        fast = self._fast
+        if fast is None:
+            write = self._writer.add_message
+            with _fast_chunk_compression():  # add_message may finish a chunk
+                for channel, data in messages:
+                    write(channel_id=channel, log_time=stamp, publish_time=stamp, sequence=sequence, data=data)
+            return
+        builder, statistics, finalize = fast
+        buffer = builder.record_writer._buffer  # a new one after every chunk
+        indexes = builder.message_indices
+        counts = statistics.channel_message_counts
+        pack = _MESSAGE_HEADER_START.pack
+        tail = _MESSAGE_HEADER_TAIL.pack(sequence, stamp, stamp)  # shared by the row's messages
+        position = buffer.tell()
+        parts = []
+        for channel, data in messages:
+            index = indexes.get(channel)
+            if index is None:
+                index = indexes[channel] = _MessageIndex(channel_id=channel, records=[])
+            index.records.append((stamp, position))
+            parts += (pack(_MESSAGE_OPCODE, 22 + len(data), channel), tail, data)
+            position += _MESSAGE_HEADER_SIZE + len(data)
+            counts[channel] += 1
+        buffer.write(b"".join(parts))  # one write per row
+        _cover(builder, stamp, builder.num_messages == 0)  # the chunk's time bounds
+        builder.num_messages += len(messages)
+        _cover(statistics, stamp, statistics.message_count == 0)  # the file's
+        statistics.message_count += len(messages)
+        if buffer.tell() > self._chunk_size:
+            with _fast_chunk_compression():
+                finalize()
+            self._pack_indexes()
+
+    def _pack_indexes(self) -> None:
+        indexes = self._chunk_indexes
+        if isinstance(indexes, list):
+            for position in range(self._packed, len(indexes)):
+                indexes[position] = _PackedRecord(indexes[position])
+            self._packed = len(indexes)
+
+    def rows(self, rows: Sequence[Sequence[float]]) -> None:
+        """Write flat rows ``[t, outputs of component 0, ...]`` (all finite); close the chunk if due."""
+        channels, templates, foxglove = self._channels, self._templates, self.foxglove
+        spans = self._spans
+        for row in rows:
+            time = row[0]
+            stamp = int(round(time * 1e9))
+            texts = number_texts(row)  # one conversion per row: the costly part of JSON
+            first = texts[0]
+            messages = [(channel, template % (first, *texts[start:end]))
+                        for channel, template, (start, end) in zip(channels, templates, spans)]
+            if foxglove is not None:
+                messages.extend(foxglove.row(time, stamp, [row[start:end] for start, end in spans]))
+            self._add(stamp, self.recorded, messages)
+            self.recorded += 1
+            self.last_time = time
+        self.tick()
+
+    def tick(self) -> None:
+        now = clock.monotonic()
+        if now - self._last_chunk >= self.flush_interval:
+            flush = getattr(self._writer, "flush", None)
+            with _fast_chunk_compression():
+                if flush is not None:  # mcap >= 1.3: finishes the chunk and flushes the stream
+                    flush()
+                else:
+                    self._writer._Writer__finalize_chunk()  # type: ignore[attr-defined]
+                    self._file.flush()
+            self._last_chunk = now
+        self._pack_indexes()
+
+    def log(self, time: float, level: str, message: str) -> None:
+        if self.foxglove is not None:
+            self.foxglove.log(self._write, time, level, message)
+
+    def metadata(self, name: str, values: dict[str, str]) -> None:
+        self._writer.add_metadata(name, values)
+        self._file.flush()
+
+    def close(self) -> None:
+        with _fast_chunk_compression():
+            self._writer.finish()
+        self._file.close()
+
+
+def non_finite_error(components: Sequence[tuple[str, Sequence[str]]], row: Sequence[float]) -> ComponentError:
+    """The error for a flat row ``[t, outputs...]`` holding a non-finite output: which component, which output."""
+    time, position = float(row[0]), 1
+    for name, outputs in components:
+        for key in outputs:
+            if not math.isfinite(row[position]):
+                return ComponentError(name, time, f"output {key} = {row[position]} is not finite (the trace ends before it)")
+            position += 1
+    return ComponentError(components[0][0], time, "outputs overflow")
+
+
+class TraceWriter:
+    """Writes a run's trace in this process.
+
+    Two ways in: ``record(t, outputs)`` per communication point (decimated by ``every``; rows are
+    buffered and encoded in blocks), and ``write_block(rows)`` for blocks of flat rows a native loop
+    already decimated. Either way a row holding a non-finite output is not written: the rows before it
+    are, and ``ComponentError`` names the component, the output and the time.
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        components: Sequence[tuple[str, Sequence[str]]],
+        descriptions: dict[str, dict[str, str]] | None = None,
+        every: int = 1,
+        block: int = BLOCK,
+        foxglove: "FoxgloveChannels | None" = None,
+        flush_interval: float = FLUSH_INTERVAL,
+        chunk_size: int = CHUNK_SIZE,
+    ) -> None:
+        self.path = Path(path)
+        self.components = [(name, list(outputs)) for name, outputs in components]
+        self._encoder = _Encoder(self.path, self.components, descriptions, foxglove, flush_interval, chunk_size)
+        self.foxglove = foxglove
+        self.every = every
+        self.block = block
+        self.flush_interval = flush_interval
+        self._count = 0
+        self._rows: list[list[float]] = []
+        self.recorded = 0  # rows handed to the encoder so far
+        self.last_time: float | None = None  # simulation time of the last row handed over
+        self._last_flush = clock.monotonic()
+        self._closed = False
+
+    def record(self, time: float, outputs: Sequence[Sequence[float]]) -> None:
+        """Keep the outputs at ``time`` (every ``every``-th call) for the next flush."""
+        if self._count % self.every == 0:
+            row = [time]
+            for values in outputs:
+                row.extend(values)
+            rows = self._rows
+            rows.append(row)
+            if len(rows) >= self.block or clock.monotonic() - self._last_flush >= self.flush_interval:
+                self.flush()
+        self._count += 1
+
+    def write_block(self, rows: Any) -> None:
+        """Write a float64 block (a numpy array) of flat rows ``[t, outputs...]``, already decimated."""
+        self.write_rows(rows.tolist())
+
+    def write_rows(self, rows: list[list[float]]) -> None:
+        """Write flat rows ``[t, outputs...]`` (already decimated) after any buffered ones."""
+        self.flush()
+        self._rows = rows
+        self.flush()
+
+    @property
+    def rows_recorded(self) -> int:
+        """Rows recorded so far, handed over or still buffered."""
+        return self.recorded + len(self._rows)
+
+    def _deliver(self, rows: list[list[float]]) -> None:
+        if rows:
+            self._encoder.rows(rows)
+            self.recorded += len(rows)
+            self.last_time = rows[-1][0]
+        else:
+            self._encoder.tick()
+
+    def flush(self) -> None:
+        """Hand the buffered rows to the encoder (up to the first non-finite one, which raises)."""
+        rows, self._rows = self._rows, []
+        self._last_flush = clock.monotonic()
+        for index, row in enumerate(rows):
+            if not math.isfinite(sum(row)):
+                self._deliver(rows[:index])
+                raise non_finite_error(self.components, row)
+        self._deliver(rows)
+
+    def log(self, time: float, level: str, message: str) -> None:
+        """A line on ``/platoon/log`` (foxglove.Log) at simulation ``time``: Info, Warning or Error."""
+        if self.foxglove is not None and not self._closed:
+            self._encoder.log(time, level, message)
+
+    def metadata(self, name: str, values: dict[str, Any]) -> None:
+        self._encoder.metadata(name, {k: v if isinstance(v, str) else json.dumps(v) for k, v in values.items()})
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self.flush()
+        finally:
+            self._encoder.close()
+
+
+class NullTraceWriter:
+    """Records nothing: ``run_scenario(..., out=None)`` runs with this (benchmarks, dry runs)."""
+
+    foxglove = None
+    recorded = 0
+    rows_recorded = 0
+    last_time = None
+
+    def record(self, time: float, outputs: Sequence[Sequence[float]]) -> None:
+        pass
+
+    def write_block(self, rows: Any) -> None:
+        pass
+
+    def flush(self) -> None:
+        pass
+
+    def log(self, time: float, level: str, message: str) -> None:
+        pass
+
+    def metadata(self, name: str, values: dict[str, Any]) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
