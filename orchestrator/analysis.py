@@ -160,6 +160,25 @@ def our_families(config: Config, count: int) -> list[Family]:
     return families
 
 
+def speed_chain_gain(config: Config) -> tuple[float, float]:
+    """Peak over w of |G(jw)| for one link of the speed chain, and the w where it peaks.
+
+    Holding all but V_i and d_(i+1), d_(i+1)' = alpha (V_i - V_(i+1)) and V_i' = k_v (V_(i+1) -
+    V_c (d_(i+1) - d*)/d* - V_i), so vehicle i follows vehicle i+1 through G(s) = (k_v s + k)/(s^2 +
+    k_v s + k) with k = k_v V_c alpha/d* (the loop of the speed-chain eigenvalue family). |G(jw)| > 1
+    for every w^2 < 2k, whatever k_v: the chain is never string stable, and over the n-1 links of a
+    long platoon a fluctuation near the peak grows like peak^(n-1). The eigenvalues do not show this
+    (they do not depend on n), which is why it is reported next to them (docs/model.md, section 10).
+    Setting d/dw^2 of |G|^2 to zero gives the peak at w^2 = (k/k_v^2)(sqrt(k^2 + 2 k_v^2 k) - k).
+    """
+    p = config.platoon
+    alpha = math.sqrt(1.0 - (p.d_star / (2.0 * config.path.radius)) ** 2) if config.path.kind == "circle" else 1.0
+    k = p.k_v * p.speed * alpha / p.d_star
+    w2 = (k / p.k_v**2) * (math.sqrt(k * k + 2.0 * p.k_v**2 * k) - k)
+    gain = math.sqrt((p.k_v**2 * w2 + k * k) / ((k - w2) ** 2 + p.k_v**2 * w2))
+    return gain, math.sqrt(w2)
+
+
 # Real parts within this of zero are zero to the accuracy of the finite-difference Jacobian.
 _ZERO_REAL = 1e-7
 
@@ -208,6 +227,12 @@ def eigen_report(config: Config) -> str:
         lines.append("  (the paper gives beta only for k_v = 0.5, so its last two families are not evaluated here)")
     largest = float(eigenvalues.real.max())
     lines.append(f"verdict: {stability_word(largest)} (largest real part {largest:+.6f})")
+    if n > 1:
+        gain, frequency = speed_chain_gain(config)
+        lines.append(
+            f"speed chain, vehicle i+1 to vehicle i: peak gain {gain:.4f} at {frequency:.3f} rad/s (above 1 for any k_v: "
+            f"not string stable); over this platoon's {n - 1} link(s) up to {gain ** (n - 1):.3g}"
+        )
     if n > 1:
         own, _ = jacobian(config, speed_chain_gap="own")
         worst = np.linalg.eigvals(own).real.max()

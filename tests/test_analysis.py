@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
-from orchestrator.analysis import jacobian, multiplicity_test, our_families, paper_eigenvalues
+from orchestrator.analysis import jacobian, multiplicity_test, our_families, paper_eigenvalues, speed_chain_gain
 from tests.conftest import make_config
 
 
@@ -50,3 +52,25 @@ def test_the_speed_chain_printed_in_the_papers_text_destabilizes_the_platoon(cou
     own, _ = jacobian(config, speed_chain_gap="own")
     assert np.linalg.eigvals(follower).real.max() < -0.2
     assert np.linalg.eigvals(own).real.max() > 0.01
+
+
+@pytest.mark.parametrize("k_v", [0.5, 2.0, 8.0])
+def test_speed_chain_peak_gain_is_the_peak_of_the_link_transfer_function_and_above_one(k_v):
+    """The closed-form peak equals a dense frequency sweep of G(s) = (k_v s + k)/(s^2 + k_v s + k)."""
+    config = make_config(path={"radius": 2000.0}, platoon={"k_v": k_v})
+    p = config.platoon
+    k = k_v * p.speed * math.sqrt(1.0 - (p.d_star / (2.0 * config.path.radius)) ** 2) / p.d_star
+    w = np.linspace(1e-4, 5.0, 200001)
+    sweep = np.abs((k_v * 1j * w + k) / (-(w**2) + k_v * 1j * w + k))
+    gain, frequency = speed_chain_gain(config)
+    assert gain == pytest.approx(sweep.max(), rel=1e-9)
+    assert frequency == pytest.approx(w[sweep.argmax()], abs=1e-3)
+    assert gain > 1.0  # never string stable, only less so as k_v grows
+
+
+def test_a_hundred_vehicle_speed_chain_amplifies_by_trillions_at_the_papers_k_v():
+    """docs/model.md, section 10: 1.3416 per link at R = 2000 m, 4.3e12 over 99 links; k_v = 2: 3.1e4."""
+    gain, frequency = speed_chain_gain(make_config(path={"radius": 2000.0}))
+    assert gain == pytest.approx(1.3416, abs=1e-4) and frequency == pytest.approx(0.333, abs=1e-3)
+    assert gain**99 > 1e12
+    assert speed_chain_gain(make_config(path={"radius": 2000.0}, platoon={"k_v": 2.0}))[0] ** 99 < 1e5
