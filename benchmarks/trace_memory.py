@@ -12,8 +12,9 @@ the paper's k_v = 0.5, under which a 100-vehicle platoon breaks down within minu
 
 The run goes through ``orchestrator.run.run_scenario``, as ``platoon run`` does, so what is measured
 is what a user gets. Every ``--sample`` steps its progress callback reads VmRSS from
-/proc/self/status (the callback runs in the stepping process, which also encodes and writes the
-trace). The result is a JSON file under runs/bench/: the samples, the RSS growth over the second half
+/proc/self/status (the callback runs in the stepping process), and the RSS of its children: the trace
+writer process, which encodes and writes the trace when ``--trace-writer`` is ``process`` (what
+``auto`` picks for this run). The result is a JSON file under runs/bench/: the samples, the RSS growth over the second half
 of the run (after warm-up) per simulated and per wall-clock hour, the wall time, the trace's size and
 chunk count (the chunk index, one small record per chunk kept until the summary is written, is the one
 thing an indexed MCAP writer must hold for the whole run), and, read back from the trace, how far the
@@ -44,23 +45,36 @@ from orchestrator.scenario import step_count  # noqa: E402
 DEFAULT_CONFIG = REPO / "configs" / "bench" / "platoon100-1h.toml"
 
 
-def rss_mb() -> float:
-    """Resident set size of this process now, in MiB (Linux: VmRSS of /proc/self/status)."""
-    with open("/proc/self/status") as status:
-        for line in status:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    raise RuntimeError("no VmRSS in /proc/self/status")
+def rss_mb(pid: int | str = "self") -> float:
+    """Resident set size of a process now, in MiB (Linux: VmRSS of /proc/PID/status); 0 if it is gone."""
+    try:
+        with open(f"/proc/{pid}/status") as status:
+            for line in status:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024.0
+    except FileNotFoundError:
+        return 0.0
+    raise RuntimeError(f"no VmRSS in /proc/{pid}/status")
 
 
-def second_half_slopes(samples: list[dict[str, float]], stop_time: float) -> tuple[float, float]:
+def children_rss_mb() -> float:
+    """RSS of this process's children, in MiB: the trace writer process when the trace is encoded there."""
+    pid = os.getpid()
+    try:
+        with open(f"/proc/{pid}/task/{pid}/children") as children:
+            return sum(rss_mb(child) for child in children.read().split())
+    except FileNotFoundError:
+        return 0.0
+
+
+def second_half_slopes(samples: list[dict[str, float]], stop_time: float, key: str = "rss_mb") -> tuple[float, float]:
     """Least-squares RSS slope over the samples in the run's second half (simulated time), in MiB
     per simulated hour and per wall-clock hour: the first half holds the warm-up (imports, FMU
     instantiation, first blocks and chunks), which is not growth."""
     late = [s for s in samples if s["t"] >= stop_time / 2.0]
     if len(late) < 3:
         return float("nan"), float("nan")
-    t, wall, rss = (np.array([s[key] for s in late]) for key in ("t", "wall", "rss_mb"))
+    t, wall, rss = (np.array([s[name] for s in late]) for name in ("t", "wall", key))
     return float(np.polyfit(t, rss, 1)[0] * 3600.0), float(np.polyfit(wall, rss, 1)[0] * 3600.0)
 
 
@@ -99,6 +113,8 @@ def main() -> int:
     parser.add_argument("--trace-every", type=int, default=None, help="record every K-th point (default: the config's)")
     parser.add_argument("--sample", type=int, default=200, help="sample RSS every this many steps")
     parser.add_argument("--engine", choices=("native", "python"), default=None, help="stepping core (default: native when built)")
+    parser.add_argument("--trace-writer", choices=("auto", "inline", "process"), default="auto",
+                        help="where the trace is encoded (as platoon run's option; default %(default)s)")
     parser.add_argument("--out", type=Path, default=None, help="keep the trace here (default: a temporary file, deleted)")
     parser.add_argument("--json", type=Path, default=None, help="result file (default: runs/bench/trace-memory-<time>.json)")
     args = parser.parse_args()
@@ -123,33 +139,43 @@ def main() -> int:
     samples: list[dict[str, float]] = []
     started = time.perf_counter()
 
-    def tick(k: int) -> None:
-        if k % args.sample == 0:
+    next_sample = [args.sample]
+
+    def tick(k: int) -> None:  # called after every call into the stepping core (tens of steps), not every step
+        if k >= next_sample[0]:
+            next_sample[0] = (k // args.sample + 1) * args.sample
             size = out.stat().st_size if out.exists() else 0
             samples.append({"step": k, "t": k * sim.step, "wall": time.perf_counter() - started,
-                            "rss_mb": rss_mb(), "trace_bytes": size})
+                            "rss_mb": rss_mb(), "writer_rss_mb": children_rss_mb(), "trace_bytes": size})
             if len(samples) % 10 == 1:
                 s = samples[-1]
                 print(f"  step {k:>7}  t = {s['t']:>7.0f} s  wall {s['wall']:>6.0f} s  "
-                      f"RSS {s['rss_mb']:>7.1f} MB  trace {size / 1e6:>7.2f} MB", flush=True)
+                      f"RSS {s['rss_mb']:>7.1f} MB (+ writer {s['writer_rss_mb']:>6.1f} MB)  trace {size / 1e6:>7.2f} MB",
+                      flush=True)
 
     rss_before = rss_mb()
     load_before = os.getloadavg()
     print(f"{args.config.name}: {config.platoon.count} vehicles, {sim.stop_time:g} s simulated at {sim.step:g} s "
           f"({steps} steps), trace_every {sim.trace_every}, {engine} engine; RSS before the run {rss_before:.1f} MB",
           flush=True)
-    result = run_scenario(config, args.config.read_text(), out, engine=engine, fmu_dir=fmu_dir, tick=tick)
+    result = run_scenario(config, args.config.read_text(), out, engine=engine, fmu_dir=fmu_dir, tick=tick,
+                          trace_writer=args.trace_writer)
     load_after = os.getloadavg()
     trace_bytes = out.stat().st_size
     print(f"run {result.status} in {result.wall_time:.0f} s; trace {trace_bytes / 1e6:.2f} MB", flush=True)
 
     chunks, rows = trace_summary(out)
+    from orchestrator.trace import load
+
+    trace_writer = load(out).metadata["platoon.start"].get("trace_writer", "inline")
     deviation = equilibrium_deviation(out, config)
     if scratch is not None:
         scratch.cleanup()
     rss = np.array([s["rss_mb"] for s in samples])
     half = next((i for i, s in enumerate(samples) if s["t"] >= sim.stop_time / 2.0), len(samples) - 1)
     per_sim_hour, per_wall_hour = second_half_slopes(samples, sim.stop_time)
+    writer_rss = np.array([s["writer_rss_mb"] for s in samples])
+    writer_per_sim_hour, _ = second_half_slopes(samples, sim.stop_time, "writer_rss_mb")
     report = {
         "config": str(args.config.resolve().relative_to(REPO)) if args.config.resolve().is_relative_to(REPO) else str(args.config),
         "overrides": overrides,
@@ -170,6 +196,11 @@ def main() -> int:
         "rss_max_mb": float(rss.max()),
         "rss_growth_second_half_mb_per_sim_hour": per_sim_hour,
         "rss_growth_second_half_mb_per_wall_hour": per_wall_hour,
+        "trace_writer": trace_writer,
+        "writer_rss_first_sample_mb": float(writer_rss[0]),
+        "writer_rss_last_mb": float(writer_rss[-1]),
+        "writer_rss_max_mb": float(writer_rss.max()),
+        "writer_rss_growth_second_half_mb_per_sim_hour": writer_per_sim_hour,
         "trace_bytes": trace_bytes,
         "chunks": chunks,
         "rows_per_component_channel": rows,
@@ -187,15 +218,18 @@ def main() -> int:
 
     print()
     print("RSS samples (every 10th):")
-    print(f"{'step':>8}{'sim [s]':>10}{'wall [s]':>10}{'RSS [MB]':>10}")
+    print(f"{'step':>8}{'sim [s]':>10}{'wall [s]':>10}{'RSS [MB]':>10}{'writer [MB]':>13}")
     shown = list(range(0, len(samples), 10)) + ([len(samples) - 1] if (len(samples) - 1) % 10 else [])
     for i in shown:
         s = samples[i]
-        print(f"{s['step']:>8}{s['t']:>10.0f}{s['wall']:>10.0f}{s['rss_mb']:>10.1f}")
+        print(f"{s['step']:>8}{s['t']:>10.0f}{s['wall']:>10.0f}{s['rss_mb']:>10.1f}{s['writer_rss_mb']:>13.1f}")
     print()
     print(f"RSS: before the run {rss_before:.1f} MB, first sample {rss[0]:.1f} MB, at half time {rss[half]:.1f} MB, "
           f"last {rss[-1]:.1f} MB, max {rss.max():.1f} MB")
     print(f"growth over the second half: {per_sim_hour:+.2f} MB per simulated hour, {per_wall_hour:+.2f} MB per wall hour")
+    if trace_writer == "process":
+        print(f"trace writer process: first sample {writer_rss[0]:.1f} MB, last {writer_rss[-1]:.1f} MB, "
+              f"max {writer_rss.max():.1f} MB, growth over the second half {writer_per_sim_hour:+.2f} MB per simulated hour")
     print(f"trace: {trace_bytes / 1e6:.1f} MB, {chunks} chunks, {rows} rows on each component channel")
     print(f"largest deviation from the equilibrium: speed {deviation['speed_m_s']:.3g} m/s ({deviation['speed_worst_vehicle']}), "
           f"gap {deviation['gap_m']:.3g} m, path {deviation['path_m']:.3g} m")
