@@ -17,12 +17,10 @@ import json
 import math
 import struct
 import time as clock
-from contextlib import contextmanager
 from itertools import chain
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
-import mcap.writer as _mcap_writer
 from mcap.data_stream import RecordBuilder
 from mcap.records import Message, MessageIndex, Metadata, Schema
 from mcap.writer import CompressionType, Writer
@@ -113,51 +111,6 @@ _MESSAGE_HEADER_TAIL = struct.Struct("<IQQ")
 _MESSAGE_HEADER_SIZE = _MESSAGE_HEADER_START.size + _MESSAGE_HEADER_TAIL.size
 
 
-ZSTD_LEVEL = 1  # chunk compression level; mcap's writer always uses zstandard's default, 3
-
-
-class _LevelledZstd:
-    """Stands in for the ``zstandard`` module in mcap's writer: ``compress`` at ``ZSTD_LEVEL``.
-
-    On our JSON chunks level 1 compresses about 3x faster than level 3, and as small or smaller
-    (68 against 222 MB/s; ratio 3.8 against 4.2 on a 4 MiB sample, on this 2-core machine); chunk
-    compression was the largest single cost of writing a trace. Any zstd reader reads either.
-    """
-
-    def __init__(self, level: int) -> None:
-        import zstandard
-
-        self._compressor = zstandard.ZstdCompressor(level=level)
-
-    def compress(self, data: bytes) -> bytes:
-        return self._compressor.compress(data)
-
-
-_LEVELLED_ZSTD: _LevelledZstd | None = None
-
-
-@contextmanager
-def _fast_chunk_compression():
-    """While mcap's writer finishes a chunk (in this thread), it compresses at ``ZSTD_LEVEL``.
-
-    The writer has no compression-level option and looks ``zstandard`` up in its module globals, so
-    the name is swapped for the length of the call and put back; if the library changes that, its
-    own default level is used.
-    """
-    global _LEVELLED_ZSTD
-    real = getattr(_mcap_writer, "zstandard", None)
-    if real is None:
-        yield
-        return
-    if _LEVELLED_ZSTD is None:
-        _LEVELLED_ZSTD = _LevelledZstd(ZSTD_LEVEL)
-    _mcap_writer.zstandard = _LEVELLED_ZSTD
-    try:
-        yield
-    finally:
-        _mcap_writer.zstandard = real
-
-
 def _cover(holder: Any, stamp: int, first: bool) -> None:
     """Widen ``holder``'s message_start_time / message_end_time to ``stamp`` (set both for its first message)."""
     if first:
@@ -245,9 +198,8 @@ class _Encoder:
         fast = self._fast
         if fast is None:
             write = self._writer.add_message
-            with _fast_chunk_compression():  # add_message may finish a chunk
-                for channel, data in messages:
-                    write(channel_id=channel, log_time=stamp, publish_time=stamp, sequence=sequence, data=data)
+            for channel, data in messages:
+                write(channel_id=channel, log_time=stamp, publish_time=stamp, sequence=sequence, data=data)
             return
         builder, statistics, finalize = fast
         buffer = builder.record_writer._buffer  # a new one after every chunk
@@ -271,8 +223,7 @@ class _Encoder:
         _cover(statistics, stamp, statistics.message_count == 0)  # the file's
         statistics.message_count += len(messages)
         if buffer.tell() > self._chunk_size:
-            with _fast_chunk_compression():
-                finalize()
+            finalize()
             self._pack_indexes()
 
     def _pack_indexes(self) -> None:
@@ -304,12 +255,11 @@ class _Encoder:
         now = clock.monotonic()
         if now - self._last_chunk >= self.flush_interval:
             flush = getattr(self._writer, "flush", None)
-            with _fast_chunk_compression():
-                if flush is not None:  # mcap >= 1.3: finishes the chunk and flushes the stream
-                    flush()
-                else:
-                    self._writer._Writer__finalize_chunk()  # type: ignore[attr-defined]
-                    self._file.flush()
+            if flush is not None:  # mcap >= 1.3: finishes the chunk and flushes the stream
+                flush()
+            else:
+                self._writer._Writer__finalize_chunk()  # type: ignore[attr-defined]
+                self._file.flush()
             self._last_chunk = now
         self._pack_indexes()
 
@@ -322,8 +272,7 @@ class _Encoder:
         self._file.flush()
 
     def close(self) -> None:
-        with _fast_chunk_compression():
-            self._writer.finish()
+        self._writer.finish()
         self._file.close()
 
 
