@@ -39,7 +39,7 @@ from .trace_worker import WORKER_BLOCK, TraceWorker, start_trace_process
 # (orchestrator/trace_worker.py), "auto": a second process when the machine has a spare core and the
 # run records enough messages that encoding them outweighs the worker's start-up (about 0.5-1 s).
 TRACE_WRITERS = ("auto", "inline", "process")
-WORKER_MESSAGES = 20_000  # recorded rows x components from which "auto" picks "process"
+WORKER_MESSAGES = 10_000  # recorded rows x components from which "auto" picks "process" (docs/performance.md)
 
 # "native": the compiled stepping core (orchestrator/native); "python": the same master in Python on
 # FMPy; "monolithic": the whole platoon as one system, no FMUs stepped (the accuracy reference).
