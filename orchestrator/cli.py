@@ -411,6 +411,24 @@ def bench_profile(
     _bench("profile", lambda progress: suite.run(counts, steps, rounds, progress=progress), suite.markdown, out_dir, quiet)
 
 
+@bench_app.command("flatness")
+def bench_flatness(
+    n: Counts = "4,16,64,256",
+    steps: Annotated[int, typer.Option(min=1, help="steps per sample")] = 150,
+    rounds: Annotated[int, typer.Option(min=1, help="interleaved samples per process")] = 5,
+    repeats: Annotated[int, typer.Option(min=1, help="processes per N and experiment")] = 3,
+    callgrind: Annotated[bool, typer.Option("--callgrind", help="also count instructions and simulated cache misses (valgrind; slow)")] = False,
+    out_dir: OutDir = Path("runs/bench"),
+    quiet: Quiet = False,
+) -> None:
+    """Why the cost per FMU-step grows with N: stepping order, idle instances, object sizes, cache misses."""
+    from .bench import flatness as suite
+
+    counts = _counts(n)
+    _bench("flatness", lambda progress: suite.run_suite(counts, steps, rounds, repeats, callgrind, progress=progress),
+           suite.suite_markdown, out_dir, quiet)
+
+
 def main() -> None:
     """Console entry point: run the command, then leave without interpreter teardown.
 

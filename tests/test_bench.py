@@ -25,7 +25,7 @@ def written(result, folder: Path, suite: str) -> dict:
     assert f"results: {files[0]}" in result.stdout.replace("\n", "")
     data = json.loads(files[0].read_text())
     assert data["suite"] == suite and data["command"].startswith(f"platoon bench {suite}")
-    assert {"versions", "machine", "samples"} <= set(data)
+    assert {"versions", "machine"} <= set(data)
     return data
 
 
@@ -67,6 +67,16 @@ def test_scenarios_times_whole_processes(tmp_path: Path, fmu_dir: Path) -> None:
     assert set(by_variant) == {"cli-traced", "untraced"}
     assert by_variant["cli-traced"]["trace_bytes"] > 0 and by_variant["untraced"]["trace_bytes"] is None
     assert all(s["steps"] == 5 and s["wall_s"] > s["run_wall_s"] > 0 for s in data["samples"])
+
+
+def test_flatness_times_both_orders(tmp_path: Path, fmu_dir: Path) -> None:
+    result = platoon("bench", "flatness", "--n", "1,5", "--steps", "3", "--rounds", "1", "--repeats", "1",
+                     "--out-dir", tmp_path, cwd=REPO)
+    data = written(result, tmp_path, "flatness")
+    orders = data["orders"]
+    assert set(orders["medians"]) == {"phases", "per-component", "idle"}  # idle: 5 of the 6 components at N = 5
+    assert set(orders["medians"]["idle"]) == {"5"}
+    assert orders["us_by_kind"]["5"]["Vehicle"] > 0
 
 
 @pytest.mark.parametrize("args, pieces", [

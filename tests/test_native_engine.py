@@ -183,6 +183,23 @@ def test_step_failure_raises_component_error_like_python(fmus) -> None:
     assert native_rows == python_rows
 
 
+@pytest.mark.parametrize("engine", ["python", "native"])
+def test_outputs_after_a_failed_jacobi_step_are_the_last_complete_point(engine: str, fmus) -> None:
+    """Vehicle 4 (the last component) fails at t = 1 s after the others stepped: the outputs stay those
+    at t = 1 s. A master that read each output right after its component's step (for cache locality,
+    docs/performance.md) must keep this: it would have to read into a spare array."""
+    config = paper_config("sine", "jacobi", stop_time=3.0, disturbance=SPEED_TO_ZERO)
+    master = make_master(engine, build_scenario(config), fmus)
+    rows: Rows = []
+    try:
+        with pytest.raises(ComponentError, match="vehicle4"):
+            master.run(3.0, 0.01, lambda t, outputs: rows.append((t, [list(v) for v in outputs])), 300)
+        outputs = [list(values) for values in master.outputs]
+    finally:
+        master.close()
+    assert rows[-1] == (1.0, outputs)
+
+
 def test_step_failure_in_blocks_delivers_rows_then_raises(fmus) -> None:
     config = paper_config("sine", "gauss-seidel", stop_time=3.0, disturbance=SPEED_TO_ZERO)
     python_rows, python_failure = run_engine("python", config, fmus)

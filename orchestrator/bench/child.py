@@ -16,8 +16,26 @@ from pathlib import Path
 from typing import Any
 
 
+def use_core(library: str) -> None:
+    """Make ``orchestrator.native._core`` the extension built at ``library`` (another build of
+    _core.c), before anything imports the native engine: A/B measurements of two cores."""
+    import importlib.machinery
+    import importlib.util
+
+    name = "orchestrator.native._core"
+    spec = importlib.util.spec_from_file_location(name, library,
+                                                  loader=importlib.machinery.ExtensionFileLoader(name, library))
+    if spec is None or spec.loader is None:
+        raise ImportError(f"cannot load {library}")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+
+
 def perform(task: dict[str, Any]) -> dict[str, Any]:
     kind = task["kind"]
+    if task.get("core"):
+        use_core(task["core"])
     fmu_dir = Path(task["fmu_dir"])
     if kind == "step":
         from .engines import measure_step
@@ -39,6 +57,10 @@ def perform(task: dict[str, Any]) -> dict[str, Any]:
         from .flatness import measure_orders
 
         return measure_orders(task["n"], task["steps"], task["rounds"], task["idle"], fmu_dir)
+    if kind == "callgrind":
+        from .flatness import callgrind_target
+
+        return callgrind_target(task["n"], task["steps"], task["client"], fmu_dir)
     raise ValueError(f"unknown task kind {kind!r}")
 
 

@@ -87,13 +87,15 @@ class DirectLoop:
         self.k += steps
 
     def run_split(self, steps: int) -> dict[str, float]:
-        """The phases loop, each phase timed separately: seconds in transfer, set, step, get."""
+        """The phases loop, each call timed separately: seconds in transfer, set, step and get; per
+        component in ``self.spent_by_component`` (set + step + get of each component)."""
         clock = time.perf_counter
         setters, steppers, getters = self.setters, self.steppers, self.getters
         inputs, routes, in_refs, out_refs = self.inputs, self.routes, self.in_refs, self.out_refs
         count = len(setters)
         outputs = self.outputs
         spent = dict.fromkeys(("transfer", "set_real", "do_step", "get_real"), 0.0)
+        mine = self.spent_by_component = [0.0] * count
         for k in range(self.k, self.k + steps):
             t = k * STEP
             h = (k + 1) * STEP - t
@@ -104,15 +106,24 @@ class DirectLoop:
                     vector[i] = outputs[source][o]
                 b = clock()
                 setters[c](in_refs[c], vector)
+                e = clock()
                 spent["transfer"] += b - a
-                spent["set_real"] += clock() - b
+                spent["set_real"] += e - b
+                mine[c] += e - b
             for c in range(count):
                 a = clock()
                 steppers[c](t, h)
-                spent["do_step"] += clock() - a
-            a = clock()
-            outputs = [getters[c](out_refs[c]) for c in range(count)]
-            spent["get_real"] += clock() - a
+                e = clock()
+                spent["do_step"] += e - a
+                mine[c] += e - a
+            fresh = []
+            for c in range(count):
+                a = clock()
+                fresh.append(getters[c](out_refs[c]))
+                e = clock()
+                spent["get_real"] += e - a
+                mine[c] += e - a
+            outputs = fresh
         self.outputs = outputs
         self.k += steps
         return spent

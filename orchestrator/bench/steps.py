@@ -105,6 +105,12 @@ def run(engines: Sequence[str] = DEFAULT_ENGINES, ns: Sequence[int] = DEFAULT_N,
               for name, a, b in RATIOS if a in medians and b in medians}
     flatness = {engine: max(by_n.values()) / min(by_n.values()) for engine, by_n in medians.items()}
     growth = {engine: by_n[max(ns)] / by_n[min(ns)] for engine, by_n in medians.items()}
+    # What one more vehicle costs per step, between successive N: flat if the per-vehicle cost is flat
+    # in N. (The cost per FMU-step also moves because the one target is cheaper than a vehicle and its
+    # share, 1 / (N + 1), shrinks.)
+    pairs = list(zip(ns, ns[1:]))
+    marginal = {engine: {f"{a}-{b}": (by_n[b] * (b + 1) - by_n[a] * (a + 1)) / (b - a) for a, b in pairs}
+                for engine, by_n in medians.items()}
     agree = agreement(samples, engines, ns)
     disagreeing = {e: v for e, by_n in agree.items() for v in by_n.values() if v > AGREEMENT}
     return {
@@ -112,6 +118,7 @@ def run(engines: Sequence[str] = DEFAULT_ENGINES, ns: Sequence[int] = DEFAULT_N,
         "unit": "microseconds per FMU-step (wall time / (steps x (N + 1)))",
         "medians": medians, "cpu_medians": cpu_medians, "ratios": ratios,
         "flatness_max_over_min": flatness, "growth_largest_over_smallest_n": growth,
+        "marginal_us_per_vehicle_step": marginal,
         "final_position_agreement_m": agree, "disagreeing": disagreeing,
         "gc_collections_in_timed_loops": sum(s["gc_collections"] for s in samples),
         "samples": samples, "seconds": time.perf_counter() - started,
@@ -129,6 +136,11 @@ def markdown(result: dict[str, Any]) -> str:
     if result["ratios"]:
         parts.append(markdown_table(["ratio (same run)", *(f"N={n}" for n in ns)],
                                     [[name, *(f"{values[n]:.2f}" for n in ns)] for name, values in result["ratios"].items()]))
+    marginal = result["marginal_us_per_vehicle_step"]
+    spans = list(next(iter(marginal.values()), {}))
+    if spans:
+        parts.append(markdown_table(["µs per step added by one more vehicle, between", *(f"N={span}" for span in spans)],
+                                    [[LABELS[e], *(f"{marginal[e][span]:.1f}" for span in spans)] for e in engines]))
     agree = result["final_position_agreement_m"]
     if agree:
         parts.append("largest |final position - native| per engine: " + ", ".join(
