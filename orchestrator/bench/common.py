@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import os
 import platform
-import statistics
 import subprocess
 import sys
 import time
@@ -65,13 +64,6 @@ def interleaved(rounds: int, groups: Sequence[Any], variants: Sequence[Any],
                 if progress is not None:
                     progress(len(samples), total, f"round {round_ + 1}/{rounds}  {describe(result)}")
     return samples
-
-
-def median_of(samples: Iterable[dict[str, Any]], key: str) -> float:
-    values = [s[key] for s in samples]
-    if not values:
-        raise BenchError(f"no samples for {key}")
-    return statistics.median(values)
 
 
 def slope(xs: Sequence[float], ys: Sequence[float]) -> tuple[float, float]:

@@ -203,8 +203,10 @@ def measure_step(engine: str, n: int, steps: int, coupling: str = "extrapolate",
         "slaves": lambda: run_slaves(n, steps, coupling, fmu_dir),
     }
     gc.callbacks.append(_note_collection)
-    result = runners[engine]()
-    gc.callbacks.remove(_note_collection)
+    try:
+        result = runners[engine]()
+    finally:
+        gc.callbacks.remove(_note_collection)
     started = result.pop("started")
     timed_collections = sum(started <= moment <= started + result["seconds"] for moment in _collected_at)
     timed = result.setdefault("timed_steps", steps)
