@@ -1,4 +1,4 @@
-"""The ``platoon`` command: build, run, report, export, trace recover, analyze.
+"""The ``platoon`` command: build, run, report, export, trace recover, analyze, bench.
 
 Exit codes: 0 success; 1 a run failed (the trace up to the failure is kept), or a trace held nothing
 recoverable; 2 bad input (config, option or file), with one line naming what is wrong and no
@@ -20,6 +20,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
+from .bench import ENGINES as BENCH_ENGINES
 from .config import Config, ConfigError, load_config
 
 app = typer.Typer(
@@ -269,6 +270,179 @@ def analyze(
     out.print(report_text, highlight=False, soft_wrap=True)
     if string_stability:
         out.print(string_stability_report(parsed, text), highlight=False, soft_wrap=True)
+
+
+bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks of issue 10 (JSON under runs/bench/; not pass/fail tests).")
+app.add_typer(bench_app, name="bench")
+
+ROUNDS_HELP = "interleaved repetitions (each variant once per round, order rotated); medians over rounds"
+OutDir = Annotated[Path, typer.Option("--out-dir", help="folder for the JSON results")]
+Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only the tables and the result file")]
+Engines = Annotated[str, typer.Option(help=f"comma-separated, of: {', '.join(BENCH_ENGINES)}")]
+Counts = Annotated[str, typer.Option("--n", help="comma-separated vehicle counts")]
+Steps = Annotated[int, typer.Option(min=1, help="communication steps of 0.01 s per measurement")]
+Rounds = Annotated[int, typer.Option(min=1, help=ROUNDS_HELP)]
+
+
+def _csv(option: str, text: str, choices: tuple[str, ...]) -> list[str]:
+    """A comma-separated list of names out of ``choices``; anything else is a usage error (exit 2)."""
+    names = [name.strip() for name in text.split(",") if name.strip()]
+    unknown = [name for name in names if name not in choices]
+    if not names or unknown:
+        _fail(2, f"{option} {text!r}: expected a comma-separated list of {', '.join(choices)}")
+    return list(dict.fromkeys(names))
+
+
+def _counts(text: str) -> list[int]:
+    """``--n``: comma-separated vehicle counts, each at least 1."""
+    try:
+        counts = [int(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        counts = []
+    if not counts or min(counts) < 1:
+        _fail(2, f"--n {text!r}: expected comma-separated vehicle counts of at least 1, e.g. 4,16,64,256")
+    return list(dict.fromkeys(counts))
+
+
+class _BenchProgress:
+    """One line per measurement; on a terminal also a bar (stderr) counting the measurements done."""
+
+    def __init__(self, quiet: bool) -> None:
+        self.quiet = quiet
+        self.bar: Progress | None = None
+        self.task = None
+        if not quiet and err.is_terminal:
+            self.bar = Progress(TextColumn("[bold]measuring"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                                TimeElapsedColumn(), TimeRemainingColumn(), console=err, transient=True)
+
+    def __enter__(self) -> "_BenchProgress":
+        if self.bar is not None:
+            self.bar.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+
+    def __call__(self, done: int, total: int, line: str) -> None:
+        if self.quiet:
+            return
+        if self.bar is not None:
+            if self.task is None:
+                self.task = self.bar.add_task("measuring", total=total)
+            self.bar.update(self.task, completed=done, total=total)
+        err.print(line, highlight=False, soft_wrap=True)
+
+
+def _bench(suite: str, measure, render, out_dir: Path, quiet: bool) -> None:
+    """Run one suite with progress, print its tables, write its JSON; bad options exit 2, failures 1."""
+    from .bench.common import BenchError, BenchUsageError, write_result
+
+    try:
+        with _BenchProgress(quiet) as progress:
+            result = measure(progress)
+    except BenchUsageError as error:
+        _fail(2, str(error))
+    except BenchError as error:
+        _fail(1, f"bench {suite}: {error}")
+    result["command"] = " ".join(["platoon", *sys.argv[1:]])
+    out.print(render(result), highlight=False, soft_wrap=True)
+    out.print(f"results: {write_result(out_dir, suite, result)}", highlight=False, soft_wrap=True)
+
+
+def _per_fmu_step(suite_name: str, engines: str, n: str, steps: int, rounds: int, out_dir: Path, quiet: bool) -> None:
+    """The two suites of FMU-step costs (``steps``, ``coupling``): same options, same checks."""
+    from importlib import import_module
+
+    suite = import_module(f".bench.{suite_name}", __package__)
+    chosen, counts = _csv("--engines", engines, BENCH_ENGINES), _counts(n)
+    _bench(suite_name, lambda progress: suite.run(chosen, counts, steps, rounds, progress=progress), suite.markdown,
+           out_dir, quiet)
+
+
+@bench_app.command("steps")
+def bench_steps(engines: Engines = "native,python,fmpy-bare,libcosim,libcosim-0threads,slaves",
+                n: Counts = "4,16,64,256", steps: Steps = 1000, rounds: Rounds = 5,
+                out_dir: OutDir = Path("runs/bench"), quiet: Quiet = False) -> None:
+    """Microseconds per FMU-step of our engines, the bare FMPy loop, libcosim and the floor, by N."""
+    _per_fmu_step("steps", engines, n, steps, rounds, out_dir, quiet)
+
+
+@bench_app.command("coupling")
+def bench_coupling(engines: Engines = "native,slaves", n: Counts = "4,16,64", steps: Steps = 1000, rounds: Rounds = 5,
+                   out_dir: OutDir = Path("runs/bench"), quiet: Quiet = False) -> None:
+    """Cost per FMU-step with coupling "hold" against "extrapolate" (same rounds, same engines)."""
+    _per_fmu_step("coupling", engines, n, steps, rounds, out_dir, quiet)
+
+
+@bench_app.command("scenarios")
+def bench_scenarios(
+    configs: Annotated[list[Path], typer.Option("--config", help="scenario TOML (repeatable; default configs/paper/*.toml)")] = [],
+    engines: Annotated[str, typer.Option(help="comma-separated: native, python")] = "native,python",
+    variants: Annotated[str, typer.Option(help="comma-separated: cli-traced (platoon run --out X -q), traced, untraced")] = "cli-traced,traced,untraced",
+    rounds: Rounds = 3,
+    overrides: Annotated[list[str], typer.Option("--set", help="override a key in every scenario")] = [],
+    out_dir: OutDir = Path("runs/bench"),
+    quiet: Quiet = False,
+) -> None:
+    """Whole-run wall times of the paper's scenarios, start-up included, traced and untraced."""
+    from .bench import scenarios as suite
+
+    chosen = _csv("--engines", engines, suite.ENGINES)
+    kinds = _csv("--variants", variants, suite.VARIANTS)
+    _bench("scenarios", lambda progress: suite.run(configs or None, chosen, kinds, rounds, overrides, progress=progress),
+           suite.markdown, out_dir, quiet)
+
+
+@bench_app.command("instances")
+def bench_instances(
+    engines: Annotated[str, typer.Option(help="comma-separated: native, fmpy")] = "native,fmpy",
+    n: Counts = "4,16,64,256",
+    wirings: Annotated[str, typer.Option(help="comma-separated: instances (unconnected), platoon (wired, settle sweeps)")] = "instances,platoon",
+    rounds: Rounds = 3,
+    out_dir: OutDir = Path("runs/bench"),
+    quiet: Quiet = False,
+) -> None:
+    """Instantiation time and RSS per vehicle instance (slope over N), native engine and FMPy."""
+    from .bench import instances as suite
+
+    chosen, counts = _csv("--engines", engines, suite.ENGINES), _counts(n)
+    kinds = _csv("--wirings", wirings, suite.WIRINGS)
+    _bench("instances", lambda progress: suite.run(chosen, counts, rounds, kinds, progress=progress), suite.markdown,
+           out_dir, quiet)
+
+
+@bench_app.command("profile")
+def bench_profile(
+    n: Counts = "4,16,64",
+    steps: Annotated[int, typer.Option(min=1, help="steps per sample (capped to 20 s simulated in all)")] = 1000,
+    rounds: Rounds = 3,
+    out_dir: OutDir = Path("runs/bench"),
+    quiet: Quiet = False,
+) -> None:
+    """Where the native engine's time goes: native loop against the floor in one process, perf split."""
+    from .bench import profile as suite
+
+    counts = _counts(n)
+    _bench("profile", lambda progress: suite.run(counts, steps, rounds, progress=progress), suite.markdown, out_dir, quiet)
+
+
+@bench_app.command("flatness")
+def bench_flatness(
+    n: Counts = "4,16,64,256",
+    steps: Annotated[int, typer.Option(min=1, help="steps per sample")] = 150,
+    rounds: Annotated[int, typer.Option(min=1, help="interleaved samples per process")] = 5,
+    repeats: Annotated[int, typer.Option(min=1, help="processes per N and experiment")] = 3,
+    callgrind: Annotated[bool, typer.Option("--callgrind", help="also count instructions and simulated cache misses (valgrind; slow)")] = False,
+    out_dir: OutDir = Path("runs/bench"),
+    quiet: Quiet = False,
+) -> None:
+    """Why the cost per FMU-step grows with N: stepping order, idle instances, object sizes, cache misses."""
+    from .bench import flatness as suite
+
+    counts = _counts(n)
+    _bench("flatness", lambda progress: suite.run_suite(counts, steps, rounds, repeats, callgrind, progress=progress),
+           suite.suite_markdown, out_dir, quiet)
 
 
 def main() -> None:

@@ -183,6 +183,23 @@ def test_step_failure_raises_component_error_like_python(fmus) -> None:
     assert native_rows == python_rows
 
 
+@pytest.mark.parametrize("engine", ["python", "native"])
+def test_outputs_after_a_failed_jacobi_step_are_the_last_complete_point(engine: str, fmus) -> None:
+    """Vehicle 4 (the last component) fails at t = 1 s after the others stepped: the outputs stay those
+    at t = 1 s. A master that read each output right after its component's step (for cache locality,
+    docs/performance.md) must keep this: it would have to read into a spare array."""
+    config = paper_config("sine", "jacobi", stop_time=3.0, disturbance=SPEED_TO_ZERO)
+    master = make_master(engine, build_scenario(config), fmus)
+    rows: Rows = []
+    try:
+        with pytest.raises(ComponentError, match="vehicle4"):
+            master.run(3.0, 0.01, lambda t, outputs: rows.append((t, [list(v) for v in outputs])), 300)
+        outputs = [list(values) for values in master.outputs]
+    finally:
+        master.close()
+    assert rows[-1] == (1.0, outputs)
+
+
 def test_step_failure_in_blocks_delivers_rows_then_raises(fmus) -> None:
     config = paper_config("sine", "gauss-seidel", stop_time=3.0, disturbance=SPEED_TO_ZERO)
     python_rows, python_failure = run_engine("python", config, fmus)
@@ -226,52 +243,46 @@ def test_unknown_parameter_and_wiring_are_refused(fmus) -> None:
         NativeMaster(components, scenario.connections, algorithm="newton")
 
 
-# --- blocks encoded in a second process -------------------------------------------------------------
+# --- stopping between two steps, and partial blocks on a wall-time interval --------------------------
 
-class RawRows:
-    """A sink for the worker process: appends every block's float64 bytes to a file."""
-
-    def __init__(self, path: str, fail_after: int = -1) -> None:
-        self.file = open(path, "wb")
-        self.fail_after = fail_after
-
-    def __call__(self, rows: np.ndarray) -> None:
-        if self.fail_after == 0:
-            raise ValueError("encoder refused the block")
-        self.fail_after -= 1
-        self.file.write(np.ascontiguousarray(rows).tobytes())
-
-    def finish(self) -> None:
-        self.file.close()
+class Stop(Exception):
+    pass
 
 
-def test_offloaded_sink_gets_every_row(fmus, tmp_path: Path) -> None:
-    from orchestrator.native.offload import OffloadedSink
+@pytest.mark.parametrize("with_sink", [True, False], ids=["traced", "untraced"])
+def test_check_stops_the_run_between_two_steps_after_delivering_its_rows(fmus, with_sink: bool) -> None:
+    """``check()`` runs after every step in C: raising there (as a signal's flag does in run_scenario)
+    stops the run at that step; every row up to it reaches the sink first."""
+    scenario = build_scenario(paper_config("sine", "jacobi", stop_time=2.0))
+    calls = []
 
-    config = paper_config("sine", "jacobi", stop_time=1.5, disturbance=DISTURBANCES)
-    scenario = build_scenario(config)
-    reference, offloaded = [], tmp_path / "rows.bin"
-    for sink_kind in ("direct", "offloaded"):
-        master = make_master("native", scenario, fmus)
-        try:
-            if sink_kind == "direct":
-                master.run_blocks(0.01, 150, lambda rows: reference.append(rows.copy()), every=2, block=16)
-            else:
-                with OffloadedSink(RawRows, (str(offloaded),), master.width, block=8, slots=2) as sink:
-                    master.run_blocks(0.01, 150, sink, every=2, block=16)
-                assert sink.blocks >= 10
-        finally:
-            master.close()
-    got = np.frombuffer(offloaded.read_bytes()).reshape(-1, master.width)
-    assert got.tolist() == np.concatenate(reference).tolist()
+    def check() -> None:
+        calls.append(len(calls) + 1)
+        if len(calls) == 37:
+            raise Stop()
+
+    blocks: list[np.ndarray] = []
+    master = make_master("native", scenario, fmus)
+    try:
+        with pytest.raises(Stop):
+            master.run_blocks(0.01, 200, (lambda rows: blocks.append(rows.copy())) if with_sink else None, every=2,
+                              block=500, check=check)
+        assert master.time == pytest.approx(0.37)  # 37 steps taken, not one more
+    finally:
+        master.close()
+    assert calls[-1] == 37
+    if with_sink:
+        got = np.concatenate(blocks)
+        assert np.allclose(got[:, 0], np.arange(19) * 0.02)  # t = 0, 0.02, ..., 0.36: every 2nd point up to the stop
 
 
-def test_offloaded_sink_reports_worker_failure(tmp_path: Path) -> None:
-    from orchestrator.native.offload import OffloadError, OffloadedSink
-
-    sink = OffloadedSink(RawRows, (str(tmp_path / "rows.bin"), 1), width=3, block=4, slots=2)
-    rows = np.arange(12.0).reshape(4, 3)
-    with pytest.raises(OffloadError, match="encoder refused the block"):
-        for _ in range(20):
-            sink(rows)
-        sink.close()
+def test_partial_blocks_are_delivered_on_the_wall_time_interval(fmus) -> None:
+    """``deliver_interval=0``: a (partial) block after every call into C, so a trace on disk keeps up."""
+    scenario = build_scenario(paper_config("sine", "jacobi", stop_time=3.0))
+    sizes: list[int] = []
+    master = make_master("native", scenario, fmus)
+    try:
+        master.run_blocks(0.01, 300, lambda rows: sizes.append(len(rows)), every=1, block=500, deliver_interval=0.0)
+    finally:
+        master.close()
+    assert sum(sizes) == 301 and len(sizes) >= 300 // 64 and max(sizes) <= 65

@@ -1,0 +1,105 @@
+"""``platoon bench`` works end to end: tiny runs write their JSON, bad options exit 2 with one line.
+
+Functional checks only, on runs a few steps long: what the benchmarks measure is reported by
+``platoon bench`` itself (docs/performance.md), never asserted here, since timing on a shared machine
+is no pass/fail criterion.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from tests.test_cli import REPO, error_line, platoon
+
+SINGLE = REPO / "configs" / "paper" / "single.toml"
+
+
+def written(result, folder: Path, suite: str) -> dict:
+    """The one JSON file the suite wrote into ``folder``, which the output names."""
+    assert result.returncode == 0, result.stderr
+    files = sorted(folder.glob(f"{suite}-*.json"))
+    assert len(files) == 1, files
+    assert f"results: {files[0]}" in result.stdout.replace("\n", "")
+    data = json.loads(files[0].read_text())
+    assert data["suite"] == suite and data["command"].startswith(f"platoon bench {suite}")
+    assert {"versions", "machine"} <= set(data)
+    return data
+
+
+def test_steps_writes_medians_and_ratios(tmp_path: Path, fmu_dir: Path) -> None:
+    result = platoon("bench", "steps", "--engines", "native,python,slaves", "--n", "1,2", "--steps", "5",
+                     "--rounds", "1", "--out-dir", tmp_path, cwd=REPO)
+    data = written(result, tmp_path, "steps")
+    assert set(data["medians"]) == {"native", "python", "slaves"}
+    assert all(set(by_n) == {"1", "2"} and min(by_n.values()) > 0 for by_n in data["medians"].values())
+    assert len(data["samples"]) == 6 and {s["steps"] for s in data["samples"]} == {5}
+    assert data["disagreeing"] == {}  # every engine simulated the same system
+    assert "native / slaves" in result.stdout and "| (a) native engine, tracing off |" in result.stdout
+
+
+def test_coupling_measures_both_couplings(tmp_path: Path, fmu_dir: Path) -> None:
+    result = platoon("bench", "coupling", "--engines", "native", "--n", "1", "--steps", "5", "--rounds", "1",
+                     "--out-dir", tmp_path, "-q", cwd=REPO)
+    data = written(result, tmp_path, "coupling")
+    assert {s["coupling"] for s in data["samples"]} == {"hold", "extrapolate"}
+    assert data["hold_over_extrapolate"]["native"]["1"] > 0
+    assert result.stderr == ""  # --quiet: no progress lines
+
+
+def test_instances_reports_per_vehicle_slope(tmp_path: Path, fmu_dir: Path) -> None:
+    result = platoon("bench", "instances", "--engines", "native", "--wirings", "instances", "--n", "1,3",
+                     "--rounds", "1", "--out-dir", tmp_path, cwd=REPO)
+    data = written(result, tmp_path, "instances")
+    fit = data["per_vehicle_slope"]["instances"]["native"]
+    assert {"ms_per_vehicle", "kib_per_vehicle"} <= set(fit)
+    assert [s["instances"] for s in data["samples"]] == [2, 4]
+
+
+def test_scenarios_times_whole_processes(tmp_path: Path, fmu_dir: Path) -> None:
+    result = platoon("bench", "scenarios", "--config", SINGLE, "--set", "simulation.stop_time=0.05",
+                     "--engines", "native", "--variants", "cli-traced,untraced", "--rounds", "1",
+                     "--out-dir", tmp_path, cwd=REPO)
+    data = written(result, tmp_path, "scenarios")
+    by_variant = {s["variant"]: s for s in data["samples"]}
+    assert set(by_variant) == {"cli-traced", "untraced"}
+    assert by_variant["cli-traced"]["trace_bytes"] > 0 and by_variant["untraced"]["trace_bytes"] is None
+    assert all(s["steps"] == 5 and s["wall_s"] > s["run_wall_s"] > 0 for s in data["samples"])
+
+
+def test_flatness_times_both_orders(tmp_path: Path, fmu_dir: Path) -> None:
+    result = platoon("bench", "flatness", "--n", "1,5", "--steps", "3", "--rounds", "1", "--repeats", "1",
+                     "--out-dir", tmp_path, cwd=REPO)
+    data = written(result, tmp_path, "flatness")
+    orders = data["orders"]
+    assert set(orders["medians"]) == {"phases", "per-component", "idle"}  # idle: 5 of the 6 components at N = 5
+    assert set(orders["medians"]["idle"]) == {"5"}
+    assert orders["us_by_kind"]["5"]["Vehicle"] > 0
+
+
+@pytest.mark.parametrize("args, pieces", [
+    (["steps", "--engines", "native,warp"], ["--engines 'native,warp'", "fmpy-bare"]),
+    (["steps", "--n", "4,x"], ["--n '4,x'", "vehicle counts"]),
+    (["steps", "--n", "0"], ["--n '0'", "at least 1"]),
+    (["coupling", "--engines", ""], ["--engines ''"]),
+    (["instances", "--engines", "libcosim"], ["--engines 'libcosim'", "native, fmpy"]),
+    (["instances", "--wirings", "ring"], ["--wirings 'ring'", "instances, platoon"]),
+    (["scenarios", "--variants", "traced,fast"], ["--variants 'traced,fast'", "untraced"]),
+    (["scenarios", "--config", "no/such.toml"], ["no/such.toml", "not found"]),
+    (["scenarios", "--config", str(SINGLE), "--set", "platoon.count=0"], ["platoon.count"]),
+])
+def test_bad_options_exit_2_with_one_clear_line(args: list[str], pieces: list[str], tmp_path: Path) -> None:
+    result = platoon("bench", *args, "--out-dir", tmp_path, cwd=tmp_path)
+    assert result.returncode == 2, (result.stdout, result.stderr)
+    line = error_line(result)
+    for piece in pieces:
+        assert piece in line, line
+    assert not list(tmp_path.glob("*.json"))
+
+
+def test_scenarios_without_configs_here_says_where_it_looked(tmp_path: Path) -> None:
+    result = platoon("bench", "scenarios", "--out-dir", tmp_path, cwd=tmp_path)
+    assert result.returncode == 2
+    assert "configs/paper/*.toml" in error_line(result)
