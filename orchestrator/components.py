@@ -27,6 +27,7 @@ from fmpy.fmi2 import (
     fmi2CallbackLoggerTYPE,
     fmi2Real,
     fmi2True,
+    fmi2Warning,
     fmi2ValueReference,
 )
 from fmpy.fmi1 import FMICallException
@@ -34,6 +35,19 @@ from fmpy.logging import addLoggerProxy
 from fmpy.simulation import calloc, free
 
 from .errors import ComponentError  # noqa: F401  (re-exported: the engines raise it from here)
+
+
+def _status_returning(method: Any) -> Any:
+    """FMPy's wrapper of an fmi2 function, returning the status instead of raising on failure."""
+
+    def call(*args: Any) -> int:
+        try:
+            method(*args)
+        except FMICallException as error:
+            return int(error.status)
+        return 0
+
+    return call
 
 
 class Component(Protocol):
@@ -145,6 +159,14 @@ class FmuComponent:
         self._out_refs = (fmi2ValueReference * len(self.outputs))(*[variables[n].valueReference for n in self.outputs])
         self._out_values = (fmi2Real * len(self.outputs))()
         self._instantiated = False
+        # The hot calls go straight to the ctypes functions FMPy resolved (argument types set), past
+        # FMPy's Python wrapper (a dict lookup, a logger test and a status test per call); the status
+        # is checked here instead, with FMPy's own exception. Falls back to the wrapper if FMPy
+        # ever stops keeping them in ``_functions``.
+        functions = getattr(self._slave, "_functions", {})
+        self._fmi2SetReal = functions.get("fmi2SetReal") or _status_returning(self._slave.fmi2SetReal)
+        self._fmi2GetReal = functions.get("fmi2GetReal") or _status_returning(self._slave.fmi2GetReal)
+        self._fmi2DoStep = functions.get("fmi2DoStep") or _status_returning(self._slave.fmi2DoStep)
 
     def _log(self, env: Any, instance: bytes, status: int, category: bytes, message: bytes) -> None:
         text = message.decode("utf-8", "replace") if message else ""
@@ -188,20 +210,22 @@ class FmuComponent:
 
     def set_inputs(self, values: Sequence[float]) -> None:
         self._in_values[:] = values
-        status = self._slave.fmi2SetReal(self._slave.component, self._in_refs, len(self.inputs), self._in_values)
-        if status > 1:
-            raise self._fail(RuntimeError(f"fmi2SetReal returned status {status}"))
+        self._check("fmi2SetReal", self._fmi2SetReal(self._slave.component, self._in_refs, len(self.inputs),
+                                                     self._in_values))
 
     def get_outputs(self) -> list[float]:
-        self._slave.fmi2GetReal(self._slave.component, self._out_refs, len(self.outputs), self._out_values)
+        self._check("fmi2GetReal", self._fmi2GetReal(self._slave.component, self._out_refs, len(self.outputs),
+                                                     self._out_values))
         return self._out_values[:]
 
     def step(self, time: float, step: float) -> None:
         self._time = time
-        try:
-            self._slave.fmi2DoStep(self._slave.component, time, step, fmi2True)
-        except FMICallException as error:
-            raise self._fail(error) from None
+        self._check("fmi2DoStep", self._fmi2DoStep(self._slave.component, time, step, fmi2True))
+
+    def _check(self, function: str, status: int) -> None:
+        """Fail on a status above fmi2Warning, with the exception FMPy's wrapper would raise."""
+        if status > fmi2Warning:
+            raise self._fail(FMICallException(function=function, status=status)) from None
 
     def close(self) -> None:
         if self._instantiated:

@@ -286,3 +286,16 @@ def test_partial_blocks_are_delivered_on_the_wall_time_interval(fmus) -> None:
     finally:
         master.close()
     assert sum(sizes) == 301 and len(sizes) >= 300 // 64 and max(sizes) <= 65
+
+
+def test_fmpy_wrapper_fallback_reports_the_status() -> None:
+    """Should FMPy stop exposing its resolved ctypes functions, its wrappers stand in, returning the status."""
+    from fmpy.fmi1 import FMICallException
+
+    from orchestrator.components import _status_returning
+
+    def failing(*args: object) -> None:
+        raise FMICallException(function="fmi2DoStep", status=4)
+
+    assert _status_returning(lambda *args: None)(1, 2) == 0
+    assert _status_returning(failing)(1, 2) == 4
