@@ -33,7 +33,7 @@ from .scenario import Scenario, build_scenario, step_count
 from .foxglove import SCENE_RATE, FoxgloveChannels, SceneSettings
 from .trace_writer import NullTraceWriter, TraceWriter
 from .trace_format import BLOCK, FLUSH_INTERVAL
-from .trace_worker import WORKER_BLOCK, TraceWorker, start_trace_process
+from .trace_worker import WORKER_BLOCK, TraceWorker, TraceWorkerError, start_trace_process
 
 # Where the trace is encoded: "inline" in the stepping process, "process" in a second process
 # (orchestrator/trace_worker.py), "auto": a second process when the machine has a spare core and the
@@ -96,6 +96,37 @@ def _descriptions(fmu: UnpackedFmu) -> dict[str, str]:
 
 def _open_fmus(fmu_dir: Path) -> dict[str, UnpackedFmu]:
     return {built.name: UnpackedFmu.open(built.path) for built in build_fmus(fmu_dir)}
+
+
+def _finalize_trace(writer: "TraceWriter | TraceWorker | NullTraceWriter", status: str, error: str | None,
+                    failed_at: float | None, signum: int | None, engine: str, master: str) -> tuple[str, str | None]:
+    """Write the run's last log line and ``platoon.run`` record, and close the file; returns (status, error).
+
+    A non-finite output in the last buffered block turns the run into a failure here. If the trace
+    writer process died, the file keeps its complete chunks (recoverable) and the run is a failure.
+    """
+    try:
+        try:
+            writer.flush()
+        except ComponentError as failure:  # a non-finite output in the last block
+            status, error, failed_at = "failed", str(failure), failure.time
+        last = writer.last_time
+        if status == "interrupted":
+            error = f"{_signal_text(signum or signal.SIGINT)} at t = {last if last is not None else 0.0:.6g} s"
+            writer.log(last or 0.0, "Warning", f"run {error}")
+        elif status == "failed":
+            writer.log(failed_at if failed_at is not None else (last or 0.0), "Error", f"run failed: {error}")
+        else:
+            writer.log(last or 0.0, "Info", f"run completed: {writer.rows_recorded} points recorded")
+        run_record = {"status": status, "error": error or "", "engine": engine, "master": master,
+                      "steps_recorded": writer.rows_recorded, "last_time": "" if last is None else repr(float(last))}
+        if signum is not None:
+            run_record["signal"] = signal.Signals(signum).name
+        writer.metadata("platoon.run", run_record)
+        writer.close()
+    except TraceWorkerError as failure:
+        status, error = "failed", str(failure).splitlines()[0]
+    return status, error
 
 
 def _monolithic_system(scenario: Scenario, fmus_by_kind: dict[str, UnpackedFmu]) -> PlatoonSystem:
@@ -261,6 +292,8 @@ def run_scenario(
     except KeyboardInterrupt as interruption:
         signum = getattr(interruption, "signum", signal.SIGINT)
         status = "interrupted"
+    except TraceWorkerError as failure:  # the trace writer process died: the run cannot be recorded further
+        status, error = "failed", str(failure).splitlines()[0]
     except Exception as unexpected:  # a bug, not a component failure: keep the trace, say so, re-raise
         status, error = "failed", f"{type(unexpected).__name__}: {unexpected}"
         raise
@@ -275,25 +308,7 @@ def run_scenario(
                     if status == "completed":
                         status, error = "failed", f"closing the FMUs failed: {closing}"
             if writer is not None:
-                try:
-                    writer.flush()
-                except ComponentError as failure:  # a non-finite output in the last block
-                    status, error, failed_at = "failed", str(failure), failure.time
-                last = writer.last_time
-                if status == "interrupted":
-                    error = f"{_signal_text(signum)} at t = {last if last is not None else 0.0:.6g} s"
-                    writer.log(last or 0.0, "Warning", f"run {error}")
-                elif status == "failed":
-                    writer.log(failed_at if failed_at is not None else (last or 0.0), "Error", f"run failed: {error}")
-                else:
-                    writer.log(last or 0.0, "Info", f"run completed: {writer.rows_recorded} points recorded")
-                run_record = {"status": status, "error": error or "", "engine": engine, "master": sim.master,
-                              "steps_recorded": writer.rows_recorded,
-                              "last_time": "" if last is None else repr(float(last))}
-                if signum is not None:
-                    run_record["signal"] = signal.Signals(signum).name
-                writer.metadata("platoon.run", run_record)
-                writer.close()
+                status, error = _finalize_trace(writer, status, error, failed_at, signum, engine, sim.master)
             if trace_process is not None:
                 trace_process.close()  # only if no writer took it (the writer was never created)
             for fmu in fmus_by_kind.values():

@@ -169,6 +169,11 @@ class TraceWorker:
     def _fail(self, text: str) -> TraceWorkerError:
         self._closed = True
         self._reap()
+        for end in (self._outbox, self._status):
+            try:
+                end.close()
+            except OSError:
+                pass
         self._failure = TraceWorkerError(f"the trace writer process failed; {self.path} holds its complete chunks "
                                          f"(`platoon trace recover {self.path}` if it is unfinished):\n{text}")
         return self._failure

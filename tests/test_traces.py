@@ -377,6 +377,29 @@ def test_trace_writer_process_death_is_reported_and_the_chunks_stay(tmp_path: Pa
     assert recovered.steps >= 1 and load(tmp_path / "fixed.mcap").component("a")["x"][0] == 0.0
 
 
+def test_run_whose_trace_writer_process_dies_fails_cleanly_and_the_chunks_stay(tmp_path: Path, fmu_dir: Path) -> None:
+    """The worker killed mid-run: the run ends "failed" naming the trace writer and the recover command,
+    no exception escapes, and the file's complete chunks recover."""
+    config = paper("simulation.stop_time=300.0")
+    out = tmp_path / "worker-killed.mcap"
+    killed = []
+
+    def tick(k: int) -> None:
+        if not killed and out.stat().st_size > 300_000:  # the worker has written chunks
+            children = Path(f"/proc/{os.getpid()}/task/{os.getpid()}/children").read_text().split()
+            workers = [int(pid) for pid in children
+                       if "orchestrator.trace_serve" in Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")]
+            assert len(workers) == 1
+            os.kill(workers[0], signal.SIGKILL)
+            killed.append(workers[0])
+
+    result = run_scenario(config, PAPER.read_text(), out, fmu_dir=fmu_dir, tick=tick, trace_writer="process")
+    assert killed and result.status == "failed"
+    assert result.error.startswith("the trace writer process failed;") and "platoon trace recover" in result.error
+    recovered = recover(out, tmp_path / "fixed.mcap")
+    assert recovered.steps >= 1 and not recovered.finished
+
+
 def test_trace_writer_process_reports_a_bad_argument(tmp_path: Path) -> None:
     """An error inside the worker (here: a component list the writer rejects) surfaces in the caller."""
     from orchestrator.trace_worker import TraceWorker, TraceWorkerError
