@@ -33,7 +33,7 @@ from .scenario import Scenario, build_scenario, step_count
 from .foxglove import SCENE_RATE, FoxgloveChannels, SceneSettings
 from .trace_writer import NullTraceWriter, TraceWriter
 from .trace_format import BLOCK, FLUSH_INTERVAL
-from .trace_worker import WORKER_BLOCK, TraceWorker, TraceWorkerError, start_trace_process
+from .trace_worker import WORKER_BLOCK, TraceProcess, TraceWorker, TraceWorkerError
 
 # Where the trace is encoded: "inline" in the stepping process, "process" in a second process
 # (orchestrator/trace_worker.py), "auto": a second process when the machine has a spare core and the
@@ -96,6 +96,28 @@ def _descriptions(fmu: UnpackedFmu) -> dict[str, str]:
 
 def _open_fmus(fmu_dir: Path) -> dict[str, UnpackedFmu]:
     return {built.name: UnpackedFmu.open(built.path) for built in build_fmus(fmu_dir)}
+
+
+def open_trace_writer(
+    kind: str,
+    path: Path,
+    components: list[tuple[str, list[str]]],
+    descriptions: dict[str, dict[str, str]] | None,
+    config: Config,
+    every: int = 1,
+    scene_rate: float = SCENE_RATE,
+    foxglove: bool = True,
+    process: TraceProcess | None = None,
+) -> "TraceWriter | TraceWorker":
+    """A run's trace writer, encoding in this process ("inline") or in a worker ("process"): same file.
+
+    ``foxglove`` adds the Foxglove channels at ``scene_rate``; ``process`` is a worker started earlier.
+    """
+    if kind == "process":
+        return TraceWorker(path, components, descriptions, every=every, process=process,
+                           foxglove=(SceneSettings.of(config), components, scene_rate) if foxglove else None)
+    return TraceWriter(path, components, descriptions, every=every,
+                       foxglove=FoxgloveChannels(config, components, scene_rate) if foxglove else None)
 
 
 def _finalize_trace(writer: "TraceWriter | TraceWorker | NullTraceWriter", status: str, error: str | None,
@@ -219,7 +241,7 @@ def run_scenario(
     steps = step_count(sim.stop_time, sim.step)
     writer_kind = choose_trace_writer(trace_writer, steps // sim.trace_every + 1, len(scenario.components))
     # the trace writer process starts first: its start-up overlaps unpacking and instantiating the FMUs
-    trace_process = start_trace_process() if out is not None and writer_kind == "process" else None
+    trace_process = TraceProcess() if out is not None and writer_kind == "process" else None
     try:
         fmus_by_kind = _open_fmus(fmu_dir)
     except BaseException:
@@ -242,18 +264,11 @@ def run_scenario(
         components = [(spec.name, outputs[spec.name]) for spec in scenario.components]
         if out is None:
             writer = NullTraceWriter()
-        elif writer_kind == "process":
-            writer = TraceWorker(out, components, {name: _descriptions(fmu) for name, fmu in kinds.items()},
-                                 every=sim.trace_every, process=trace_process,
-                                 foxglove=(SceneSettings.of(config), components, scene_rate) if foxglove else None)
         else:
-            writer = TraceWriter(
-                out,
-                components,
-                {name: _descriptions(fmu) for name, fmu in kinds.items()},
-                every=sim.trace_every,
-                foxglove=FoxgloveChannels(config, components, scene_rate) if foxglove else None,
-            )
+            writer = open_trace_writer(writer_kind, out, components,
+                                       {name: _descriptions(fmu) for name, fmu in kinds.items()}, config,
+                                       every=sim.trace_every, scene_rate=scene_rate, foxglove=foxglove,
+                                       process=trace_process)
         writer.metadata("platoon.config", {"toml": config_text, "resolved": config.model_dump_json()})
         writer.metadata("platoon.fmus", {kind: fmu.guid for kind, fmu in fmus_by_kind.items()})
         writer.metadata("platoon.tool", tool_versions())

@@ -5,8 +5,8 @@ Foxglove scene, MCAP framing; docs/performance.md), so a trace written in the st
 every-step tracing down by 1.5-1.8x. ``TraceWorker`` has ``TraceWriter``'s interface (``record``,
 ``write_block``, ``log``, ``metadata``, ``flush``, ``close``, ``rows_recorded``, ``last_time``) but runs
 the real ``TraceWriter`` in a worker process: a fresh ``python -m orchestrator.trace_serve``, which
-inherits none of the FMUs loaded here and imports only what writing needs (about 0.2 s), while the
-stepping process unpacks and instantiates its FMUs (``start_trace_process`` lets a run start it before
+inherits none of the FMUs loaded here and imports only what writing needs (ready in about 0.3 s), while the
+stepping process unpacks and instantiates its FMUs (a ``TraceProcess`` lets a run start it before
 anything else). The stepping process keeps what must stay on its side:
 
 * the non-finite check, vectorized per block, so a bad output still ends the run with
@@ -72,7 +72,7 @@ def first_non_finite(rows: np.ndarray) -> int | None:
 class TraceProcess:
     """A trace writer process, started and waiting for its writer's arguments (``TraceWorker`` sends them).
 
-    ``start_trace_process()`` at the very start of a run lets the worker's start-up overlap everything
+    Created at the very start of a run, it lets the worker's start-up overlap everything
     the stepping process does before its first step; ``close()`` ends an unused one.
     """
 
@@ -92,10 +92,6 @@ class TraceProcess:
             self.process.kill()
             self.process.wait()
         self.status.close()
-
-
-def start_trace_process() -> TraceProcess:
-    return TraceProcess()
 
 
 def _start_worker() -> tuple[subprocess.Popen[bytes], Connection, Connection]:
@@ -126,7 +122,7 @@ class TraceWorker:
     ``foxglove`` is ``(SceneSettings, components, scene_rate)``: the worker builds the
     ``FoxgloveChannels``. The constructor creates the file (so a path that cannot be written fails
     here) and hands the worker its arguments without waiting for it. ``process``: a worker started
-    earlier with ``start_trace_process()`` (default: start one now).
+    earlier (default: start one now).
     """
 
     def __init__(

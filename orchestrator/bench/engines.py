@@ -57,11 +57,10 @@ def _note_collection(phase: str, info: dict[str, Any]) -> None:
 def run_native(n: int, steps: int, mode: str, coupling: str, fmu_dir: Path) -> dict[str, Any]:
     """The native engine; ``mode``: "" (no trace), "buffer", "traced" (in process) or "offload" (2nd process),
     with the blocks, block sizes and trace writers that ``run_scenario`` uses."""
-    from orchestrator.foxglove import FoxgloveChannels, SceneSettings
     from orchestrator.native import NativeComponent, NativeMaster
+    from orchestrator.run import open_trace_writer
     from orchestrator.trace_format import BLOCK
-    from orchestrator.trace_worker import WORKER_BLOCK, TraceWorker
-    from orchestrator.trace_writer import TraceWriter
+    from orchestrator.trace_worker import WORKER_BLOCK
 
     scenario = scenario_for(n, steps, coupling)
     fmus = unpacked_fmus(fmu_dir)
@@ -69,10 +68,8 @@ def run_native(n: int, steps: int, mode: str, coupling: str, fmu_dir: Path) -> d
     outputs = [(c.name, list(c.outputs)) for c in components]
     trace = Path(tempfile.mkdtemp(prefix="bench-trace-")) / "trace.mcap"
     writer: Any = None
-    if mode == "traced":
-        writer = TraceWriter(trace, outputs, foxglove=FoxgloveChannels(scenario.config, outputs))
-    elif mode == "offload":  # started before the FMUs are instantiated, as run_scenario does
-        writer = TraceWorker(trace, outputs, foxglove=(SceneSettings.of(scenario.config), outputs, 10.0))
+    if mode in ("traced", "offload"):  # created before the FMUs are instantiated, as run_scenario does
+        writer = open_trace_writer("process" if mode == "offload" else "inline", trace, outputs, None, scenario.config)
     master = NativeMaster(components, scenario.connections, scenario.schedules, "jacobi")
     master.initialize(0.0)
     sink: Callable | None = None

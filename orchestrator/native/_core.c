@@ -621,6 +621,20 @@ static inline fmi2Status read_outputs(const Core *self, Instance *inst, double *
     return inst->lib->getReal(inst->component, inst->out_refs, inst->n_out, into);
 }
 
+/* Every instance's outputs into the shared output array (Master: outputs = [c.get_outputs() ...]).
+ * Returns 0, or -1 with the exception set. */
+static int read_all_outputs(Core *self, double t) {
+    for (size_t c = 0; c < self->n; c++) {
+        Instance *inst = &self->instances[c];
+        fmi2Status status = read_outputs(self, inst, self->outputs + inst->out_offset);
+        if (status > fmi2Warning) {
+            fail_status(self, inst, t, "fmi2GetReal", status);
+            return -1;
+        }
+    }
+    return 0;
+}
+
 static inline fmi2Status do_step(Instance *inst, double t, double h) {
     calling = inst;
     return inst->lib->doStep(inst->component, t, h, fmi2True);
@@ -642,11 +656,7 @@ static int step_once(Core *self, double t, double h) {
                 fail_status(self, &instances[c], t, "fmi2DoStep", status);
                 return -1;
             }
-        for (size_t c = 0; c < n; c++)
-            if ((status = read_outputs(self, &instances[c], self->outputs + instances[c].out_offset)) > fmi2Warning) {
-                fail_status(self, &instances[c], t, "fmi2GetReal", status);
-                return -1;
-            }
+        return read_all_outputs(self, t);
     } else {
         for (size_t c = 0; c < n; c++) {
             Instance *inst = &instances[c];
@@ -739,13 +749,8 @@ static PyObject *Core_initialize(Core *self, PyObject *arg) {
             return NULL;
         }
     }
-    for (size_t c = 0; c < self->n; c++) {
-        Instance *inst = &self->instances[c];
-        if ((status = read_outputs(self, inst, self->outputs + inst->out_offset)) > fmi2Warning) {
-            fail_status(self, inst, start, "fmi2GetReal", status);
-            return NULL;
-        }
-    }
+    if (read_all_outputs(self, start) < 0)
+        return NULL;
     /* settle sweeps: propagate initial outputs until nothing changes (at most n + 2 sweeps) */
     for (size_t sweep = 0; sweep < self->n + 2; sweep++) {
         int changed = 0;
@@ -776,13 +781,8 @@ static PyObject *Core_initialize(Core *self, PyObject *arg) {
             return NULL;
         }
     }
-    for (size_t c = 0; c < self->n; c++) {
-        Instance *inst = &self->instances[c];
-        if ((status = read_outputs(self, inst, self->outputs + inst->out_offset)) > fmi2Warning) {
-            fail_status(self, inst, start, "fmi2GetReal", status);
-            return NULL;
-        }
-    }
+    if (read_all_outputs(self, start) < 0)
+        return NULL;
     Py_RETURN_NONE;
 }
 
