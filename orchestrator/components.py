@@ -13,10 +13,11 @@ from __future__ import annotations
 import shutil
 from collections import deque
 import tempfile
-from ctypes import byref
+from ctypes import PYFUNCTYPE, byref, c_double, c_int, c_size_t, c_void_p, cast
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol, Sequence
+from functools import partial
+from typing import Any, Callable, Protocol, Sequence
 
 from fmpy import extract, read_model_description
 from fmpy.fmi2 import (
@@ -35,6 +36,21 @@ from fmpy.logging import addLoggerProxy
 from fmpy.simulation import calloc, free
 
 from .errors import ComponentError  # noqa: F401  (re-exported: the engines raise it from here)
+
+
+# An fmi2 function returning fmi2Status, called with arguments that are already ctypes objects, holding
+# the GIL (see FmuComponent._bind_hot_calls).
+_RAW_FMI2_CALL = PYFUNCTYPE(c_int)
+
+
+def resolved_functions(slave: FMU2Slave) -> dict[str, Any]:
+    """The ctypes functions FMPy resolved from the FMU's library, by fmi2 name ({} if FMPy stops
+    keeping them, and its wrappers stand in)."""
+    return getattr(slave, "_functions", {})
+
+
+def _not_instantiated(*args: Any) -> int:
+    raise RuntimeError("the FMU is not instantiated yet (call initialize first)")
 
 
 def _status_returning(method: Any) -> Any:
@@ -159,14 +175,35 @@ class FmuComponent:
         self._out_refs = (fmi2ValueReference * len(self.outputs))(*[variables[n].valueReference for n in self.outputs])
         self._out_values = (fmi2Real * len(self.outputs))()
         self._instantiated = False
-        # The hot calls go straight to the ctypes functions FMPy resolved (argument types set), past
-        # FMPy's Python wrapper (a dict lookup, a logger test and a status test per call); the status
-        # is checked here instead, with FMPy's own exception. Falls back to the wrapper if FMPy
-        # ever stops keeping them in ``_functions``.
-        functions = getattr(self._slave, "_functions", {})
-        self._fmi2SetReal = functions.get("fmi2SetReal") or _status_returning(self._slave.fmi2SetReal)
-        self._fmi2GetReal = functions.get("fmi2GetReal") or _status_returning(self._slave.fmi2GetReal)
-        self._fmi2DoStep = functions.get("fmi2DoStep") or _status_returning(self._slave.fmi2DoStep)
+        self._set_real: Callable[[], int] = _not_instantiated
+        self._get_real: Callable[[], int] = _not_instantiated
+        self._do_step: Callable[[], int] = _not_instantiated
+        self._step_from, self._step_size = c_double(), c_double()  # fmi2DoStep's arguments, set per step
+
+    def _bind_hot_calls(self) -> None:
+        """fmi2SetReal, fmi2GetReal and fmi2DoStep with every argument but time bound once.
+
+        The calls go to the functions FMPy resolved, through prototypes without argument types and
+        with arguments already converted (the instance as ``c_void_p``, sizes as ``c_size_t``, the
+        preallocated arrays): ctypes then passes them as they are, with no ``from_param`` conversion
+        per argument and call, and no FMPy wrapper (a dict lookup, a logger test and a status test).
+        The status is checked here instead, with FMPy's own exception. Falls back to FMPy's wrapper
+        if FMPy ever stops keeping its functions in ``_functions``.
+        """
+        slave, functions = self._slave, resolved_functions(self._slave)
+
+        def raw(name: str) -> Callable[..., int]:
+            function = functions.get(name)
+            if function is None:
+                return _status_returning(getattr(slave, name))
+            return _RAW_FMI2_CALL(cast(function, c_void_p).value)
+
+        instance = c_void_p(slave.component)
+        self._set_real = partial(raw("fmi2SetReal"), instance, self._in_refs, c_size_t(len(self.inputs)),
+                                 self._in_values)
+        self._get_real = partial(raw("fmi2GetReal"), instance, self._out_refs, c_size_t(len(self.outputs)),
+                                 self._out_values)
+        self._do_step = partial(raw("fmi2DoStep"), instance, self._step_from, self._step_size, c_int(fmi2True))
 
     def _log(self, env: Any, instance: bytes, status: int, category: bytes, message: bytes) -> None:
         text = message.decode("utf-8", "replace") if message else ""
@@ -183,6 +220,7 @@ class FmuComponent:
         try:
             slave.instantiate(callbacks=self._callbacks, loggingOn=True)
             self._instantiated = True
+            self._bind_hot_calls()
             slave.setupExperiment(startTime=start_time)
             self._set_parameters()
             slave.enterInitializationMode()
@@ -210,22 +248,27 @@ class FmuComponent:
 
     def set_inputs(self, values: Sequence[float]) -> None:
         self._in_values[:] = values
-        self._check("fmi2SetReal", self._fmi2SetReal(self._slave.component, self._in_refs, len(self.inputs),
-                                                     self._in_values))
+        status = self._set_real()
+        if status > fmi2Warning:
+            self._raise("fmi2SetReal", status)
 
     def get_outputs(self) -> list[float]:
-        self._check("fmi2GetReal", self._fmi2GetReal(self._slave.component, self._out_refs, len(self.outputs),
-                                                     self._out_values))
+        status = self._get_real()
+        if status > fmi2Warning:
+            self._raise("fmi2GetReal", status)
         return self._out_values[:]
 
     def step(self, time: float, step: float) -> None:
         self._time = time
-        self._check("fmi2DoStep", self._fmi2DoStep(self._slave.component, time, step, fmi2True))
-
-    def _check(self, function: str, status: int) -> None:
-        """Fail on a status above fmi2Warning, with the exception FMPy's wrapper would raise."""
+        self._step_from.value = time
+        self._step_size.value = step
+        status = self._do_step()
         if status > fmi2Warning:
-            raise self._fail(FMICallException(function=function, status=status)) from None
+            self._raise("fmi2DoStep", status)
+
+    def _raise(self, function: str, status: int) -> None:
+        """Fail a call whose status is above fmi2Warning, with the exception FMPy's wrapper would raise."""
+        raise self._fail(FMICallException(function=function, status=status)) from None
 
     def close(self) -> None:
         if self._instantiated:

@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from fmus.build import build_fmus
+from orchestrator import components as components_module
 from orchestrator.components import ComponentError, FmuComponent, UnpackedFmu
 from orchestrator.config import Config, config_from_mapping
 from orchestrator.master import Master
@@ -62,8 +63,10 @@ def fmus(fmu_dir: Path):
 
 
 def make_master(engine: str, scenario: Scenario, fmus: dict[str, UnpackedFmu]):
+    """``python-wrappers``: the Python engine as it runs should FMPy stop exposing its resolved fmi2
+    functions: FMPy's own wrappers stand in for the hot calls."""
     sim = scenario.config.simulation
-    if engine == "python":
+    if engine in ("python", "python-wrappers"):
         components = [FmuComponent(s.name, fmus[s.fmu], s.parameters) for s in scenario.components]
         return Master(components, scenario.connections, scenario.schedules, sim.master)
     components = [NativeComponent(s.name, fmus[s.fmu], s.parameters) for s in scenario.components]
@@ -72,6 +75,10 @@ def make_master(engine: str, scenario: Scenario, fmus: dict[str, UnpackedFmu]):
 
 def run_engine(engine: str, config: Config, fmus: dict[str, UnpackedFmu]) -> tuple[Rows, ComponentError | None]:
     """Every observed (t, outputs) of a run, and the ComponentError that ended it, if any."""
+    if engine == "python-wrappers":
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(components_module, "resolved_functions", lambda slave: {})
+            return run_engine("python", config, fmus)
     scenario = build_scenario(config)
     sim = config.simulation
     master = make_master(engine, scenario, fmus)
@@ -91,11 +98,12 @@ def test_extension_is_built() -> None:
     assert available(), f"orchestrator.native._core did not import: {IMPORT_ERROR}"
 
 
-@pytest.mark.parametrize("master", ["jacobi", "gauss-seidel"])
-@pytest.mark.parametrize("law", ["sine", "regular"])
-def test_bit_identical_to_python_engine(law: str, master: str, fmus) -> None:
+@pytest.mark.parametrize("law, master, python", [
+    ("sine", "jacobi", "python"), ("sine", "gauss-seidel", "python"), ("regular", "jacobi", "python"),
+    ("regular", "gauss-seidel", "python"), ("sine", "jacobi", "python-wrappers")])
+def test_bit_identical_to_python_engine(law: str, master: str, python: str, fmus) -> None:
     config = paper_config(law, master, disturbance=DISTURBANCES)
-    python_rows, python_failure = run_engine("python", config, fmus)
+    python_rows, python_failure = run_engine(python, config, fmus)
     native_rows, native_failure = run_engine("native", config, fmus)
     assert python_failure is None and native_failure is None, (python_failure, native_failure)
     steps = step_count(config.simulation.stop_time, config.simulation.step)
@@ -166,10 +174,11 @@ def test_run_blocks_untraced_ends_where_the_traced_run_ends(fmus) -> None:
     assert final[0] == final[1] == python_rows[-1]
 
 
-def test_step_failure_raises_component_error_like_python(fmus) -> None:
+@pytest.mark.parametrize("python", ["python", "python-wrappers"])
+def test_step_failure_raises_component_error_like_python(python: str, fmus) -> None:
     """A -100 m/s speed pulse on vehicle 4 at t = 1 s: its speed goes negative in the next step."""
     config = paper_config("sine", "jacobi", stop_time=3.0, disturbance=SPEED_TO_ZERO)
-    python_rows, python_failure = run_engine("python", config, fmus)
+    python_rows, python_failure = run_engine(python, config, fmus)
     native_rows, native_failure = run_engine("native", config, fmus)
     assert isinstance(native_failure, ComponentError) and isinstance(python_failure, ComponentError)
     assert native_failure.component == "vehicle4"
@@ -288,14 +297,45 @@ def test_partial_blocks_are_delivered_on_the_wall_time_interval(fmus) -> None:
     assert sum(sizes) == 301 and len(sizes) >= 300 // 64 and max(sizes) <= 65
 
 
-def test_fmpy_wrapper_fallback_reports_the_status() -> None:
-    """Should FMPy stop exposing its resolved ctypes functions, its wrappers stand in, returning the status."""
-    from fmpy.fmi1 import FMICallException
+class TruncatingComponent:
+    """A real FMU component that, after its ``after``-th step, returns one output too few, as a
+    malformed live endpoint might."""
 
-    from orchestrator.components import _status_returning
+    def __init__(self, inner: FmuComponent, after: int) -> None:
+        self.inner, self.after, self.steps = inner, after, 0
+        self.name, self.inputs, self.outputs, self.input_defaults = (
+            inner.name, inner.inputs, inner.outputs, inner.input_defaults)
 
-    def failing(*args: object) -> None:
-        raise FMICallException(function="fmi2DoStep", status=4)
+    def step(self, time: float, step: float) -> None:
+        self.steps += 1
+        self.inner.step(time, step)
 
-    assert _status_returning(lambda *args: None)(1, 2) == 0
-    assert _status_returning(failing)(1, 2) == 4
+    def get_outputs(self) -> list[float]:
+        values = self.inner.get_outputs()
+        return values[:-1] if self.steps > self.after else values
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+
+@pytest.mark.parametrize("algorithm", ["jacobi", "gauss-seidel"])
+def test_a_component_returning_the_wrong_number_of_outputs_fails_the_run_by_name(algorithm: str, fmus) -> None:
+    """No transfer may read a shifted value: the step fails naming the component, and the master's
+    outputs keep only complete vectors (with Jacobi, the last complete point, as on an FMU failure)."""
+    scenario = build_scenario(paper_config("sine", algorithm, stop_time=1.0))
+    components = [FmuComponent(s.name, fmus[s.fmu], s.parameters) for s in scenario.components]
+    components[2] = TruncatingComponent(components[2], after=5)
+    master = Master(components, scenario.connections, scenario.schedules, algorithm)
+    rows: Rows = []
+    try:
+        with pytest.raises(ComponentError, match=r"returned \d+ outputs, expected") as caught:
+            master.run(1.0, 0.01, lambda t, outputs: rows.append((t, [list(v) for v in outputs])), 100)
+        outputs = [list(values) for values in master.outputs]
+    finally:
+        master.close()
+    assert caught.value.component == components[2].name
+    assert len(rows) == 1 + 5  # t = 0 and the five good steps
+    assert rows[-1][0] == pytest.approx(0.05)
+    if algorithm == "jacobi":
+        assert rows[-1][1] == outputs
+    assert all(len(values) == len(c.outputs) for values, c in zip(outputs, components))
