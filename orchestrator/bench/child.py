@@ -60,7 +60,7 @@ def perform(task: dict[str, Any]) -> dict[str, Any]:
     if kind == "callgrind":
         from .flatness import callgrind_target
 
-        return callgrind_target(task["n"], task["steps"], task["client"], fmu_dir)
+        return callgrind_target(task["n"], task["steps"], task["client"], fmu_dir, task.get("engine", "native"))
     raise ValueError(f"unknown task kind {kind!r}")
 
 

@@ -14,9 +14,10 @@ Three experiments, each N in a fresh interpreter:
   objects (allocator, garbage collector, interpreter caches).
 * **objects**: Python objects, allocated blocks and RSS per instance, to size the working set.
 
-``callgrind`` (valgrind) counts instructions and simulated cache misses of the native core's stepping
-only (instrumentation switched on around ``Core.run`` by a client request), per FMU-step: flat
-instruction counts with growing misses point at memory, growing instruction counts at work.
+``callgrind`` (valgrind) counts instructions and simulated cache misses of an engine's stepping only
+(instrumentation switched on around the stepping by a client request), per FMU-step: flat
+instruction counts with growing misses point at memory, growing instruction counts at work. It also
+splits the instructions into those inside the FMUs' fmi2 calls and the master's own.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from __future__ import annotations
 import gc
 import json
 import os
+import re
 import shutil
 import statistics
 import subprocess
@@ -160,32 +162,80 @@ def _client_library(folder: Path) -> Path:
     return library
 
 
-def callgrind_target(n: int, steps: int, client: str, fmu_dir: Path) -> dict[str, Any]:
-    """Child side, under valgrind: initialize the native platoon uninstrumented, then instrument only
-    ``steps`` steps of ``Core.run``."""
+def callgrind_target(n: int, steps: int, client: str, fmu_dir: Path, engine: str = "native") -> dict[str, Any]:
+    """Child side, under valgrind: initialize the platoon and step it ``steps`` times uninstrumented
+    (warm-up), then instrument only the next ``steps`` steps: ``Core.run`` (native) or ``Master.step``
+    (python), as the benchmark's timed loops run them."""
     import ctypes
-
-    from orchestrator.native import NativeComponent, NativeMaster
 
     from .platoon import STEP, scenario_for, unpacked_fmus
 
     scenario = scenario_for(n, 2 * steps)
     fmus = unpacked_fmus(fmu_dir)
-    master = NativeMaster([NativeComponent(s.name, fmus[s.fmu], s.parameters) for s in scenario.components],
-                          scenario.connections)
+    if engine == "native":
+        from orchestrator.native import NativeComponent, NativeMaster
+
+        master: Any = NativeMaster([NativeComponent(s.name, fmus[s.fmu], s.parameters) for s in scenario.components],
+                                   scenario.connections)
+
+        def go(first: int, stop: int) -> None:
+            master._core.run(0.0, STEP, first, stop)
+    elif engine == "python":
+        from orchestrator.components import FmuComponent
+        from orchestrator.master import Master
+
+        master = Master([FmuComponent(s.name, fmus[s.fmu], s.parameters) for s in scenario.components],
+                        scenario.connections)
+
+        def go(first: int, stop: int) -> None:
+            for k in range(first, stop):  # Master.run's loop without an observer
+                master.time = k * STEP
+                master.step((k + 1) * STEP - master.time)
+    else:
+        raise ValueError(f"callgrind: unknown engine {engine!r} (native, python)")
     master.initialize(0.0)
-    master._core.run(0.0, STEP, 0, steps)  # warm-up, uninstrumented
+    go(0, steps)  # warm-up, uninstrumented
     requests = ctypes.CDLL(client)
     requests.instrumentation_on()
-    master._core.run(0.0, STEP, steps, 2 * steps)
+    go(steps, 2 * steps)
     requests.instrumentation_off()
     master.close()
-    return {"n": n, "steps": steps}
+    return {"n": n, "steps": steps, "engine": engine}
+
+
+# pythonfmu's slave-instance methods, not the std::function helpers inside them (callgrind_annotate
+# lists those with the method's name in theirs): everything an fmi2SetReal, fmi2DoStep or fmi2GetReal
+# does inside the FMU, the Python slave included, except the few instructions of the exported fmi2
+# function that forwards to them. What is left of the instrumented total is the master's own work and
+# the cost of calling into the FMU.
+_ANNOTATION_LINE = re.compile(r"\s*(?P<count>[\d,]+) \(\s*[\d.]+%\)\s+(?P<function>\S.*)")
+_INSIDE_FMU = re.compile(r"[^\s:]*:PySlaveInstance::(SetReal|Step|GetReal)\(")
+
+
+def inside_fmu_instructions(profile: Path) -> int:
+    """Instructions executed inside the FMUs' fmi2SetReal / fmi2DoStep / fmi2GetReal, from
+    callgrind_annotate's inclusive counts of ``profile``."""
+    done = subprocess.run(["callgrind_annotate", "--inclusive=yes", "--show=Ir", "--threshold=100", str(profile)],
+                          capture_output=True, text=True, check=True)
+    return inside_fmu_from_annotation(done.stdout)
+
+
+def inside_fmu_from_annotation(annotation: str) -> int:
+    """The sum of the inclusive counts of pythonfmu's SetReal, Step and GetReal in a
+    ``callgrind_annotate --inclusive=yes --show=Ir`` listing (every FMU binary's)."""
+    total = 0
+    for line in annotation.splitlines():
+        entry = _ANNOTATION_LINE.match(line)
+        if entry and _INSIDE_FMU.match(entry["function"]):
+            total += int(entry["count"].replace(",", ""))
+    return total
 
 
 def callgrind(n: int, steps: int, last_level: str | None, core: str | None = None,
-              fmu_dir: Path = DEFAULT_OUT) -> dict[str, Any]:
-    """Per FMU-step: instructions (Ir), data reads/writes and simulated misses, native core stepping.
+              fmu_dir: Path = DEFAULT_OUT, engine: str = "native") -> dict[str, Any]:
+    """Per FMU-step: instructions (Ir), data reads/writes and simulated misses of ``engine`` stepping,
+    and the instructions inside the FMUs against the master's own (``Ir_master``: its loop, transfers
+    and the FMI calls' mechanics; ctypes and libffi for the Python engine).
 
     ``last_level``: valgrind's ``--LL=size,assoc,line`` (e.g. this machine's L2, 524288,8,64), or None
     for valgrind's own choice (the L3 as detected). ``core``: another build of _core.c to measure."""
@@ -195,7 +245,7 @@ def callgrind(n: int, steps: int, last_level: str | None, core: str | None = Non
         folder = Path(scratch)
         client = _client_library(folder)
         out = folder / "callgrind.out"
-        task = {"kind": "callgrind", "n": n, "steps": steps, "client": str(client), "core": core,
+        task = {"kind": "callgrind", "n": n, "steps": steps, "client": str(client), "core": core, "engine": engine,
                 "fmu_dir": str(Path(fmu_dir).resolve())}
         command = ["valgrind", "--tool=callgrind", "--instr-atstart=no", "--cache-sim=yes",
                    f"--callgrind-out-file={out}", *([f"--LL={last_level}"] if last_level else []),
@@ -211,42 +261,47 @@ def callgrind(n: int, steps: int, last_level: str | None, core: str | None = Non
                 totals = [int(v) for v in line.split()[1:]]
         if events is None or totals is None:
             raise RuntimeError(f"no totals in {out}")
+        inside = inside_fmu_instructions(out)
         notes = [line for line in done.stderr.splitlines() if "warning" in line.lower()][:5]  # e.g. the LL choice
     fmu_steps = steps * (n + 1)
     per_step = {event: value / fmu_steps for event, value in zip(events, totals)}
-    return {"n": n, "steps": steps, "last_level": last_level, "core": core, "per_fmu_step": per_step,
-            "valgrind_notes": notes}
+    per_step["Ir_fmu"] = inside / fmu_steps
+    per_step["Ir_master"] = per_step["Ir"] - per_step["Ir_fmu"]
+    return {"n": n, "steps": steps, "engine": engine, "last_level": last_level, "core": core,
+            "per_fmu_step": per_step, "valgrind_notes": notes}
 
 
 def callgrind_series(ns: Sequence[int], fmu_steps: int = 2500, last_levels: Sequence[str | None] = (L2,),
                      cores: dict[str, str | None] | None = None, fmu_dir: Path = DEFAULT_OUT,
-                     progress: Progress | None = None) -> dict[str, Any]:
-    """``callgrind`` for every N (about ``fmu_steps`` FMU-steps each), cache model and core build."""
+                     progress: Progress | None = None, engines: Sequence[str] = ("native",)) -> dict[str, Any]:
+    """``callgrind`` for every N (about ``fmu_steps`` FMU-steps each), engine, cache model and core build."""
     cores = cores or {"installed": None}
-    plan = [(level, n, label) for level in last_levels for n in ns for label in cores]
+    plan = [(level, engine, n, label) for level in last_levels for engine in engines for n in ns
+            for label in (cores if engine == "native" else ["installed"])]
     runs = []
-    for level, n, label in plan:
-        result = callgrind(n, max(1, fmu_steps // (n + 1)), level, cores[label], fmu_dir)
+    for level, engine, n, label in plan:
+        result = callgrind(n, max(1, fmu_steps // (n + 1)), level, cores.get(label), fmu_dir, engine)
         result["core_label"] = label
         runs.append(result)
         if progress is not None:
             p = result["per_fmu_step"]
-            progress(len(runs), len(plan), f"callgrind N={n:<4} LL={level or 'detected'} {label}: "
-                     + " ".join(f"{event}={p[event]:.0f}" for event in ("Ir", "D1mr", "DLmr", "I1mr")))
-    return {"n": list(ns), "fmu_steps": fmu_steps, "last_levels": list(last_levels), "cores": cores, "runs": runs}
+            progress(len(runs), len(plan), f"callgrind {engine:<6} N={n:<4} LL={level or 'detected'} {label}: "
+                     + " ".join(f"{event}={p[event]:.0f}" for event in ("Ir", "Ir_master", "D1mr", "DLmr", "I1mr")))
+    return {"n": list(ns), "fmu_steps": fmu_steps, "last_levels": list(last_levels), "engines": list(engines),
+            "cores": cores, "runs": runs}
 
 
 def callgrind_markdown(result: dict[str, Any]) -> str:
     rows = []
     for run in result["runs"]:
         p = run["per_fmu_step"]
-        rows.append([run["n"], run["last_level"] or "detected", run["core_label"], f"{p['Ir']:.0f}",
-                     f"{p['Dr'] + p['Dw']:.0f}", f"{p['I1mr']:.0f}", f"{p['D1mr'] + p['D1mw']:.0f}",
-                     f"{p['DLmr'] + p['DLmw']:.0f}"])
-    return ("callgrind, native core stepping only, per FMU-step: instructions, data accesses, simulated misses "
-            "(L1 instruction, L1 data, last level)\n\n"
-            + markdown_table(["N", "last level (--LL)", "core", "instructions", "data accesses", "I1 misses",
-                              "D1 misses", "LL misses"], rows))
+        rows.append([run.get("engine", "native"), run["n"], run["last_level"] or "detected", run["core_label"],
+                     f"{p['Ir']:.0f}", f"{p['Ir_fmu']:.0f}", f"{p['Ir_master']:.0f}", f"{p['Dr'] + p['Dw']:.0f}",
+                     f"{p['I1mr']:.0f}", f"{p['D1mr'] + p['D1mw']:.0f}", f"{p['DLmr'] + p['DLmw']:.0f}"])
+    return ("callgrind, stepping only, per FMU-step: instructions (all, inside the FMUs' fmi2 calls, the rest: "
+            "the master's own), data accesses, simulated misses (L1 instruction, L1 data, last level)\n\n"
+            + markdown_table(["engine", "N", "last level (--LL)", "core", "instructions", "inside FMUs", "master",
+                              "data accesses", "I1 misses", "D1 misses", "LL misses"], rows))
 
 
 def compare_cores(cores: dict[str, str], ns: Sequence[int], steps: int, rounds: int, fmu_dir: Path = DEFAULT_OUT,
@@ -294,7 +349,7 @@ def run_suite(ns: Sequence[int] = DEFAULT_N, steps: int = 150, rounds: int = 5, 
         raise BenchUsageError("--callgrind needs valgrind (apt-get install valgrind)")
     result: dict[str, Any] = {"orders": run(ns, steps, rounds, repeats, fmu_dir, progress)}
     if with_callgrind:
-        result["callgrind"] = callgrind_series(ns, fmu_dir=fmu_dir, progress=progress)
+        result["callgrind"] = callgrind_series(ns, fmu_dir=fmu_dir, progress=progress, engines=("native", "python"))
     return result
 
 
