@@ -112,16 +112,19 @@ def test_callgrind_split_counts_each_fmu_call_once() -> None:
 
     listing = """\
 107,816,428 (100.0%)  PROGRAM TOTALS
-107,797,054 (99.98%)  /work/main/orchestrator/native/_core.c:Core_run [/work/_core.so]
- 58,513,147 (54.27%)  ???:fmi2DoStep [/tmp/f/binaries/linux64/Vehicle.so]
- 58,498,647 (54.26%)  ???:PySlaveInstance::Step(double, double) [/tmp/f/binaries/linux64/Vehicle.so]
- 58,333,147 (54.10%)  ???:std::_Function_handler<void (PyGILState_STATE), PySlaveInstance::Step(double, double)::{lambda(PyGILState_STATE)#1}>::_M_invoke(std::_Any_data const&, PyGILState_STATE&&) [/tmp/f/Vehicle.so]
- 31,289,665 (29.02%)  ???:PySlaveInstance::GetReal(unsigned int const*, unsigned long, double*) const [/tmp/f/Vehicle.so]
- 17,897,599 (16.60%)  ???:PySlaveInstance::SetReal(unsigned int const*, unsigned long, double const*) [/tmp/f/Vehicle.so]
-  2,288,401 ( 2.12%)  ???:PySlaveInstance::clearLogBuffer() const [/tmp/f/Vehicle.so]
-     59,500 ( 0.06%)  ???:std::_Function_handler<void (PyGILState_STATE), PySlaveInstance::Step(double, double)::{lambda(PyGILState_STATE)#1}>::_M_manager(std::_Any_data&, std::_Any_data const&, std::_Manager_operation) [/tmp/f/Vehicle.so]
-  1,000,000 ( 0.90%)  ???:PySlaveInstance::Step(double, double) [/tmp/g/binaries/linux64/VirtualTarget.so]
+107,797,054 (99.98%) 3,980 (99.87%)  /work/main/orchestrator/native/_core.c:Core_run [/work/_core.so]
+ 58,513,147 (54.27%) 2,690 (67.50%)  ???:fmi2DoStep [/tmp/f/binaries/linux64/Vehicle.so]
+ 58,498,647 (54.26%) 2,684 (67.35%)  ???:PySlaveInstance::Step(double, double) [/tmp/f/binaries/linux64/Vehicle.so]
+ 58,333,147 (54.10%) 2,680 (67.25%)  ???:std::_Function_handler<void (PyGILState_STATE), PySlaveInstance::Step(double, double)::{lambda(PyGILState_STATE)#1}>::_M_invoke(std::_Any_data const&, PyGILState_STATE&&) [/tmp/f/Vehicle.so]
+ 31,289,665 (29.02%)   901 (22.61%)  ???:PySlaveInstance::GetReal(unsigned int const*, unsigned long, double*) const [/tmp/f/Vehicle.so]
+ 17,897,599 (16.60%)     .           ???:PySlaveInstance::SetReal(unsigned int const*, unsigned long, double const*) [/tmp/f/Vehicle.so]
+  2,288,401 ( 2.12%)    12 ( 0.30%)  ???:PySlaveInstance::clearLogBuffer() const [/tmp/f/Vehicle.so]
+     59,500 ( 0.06%)     4 ( 0.10%)  ???:std::_Function_handler<void (PyGILState_STATE), PySlaveInstance::Step(double, double)::{lambda(PyGILState_STATE)#1}>::_M_manager(std::_Any_data&, std::_Any_data const&, std::_Manager_operation) [/tmp/f/Vehicle.so]
+  1,000,000 ( 0.90%)   100 ( 2.51%)  ???:PySlaveInstance::Step(double, double) [/tmp/g/binaries/linux64/VirtualTarget.so]
      .           static inline fmi2Status read_outputs(const Core *self, Instance *inst, double *into) {
 31,300,165 (29.03%)  => ???:fmi2GetReal (500x)
 """
-    assert inside_fmu_from_annotation(listing) == 58_498_647 + 31_289_665 + 17_897_599 + 1_000_000
+    assert inside_fmu_from_annotation(listing, ["Ir", "DLmr"]) == {
+        "Ir": 58_498_647 + 31_289_665 + 17_897_599 + 1_000_000, "DLmr": 2_684 + 901 + 0 + 100}
+    with pytest.raises(ValueError, match="2 columns, expected 3"):
+        inside_fmu_from_annotation(listing, ["Ir", "DLmr", "DLmw"])

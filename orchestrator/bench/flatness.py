@@ -17,7 +17,7 @@ Three experiments, each N in a fresh interpreter:
 ``callgrind`` (valgrind) counts instructions and simulated cache misses of an engine's stepping only
 (instrumentation switched on around the stepping by a client request), per FMU-step: flat
 instruction counts with growing misses point at memory, growing instruction counts at work. It also
-splits the instructions into those inside the FMUs' fmi2 calls and the master's own.
+splits every count into inside the FMUs' fmi2 calls and the master's own.
 """
 
 from __future__ import annotations
@@ -208,34 +208,41 @@ def callgrind_target(n: int, steps: int, client: str, fmu_dir: Path, engine: str
 # does inside the FMU, the Python slave included, except the few instructions of the exported fmi2
 # function that forwards to them. What is left of the instrumented total is the master's own work and
 # the cost of calling into the FMU.
-_ANNOTATION_LINE = re.compile(r"\s*(?P<count>[\d,]+) \(\s*[\d.]+%\)\s+(?P<function>\S.*)")
 _INSIDE_FMU = re.compile(r"[^\s:]*:PySlaveInstance::(SetReal|Step|GetReal)\(")
+# One callgrind_annotate line: a column per event ("1,234 (5.6%)", or "." for none), then the function.
+_ANNOTATION_LINE = re.compile(r"\s*(?P<columns>(?:(?:[\d,]+ \(\s*[\d.]+%\)|\.)\s+)+)(?P<function>\S.*)")
+_ANNOTATION_COLUMN = re.compile(r"([\d,]+) \(\s*[\d.]+%\)|\.")
 
 
-def inside_fmu_instructions(profile: Path) -> int:
-    """Instructions executed inside the FMUs' fmi2SetReal / fmi2DoStep / fmi2GetReal, from
+def inside_fmu_counts(profile: Path, events: Sequence[str]) -> dict[str, int]:
+    """Each event's count inside the FMUs' fmi2SetReal / fmi2DoStep / fmi2GetReal, from
     callgrind_annotate's inclusive counts of ``profile``."""
-    done = subprocess.run(["callgrind_annotate", "--inclusive=yes", "--show=Ir", "--threshold=100", str(profile)],
-                          capture_output=True, text=True, check=True)
-    return inside_fmu_from_annotation(done.stdout)
+    done = subprocess.run(["callgrind_annotate", "--inclusive=yes", f"--show={','.join(events)}", "--threshold=100",
+                           str(profile)], capture_output=True, text=True, check=True)
+    return inside_fmu_from_annotation(done.stdout, events)
 
 
-def inside_fmu_from_annotation(annotation: str) -> int:
-    """The sum of the inclusive counts of pythonfmu's SetReal, Step and GetReal in a
-    ``callgrind_annotate --inclusive=yes --show=Ir`` listing (every FMU binary's)."""
-    total = 0
+def inside_fmu_from_annotation(annotation: str, events: Sequence[str]) -> dict[str, int]:
+    """The sums of the inclusive counts of pythonfmu's SetReal, Step and GetReal (every FMU binary's)
+    in a ``callgrind_annotate --inclusive=yes --show=<events>`` listing."""
+    totals = dict.fromkeys(events, 0)
     for line in annotation.splitlines():
         entry = _ANNOTATION_LINE.match(line)
         if entry and _INSIDE_FMU.match(entry["function"]):
-            total += int(entry["count"].replace(",", ""))
-    return total
+            columns = [int(count.replace(",", "")) if count else 0
+                       for count in _ANNOTATION_COLUMN.findall(entry["columns"])]
+            if len(columns) != len(events):
+                raise ValueError(f"callgrind_annotate line with {len(columns)} columns, expected {len(events)}: {line!r}")
+            for event, count in zip(events, columns):
+                totals[event] += count
+    return totals
 
 
 def callgrind(n: int, steps: int, last_level: str | None, core: str | None = None,
               fmu_dir: Path = DEFAULT_OUT, engine: str = "native") -> dict[str, Any]:
     """Per FMU-step: instructions (Ir), data reads/writes and simulated misses of ``engine`` stepping,
-    and the instructions inside the FMUs against the master's own (``Ir_master``: its loop, transfers
-    and the FMI calls' mechanics; ctypes and libffi for the Python engine).
+    and each count split into inside the FMUs (``<event>_fmu``) and the master's own (``<event>_master``:
+    its loop, transfers and the FMI calls' mechanics, ctypes and libffi for the Python engine).
 
     ``last_level``: valgrind's ``--LL=size,assoc,line`` (e.g. this machine's L2, 524288,8,64), or None
     for valgrind's own choice (the L3 as detected). ``core``: another build of _core.c to measure."""
@@ -261,12 +268,13 @@ def callgrind(n: int, steps: int, last_level: str | None, core: str | None = Non
                 totals = [int(v) for v in line.split()[1:]]
         if events is None or totals is None:
             raise RuntimeError(f"no totals in {out}")
-        inside = inside_fmu_instructions(out)
+        inside = inside_fmu_counts(out, events)
         notes = [line for line in done.stderr.splitlines() if "warning" in line.lower()][:5]  # e.g. the LL choice
     fmu_steps = steps * (n + 1)
     per_step = {event: value / fmu_steps for event, value in zip(events, totals)}
-    per_step["Ir_fmu"] = inside / fmu_steps
-    per_step["Ir_master"] = per_step["Ir"] - per_step["Ir_fmu"]
+    for event in events:
+        per_step[f"{event}_fmu"] = inside[event] / fmu_steps
+        per_step[f"{event}_master"] = per_step[event] - per_step[f"{event}_fmu"]
     return {"n": n, "steps": steps, "engine": engine, "last_level": last_level, "core": core,
             "per_fmu_step": per_step, "valgrind_notes": notes}
 
@@ -295,13 +303,15 @@ def callgrind_markdown(result: dict[str, Any]) -> str:
     rows = []
     for run in result["runs"]:
         p = run["per_fmu_step"]
+        last_level = p["DLmr"] + p["DLmw"]
+        last_level_master = p["DLmr_master"] + p["DLmw_master"]
         rows.append([run.get("engine", "native"), run["n"], run["last_level"] or "detected", run["core_label"],
-                     f"{p['Ir']:.0f}", f"{p['Ir_fmu']:.0f}", f"{p['Ir_master']:.0f}", f"{p['Dr'] + p['Dw']:.0f}",
-                     f"{p['I1mr']:.0f}", f"{p['D1mr'] + p['D1mw']:.0f}", f"{p['DLmr'] + p['DLmw']:.0f}"])
-    return ("callgrind, stepping only, per FMU-step: instructions (all, inside the FMUs' fmi2 calls, the rest: "
-            "the master's own), data accesses, simulated misses (L1 instruction, L1 data, last level)\n\n"
-            + markdown_table(["engine", "N", "last level (--LL)", "core", "instructions", "inside FMUs", "master",
-                              "data accesses", "I1 misses", "D1 misses", "LL misses"], rows))
+                     f"{p['Ir']:.0f}", f"{p['Ir_master']:.0f}", f"{p['Dr'] + p['Dw']:.0f}", f"{p['I1mr']:.0f}",
+                     f"{p['D1mr'] + p['D1mw']:.0f}", f"{last_level:.0f}", f"{last_level_master:.0f}"])
+    return ("callgrind, stepping only, per FMU-step: instructions, data accesses, simulated misses (L1 instruction, "
+            "L1 data, last level); \"master\": outside the FMUs' fmi2SetReal / fmi2DoStep / fmi2GetReal\n\n"
+            + markdown_table(["engine", "N", "last level (--LL)", "core", "instructions", "of which master",
+                              "data accesses", "I1 misses", "D1 misses", "LL misses", "of which master"], rows))
 
 
 def compare_cores(cores: dict[str, str], ns: Sequence[int], steps: int, rounds: int, fmu_dir: Path = DEFAULT_OUT,
