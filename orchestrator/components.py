@@ -51,7 +51,7 @@ def resolved_functions(slave: FMU2Slave) -> dict[str, Any]:
 
 
 def _not_instantiated(*args: Any) -> int:
-    raise RuntimeError("the FMU is not instantiated yet (call initialize first)")
+    raise RuntimeError("the FMU is not instantiated (initialize it first; a closed component cannot step)")
 
 
 def _status_returning(method: Any) -> Any:
@@ -193,6 +193,9 @@ class FmuComponent:
         with arguments already converted (the instance as ``c_void_p``, sizes as ``c_size_t``, the
         preallocated arrays): ctypes then passes them as they are, with no ``from_param`` conversion
         per argument and call, and no FMPy wrapper (a dict lookup, a logger test and a status test).
+        The prototypes keep the GIL (``PYFUNCTYPE``), as the native core does: pythonfmu's wrapper
+        takes it anyway to run the slave, so releasing it around the call only costs a release and a
+        reacquire.
         The status is checked here instead, with FMPy's own exception. Falls back to FMPy's wrapper
         if FMPy ever stops keeping its functions in ``_functions``.
         """
@@ -287,3 +290,4 @@ class FmuComponent:
             # at interpreter exit. The library is loaded once per process anyway.
             self._slave.fmi2FreeInstance(self._slave.component)
             self._instantiated = False
+            self._set_real = self._get_real = self._do_step = _not_instantiated

@@ -339,3 +339,19 @@ def test_a_component_returning_the_wrong_number_of_outputs_fails_the_run_by_name
     if algorithm == "jacobi":
         assert rows[-1][1] == outputs
     assert all(len(values) == len(c.outputs) for values, c in zip(outputs, components))
+
+
+def test_a_closed_fmu_component_refuses_to_step_instead_of_calling_a_freed_instance(fmus) -> None:
+    scenario = build_scenario(paper_config("sine", "jacobi", stop_time=1.0))
+    spec = scenario.components[1]
+    component = FmuComponent(spec.name, fmus[spec.fmu], spec.parameters)
+    with pytest.raises(RuntimeError, match="not instantiated"):
+        component.get_outputs()
+    component.initialize(0.0)
+    component.end_initialization()
+    assert len(component.get_outputs()) == len(component.outputs)
+    component.close()
+    for call in (lambda: component.set_inputs(component.input_defaults), lambda: component.step(0.0, 0.01),
+                 component.get_outputs):
+        with pytest.raises(RuntimeError, match="not instantiated"):
+            call()

@@ -48,6 +48,26 @@ def real(name: str, causality: str, description: str, unit: str | None, **kw: An
     return VariableInfo(name, "Real", causality, description, unit, **kw)
 
 
+_Tables = tuple[dict[int, str], frozenset[int], frozenset[int], dict[int, str]]
+_TABLES: dict[type, _Tables] = {}
+
+
+def _shared_tables(cls: type[PlatoonSlave], name_of: dict[int, str]) -> _Tables:
+    """The hot-path lookup tables of ``cls``: name by value reference, the Real references, the
+    settable Real references and the stepper attribute of each input. Built by the first instance;
+    an instance whose variables differ (never expected) gets its own."""
+    tables = _TABLES.get(cls)
+    if tables is not None and tables[0] == name_of:
+        return tables
+    kinds = {info.name: info for info in cls.variables}
+    real_refs = frozenset(r for r, n in name_of.items() if kinds[n].type == "Real")
+    settable = frozenset(r for r in real_refs if kinds[name_of[r]].causality != "output")
+    attributes = {r: cls.input_attributes[n] for r, n in name_of.items() if kinds[n].causality == "input"}
+    tables = (name_of, real_refs, settable, attributes)
+    _TABLES.setdefault(cls, tables)
+    return tables
+
+
 class PlatoonSlave(Fmi2Slave):
     """Base of the Vehicle and VirtualTarget slaves: declared variables, lazy outputs, FMU state."""
 
@@ -63,13 +83,11 @@ class PlatoonSlave(Fmi2Slave):
         for info in self.variables:
             self._declare(info)
         # Lookup tables for the hot path (get_real/set_real are called every step by every master).
-        self._name_of = {reference: variable.name for reference, variable in self.vars.items()}
-        kinds = {info.name: info for info in self.variables}
-        self._real_refs = {r for r, n in self._name_of.items() if kinds[n].type == "Real"}
-        self._settable_real_refs = {r for r in self._real_refs if kinds[self._name_of[r]].causality != "output"}
-        self._input_attribute_of = {
-            r: self.input_attributes[n] for r, n in self._name_of.items() if kinds[n].causality == "input"
-        }
+        # Every instance of a class declares the same variables in the same order, so the tables are
+        # equal; all instances share one copy, which stays in cache however many vehicles step.
+        name_of = {reference: variable.name for reference, variable in self.vars.items()}
+        self._name_of, self._real_refs, self._settable_real_refs, self._input_attribute_of = _shared_tables(
+            type(self), name_of)
 
     def _declare(self, info: VariableInfo) -> None:
         name = info.name
