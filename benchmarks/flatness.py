@@ -2,7 +2,7 @@
 
     python benchmarks/flatness.py orders --n 4 16 64 256              # floor: Master's order vs per component, idle instances
     python benchmarks/flatness.py callgrind --n 4 16 64 256           # instructions and simulated misses, native stepping
-    python benchmarks/flatness.py callgrind --engine native python    # ... and the master's own instructions per engine
+    python benchmarks/flatness.py callgrind --engine native python fmpy-bare  # ... and the master's own share, by engine
     python benchmarks/flatness.py callgrind --core phases=/tmp/a.so --core per-component=/tmp/b.so
     python benchmarks/flatness.py cores phases=/tmp/a.so per-component=/tmp/b.so --n 4 16 64 256 --rounds 5
 
@@ -48,7 +48,7 @@ def main() -> None:
     parser.add_argument("--ll", choices=("l2", "detected", "both"), default="l2",
                         help="callgrind's last-level cache: this machine's L2 (512 KiB), valgrind's detected L3, or both")
     parser.add_argument("--fmu-steps", type=int, default=2500, help="callgrind: FMU-steps per measurement")
-    parser.add_argument("--engine", nargs="+", choices=("native", "python"), default=["native"],
+    parser.add_argument("--engine", nargs="+", choices=("native", "python", "fmpy-bare"), default=["native"],
                         help="callgrind: the engines to measure")
     args = parser.parse_args()
     fmu_dir = REPO / DEFAULT_OUT

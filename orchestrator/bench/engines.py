@@ -119,7 +119,9 @@ def run_python(n: int, steps: int, coupling: str, fmu_dir: Path) -> dict[str, An
     return result
 
 
-def run_fmpy_bare(n: int, steps: int, coupling: str, fmu_dir: Path) -> dict[str, Any]:
+def fmpy_bare_platoon(n: int, steps: int, coupling: str, fmu_dir: Path) -> tuple[Any, list[Any], dict[str, list[str]]]:
+    """The bare FMPy loop, initialized: a ``DirectLoop`` over FMPy's ``FMU2Slave`` setReal / doStep /
+    getReal (value references resolved once), its slaves, and each component's output names."""
     from fmpy.fmi2 import FMU2Slave
 
     from .floor import DirectLoop
@@ -154,12 +156,22 @@ def run_fmpy_bare(n: int, steps: int, coupling: str, fmu_dir: Path) -> dict[str,
     for slave in slaves:
         slave.exitInitializationMode()
     loop.refresh()
+    return loop, slaves, out_names
+
+
+def free_fmpy_slaves(slaves: list[Any]) -> None:
+    """Free the instances, keep the libraries loaded (see FmuComponent.close)."""
+    for slave in slaves:
+        slave.fmi2Terminate(slave.component)
+        slave.fmi2FreeInstance(slave.component)
+
+
+def run_fmpy_bare(n: int, steps: int, coupling: str, fmu_dir: Path) -> dict[str, Any]:
+    loop, slaves, out_names = fmpy_bare_platoon(n, steps, coupling, fmu_dir)
     started, cpu_started = time.perf_counter(), time.process_time()
     loop.run(steps)
     elapsed, cpu = time.perf_counter() - started, time.process_time() - cpu_started
-    for slave in slaves:  # free the instances, keep the libraries loaded (see FmuComponent.close)
-        slave.fmi2Terminate(slave.component)
-        slave.fmi2FreeInstance(slave.component)
+    free_fmpy_slaves(slaves)
     return {"seconds": elapsed, "cpu_seconds": cpu, "started": started, "final": loop.finals(out_names)}
 
 

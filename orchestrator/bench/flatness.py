@@ -164,14 +164,15 @@ def _client_library(folder: Path) -> Path:
 
 def callgrind_target(n: int, steps: int, client: str, fmu_dir: Path, engine: str = "native") -> dict[str, Any]:
     """Child side, under valgrind: initialize the platoon and step it ``steps`` times uninstrumented
-    (warm-up), then instrument only the next ``steps`` steps: ``Core.run`` (native) or ``Master.step``
-    (python), as the benchmark's timed loops run them."""
+    (warm-up), then instrument only the next ``steps`` steps: ``Core.run`` (native), ``Master.step``
+    (python) or the bare FMPy loop (fmpy-bare), as the benchmark's timed loops run them."""
     import ctypes
 
     from .platoon import STEP, scenario_for, unpacked_fmus
 
-    scenario = scenario_for(n, 2 * steps)
-    fmus = unpacked_fmus(fmu_dir)
+    if engine in ("native", "python"):
+        scenario = scenario_for(n, 2 * steps)
+        fmus = unpacked_fmus(fmu_dir)
     if engine == "native":
         from orchestrator.native import NativeComponent, NativeMaster
 
@@ -191,15 +192,26 @@ def callgrind_target(n: int, steps: int, client: str, fmu_dir: Path, engine: str
             for k in range(first, stop):  # Master.run's loop without an observer
                 master.time = k * STEP
                 master.step((k + 1) * STEP - master.time)
+    elif engine == "fmpy-bare":
+        from .engines import fmpy_bare_platoon, free_fmpy_slaves
+
+        loop, slaves, _ = fmpy_bare_platoon(n, 2 * steps, "extrapolate", fmu_dir)
+
+        def go(first: int, stop: int) -> None:
+            loop.run(stop - first)  # the loop keeps its own step count
     else:
-        raise ValueError(f"callgrind: unknown engine {engine!r} (native, python)")
-    master.initialize(0.0)
+        raise ValueError(f"callgrind: unknown engine {engine!r} (native, python, fmpy-bare)")
+    if engine != "fmpy-bare":
+        master.initialize(0.0)
     go(0, steps)  # warm-up, uninstrumented
     requests = ctypes.CDLL(client)
     requests.instrumentation_on()
     go(steps, 2 * steps)
     requests.instrumentation_off()
-    master.close()
+    if engine == "fmpy-bare":
+        free_fmpy_slaves(slaves)
+    else:
+        master.close()
     return {"n": n, "steps": steps, "engine": engine}
 
 
