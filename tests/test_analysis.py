@@ -74,3 +74,28 @@ def test_a_hundred_vehicle_speed_chain_amplifies_by_trillions_at_the_papers_k_v(
     assert gain == pytest.approx(1.3416, abs=1e-4) and frequency == pytest.approx(0.333, abs=1e-3)
     assert gain**99 > 1e12
     assert speed_chain_gain(make_config(path={"radius": 2000.0}, platoon={"k_v": 2.0}))[0] ** 99 < 1e5
+
+
+@pytest.mark.parametrize("count", [30, 100])
+def test_the_verdict_of_a_long_platoon_comes_from_the_families_not_from_rounding_scattered_eigenvalues(count):
+    """At 100 vehicles the computed eigenvalues' largest real part is positive (rounding around a
+    100-fold eigenvalue), yet the platoon is stable: the verdict must say stable, with the families'
+    -V_c alpha/d*, and name the computed value as unreliable."""
+    from orchestrator.analysis import eigen_report
+
+    config = make_config(platoon={"count": count})
+    verdict = next(line for line in eigen_report(config).splitlines() if line.startswith("verdict:"))
+    families = our_families(config, count)
+    largest = max(f.value.real for f in families)
+    assert verdict.startswith("verdict: exponentially stable")
+    assert f"{largest:+.6f}, from the closed-form families" in verdict
+    assert "scatter" in verdict
+
+
+def test_a_short_platoon_keeps_the_computed_verdict():
+    from orchestrator.analysis import eigen_report
+
+    config = make_config(platoon={"count": 4})
+    a, _ = jacobian(config)
+    verdict = next(line for line in eigen_report(config).splitlines() if line.startswith("verdict:"))
+    assert verdict == f"verdict: exponentially stable (largest real part {np.linalg.eigvals(a).real.max():+.6f})"
