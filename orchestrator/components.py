@@ -44,6 +44,18 @@ from .errors import ComponentError  # noqa: F401  (re-exported: the engines rais
 _RAW_FMI2_CALL = PYFUNCTYPE(c_int)
 
 
+_RAW_CALLS: dict[int, Any] = {}
+
+
+def _raw_fmi2_call(address: int) -> Any:
+    """One ``_RAW_FMI2_CALL`` per function address: every instance of an FMU calls the same code (its
+    library is loaded once per process), so all of them share one ctypes function object."""
+    call = _RAW_CALLS.get(address)
+    if call is None:
+        call = _RAW_CALLS[address] = _RAW_FMI2_CALL(address)
+    return call
+
+
 def resolved_functions(slave: FMU2Slave) -> dict[str, Any]:
     """The ctypes functions FMPy resolved from the FMU's library, by fmi2 name ({} if FMPy stops
     keeping them, and its wrappers stand in)."""
@@ -205,7 +217,7 @@ class FmuComponent:
             function = functions.get(name)
             if function is None:
                 return _status_returning(getattr(slave, name))
-            return _RAW_FMI2_CALL(cast(function, c_void_p).value)
+            return _raw_fmi2_call(cast(function, c_void_p).value)
 
         instance = c_void_p(slave.component)
         self._set_real = partial(raw("fmi2SetReal"), instance, self._in_refs, c_size_t(len(self.inputs)),
