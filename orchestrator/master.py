@@ -80,7 +80,6 @@ def check_finite(components: Sequence[Component], outputs: Sequence[Sequence[flo
                              + (" ..." if len(bad) > 6 else "") + " (is a vehicle placed on its target?)")
 
 
-
 Gather = Callable[[list[float]], Sequence[float]]
 
 
