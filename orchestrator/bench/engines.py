@@ -92,6 +92,18 @@ def run_native(n: int, steps: int, mode: str, coupling: str, fmu_dir: Path) -> d
     return result
 
 
+def step_python_master(master: Any, first: int, stop: int,
+                       observer: Callable[[float, list[list[float]]], None] | None = None) -> None:
+    """Master.run's loop over steps ``first`` to ``stop - 1`` of 0.01 s, after initialization."""
+    for k in range(first, stop):
+        master.time = k * STEP
+        following = (k + 1) * STEP
+        outputs = master.step(following - master.time)
+        master.time = following
+        if observer is not None:
+            observer(master.time, outputs)
+
+
 def run_python(n: int, steps: int, coupling: str, fmu_dir: Path) -> dict[str, Any]:
     from orchestrator.components import FmuComponent
     from orchestrator.master import Master
@@ -106,12 +118,7 @@ def run_python(n: int, steps: int, coupling: str, fmu_dir: Path) -> dict[str, An
         pass
 
     started, cpu_started = time.perf_counter(), time.process_time()
-    for k in range(steps):  # Master.run's loop, with a no-op observer (tracing off)
-        master.time = k * STEP
-        following = (k + 1) * STEP
-        outputs = master.step(following - master.time)
-        master.time = following
-        observer(master.time, outputs)
+    step_python_master(master, 0, steps, observer)  # a no-op observer: tracing off
     elapsed, cpu = time.perf_counter() - started, time.process_time() - cpu_started
     finals = [dict(zip(c.outputs, values)) for c, values in zip(components, master.outputs)]
     result = {"seconds": elapsed, "cpu_seconds": cpu, "started": started, "final": final_positions([c.name for c in components], finals)}

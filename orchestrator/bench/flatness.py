@@ -178,20 +178,24 @@ def callgrind_target(n: int, steps: int, client: str, fmu_dir: Path, engine: str
 
         master: Any = NativeMaster([NativeComponent(s.name, fmus[s.fmu], s.parameters) for s in scenario.components],
                                    scenario.connections)
+        master.initialize(0.0)
 
         def go(first: int, stop: int) -> None:
             master._core.run(0.0, STEP, first, stop)
+        finish = master.close
     elif engine == "python":
         from orchestrator.components import FmuComponent
         from orchestrator.master import Master
 
+        from .engines import step_python_master
+
         master = Master([FmuComponent(s.name, fmus[s.fmu], s.parameters) for s in scenario.components],
                         scenario.connections)
+        master.initialize(0.0)
 
         def go(first: int, stop: int) -> None:
-            for k in range(first, stop):  # Master.run's loop without an observer
-                master.time = k * STEP
-                master.step((k + 1) * STEP - master.time)
+            step_python_master(master, first, stop)
+        finish = master.close
     elif engine == "fmpy-bare":
         from .engines import fmpy_bare_platoon, free_fmpy_slaves
 
@@ -199,19 +203,17 @@ def callgrind_target(n: int, steps: int, client: str, fmu_dir: Path, engine: str
 
         def go(first: int, stop: int) -> None:
             loop.run(stop - first)  # the loop keeps its own step count
+
+        def finish() -> None:
+            free_fmpy_slaves(slaves)
     else:
         raise ValueError(f"callgrind: unknown engine {engine!r} (native, python, fmpy-bare)")
-    if engine != "fmpy-bare":
-        master.initialize(0.0)
     go(0, steps)  # warm-up, uninstrumented
     requests = ctypes.CDLL(client)
     requests.instrumentation_on()
     go(steps, 2 * steps)
     requests.instrumentation_off()
-    if engine == "fmpy-bare":
-        free_fmpy_slaves(slaves)
-    else:
-        master.close()
+    finish()
     return {"n": n, "steps": steps, "engine": engine}
 
 
