@@ -30,13 +30,13 @@ from .config import Config
 from .master import Master
 from .native import NativeComponent, NativeMaster, available as native_available
 from .scenario import Scenario, build_scenario, step_count
-from .foxglove import SCENE_RATE, FoxgloveChannels, SceneSettings
-from .trace_writer import NullTraceWriter, TraceWriter
-from .trace_format import BLOCK, FLUSH_INTERVAL
-from .trace_worker import WORKER_BLOCK, TraceProcess, TraceWorker, TraceWorkerError
+from .trace.foxglove import SCENE_RATE, FoxgloveChannels, SceneSettings
+from .trace.writer import NullTraceWriter, TraceWriter
+from .trace.format import BLOCK, FLUSH_INTERVAL
+from .trace.worker import WORKER_BLOCK, TraceProcess, TraceWorker, TraceWorkerError
 
 # Where the trace is encoded: "inline" in the stepping process, "process" in a second process
-# (orchestrator/trace_worker.py), "auto": a second process when the machine has a spare core and the
+# (orchestrator/trace/worker.py), "auto": a second process when the machine has a spare core and the
 # run records enough messages that encoding them outweighs the worker's start-up (about 0.5-1 s).
 TRACE_WRITERS = ("auto", "inline", "process")
 WORKER_MESSAGES = 10_000  # recorded rows x components from which "auto" picks "process" (docs/performance.md)

@@ -24,12 +24,12 @@ import numpy as np
 import pytest
 
 from orchestrator.config import load_config
-from orchestrator.foxglove import ERRORS_TOPIC, LOG_TOPIC, SCENE_TOPIC, TF_TOPIC, layout_json
+from orchestrator.trace.foxglove import ERRORS_TOPIC, LOG_TOPIC, SCENE_TOPIC, TF_TOPIC, layout_json
 from orchestrator.components import ComponentError
 from orchestrator.metrics import path_errors
 from orchestrator.run import run_scenario
 from orchestrator.trace import Trace, TraceError, TraceWriter, export_csv, load, number_texts, recover
-from orchestrator.trace_writer import _template
+from orchestrator.trace.writer import _template
 from tests.conftest import SPEED_TO_ZERO
 
 REPO = Path(__file__).resolve().parents[1]
@@ -161,7 +161,7 @@ def test_scene_poses_are_the_recorded_positions(short: Trace) -> None:
 
 def test_layout_file_is_the_generated_classic_layout(short: Trace) -> None:
     text = (REPO / "layouts" / "platoon.json").read_text()
-    assert text == layout_json(6), "regenerate: python -m orchestrator.foxglove 6 > layouts/platoon.json"
+    assert text == layout_json(6), "regenerate: python -m orchestrator.trace.foxglove 6 > layouts/platoon.json"
     layout = json.loads(text)
     assert {"configById", "layout", "globalVariables"} <= set(layout)
     panels = layout["configById"]
@@ -205,7 +205,7 @@ def test_json_encoding_is_exact_json() -> None:
 
 def test_fast_message_path_writes_what_mcap_add_message_writes(tmp_path: Path, monkeypatch, short: Trace) -> None:
     """The encoder appends Message records to the mcap writer's chunk itself; same bytes as the library's."""
-    import orchestrator.trace_writer as trace_module
+    import orchestrator.trace.writer as trace_module
 
     config = paper(f"simulation.stop_time={SHORT_STOP}")
     components = [(name, [k for k in short.component(name) if k != "t"]) for name in COMPONENTS]
@@ -213,7 +213,7 @@ def test_fast_message_path_writes_what_mcap_add_message_writes(tmp_path: Path, m
             for i, t in enumerate(short.component("target")["t"].tolist())]
 
     def write(path: Path, chunk_size: int = 1 << 30) -> bytes:
-        from orchestrator.foxglove import FoxgloveChannels
+        from orchestrator.trace.foxglove import FoxgloveChannels
 
         writer = TraceWriter(path, components, every=1, foxglove=FoxgloveChannels(config, components),
                              flush_interval=1e9, chunk_size=chunk_size)
@@ -343,7 +343,7 @@ def test_auto_picks_a_second_process_for_long_runs_only() -> None:
 
 
 def test_non_finite_block_ends_the_trace_before_it(tmp_path: Path) -> None:
-    from orchestrator.trace_worker import TraceWorker
+    from orchestrator.trace.worker import TraceWorker
 
     rows = np.array([[k * 0.1, float(k), 1.0, 2.0] for k in range(5)])
     rows[3, 3] = math.inf
@@ -359,7 +359,7 @@ def test_non_finite_block_ends_the_trace_before_it(tmp_path: Path) -> None:
 
 
 def test_trace_writer_process_death_is_reported_and_the_chunks_stay(tmp_path: Path) -> None:
-    from orchestrator.trace_worker import TraceWorker, TraceWorkerError
+    from orchestrator.trace.worker import TraceWorker, TraceWorkerError
 
     path = tmp_path / "lost-writer.mcap"
     writer = TraceWorker(path, [("a", ["x"])], flush_interval=0.0)
@@ -388,7 +388,7 @@ def test_run_whose_trace_writer_process_dies_fails_cleanly_and_the_chunks_stay(t
         if not killed and out.stat().st_size > 300_000:  # the worker has written chunks
             children = Path(f"/proc/{os.getpid()}/task/{os.getpid()}/children").read_text().split()
             workers = [int(pid) for pid in children
-                       if "orchestrator.trace_serve" in Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")]
+                       if "orchestrator.trace.serve" in Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")]
             assert len(workers) == 1
             os.kill(workers[0], signal.SIGKILL)
             killed.append(workers[0])
@@ -402,7 +402,7 @@ def test_run_whose_trace_writer_process_dies_fails_cleanly_and_the_chunks_stay(t
 
 def test_trace_writer_process_reports_a_bad_argument(tmp_path: Path) -> None:
     """An error inside the worker (here: a component list the writer rejects) surfaces in the caller."""
-    from orchestrator.trace_worker import TraceWorker, TraceWorkerError
+    from orchestrator.trace.worker import TraceWorker, TraceWorkerError
 
     writer = TraceWorker(tmp_path / "bad.mcap", [("a", ["x"])], foxglove=("not a config", [("a", ["x"])], 10.0))
     with pytest.raises(TraceWorkerError, match="AttributeError"):

@@ -59,8 +59,8 @@ def run_native(n: int, steps: int, mode: str, coupling: str, fmu_dir: Path) -> d
     with the blocks, block sizes and trace writers that ``run_scenario`` uses."""
     from orchestrator.native import NativeComponent, NativeMaster
     from orchestrator.run import open_trace_writer
-    from orchestrator.trace_format import BLOCK
-    from orchestrator.trace_worker import WORKER_BLOCK
+    from orchestrator.trace.format import BLOCK
+    from orchestrator.trace.worker import WORKER_BLOCK
 
     scenario = scenario_for(n, steps, coupling)
     fmus = unpacked_fmus(fmu_dir)

@@ -4,7 +4,7 @@ Encoding a trace point costs about as much as stepping our Python FMUs (JSON per
 Foxglove scene, MCAP framing; docs/performance.md), so a trace written in the stepping process slows
 every-step tracing down by 1.5-1.8x. ``TraceWorker`` has ``TraceWriter``'s interface (``record``,
 ``write_block``, ``log``, ``metadata``, ``flush``, ``close``, ``rows_recorded``, ``last_time``) but runs
-the real ``TraceWriter`` in a worker process: a fresh ``python -m orchestrator.trace_serve``, which
+the real ``TraceWriter`` in a worker process: a fresh ``python -m orchestrator.trace.serve``, which
 inherits none of the FMUs loaded here and imports only what writing needs (ready in about 0.3 s), while the
 stepping process unpacks and instantiates its FMUs (a ``TraceProcess`` lets a run start it before
 anything else). The stepping process keeps what must stay on its side:
@@ -41,8 +41,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .trace_format import CHUNK_SIZE, FLUSH_INTERVAL
-from .trace_writer import non_finite_error
+from .format import CHUNK_SIZE, FLUSH_INTERVAL
+from .writer import non_finite_error
 
 WORKER_BLOCK = 64  # rows per hand-over: small, so the worker's backlog when the run ends stays short
 PIPE_BYTES = 1 << 20  # requested pipe capacity (Linux F_SETPIPE_SZ; /proc/sys/fs/pipe-max-size allows 1 MiB)
@@ -95,7 +95,7 @@ class TraceProcess:
 
 
 def _start_worker() -> tuple[subprocess.Popen[bytes], Connection, Connection]:
-    """Start ``python -m orchestrator.trace_serve INBOX STATUS`` with two pipes: blocks in, status out."""
+    """Start ``python -m orchestrator.trace.serve INBOX STATUS`` with two pipes: blocks in, status out."""
     inbox_read, inbox_write = os.pipe()
     status_read, status_write = os.pipe()
     # the worker imports this very package, wherever it was imported from (an install, or a checkout
@@ -103,7 +103,7 @@ def _start_worker() -> tuple[subprocess.Popen[bytes], Connection, Connection]:
     root = str(Path(__file__).resolve().parents[1])
     environment = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
     try:
-        process = subprocess.Popen([sys.executable, "-m", "orchestrator.trace_serve", str(inbox_read), str(status_write)],
+        process = subprocess.Popen([sys.executable, "-m", "orchestrator.trace.serve", str(inbox_read), str(status_write)],
                                    pass_fds=(inbox_read, status_write), stdin=subprocess.DEVNULL, env=environment)
     except BaseException:
         for fd in (inbox_read, inbox_write, status_read, status_write):

@@ -12,7 +12,7 @@ import numpy as np
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
-from .trace_format import (
+from .format import (
     CHANNEL_PREFIX,
     LOG_TOPIC,
     MAGIC,

@@ -1,14 +1,14 @@
-"""Writing run traces in MCAP (the format: docs/trace-format.md; the reading side: trace_reader).
+"""Writing run traces in MCAP (the format: docs/trace-format.md; the reading side: reader).
 
 One JSON channel per component (``/platoon/<component>``: ``t`` and every output of the component by
 its FMU variable name, one message per recorded communication point), the Foxglove channels of a
-``FoxgloveChannels`` (orchestrator/foxglove.py), and metadata; log_time and publish_time are the
+``FoxgloveChannels`` (orchestrator/trace/foxglove.py), and metadata; log_time and publish_time are the
 simulation time in nanoseconds. Files are chunked, zstd-compressed and indexed; a chunk is closed at
 least every ``flush_interval`` seconds of wall time, so a killed run loses at most that much.
 
 Rows are buffered and encoded in blocks, so a run's hot loop only appends the outputs to a list (or
 fills a float64 block, in the native engine). This module imports neither numpy nor the config: the
-trace worker process (orchestrator/trace_serve.py) runs it and should start fast.
+trace worker process (orchestrator/trace/serve.py) runs it and should start fast.
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ from mcap.data_stream import RecordBuilder
 from mcap.records import Message, MessageIndex, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
-from .errors import ComponentError
-from .trace_format import (
+from ..errors import ComponentError
+from .format import (
     SCHEMA_ENCODING,
     MESSAGE_ENCODING,
     KIND_KEY,
@@ -34,6 +34,7 @@ from .trace_format import (
     FLUSH_INTERVAL,
     BLOCK,
     channel_name,
+    number_texts,
 )
 
 if TYPE_CHECKING:
@@ -53,23 +54,6 @@ def _schema(component: str, outputs: Sequence[str], descriptions: dict[str, str]
             "additionalProperties": False,
         }
     ).encode()
-
-
-try:  # orjson writes floats (Rust, ryu) several times faster than float.__repr__, same values
-    import orjson
-
-    def number_texts(values: list[float]) -> list[bytes]:
-        """JSON text of each number: shortest text that reads back as exactly the same float."""
-        try:
-            return orjson.dumps(values)[1:-1].split(b",")
-        except TypeError:  # a number type orjson does not take (e.g. numpy scalar): its float value
-            return orjson.dumps([float(v) for v in values])[1:-1].split(b",")
-
-except ImportError:  # pragma: no cover - orjson is a dependency; this keeps a bare install working
-
-    def number_texts(values: list[float]) -> list[bytes]:
-        """JSON text of each number: shortest text that reads back as exactly the same float."""
-        return [float.__repr__(float(v)).encode() for v in values]
 
 
 def _template(keys: Sequence[str]) -> str:

@@ -28,10 +28,10 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from foxglove import messages as fg
 
-from .trace_writer import number_texts
+from .format import number_texts
 
 if TYPE_CHECKING:
-    from .config import Config
+    from ..config import Config
 
 ERRORS_TOPIC = "/platoon/errors"
 SCENE_TOPIC = "/platoon/scene"
@@ -97,7 +97,7 @@ def _timestamp(stamp: int) -> fg.Timestamp:
 class SceneSettings:
     """What the Foxglove channels take from a run's config: the path and the platoon's set-points.
 
-    Plain and picklable, so that the trace worker process (orchestrator/trace_serve.py) gets it without
+    Plain and picklable, so that the trace worker process (orchestrator/trace/serve.py) gets it without
     importing the config's validation library.
     """
 
@@ -111,7 +111,7 @@ class SceneSettings:
 
     @classmethod
     def of(cls, config: "Config") -> "SceneSettings":
-        from .scenario import path_of
+        from ..scenario import path_of
 
         p = config.path
         return cls(path_of(config), p.kind, (float(p.center[0]), float(p.center[1])), float(p.radius),
@@ -354,7 +354,7 @@ def layout_json(vehicles: int = 6) -> str:
     return json.dumps(layout(vehicles), indent=2) + "\n"
 
 
-if __name__ == "__main__":  # python -m orchestrator.foxglove [VEHICLES] > layouts/platoon.json
+if __name__ == "__main__":  # python -m orchestrator.trace.foxglove [VEHICLES] > layouts/platoon.json
     import sys
 
     print(layout_json(int(sys.argv[1]) if len(sys.argv) > 1 else 6), end="")

@@ -10,7 +10,7 @@ from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Metadata, Sch
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-from .trace_format import (
+from .format import (
     CHUNK_SIZE,
     TraceError,
     channel_kind,

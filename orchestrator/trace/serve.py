@@ -1,6 +1,6 @@
-"""The trace writer process: ``python -m orchestrator.trace_serve INBOX_FD STATUS_FD``.
+"""The trace writer process: ``python -m orchestrator.trace.serve INBOX_FD STATUS_FD``.
 
-Started by ``orchestrator.trace_worker.TraceWorker`` (see there for why). It reads, in order, from the
+Started by ``orchestrator.trace.worker.TraceWorker`` (see there for why). It reads, in order, from the
 inbox pipe: the writer's arguments, then blocks of rows, log lines and metadata, then "close"; it
 answers on the status pipe ("closed" or "error" with a traceback). It imports only the writer (no
 numpy, no config validation), so that it is ready while the stepping process still loads its FMUs.
@@ -23,7 +23,7 @@ import traceback  # noqa: E402
 from multiprocessing.connection import Connection  # noqa: E402
 from typing import Any  # noqa: E402
 
-from .trace_writer import TraceWriter  # noqa: E402
+from .writer import TraceWriter  # noqa: E402
 
 ABORTED = "the stepping process ended without closing the trace (killed?); every point it handed over is kept"
 
