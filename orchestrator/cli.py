@@ -144,14 +144,23 @@ def run(
         _fail(2, f"--engine {engine_name!r}: expected native or python")
     if engine_name == "native" and default_engine() != "native":
         _fail(2, "--engine native: the compiled core is not built here (reinstall with a C compiler: pip install -e .)")
+    from .live import LiveRunError, check_live_options
     from .run import TRACE_WRITERS
 
     if trace_writer not in TRACE_WRITERS:
         _fail(2, f"--trace-writer {trace_writer!r}: expected one of {', '.join(TRACE_WRITERS)}")
-    engine = "monolithic" if monolithic else (engine_name or default_engine())
+    engine = "monolithic" if monolithic else (engine_name or default_engine(parsed))
+    try:
+        check_live_options(parsed, engine, trace_writer)
+    except LiveRunError as error:
+        _fail(2, f"config {config}: {error}")
     trace = trace or default_trace_path(parsed, engine)
     _check_writable(trace)
     result = _execute(parsed, text, trace, engine, quiet, trace_writer)
+    if result.live:
+        from .hil_cli import live_table
+
+        out.print(live_table(result.live))
     if result.status == "interrupted":
         _fail(128 + (result.signal or 2), f"run {result.status}: {result.error} (trace up to that point: {result.trace})")
     if result.status != "completed":
@@ -443,6 +452,11 @@ def bench_flatness(
     counts = _counts(n)
     _bench("flatness", lambda progress: suite.run_suite(counts, steps, rounds, repeats, callgrind, progress=progress),
            suite.suite_markdown, out_dir, quiet)
+
+
+from .hil_cli import register as _register_hil  # noqa: E402  (the m3pi-emulator and m3pi-serial commands)
+
+_register_hil(app)
 
 
 def main() -> None:

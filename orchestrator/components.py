@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from functools import partial
 from struct import Struct
-from typing import Any, Callable, Protocol, Sequence
+from typing import Any, Callable, Sequence
 
 from fmpy import extract, read_model_description
 from fmpy.fmi2 import (
@@ -37,6 +37,7 @@ from fmpy.logging import addLoggerProxy
 from fmpy.simulation import calloc, free
 
 from .errors import ComponentError  # noqa: F401  (re-exported: the engines raise it from here)
+from .interface import Component  # noqa: F401  (re-exported: the interface FmuComponent implements)
 
 
 # An fmi2 function returning fmi2Status, called with arguments that are already ctypes objects, holding
@@ -77,20 +78,6 @@ def _status_returning(method: Any) -> Any:
         return 0
 
     return call
-
-
-class Component(Protocol):
-    name: str
-    inputs: list[str]
-    outputs: list[str]
-    input_defaults: list[float]
-
-    def initialize(self, start_time: float) -> None: ...
-    def set_inputs(self, values: Sequence[float]) -> None: ...
-    def get_outputs(self) -> list[float]: ...
-    def end_initialization(self) -> None: ...
-    def step(self, time: float, step: float) -> None: ...
-    def close(self) -> None: ...
 
 
 @dataclass

@@ -14,6 +14,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from bridge.protocol import DEFAULT_PREFIX, check_prefix
 from fmus.model.dynamics import M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEEL_SPEED_MAX
 
 
@@ -82,6 +83,41 @@ class VehicleOverride(_Strict):
     k_v: float | None = Field(None, gt=0.0)
     dynamics: DynamicsKind | None = None
     initial: VehicleState | None = None
+    # Hardware in the loop (docs/hil.md): "zenoh" makes this vehicle a live m3pi robot on Zenoh; the keys
+    # after it say where the robot is, and are ignored with "fmu".
+    endpoint: Literal["fmu", "zenoh"] = "fmu"
+    robot: int | None = Field(None, ge=0, le=2**31 - 1, description="robot id on Zenoh (default: the vehicle number)")
+    prefix: str | None = Field(None, description="key prefix (default hil.prefix)")
+    connect: list[str] | None = Field(None, description="Zenoh endpoints to connect to, e.g. tcp/127.0.0.1:7447")
+    listen: list[str] | None = Field(None, description="Zenoh endpoints to listen on")
+    zenoh_config: str | None = Field(None, description="Zenoh config file (JSON5): TLS, access control, ...")
+
+    @model_validator(mode="after")
+    def _prefix_is_a_key(self) -> "VehicleOverride":
+        # robot, prefix, connect, listen and zenoh_config only act with endpoint = "zenoh"; they may stay
+        # when a run sets endpoint = "fmu" (the same platoon all simulated, for comparison)
+        if self.prefix is not None:
+            problems = check_prefix(self.prefix)
+            if problems:
+                raise _rule("prefix", self.prefix, problems[0])
+        return self
+
+
+class Hil(_Strict):
+    """Hardware in the loop: shared by every live vehicle of the run (docs/hil.md)."""
+
+    prefix: str = Field(DEFAULT_PREFIX, description="Zenoh key prefix: <prefix>/m3pi/<id>/...")
+    pose_timeout: float = Field(0.5, gt=0.0, le=5.0, description="s without a valid pose: the robot is lost")
+    connect_timeout: float = Field(10.0, gt=0.0, le=600.0, description="s to wait for each robot at the start")
+    command_validity: float = Field(0.1, gt=0.0, le=5.0, description="s: a command's deadline after it is sent")
+    max_pose_age: float = Field(0.25, gt=0.0, le=5.0, description="s: an older pose is dropped as late")
+
+    @model_validator(mode="after")
+    def _prefix_is_a_key(self) -> "Hil":
+        problems = check_prefix(self.prefix)
+        if problems:
+            raise _rule("prefix", self.prefix, problems[0])
+        return self
 
 
 class Disturbance(_Strict):
@@ -102,6 +138,7 @@ class Config(_Strict):
     m3pi: M3pi = M3pi()
     disturbance: list[Disturbance] = Field(default_factory=list)
     vehicles: dict[str, VehicleOverride] = Field(default_factory=dict)
+    hil: Hil = Hil()
 
     @model_validator(mode="after")
     def _platoon_rules(self) -> "Config":
@@ -111,15 +148,30 @@ class Config(_Strict):
         for index, item in enumerate(self.disturbance):
             if item.vehicle > count:
                 raise _rule(f"disturbance[{index}].vehicle", item.vehicle, f"a vehicle number from 1 to platoon.count = {count}")
-        for key in self.vehicles:
+        for key, vehicle in self.vehicles.items():
             if not key.isdigit() or key != str(int(key)) or not 1 <= int(key) <= count:
                 raise _rule(f"vehicles.{key}", key, f"a vehicle number from 1 to platoon.count = {count}")
+            if vehicle.endpoint == "zenoh" and (vehicle.dynamics or self.platoon.dynamics) != "m3pi":
+                raise _rule(f"vehicles.{key}.endpoint", "zenoh", 'm3pi dynamics, since a live robot is an m3pi: set '
+                            f'platoon.dynamics = "m3pi" (or vehicles.{key}.dynamics)')
+        robots = [(v.prefix or self.hil.prefix, self.robot_id(int(k))) for k, v in self.vehicles.items()
+                  if v.endpoint == "zenoh"]
+        if len(set(robots)) != len(robots):
+            raise _rule("vehicles", [f"{p}/m3pi/{r}" for p, r in robots], "one live vehicle per robot (prefix and id)")
         if self.simulation.step > self.simulation.stop_time:
             raise _rule("simulation.step", self.simulation.step, f"at most simulation.stop_time = {self.simulation.stop_time}")
         return self
 
     def override(self, vehicle: int) -> VehicleOverride:
         return self.vehicles.get(str(vehicle), VehicleOverride())
+
+    def live_vehicles(self) -> list[int]:
+        """Numbers of the vehicles that are live robots, front to back."""
+        return sorted(int(k) for k, v in self.vehicles.items() if v.endpoint == "zenoh")
+
+    def robot_id(self, vehicle: int) -> int:
+        robot = self.override(vehicle).robot
+        return vehicle if robot is None else robot
 
 
 class _RuleError(ValueError):
@@ -146,10 +198,10 @@ def _explain(error: ValidationError) -> str:
     """One line for the first problem pydantic found: key, value, expectation."""
     first = error.errors(include_url=False)[0]
     ctx = first.get("ctx") or {}
-    if "error" in ctx and isinstance(ctx["error"], _RuleError):
-        return str(ctx["error"])
     loc = tuple(part for part in first["loc"] if not (isinstance(part, str) and part.startswith("function-")))
     key = _key_of(loc)
+    if "error" in ctx and isinstance(ctx["error"], _RuleError):  # a rule of a nested table names its own key
+        return f"{key}.{ctx['error']}" if key else str(ctx["error"])
     if first["type"] == "extra_forbidden":
         return f"{key}: unknown key"
     if first["type"] == "missing":

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import Callable, Sequence
 
 from .components import Component, ComponentError
+from .realtime import Pacer
 from .scenario import ScheduledInput
 from .wiring import Connection
 
@@ -128,11 +129,16 @@ class Master:
         connections: Sequence[Connection],
         schedules: Sequence[ScheduledInput] = (),
         algorithm: str = "jacobi",
+        pacer: Pacer | None = None,
     ) -> None:
         if algorithm not in MASTERS:
             raise ValueError(f"unknown master {algorithm!r}; expected one of {', '.join(MASTERS)}")
         self.components = list(components)
         self.algorithm = algorithm
+        # With a pacer (a live component in the run), outputs that describe t + h are read only once
+        # the wall clock has reached t + h; realtime components are the ones whose outputs need it.
+        self.pacer = pacer
+        self._realtime = [getattr(c, "realtime", False) for c in self.components]
         self.routes = resolve_routes(self.components, connections, schedules)
         self.outputs: list[list[float]] = [[] for _ in self.components]
         self.time = 0.0
@@ -204,6 +210,8 @@ class Master:
                     set_inputs(gather(flat))
             for component in components:
                 component.step(t, step)
+            if self.pacer is not None:
+                self.pacer.wait_until(t + step)
             outputs = [component.get_outputs() for component in components]
             for where, values in zip(self._slices, outputs):
                 flat[where] = values
@@ -211,9 +219,12 @@ class Master:
                 self._wrong_output_count(outputs)
             self.outputs = outputs
         else:
+            pacer = self.pacer
             for c, component in enumerate(components):
                 self._transfer(c, t)
                 component.step(t, step)
+                if pacer is not None and self._realtime[c]:
+                    pacer.wait_until(t + step)
                 self._publish(c, component.get_outputs())
         return self.outputs
 
@@ -221,6 +232,8 @@ class Master:
             tick: Callable[[int], None] | None = None) -> None:
         """Initialize and run ``steps`` steps of size ``step``, calling ``observer`` at every point."""
         observer(start_time, self.initialize(start_time))
+        if self.pacer is not None:
+            self.pacer.start(start_time)
         for k in range(steps):
             # t_k = t_0 + k h exactly, and each step spans t_(k+1) - t_k: the FMUs' clocks stay on the
             # grid (no accumulated rounding), as in libcosim's integer-nanosecond clock.

@@ -27,7 +27,9 @@ from fmus.model.platoon import PlatoonSystem
 from . import __version__
 from .components import ComponentError, FmuComponent, UnpackedFmu
 from .config import Config
+from .live import LiveReporter, check_live_options, live_component, live_names
 from .master import Master
+from .realtime import Pacer
 from .native import NativeComponent, NativeMaster, available as native_available
 from .scenario import Scenario, build_scenario, step_count
 from .trace.foxglove import SCENE_RATE, FoxgloveChannels, SceneSettings
@@ -56,8 +58,11 @@ def choose_trace_writer(requested: str, rows: int, components: int) -> str:
     return "process" if spare_core and rows * components >= WORKER_MESSAGES else "inline"
 
 
-def default_engine() -> str:
-    """The native engine when its extension is built (bit-identical results), else the Python one."""
+def default_engine(config: Config | None = None) -> str:
+    """The native engine when its extension is built (bit-identical results), else the Python one; the
+    Python one for a config with a live vehicle (the native core steps FMUs only)."""
+    if config is not None and config.live_vehicles():
+        return "python"
     return "native" if native_available() else "python"
 
 Tick = Callable[[int], None]
@@ -74,6 +79,8 @@ class RunResult:
     # wall seconds by phase: "setup" (trace writer, metadata), "initialize" (instantiate, initialization
     # mode), "steps" (the stepping loop, recording included), "finish" (FMUs closed, trace finalized)
     timings: dict[str, float] = field(default_factory=dict)
+    # with live vehicles: "pacing" (step jitter, overruns) and each live vehicle's link statistics
+    live: dict[str, dict] = field(default_factory=dict)
 
 
 def tool_versions() -> dict[str, str]:
@@ -233,13 +240,16 @@ def run_scenario(
     "interrupted"; the trace is finalized with every point recorded up to there. ``trace_writer``:
     where the trace is encoded (``TRACE_WRITERS``); both give the same file.
     """
-    engine = engine or default_engine()
+    engine = engine or default_engine(config)
     if engine not in ENGINES:
         raise ValueError(f"unknown engine {engine!r}; expected one of {', '.join(ENGINES)}")
+    check_live_options(config, engine, trace_writer)
     scenario = build_scenario(config)
     sim = config.simulation
     steps = step_count(sim.stop_time, sim.step)
-    writer_kind = choose_trace_writer(trace_writer, steps // sim.trace_every + 1, len(scenario.components))
+    live = live_names(config) if engine == "python" else set()
+    writer_kind = "inline" if live else choose_trace_writer(trace_writer, steps // sim.trace_every + 1,
+                                                            len(scenario.components))
     # the trace writer process starts first: its start-up overlaps unpacking and instantiating the FMUs
     trace_process = TraceProcess() if out is not None and writer_kind == "process" else None
     try:
@@ -252,6 +262,8 @@ def run_scenario(
     marks = {"start": started}  # phase boundaries, for RunResult.timings
     writer: TraceWriter | TraceWorker | NullTraceWriter | None = None
     master = None
+    reporter: LiveReporter | None = None
+    live_summary: dict[str, dict] = {}
     status, error, signum, failed_at = "completed", None, None, None
     stop = _StopRequest()
     try:
@@ -285,11 +297,21 @@ def run_scenario(
             if "initialize" not in marks:  # the first call: the initial point, right after initialization
                 marks["initialize"] = clock.perf_counter()
             record(t, values)
+            if reporter is not None:
+                reporter(t)
             stop.check()
 
         if engine == "python":
-            fmu_components = [FmuComponent(spec.name, kinds[spec.name], spec.parameters) for spec in scenario.components]
-            master = Master(fmu_components, scenario.connections, scenario.schedules, sim.master)
+            python_components = [
+                live_component(spec, kinds[spec.name], config, index) if spec.name in live
+                else FmuComponent(spec.name, kinds[spec.name], spec.parameters)
+                for index, spec in enumerate(scenario.components)
+            ]
+            pacer = Pacer() if live else None
+            master = Master(python_components, scenario.connections, scenario.schedules, sim.master, pacer=pacer)
+            if pacer is not None:
+                reporter = LiveReporter(python_components, writer, pacer)
+                writer.log(0.0, "Info", f"live: {', '.join(sorted(live))} on Zenoh; the run is paced to wall-clock time")
             master.run(sim.stop_time, sim.step, observe, steps, tick=tick)
         elif engine == "native":
             # the C loop fills blocks of decimated rows; the writer encodes them (here or in its worker)
@@ -322,6 +344,8 @@ def run_scenario(
                 except Exception as closing:  # still finalize the trace; say what went wrong
                     if status == "completed":
                         status, error = "failed", f"closing the FMUs failed: {closing}"
+            if reporter is not None:
+                live_summary = reporter.finish(writer.last_time or 0.0)
             if writer is not None:
                 status, error = _finalize_trace(writer, status, error, failed_at, signum, engine, sim.master)
             if trace_process is not None:
@@ -332,7 +356,7 @@ def run_scenario(
             stop.restore()
     marks["finish"] = clock.perf_counter()
     return RunResult(Path(out) if out is not None else None, steps, marks["finish"] - started, status, error, signum,
-                     _phase_durations(marks))
+                     _phase_durations(marks), live_summary)
 
 
 def _phase_durations(marks: dict[str, float]) -> dict[str, float]:

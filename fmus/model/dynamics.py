@@ -112,15 +112,22 @@ class M3piDynamics:
     def wheel_commands(self, setpoint: float, lateral_acceleration: float) -> tuple[float, float]:
         """Wheel speed commands from eqs. 10-11, clipped to the motors' limits."""
         right, left = differential_wheel_speeds(setpoint, lateral_acceleration, self.track)
+        return self.limit_wheels(right, left)
+
+    def limit_wheels(self, right: float, left: float) -> tuple[float, float]:
+        """Wheel speed commands as the motors can follow them: clipped to +-wheel_speed_max."""
         limit = self.wheel_speed_max
         return min(max(right, -limit), limit), min(max(left, -limit), limit)
 
-    def derivative(
-        self, state: list[float], lateral_acceleration: float, commanded_speed: float, speed_offset: float
+    def drive(
+        self, heading: float, right: float, left: float, right_cmd: float, left_cmd: float, speed_offset: float
     ) -> list[float]:
-        heading = state[2]
-        right, left, setpoint = state[3], state[4], state[5]
-        right_cmd, left_cmd = self.wheel_commands(setpoint, lateral_acceleration)
+        """The robot's own physics: derivative of (x, y, heading, v_right, v_left) under wheel commands.
+
+        The wheels follow their commands with the first-order motor lag; the body moves as a unicycle
+        driven by the two wheels. The FMU's model and the m3pi emulator (bridge/emulator.py) both move
+        a robot with this one function: the emulator with the commands it receives over Zenoh.
+        """
         v = 0.5 * (right + left) + speed_offset
         lag = 1.0 / self.motor_time_constant
         return [
@@ -129,8 +136,16 @@ class M3piDynamics:
             (right - left) / self.track,
             (right_cmd - right) * lag,
             (left_cmd - left) * lag,
-            speed_loop(self.k_v, commanded_speed, setpoint),
         ]
+
+    def derivative(
+        self, state: list[float], lateral_acceleration: float, commanded_speed: float, speed_offset: float
+    ) -> list[float]:
+        setpoint = state[5]
+        right_cmd, left_cmd = self.wheel_commands(setpoint, lateral_acceleration)
+        derivative = self.drive(state[2], state[3], state[4], right_cmd, left_cmd, speed_offset)
+        derivative.append(speed_loop(self.k_v, commanded_speed, setpoint))
+        return derivative
 
     @staticmethod
     def heading_rate(derivative: list[float]) -> float:

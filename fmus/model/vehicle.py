@@ -19,6 +19,26 @@ from .guidance import lateral_acceleration, line_of_sight, spacing_speed
 from .integrate import integrate
 
 
+# Each public input of a vehicle (the Vehicle FMU's input names, Fig. 2's signals) and the
+# ``VehicleStepper`` attribute it sets. The FMU slave and the live-robot bridge both set inputs by it.
+VEHICLE_INPUTS = {
+    "target.x": "target_x",
+    "target.y": "target_y",
+    "target.heading": "target_heading",
+    "target.speed": "target_speed",
+    "target.speed_rate": "target_speed_rate",
+    "target.turn_rate": "target_turn_rate",
+    "target.time": "target_time",
+    "follower.speed": "follower_speed",
+    "follower.gap": "follower_gap",
+    "follower.speed_rate": "follower_speed_rate",
+    "follower.gap_rate": "follower_gap_rate",
+    "follower.time": "follower_time",
+    "disturbance.lateral_acceleration": "added_acceleration",
+    "disturbance.speed": "added_speed",
+}
+
+
 @dataclass(frozen=True)
 class VehicleModel:
     """Guidance law, spacing and speed loop of one vehicle, on top of its dynamics."""

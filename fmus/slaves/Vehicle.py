@@ -14,26 +14,10 @@ from pythonfmu.default_experiment import DefaultExperiment
 
 from fmus.model.dynamics import M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEEL_SPEED_MAX
 from fmus.model.factory import vehicle_parameter_errors, vehicle_stepper
-from fmus.model.vehicle import VehicleStepper
+from fmus.model.vehicle import VEHICLE_INPUTS as _INPUT_ATTRIBUTES, VehicleStepper
 from fmus.slaves import defaults as d
 from fmus.slaves.base import PlatoonSlave, VariableInfo, real
 
-_INPUT_ATTRIBUTES = {
-    "target.x": "target_x",
-    "target.y": "target_y",
-    "target.heading": "target_heading",
-    "target.speed": "target_speed",
-    "target.speed_rate": "target_speed_rate",
-    "target.turn_rate": "target_turn_rate",
-    "target.time": "target_time",
-    "follower.speed": "follower_speed",
-    "follower.gap": "follower_gap",
-    "follower.speed_rate": "follower_speed_rate",
-    "follower.gap_rate": "follower_gap_rate",
-    "follower.time": "follower_time",
-    "disturbance.lateral_acceleration": "added_acceleration",
-    "disturbance.speed": "added_speed",
-}
 
 STATE_OUTPUT = ()  # depends on no input: a function of the state alone
 

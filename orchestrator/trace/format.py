@@ -11,7 +11,7 @@ from mcap.records import Channel, Schema
 CHANNEL_PREFIX = "/platoon/"
 SCHEMA_ENCODING = "jsonschema"
 MESSAGE_ENCODING = "json"
-KIND_KEY = "platoon.kind"  # channel metadata: "component", "errors" or "foxglove"
+KIND_KEY = "platoon.kind"  # channel metadata: "component", "errors", "foxglove" or "live" (a robot link)
 ERRORS_TOPIC = CHANNEL_PREFIX + "errors"
 LOG_TOPIC = CHANNEL_PREFIX + "log"
 

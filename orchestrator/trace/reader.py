@@ -55,6 +55,8 @@ class Trace:
     errors: dict[str, np.ndarray] = field(default_factory=dict)
     log: list[LogLine] = field(default_factory=list)
     topics: dict[str, TopicInfo] = field(default_factory=dict)
+    # a live vehicle's raw link messages, by stream: "vehicle3/pose", "vehicle3/command", "vehicle3/link"
+    live: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
     @property
     def config(self) -> dict[str, Any] | None:
@@ -117,7 +119,7 @@ def load(path: str | Path) -> Trace:
                                 ch.message_encoding, kinds[cid], counts.get(cid, 0))
             for cid, ch in summary.channels.items()
         }
-        wanted = [ch.topic for cid, ch in summary.channels.items() if kinds[cid] in ("component", "errors") or ch.topic == LOG_TOPIC]
+        wanted = [ch.topic for cid, ch in summary.channels.items() if kinds[cid] in ("component", "errors", "live") or ch.topic == LOG_TOPIC]
         rows: dict[str, list[list[float]]] = {}
         keys: dict[str, list[str]] = {}
         error_rows: list[list[float]] = []
@@ -125,8 +127,10 @@ def load(path: str | Path) -> Trace:
         log: list[LogLine] = []
         for _, channel, message in reader.iter_messages(topics=wanted, log_time_order=True):
             kind = kinds[channel.id]
-            if kind == "component":
+            if kind in ("component", "live"):
                 name = channel.topic[len(CHANNEL_PREFIX):] if channel.topic.startswith(CHANNEL_PREFIX) else channel.topic
+                if kind == "live":
+                    name = LIVE_KEY + name
                 record = json.loads(message.data)
                 if name not in keys:
                     keys[name] = list(record)
@@ -147,9 +151,13 @@ def load(path: str | Path) -> Trace:
                 schema = summary.schemas.get(ch.schema_id)
                 keys[name] = list(json.loads(schema.data)["properties"]) if schema is not None else ["t"]
                 rows[name] = []
-    channels = {name: _columns(keys[name], rows[name]) for name in rows}
+    channels = {name: _columns(keys[name], rows[name]) for name in rows if not name.startswith(LIVE_KEY)}
+    live = {name[len(LIVE_KEY):]: _columns(keys[name], rows[name]) for name in rows if name.startswith(LIVE_KEY)}
     errors = _columns(error_keys, error_rows) if error_keys else {}
-    return Trace(path, channels, metadata, errors, log, topics)
+    return Trace(path, channels, metadata, errors, log, topics, live)
+
+
+LIVE_KEY = "\0live:"  # keeps live streams apart from components while reading (no topic holds a NUL)
 
 
 _LEVELS = {0: "Unknown", 1: "Debug", 2: "Info", 3: "Warning", 4: "Error", 5: "Fatal"}

@@ -33,6 +33,7 @@ from .format import (
     CHUNK_SIZE,
     FLUSH_INTERVAL,
     BLOCK,
+    CHANNEL_PREFIX,
     channel_name,
     number_texts,
 )
@@ -251,6 +252,19 @@ class _Encoder:
         if self.foxglove is not None:
             self.foxglove.log(self._write, time, level, message)
 
+    def live_channel(self, topic: str, keys: Sequence[str]) -> tuple[int, bytes]:
+        """A JSON channel of numbers (``t`` first, then ``keys``) for a live link's raw messages."""
+        name = topic[len(CHANNEL_PREFIX):]
+        schema_id = self._writer.register_schema(name=f"platoon.{name.replace('/', '.')}", encoding=SCHEMA_ENCODING,
+                                                 data=_schema(name, keys, {}))
+        channel = self._writer.register_channel(topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=schema_id,
+                                                metadata={KIND_KEY: "live"})
+        return channel, _template(["t", *keys]).encode()
+
+    def live_message(self, channel: tuple[int, bytes], time: float, values: Sequence[float]) -> None:
+        texts = number_texts([time, *values])
+        self._write(channel[0], int(round(time * 1e9)), channel[1] % tuple(texts))
+
     def metadata(self, name: str, values: dict[str, str]) -> None:
         self._writer.add_metadata(name, values)
         self._file.flush()
@@ -304,6 +318,7 @@ class TraceWriter:
         self.last_time: float | None = None  # simulation time of the last row handed over
         self._last_flush = clock.monotonic()
         self._closed = False
+        self._live: dict[str, tuple[list[str], tuple[int, bytes]]] = {}
 
     def record(self, time: float, outputs: Sequence[Sequence[float]]) -> None:
         """Keep the outputs at ``time`` (every ``every``-th call) for the next flush."""
@@ -355,6 +370,19 @@ class TraceWriter:
         if self.foxglove is not None and not self._closed:
             self._encoder.log(time, level, message)
 
+    def live(self, stream: str, time: float, fields: dict[str, float]) -> None:
+        """A live link's raw message on ``/platoon/<stream>`` (e.g. ``vehicle3/pose``) at simulation ``time``;
+        every message of a stream has the fields of its first (finite numbers; others are not written)."""
+        if self._closed:
+            return
+        entry = self._live.get(stream)
+        if entry is None:
+            entry = self._live[stream] = (list(fields), self._encoder.live_channel(channel_name(stream), list(fields)))
+        keys, channel = entry
+        values = [fields.get(key, math.nan) for key in keys]
+        if math.isfinite(sum(values)):
+            self._encoder.live_message(channel, time, values)
+
     def metadata(self, name: str, values: dict[str, Any]) -> None:
         self._encoder.metadata(name, {k: v if isinstance(v, str) else json.dumps(v) for k, v in values.items()})
 
@@ -386,6 +414,9 @@ class NullTraceWriter:
         pass
 
     def log(self, time: float, level: str, message: str) -> None:
+        pass
+
+    def live(self, stream: str, time: float, fields: dict[str, float]) -> None:
         pass
 
     def metadata(self, name: str, values: dict[str, Any]) -> None:

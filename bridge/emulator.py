@@ -1,0 +1,288 @@
+"""The m3pi emulator: a stand-in for the robots and the motion capture, speaking the bridge's protocol.
+
+Each emulated robot is the Pololu m3pi of ``fmus.model.dynamics.M3piDynamics.drive`` (the very
+physics the Vehicle FMU integrates): two wheels following their speed commands with a first-order
+motor lag, clipped to the wheel speed limit, and a unicycle body. It runs in wall-clock time:
+
+* wheel commands arrive on ``<prefix>/m3pi/<id>/cmd/wheels``, are checked (size, version, finite,
+  sequence, deadline) and applied after ``command_latency`` (the radio); they hold until the next one;
+* the pose is sampled ``rate`` times a second, gets Gaussian noise (``position_noise`` per axis,
+  ``heading_noise``), is stamped with the time it was taken and published ``latency`` later on
+  ``<prefix>/m3pi/<id>/pose``, with the number of the last command applied;
+* a watchdog stops the wheels (commands of zero; the motors run down with their lag) when the current
+  command's deadline passes, when no valid command came for ``command_timeout``, or when the host's
+  liveliness token disappears: a robot never keeps driving on a stale command;
+* a liveliness token on ``<prefix>/m3pi/<id>/alive`` says the robot is there.
+
+Before its first command a robot stands at its config's initial pose. With ``flying_start`` (the
+default) its wheels are set to the config's initial speed at the first command, as the simulated
+vehicles start, so a live run is comparable with the all-FMU run; ``flying_start=False`` starts
+from rest, as a real robot does.
+"""
+
+from __future__ import annotations
+
+import random
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import zenoh
+
+from fmus.model.dynamics import M3piDynamics
+from fmus.model.integrate import integrate
+
+from .protocol import (
+    Drop,
+    LinkCounters,
+    MessageError,
+    Pose,
+    RobotKeys,
+    SequenceCheck,
+    WheelCommand,
+    decode_wheels,
+    encode_pose,
+)
+from .session import open_session, zenoh_config
+from .states import LinkState, StateMachine
+
+PHYSICS_SUBSTEP = 0.001  # s, the longest RK4 substep of the emulated physics
+
+
+@dataclass(frozen=True)
+class EmulatorSettings:
+    rate: float = 200.0  # poses per second (the paper's motion capture: about 200 Hz)
+    position_noise: float = 0.0  # m, standard deviation per axis (paper: about 2 mm)
+    heading_noise: float = 0.0  # rad, standard deviation (paper: about 2 degrees)
+    latency: float = 0.0  # s, pose taken -> pose published
+    command_latency: float = 0.0  # s, command received -> applied (the radio link)
+    command_timeout: float = 0.25  # s without a valid command: the wheels stop
+    flying_start: bool = True
+    seed: int | None = None
+
+
+@dataclass(frozen=True)
+class RobotSpec:
+    """One robot to emulate: its id, keys, where it starts, and its m3pi constants."""
+
+    keys: RobotKeys
+    x: float
+    y: float
+    heading: float
+    speed: float
+    dynamics: M3piDynamics
+
+
+@dataclass
+class EmulatedRobot:
+    """One robot's physics, command handling and watchdog; every method is called under the emulator's lock."""
+
+    spec: RobotSpec
+    settings: EmulatorSettings
+    say: Callable[[str], None]
+    state: list[float] = field(default_factory=list)  # x, y, heading, v_right, v_left
+    time: float = 0.0  # wall-clock time the state describes
+    command: tuple[float, float] = (0.0, 0.0)  # (left, right) being applied
+    command_seq: int = 0  # the last command applied
+    deadline: float = float("inf")
+    last_valid: float = 0.0  # when the last valid command arrived
+    pending: deque = field(default_factory=deque)  # (apply at, command) in arrival order
+    counters: LinkCounters = field(default_factory=LinkCounters)
+    pose_seq: int = 0
+
+    def __post_init__(self) -> None:
+        spec = self.spec
+        self.state = [spec.x, spec.y, spec.heading, 0.0, 0.0]
+        self.sequence = SequenceCheck()
+        self.link = StateMachine(f"m3pi-emulator robot {spec.keys.robot}", self._announce)
+        self._warned: set[str] = set()
+
+    def _announce(self, old: LinkState, new: LinkState, reason: str) -> None:
+        self.say(f"m3pi-emulator robot {self.spec.keys.robot}: {old.value} -> {new.value} ({reason})")
+
+    def _derivative(self, t: float, s: list[float]) -> list[float]:
+        left, right = self.command
+        return self.spec.dynamics.drive(s[2], s[3], s[4], right, left, 0.0)
+
+    def _move(self, until: float) -> None:
+        if until > self.time:
+            if self.link.state in (LinkState.RUNNING, LinkState.STOPPED):
+                self.state = integrate(self._derivative, 0.0, self.state, until - self.time, PHYSICS_SUBSTEP)
+            self.time = until
+
+    def _stop_wheels(self, at: float, reason: str) -> None:
+        self._move(at)
+        self.command = (0.0, 0.0)
+        self.deadline = float("inf")
+        if self.link.state == LinkState.RUNNING:
+            self.link.go(LinkState.STOPPED, reason)
+
+    def advance(self, now: float) -> None:
+        """Move the robot to ``now``, applying due commands and the watchdog at the instants they fall."""
+        while True:
+            due = self.pending[0][0] if self.pending else float("inf")
+            timeout = self.last_valid + self.settings.command_timeout if self.link.state == LinkState.RUNNING else float("inf")
+            stop_at = min(self.deadline, timeout)
+            if min(due, stop_at) > now:
+                break
+            if stop_at <= due:
+                self._stop_wheels(stop_at, "command deadline passed" if stop_at == self.deadline
+                                  else f"no command for {self.settings.command_timeout:g} s")
+            else:
+                _, command = self.pending.popleft()
+                self._move(due)
+                self._apply(command, due)
+        self._move(now)
+
+    def _apply(self, command: WheelCommand, at: float) -> None:
+        if command.deadline <= at:  # expired on the way (radio latency): never applied
+            return
+        if self.link.state == LinkState.CONFIGURED and self.settings.flying_start:
+            self.state[3] = self.state[4] = self.spec.speed
+        if command.left == 0.0 and command.right == 0.0 and self.link.state == LinkState.RUNNING:
+            self.link.go(LinkState.STOPPED, "stop command")
+        elif self.link.state != LinkState.RUNNING and (command.left != 0.0 or command.right != 0.0):
+            self.link.go(LinkState.RUNNING, f"command {command.seq}")
+        right, left = self.spec.dynamics.limit_wheels(command.right, command.left)
+        self.command = (left, right)
+        self.command_seq = command.seq
+        self.deadline = command.deadline
+
+    def receive(self, payload: bytes, now: float) -> None:
+        """A wheel command arrived: check it, then queue it for its application time."""
+        try:
+            command = decode_wheels(payload)
+            self.sequence.check(command.seq, f"wheel command {command.seq}")
+            if command.deadline <= now:
+                raise MessageError(Drop.LATE, f"wheel command {command.seq}: deadline passed "
+                                              f"{(now - command.deadline) * 1e3:.1f} ms before it arrived")
+        except MessageError as error:
+            self.counters.drop(error)
+            if error.reason.value not in self._warned:
+                self._warned.add(error.reason.value)
+                self.say(f"m3pi-emulator robot {self.spec.keys.robot}: dropped: {error} (further drops of this kind "
+                         "are only counted)")
+            return
+        self.counters.accept()
+        self.last_valid = now
+        self.advance(now)
+        self.pending.append((now + self.settings.command_latency, command))
+        self.advance(now)
+
+    def host_gone(self, now: float) -> None:
+        self.advance(now)
+        self.pending.clear()
+        self._stop_wheels(now, "host's liveliness token dropped")
+
+    def sample(self, now: float, noise: random.Random) -> Pose:
+        """The pose the motion capture sees now (with noise), numbered and stamped."""
+        self.advance(now)
+        self.pose_seq += 1
+        s = self.settings
+        x, y, heading = self.state[0], self.state[1], self.state[2]
+        if s.position_noise > 0.0:
+            x += noise.gauss(0.0, s.position_noise)
+            y += noise.gauss(0.0, s.position_noise)
+        if s.heading_noise > 0.0:
+            heading += noise.gauss(0.0, s.heading_noise)
+        return Pose(self.pose_seq, self.command_seq, now, x, y, heading)
+
+
+class Emulator:
+    """Every emulated robot on one Zenoh session, one timing loop (``run``) and Zenoh's callback threads."""
+
+    def __init__(self, robots: Sequence[RobotSpec], settings: EmulatorSettings, config: zenoh.Config,
+                 say: Callable[[str], None] = lambda text: print(text, file=sys.stderr, flush=True),
+                 clock: Callable[[], float] = time.time) -> None:
+        if settings.rate <= 0:
+            raise ValueError(f"rate = {settings.rate}: expected poses per second > 0")
+        self.settings, self.config, self.say, self.clock = settings, config, say, clock
+        self.robots = [EmulatedRobot(spec, settings, say) for spec in robots]
+        self._lock = threading.Lock()
+        self._noise = random.Random(settings.seed)
+        self._outbox: deque[tuple[float, int, bytes]] = deque()  # (publish at, robot index, payload)
+        self.stop_event = threading.Event()
+
+    def _on_command(self, index: int) -> Callable[[zenoh.Sample], None]:
+        def receive(sample: zenoh.Sample) -> None:
+            payload = sample.payload.to_bytes()
+            with self._lock:
+                self.robots[index].receive(payload, self.clock())
+        return receive
+
+    def _on_host(self, index: int) -> Callable[[zenoh.Sample], None]:
+        def changed(sample: zenoh.Sample) -> None:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                with self._lock:
+                    self.robots[index].host_gone(self.clock())
+        return changed
+
+    def run(self, duration: float | None = None, ready: Callable[[], None] | None = None) -> None:
+        """Emulate until ``stop_event`` is set (or ``duration`` s passed); tokens and session are released."""
+        period = 1.0 / self.settings.rate
+        with open_session(self.config, "m3pi-emulator") as session:
+            resources, publishers = [], []
+            for index, robot in enumerate(self.robots):
+                keys = robot.spec.keys
+                publishers.append(session.declare_publisher(keys.pose, express=True))
+                resources.append(session.declare_subscriber(keys.wheels, self._on_command(index)))
+                resources.append(session.liveliness().declare_subscriber(keys.host, self._on_host(index), history=True))
+                resources.append(session.liveliness().declare_token(keys.alive))
+                self.say(f"m3pi-emulator robot {keys.robot}: configured, pose on {keys.pose} at "
+                         f"{self.settings.rate:g} Hz, commands on {keys.wheels}")
+            resources += publishers
+            if ready is not None:
+                ready()
+            start = self.clock()
+            with self._lock:
+                for robot in self.robots:
+                    robot.time = start
+            next_sample = start
+            try:
+                while not self.stop_event.is_set():
+                    now = self.clock()
+                    if duration is not None and now - start >= duration:
+                        break
+                    with self._lock:
+                        if now >= next_sample:
+                            for index, robot in enumerate(self.robots):
+                                pose = robot.sample(now, self._noise)
+                                self._outbox.append((now + self.settings.latency, index, encode_pose(pose)))
+                            next_sample += period
+                            if next_sample < now:  # fell behind (a stalled machine): no burst of catch-up samples
+                                next_sample = now + period
+                        else:
+                            for robot in self.robots:
+                                robot.advance(now)
+                        due = []
+                        while self._outbox and self._outbox[0][0] <= now:
+                            due.append(self._outbox.popleft())
+                    for _, index, payload in due:
+                        publishers[index].put(payload)
+                    wake = min(next_sample, self._outbox[0][0] if self._outbox else next_sample)
+                    self.stop_event.wait(max(0.0, min(wake - self.clock(), 0.01)))
+            finally:
+                for resource in reversed(resources):
+                    try:
+                        resource.undeclare()
+                    except zenoh.ZError:
+                        pass
+                for robot in self.robots:
+                    c = robot.counters
+                    self.say(f"m3pi-emulator robot {robot.spec.keys.robot}: commands received {c.received}, applied "
+                             f"{c.accepted}, dropped {c.dropped_total} "
+                             + " ".join(f"{k}={v}" for k, v in c.dropped.items() if v))
+
+
+def run_emulator(robots: Sequence[RobotSpec], settings: EmulatorSettings, connect: Sequence[str] = (),
+                 listen: Sequence[str] = (), zenoh_config_file: str | None = None, duration: float | None = None,
+                 stop_event: threading.Event | None = None, ready: Callable[[], None] | None = None) -> Emulator:
+    """Build and run an emulator until stopped (``stop_event``, ``duration``, or KeyboardInterrupt)."""
+    emulator = Emulator(robots, settings, zenoh_config(connect, listen, zenoh_config_file))
+    if stop_event is not None:
+        emulator.stop_event = stop_event
+    emulator.run(duration, ready)
+    return emulator

@@ -1,0 +1,336 @@
+"""A live m3pi robot behind the orchestrator's ``Component`` interface: the host side of the link.
+
+``LiveVehicle`` stands where a Vehicle FMU would: same inputs, same outputs, fed by and feeding the
+neighbouring FMUs. What it computes is the FMU's own model (``fmus.model.factory.vehicle_stepper``,
+m3pi dynamics), with the pose replaced by the robot's measured one:
+
+* each step it takes the newest valid pose, dead-reckons it from the pose's time stamp to now along
+  the arc the robot is turning on (``fmus.model.coupling.arc_extrapolate``: this absorbs the motion
+  capture's latency), evaluates the guidance law there, turns the lateral command into wheel speeds
+  (paper eqs. 10-11, ``M3piDynamics.wheel_commands``) and publishes them with a deadline;
+* between poses it keeps the controller's own states (the speed setpoint V_s of the speed loop, and
+  the wheel speeds the motor-lag model predicts) by integrating the same model over the step;
+* its outputs (pose, speed, rates, gap, wheels) come from that state at the end of the step, after
+  the master has paced itself to wall-clock time, so they describe the robot at the step's end.
+
+Faults end the run through ``ComponentError`` naming the robot: its liveliness token gone, or no
+valid pose for ``pose_timeout``. Malformed, oversized, non-finite, duplicated, out-of-order and late
+messages are dropped and counted, never used. ``close`` always sends a stop command first.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Any, Callable, Mapping, Sequence
+
+import zenoh
+
+from fmus.model.angles import wrap_angle
+from fmus.model.coupling import arc_extrapolate
+from fmus.model.dynamics import M3piDynamics
+from fmus.model.factory import vehicle_stepper
+from fmus.model.vehicle import VEHICLE_INPUTS
+from orchestrator.interface import ComponentError, LiveEvent, LiveRecord
+
+from .protocol import (
+    LinkCounters,
+    MessageError,
+    Pose,
+    RobotKeys,
+    SequenceCheck,
+    WheelCommand,
+    check_pose_time,
+    decode_pose,
+    encode_wheels,
+)
+from .session import SessionError, open_session, zenoh_config
+from .states import LinkState, StateMachine
+
+STOP_REPEATS = 3  # a stop command is sent this many times: one lost message must not keep a robot going
+
+
+@dataclass(frozen=True)
+class LiveSettings:
+    """Where the robot is and how patient the host is with it (config: ``[vehicles.K]`` and ``[hil]``)."""
+
+    robot: int
+    prefix: str = "platoon"
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    zenoh_config: str | None = None
+    pose_timeout: float = 0.5  # s without a valid pose: the robot is lost
+    connect_timeout: float = 10.0  # s to wait at start for the robot's token and first pose
+    command_validity: float = 0.1  # s: each command's deadline is its send time plus this
+    max_pose_age: float = 0.25  # s: an older pose is dropped as late
+
+    @property
+    def keys(self) -> RobotKeys:
+        return RobotKeys(self.prefix, self.robot)
+
+
+class LiveVehicle:
+    """One vehicle of the platoon driven by a live robot (see the module docstring)."""
+
+    realtime = True
+
+    def __init__(
+        self,
+        name: str,
+        parameters: Mapping[str, Any],
+        inputs: Sequence[str],
+        outputs: Sequence[str],
+        input_defaults: Sequence[float],
+        settings: LiveSettings,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        self.name = name
+        self.inputs, self.outputs, self.input_defaults = list(inputs), list(outputs), list(input_defaults)
+        unknown = [n for n in self.inputs if n not in VEHICLE_INPUTS]
+        if unknown:
+            raise ValueError(f"{name}: a live vehicle has no input(s) {', '.join(unknown)}")
+        self._attributes = [VEHICLE_INPUTS[n] for n in self.inputs]
+        self.stepper = vehicle_stepper(parameters, 0.0)
+        dynamics = self.stepper.model.dynamics
+        if not isinstance(dynamics, M3piDynamics):
+            raise ValueError(f"{name}: a live robot needs dynamics = \"m3pi\" (got {dynamics.kind!r})")
+        self.dynamics: M3piDynamics = dynamics
+        self.settings = settings
+        self.keys = settings.keys
+        self.clock = clock
+        self.what = f"robot {settings.robot} ({self.keys.prefix}/m3pi/{settings.robot})"
+        self._lock = threading.Lock()
+        self._events: deque[LiveEvent] = deque()
+        self._records: deque[LiveRecord] = deque()
+        self.state = StateMachine(self.what, self._announce)
+        self.pose_counters = LinkCounters()
+        self._sequence = SequenceCheck()
+        self._latest: Pose | None = None
+        self._latest_received = 0.0
+        self._alive = False
+        self._lost: str | None = None
+        self._heading = self.stepper.state[2]  # the measured heading, unwrapped (continuous, as the FMU's)
+        self._command_seq = 0
+        self._sent: dict[int, float] = {}  # send time of commands not yet reflected in a pose
+        self.round_trips: list[float] = []  # s, command sent -> first pose taken after the robot applied it
+        self.pose_ages: list[float] = []  # s, age of the pose each step used
+        self._time = 0.0
+        self._warned: set[str] = set()
+        self._session: zenoh.Session | None = None
+        self._resources: list[Any] = []
+        self._publisher: Any = None
+
+    # -- events and records for the run (LiveComponent) -----------------------------------------
+
+    def _announce(self, old: LinkState, new: LinkState, reason: str) -> None:
+        level = "Error" if new == LinkState.ERROR else "Info"
+        self._events.append(LiveEvent(level, f"{self.what}: {old.value} -> {new.value} ({reason})"))
+
+    def drain_events(self) -> list[LiveEvent]:
+        return _drain(self._events)
+
+    def drain_records(self) -> list[LiveRecord]:
+        return _drain(self._records)
+
+    def link_statistics(self) -> dict[str, Any]:
+        values: dict[str, Any] = {"robot": self.settings.robot, "state": self.state.state.value,
+                                  "command.sent": self._command_seq}
+        values.update(self.pose_counters.as_dict("pose"))
+        values.update(_percentiles("round_trip", self.round_trips))
+        values.update(_percentiles("pose_age", self.pose_ages))
+        return values
+
+    # -- Zenoh callbacks (Zenoh's threads) -------------------------------------------------------
+
+    def _on_pose(self, sample: zenoh.Sample) -> None:
+        received = self.clock()
+        try:
+            pose = decode_pose(sample.payload.to_bytes())
+            with self._lock:
+                check_pose_time(pose, received, self.settings.max_pose_age)
+                self._sequence.check(pose.seq, f"pose {pose.seq}")
+                self._latest, self._latest_received = pose, received
+                self.pose_counters.accept()
+                sent = [seq for seq in self._sent if seq <= pose.command_seq]
+                if sent:  # the robot applied these commands before the pose was taken
+                    self.round_trips.append(received - self._sent[max(sent)])
+                    for seq in sent:
+                        del self._sent[seq]
+            self._records.append(LiveRecord("pose", {"received": received, "stamp": pose.stamp, "seq": pose.seq,
+                                                     "command_seq": pose.command_seq, "x": pose.x, "y": pose.y,
+                                                     "heading": pose.heading}))
+        except MessageError as error:
+            with self._lock:
+                self.pose_counters.drop(error)
+            if error.reason.value not in self._warned:  # the first of each kind in the log; all in the counters
+                self._warned.add(error.reason.value)
+                self._events.append(LiveEvent("Warning", f"{self.what}: dropped a message on {self.keys.pose}: "
+                                                         f"{error} (further drops of this kind are only counted)"))
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        if str(sample.key_expr) != self.keys.alive:
+            return
+        if sample.kind == zenoh.SampleKind.PUT:
+            self._alive = True
+        elif self._alive:
+            self._lost = f"its liveliness token {self.keys.alive} was dropped (robot side gone)"
+
+    # -- Component --------------------------------------------------------------------------------
+
+    def initialize(self, start_time: float) -> None:
+        """Open the session, announce the host, wait for the robot's token and first valid pose."""
+        self._time = start_time
+        settings = self.settings
+        try:
+            config = zenoh_config(settings.connect, settings.listen, settings.zenoh_config)
+            self._session = open_session(config, f"{self.name} ({self.what})")
+        except SessionError as error:
+            raise ComponentError(self.name, start_time, str(error)) from None
+        session = self._session
+        self._resources.append(session.liveliness().declare_token(self.keys.host))
+        self._publisher = session.declare_publisher(self.keys.wheels, congestion_control=zenoh.CongestionControl.BLOCK,
+                                                    express=True)
+        self._resources.append(self._publisher)
+        self._resources.append(session.declare_subscriber(self.keys.pose, self._on_pose))
+        self._resources.append(session.liveliness().declare_subscriber(self.keys.alive, self._on_liveliness,
+                                                                        history=True))
+        deadline = time.monotonic() + settings.connect_timeout
+        while not (self._alive and self._latest is not None):
+            if time.monotonic() > deadline:
+                raise self._fail(start_time, self._not_found())
+            time.sleep(0.005)
+        self.state.go(LinkState.SYNCHRONIZED, f"liveliness token and a valid pose received (pose {self._latest.seq})")
+        self._measure()
+
+    def _not_found(self) -> str:
+        where = f"connect={list(self.settings.connect)} listen={list(self.settings.listen)}"
+        if not self._alive:
+            return (f"{self.what} did not appear within {self.settings.connect_timeout:g} s: no liveliness token on "
+                    f"{self.keys.alive} ({where}; is `platoon m3pi-emulator` or `platoon m3pi-serial` running?)")
+        counters = self.pose_counters
+        return (f"{self.what} is there but sent no valid pose on {self.keys.pose} within "
+                f"{self.settings.connect_timeout:g} s ({counters.received} received, {counters.dropped_total} dropped"
+                + (f"; last problem: {counters.last_problem}" if counters.last_problem else "") + ")")
+
+    def end_initialization(self) -> None:
+        pass
+
+    def set_inputs(self, values: Sequence[float]) -> None:
+        stepper = self.stepper
+        for attribute, value in zip(self._attributes, values):
+            setattr(stepper, attribute, float(value))
+
+    def _check_link(self, t: float) -> None:
+        if self._lost is not None:
+            raise self._fail(t, f"{self.what} lost: {self._lost}")
+        silent = self.clock() - self._latest_received
+        if silent > self.settings.pose_timeout:
+            raise self._fail(t, f"{self.what} lost: no valid pose for {silent:.2f} s (pose_timeout "
+                                f"{self.settings.pose_timeout:g} s; {self.pose_counters.dropped_total} dropped)")
+
+    def _measure(self) -> None:
+        """Put the newest measured pose, dead-reckoned to now, into the controller's state."""
+        with self._lock:
+            pose = self._latest
+        assert pose is not None
+        state, dynamics = self.stepper.state, self.dynamics
+        heading = self._heading + wrap_angle(pose.heading - self._heading)
+        self._heading = heading
+        age = max(0.0, self.clock() - pose.stamp)
+        speed = dynamics.speed(state, 0.0)
+        turn_rate = (state[3] - state[4]) / dynamics.track
+        x, y, h, _ = arc_extrapolate(pose.x, pose.y, heading, speed, 0.0, turn_rate, age)
+        self.stepper.state = [x, y, h, *state[3:]]
+        self.pose_ages.append(age)
+
+    def step(self, time_: float, step: float) -> None:
+        """Command the robot for [t, t + h] from its pose now; advance the controller's states."""
+        self._time = time_
+        self._check_link(time_)
+        if self.state.state != LinkState.RUNNING:
+            self.state.go(LinkState.RUNNING, "first step")
+        self._measure()
+        stepper = self.stepper
+        _, acceleration, _ = stepper.evaluate(time_, stepper.state)
+        right, left = self.dynamics.wheel_commands(stepper.state[5], acceleration)
+        push = stepper.added_speed  # a speed disturbance moves the robot faster; its speed loop does not see it
+        right, left = self.dynamics.limit_wheels(right + push, left + push)
+        self._send(left, right, self.settings.command_validity)
+        try:
+            stepper.step(time_, step)
+        except ValueError as error:
+            raise self._fail(time_, str(error)) from None
+
+    def get_outputs(self) -> list[float]:
+        if self.state.state == LinkState.RUNNING:
+            self._check_link(self._time)
+            self._measure()
+        values = self.stepper.outputs()
+        return [values[name] for name in self.outputs]
+
+    def _send(self, left: float, right: float, validity: float) -> None:
+        self._command_seq += 1
+        now = self.clock()
+        command = WheelCommand(self._command_seq, now + validity, left, right)
+        self._publisher.put(encode_wheels(command))
+        with self._lock:
+            self._sent[command.seq] = now
+            if len(self._sent) > 1000:  # a motion capture that does not echo command numbers: keep the newest
+                for seq in sorted(self._sent)[:-100]:
+                    del self._sent[seq]
+        self._records.append(LiveRecord("command", {"sent": now, "seq": command.seq, "deadline": command.deadline,
+                                                    "left": left, "right": right}))
+
+    def _fail(self, t: float, reason: str) -> ComponentError:
+        """Enter the error state, stop the robot, and return the error to raise."""
+        if self.state.state not in (LinkState.ERROR, LinkState.STOPPED):
+            self.state.go(LinkState.ERROR, reason)
+        self._stop()
+        return ComponentError(self.name, t, reason)
+
+    def _stop(self) -> None:
+        if self._publisher is None:
+            return
+        try:
+            for _ in range(STOP_REPEATS):
+                self._send(0.0, 0.0, self.settings.command_validity)
+        except zenoh.ZError:  # the session is already gone: the robot's own deadline stops it
+            pass
+
+    def close(self) -> None:
+        """Stop the robot, then leave Zenoh. Safe to call in any state, any number of times."""
+        if self._session is None:
+            return
+        self._stop()
+        if self.state.state != LinkState.STOPPED:
+            self.state.go(LinkState.STOPPED, "run ended; stop command sent")
+        for resource in reversed(self._resources):
+            try:
+                resource.undeclare()
+            except zenoh.ZError:
+                pass
+        self._resources.clear()
+        self._publisher = None
+        session, self._session = self._session, None
+        session.close()
+
+
+def _drain(queue: deque) -> list:
+    items = []
+    while queue:
+        items.append(queue.popleft())
+    return items
+
+
+def _percentiles(name: str, samples: list[float]) -> dict[str, float]:
+    """median, p99 and max of ``samples`` in seconds, as ``name.median`` ... (nothing if no samples)."""
+    if not samples:
+        return {}
+    ordered = sorted(samples)
+    p99 = ordered[min(len(ordered) - 1, math.ceil(0.99 * len(ordered)) - 1)]
+    return {f"{name}.median": statistics.median(ordered), f"{name}.p99": p99, f"{name}.max": ordered[-1],
+            f"{name}.count": len(ordered)}

@@ -1,0 +1,215 @@
+"""The m3pi link's wire protocol: Zenoh keys, message layouts, and the checks every message passes.
+
+Keys (one namespace per run and robot, slash-separated so that zenoh-bridge-ros2dds maps key
+``a/b/c`` to the ROS 2 topic ``/a/b/c``):
+
+* ``<prefix>/m3pi/<id>/pose``        pose of robot ``id``, from the motion capture (or the emulator)
+* ``<prefix>/m3pi/<id>/cmd/wheels``  wheel speed command to robot ``id``, from the host
+* ``<prefix>/m3pi/<id>/alive``       liveliness token of the robot side (emulator, serial endpoint)
+* ``<prefix>/m3pi/<id>/host``        liveliness token of the host (the run that steers the robot)
+
+Payloads are fixed-size little-endian structs, version byte first (docs/hil.md has the tables):
+
+* pose, 44 bytes: version u8, kind u8 = 1, flags u16 = 0, seq u32, command_seq u32 (the last wheel
+  command the robot had applied when the pose was taken; 0 = none), stamp f64 (s, the pose's own
+  Unix time), x f64 (m), y f64 (m), heading f64 (rad, counter-clockwise from x)
+* wheels, 32 bytes: version u8, kind u8 = 2, flags u16 = 0, seq u32, deadline f64 (Unix time after
+  which the robot stops by itself), left f64 (m/s), right f64 (m/s)
+
+A receiver checks size, version, kind, flags, finite numbers, then the sequence number (a duplicate or
+an older number is dropped) and the time stamp (too old: late). Every drop has a ``Drop`` reason, and
+receivers count them by reason (``LinkCounters``): nothing malformed ever reaches the guidance or
+the motors, and nothing is dropped silently.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from enum import Enum
+from struct import Struct
+
+VERSION = 1
+DEFAULT_PREFIX = "platoon"
+MAX_PAYLOAD = 256  # bytes: anything larger is "oversized" and not even looked at
+
+_POSE = Struct("<BBHIIdddd")
+_WHEELS = Struct("<BBHIddd")
+POSE_KIND, WHEELS_KIND = 1, 2
+POSE_SIZE, WHEELS_SIZE = _POSE.size, _WHEELS.size
+
+_PREFIX_SEGMENT = re.compile(r"^[A-Za-z0-9_.-]+$")
+
+
+class Drop(Enum):
+    """Why a received message was not used (the counters and the trace use ``.value``)."""
+
+    OVERSIZED = "oversized"
+    MALFORMED = "malformed"  # wrong length, kind or flags
+    VERSION = "version"  # another protocol version
+    NON_FINITE = "non_finite"
+    DUPLICATE = "duplicate"  # the sequence number seen last, again
+    OUT_OF_ORDER = "out_of_order"  # older than the newest seen
+    LATE = "late"  # pose too old, or a command whose deadline has passed
+    FUTURE = "future"  # stamped ahead of the receiver's clock: clocks not synchronized?
+
+
+class MessageError(ValueError):
+    """A message that must be dropped: ``reason`` for the counters, the text says what was wrong."""
+
+    def __init__(self, reason: Drop, problem: str) -> None:
+        super().__init__(problem)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class Pose:
+    seq: int
+    command_seq: int
+    stamp: float
+    x: float
+    y: float
+    heading: float
+
+
+@dataclass(frozen=True)
+class WheelCommand:
+    seq: int
+    deadline: float
+    left: float
+    right: float
+
+
+def check_prefix(prefix: str) -> list[str]:
+    """Problems with a key prefix (empty list: usable). Segments of letters, digits, ``_ . -``."""
+    if not prefix:
+        return ["the prefix is empty"]
+    bad = [segment for segment in prefix.split("/") if not _PREFIX_SEGMENT.match(segment)]
+    if bad:
+        return [f"prefix {prefix!r}: segment {bad[0]!r} is not letters, digits, '_', '.' or '-' (no wildcards, "
+                "no empty segments)"]
+    return []
+
+
+@dataclass(frozen=True)
+class RobotKeys:
+    """Every key of one robot, built in one place."""
+
+    prefix: str
+    robot: int
+
+    def _key(self, tail: str) -> str:
+        return f"{self.prefix}/m3pi/{self.robot}/{tail}"
+
+    @property
+    def pose(self) -> str:
+        return self._key("pose")
+
+    @property
+    def wheels(self) -> str:
+        return self._key("cmd/wheels")
+
+    @property
+    def alive(self) -> str:
+        return self._key("alive")
+
+    @property
+    def host(self) -> str:
+        return self._key("host")
+
+
+def encode_pose(pose: Pose) -> bytes:
+    return _POSE.pack(VERSION, POSE_KIND, 0, pose.seq, pose.command_seq, pose.stamp, pose.x, pose.y, pose.heading)
+
+
+def encode_wheels(command: WheelCommand) -> bytes:
+    return _WHEELS.pack(VERSION, WHEELS_KIND, 0, command.seq, command.deadline, command.left, command.right)
+
+
+def _header(payload: bytes, kind: int, size: int, what: str) -> tuple:
+    if len(payload) > MAX_PAYLOAD:
+        raise MessageError(Drop.OVERSIZED, f"{what}: {len(payload)} bytes, more than {MAX_PAYLOAD}")
+    if len(payload) >= 1 and payload[0] != VERSION:
+        raise MessageError(Drop.VERSION, f"{what}: protocol version {payload[0]}, expected {VERSION}")
+    if len(payload) != size:
+        raise MessageError(Drop.MALFORMED, f"{what}: {len(payload)} bytes, expected {size}")
+    fields = (_POSE if kind == POSE_KIND else _WHEELS).unpack(payload)
+    if fields[1] != kind:
+        raise MessageError(Drop.MALFORMED, f"{what}: message kind {fields[1]}, expected {kind}")
+    if fields[2] != 0:
+        raise MessageError(Drop.MALFORMED, f"{what}: flags {fields[2]:#x}, expected 0")
+    return fields
+
+
+def _finite(what: str, names: tuple[str, ...], values: tuple[float, ...]) -> None:
+    bad = [f"{name} = {value}" for name, value in zip(names, values) if not math.isfinite(value)]
+    if bad:
+        raise MessageError(Drop.NON_FINITE, f"{what}: {', '.join(bad)} (not finite)")
+
+
+def decode_pose(payload: bytes) -> Pose:
+    """A pose from its bytes, or ``MessageError`` saying why not (size, version, kind, finite)."""
+    _, _, _, seq, command_seq, stamp, x, y, heading = _header(bytes(payload), POSE_KIND, POSE_SIZE, "pose")
+    _finite("pose", ("stamp", "x", "y", "heading"), (stamp, x, y, heading))
+    return Pose(seq, command_seq, stamp, x, y, heading)
+
+
+def decode_wheels(payload: bytes) -> WheelCommand:
+    """A wheel command from its bytes, or ``MessageError`` saying why not."""
+    _, _, _, seq, deadline, left, right = _header(bytes(payload), WHEELS_KIND, WHEELS_SIZE, "wheel command")
+    _finite("wheel command", ("deadline", "left", "right"), (deadline, left, right))
+    return WheelCommand(seq, deadline, left, right)
+
+
+class SequenceCheck:
+    """Accepts strictly increasing sequence numbers; names the reason for any other."""
+
+    def __init__(self) -> None:
+        self.last = 0
+
+    def check(self, seq: int, what: str) -> None:
+        if seq == self.last:
+            raise MessageError(Drop.DUPLICATE, f"{what}: sequence number {seq} again")
+        if seq < self.last:
+            raise MessageError(Drop.OUT_OF_ORDER, f"{what}: sequence number {seq} after {self.last}")
+        self.last = seq
+
+
+def check_pose_time(pose: Pose, now: float, max_age: float, max_ahead: float = 0.05) -> None:
+    """A pose's stamp must be at most ``max_age`` s old and at most ``max_ahead`` s in the future."""
+    age = now - pose.stamp
+    if age > max_age:
+        raise MessageError(Drop.LATE, f"pose {pose.seq}: {age * 1e3:.1f} ms old, more than {max_age * 1e3:.0f} ms")
+    if age < -max_ahead:
+        raise MessageError(Drop.FUTURE, f"pose {pose.seq}: stamped {-age * 1e3:.1f} ms ahead of this clock "
+                                        "(are the clocks synchronized?)")
+
+
+@dataclass
+class LinkCounters:
+    """Messages received on one stream, how many were used, and the drops by reason."""
+
+    received: int = 0
+    accepted: int = 0
+    dropped: dict[str, int] = field(default_factory=lambda: {reason.value: 0 for reason in Drop})
+    last_problem: str = ""
+
+    def accept(self) -> None:
+        self.received += 1
+        self.accepted += 1
+
+    def drop(self, error: MessageError) -> None:
+        self.received += 1
+        self.dropped[error.reason.value] += 1
+        self.last_problem = str(error)
+
+    @property
+    def dropped_total(self) -> int:
+        return sum(self.dropped.values())
+
+    def as_dict(self, stream: str) -> dict[str, float]:
+        """Flat numbers, e.g. ``pose.received``, ``pose.dropped.late``, for the trace and summaries."""
+        values: dict[str, float] = {f"{stream}.received": self.received, f"{stream}.accepted": self.accepted}
+        values.update({f"{stream}.dropped.{reason}": count for reason, count in self.dropped.items()})
+        return values
