@@ -36,13 +36,13 @@ from fmus.model.dynamics import M3piDynamics
 from fmus.model.integrate import integrate
 
 from .protocol import (
-    Drop,
     LinkCounters,
     MessageError,
     Pose,
     RobotKeys,
     SequenceCheck,
     WheelCommand,
+    check_command_deadline,
     decode_wheels,
     encode_pose,
 )
@@ -156,9 +156,7 @@ class EmulatedRobot:
         try:
             command = decode_wheels(payload)
             self.sequence.check(command.seq, f"wheel command {command.seq}")
-            if command.deadline <= now:
-                raise MessageError(Drop.LATE, f"wheel command {command.seq}: deadline passed "
-                                              f"{(now - command.deadline) * 1e3:.1f} ms before it arrived")
+            check_command_deadline(command, now)
         except MessageError as error:
             self.counters.drop(error)
             if error.reason.value not in self._warned:

@@ -17,7 +17,8 @@ Payloads are fixed-size little-endian structs, version byte first (docs/hil.md h
   which the robot stops by itself), left f64 (m/s), right f64 (m/s)
 
 A receiver checks size, version, kind, flags, finite numbers, then the sequence number (a duplicate or
-an older number is dropped) and the time stamp (too old: late). Every drop has a ``Drop`` reason, and
+an older number is dropped; a sender numbers its messages from 1) and the time stamp (a pose too old,
+or a command whose deadline has passed: late). Every drop has a ``Drop`` reason, and
 receivers count them by reason (``LinkCounters``): nothing malformed ever reaches the guidance or
 the motors, and nothing is dropped silently.
 """
@@ -184,6 +185,13 @@ def check_pose_time(pose: Pose, now: float, max_age: float, max_ahead: float = 0
     if age < -max_ahead:
         raise MessageError(Drop.FUTURE, f"pose {pose.seq}: stamped {-age * 1e3:.1f} ms ahead of this clock "
                                         "(are the clocks synchronized?)")
+
+
+def check_command_deadline(command: WheelCommand, now: float) -> None:
+    """A command whose deadline has passed on arrival is never applied."""
+    if command.deadline <= now:
+        raise MessageError(Drop.LATE, f"wheel command {command.seq}: deadline passed "
+                                      f"{(now - command.deadline) * 1e3:.1f} ms before it arrived")
 
 
 @dataclass

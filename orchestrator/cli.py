@@ -456,7 +456,7 @@ def bench_flatness(
 
 from .hil_cli import register as _register_hil  # noqa: E402  (the m3pi-emulator and m3pi-serial commands)
 
-_register_hil(app)
+_register_hil(app, bench_app)
 
 
 def main() -> None:

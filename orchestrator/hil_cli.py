@@ -37,9 +37,9 @@ def live_table(summary: dict[str, dict[str, Any]]) -> Table:
     pacing = summary.get("pacing", {})
     title = (f"live: step jitter median {_ms(pacing.get('jitter.median'))} ms, p99 {_ms(pacing.get('jitter.p99'))} ms, "
              f"max {_ms(pacing.get('jitter.max'))} ms; overruns {pacing.get('overruns', 0)} of {pacing.get('points', 0)}")
-    table = Table(title=title, title_justify="left")
-    for column in ("vehicle", "robot", "state", "commands", "poses used", "poses dropped", "round trip median/p99 [ms]",
-                   "pose age median/max [ms]"):
+    table = Table(title=title, title_justify="left", caption="round trip: command sent -> first pose taken after the "
+                  "robot applied it; age: of the pose each step used", caption_justify="left")
+    for column in ("vehicle", "robot", "state", "commands", "poses", "dropped", "trip ms med/p99", "age ms med/max"):
         table.add_column(column, justify="left" if column in ("vehicle", "state") else "right")
     for name, stats in summary.items():
         if name == "pacing":
@@ -49,8 +49,8 @@ def live_table(summary: dict[str, dict[str, Any]]) -> Table:
             name, str(stats.get("robot", "")), str(stats.get("state", "")), str(stats.get("command.sent", 0)),
             str(stats.get("pose.accepted", 0)),
             str(sum(dropped.values())) + (f" ({', '.join(f'{k} {v}' for k, v in dropped.items())})" if dropped else ""),
-            f"{_ms(stats.get('round_trip.median'))} / {_ms(stats.get('round_trip.p99'))}",
-            f"{_ms(stats.get('pose_age.median'))} / {_ms(stats.get('pose_age.max'))}",
+            f"{_ms(stats.get('round_trip.median'))}/{_ms(stats.get('round_trip.p99'))}",
+            f"{_ms(stats.get('pose_age.median'))}/{_ms(stats.get('pose_age.max'))}",
         )
     return table
 
@@ -148,7 +148,7 @@ def m3pi_serial(
 ) -> None:
     """Forward one robot's wheel commands from Zenoh to a Pololu 3pi serial slave over an XBee."""
     from bridge.protocol import check_prefix
-    from bridge.serial_endpoint import SpeedScale, run_serial_endpoint
+    from bridge.serial_endpoint import SerialEndpointError, SpeedScale, run_serial_endpoint
     from bridge.session import SessionError
 
     from .cli import _fail
@@ -160,17 +160,18 @@ def m3pi_serial(
         _fail(2, f"--max-speed {max_speed}: expected a finite speed > 0 (m/s at speed byte 127)")
     if not (math.isfinite(command_timeout) and command_timeout > 0.0):
         _fail(2, f"--command-timeout {command_timeout}: expected a finite number of seconds > 0")
-    scale = SpeedScale(max_speed=max_speed, left_motor="M2" if swap_motors else "M1")
+    scale = SpeedScale.from_options(max_speed=max_speed, swap_motors=swap_motors)
     stop = threading.Event()
     _stop_on_signals(stop)
     try:
         run_serial_endpoint(port, robot, prefix=prefix, connect=connect, listen=listen,
                             zenoh_config_file=str(zenoh_config) if zenoh_config else None, scale=scale,
                             command_timeout=command_timeout, stop_event=stop)
-    except (SessionError, OSError, ValueError) as error:
+    except (SerialEndpointError, SessionError, OSError, ValueError) as error:
         _fail(2, str(error))
 
 
-def register(app: typer.Typer) -> None:
+def register(app: typer.Typer, bench_app: typer.Typer) -> None:
+    """Add the hardware-in-the-loop commands to ``platoon`` (and their benchmark to ``platoon bench``)."""
     app.command("m3pi-emulator")(m3pi_emulator)
     app.command("m3pi-serial")(m3pi_serial)
