@@ -12,7 +12,9 @@ motor lag, clipped to the wheel speed limit, and a unicycle body. It runs in wal
 * a watchdog stops the wheels (commands of zero; the motors run down with their lag) when the current
   command's deadline passes, when no valid command came for ``command_timeout``, or when the host's
   liveliness token disappears: a robot never keeps driving on a stale command;
-* a liveliness token on ``<prefix>/m3pi/<id>/alive`` says the robot is there.
+* a liveliness token on ``<prefix>/m3pi/<id>/alive`` says the robot is there;
+* a new host (its token on ``<prefix>/m3pi/<id>/host`` appears) puts the robot back on its mark, at
+  rest and waiting, so one emulator serves any number of runs one after the other.
 
 Before its first command a robot stands at its config's initial pose. With ``flying_start`` (the
 default) its wheels are set to the config's initial speed at the first command, as the simulated
@@ -170,6 +172,18 @@ class EmulatedRobot:
         self.pending.append((now + self.settings.command_latency, command))
         self.advance(now)
 
+    def host_arrived(self, now: float) -> None:
+        """A (new) host appeared: back on the mark, at rest, numbering afresh, as before a first run."""
+        if self.link.state == LinkState.CONFIGURED:
+            return
+        self.pending.clear()
+        self._stop_wheels(now, "new host")
+        spec = self.spec
+        self.state = [spec.x, spec.y, spec.heading, 0.0, 0.0]
+        self.sequence = SequenceCheck()
+        self.command_seq = 0
+        self.link.go(LinkState.CONFIGURED, "a new host appeared: back on the initial pose, waiting for commands")
+
     def host_gone(self, now: float) -> None:
         self.advance(now)
         self.pending.clear()
@@ -213,9 +227,11 @@ class Emulator:
 
     def _on_host(self, index: int) -> Callable[[zenoh.Sample], None]:
         def changed(sample: zenoh.Sample) -> None:
-            if sample.kind == zenoh.SampleKind.DELETE:
-                with self._lock:
+            with self._lock:
+                if sample.kind == zenoh.SampleKind.DELETE:
                     self.robots[index].host_gone(self.clock())
+                else:
+                    self.robots[index].host_arrived(self.clock())
         return changed
 
     def run(self, duration: float | None = None, ready: Callable[[], None] | None = None) -> None:

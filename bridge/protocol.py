@@ -131,8 +131,12 @@ def encode_wheels(command: WheelCommand) -> bytes:
 def _header(payload: bytes, kind: int, size: int, what: str) -> tuple:
     if len(payload) > MAX_PAYLOAD:
         raise MessageError(Drop.OVERSIZED, f"{what}: {len(payload)} bytes, more than {MAX_PAYLOAD}")
-    if len(payload) >= 1 and payload[0] != VERSION:
+    # another version only if the rest of the header looks like ours (a known kind, no flags); any other
+    # first byte is plain garbage
+    if len(payload) >= 4 and payload[0] != VERSION and payload[1] in (POSE_KIND, WHEELS_KIND) and payload[2:4] == b"\0\0":
         raise MessageError(Drop.VERSION, f"{what}: protocol version {payload[0]}, expected {VERSION}")
+    if len(payload) >= 1 and payload[0] != VERSION:
+        raise MessageError(Drop.MALFORMED, f"{what}: not a version-{VERSION} message (first byte {payload[0]:#04x})")
     if len(payload) != size:
         raise MessageError(Drop.MALFORMED, f"{what}: {len(payload)} bytes, expected {size}")
     fields = (_POSE if kind == POSE_KIND else _WHEELS).unpack(payload)

@@ -5,7 +5,8 @@ transitions, checked before any change, and every change announced with its reas
 * synchronized: the other side is there and its data is valid; no step taken yet
 * running:      commands flow every step
 * stopped:      ended on purpose (run finished, Ctrl-C, a watchdog stopped the wheels); a robot
-                side may go back to running when valid commands come again
+                side may go back to running when valid commands come again, or be reset to
+                configured for a new host
 * error:        ended by a fault (robot lost, no pose in time); only stopping is left
 """
 
@@ -27,7 +28,7 @@ ALLOWED: dict[LinkState, frozenset[LinkState]] = {
     LinkState.CONFIGURED: frozenset({LinkState.SYNCHRONIZED, LinkState.RUNNING, LinkState.STOPPED, LinkState.ERROR}),
     LinkState.SYNCHRONIZED: frozenset({LinkState.RUNNING, LinkState.STOPPED, LinkState.ERROR}),
     LinkState.RUNNING: frozenset({LinkState.STOPPED, LinkState.ERROR}),
-    LinkState.STOPPED: frozenset({LinkState.RUNNING, LinkState.ERROR}),
+    LinkState.STOPPED: frozenset({LinkState.RUNNING, LinkState.CONFIGURED, LinkState.ERROR}),
     LinkState.ERROR: frozenset({LinkState.STOPPED}),
 }
 

@@ -175,3 +175,6 @@ def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     """Add the hardware-in-the-loop commands to ``platoon`` (and their benchmark to ``platoon bench``)."""
     app.command("m3pi-emulator")(m3pi_emulator)
     app.command("m3pi-serial")(m3pi_serial)
+    from .bench.hil import bench_hil
+
+    bench_app.command("hil")(bench_hil)

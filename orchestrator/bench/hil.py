@@ -1,0 +1,284 @@
+"""Suite ``hil``: round trip and step jitter of hardware in the loop over Zenoh, on loopback.
+
+Everything runs on 127.0.0.1, each peer a separate process on a free port:
+
+* ``transport``: a bare Zenoh ping-pong between this process and a tiny echo process
+  (``python -m orchestrator.bench.hil echo ENDPOINT``): a wheel-command-sized ping out, a pose-sized
+  pong back, one every 5 ms, with the publishers the bridge uses (express, BLOCK). This is the
+  transport's share of a round trip;
+* ``live``: real live runs of ``configs/hil/m3pi_live3.toml`` (vehicle 3 a live robot; ``run_scenario``
+  in this process, paced to wall time) against ``platoon m3pi-emulator`` in a subprocess, at step
+  0.01 s (100 Hz) and 0.005 s (200 Hz) with the emulator's pose rate 200 Hz (the paper's motion
+  capture), and at 100 Hz with poses at 1000 Hz. Each run reports the link's round trip (wheel command
+  sent -> first pose whose ``command_seq`` says the robot had applied it, ``LiveVehicle``) and the
+  pacer's step jitter (lateness of each communication point after its wall-clock deadline) and overruns.
+
+A pose is taken every 1/rate s, so a command waits up to one pose period for the next pose: the live
+round trip is the transport's plus that wait. Each emulator serves one run (its command numbers start
+afresh), and is always stopped (terminate, then kill). Times in the JSON are seconds.
+"""
+
+from __future__ import annotations
+
+import socket
+import statistics
+import struct
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from orchestrator.hil_cli import _ms
+
+from .common import DEFAULT_OUT_DIR, BenchError, BenchUsageError, Progress, interleaved
+
+CONFIG = Path("configs") / "hil" / "m3pi_live3.toml"
+POSE_RATE = 200.0  # Hz, the paper's motion capture
+# (step s, emulator pose rate Hz) of the live runs, each once per round
+LIVE_RUNS = ((0.01, POSE_RATE), (0.005, POSE_RATE), (0.01, 1000.0))
+PING_INTERVAL = 0.005  # s between two pings (200 Hz)
+PING_WARMUP = 10  # first pings not counted (connection set-up)
+PING_KEY, PONG_KEY, ECHO_ALIVE = "bench/hil/ping", "bench/hil/pong", "bench/hil/echo"
+START_TIMEOUT = 30.0  # s for a helper process to be ready
+_SEQ = struct.Struct("<I")
+STATS = ("median", "p99", "max")
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nobody listens on right now."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+class Helper:
+    """A helper process (stderr to a file) that is ready once its stderr holds ``ready``; always stopped."""
+
+    def __init__(self, command: list[str], ready: str, scratch: Path, name: str) -> None:
+        self.command, self.ready, self.name = command, ready, name
+        self.log = scratch / f"{name}.stderr"
+        self.process: subprocess.Popen | None = None
+
+    def stderr(self) -> str:
+        return self.log.read_text()[-2000:] if self.log.exists() else ""
+
+    def __enter__(self) -> "Helper":
+        with open(self.log, "w") as log:
+            self.process = subprocess.Popen(self.command, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=log)
+        try:
+            deadline = time.monotonic() + START_TIMEOUT
+            while self.ready not in self.log.read_text():
+                if self.process.poll() is not None or time.monotonic() > deadline:
+                    state = f"exited {self.process.returncode}" if self.process.returncode is not None else "not ready"
+                    raise BenchError(f"{self.name} ({' '.join(self.command)}) {state}:\n{self.stderr()}")
+                time.sleep(0.02)
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def stop(self) -> None:
+        process = self.process
+        if process is None or process.poll() is not None:
+            return
+        process.stdin.close()  # the echo leaves on end of input
+        process.terminate()
+        try:
+            process.wait(5)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
+
+# -- transport: Zenoh ping-pong ----------------------------------------------------------------------
+
+
+def echo(endpoint: str) -> None:
+    """Echo side: listen on ``endpoint``, answer every ping with a pose-sized pong, until stdin ends."""
+    import zenoh
+
+    from bridge.protocol import POSE_SIZE
+    from bridge.session import open_session, zenoh_config
+
+    with open_session(zenoh_config(listen=[endpoint]), "bench echo") as session:
+        pong = session.declare_publisher(PONG_KEY, congestion_control=zenoh.CongestionControl.BLOCK, express=True)
+        answer = session.declare_subscriber(  # noqa: F841  (kept: a subscriber lives as long as its handle)
+            PING_KEY, lambda sample: pong.put(sample.payload.to_bytes()[:_SEQ.size].ljust(POSE_SIZE, b"\0")))
+        token = session.liveliness().declare_token(ECHO_ALIVE)  # noqa: F841
+        print(f"echo ready on {endpoint}", file=sys.stderr, flush=True)
+        sys.stdin.read()
+
+
+def ping_pong(seconds: float, scratch: Path) -> dict[str, Any]:
+    """Round trips of pings to an echo process, one every ``PING_INTERVAL`` for ``seconds`` s."""
+    import zenoh
+
+    from bridge.live import _percentiles
+    from bridge.protocol import WHEELS_SIZE
+    from bridge.session import open_session, zenoh_config
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    sent: dict[int, float] = {}
+    trips: list[tuple[int, float]] = []  # (ping number, round trip s)
+    answered = threading.Event()
+
+    def on_pong(sample: zenoh.Sample) -> None:
+        received = time.perf_counter()
+        seq = _SEQ.unpack_from(sample.payload.to_bytes())[0]
+        if seq in sent:
+            trips.append((seq, received - sent.pop(seq)))
+            answered.set()
+
+    count = PING_WARMUP + max(1, round(seconds / PING_INTERVAL))
+    with Helper([sys.executable, "-m", "orchestrator.bench.hil", "echo", endpoint], "echo ready", scratch, "echo") as helper, \
+            open_session(zenoh_config(connect=[endpoint]), "bench ping") as session:
+        answers = session.declare_subscriber(PONG_KEY, on_pong)  # noqa: F841
+        ping = session.declare_publisher(PING_KEY, congestion_control=zenoh.CongestionControl.BLOCK, express=True)
+        deadline = time.monotonic() + START_TIMEOUT
+        while not any(reply.ok is not None for reply in session.liveliness().get(ECHO_ALIVE, timeout=1.0)):
+            if time.monotonic() > deadline:
+                raise BenchError(f"the echo process on {endpoint} did not appear:\n{helper.stderr()}")
+            time.sleep(0.05)
+        started = time.perf_counter()
+        for seq in range(1, count + 1):
+            answered.clear()
+            sent[seq] = time.perf_counter()
+            ping.put(_SEQ.pack(seq).ljust(WHEELS_SIZE, b"\0"))
+            answered.wait(1.0)
+            sent.pop(seq, None)  # unanswered within 1 s: lost
+            pause = started + seq * PING_INTERVAL - time.perf_counter()
+            if pause > 0:
+                time.sleep(pause)
+    counted = [trip for seq, trip in trips if seq > PING_WARMUP]
+    if not counted:
+        raise BenchError(f"no pong came back from the echo process on {endpoint}:\n{helper.stderr()}")
+    return {"kind": "transport", "pings": count - PING_WARMUP, "lost": count - len(trips),
+            "link": _percentiles("round_trip", counted)}
+
+
+# -- live runs against the emulator -------------------------------------------------------------------
+
+
+def live_run(step: float, rate: float, seconds: float, scratch: Path) -> dict[str, Any]:
+    """One paced live run of ``CONFIG`` (step ``step``, ``seconds`` long) against a fresh emulator at ``rate``."""
+    from orchestrator.config import load_config
+    from orchestrator.run import run_scenario
+
+    from .scenarios import platoon_command
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    connect = f'vehicles.3.connect=["{endpoint}"]'
+    overrides = [f"simulation.step={step!r}", f"simulation.stop_time={seconds!r}", connect]
+    parsed, _ = load_config(CONFIG, overrides)
+    emulator = [*platoon_command(), "m3pi-emulator", "--config", str(CONFIG), "--set", connect, "--rate", f"{rate:g}",
+                "--duration", f"{seconds + 120:g}"]  # --duration: never outlives a bench that was killed
+    with Helper(emulator, "configured", scratch, "m3pi-emulator") as helper:
+        result = run_scenario(parsed, CONFIG.read_text(), None, engine="python")
+        if result.status != "completed":
+            raise BenchError(f"live run (step {step:g} s, poses at {rate:g} Hz) {result.status}: {result.error}\n"
+                             f"emulator: {helper.stderr()}")
+    links = {name: stats for name, stats in result.live.items() if name != "pacing"}
+    return {"kind": "live", "step": step, "pose_rate": rate, "seconds": seconds, "pacing": result.live["pacing"],
+            "link": next(iter(links.values())), "vehicles": sorted(links), "wall_s": result.wall_time}
+
+
+def label(sample: dict[str, Any]) -> str:
+    """``transport``, or ``step 100 Hz, poses 200 Hz`` for a live run."""
+    if sample["kind"] == "transport":
+        return "transport"
+    return f"step {1 / sample['step']:g} Hz, poses {sample['pose_rate']:g} Hz"
+
+
+# -- the suite -----------------------------------------------------------------------------------------
+
+
+def run(seconds: float = 10.0, rounds: int = 1, progress: Progress | None = None) -> dict[str, Any]:
+    if not CONFIG.is_file():
+        raise BenchUsageError(f"no {CONFIG} in {Path.cwd()} (run from the repository)")
+    from .platoon import fmu_files
+
+    fmu_files()  # build once, as the first `platoon run` would
+    started = time.perf_counter()
+    variants = [("transport", None, None), *(("live", step, rate) for step, rate in LIVE_RUNS)]
+
+    def describe(sample: dict[str, Any]) -> str:
+        line = f"{label(sample):<34} round trip median {_ms(sample['link'].get('round_trip.median'))} ms"
+        if sample["kind"] == "live":
+            pacing = sample["pacing"]
+            line += f", jitter median {_ms(pacing.get('jitter.median'))} ms, overruns {pacing['overruns']}"
+        return line
+
+    with tempfile.TemporaryDirectory(prefix="bench-hil-") as scratch:
+        def measure(_: Any, variant: tuple) -> dict[str, Any]:
+            kind, step, rate = variant
+            if kind == "transport":
+                return ping_pong(seconds / 2, Path(scratch))
+            return live_run(step, rate, seconds, Path(scratch))
+
+        samples = interleaved(rounds, [None], variants, measure, describe, progress)
+    medians: dict[str, dict[str, Any]] = {}
+    for name in dict.fromkeys(label(s) for s in samples):
+        mine = [s for s in samples if label(s) == name]
+        numbers = [{**{k: v for k, v in s["link"].items() if k.startswith("round_trip.")}, **s.get("pacing", {})}
+                   for s in mine]
+        medians[name] = {"step": mine[0].get("step"), "pose_rate": mine[0].get("pose_rate"),
+                         **{key: statistics.median(n[key] for n in numbers) for key in numbers[0]}}
+    transport = medians["transport"]["round_trip.median"]
+    ratios = {name: values["round_trip.median"] / transport for name, values in medians.items() if name != "transport"}
+    return {"config": str(CONFIG), "seconds": seconds, "rounds": rounds, "ping_interval": PING_INTERVAL,
+            "live_runs": [{"step": step, "pose_rate": rate} for step, rate in LIVE_RUNS], "medians": medians,
+            "round_trip_over_transport": ratios, "samples": samples, "wall_s": time.perf_counter() - started}
+
+
+def render(result: dict[str, Any]) -> Any:
+    """Two rich tables: round trips (with the transport's share), then the step jitter of the live runs."""
+    from rich.console import Group
+    from rich.table import Table
+
+    medians, rounds = result["medians"], result["rounds"]
+    over = f"median of {rounds} rounds" if rounds > 1 else "1 round"
+    trips = Table(title=f"round trip, ms ({over}; loopback, emulator in its own process)", title_justify="left",
+                  caption="transport: bare Zenoh ping-pong between two processes; live runs: wheel command sent -> "
+                          f"first pose taken after the robot applied it; a pose is taken every period (emulator at "
+                          f"{POSE_RATE:g} Hz = the paper's motion capture, and at 1000 Hz)",
+                  caption_justify="left")
+    for column in ("measurement", "period", "median", "p99", "max", "x transport"):
+        trips.add_column(column, justify="left" if column == "measurement" else "right")
+    for name, values in medians.items():
+        rate = values["pose_rate"]
+        ratio = result["round_trip_over_transport"].get(name)
+        trips.add_row(name, _ms(1 / rate) if rate else "-", *(_ms(values[f"round_trip.{s}"]) for s in STATS),
+                      f"{ratio:.1f}" if ratio else "-")
+    jitter = Table(title=f"step jitter, ms: lateness of each communication point after its deadline ({over})",
+                   title_justify="left")
+    for column in ("live run", "median", "p99", "max", "overruns"):
+        jitter.add_column(column, justify="left" if column == "live run" else "right")
+    for name, values in medians.items():
+        if "jitter.median" in values:
+            jitter.add_row(name, *(_ms(values[f"jitter.{s}"]) for s in STATS),
+                           f"{values['overruns']:g} of {values['points']:g}")
+    return Group(trips, jitter)
+
+
+def bench_hil(
+    seconds: Annotated[float, typer.Option(min=0.5, help="seconds per live run (the ping-pong takes half)")] = 10.0,
+    rounds: Annotated[int, typer.Option(min=1, help="repetitions of every measurement (order rotated); medians")] = 1,
+    out_dir: Annotated[Path, typer.Option("--out-dir", help="folder for the JSON results")] = DEFAULT_OUT_DIR,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only the tables and the result file")] = False,
+) -> None:
+    """Hardware in the loop on loopback: Zenoh round trip (bare and in live runs) and step jitter at 100 and 200 Hz."""
+    from orchestrator.cli import _bench
+
+    _bench("hil", lambda progress: run(seconds, rounds, progress), render, out_dir, quiet)
+
+
+if __name__ == "__main__" and sys.argv[1:2] == ["echo"]:
+    echo(sys.argv[2])
