@@ -1,7 +1,7 @@
 """Coupling accuracy: a co-simulation measured against the monolithic reference of the same config.
 
-Used by the tests of coupling order and by benchmarks/coupling_accuracy.py, which prints the table in
-docs/coupling.md.
+Used by the tests of coupling order and by ``python -m orchestrator.bench.coupling_accuracy``, which prints
+the table in docs/coupling.md.
 """
 
 from __future__ import annotations

@@ -454,6 +454,47 @@ def bench_flatness(
            suite.suite_markdown, out_dir, quiet)
 
 
+CORE_BUILD_HELP = "LABEL=PATH of a built orchestrator/native/_core .so (copy it aside before rebuilding _core.c)"
+
+
+@bench_app.command("callgrind")
+def bench_callgrind(
+    n: Counts = "4,16,64,256",
+    engines: Annotated[str, typer.Option(help="comma-separated: native, python, fmpy-bare")] = "native",
+    fmu_steps: Annotated[int, typer.Option(min=1, help="FMU-steps per measurement (steps = this / (N + 1))")] = 2500,
+    ll: Annotated[str, typer.Option("--ll", help="comma-separated last-level caches to simulate: l2 (this machine's "
+                                               "512 KiB L2), detected (valgrind's choice, the L3)")] = "l2",
+    cores: Annotated[list[str], typer.Option("--core", help=f"{CORE_BUILD_HELP}; repeatable (native engine; default: the installed core)")] = [],
+    out_dir: OutDir = Path("runs/bench"),
+    quiet: Quiet = False,
+) -> None:
+    """Instructions and cache misses per FMU-step of an engine's stepping (valgrind), the master's own apart."""
+    from .bench import flatness as suite
+
+    counts, chosen = _counts(n), _csv("--engines", engines, suite.CALLGRIND_ENGINES)
+    levels = [suite.LAST_LEVELS[name] for name in _csv("--ll", ll, tuple(suite.LAST_LEVELS))]
+    _bench("callgrind", lambda progress: suite.callgrind_series(counts, fmu_steps, levels, suite.core_builds(cores) or None,
+                                                                progress=progress, engines=chosen),
+           suite.callgrind_markdown, out_dir, quiet)
+
+
+@bench_app.command("cores")
+def bench_cores(
+    builds: Annotated[list[str], typer.Argument(metavar="LABEL=PATH", help=f"{CORE_BUILD_HELP}; at least two", show_default=False)],
+    n: Counts = "4,16,64,256",
+    steps: Steps = 1000,
+    rounds: Rounds = 5,
+    out_dir: OutDir = Path("runs/bench"),
+    quiet: Quiet = False,
+) -> None:
+    """The native engine with two or more builds of _core.c: µs per FMU-step, interleaved in fresh interpreters."""
+    from .bench import flatness as suite
+
+    counts = _counts(n)
+    _bench("cores", lambda progress: suite.compare_cores(suite.core_builds(builds), counts, steps, rounds, progress=progress),
+           suite.cores_markdown, out_dir, quiet)
+
+
 from .hil_cli import register as _register_hil  # noqa: E402  (the m3pi-emulator and m3pi-serial commands)
 
 _register_hil(app, bench_app)

@@ -1,4 +1,5 @@
-"""``platoon bench`` works end to end: tiny runs write their JSON, bad options exit 2 with one line.
+"""``platoon bench`` works end to end: tiny runs write their JSON, bad options exit 2 with one line;
+the benchmarks run as ``python -m orchestrator.bench.<name>`` start (``--help``) from any folder.
 
 Functional checks only, on runs a few steps long: what the benchmarks measure is reported by
 ``platoon bench`` itself (docs/performance.md), never asserted here, since timing on a shared machine
@@ -8,6 +9,9 @@ is no pass/fail criterion.
 from __future__ import annotations
 
 import json
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -15,6 +19,16 @@ import pytest
 from tests.test_cli import REPO, error_line, platoon
 
 SINGLE = REPO / "configs" / "paper" / "single.toml"
+# the benchmarks with a command line of their own (the others are ``platoon bench`` suites)
+MODULES = ("coupling_accuracy", "equilibrium_growth", "fmu_step_cost", "paper_scenarios", "trace_memory",
+           "trace_overhead")
+
+
+def installed_core() -> str:
+    """The built native core, to stand for both sides of an A/B comparison of _core builds."""
+    from orchestrator.native import _core
+
+    return _core.__file__
 
 
 def written(result, folder: Path, suite: str) -> dict:
@@ -79,6 +93,24 @@ def test_flatness_times_both_orders(tmp_path: Path, fmu_dir: Path) -> None:
     assert orders["us_by_kind"]["5"]["Vehicle"] > 0
 
 
+def test_cores_compares_builds(tmp_path: Path, fmu_dir: Path) -> None:
+    core = installed_core()
+    result = platoon("bench", "cores", f"a={core}", f"b={core}", "--n", "1", "--steps", "5", "--rounds", "1",
+                     "--out-dir", tmp_path, cwd=REPO)
+    data = written(result, tmp_path, "cores")
+    assert set(data["cores"]) == {"a", "b"} and [s["core_label"] for s in data["samples"]] == ["a", "b"]
+    assert "| b / a (wall) |" in result.stdout
+
+
+@pytest.mark.skipif(shutil.which("valgrind") is None, reason="needs valgrind")
+def test_callgrind_splits_the_master_from_the_fmus(tmp_path: Path, fmu_dir: Path) -> None:
+    result = platoon("bench", "callgrind", "--n", "1", "--fmu-steps", "4", "--out-dir", tmp_path, cwd=REPO)
+    data = written(result, tmp_path, "callgrind")
+    [run] = data["runs"]
+    assert (run["engine"], run["core_label"], run["last_level"]) == ("native", "installed", "524288,8,64")
+    assert 0 < run["per_fmu_step"]["Ir_master"] < run["per_fmu_step"]["Ir"]
+
+
 @pytest.mark.parametrize("args, pieces", [
     (["steps", "--engines", "native,warp"], ["--engines 'native,warp'", "fmpy-bare"]),
     (["steps", "--n", "4,x"], ["--n '4,x'", "vehicle counts"]),
@@ -89,6 +121,11 @@ def test_flatness_times_both_orders(tmp_path: Path, fmu_dir: Path) -> None:
     (["scenarios", "--variants", "traced,fast"], ["--variants 'traced,fast'", "untraced"]),
     (["scenarios", "--config", "no/such.toml"], ["no/such.toml", "not found"]),
     (["scenarios", "--config", str(SINGLE), "--set", "platoon.count=0"], ["platoon.count"]),
+    (["callgrind", "--engines", "libcosim"], ["--engines 'libcosim'", "fmpy-bare"]),
+    (["callgrind", "--ll", "l3"], ["--ll 'l3'", "l2, detected"]),
+    (["callgrind", "--core", "no-label"], ["LABEL=PATH", "'no-label'"]),
+    (["cores", "a=no/such.so", "b=no/such.so"], ["LABEL=PATH", "'a=no/such.so'"]),
+    (["cores", f"a={SINGLE}"], ["at least two"]),
 ])
 def test_bad_options_exit_2_with_one_clear_line(args: list[str], pieces: list[str], tmp_path: Path) -> None:
     result = platoon("bench", *args, "--out-dir", tmp_path, cwd=tmp_path)
@@ -128,3 +165,36 @@ def test_callgrind_split_counts_each_fmu_call_once() -> None:
         "Ir": 58_498_647 + 31_289_665 + 17_897_599 + 1_000_000, "DLmr": 2_684 + 901 + 0 + 100}
     with pytest.raises(ValueError, match="2 columns, expected 3"):
         inside_fmu_from_annotation(listing, ["Ir", "DLmr", "DLmw"])
+
+
+@pytest.mark.parametrize("module", MODULES)
+def test_benchmark_modules_start_from_any_folder(module: str, tmp_path: Path) -> None:
+    """Each runs as ``python -m orchestrator.bench.<name>``, its usage naming that command."""
+    done = subprocess.run([sys.executable, "-m", f"orchestrator.bench.{module}", "--help"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith(f"usage: python -m orchestrator.bench.{module} ")
+
+
+def test_trace_overhead_times_every_variant(fmu_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from orchestrator.bench import trace_overhead
+
+    monkeypatch.chdir(REPO)  # the paper's config, as a user runs it
+    result = trace_overhead.run([1], steps=5, rounds=1, fmu_dir=fmu_dir)
+    row = result["results"][1]
+    assert [s["variant"] for s in result["samples"]] == list(trace_overhead.VARIANTS)
+    assert row["off"]["ratio_to_off"] == 1.0 and row["off"]["trace_mb"] == 0.0
+    assert row["inline"]["trace_mb"] > 0 and row["process"]["trace_mb"] > 0
+    assert "per FMU-step, median" in trace_overhead.table(result)
+
+
+def test_trace_memory_samples_rss_and_checks_the_platoon(tmp_path: Path, fmu_dir: Path) -> None:
+    target = tmp_path / "memory.json"
+    done = subprocess.run([sys.executable, "-m", "orchestrator.bench.trace_memory", "--set", "platoon.count=2",
+                           "--set", "simulation.stop_time=3.0", "--sample", "5", "--json", target],
+                          cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    data = json.loads(target.read_text())
+    assert data["suite"] == "trace-memory" and data["status"] == "completed" and data["vehicles"] == 2
+    assert data["rss_max_mb"] > 0 and data["samples"]
+    assert data["max_deviation_from_equilibrium"]["speed_worst_vehicle"] in {"vehicle1", "vehicle2"}

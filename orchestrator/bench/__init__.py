@@ -1,19 +1,33 @@
-"""Benchmarks of issue 10, importable so that ``platoon bench`` and ``benchmarks/*.py`` share one copy.
+"""Every benchmark of the project (issues 4 and 10), in one place: inside the installed package, since
+``platoon bench`` is an installed command. Run them from the repository: configs, the FMUs
+(``build/fmus``) and the results (``runs/bench/``) are found relative to the current folder.
 
-Every measurement runs in a fresh interpreter (``orchestrator.bench.child``), so libraries, caches and
-the heap never carry over from one measurement to the next and a pythonfmu or libcosim teardown
-cannot disturb the next one. Repetitions are interleaved (every variant once per round, the order
-rotated each round) and results are medians, so that drift of this shared machine hits every
-variant alike. Suites:
+``platoon bench <suite>`` (orchestrator/cli.py; JSON under ``runs/bench/<suite>-<time>.json``):
 
-* ``steps``: microseconds per FMU-step of our engines and of the peers (``steps.py``);
+* ``steps``: µs per FMU-step of our engines against the bare FMPy loop, libcosim and the floor, by N (``steps.py``);
 * ``coupling``: the same cost with coupling "hold" against "extrapolate" (``coupling.py``);
 * ``scenarios``: whole-run wall times of the paper's scenarios, start-up included (``scenarios.py``);
 * ``instances``: instantiation time and RSS per vehicle instance (``instances.py``);
-* ``profile``: where the native engine's time goes, in one process (``profile.py``).
+* ``profile``: where the native engine's time goes, in one process, with ``perf`` (``profile.py``);
+* ``flatness``: why the cost per FMU-step grows with N: stepping order, idle instances (``flatness.py``);
+* ``callgrind``: instructions and simulated cache misses per FMU-step, the master's own apart (``flatness.py``);
+* ``cores LABEL=PATH LABEL=PATH``: the native engine with two or more builds of _core.c (``flatness.py``).
 
-Each suite returns a JSON-ready dict (samples, medians, ratios, versions, machine) and renders it as
-Markdown tables; ``common.write_result`` stores it under ``runs/bench/``.
+``python -m orchestrator.bench.<name>`` (each module's docstring has its options):
+
+* ``trace_overhead``: what tracing every step costs, untraced / in process / second process;
+* ``trace_memory``: RSS and wall time of the 100-vehicle, 1-hour traced run, sampled from inside;
+* ``paper_scenarios``: every paper scenario with both laws: summaries, peaks, wall times (docs/reproduction.md);
+* ``coupling_accuracy [--master gauss-seidel]``: the coupling error table of docs/coupling.md;
+* ``fmu_step_cost``: one doStep of each FMU under FMPy, against its stepper called directly;
+* ``equilibrium_growth TRACE``: how far a platoon started on its equilibrium strays from it (docs/model.md).
+
+Every timed measurement runs in a fresh interpreter (``orchestrator.bench.child``), so libraries,
+caches and the heap never carry over from one measurement to the next and a pythonfmu or libcosim
+teardown cannot disturb the next one. Repetitions are interleaved (every variant once per round, the
+order rotated each round) and results are medians, so that drift of this shared machine hits every
+variant alike. ``common.py`` holds what they share (child processes, interleaving, the result file);
+``platoon.py``, ``engines.py``, ``floor.py`` and ``libcosim.py`` the platoon and the engines measured.
 """
 
 # The engines the per-FMU-step suites know (described in engines.py); here so that the CLI can list

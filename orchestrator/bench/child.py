@@ -57,6 +57,11 @@ def perform(task: dict[str, Any]) -> dict[str, Any]:
         from .flatness import measure_orders
 
         return measure_orders(task["n"], task["steps"], task["rounds"], task["idle"], fmu_dir)
+    if kind == "trace-overhead":
+        from .trace_overhead import traced_run
+
+        return traced_run(Path(task["config"]), task["variant"], task["engine"], task["n"], task["steps"],
+                          Path(task["out_dir"]), fmu_dir)
     if kind == "callgrind":
         from .flatness import callgrind_target
 

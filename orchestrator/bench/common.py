@@ -14,6 +14,7 @@ from typing import Any, Callable, Iterable, Sequence
 
 RESULT = "RESULT "  # the one line of a child's stdout that carries its measurement (JSON)
 DEFAULT_OUT_DIR = Path("runs") / "bench"
+PAPER_CONFIGS = Path("configs") / "paper"  # like every path here, relative to the repository the benchmarks run from
 
 # progress(done, total, line): called after every measurement with a one-line description of it
 Progress = Callable[[int, int, str], None]
@@ -77,13 +78,16 @@ def slope(xs: Sequence[float], ys: Sequence[float]) -> tuple[float, float]:
     return mean_y - b * mean_x, b
 
 
-def rss_kib() -> int:
-    """This process's resident set size (VmRSS), KiB."""
-    with open("/proc/self/status") as status:
+def rss_kib(pid: int | str = "self") -> int:
+    """A process's resident set size (VmRSS of /proc/PID/status, Linux), KiB; this process by default.
+
+    FileNotFoundError if the process is gone (a caller sampling other processes decides what that means).
+    """
+    with open(f"/proc/{pid}/status") as status:
         for line in status:
             if line.startswith("VmRSS:"):
                 return int(line.split()[1])
-    raise BenchError("no VmRSS in /proc/self/status")
+    raise BenchError(f"no VmRSS in /proc/{pid}/status")
 
 
 def versions() -> dict[str, str]:

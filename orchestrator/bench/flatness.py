@@ -18,6 +18,14 @@ Three experiments, each N in a fresh interpreter:
 (instrumentation switched on around the stepping by a client request), per FMU-step: flat
 instruction counts with growing misses point at memory, growing instruction counts at work. It also
 splits every count into inside the FMUs' fmi2 calls and the master's own.
+
+``cores`` times the native engine with two or more builds of orchestrator/native/_core.c (copy the
+built ``orchestrator/native/_core.*.so`` aside before rebuilding), interleaved in fresh interpreters;
+``callgrind`` takes such builds too.
+
+Entry points: ``platoon bench flatness`` (orders, idle, objects; ``--callgrind`` adds the callgrind
+series of the native and Python engines), ``platoon bench callgrind`` (callgrind alone: engines,
+cache models and core builds to choose) and ``platoon bench cores LABEL=PATH LABEL=PATH``.
 """
 
 from __future__ import annotations
@@ -43,7 +51,20 @@ from .platoon import fmu_files
 
 SUBSET = 5  # components stepped in the idle experiment: the N = 4 platoon's size
 L2 = "524288,8,64"  # this machine's L2 per core (512 KiB, 8-way, 64-byte lines) as callgrind's last level
+LAST_LEVELS = {"l2": L2, "detected": None}  # callgrind's last level by name: this L2, or valgrind's detected L3
+CALLGRIND_ENGINES = ("native", "python", "fmpy-bare")
 DEFAULT_N = (4, 16, 64, 256)
+
+
+def core_builds(items: Sequence[str]) -> dict[str, str]:
+    """``LABEL=PATH`` items, each a built _core extension, as {label: absolute path}."""
+    cores = {}
+    for item in items:
+        label, _, path = item.partition("=")
+        if not label or not path or not Path(path).is_file():
+            raise BenchUsageError(f"expected LABEL=PATH to a built _core .so, got {item!r}")
+        cores[label] = str(Path(path).resolve())
+    return cores
 
 
 def _subset_loop(platoon: SlavePlatoon, m: int) -> DirectLoop:
@@ -207,7 +228,7 @@ def callgrind_target(n: int, steps: int, client: str, fmu_dir: Path, engine: str
         def finish() -> None:
             free_fmpy_slaves(slaves)
     else:
-        raise ValueError(f"callgrind: unknown engine {engine!r} (native, python, fmpy-bare)")
+        raise ValueError(f"callgrind: unknown engine {engine!r} ({', '.join(CALLGRIND_ENGINES)})")
     go(0, steps)  # warm-up, uninstrumented
     requests = ctypes.CDLL(client)
     requests.instrumentation_on()
@@ -331,6 +352,8 @@ def callgrind_markdown(result: dict[str, Any]) -> str:
 def compare_cores(cores: dict[str, str], ns: Sequence[int], steps: int, rounds: int, fmu_dir: Path = DEFAULT_OUT,
                   progress: Progress | None = None) -> dict[str, Any]:
     """The native engine with two (or more) builds of _core.c, interleaved in fresh interpreters."""
+    if len(cores) < 2:
+        raise BenchUsageError(f"cores: give at least two LABEL=PATH builds to compare, got {len(cores)}")
     fmu_files(fmu_dir)
     folder = str(Path(fmu_dir).resolve())
 

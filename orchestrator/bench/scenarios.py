@@ -25,25 +25,39 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 from fmus.build import DEFAULT_OUT
 
-from .common import RESULT, BenchError, BenchUsageError, Progress, interleaved, markdown_table
+from .common import PAPER_CONFIGS, RESULT, BenchError, BenchUsageError, Progress, interleaved, markdown_table
+
+if TYPE_CHECKING:  # the child imports these only once it runs a scenario: its start-up is measured
+    from orchestrator.config import Config
+    from orchestrator.run import RunResult
 
 ENGINES = ("native", "python")
 VARIANTS = ("cli-traced", "traced", "untraced")
-PAPER_CONFIGS = Path("configs") / "paper"
 _CLI_DONE = re.compile(r"\((\d+) steps in ([0-9.]+) s\)")
+
+
+def run_config(config: Path, engine: str | None, out: Path | None, overrides: Sequence[str], fmu_dir: Path,
+               trace_writer: str = "auto") -> tuple[Config, RunResult]:
+    """Load ``config`` with ``overrides`` and run it as ``platoon run`` does (``out=None``: no trace).
+
+    The one way every whole-run benchmark (this suite, ``paper_scenarios``, ``trace_overhead``) runs a
+    scenario, so that they all measure what a user runs. ``engine=None``: the default engine.
+    """
+    from orchestrator.config import load_config
+    from orchestrator.run import run_scenario
+
+    parsed, _ = load_config(config, list(overrides))
+    return parsed, run_scenario(parsed, config.read_text(), out, engine=engine, fmu_dir=fmu_dir,
+                                trace_writer=trace_writer)
 
 
 def whole_run(config: Path, engine: str, out: str | None, overrides: list[str], fmu_dir: Path) -> dict[str, Any]:
     """Child side of ``traced``/``untraced``: what ``platoon run -q`` does, with or without the trace."""
-    from orchestrator.config import load_config
-    from orchestrator.run import run_scenario
-
-    parsed, _ = load_config(config, overrides)
-    result = run_scenario(parsed, config.read_text(), Path(out) if out else None, engine=engine, fmu_dir=fmu_dir)
+    _, result = run_config(config, engine, Path(out) if out else None, overrides, fmu_dir)
     return {"status": result.status, "error": result.error, "steps": result.steps, "run_wall_s": result.wall_time}
 
 

@@ -99,7 +99,7 @@ def _start_worker() -> tuple[subprocess.Popen[bytes], Connection, Connection]:
     inbox_read, inbox_write = os.pipe()
     status_read, status_write = os.pipe()
     # the worker imports this very package, wherever it was imported from (an install, or a checkout
-    # on sys.path as the benchmarks do it)
+    # put on sys.path, e.g. by PYTHONPATH)
     root = str(Path(__file__).resolve().parents[1])
     environment = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
     try:

@@ -1,9 +1,11 @@
 """Run every paper scenario (configs/paper/*.toml) with both laws: summaries, peaks and wall times.
 
-    .venv/bin/python benchmarks/paper_scenarios.py [--json runs/bench/paper_scenarios.json]
+    python -m orchestrator.bench.paper_scenarios [--json runs/bench/paper_scenarios.json]
 
-The numbers in docs/reproduction.md come from this script. Wall time is the whole run_scenario call
-(FMUs already built): instantiation, initialization, stepping and trace writing.
+The numbers in docs/reproduction.md come from this benchmark. Wall time is the whole run_scenario call
+(FMUs already built): instantiation, initialization, stepping and trace writing. Run it from the
+repository: it runs configs/paper/*.toml (``scenarios.find_configs``, as ``platoon bench scenarios``)
+with the FMUs in build/fmus.
 """
 
 from __future__ import annotations
@@ -13,25 +15,29 @@ import json
 import tempfile
 from pathlib import Path
 
-from orchestrator.config import load_config
+from fmus.build import DEFAULT_OUT
 from orchestrator.metrics import report_json, summarize
-from orchestrator.run import run_scenario
 from orchestrator.trace import load
 
-REPO = Path(__file__).resolve().parents[1]
+from .common import DEFAULT_OUT_DIR, BenchError
+from .scenarios import find_configs, run_config
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--json", type=Path, default=REPO / "runs" / "bench" / "paper_scenarios.json")
+    parser = argparse.ArgumentParser(prog="python -m orchestrator.bench.paper_scenarios",
+                                     description=__doc__.splitlines()[0])
+    parser.add_argument("--json", type=Path, default=DEFAULT_OUT_DIR / "paper_scenarios.json")
     args = parser.parse_args()
+    try:
+        paths = find_configs(None)
+    except BenchError as error:
+        raise SystemExit(f"error: {error}") from None
     results = []
     with tempfile.TemporaryDirectory() as scratch:
-        for path in sorted((REPO / "configs" / "paper").glob("*.toml")):
+        for path in paths:
             for law in ("sine", "regular"):
-                config, _ = load_config(path, [f"platoon.law={law}"])
                 out = Path(scratch) / f"{path.stem}-{law}.mcap"
-                result = run_scenario(config, path.read_text(), out)
+                config, result = run_config(path, None, out, [f"platoon.law={law}"], DEFAULT_OUT)
                 summary = report_json(summarize(load(out), config))
                 record = {"scenario": path.stem, "law": law, "wall_time_s": round(result.wall_time, 3),
                           "steps": result.steps, "trace_bytes": out.stat().st_size, **summary}

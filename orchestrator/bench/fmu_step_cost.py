@@ -1,10 +1,11 @@
 """Cost of one doStep of each FMU under FMPy, alone (inputs held at their start values).
 
-    .venv/bin/python benchmarks/fmu_step_cost.py [--steps 5000] [--repeat 5]
+    python -m orchestrator.bench.fmu_step_cost [--steps 5000] [--repeat 5]
 
 Prints the median over repetitions of the µs per doStep (plus a setReal of all inputs and a getReal
 of all outputs, as a master does each step), for each FMU and coupling mode, and, as the reference
-measured in the same run, the cost of the same slave's stepper called directly without FMI.
+measured in the same run, the cost of the same slave's stepper called directly without FMI. The FMUs
+are built (when their sources changed) into build/fmus under the current folder, as ``platoon run`` does.
 """
 
 from __future__ import annotations
@@ -13,9 +14,10 @@ import argparse
 import statistics
 import time
 
-from fmus.build import build_fmus
 from fmus.model.factory import target_stepper, vehicle_stepper
 from orchestrator.components import FmuComponent, UnpackedFmu
+
+from .platoon import unpacked_fmus
 
 
 def fmu_cost(fmu: UnpackedFmu, coupling: str, steps: int) -> float:
@@ -48,11 +50,12 @@ def direct_cost(fmu: UnpackedFmu, coupling: str, steps: int) -> float:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m orchestrator.bench.fmu_step_cost",
+                                     description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=5000)
     parser.add_argument("--repeat", type=int, default=5)
     args = parser.parse_args()
-    fmus = {b.name: UnpackedFmu.open(b.path) for b in build_fmus()}
+    fmus = unpacked_fmus()
     print(f"{'FMU':14s} {'coupling':12s} {'FMPy µs/step':>13s} {'direct µs/step':>15s} {'ratio':>6s}")
     for name, fmu in fmus.items():
         for coupling in ("extrapolate", "hold"):

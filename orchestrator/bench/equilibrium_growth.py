@@ -4,7 +4,7 @@
         --set initial.radial_offset=0.0 --set initial.heading_error=0.0 --set initial.speed_factor=1.0 \\
         --set simulation.step=0.1 --set simulation.max_substep=0.1 --set simulation.stop_time=400 \\
         --trace-every 10 --out runs/long.mcap
-    python benchmarks/equilibrium_growth.py runs/long.mcap
+    python -m orchestrator.bench.equilibrium_growth runs/long.mcap
 
 For each trace: how the run ended, then at a few simulated times the largest |V - V_c|, |d - d*| and
 |path error| seen so far over every vehicle (and the vehicle with the largest speed deviation), and
@@ -19,16 +19,27 @@ import argparse
 import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-from orchestrator.config import config_from_mapping  # noqa: E402
-from orchestrator.metrics import path_errors  # noqa: E402
-from orchestrator.trace import load  # noqa: E402
+from orchestrator.config import Config, config_from_mapping
+from orchestrator.metrics import path_errors
+from orchestrator.trace import Trace, load
 
 TIMES = (1, 10, 25, 50, 100, 150, 200, 300, 400, 600, 800, 1000, 1800, 2700, 3600)
+
+
+def deviations(trace: Trace, config: Config) -> tuple[list[str], np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The vehicles' names, the recorded times, and |V - V_c|, |d - d*| and |path error| at every
+    recorded point (one row per vehicle): how far each vehicle is from the circular equilibrium.
+
+    Shared with ``trace_memory``, which checks with them that its long run stayed a platoon.
+    """
+    names = trace.vehicles()
+    components = [trace.component(name) for name in names]
+    speed = np.array([np.abs(c["speed"] - config.platoon.speed) for c in components])
+    gap = np.array([np.abs(c["gap"] - config.platoon.d_star) for c in components])
+    offset = np.array([np.abs(path_errors(config, c["x"], c["y"])) for c in components])
+    return names, components[0]["t"], speed, gap, offset
 
 
 def growth_table(path: Path) -> str:
@@ -37,13 +48,8 @@ def growth_table(path: Path) -> str:
     if trace.config is None:
         raise SystemExit(f"{path}: no platoon.config metadata (not written by platoon run?)")
     config = config_from_mapping(trace.config)
-    names = trace.vehicles()
+    names, t, speed, gap, offset = deviations(trace, config)
     n = len(names)
-    components = [trace.component(name) for name in names]
-    t = components[0]["t"]
-    speed = np.array([np.abs(c["speed"] - config.platoon.speed) for c in components])
-    gap = np.array([np.abs(c["gap"] - config.platoon.d_star) for c in components])
-    offset = np.array([np.abs(path_errors(config, c["x"], c["y"])) for c in components])
     # running maxima along time, per vehicle
     speed, gap, offset = (np.maximum.accumulate(a, axis=1) for a in (speed, gap, offset))
     picks = sorted({n, 3 * n // 4, n // 2, n // 4, 1}, reverse=True)
@@ -60,7 +66,8 @@ def growth_table(path: Path) -> str:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="python -m orchestrator.bench.equilibrium_growth", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("traces", type=Path, nargs="+", help="traces written by platoon run")
     for path in parser.parse_args().traces:
         print(growth_table(path))

@@ -1,8 +1,8 @@
 """Memory and wall time of a long, big traced run: RSS sampled from inside while 100 vehicles run an hour.
 
-    python benchmarks/trace_memory.py                                  # configs/bench/platoon100-1h.toml
-    python benchmarks/trace_memory.py --trace-every 1 --set simulation.stop_time=300   # every point
-    python benchmarks/trace_memory.py --set simulation.stop_time=600   # a shorter look
+    python -m orchestrator.bench.trace_memory                          # configs/bench/platoon100-1h.toml
+    python -m orchestrator.bench.trace_memory --trace-every 1 --set simulation.stop_time=300   # every point
+    python -m orchestrator.bench.trace_memory --set simulation.stop_time=600   # a shorter look
 
 Issue 4 asks that RSS stay flat over a long run and issue 10 for the whole-run wall time of a
 100-vehicle, 1-hour simulated run with ``--trace-every``. The default run is therefore
@@ -19,42 +19,37 @@ of the run (after warm-up) per simulated and per wall-clock hour, the wall time,
 chunk count (the chunk index, one small record per chunk kept until the summary is written, is the one
 thing an indexed MCAP writer must hold for the whole run), and, read back from the trace, how far the
 platoon strayed from its equilibrium (a run that blew up would make the memory numbers meaningless).
+Run it from the repository: the config, the FMUs (build/fmus) and the result are found there.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+import numpy as np
 
-import numpy as np  # noqa: E402
+from fmus.build import DEFAULT_OUT, build_fmus
+from orchestrator.config import Config, load_config
+from orchestrator.run import default_engine, run_scenario
+from orchestrator.scenario import step_count
 
-from fmus.build import DEFAULT_OUT, build_fmus  # noqa: E402
-from orchestrator.config import Config, load_config  # noqa: E402
-from orchestrator.run import default_engine, run_scenario, tool_versions  # noqa: E402
-from orchestrator.scenario import step_count  # noqa: E402
+from .common import DEFAULT_OUT_DIR, rss_kib, slope, write_result
 
-DEFAULT_CONFIG = REPO / "configs" / "bench" / "platoon100-1h.toml"
+DEFAULT_CONFIG = Path("configs") / "bench" / "platoon100-1h.toml"
 
 
 def rss_mb(pid: int | str = "self") -> float:
-    """Resident set size of a process now, in MiB (Linux: VmRSS of /proc/PID/status); 0 if it is gone."""
+    """Resident set size of a process now, in MiB; 0 if it is gone (the writer process may exit
+    between listing this process's children and reading its status)."""
     try:
-        with open(f"/proc/{pid}/status") as status:
-            for line in status:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024.0
+        return rss_kib(pid) / 1024.0
     except FileNotFoundError:
         return 0.0
-    raise RuntimeError(f"no VmRSS in /proc/{pid}/status")
 
 
 def children_rss_mb() -> float:
@@ -74,8 +69,8 @@ def second_half_slopes(samples: list[dict[str, float]], stop_time: float, key: s
     late = [s for s in samples if s["t"] >= stop_time / 2.0]
     if len(late) < 3:
         return float("nan"), float("nan")
-    t, wall, rss = (np.array([s[name] for s in late]) for name in ("t", "wall", key))
-    return float(np.polyfit(t, rss, 1)[0] * 3600.0), float(np.polyfit(wall, rss, 1)[0] * 3600.0)
+    t, wall, rss = ([s[name] for s in late] for name in ("t", "wall", key))
+    return slope(t, rss)[1] * 3600.0, slope(wall, rss)[1] * 3600.0
 
 
 def trace_summary(path: Path) -> tuple[int, int]:
@@ -90,24 +85,25 @@ def trace_summary(path: Path) -> tuple[int, int]:
 def equilibrium_deviation(path: Path, config: Config) -> dict[str, object]:
     """Largest |speed - V_c|, |gap - d*| and |path error| over every vehicle and recorded point,
     and the vehicle with the largest speed deviation: the run is only a fair memory test if the
-    platoon stayed a platoon."""
-    from orchestrator.metrics import path_errors
+    platoon stayed a platoon. Imported here, after the run: the metrics are no part of its RSS."""
     from orchestrator.trace import load
 
-    trace = load(path)
+    from .equilibrium_growth import deviations
+
+    names, _, speeds, gaps, offsets = deviations(load(path), config)
     speed, gap, offset, worst = 0.0, 0.0, 0.0, ""
-    for name in trace.vehicles():
-        c = trace.component(name)
-        dv = float(np.max(np.abs(c["speed"] - config.platoon.speed)))
+    for name, dv_row, gap_row, offset_row in zip(names, speeds, gaps, offsets):
+        dv = float(np.max(dv_row))
         if dv >= speed:
             speed, worst = dv, name
-        gap = max(gap, float(np.max(np.abs(c["gap"] - config.platoon.d_star))))
-        offset = max(offset, float(np.max(np.abs(path_errors(config, c["x"], c["y"])))))
+        gap = max(gap, float(np.max(gap_row)))
+        offset = max(offset, float(np.max(offset_row)))
     return {"speed_m_s": speed, "speed_worst_vehicle": worst, "gap_m": gap, "path_m": offset}
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="python -m orchestrator.bench.trace_memory", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="scenario TOML (default: %(default)s)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], help="config override KEY=VALUE")
     parser.add_argument("--trace-every", type=int, default=None, help="record every K-th point (default: the config's)")
@@ -126,7 +122,7 @@ def main() -> int:
     sim = config.simulation
     engine = args.engine or default_engine()
     steps = step_count(sim.stop_time, sim.step)
-    fmu_dir = REPO / DEFAULT_OUT
+    fmu_dir = DEFAULT_OUT
     build_fmus(fmu_dir)
 
     scratch = None
@@ -177,7 +173,7 @@ def main() -> int:
     writer_rss = np.array([s["writer_rss_mb"] for s in samples])
     writer_per_sim_hour, _ = second_half_slopes(samples, sim.stop_time, "writer_rss_mb")
     report = {
-        "config": str(args.config.resolve().relative_to(REPO)) if args.config.resolve().is_relative_to(REPO) else str(args.config),
+        "config": str(args.config),
         "overrides": overrides,
         "vehicles": config.platoon.count,
         "stop_time_s": sim.stop_time,
@@ -206,15 +202,10 @@ def main() -> int:
         "rows_per_component_channel": rows,
         "max_deviation_from_equilibrium": deviation,
         "load_average_before_after": [load_before, load_after],
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
-        "tools": tool_versions(),
-        "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "sample_every_steps": args.sample,
         "samples": samples,
     }
-    destination = args.json or REPO / "runs" / "bench" / f"trace-memory-{time.strftime('%Y%m%d-%H%M%S')}.json"
-    destination.parent.mkdir(parents=True, exist_ok=True)
-    destination.write_text(json.dumps(report, indent=1) + "\n")
+    destination = write_result(DEFAULT_OUT_DIR, "trace-memory", report, args.json)  # + versions, machine, commit, time
 
     print()
     print("RSS samples (every 10th):")

@@ -4,7 +4,9 @@ For each paper scenario (platoon, m3pi), law (sine, regular), coupling mode (hol
 communication step h, run the FMU co-simulation and the monolithic reference of the same config and
 print the largest position, gap and speed deviation over the whole run, as a Markdown table.
 
-    .venv/bin/python benchmarks/coupling_accuracy.py [--master jacobi|gauss-seidel]
+    python -m orchestrator.bench.coupling_accuracy [--master jacobi|gauss-seidel]
+
+Run it from the repository: it reads configs/paper/platoon.toml and m3pi.toml.
 
 Each FMU and the reference take one RK4 substep per communication step (max_substep = h), so the
 table isolates the coupling. Takes several minutes (the h = 0.005 s runs dominate).
@@ -14,17 +16,18 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
 from orchestrator.accuracy import coupling_error
 from orchestrator.config import load_config
 
-REPO = Path(__file__).resolve().parents[1]
+from .common import PAPER_CONFIGS
+
 STEPS = (0.02, 0.01, 0.005)
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m orchestrator.bench.coupling_accuracy",
+                                     description=__doc__.splitlines()[0])
     parser.add_argument("--master", default="jacobi", choices=("jacobi", "gauss-seidel"))
     args = parser.parse_args()
     print(f"master: {args.master}; largest deviation from the monolithic run over the whole run")
@@ -33,7 +36,7 @@ def main() -> None:
     started = time.perf_counter()
     for scenario in ("platoon", "m3pi"):
         for law in ("sine", "regular"):
-            config, _ = load_config(REPO / "configs" / "paper" / f"{scenario}.toml", [f"platoon.law={law}"])
+            config, _ = load_config(PAPER_CONFIGS / f"{scenario}.toml", [f"platoon.law={law}"])
             for coupling in ("hold", "extrapolate"):
                 errors = [coupling_error(config, h, master=args.master, coupling=coupling) for h in STEPS]
                 cells = [f"{e.position:.3g} m (gap {e.gap:.2g}, speed {e.speed:.2g})" for e in errors]
