@@ -1,0 +1,63 @@
+"""The architecture's import rules, as the README's Layout section states them.
+
+* bridge/ depends on the science (fmus.model) and on the orchestrator's interface only: never on the
+  master, the trace or FMPy, so the robot side can change without touching the co-simulation.
+* orchestrator/trace/ is one package without an import circle inside it.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def imported_modules(path: Path, package: str) -> set[str]:
+    """Absolute names of the modules a file imports (relative imports resolved against ``package``)."""
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                module = ".".join(base + ([node.module] if node.module else []))
+            else:
+                module = node.module or ""
+            names.add(module)
+            names.update(f"{module}.{alias.name}" for alias in node.names)
+    return names
+
+
+def test_bridge_imports_only_the_model_and_the_component_interface() -> None:
+    allowed_project = ("bridge", "fmus.model", "orchestrator.interface")
+    for path in sorted((REPO / "bridge").glob("*.py")):
+        for name in imported_modules(path, "bridge"):
+            top = name.split(".")[0]
+            if top in ("fmus", "orchestrator"):
+                assert name.startswith(allowed_project[1:]), f"{path.name} imports {name}"
+            assert top not in ("fmpy", "pythonfmu", "mcap"), f"{path.name} imports {name}"
+
+
+def test_the_trace_package_has_no_import_circle() -> None:
+    folder = REPO / "orchestrator" / "trace"
+    modules = {path.stem for path in folder.glob("*.py") if path.stem != "__init__"}
+    graph = {
+        module: {name.split(".")[2] for name in imported_modules(folder / f"{module}.py", "orchestrator.trace")
+                 if name.startswith("orchestrator.trace.") and name.split(".")[2] in modules}
+        for module in modules
+    }
+    done: set[str] = set()
+
+    def visit(module: str, path: tuple[str, ...]) -> None:
+        assert module not in path, "import circle: " + " -> ".join((*path, module))
+        if module in done:
+            return
+        for imported in graph[module]:
+            visit(imported, (*path, module))
+        done.add(module)
+
+    for module in sorted(graph):
+        visit(module, ())
+    assert graph["format"] == set(), "format is the bottom of the package"
