@@ -20,8 +20,6 @@ messages are dropped and counted, never used. ``close`` always sends a stop comm
 
 from __future__ import annotations
 
-import math
-import statistics
 import threading
 import time
 from collections import deque
@@ -35,7 +33,7 @@ from fmus.model.coupling import arc_extrapolate
 from fmus.model.dynamics import M3piDynamics
 from fmus.model.factory import vehicle_stepper
 from fmus.model.vehicle import VEHICLE_INPUTS
-from orchestrator.interface import ComponentError, LiveEvent, LiveRecord
+from orchestrator.interface import ComponentError, LiveEvent, LiveRecord, percentile_summary
 
 from .protocol import (
     LinkCounters,
@@ -140,8 +138,8 @@ class LiveVehicle:
         values: dict[str, Any] = {"robot": self.settings.robot, "state": self.state.state.value,
                                   "command.sent": self._command_seq}
         values.update(self.pose_counters.as_dict("pose"))
-        values.update(_percentiles("round_trip", self.round_trips))
-        values.update(_percentiles("pose_age", self.pose_ages))
+        values.update(percentile_summary("round_trip", self.round_trips))
+        values.update(percentile_summary("pose_age", self.pose_ages))
         return values
 
     # -- Zenoh callbacks (Zenoh's threads) -------------------------------------------------------
@@ -324,13 +322,3 @@ def _drain(queue: deque) -> list:
     while queue:
         items.append(queue.popleft())
     return items
-
-
-def _percentiles(name: str, samples: list[float]) -> dict[str, float]:
-    """median, p99 and max of ``samples`` in seconds, as ``name.median`` ... (nothing if no samples)."""
-    if not samples:
-        return {}
-    ordered = sorted(samples)
-    p99 = ordered[min(len(ordered) - 1, math.ceil(0.99 * len(ordered)) - 1)]
-    return {f"{name}.median": statistics.median(ordered), f"{name}.p99": p99, f"{name}.max": ordered[-1],
-            f"{name}.count": len(ordered)}

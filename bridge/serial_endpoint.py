@@ -52,6 +52,7 @@ import zenoh
 
 from bridge.protocol import (
     DEFAULT_PREFIX,
+    Drop,
     LinkCounters,
     MessageError,
     RobotKeys,

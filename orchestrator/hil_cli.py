@@ -28,15 +28,16 @@ def _stop_on_signals(stop: threading.Event) -> None:
         signal.signal(signum, handler)
 
 
-def _ms(value: Any) -> str:
+def ms_text(value: Any) -> str:
+    """Seconds as milliseconds with 2 decimals; "-" for a missing value."""
     return f"{value * 1e3:.2f}" if isinstance(value, float) and math.isfinite(value) else "-"
 
 
 def live_table(summary: dict[str, dict[str, Any]]) -> Table:
     """Pacing and link statistics of a live run, one row per live vehicle."""
     pacing = summary.get("pacing", {})
-    title = (f"live: step jitter median {_ms(pacing.get('jitter.median'))} ms, p99 {_ms(pacing.get('jitter.p99'))} ms, "
-             f"max {_ms(pacing.get('jitter.max'))} ms; overruns {pacing.get('overruns', 0)} of {pacing.get('points', 0)}")
+    title = (f"live: step jitter median {ms_text(pacing.get('jitter.median'))} ms, p99 {ms_text(pacing.get('jitter.p99'))} ms, "
+             f"max {ms_text(pacing.get('jitter.max'))} ms; overruns {pacing.get('overruns', 0)} of {pacing.get('points', 0)}")
     table = Table(title=title, title_justify="left", caption="round trip: command sent -> first pose taken after the "
                   "robot applied it; age: of the pose each step used", caption_justify="left")
     for column in ("vehicle", "robot", "state", "commands", "poses", "dropped", "trip ms med/p99", "age ms med/max"):
@@ -49,8 +50,8 @@ def live_table(summary: dict[str, dict[str, Any]]) -> Table:
             name, str(stats.get("robot", "")), str(stats.get("state", "")), str(stats.get("command.sent", 0)),
             str(stats.get("pose.accepted", 0)),
             str(sum(dropped.values())) + (f" ({', '.join(f'{k} {v}' for k, v in dropped.items())})" if dropped else ""),
-            f"{_ms(stats.get('round_trip.median'))}/{_ms(stats.get('round_trip.p99'))}",
-            f"{_ms(stats.get('pose_age.median'))}/{_ms(stats.get('pose_age.max'))}",
+            f"{ms_text(stats.get('round_trip.median'))}/{ms_text(stats.get('round_trip.p99'))}",
+            f"{ms_text(stats.get('pose_age.median'))}/{ms_text(stats.get('pose_age.max'))}",
         )
     return table
 

@@ -12,12 +12,14 @@ for the log, raw messages and link statistics for the trace) without knowing how
 
 from __future__ import annotations
 
+import math
+import statistics
 from dataclasses import dataclass
 from typing import Any, Protocol, Sequence, runtime_checkable
 
 from .errors import ComponentError
 
-__all__ = ["Component", "ComponentError", "LiveComponent", "LiveEvent", "LiveRecord"]
+__all__ = ["Component", "ComponentError", "LiveComponent", "LiveEvent", "LiveRecord", "percentile_summary"]
 
 
 class Component(Protocol):
@@ -73,3 +75,14 @@ class LiveComponent(Protocol):
     def link_statistics(self) -> dict[str, Any]:
         """Counters of the link so far (messages received, accepted, dropped by reason, ...)."""
         ...
+
+
+def percentile_summary(name: str, samples: Sequence[float]) -> dict[str, float]:
+    """``name.median``, ``name.p99``, ``name.max`` and ``name.count`` of ``samples`` (nothing if there are
+    none): the one way live statistics (round trips, pose ages, step jitter) are summed up."""
+    if not samples:
+        return {}
+    ordered = sorted(samples)
+    p99 = ordered[min(len(ordered) - 1, math.ceil(0.99 * len(ordered)) - 1)]
+    return {f"{name}.median": statistics.median(ordered), f"{name}.p99": p99, f"{name}.max": ordered[-1],
+            f"{name}.count": len(ordered)}

@@ -10,9 +10,9 @@ so the master could not wait at all.
 
 from __future__ import annotations
 
-import math
-import statistics
 import time
+
+from .interface import percentile_summary
 
 
 class Pacer:
@@ -52,9 +52,6 @@ class Pacer:
 
     def summary(self) -> dict[str, float]:
         """Step jitter (median, p99, max lateness, s), overruns and the worst one, for the trace and the table."""
-        if not self.lateness:
-            return {"points": 0, "overruns": 0}
-        ordered = sorted(self.lateness)
-        p99 = ordered[min(len(ordered) - 1, math.ceil(0.99 * len(ordered)) - 1)]
-        return {"points": len(ordered), "jitter.median": statistics.median(ordered), "jitter.p99": p99,
-                "jitter.max": ordered[-1], "overruns": self.overruns, "overrun.max": self.worst_overrun}
+        jitter = percentile_summary("jitter", self.lateness)
+        jitter.pop("jitter.count", None)
+        return {"points": len(self.lateness), **jitter, "overruns": self.overruns, "overrun.max": self.worst_overrun}

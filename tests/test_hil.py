@@ -13,7 +13,6 @@ import math
 import os
 import signal
 import socket
-import struct
 import subprocess
 import sys
 import time

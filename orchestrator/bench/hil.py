@@ -33,7 +33,7 @@ from typing import Annotated, Any
 
 import typer
 
-from orchestrator.hil_cli import _ms
+from orchestrator.hil_cli import ms_text
 
 from .common import DEFAULT_OUT_DIR, BenchError, BenchUsageError, Progress, interleaved
 
@@ -121,7 +121,7 @@ def ping_pong(seconds: float, scratch: Path) -> dict[str, Any]:
     """Round trips of pings to an echo process, one every ``PING_INTERVAL`` for ``seconds`` s."""
     import zenoh
 
-    from bridge.live import _percentiles
+    from orchestrator.interface import percentile_summary
     from bridge.protocol import WHEELS_SIZE
     from bridge.session import open_session, zenoh_config
 
@@ -161,7 +161,7 @@ def ping_pong(seconds: float, scratch: Path) -> dict[str, Any]:
     if not counted:
         raise BenchError(f"no pong came back from the echo process on {endpoint}:\n{helper.stderr()}")
     return {"kind": "transport", "pings": count - PING_WARMUP, "lost": count - len(trips),
-            "link": _percentiles("round_trip", counted)}
+            "link": percentile_summary("round_trip", counted)}
 
 
 # -- live runs against the emulator -------------------------------------------------------------------
@@ -210,10 +210,10 @@ def run(seconds: float = 10.0, rounds: int = 1, progress: Progress | None = None
     variants = [("transport", None, None), *(("live", step, rate) for step, rate in LIVE_RUNS)]
 
     def describe(sample: dict[str, Any]) -> str:
-        line = f"{label(sample):<34} round trip median {_ms(sample['link'].get('round_trip.median'))} ms"
+        line = f"{label(sample):<34} round trip median {ms_text(sample['link'].get('round_trip.median'))} ms"
         if sample["kind"] == "live":
             pacing = sample["pacing"]
-            line += f", jitter median {_ms(pacing.get('jitter.median'))} ms, overruns {pacing['overruns']}"
+            line += f", jitter median {ms_text(pacing.get('jitter.median'))} ms, overruns {pacing['overruns']}"
         return line
 
     with tempfile.TemporaryDirectory(prefix="bench-hil-") as scratch:
@@ -255,7 +255,7 @@ def render(result: dict[str, Any]) -> Any:
     for name, values in medians.items():
         rate = values["pose_rate"]
         ratio = result["round_trip_over_transport"].get(name)
-        trips.add_row(name, _ms(1 / rate) if rate else "-", *(_ms(values[f"round_trip.{s}"]) for s in STATS),
+        trips.add_row(name, ms_text(1 / rate) if rate else "-", *(ms_text(values[f"round_trip.{s}"]) for s in STATS),
                       f"{ratio:.1f}" if ratio else "-")
     jitter = Table(title=f"step jitter, ms: lateness of each communication point after its deadline ({over})",
                    title_justify="left")
@@ -263,7 +263,7 @@ def render(result: dict[str, Any]) -> Any:
         jitter.add_column(column, justify="left" if column == "live run" else "right")
     for name, values in medians.items():
         if "jitter.median" in values:
-            jitter.add_row(name, *(_ms(values[f"jitter.{s}"]) for s in STATS),
+            jitter.add_row(name, *(ms_text(values[f"jitter.{s}"]) for s in STATS),
                            f"{values['overruns']:g} of {values['points']:g}")
     return Group(trips, jitter)
 
