@@ -94,6 +94,7 @@ class EmulatedRobot:
     pending: deque = field(default_factory=deque)  # (apply at, command) in arrival order
     counters: LinkCounters = field(default_factory=LinkCounters)
     pose_seq: int = 0
+    driven: bool = False  # a host drives it (from its first command until that host leaves)
 
     def __post_init__(self) -> None:
         spec = self.spec
@@ -144,6 +145,7 @@ class EmulatedRobot:
             return
         if self.link.state == LinkState.CONFIGURED and self.settings.flying_start:
             self.state[3] = self.state[4] = self.spec.speed
+        self.driven = True
         if command.left == 0.0 and command.right == 0.0 and self.link.state == LinkState.RUNNING:
             self.link.go(LinkState.STOPPED, "stop command")
         elif self.link.state != LinkState.RUNNING and (command.left != 0.0 or command.right != 0.0):
@@ -176,17 +178,23 @@ class EmulatedRobot:
         """A (new) host appeared: back on the mark, at rest, numbering afresh, as before a first run."""
         if self.link.state == LinkState.CONFIGURED:
             return
+        if self.link.state == LinkState.RUNNING:  # one run per robot: the one driving it keeps it
+            self.say(f"m3pi-emulator robot {self.spec.keys.robot}: another host appeared while running; ignored "
+                     "(its commands are dropped as out of order)")
+            return
         self.pending.clear()
         self._stop_wheels(now, "new host")
         spec = self.spec
         self.state = [spec.x, spec.y, spec.heading, 0.0, 0.0]
         self.sequence = SequenceCheck()
         self.command_seq = 0
+        self.driven = False
         self.link.go(LinkState.CONFIGURED, "a new host appeared: back on the initial pose, waiting for commands")
 
     def host_gone(self, now: float) -> None:
         self.advance(now)
         self.pending.clear()
+        self.driven = False
         self._stop_wheels(now, "host's liveliness token dropped")
 
     def sample(self, now: float, noise: random.Random) -> Pose:
@@ -248,6 +256,7 @@ class Emulator:
                 self.say(f"m3pi-emulator robot {keys.robot}: configured, pose on {keys.pose} at "
                          f"{self.settings.rate:g} Hz, commands on {keys.wheels}")
             resources += publishers
+            busy: dict[int, zenoh.LivelinessToken] = {}
             if ready is not None:
                 ready()
             start = self.clock()
@@ -276,9 +285,12 @@ class Emulator:
                             due.append(self._outbox.popleft())
                     for _, index, payload in due:
                         publishers[index].put(payload)
+                    self._update_busy_tokens(session, busy)
                     wake = min(next_sample, self._outbox[0][0] if self._outbox else next_sample)
                     self.stop_event.wait(max(0.0, min(wake - self.clock(), 0.01)))
             finally:
+                for token in busy.values():
+                    token.undeclare()
                 for resource in reversed(resources):
                     try:
                         resource.undeclare()
@@ -286,9 +298,18 @@ class Emulator:
                         pass
                 for robot in self.robots:
                     c = robot.counters
-                    self.say(f"m3pi-emulator robot {robot.spec.keys.robot}: commands received {c.received}, applied "
+                    self.say(f"m3pi-emulator robot {robot.spec.keys.robot}: commands received {c.received}, accepted "
                              f"{c.accepted}, dropped {c.dropped_total} "
                              + " ".join(f"{k}={v}" for k, v in c.dropped.items() if v))
+
+
+    def _update_busy_tokens(self, session: zenoh.Session, busy: dict[int, zenoh.LivelinessToken]) -> None:
+        """Hold ``<prefix>/m3pi/<id>/busy`` exactly while a host drives the robot (one run per robot)."""
+        for index, robot in enumerate(self.robots):
+            if robot.driven and index not in busy:
+                busy[index] = session.liveliness().declare_token(robot.spec.keys.busy)
+            elif not robot.driven and index in busy:
+                busy.pop(index).undeclare()
 
 
 def run_emulator(robots: Sequence[RobotSpec], settings: EmulatorSettings, connect: Sequence[str] = (),

@@ -49,6 +49,7 @@ from .protocol import (
 from .session import SessionError, open_session, zenoh_config
 from .states import LinkState, StateMachine
 
+BUSY_QUERY_TIMEOUT = 0.5  # s at most to ask the robot side whether another run drives it
 STOP_REPEATS = 3  # a stop command is sent this many times: one lost message must not keep a robot going
 
 
@@ -121,6 +122,7 @@ class LiveVehicle:
         self._session: zenoh.Session | None = None
         self._resources: list[Any] = []
         self._publisher: Any = None
+        self._stop_sent = False
 
     # -- events and records for the run (LiveComponent) -----------------------------------------
 
@@ -138,8 +140,9 @@ class LiveVehicle:
         values: dict[str, Any] = {"robot": self.settings.robot, "state": self.state.state.value,
                                   "command.sent": self._command_seq}
         values.update(self.pose_counters.as_dict("pose"))
-        values.update(percentile_summary("round_trip", self.round_trips))
-        values.update(percentile_summary("pose_age", self.pose_ages))
+        # every key from the first call on (0 with count 0 until measured): the trace's link stream keeps its fields
+        values.update(percentile_summary("round_trip", self.round_trips, empty=0.0))
+        values.update(percentile_summary("pose_age", self.pose_ages, empty=0.0))
         return values
 
     # -- Zenoh callbacks (Zenoh's threads) -------------------------------------------------------
@@ -201,6 +204,11 @@ class LiveVehicle:
             if time.monotonic() > deadline:
                 raise self._fail(start_time, self._not_found())
             time.sleep(0.005)
+        busy = [reply for reply in session.liveliness().get(self.keys.busy, timeout=BUSY_QUERY_TIMEOUT) if reply.ok]
+        if busy:
+            self._stop_sent = True  # not ours to stop: the other run drives it
+            raise self._fail(start_time, f"{self.what} is already driven by another run (its robot side holds "
+                                         f"{self.keys.busy}): one run per robot")
         self.state.go(LinkState.SYNCHRONIZED, f"liveliness token and a valid pose received (pose {self._latest.seq})")
         self._measure()
 
@@ -291,8 +299,10 @@ class LiveVehicle:
         return ComponentError(self.name, t, reason)
 
     def _stop(self) -> None:
-        if self._publisher is None:
+        """Send the stop command (once: after a fault, closing does not send it again)."""
+        if self._publisher is None or self._stop_sent:
             return
+        self._stop_sent = True
         try:
             for _ in range(STOP_REPEATS):
                 self._send(0.0, 0.0, self.settings.command_validity)

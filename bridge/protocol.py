@@ -7,6 +7,8 @@ Keys (one namespace per run and robot, slash-separated so that zenoh-bridge-ros2
 * ``<prefix>/m3pi/<id>/cmd/wheels``  wheel speed command to robot ``id``, from the host
 * ``<prefix>/m3pi/<id>/alive``       liveliness token of the robot side (emulator, serial endpoint)
 * ``<prefix>/m3pi/<id>/host``        liveliness token of the host (the run that steers the robot)
+* ``<prefix>/m3pi/<id>/busy``        liveliness token of the robot side while a host drives it: a
+                                     second run finds it and refuses to start (one run per robot)
 
 Payloads are fixed-size little-endian structs, version byte first (docs/hil.md has the tables):
 
@@ -118,6 +120,10 @@ class RobotKeys:
     @property
     def host(self) -> str:
         return self._key("host")
+
+    @property
+    def busy(self) -> str:
+        return self._key("busy")
 
 
 def encode_pose(pose: Pose) -> bytes:

@@ -115,9 +115,12 @@ class SpeedScale:
                              "expected one to be 'M1' and the other 'M2'")
 
     @classmethod
-    def from_options(cls, max_speed: float = M3PI_WHEEL_SPEED_MAX, swap_motors: bool = False) -> SpeedScale:
-        """The scale the command line describes (``--max-speed``, ``--swap-motors``: M2 drives the left wheel)."""
-        return cls(max_speed, "M2", "M1") if swap_motors else cls(max_speed)
+    def from_options(cls, max_speed: float = M3PI_WHEEL_SPEED_MAX, swap_motors: bool = False,
+                     invert_left: bool = False, invert_right: bool = False) -> SpeedScale:
+        """The scale the command line describes (``--max-speed``, ``--swap-motors``: M2 drives the left
+        wheel; ``--invert-left``/``--invert-right``: a motor wired backwards)."""
+        left, right = ("M2", "M1") if swap_motors else ("M1", "M2")
+        return cls(max_speed, left, right, invert_left, invert_right)
 
     @property
     def quantum(self) -> float:
@@ -258,6 +261,7 @@ class SerialEndpoint:
         self._last_valid = 0.0  # time.monotonic() of the last valid command
         self._fault: SerialEndpointError | None = None
         self._closing = False
+        self._driven = False  # a host drives the robot: from its first valid command until its token goes
         self._reported: set[Drop] = set()
 
     @property
@@ -317,6 +321,7 @@ class SerialEndpoint:
             self._command = command
             self._last_valid = time.monotonic()
             self._machine.go(LinkState.RUNNING, f"valid command {command.seq}")
+            self._driven = True
 
     def _on_host(self, sample: zenoh.Sample) -> None:
         """Zenoh callback on the host's liveliness token: gone means stop now, not at the deadline."""
@@ -330,6 +335,7 @@ class SerialEndpoint:
                 if self._machine.state is LinkState.CONFIGURED:
                     self._machine.go(LinkState.SYNCHRONIZED, "host present")
             else:
+                self._driven = False
                 self._say(f"host token gone ({sample.key_expr})")
                 try:
                     self._stop_motors("host gone")
@@ -349,13 +355,24 @@ class SerialEndpoint:
         self.watchdog_stops += 1
         self._stop_motors(reason)
 
-    def _watch(self, stop_event: threading.Event) -> None:
-        while not stop_event.is_set():
-            with self._lock:
-                if self._fault is not None:
-                    raise self._fault
-                self._watch_once()
-            stop_event.wait(WATCHDOG_PERIOD)
+    def _watch(self, stop_event: threading.Event, session: zenoh.Session) -> None:
+        busy = None  # the robot's busy token, held while a host drives it: a second run refuses to start
+        try:
+            while not stop_event.is_set():
+                with self._lock:
+                    if self._fault is not None:
+                        raise self._fault
+                    self._watch_once()
+                    driven = self._driven
+                if driven and busy is None:
+                    busy = session.liveliness().declare_token(self.keys.busy)
+                elif not driven and busy is not None:
+                    busy.undeclare()
+                    busy = None
+                stop_event.wait(WATCHDOG_PERIOD)
+        finally:
+            if busy is not None:
+                busy.undeclare()
 
     def _shutdown(self, reason: str, failed: bool) -> SerialEndpointError | None:
         """Zero the motors (always, whatever the state) before the port closes; print the counters."""
@@ -408,7 +425,7 @@ class SerialEndpoint:
                     self._say(f"serving {self.keys.wheels} on {self.port} at {self.baud} baud "
                               f"(max speed {self.scale.max_speed:g} m/s = byte {SPEED_BYTE_MAX}, "
                               f"left {self.scale.left_motor}, right {self.scale.right_motor})")
-                    self._watch(stop_event)
+                    self._watch(stop_event, session)
             except KeyboardInterrupt:
                 reason = "interrupted"
                 raise

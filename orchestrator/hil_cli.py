@@ -145,6 +145,9 @@ def m3pi_serial(
     zenoh_config: Annotated[Optional[Path], typer.Option(help="Zenoh config file (JSON5)")] = None,
     max_speed: Annotated[float, typer.Option(help="wheel speed (m/s) that speed byte 127 drives: measure it")] = 1.0,
     swap_motors: Annotated[bool, typer.Option(help="M1 is the right motor (default: M1 left, M2 right)")] = False,
+    invert_left: Annotated[bool, typer.Option(help="the left motor is wired backwards")] = False,
+    invert_right: Annotated[bool, typer.Option(help="the right motor is wired backwards")] = False,
+    baud: Annotated[int, typer.Option(min=1200, help="serial speed of the XBee link")] = 115200,
     command_timeout: Annotated[float, typer.Option(help="s without a valid command before the motors stop")] = 0.25,
 ) -> None:
     """Forward one robot's wheel commands from Zenoh to a Pololu 3pi serial slave over an XBee."""
@@ -161,13 +164,14 @@ def m3pi_serial(
         _fail(2, f"--max-speed {max_speed}: expected a finite speed > 0 (m/s at speed byte 127)")
     if not (math.isfinite(command_timeout) and command_timeout > 0.0):
         _fail(2, f"--command-timeout {command_timeout}: expected a finite number of seconds > 0")
-    scale = SpeedScale.from_options(max_speed=max_speed, swap_motors=swap_motors)
+    scale = SpeedScale.from_options(max_speed=max_speed, swap_motors=swap_motors, invert_left=invert_left,
+                                    invert_right=invert_right)
     stop = threading.Event()
     _stop_on_signals(stop)
     try:
         run_serial_endpoint(port, robot, prefix=prefix, connect=connect, listen=listen,
                             zenoh_config_file=str(zenoh_config) if zenoh_config else None, scale=scale,
-                            command_timeout=command_timeout, stop_event=stop)
+                            command_timeout=command_timeout, baud=baud, stop_event=stop)
     except (SerialEndpointError, SessionError, OSError, ValueError) as error:
         _fail(2, str(error))
 

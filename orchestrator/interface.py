@@ -77,11 +77,14 @@ class LiveComponent(Protocol):
         ...
 
 
-def percentile_summary(name: str, samples: Sequence[float]) -> dict[str, float]:
-    """``name.median``, ``name.p99``, ``name.max`` and ``name.count`` of ``samples`` (nothing if there are
-    none): the one way live statistics (round trips, pose ages, step jitter) are summed up."""
+def percentile_summary(name: str, samples: Sequence[float], empty: float | None = None) -> dict[str, float]:
+    """``name.median``, ``name.p99``, ``name.max`` and ``name.count`` of ``samples``: the one way live
+    statistics (round trips, pose ages, step jitter) are summed up. Without samples: nothing, or every
+    key with the value ``empty`` (and count 0), for a record whose fields must not change."""
     if not samples:
-        return {}
+        if empty is None:
+            return {}
+        return {f"{name}.median": empty, f"{name}.p99": empty, f"{name}.max": empty, f"{name}.count": 0}
     ordered = sorted(samples)
     p99 = ordered[min(len(ordered) - 1, math.ceil(0.99 * len(ordered)) - 1)]
     return {f"{name}.median": statistics.median(ordered), f"{name}.p99": p99, f"{name}.max": ordered[-1],

@@ -344,8 +344,8 @@ def run_scenario(
                 except Exception as closing:  # still finalize the trace; say what went wrong
                     if status == "completed":
                         status, error = "failed", f"closing the FMUs failed: {closing}"
-            if reporter is not None:
-                live_summary = reporter.finish(writer.last_time or 0.0)
+            if reporter is not None:  # stamped at the last communication point the master reached
+                live_summary = reporter.finish(master.time if master is not None else 0.0)
             if writer is not None:
                 status, error = _finalize_trace(writer, status, error, failed_at, signum, engine, sim.master)
             if trace_process is not None:

@@ -234,7 +234,11 @@ def test_live_robot_tracks_the_all_fmu_run(tmp_path: Path) -> None:
     port = free_port()
     live, simulated = tmp_path / "live.mcap", tmp_path / "fmu.mcap"
     with emulator(port, tmp_path) as (_, log):
-        code, out, err = finish(start_run(port, live, 10.0))
+        first = start_run(port, live, 10.0)
+        wait_for_running(live, first)
+        second, _, refused = finish(start_run(port, tmp_path / "second.mcap", 2.0))  # one run per robot
+        assert second == 1 and "robot 3 (platoon/m3pi/3) is already driven by another run" in refused, refused
+        code, out, err = finish(first)
         assert code == 0, err
         again, _, err_again = finish(start_run(port, tmp_path / "again.mcap", 2.0))  # the same emulator, a new run
         assert again == 0, err_again

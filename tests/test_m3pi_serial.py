@@ -271,6 +271,7 @@ def test_serial_endpoint_end_to_end(pty: Pty, capsys: pytest.CaptureFixture[str]
                 command(left, right)
                 expect(left, right)
             assert "synchronized -> running (valid command 1)" in log.read()
+            wait_for_token(session, keys.busy)  # driven now: a second run would refuse to start
 
             # Malformed, duplicate and late commands are dropped: the next frame is the next valid command.
             publisher.put(b"\x01\x02garbage")
