@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Annotated, Any, Optional
 
 import typer
+from rich import box
 from rich.table import Table
 
 Endpoints = Annotated[list[str], typer.Option(help="Zenoh endpoint, e.g. tcp/127.0.0.1:7447 (repeatable)")]
@@ -34,25 +35,34 @@ def ms_text(value: Any) -> str:
 
 
 def live_table(summary: dict[str, dict[str, Any]]) -> Table:
-    """Pacing and link statistics of a live run, one row per live vehicle."""
+    """Pacing and link statistics of a live run, one row per live vehicle (fits 80 columns)."""
     pacing = summary.get("pacing", {})
     title = (f"live: step jitter median {ms_text(pacing.get('jitter.median'))} ms, p99 {ms_text(pacing.get('jitter.p99'))} ms, "
              f"max {ms_text(pacing.get('jitter.max'))} ms; overruns {pacing.get('overruns', 0)} of {pacing.get('points', 0)}")
-    table = Table(title=title, title_justify="left", caption="round trip: command sent -> first pose taken after the "
-                  "robot applied it; age: of the pose each step used", caption_justify="left")
-    for column in ("vehicle", "robot", "state", "commands", "poses", "dropped", "trip ms med/p99", "age ms med/max"):
-        table.add_column(column, justify="left" if column in ("vehicle", "state") else "right")
+    notes = ["trip: command sent -> first pose taken after the robot applied it (median/p99); "
+             "age: of the pose each step used (median/max)"]
+    headers = ("vehicle", "robot", "state", "cmds", "poses", "dropped", "trip ms", "age ms")
+    rows = []
     for name, stats in summary.items():
         if name == "pacing":
             continue
         dropped = {k.split(".")[-1]: v for k, v in stats.items() if k.startswith("pose.dropped.") and v}
-        table.add_row(
+        if dropped:
+            notes.append(f"{name} dropped: " + ", ".join(f"{reason} {count}" for reason, count in dropped.items()))
+        rows.append((
             name, str(stats.get("robot", "")), str(stats.get("state", "")), str(stats.get("command.sent", 0)),
-            str(stats.get("pose.accepted", 0)),
-            str(sum(dropped.values())) + (f" ({', '.join(f'{k} {v}' for k, v in dropped.items())})" if dropped else ""),
+            str(stats.get("pose.accepted", 0)), str(sum(dropped.values())),
             f"{ms_text(stats.get('round_trip.median'))}/{ms_text(stats.get('round_trip.p99'))}",
             f"{ms_text(stats.get('pose_age.median'))}/{ms_text(stats.get('pose_age.max'))}",
-        )
+        ))
+    table = Table(title=title, title_justify="left", caption_justify="left", box=box.SIMPLE_HEAD, pad_edge=False,
+                  collapse_padding=True)
+    for index, header in enumerate(headers):  # every cell whole: the widths a row needs, no ellipsis
+        width = max([len(header), *(len(row[index]) for row in rows)])
+        table.add_column(header, justify="left" if header in ("vehicle", "state") else "right", min_width=width)
+    for row in rows:
+        table.add_row(*row)
+    table.caption = "\n".join(notes)
     return table
 
 
