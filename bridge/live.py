@@ -238,8 +238,8 @@ class LiveVehicle:
             raise self._fail(t, f"{self.what} lost: no valid pose for {silent:.2f} s (pose_timeout "
                                 f"{self.settings.pose_timeout:g} s; {self.pose_counters.dropped_total} dropped)")
 
-    def _measure(self) -> None:
-        """Put the newest measured pose, dead-reckoned to now, into the controller's state."""
+    def _measure(self) -> float:
+        """Put the newest measured pose, dead-reckoned to now, into the controller's state; returns its age (s)."""
         with self._lock:
             pose = self._latest
         assert pose is not None
@@ -251,7 +251,7 @@ class LiveVehicle:
         turn_rate = (state[3] - state[4]) / dynamics.track
         x, y, h, _ = arc_extrapolate(pose.x, pose.y, heading, speed, 0.0, turn_rate, age)
         self.stepper.state = [x, y, h, *state[3:]]
-        self.pose_ages.append(age)
+        return age
 
     def step(self, time_: float, step: float) -> None:
         """Command the robot for [t, t + h] from its pose now; advance the controller's states."""
@@ -259,7 +259,7 @@ class LiveVehicle:
         self._check_link(time_)
         if self.state.state != LinkState.RUNNING:
             self.state.go(LinkState.RUNNING, "first step")
-        self._measure()
+        self.pose_ages.append(self._measure())  # the pose this step's command is computed from
         stepper = self.stepper
         _, acceleration, _ = stepper.evaluate(time_, stepper.state)
         right, left = self.dynamics.wheel_commands(stepper.state[5], acceleration)

@@ -12,7 +12,6 @@ from __future__ import annotations
 import math
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -37,6 +36,7 @@ from bridge.protocol import (
     encode_pose,
     encode_wheels,
 )
+from orchestrator.bench.hil import free_port
 from orchestrator.config import config_from_mapping
 from orchestrator.metrics import path_errors
 from orchestrator.realtime import Pacer
@@ -158,12 +158,6 @@ def test_pacer_waits_for_each_point_and_counts_overruns() -> None:
 
 # -- real processes on 127.0.0.1 ---------------------------------------------------------------------
 
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
 def endpoint(port: int) -> str:
     return f"tcp/127.0.0.1:{port}"
 
@@ -283,39 +277,29 @@ def test_noisy_late_robot_still_converges(tmp_path: Path) -> None:
         assert error < 0.020, f"{vehicle}: {error * 1e3:.1f} mm off the path at the end"
 
 
-def test_killed_robot_ends_the_run_within_5_s_with_a_finalized_trace(tmp_path: Path) -> None:
+@pytest.mark.parametrize("fault, reason", [
+    (signal.SIGKILL, "lost: its liveliness token platoon/m3pi/3/alive was dropped"),  # gone from the network
+    (signal.SIGSTOP, "lost: no valid pose for"),  # alive on the network (its lease holds), but silent
+], ids=["killed", "frozen"])
+def test_lost_robot_ends_the_run_within_5_s_with_a_stop_and_a_finalized_trace(
+        tmp_path: Path, fault: signal.Signals, reason: str) -> None:
     port = free_port()
-    trace = tmp_path / "killed.mcap"
+    trace = tmp_path / "lost.mcap"
     with emulator(port, tmp_path) as (robot, _):
         run = start_run(port, trace, 60.0)
         wait_for_running(trace, run)
-        robot.kill()
-        killed = time.monotonic()
+        os.kill(robot.pid, fault)
+        struck = time.monotonic()
         code, _, err = finish(run, timeout=30)
-        ended = time.monotonic() - killed
+        ended = time.monotonic() - struck
     assert code == 1 and ended < 5.0, (code, ended, err)
-    assert "robot 3" in err and "lost" in err and "Traceback" not in err
+    assert f"robot 3 (platoon/m3pi/3) {reason}" in err and "Traceback" not in err, err
     loaded = load(trace)
     assert loaded.run["status"] == "failed" and "robot 3" in loaded.run["error"]
     commands = loaded.live["vehicle3/command"]
     last = int(np.argmax(commands["seq"]))  # the newest command: a stop (records at one time may come in any order)
     assert commands["left"][last] == 0.0 and commands["right"][last] == 0.0
     assert any("-> error" in line.message for line in loaded.log)
-
-
-def test_frozen_robot_is_lost_after_the_pose_timeout(tmp_path: Path) -> None:
-    port = free_port()
-    trace = tmp_path / "frozen.mcap"
-    with emulator(port, tmp_path) as (robot, _):
-        run = start_run(port, trace, 60.0)
-        wait_for_running(trace, run)
-        os.kill(robot.pid, signal.SIGSTOP)  # alive on the network (its lease holds), but silent
-        frozen = time.monotonic()
-        code, _, err = finish(run, timeout=30)
-        ended = time.monotonic() - frozen
-    assert code == 1 and ended < 5.0, (code, ended, err)
-    assert "robot 3" in err and "no valid pose for" in err
-    assert load(trace).run["status"] == "failed"
 
 
 def test_garbage_on_the_pose_key_is_counted_and_ignored_and_ctrl_c_stops_the_robot(tmp_path: Path) -> None:
