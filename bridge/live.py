@@ -247,9 +247,11 @@ class LiveVehicle:
         heading = self._heading + wrap_angle(pose.heading - self._heading)
         self._heading = heading
         age = max(0.0, self.clock() - pose.stamp)
+        # before the first command the robot stands on its mark: nothing to dead-reckon
+        moved = age if self.state.state == LinkState.RUNNING else 0.0
         speed = dynamics.speed(state, 0.0)
         turn_rate = (state[3] - state[4]) / dynamics.track
-        x, y, h, _ = arc_extrapolate(pose.x, pose.y, heading, speed, 0.0, turn_rate, age)
+        x, y, h, _ = arc_extrapolate(pose.x, pose.y, heading, speed, 0.0, turn_rate, moved)
         self.stepper.state = [x, y, h, *state[3:]]
         return age
 
