@@ -17,6 +17,8 @@ from pythonfmu.enums import Fmi2Status
 from pythonfmu.enums import Fmi2Initial
 from pythonfmu.variables import Boolean, Integer, Real, String
 
+from fmus.slaves.host_exit import guard_host_exit
+
 _TYPES = {"Real": Real, "Integer": Integer, "Boolean": Boolean, "String": String}
 
 
@@ -77,6 +79,7 @@ class PlatoonSlave(Fmi2Slave):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
+        guard_host_exit(kwargs.get("resources"), type(self).__name__)
         self.values: dict[str, Any] = {}
         self._outputs: dict[str, float] | None = None
         self.stepper: Any = None
