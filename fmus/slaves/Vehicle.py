@@ -14,7 +14,7 @@ from pythonfmu.default_experiment import DefaultExperiment
 
 from fmus.model.dynamics import M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEEL_SPEED_MAX
 from fmus.model.factory import vehicle_parameter_errors, vehicle_stepper
-from fmus.model.vehicle import VEHICLE_INPUTS as _INPUT_ATTRIBUTES, VehicleStepper
+from fmus.model.vehicle import VEHICLE_INPUTS as _INPUT_ATTRIBUTES
 from fmus.slaves import defaults as d
 from fmus.slaves.base import PlatoonSlave, VariableInfo, real
 
@@ -89,11 +89,8 @@ class Vehicle(PlatoonSlave):
     input_attributes = _INPUT_ATTRIBUTES
     default_experiment = DefaultExperiment(start_time=0.0, stop_time=d.STOP_TIME, step_size=d.STEP)
 
-    def parameter_errors(self) -> list[str]:
-        return vehicle_parameter_errors(self.values)
-
-    def make_stepper(self, start_time: float) -> VehicleStepper:
-        return vehicle_stepper(self.values, start_time)
+    parameter_errors_of = staticmethod(vehicle_parameter_errors)
+    stepper_of = staticmethod(vehicle_stepper)
 
 
 assert set(_INPUT_ATTRIBUTES) == {i.name for i in _inputs()}

@@ -9,7 +9,6 @@ from __future__ import annotations
 from pythonfmu.default_experiment import DefaultExperiment
 
 from fmus.model.factory import target_parameter_errors, target_stepper
-from fmus.model.target import VirtualTargetStepper
 from fmus.slaves import defaults as d
 from fmus.slaves.base import PlatoonSlave, VariableInfo, real
 
@@ -57,8 +56,5 @@ class VirtualTarget(PlatoonSlave):
     input_attributes = _INPUT_ATTRIBUTES
     default_experiment = DefaultExperiment(start_time=0.0, stop_time=d.STOP_TIME, step_size=d.STEP)
 
-    def parameter_errors(self) -> list[str]:
-        return target_parameter_errors(self.values)
-
-    def make_stepper(self, start_time: float) -> VirtualTargetStepper:
-        return target_stepper(self.values, start_time)
+    parameter_errors_of = staticmethod(target_parameter_errors)
+    stepper_of = staticmethod(target_stepper)

@@ -1,0 +1,63 @@
+"""How one FMI call of ours fails without crashing the host: the only door out for an exception.
+
+pythonfmu 0.7.0's binary (``PySlaveInstance.cpp``) turns a Python exception from any slave method
+into fmi2Fatal, and on the way (``handle_py_exception`` -> ``cleanPyObject``) it drops its references
+to the slave instance, the slave class and the log queue without forgetting the pointers. Once our
+instance was its last owner, the next call (the host's fmi2GetReal, fmi2FreeInstance) runs on freed
+memory: the host segfaults (issue 18, item 12).
+
+The binary reports a failure in no other way. It ignores what ``exit_initialization_mode``, the
+getters, the setters and the state methods return, so only an exception can fail them; only
+``do_step`` has a return value it maps (False -> fmi2Discard). So a call that must fail raises,
+through ``refuse`` alone: it hands the binary one extra reference to each of the three objects it is
+about to drop, so its unbalanced decrements cost nothing, the instance stays alive, and every later
+call on it runs on live objects and fails (or works) cleanly. The kept references are a few list
+entries per refused call, freed at interpreter exit.
+
+The reason travels in the exception: the binary logs it, with status fmi2Fatal, as
+``Fatal py exception encountered: [getReal] PyObject_CallMethod\nCallRefused('<reason>')`` (a host
+sees it when logging is on). It must be the only message of the call: the binary flushes the log
+queue before it reads the exception, and with a message queued the exception is lost on the way
+(the host then reads "unknown error", measured). So a call that refuses logs nothing else first.
+
+``fmi_call`` wraps each method the binary calls, so an unforeseen exception (a bug, an input nobody
+thought of) also leaves through ``refuse``, never raw.
+
+The status a host sees for a refused call is therefore fmi2Fatal, not the fmi2Error the call
+deserves: the binary offers nothing else (docs/fmus.md, "Failures").
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, Callable, NoReturn, TypeVar
+
+_KEPT_FOR_THE_BINARY: list[Any] = []
+
+Method = TypeVar("Method", bound=Callable[..., Any])
+
+
+class CallRefused(Exception):
+    """One FMI call failed; the message is the reason, as logged."""
+
+
+def refuse(slave: Any, reason: str) -> NoReturn:
+    """Fail the current FMI call of ``slave`` with ``reason``, keeping the instance alive."""
+    # The three objects cleanPyObject() releases: pClass_, pInstance_, pMessages_.
+    _KEPT_FOR_THE_BINARY.extend((type(slave), slave, slave._get_log_queue()))
+    raise CallRefused(reason)
+
+
+def fmi_call(method: Method) -> Method:
+    """``method`` as the binary may call it: any exception leaves through ``refuse``."""
+
+    @functools.wraps(method)
+    def call(self: Any, *args: Any) -> Any:
+        try:
+            return method(self, *args)
+        except CallRefused:
+            raise
+        except Exception as error:  # noqa: BLE001 - whatever it is, the host must survive it
+            refuse(self, f"{self.instance_name}: {method.__name__} failed: {type(error).__name__}: {error}")
+
+    return call  # type: ignore[return-value]
