@@ -132,15 +132,24 @@ def model_description(slave: PlatoonSlave, guid: str, version: str) -> bytes:
             type_attributes["max"] = _format(info.max)
         SubElement(scalar, info.type, type_attributes)
 
+    # FMI 2.0.x, section 2.2.8 (ModelStructure): an Unknown's dependencies name the knowns it is
+    # computed from, and no dependencies attribute means "all of them". The knowns differ per list:
+    # for <Outputs> (at communication points) they are the inputs and the states, so a parameter is
+    # never listed; for <InitialUnknowns> (Initialization Mode) they are the inputs, the variables
+    # with initial="exact" - all our parameters (causality parameter, variability fixed: initial
+    # defaults to exact) - and the independent variable. So an output that starts from a parameter
+    # (a vehicle's x from initial.x) names it there (``initial_depends_on``).
     structure = SubElement(root, "ModelStructure")
-    for section in ("Outputs", "InitialUnknowns"):
+    for section, dependencies_of in (("Outputs", lambda info: info.depends_on),
+                                     ("InitialUnknowns", lambda info: info.initial_depends_on)):
         node = SubElement(structure, section)
         for info in cls.variables:
             if info.causality != "output":
                 continue
             attributes = {"index": str(index_of[info.name])}
-            if info.depends_on is not None:
-                attributes["dependencies"] = " ".join(str(index_of[n]) for n in info.depends_on)
+            dependencies = dependencies_of(info)
+            if dependencies is not None:
+                attributes["dependencies"] = " ".join(str(index_of[n]) for n in sorted(dependencies, key=index_of.get))
             SubElement(node, "Unknown", attributes)
 
     return parseString(tostring(root, "UTF-8")).toprettyxml(indent="  ", encoding="UTF-8")

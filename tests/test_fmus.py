@@ -203,7 +203,7 @@ def test_fmu_state_rolls_a_run_back_exactly(fmu_dir, name):
         slave.setFMUstate(slave.deSerializeFMUstate(serialized))
         third = replay()
         assert first == second == third
-        assert component.get_outputs()[component.outputs.index("time")] == pytest.approx(1.5)
+        assert component.get_outputs()[component.outputs.index("output_time")] == pytest.approx(1.5)
         slave.freeFMUstate(saved)
     finally:
         component.close()

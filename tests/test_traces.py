@@ -483,7 +483,7 @@ def assert_consistent(trace: Trace, step: float = 0.01) -> float:
     assert np.allclose(np.diff(reference), step, rtol=0, atol=1e-9)  # increasing, no gaps
     for name in COMPONENTS:
         assert np.array_equal(trace.component(name)["t"], reference), name
-        assert np.array_equal(trace.component(name)["time"], reference), name
+        assert np.array_equal(trace.component(name)["output_time"], reference), name
     assert np.array_equal(trace.errors["t"], reference)
     return float(reference[-1])
 

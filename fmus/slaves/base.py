@@ -21,7 +21,7 @@ from pythonfmu.variables import Boolean, Integer, Real, String
 
 from fmus.model.integrate import substep_count
 from fmus.slaves.host_exit import guard_host_exit
-from fmus.slaves.refusal import fmi_call, refuse
+from fmus.slaves.refusal import fmi_call, keep_module_globals, refuse
 
 _TYPES = {"Real": Real, "Integer": Integer, "Boolean": Boolean, "String": String}
 
@@ -39,7 +39,10 @@ class VariableInfo:
     min: float | None = None
     max: float | None = None
     variability: str | None = None  # default: parameters fixed, inputs/outputs continuous (Real)
-    depends_on: tuple[str, ...] | None = None  # outputs: inputs they depend on directly
+    depends_on: tuple[str, ...] | None = None  # outputs: inputs they depend on directly (None: all)
+    # Outputs: the inputs and parameters their value in Initialization Mode is computed from
+    # (ModelStructure/InitialUnknowns, see fmus.modeldescription); None: all of them.
+    initial_depends_on: tuple[str, ...] | None = None
 
     @property
     def resolved_variability(self) -> str:
@@ -80,6 +83,10 @@ class PlatoonSlave(Fmi2Slave):
     variables: tuple[VariableInfo, ...] = ()
     author = "platoon-cosim"
     license = "MIT"
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        keep_module_globals(cls)  # see fmus.slaves.refusal: pythonfmu's fmi2Instantiate releases them
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)

@@ -25,11 +25,21 @@ thought of) also leaves through ``refuse``, never raw.
 
 The status a host sees for a refused call is therefore fmi2Fatal, not the fmi2Error the call
 deserves: the binary offers nothing else (docs/fmus.md, "Failures").
+
+The same binary has a second unbalanced decrement, on every fmi2Instantiate: ``findClass`` releases
+the slave module's globals dictionary, a borrowed reference (``PyModule_GetDict``). In a host that
+instantiates an FMU again and again in one process (a test suite, a parameter sweep), the dictionary
+is freed once its real references are used up, and the next fmi2Instantiate segfaults (measured:
+the second instantiation of a slave module that defines no functions; FMPy's simulate_fmu twice in
+one process). findClass first re-executes the module's source in those globals, which runs the slave
+class statement again, so ``keep_module_globals``, called from ``__init_subclass__``, hands it the
+reference it will drop just in time, once per call.
 """
 
 from __future__ import annotations
 
 import functools
+import sys
 from typing import Any, Callable, NoReturn, TypeVar
 
 _KEPT_FOR_THE_BINARY: list[Any] = []
@@ -46,6 +56,14 @@ def refuse(slave: Any, reason: str) -> NoReturn:
     # The three objects cleanPyObject() releases: pClass_, pInstance_, pMessages_.
     _KEPT_FOR_THE_BINARY.extend((type(slave), slave, slave._get_log_queue()))
     raise CallRefused(reason)
+
+
+def keep_module_globals(cls: type) -> None:
+    """Called by every slave class statement: one reference to its module's globals for findClass
+    to release."""
+    module = sys.modules.get(cls.__module__)
+    if module is not None:
+        _KEPT_FOR_THE_BINARY.append(vars(module))
 
 
 def fmi_call(method: Method) -> Method:
