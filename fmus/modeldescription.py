@@ -8,8 +8,12 @@ including the capability flags, each set on purpose:
   than ``max_substep``, so any step size integrates with the same accuracy.
 * canGetAndSetFMUstate / canSerializeFMUstate: true. The slaves save every value and the whole
   stepper (state vector, time, input samples), tested by a rollback test.
-* needsExecutionTool: false. The FMU talks to no external tool; it embeds a Python interpreter
-  through libpython, a shared-library dependency documented in docs/fmus.md.
+* needsExecutionTool: true. FMI 2.0 (section 2.2.x, the CoSimulation element): "If true, a tool is
+  needed to execute the model". Our binary executes nothing itself: it hands the model (Python
+  source in resources/) to the Python installation of the host, which must provide libpython 3.11
+  and its standard library (docs/fmus.md, "What a host needs"). That installation is the tool. The
+  importers we run them with (FMPy simulate and validate, libcosim, our C host) treat the flag as
+  information and run the FMUs as before (tests/test_hostile_fmus.py).
 * canBeInstantiatedOnlyOncePerProcess: false. All state lives on the instance (tested with two
   platoons in one process).
 """
@@ -36,7 +40,7 @@ UNITS: dict[str, dict[str, int]] = {
 }
 
 CAPABILITIES = {
-    "needsExecutionTool": "false",
+    "needsExecutionTool": "true",
     "canHandleVariableCommunicationStepSize": "true",
     "canInterpolateInputs": "false",
     "maxOutputDerivativeOrder": "0",

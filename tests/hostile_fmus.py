@@ -249,10 +249,11 @@ def input_cases() -> list[Case]:
         for value in (math.inf, -math.inf, math.nan):
             cases.append(Case(fmu, f"{name} = {value}", {}, [["exit"], ["set", name, value], ["step", 0.0, 0.01],
                                                               ["get"]], set_refused_instance_alive(name)))
-    for fmu, name in (("Vehicle", "target.x"), ("Vehicle", "target.speed"), ("Vehicle", "follower.gap"),
+    for fmu, name in (("Vehicle", "target.x"), ("Vehicle", "target.speed"), ("Vehicle", "follower.speed"),
                       ("VirtualTarget", "lead.speed"), ("VirtualTarget", "lead.gap_rate")):
         for value in (1e308, -1e308):
-            cases.append(Case(fmu, f"{name} = {value:g}", {}, [["exit"], ["set", name, value], ["step", 0.0, 0.01],
+            parameters = {"is_last": False} if name.startswith("follower.") else {}  # the last one ignores it
+            cases.append(Case(fmu, f"{name} = {value:g}", parameters, [["exit"], ["set", name, value], ["step", 0.0, 0.01],
                                                                 ["get"], ["step", 0.01, 0.01], ["get"]],
                               huge_input_never_ok_with_non_finite))
     cases.append(Case("Vehicle", "initial.x = nan", {"initial.x": math.nan}, [["exit"], ["get"], ["step", 0.0, 0.01],

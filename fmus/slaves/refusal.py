@@ -15,7 +15,7 @@ call on it runs on live objects and fails (or works) cleanly. The kept reference
 entries per refused call, freed at interpreter exit.
 
 The reason travels in the exception: the binary logs it, with status fmi2Fatal, as
-``Fatal py exception encountered: [getReal] PyObject_CallMethod\nCallRefused('<reason>')`` (a host
+``Fatal py exception encountered: [getReal] PyObject_CallMethod\n<reason>`` (a host
 sees it when logging is on). It must be the only message of the call: the binary flushes the log
 queue before it reads the exception, and with a message queued the exception is lost on the way
 (the host then reads "unknown error", measured). So a call that refuses logs nothing else first.
@@ -49,6 +49,9 @@ Method = TypeVar("Method", bound=Callable[..., Any])
 
 class CallRefused(Exception):
     """One FMI call failed; the message is the reason, as logged."""
+
+    def __repr__(self) -> str:  # the binary logs repr(exception): the reason alone reads best
+        return str(self)
 
 
 def refuse(slave: Any, reason: str) -> NoReturn:
