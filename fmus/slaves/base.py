@@ -150,7 +150,11 @@ class PlatoonSlave(Fmi2Slave):
         """The outputs, computed once per change; refuses the call if any of them is not finite
         (a host must never read NaN or inf with fmi2OK)."""
         if self._outputs is None:
-            outputs = self.stepper.outputs() if self.stepper is not None else self._provisional_outputs()
+            try:
+                outputs = self.stepper.outputs() if self.stepper is not None else self._provisional_outputs()
+            except (ValueError, ZeroDivisionError, OverflowError) as error:  # e.g. a vehicle on its target
+                refuse(self, f"{self.instance_name}: the outputs at t = {self._time():.6g} s cannot be computed "
+                             f"({type(error).__name__}: {error})")
             not_finite = _not_finite(outputs)
             if not_finite:
                 refuse(self, f"{self.instance_name}: output(s) {not_finite} not finite at t = "
