@@ -498,6 +498,9 @@ def bench_cores(
 from .hil_cli import register as _register_hil  # noqa: E402  (the m3pi-emulator and m3pi-serial commands)
 
 _register_hil(app, bench_app)
+from .sweep.cli import register as _register_sweep  # noqa: E402  (sweep, sweep-plot, bench sweep)
+
+_register_sweep(app, bench_app)
 
 
 def main() -> None:
