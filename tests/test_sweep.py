@@ -302,3 +302,15 @@ def test_sweep_plot_draws_the_map_and_names_a_bad_column(tmp_path: Path, fmu_dir
     assert bad.returncode == 2 and "--value last.colour" in error_line(bad)
     ambiguous = platoon("sweep-plot", out, "--panel", "platoon.k_v")  # law and k_v: two runs per cell
     assert ambiguous.returncode == 2 and "several runs fall on" in error_line(ambiguous)
+
+
+def test_bench_sweep_measures_each_worker_count(tmp_path: Path, fmu_dir: Path) -> None:
+    """Functional only: the suite runs real sweeps and reports a speed-up; the numbers are not asserted."""
+    from tests.test_bench import written
+
+    result = platoon("bench", "sweep", "--runs", "2", "--stop-time", "1", "--rounds", "1", "--workers", "1,2",
+                     "--no-dask", "--out-dir", tmp_path, "-q")
+    data = written(result, tmp_path, "sweep")
+    assert set(data["medians"]) == {"local-1", "local-2"} and data["speedup"]["local-1"] == 1.0
+    assert all(s["wall_time"] > 0 for s in data["samples"]) and len(data["samples"]) == 2
+    assert "speed-up vs local-1" in result.stdout

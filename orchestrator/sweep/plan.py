@@ -102,4 +102,6 @@ def plan(spec: SweepSpec) -> list[Run]:
             runs.append(Run(identifier, values, overrides, None, None, text, rejected, message))
             continue
         runs.append(Run(identifier, values, overrides, config, raw, text, config_hash(config)))
+    if len({run.id for run in runs}) != len(runs):  # one file per run: never two runs on one id
+        raise SweepError(f"sweep file {spec.path}: two points have the same id (the same values twice)")
     return runs

@@ -55,7 +55,9 @@ class _Stop:
     def _handler(self, signum: int, frame: object) -> None:
         if self.signum is None:
             self.signum = signum
-            self._stop()
+            # in a thread: the handler interrupts the main thread wherever it is, possibly holding a lock
+            # that stopping needs (Dask's as_completed holds its condition while the client cancels)
+            threading.Thread(target=self._stop, name="sweep-stop", daemon=True).start()
 
     def __enter__(self) -> "_Stop":
         if threading.current_thread() is threading.main_thread():

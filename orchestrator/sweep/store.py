@@ -75,6 +75,7 @@ class OutputFolder:
         self.csv = self.root / "results.csv"
         self.parquet = self.root / "results.parquet"
         self._lock: io.TextIOWrapper | None = None
+        self._records: dict[str, dict[str, Any]] = {}  # id -> the record committed (tables need no re-reading)
 
     # -- the lock ------------------------------------------------------------------------------------
 
@@ -125,10 +126,13 @@ class OutputFolder:
 
     def result(self, run: Run) -> dict[str, Any] | None:
         """The recorded result of ``run``, if it finished with the config it has now."""
-        try:
-            record = json.loads((self.results / f"{run.id}.json").read_text())
-        except (OSError, ValueError):
-            return None
+        record = self._records.get(run.id)
+        if record is None:
+            try:
+                record = json.loads((self.results / f"{run.id}.json").read_text())
+            except (OSError, ValueError):
+                return None
+            self._records[run.id] = record
         return record if record.get("config_hash") == run.config_hash else None
 
     def record(self, run: Run, outcome: dict[str, Any], trace: Path | None) -> dict[str, Any]:
@@ -141,6 +145,7 @@ class OutputFolder:
             "config": json.loads(run.config.model_dump_json()) if run.config is not None else None,
         }
         write_atomically(self.results / f"{run.id}.json", json.dumps(record, indent=1).encode())
+        self._records[run.id] = record
         return record
 
     # -- the tables ----------------------------------------------------------------------------------

@@ -32,6 +32,7 @@ STDERR_TAIL = 400  # characters of a dead child's stderr kept in its error messa
 
 _children: set[subprocess.Popen] = set()
 _children_lock = threading.Lock()
+_terminating = threading.Event()  # set by terminate_children: a child dead by SIGTERM was stopped, not failed
 
 
 def flatten_report(report: dict[str, Any]) -> dict[str, float]:
@@ -113,12 +114,15 @@ def execute(request: dict[str, Any], trace: Path) -> dict[str, Any]:
     for line in stdout.splitlines():
         if line.startswith(RESULT):
             return json.loads(line[len(RESULT):])
+    if _terminating.is_set() and process.returncode == -signal.SIGTERM:  # ours, before the run set its handlers
+        return {"status": "interrupted", "error": "stopped before the run started", "wall_time": None}
     return {"status": "failed", "error": _death_text(process, stderr), "wall_time": None}
 
 
 def terminate_children() -> None:
     """SIGTERM to every run this process started: each stops at its next communication point."""
     with _children_lock:
+        _terminating.set()
         for process in _children:
             if process.poll() is None:
                 process.terminate()
