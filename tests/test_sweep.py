@@ -112,7 +112,7 @@ def test_failed_and_rejected_runs_are_recorded_and_the_others_run(tmp_path: Path
     out = tmp_path / "out"
     result = platoon("sweep", path, "--out", out, "--workers", "2")
     assert result.returncode == 1, result.stderr
-    assert "3 of 4 runs failed" in result.stderr
+    assert "3 of 4 runs failed or were rejected" in result.stderr
     by_point = {(r["simulation.stop_time"], r["platoon.d_star"]): r for r in rows(out)}
     assert len(by_point) == 4
     completed = by_point[("0.5", "75.0")]
@@ -133,6 +133,12 @@ def test_failed_and_rejected_runs_are_recorded_and_the_others_run(tmp_path: Path
     assert again.returncode == 1 and "4 done before, 0 to run" in again.stderr
     assert {p.name: p.read_bytes() for p in (out / "results").iterdir()} == before
     assert len(rows(out)) == 4
+
+    # --retry-failed: the three runs not completed run again (and fail again), the completed one stays
+    retried = platoon("sweep", path, "--out", out, "--retry-failed")
+    assert retried.returncode == 1 and "1 done before, 3 to run" in retried.stderr
+    assert (out / "results" / f"{completed['id']}.json").read_bytes() == before[f"{completed['id']}.json"]
+    assert [(r["id"], r["status"]) for r in rows(out)] == [(r["id"], r["status"]) for r in by_point.values()]
 
 
 # --- SIGKILL mid-way, then resume -------------------------------------------------------------------

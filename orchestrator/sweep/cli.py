@@ -1,8 +1,8 @@
 """``platoon sweep`` and ``platoon sweep-plot`` (and ``platoon bench sweep``), registered on the main
 app by ``register`` so that orchestrator/cli.py only needs one line for them.
 
-Exit codes as for ``platoon run``: 0 every run done and completed; 1 every run done, some failed (their
-errors are in results.csv); 2 bad input (sweep file, base config, options, a folder in use); 130 and
+Exit codes as for ``platoon run``: 0 every run done and completed; 1 every run done, some failed or
+invalid (their errors are in results.csv), or a Dask cluster that cannot run the tasks; 2 bad input (sweep file, base config, options, a folder in use); 130 and
 143 stopped by SIGINT and SIGTERM (run the same command again to resume).
 """
 
@@ -72,11 +72,11 @@ class _Display:
 
 
 def sweep(
-    sweep_file: Annotated[Path, typer.Argument(help="sweep TOML (base, [set], [grid], [random]); docs/sweeps.md")],
+    sweep_file: Annotated[Path, typer.Argument(help="sweep TOML: base, and set, grid and random tables (docs/sweeps.md)")],
     out_dir: Annotated[Path, typer.Option("--out", help="folder for the traces and results.csv (resumes what it holds)")],
     workers: Annotated[Optional[int], typer.Option("--workers", min=1, help="runs at a time on this machine (default: its cores)")] = None,
     scheduler: Annotated[Optional[str], typer.Option("--scheduler", help="run on an existing Dask cluster, e.g. tcp://10.0.0.5:8786")] = None,
-    retry_failed: Annotated[bool, typer.Option("--retry-failed", help="run again the runs recorded as failed")] = False,
+    retry_failed: Annotated[bool, typer.Option("--retry-failed", help="run again the runs recorded as failed (or invalid)")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only failures and the final line")] = False,
 ) -> None:
     """Run a parameter sweep (a grid and/or random samples over a base config); stop and resume at will."""
@@ -116,8 +116,8 @@ def sweep(
         _fail(128 + summary.signum, f"sweep stopped by {name}: {summary.done} of {summary.total} runs done, "
                                     f"{summary.left} left ({csv_path}); run the same command to resume")
     if summary.failed:
-        _fail(1, f"{summary.failed} of {summary.total} runs failed (their error is in {csv_path}, "
-                 "--retry-failed runs them again)")
+        _fail(1, f"{summary.failed} of {summary.total} runs failed or were rejected by the config (their error is in "
+                 f"{csv_path}, --retry-failed runs them again)")
     out.print(f"sweep done: {summary.total} runs completed ({summary.ran} now) on {executor.name}; results: {csv_path}",
               highlight=False, soft_wrap=True)
 

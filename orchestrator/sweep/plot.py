@@ -75,11 +75,12 @@ def draw_map(folder: Path, value: str, x: str, y: str, panel: str, png: Path) ->
     if value not in columns and any(r["status"] == "completed" for r in records):
         raise PlotError(f"--value {value}: not a result column (e.g. {', '.join(sorted(columns)[:4])}, last.path_offset)")
     cells: dict[tuple[Any, Any, Any], float] = {}
+    axes_options = {"--panel": panel, "--y": y, "--x": x}
     for record in records:
-        where = tuple(_lookup(record, key) for key in (panel, y, x))
-        for key, found in zip((panel, y, x), where):
+        where = tuple(_lookup(record, key) for key in axes_options.values())
+        for (option, key), found in zip(axes_options.items(), where):
             if found is None:
-                raise PlotError(f"--{('panel', 'y', 'x')[(panel, y, x).index(key)]} {key}: no such config key in run {record['id']}")
+                raise PlotError(f"{option} {key}: no such config key in run {record['id']}")
         if where in cells:
             varied = ", ".join(record["values"])
             raise PlotError(f"several runs fall on {panel}={where[0]}, {y}={where[1]}, {x}={_label(where[2])}: "

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import signal
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Protocol
 
@@ -37,7 +37,6 @@ class SweepSummary:
     failed: int = 0  # of which failed or invalid
     ran: int = 0  # runs committed by this invocation
     signum: int | None = None  # the signal that stopped the sweep
-    failures: list[str] = field(default_factory=list)
 
     @property
     def left(self) -> int:
@@ -88,6 +87,8 @@ def run_sweep(runs: list[Run], folder: OutputFolder, executor: Executor, fmu_dir
                 summary.failed += _is_failure(record)
             else:
                 todo.append(run)
+        for run in todo:
+            folder.forget(run)  # a result and trace of an older config, or a failure to retry: never mixed with the new
         folder.write_tables(runs)  # a sweep killed between a commit and its table: the table catches up
         events.started(summary.total, summary.done, summary.failed, len(todo))
 
@@ -96,14 +97,11 @@ def run_sweep(runs: list[Run], folder: OutputFolder, executor: Executor, fmu_dir
             folder.write_tables(runs)
             summary.done += 1
             summary.ran += 1
-            if _is_failure(record):
-                summary.failed += 1
-                summary.failures.append(f"{run.id}: {record['error']}")
+            summary.failed += _is_failure(record)
             events.finished(run, record, summary.done, summary.failed)
 
         jobs = []
         for run in todo:
-            folder.trace_path(run).unlink(missing_ok=True)  # a trace of an older config: never mixed with this run's
             if run.config is None:  # the config rejects this point: recorded, never run
                 commit(run, {"status": "invalid", "error": run.error}, None)
             else:
@@ -118,11 +116,7 @@ def run_sweep(runs: list[Run], folder: OutputFolder, executor: Executor, fmu_dir
                 if outcome["status"] == "interrupted":
                     partial.unlink(missing_ok=True)
                     continue
-                trace = None
-                if partial.is_file():
-                    trace = folder.trace_path(job.run)
-                    partial.replace(trace)
-                commit(job.run, outcome, trace)
+                commit(job.run, outcome, folder.place_trace(job.run, partial) if partial.is_file() else None)
             summary.signum = stop.signum
     except BaseException:
         executor.stop()  # nothing more is started; local runs under way stop (their results are dropped)

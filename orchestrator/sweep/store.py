@@ -135,6 +135,23 @@ class OutputFolder:
             self._records[run.id] = record
         return record if record.get("config_hash") == run.config_hash else None
 
+    def place_trace(self, run: Run, partial: Path) -> Path:
+        """Move a finished run's trace from its partial name to its own, on disk before the result says so."""
+        with open(partial, "rb") as file:
+            os.fsync(file.fileno())
+        trace = self.trace_path(run)
+        os.replace(partial, trace)
+        return trace
+
+    def forget(self, run: Run) -> None:
+        """Remove what an earlier attempt of ``run`` left: its result first (the commit), then its trace."""
+        result = self.results / f"{run.id}.json"
+        if result.exists():
+            result.unlink()
+            _fsync_dir(self.results)
+        self._records.pop(run.id, None)
+        self.trace_path(run).unlink(missing_ok=True)
+
     def record(self, run: Run, outcome: dict[str, Any], trace: Path | None) -> dict[str, Any]:
         """Commit ``run``'s outcome (its trace already in place at ``trace``); returns the record."""
         record = {
