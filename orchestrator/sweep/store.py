@@ -193,7 +193,13 @@ class OutputFolder:
             import pyarrow.parquet
         except ImportError:
             return
-        table = pyarrow.table({column: [row.get(column) for row in rows] for column in columns})
+        def array(values: list[Any]) -> Any:
+            try:
+                return pyarrow.array(values)
+            except (pyarrow.ArrowInvalid, pyarrow.ArrowTypeError):  # mixed types (a grid of 1 and "a"): as text
+                return pyarrow.array([None if value is None else str(value) for value in values])
+
+        table = pyarrow.table({column: array([row.get(column) for row in rows]) for column in columns})
         sink = pyarrow.BufferOutputStream()
         pyarrow.parquet.write_table(table, sink)
         write_atomically(self.parquet, sink.getvalue().to_pybytes())
