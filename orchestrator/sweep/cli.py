@@ -9,6 +9,7 @@ invalid (their errors are in results.csv), or a Dask cluster that cannot run the
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 from typing import Annotated, Any, Optional
 
@@ -110,9 +111,11 @@ def sweep(
         _fail(2, str(error))
     except SweepAborted as error:
         _fail(1, f"sweep stopped: {error}; the runs done are kept, run the same command to resume")
+    except OSError as error:  # the folder became unwritable (disk full), the cluster went away: what was committed stays
+        _fail(1, f"sweep stopped: {error}; the runs done are kept, run the same command to resume")
     csv_path = out_dir / "results.csv"
     if summary.signum is not None:
-        name = "SIGINT (Ctrl-C)" if summary.signum == 2 else "SIGTERM"
+        name = "SIGINT (Ctrl-C)" if summary.signum == signal.SIGINT else "SIGTERM"
         _fail(128 + summary.signum, f"sweep stopped by {name}: {summary.done} of {summary.total} runs done, "
                                     f"{summary.left} left ({csv_path}); run the same command to resume")
     if summary.failed:
