@@ -47,13 +47,13 @@ def _load(config: Path, overrides: list[str]) -> tuple[Config, str]:
 
 @app.command()
 def build(
-    out_dir: Annotated[Path, typer.Option("--out", help="folder for Vehicle.fmu and VirtualTarget.fmu")] = Path("build/fmus"),
+    out_dir: Annotated[Path, typer.Option("--out", help="folder for Vehicle.fmu, VirtualTarget.fmu and LiveVehicle.fmu")] = Path("build/fmus"),
     force: Annotated[bool, typer.Option(help="rebuild even if up to date")] = False,
 ) -> None:
-    """Build the Vehicle and VirtualTarget FMUs (only when their sources changed)."""
-    from fmus.build import build_fmus
+    """Build the Vehicle, VirtualTarget and LiveVehicle FMUs (only when their sources changed)."""
+    from fmus.build import ALL_FMUS, build_fmus
 
-    for built in build_fmus(out_dir, force=force):
+    for built in build_fmus(out_dir, force=force, names=ALL_FMUS):
         state = "built" if built.rebuilt else "up to date"
         out.print(f"{built.path}  {built.guid}  ({state})")
 
@@ -498,6 +498,10 @@ def bench_cores(
 from .hil_cli import register as _register_hil  # noqa: E402  (the m3pi-emulator and m3pi-serial commands)
 
 _register_hil(app, bench_app)
+
+from .ssp_cli import register as _register_ssp  # noqa: E402  (export-ssp: the platoon for other tools)
+
+_register_ssp(app)
 
 
 def main() -> None:

@@ -1,0 +1,79 @@
+"""Run an SSP package in libcosim (libcosimpy), as another tool would: ``python ssp_libcosim.py PACKAGE [--isolate]``.
+
+Steps the package's DefaultExperiment with its fixed step (from the .ssd), then prints one line per
+component ``NAME X Y`` (final position), ``end T`` (the time reached) and, with ``--isolate``, where
+the FMUs found our packages (``module NAME PATH``). ``--isolate`` first removes this project's packages
+from the host's import machinery (the editable install's finder, the repository on sys.path), so the
+FMUs must bring their own code. libcosim's log (FMU messages included) goes to standard output.
+Exit status 1 when a step fails.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import zipfile
+from xml.etree import ElementTree
+
+OUR_PACKAGES = ("fmus", "bridge", "orchestrator")
+NS = {"ssd": "http://ssp-standard.org/SSP1/SystemStructureDescription",
+      "ssc": "http://ssp-standard.org/SSP1/SystemStructureCommon",
+      "osp": "http://opensimulationplatform.com/SSP/OSPAnnotations"}
+
+
+def isolate() -> None:
+    """Make ``import fmus`` (bridge, orchestrator) fail in this process unless an FMU provides it."""
+    sys.meta_path[:] = [finder for finder in sys.meta_path if "editable" not in repr(finder).lower()]
+    repository = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    sys.path[:] = [entry for entry in sys.path
+                   if os.path.abspath(entry or ".") not in (repository, os.path.dirname(os.path.abspath(__file__)))]
+    for name in OUR_PACKAGES:
+        try:
+            __import__(name)
+        except ImportError:
+            continue
+        raise SystemExit(f"--isolate: {name} is still importable from {sys.modules[name].__file__}")
+
+
+def experiment(package: str) -> tuple[float, float]:
+    """(stop time, step) in seconds from the package's .ssd."""
+    with zipfile.ZipFile(package) as archive:
+        root = ElementTree.fromstring(archive.read("SystemStructure.ssd"))
+    default = root.find("ssd:DefaultExperiment", NS)
+    algorithm = default.find("ssd:Annotations/ssc:Annotation/osp:Algorithm/osp:FixedStepAlgorithm", NS)
+    return float(default.get("stopTime")), float(algorithm.get("baseStepSize"))
+
+
+def main() -> int:
+    package = os.path.abspath(sys.argv[1])
+    if "--isolate" in sys.argv[2:]:
+        isolate()
+    from libcosimpy.CosimExecution import CosimExecution
+    from libcosimpy.CosimLogging import CosimLogLevel, log_output_level
+    from libcosimpy.CosimObserver import CosimObserver
+
+    log_output_level(CosimLogLevel.INFO if "--isolate" in sys.argv[2:] else CosimLogLevel.WARNING)
+    stop_time, step = experiment(package)
+    execution = CosimExecution.from_ssp_file(package)
+    last = CosimObserver.create_last_value()
+    assert execution.add_observer(last)
+    steps = round(stop_time / step)
+    ok = execution.step(steps)
+    sys.stdout.flush()
+    for info in execution.slave_infos():
+        references = {v.name.decode(): v.reference for v in execution.slave_variables(info.index)}
+        x, y = last.last_real_values(info.index, [references["x"], references["y"]])
+        print(info.name.decode(), repr(x), repr(y))
+    print("end", execution.status().current_time / 1e9)
+    for name in OUR_PACKAGES:
+        if name in sys.modules:
+            print("module", name, sys.modules[name].__file__)
+    print("steps", "completed" if ok else "failed")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    code = main()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)  # no interpreter teardown after pythonfmu FMUs ran (see tests/conftest.py)
