@@ -1,7 +1,9 @@
-"""Run an SSP package in libcosim (libcosimpy), as another tool would: ``python ssp_libcosim.py PACKAGE [--isolate]``.
+"""Run an SSP package in libcosim (libcosimpy), as another tool would:
+``python ssp_libcosim.py PACKAGE [--isolate] [--tail K]``.
 
 Steps the package's DefaultExperiment with its fixed step (from the .ssd), then prints one line per
-component ``NAME X Y`` (final position), ``end T`` (the time reached) and, with ``--isolate``, where
+component ``NAME X Y`` (final position), ``end T`` (the time reached), with ``--tail K`` the positions
+after each of the last K steps (``sample NAME T X Y``) and, with ``--isolate``, where
 the FMUs found our packages (``module NAME PATH``). ``--isolate`` first removes this project's packages
 from the host's import machinery (the editable install's finder, the repository on sys.path), so the
 FMUs must bring their own code. libcosim's log (FMU messages included) goes to standard output.
@@ -58,12 +60,25 @@ def main() -> int:
     last = CosimObserver.create_last_value()
     assert execution.add_observer(last)
     steps = round(stop_time / step)
-    ok = execution.step(steps)
-    sys.stdout.flush()
+    tail = int(sys.argv[sys.argv.index("--tail") + 1]) if "--tail" in sys.argv else 0
+    positions = {}  # name -> (slave index, [reference of x, reference of y])
     for info in execution.slave_infos():
         references = {v.name.decode(): v.reference for v in execution.slave_variables(info.index)}
-        x, y = last.last_real_values(info.index, [references["x"], references["y"]])
-        print(info.name.decode(), repr(x), repr(y))
+        positions[info.name.decode()] = (info.index, [references["x"], references["y"]])
+    ok = execution.step(steps - tail)
+    samples = []
+    for _ in range(tail):
+        if not ok:
+            break
+        ok = execution.step(1)
+        now = execution.status().current_time / 1e9
+        samples += [(name, now, *last.last_real_values(index, refs)) for name, (index, refs) in positions.items()]
+    sys.stdout.flush()
+    for name, (index, refs) in positions.items():
+        x, y = last.last_real_values(index, refs)
+        print(name, repr(x), repr(y))
+    for sample in samples:
+        print("sample", *map(str, sample))
     print("end", execution.status().current_time / 1e9)
     for name in OUR_PACKAGES:
         if name in sys.modules:
