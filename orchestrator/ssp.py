@@ -10,7 +10,10 @@ An SSP (System Structure and Parameterization, Modelica Association) package is 
 * in the .ssd: every component with every input and output as a connector (units from the FMUs), the
   Fig. 2 connections of ``orchestrator.wiring`` (the list our master steps), the default experiment,
   and the Open Simulation Platform annotation that makes libcosim use its fixed-step algorithm with
-  the config's step.
+  the config's step, on the calling thread by default (``numWorkerThreads="0"``: pythonfmu FMUs
+  share one interpreter lock, so libcosim's worker threads only add synchronization; the exported
+  paper platoon ran 100 s in 4.1 s with 0 threads and 14.5 s with libcosim's default, on this loaded
+  2-core machine).
 
 What SSP 1.0 cannot say is not silently dropped: ``ssp_notes`` lists it (disturbance pulses, a
 Gauss-Seidel master), and the command prints it. The XML is checked against the SSP 1.0 schemas that
@@ -223,8 +226,7 @@ def export_components(config: Config, scenario: Scenario) -> list[ComponentSpec]
             for spec in scenario.components]
 
 
-def export_ssp(config: Config, out: Path, fmu_dir: Path, force: bool = False,
-               worker_threads: int | None = None) -> Path:
+def export_ssp(config: Config, out: Path, fmu_dir: Path, force: bool = False, worker_threads: int | None = 0) -> Path:
     """Build the FMUs the config needs (if stale) and write its SSP package to ``out``."""
     from fmus.build import build_fmus
 

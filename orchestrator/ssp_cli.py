@@ -14,7 +14,7 @@ def export_ssp(
     out: Annotated[Optional[Path], typer.Option("--out", help="the package to write (default: <config name>.ssp here)")] = None,
     overrides: Annotated[list[str], typer.Option("--set", help="override a key, as for platoon run")] = [],
     force: Annotated[bool, typer.Option("--force", help="replace an existing --out file")] = False,
-    worker_threads: Annotated[Optional[int], typer.Option("--worker-threads", min=0, help="libcosim's numWorkerThreads (default: libcosim's choice; 0: every FMU on the calling thread)")] = None,
+    worker_threads: Annotated[int, typer.Option("--worker-threads", min=0, help="libcosim's numWorkerThreads; 0 steps every FMU on the calling thread (our FMUs share one Python interpreter, so more threads only add synchronization)")] = 0,
 ) -> None:
     """Write the platoon of CONFIG as an SSP 1.0 package: FMUs, parameters, Fig. 2 wiring, step."""
     from fmus.build import DEFAULT_OUT

@@ -120,3 +120,11 @@ def test_a_lost_robot_fails_the_step_with_its_reason_after_a_stop_command(tmp_pa
     last = max(commands, key=lambda command: command.seq)
     assert (last.left, last.right) == (0.0, 0.0)
     assert sum(1 for c in commands if (c.left, c.right) == (0.0, 0.0)) >= 3  # the stop is sent 3 times
+
+
+def test_no_robot_fails_the_first_step_with_a_reason_that_names_the_keys(tmp_path: Path) -> None:
+    package = export_live(tmp_path, free_port(), 5.0, "hil.connect_timeout=1.0")
+    out, _ = libcosim(package, tmp_path).communicate(timeout=120)
+    assert "steps failed" in out and "end 0.0" in out, out
+    assert ("vehicle3 failed at t = 0 s: robot 3 (platoon/m3pi/3) did not appear within 1 s: no liveliness token "
+            "on platoon/m3pi/3/alive") in out, out

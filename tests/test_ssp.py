@@ -79,7 +79,7 @@ def test_exported_package_is_valid_ssp_and_holds_the_run(tmp_path: Path) -> None
     assert (float(experiment.get("startTime")), float(experiment.get("stopTime"))) == (0.0, 100.0)
     algorithm = experiment.find("ssd:Annotations/ssc:Annotation/osp:Algorithm/osp:FixedStepAlgorithm", NS)
     assert experiment.find("ssd:Annotations/ssc:Annotation", NS).get("type") == "com.opensimulationplatform"
-    assert float(algorithm.get("baseStepSize")) == 0.01
+    assert float(algorithm.get("baseStepSize")) == 0.01 and algorithm.get("numWorkerThreads") == "0"
 
 
 def test_export_refuses_bad_input_in_one_line_and_keeps_an_existing_package(tmp_path: Path) -> None:

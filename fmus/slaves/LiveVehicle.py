@@ -7,7 +7,8 @@ Inside, it is ``bridge.live.LiveVehicle``, the host side of the hardware-in-the-
 ``platoon run`` uses, so the protocol, the checks and the safety rules are that code's:
 
 * leaving initialization opens the Zenoh session and waits (``hil.connect_timeout``) for the robot's
-  liveliness token and first valid pose;
+  liveliness token and first valid pose (no robot: the reason is logged, and the first doStep fails
+  with it);
 * each doStep(t, h) evaluates the guidance on the robot's measured pose, sends the wheel command with
   its deadline, waits until wall-clock time has reached t + h (``orchestrator.realtime.Pacer``,
   started at the first step), then takes the pose the outputs describe;
@@ -102,6 +103,7 @@ class LiveVehicle(PlatoonSlave):
         super().__init__(**kwargs)
         self.link: LiveLink | None = None
         self.pacer: Pacer | None = None
+        self.unreachable = ""  # why the robot could not be reached when initialization ended
 
     def parameter_errors(self) -> list[str]:
         values = self.values
@@ -144,10 +146,13 @@ class LiveVehicle(PlatoonSlave):
             self.link.set_inputs([self.values[name] for name in inputs])
             self.link.end_initialization()
         except ComponentError as error:
+            # No robot: reported now in the log and again by the first doStep, which fails. Raising here
+            # would lose the reason (pythonfmu 0.7 drops the log of a call that raises).
             self._forward_link_log()
             self.log(str(error), Fmi2Status.error)
             self.link.close()
-            raise ValueError(str(error)) from None
+            self.link, self.unreachable = None, str(error)
+            return
         self._forward_link_log()
         self.stepper = self.link.stepper  # inputs set by the master now go straight to the link's controller
         self._outputs = None
@@ -155,7 +160,7 @@ class LiveVehicle(PlatoonSlave):
     def do_step(self, current_time: float, step_size: float) -> bool:
         link = self.link
         if link is None:
-            self.log(f"{self.instance_name}: doStep before initialization ended", Fmi2Status.error)
+            self.log(self.unreachable or f"{self.instance_name}: doStep before initialization ended", Fmi2Status.error)
             return False
         if self.pacer is None:  # wall-clock time starts with the first step, whatever initialization took
             self.pacer = Pacer()
