@@ -48,7 +48,7 @@ _ZIP_TIME = (2020, 1, 1, 0, 0, 0)  # fixed entry times: the same config gives th
 
 
 class SspError(ValueError):
-    """The package cannot be written (a parameter the FMU does not have, an unwritable place)."""
+    """The package cannot be written as asked (a parameter the FMU does not have)."""
 
 
 @dataclass(frozen=True)
@@ -182,6 +182,9 @@ def write_ssp(out: Path, scenario: Scenario, fmu_paths: Mapping[str, Path],
                 archive.writestr(_entry(name, compress), data)
         if not force and out.exists():  # appeared while we wrote: still not ours to replace
             raise FileExistsError(out)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(partial, 0o666 & ~umask)  # as any new file (mkstemp made it private)
         os.replace(partial, out)
     except BaseException:
         Path(partial).unlink(missing_ok=True)
