@@ -102,7 +102,7 @@ def _execute(config: Config, text: str, trace: Path, engine: str, quiet: bool, t
         tick = update
         progress.start()
     try:
-        return run_scenario(config, text, trace, engine=engine, tick=tick, trace_writer=trace_writer)
+        return run_scenario(config, text, trace, engine=engine, tick=tick, trace_writer=trace_writer, summarize=not quiet)
     finally:
         if progress is not None:
             progress.stop()
@@ -166,7 +166,8 @@ def run(
     if result.status != "completed":
         _fail(1, f"run {result.status}: {result.error} (trace up to that point: {result.trace})")
     if not quiet:
-        summaries = summarize(load(result.trace), parsed)
+        # accumulated while stepping; the trace is read again only if the run's end was not the planned one
+        summaries = result.summary if result.summary is not None else summarize(load(result.trace), parsed)
         out.print(_summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine}, last 10 % of {parsed.simulation.stop_time:g} s"))
     out.print(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)")
     if compare:
