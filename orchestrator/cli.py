@@ -404,6 +404,23 @@ def bench_scenarios(
            suite.markdown, out_dir, quiet)
 
 
+@bench_app.command("wholerun")
+def bench_wholerun(
+    n: Counts = "16",
+    steps: Steps = 10_000,
+    variants: Annotated[str, typer.Option(help="comma-separated: platoon (default run, traced, table), platoon-q (-q --trace-every 100), libcosim (no observer), libcosim-outputs (time series of every output), libcosim-last-value")] = "platoon,platoon-q,libcosim,libcosim-outputs,libcosim-last-value",
+    rounds: Rounds = 5,
+    out_dir: OutDir = Path("runs/bench"),
+    quiet: Quiet = False,
+) -> None:
+    """Whole `platoon run` processes against libcosim running the same system from an SSP (0 threads)."""
+    from .bench import wholerun as suite
+
+    kinds, counts = _csv("--variants", variants, suite.VARIANTS), _counts(n)
+    _bench("wholerun", lambda progress: suite.run(counts, steps, rounds, kinds, progress=progress), suite.markdown,
+           out_dir, quiet)
+
+
 @bench_app.command("instances")
 def bench_instances(
     engines: Annotated[str, typer.Option(help="comma-separated: native, fmpy")] = "native,fmpy",

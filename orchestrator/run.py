@@ -6,6 +6,7 @@ Whatever happens, the trace keeps every step recorded so far and says how the ru
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import os
 import platform
@@ -15,9 +16,6 @@ import time as clock
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
-
-import fmpy
-import pythonfmu
 
 import fmus
 from fmus.build import DEFAULT_OUT, build_fmus
@@ -91,8 +89,9 @@ def tool_versions() -> dict[str, str]:
     return {
         "platoon-cosim": __version__,
         "fmus": fmus.__version__,
-        "fmpy": fmpy.__version__,
-        "pythonfmu": pythonfmu.__version__,
+        # from the installed metadata: importing pythonfmu only for its version costs ~80 ms of start-up
+        "fmpy": importlib.metadata.version("fmpy"),
+        "pythonfmu": importlib.metadata.version("pythonfmu"),
         "python": platform.python_version(),
     }
 
