@@ -75,7 +75,8 @@ class RunResult:
     status: str  # "completed" | "failed" | "interrupted"
     error: str | None = None
     signal: int | None = None  # SIGINT or SIGTERM when interrupted
-    # wall seconds by phase: "setup" (trace writer, metadata), "initialize" (instantiate, initialization
+    # wall seconds by phase: "open" (FMUs checked and unpacked, before wall_time starts), "setup" (trace
+    # writer, metadata), "initialize" (instantiate, initialization
     # mode), "steps" (the stepping loop, recording included), "finish" (FMUs closed, trace finalized)
     timings: dict[str, float] = field(default_factory=dict)
     # with live vehicles: "pacing" (step jitter, overruns) and each live vehicle's link statistics
@@ -257,6 +258,7 @@ def run_scenario(
     writer_kind = "inline" if live else choose_trace_writer(trace_writer, steps // sim.trace_every + 1,
                                                             len(scenario.components))
     # the trace writer process starts first: its start-up overlaps unpacking and instantiating the FMUs
+    opening = clock.perf_counter()
     trace_process = TraceProcess() if out is not None and writer_kind == "process" else None
     try:
         fmus_by_kind = _open_fmus(fmu_dir)
@@ -266,6 +268,7 @@ def run_scenario(
         raise
     started = clock.perf_counter()
     marks = {"start": started}  # phase boundaries, for RunResult.timings
+    opened = started - opening  # FMUs checked and unpacked, trace writer process started (not in wall_time)
     writer: TraceWriter | TraceWorker | NullTraceWriter | None = None
     master = None
     reporter: LiveReporter | None = None
@@ -369,7 +372,7 @@ def run_scenario(
     marks["finish"] = clock.perf_counter()
     summary = feed.result() if feed is not None and status == "completed" else None
     return RunResult(Path(out) if out is not None else None, steps, marks["finish"] - started, status, error, signum,
-                     _phase_durations(marks), live_summary, summary)
+                     {"open": opened, **_phase_durations(marks)}, live_summary, summary)
 
 
 class _SummaryFeed:
