@@ -5,13 +5,15 @@ Steps the package's DefaultExperiment with its fixed step (from the .ssd), then 
 component ``NAME X Y`` (final position), ``end T`` (the time reached), with ``--tail K`` the positions
 after each of the last K steps (``sample NAME T X Y``) and, with ``--isolate``, where
 the FMUs found our packages (``module NAME PATH``). ``--isolate`` first removes this project's packages
-from the host's import machinery (the editable install's finder, the repository on sys.path), so the
+from the host's import machinery (they are then found only in an FMU's resources folder), so the
 FMUs must bring their own code. libcosim's log (FMU messages included) goes to standard output.
 Exit status 1 when a step fails.
 """
 
 from __future__ import annotations
 
+import importlib.abc
+import importlib.machinery
 import os
 import sys
 import zipfile
@@ -23,9 +25,25 @@ NS = {"ssd": "http://ssp-standard.org/SSP1/SystemStructureDescription",
       "osp": "http://opensimulationplatform.com/SSP/OSPAnnotations"}
 
 
+class OnlyFromFmuResources(importlib.abc.MetaPathFinder):
+    """Finds this project's top-level packages only in an FMU's ``resources`` folder on sys.path (where
+    pythonfmu puts it), whichever way the project is installed in this environment."""
+
+    def find_spec(self, fullname, path, target=None):
+        if fullname not in OUR_PACKAGES:
+            return None
+        folders = [entry for entry in sys.path if os.path.basename(os.path.normpath(entry or ".")) == "resources"]
+        spec = importlib.machinery.PathFinder.find_spec(fullname, folders)
+        if spec is None:
+            raise ModuleNotFoundError(f"No module named {fullname!r} (ssp_libcosim.py --isolate: only from an FMU)",
+                                      name=fullname)
+        return spec
+
+
 def isolate() -> None:
     """Make ``import fmus`` (bridge, orchestrator) fail in this process unless an FMU provides it."""
-    sys.meta_path[:] = [finder for finder in sys.meta_path if "editable" not in repr(finder).lower()]
+    sys.meta_path[:] = [OnlyFromFmuResources()] + [finder for finder in sys.meta_path
+                                                   if "editable" not in repr(finder).lower()]
     repository = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     sys.path[:] = [entry for entry in sys.path
                    if os.path.abspath(entry or ".") not in (repository, os.path.dirname(os.path.abspath(__file__)))]
