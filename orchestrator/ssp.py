@@ -29,7 +29,7 @@ import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
-from xml.etree.ElementTree import Element, SubElement, register_namespace, tostring
+from xml.etree.ElementTree import Element, SubElement, indent, register_namespace, tostring
 
 from .config import Config
 from .scenario import ComponentSpec, Scenario
@@ -99,6 +99,7 @@ def parameter_set(name: str, parameters: Mapping[str, Any], fmu: FmuInterface) -
         kind = fmu.variables[parameter][0]
         entry = SubElement(listed, _q(SSV, "Parameter"), {"name": parameter})
         SubElement(entry, _q(SSV, kind), {"value": ssv_text(kind, value)})
+    indent(root)  # a file people read and diff
     return tostring(root, encoding="UTF-8", xml_declaration=True)
 
 
@@ -141,6 +142,7 @@ def system_structure(scenario: Scenario, components: Sequence[ComponentSpec], fm
     if worker_threads is not None:
         algorithm["numWorkerThreads"] = str(worker_threads)
     SubElement(SubElement(annotation, _q(OSP, "Algorithm")), _q(OSP, "FixedStepAlgorithm"), algorithm)
+    indent(root)  # a file people read and diff
     return tostring(root, encoding="UTF-8", xml_declaration=True)
 
 
