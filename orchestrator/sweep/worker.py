@@ -5,8 +5,8 @@ Why a process per run: pythonfmu FMUs embed themselves in the host interpreter, 
 process of its own, such a run is recorded as failed, with the reason, and the sweep goes on; the
 process leaves with ``os._exit``. Its start-up (about 0.4 s of imports) is small against a run.
 
-The child runs ``run_scenario`` (orchestrator/run.py), then summarizes the trace with the code of
-``platoon report --json`` (orchestrator/metrics.py) and prints one ``RESULT {json}`` line. It dies
+The child runs ``run_scenario`` (orchestrator/run.py) with the summary ``platoon report --json`` gives
+(orchestrator/metrics.py), accumulated as the rows are recorded, and prints one ``RESULT {json}`` line. It dies
 with the process that started it (Linux: PR_SET_PDEATHSIG), so a sweep killed with SIGKILL leaves no
 run behind that could still write into its folder.
 
@@ -67,11 +67,14 @@ def _run(request: dict[str, Any]) -> dict[str, Any]:
 
     config = config_from_mapping(request["raw"])
     trace = Path(request["trace"])
-    # inline: the sweep's parallelism is across runs, a trace-writer process per run would compete for the cores
-    result = run_scenario(config, request["text"], trace, fmu_dir=Path(request["fmu_dir"]), trace_writer="inline")
+    # inline: the sweep's parallelism is across runs, a trace-writer process per run would compete for the cores;
+    # summarize: the report's summary, accumulated from the rows as they are recorded (no second reading)
+    result = run_scenario(config, request["text"], trace, fmu_dir=Path(request["fmu_dir"]), trace_writer="inline",
+                          summarize=True)
     outcome: dict[str, Any] = {"status": result.status, "error": result.error or "", "wall_time": result.wall_time}
     if result.status == "completed":
-        outcome["metrics"] = flatten_report(report_json(summarize(load(trace), config)))
+        summaries = result.summary if result.summary is not None else summarize(load(trace), config)
+        outcome["metrics"] = flatten_report(report_json(summaries))
     return outcome
 
 
