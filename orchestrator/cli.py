@@ -47,13 +47,13 @@ def _load(config: Path, overrides: list[str]) -> tuple[Config, str]:
 
 @app.command()
 def build(
-    out_dir: Annotated[Path, typer.Option("--out", help="folder for Vehicle.fmu and VirtualTarget.fmu")] = Path("build/fmus"),
+    out_dir: Annotated[Path, typer.Option("--out", help="folder for Vehicle.fmu, VirtualTarget.fmu and LiveVehicle.fmu")] = Path("build/fmus"),
     force: Annotated[bool, typer.Option(help="rebuild even if up to date")] = False,
 ) -> None:
-    """Build the Vehicle and VirtualTarget FMUs (only when their sources changed)."""
-    from fmus.build import build_fmus
+    """Build the Vehicle, VirtualTarget and LiveVehicle FMUs (only when their sources changed)."""
+    from fmus.build import ALL_FMUS, build_fmus
 
-    for built in build_fmus(out_dir, force=force):
+    for built in build_fmus(out_dir, force=force, names=ALL_FMUS):
         state = "built" if built.rebuilt else "up to date"
         out.print(f"{built.path}  {built.guid}  ({state})")
 
@@ -85,6 +85,25 @@ def _summary_table(summaries, config: Config, title: str) -> Table:
     return table
 
 
+def _time_split(entered: float | None, loaded: float | None, timings: dict[str, float], now: float | None) -> str:
+    """``-v``: where this process's wall time went, from the interpreter's start to now (a few lines)."""
+    def seconds(value: float | None) -> str:
+        return "?" if value is None else f"{value:.2f} s"
+
+    run_total = sum(timings.values())
+    config_time = None if entered is None or loaded is None else loaded - entered
+    rest = None if now is None or loaded is None else now - loaded - run_total
+    phases = ", ".join(f"{name} {timings[name]:.2f} s" for name in ("setup", "initialize", "steps", "finish")
+                       if name in timings)
+    return "\n".join([
+        f"wall time since the process started: {seconds(now)}",
+        f"  start-up: interpreter and imports {seconds(entered)}, config {seconds(config_time)},",
+        f"            FMUs checked and unpacked {seconds(timings.get('open'))}",
+        f"  run: {phases}",
+        f"  after the run (summary, output): {seconds(rest)}",
+    ])
+
+
 def _execute(config: Config, text: str, trace: Path, engine: str, quiet: bool, trace_writer: str = "auto"):
     from .run import run_scenario
     from .scenario import step_count
@@ -102,7 +121,7 @@ def _execute(config: Config, text: str, trace: Path, engine: str, quiet: bool, t
         tick = update
         progress.start()
     try:
-        return run_scenario(config, text, trace, engine=engine, tick=tick, trace_writer=trace_writer)
+        return run_scenario(config, text, trace, engine=engine, tick=tick, trace_writer=trace_writer, summarize=not quiet)
     finally:
         if progress is not None:
             progress.stop()
@@ -129,8 +148,12 @@ def run(
     trace_every: Annotated[Optional[int], typer.Option("--trace-every", min=1, help="record every K-th communication point (overrides simulation.trace_every)")] = None,
     engine_name: Annotated[Optional[str], typer.Option("--engine", help="native (compiled stepping core; default when built) or python (FMPy); same results")] = None,
     trace_writer: Annotated[str, typer.Option("--trace-writer", help="where the trace is encoded: process (a second process), inline, or auto (a second process for long runs on a multi-core machine); same file")] = "auto",
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="also print where the wall time went: start-up (imports, config, FMUs), the run's phases, the summary")] = False,
 ) -> None:
     """Run a scenario: wire the FMUs as the paper's Fig. 2, step them, write an MCAP trace."""
+    from .startup import seconds_since_process_start
+
+    entered = seconds_since_process_start()  # the interpreter and the imports so far
     from .metrics import summarize
     from .run import default_trace_path
     from .trace import load
@@ -138,6 +161,7 @@ def run(
     if trace_every is not None:
         overrides = [*overrides, f"simulation.trace_every={trace_every}"]
     parsed, text = _load(config, overrides)
+    loaded = seconds_since_process_start()
     from .run import default_engine
 
     if engine_name not in (None, "native", "python"):
@@ -166,9 +190,12 @@ def run(
     if result.status != "completed":
         _fail(1, f"run {result.status}: {result.error} (trace up to that point: {result.trace})")
     if not quiet:
-        summaries = summarize(load(result.trace), parsed)
+        # accumulated while stepping; the trace is read again only if the run's end was not the planned one
+        summaries = result.summary if result.summary is not None else summarize(load(result.trace), parsed)
         out.print(_summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine}, last 10 % of {parsed.simulation.stop_time:g} s"))
     out.print(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)")
+    if verbose:
+        err.print(_time_split(entered, loaded, result.timings, seconds_since_process_start()), highlight=False)
     if compare:
         from .compare import deviations
 
@@ -403,6 +430,23 @@ def bench_scenarios(
            suite.markdown, out_dir, quiet)
 
 
+@bench_app.command("wholerun")
+def bench_wholerun(
+    n: Counts = "16",
+    steps: Steps = 10_000,
+    variants: Annotated[str, typer.Option(help="comma-separated: platoon (default run, traced, table), platoon-q (-q --trace-every 100), libcosim (no observer), libcosim-outputs (time series of every output), libcosim-last-value")] = "platoon,platoon-q,libcosim,libcosim-outputs,libcosim-last-value",
+    rounds: Rounds = 5,
+    out_dir: OutDir = Path("runs/bench"),
+    quiet: Quiet = False,
+) -> None:
+    """Whole `platoon run` processes against libcosim running the same system from an SSP (0 threads)."""
+    from .bench import wholerun as suite
+
+    kinds, counts = _csv("--variants", variants, suite.VARIANTS), _counts(n)
+    _bench("wholerun", lambda progress: suite.run(counts, steps, rounds, kinds, progress=progress), suite.markdown,
+           out_dir, quiet)
+
+
 @bench_app.command("instances")
 def bench_instances(
     engines: Annotated[str, typer.Option(help="comma-separated: native, fmpy")] = "native,fmpy",
@@ -498,6 +542,13 @@ def bench_cores(
 from .hil_cli import register as _register_hil  # noqa: E402  (the m3pi-emulator and m3pi-serial commands)
 
 _register_hil(app, bench_app)
+from .sweep.cli import register as _register_sweep  # noqa: E402  (sweep, sweep-plot, bench sweep)
+
+_register_sweep(app, bench_app)
+
+from .ssp_cli import register as _register_ssp  # noqa: E402  (export-ssp: the platoon for other tools)
+
+_register_ssp(app)
 
 
 def main() -> None:
