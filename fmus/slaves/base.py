@@ -21,7 +21,7 @@ from pythonfmu.variables import Boolean, Integer, Real, String
 
 from fmus.model.integrate import substep_count
 from fmus.slaves.host_exit import guard_host_exit
-from fmus.slaves.refusal import fmi_call, keep_module_globals, refuse
+from fmus.slaves.refusal import fmi_call, fmi_step, keep_module_globals, refuse
 
 _TYPES = {"Real": Real, "Integer": Integer, "Boolean": Boolean, "String": String}
 
@@ -77,6 +77,12 @@ def _shared_tables(cls: type[PlatoonSlave], name_of: dict[int, str]) -> _Tables:
     return tables
 
 
+# Every method pythonfmu's binary calls on a slave, but do_step (see fmus.slaves.refusal).
+FMI_METHODS = ("setup_experiment", "enter_initialization_mode", "exit_initialization_mode", "terminate",
+               "get_real", "get_integer", "get_boolean", "get_string", "set_real", "set_integer", "set_boolean",
+               "set_string", "_get_fmu_state", "_set_fmu_state")
+
+
 class PlatoonSlave(Fmi2Slave):
     """Base of the Vehicle and VirtualTarget slaves: declared variables, lazy outputs, FMU state."""
 
@@ -87,6 +93,14 @@ class PlatoonSlave(Fmi2Slave):
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         keep_module_globals(cls)  # see fmus.slaves.refusal: pythonfmu's fmi2Instantiate releases them
+        # A subclass's own FMI methods get the same guard as ours: no exception reaches the binary raw.
+        for name in FMI_METHODS:
+            method = cls.__dict__.get(name)
+            if method is not None and not hasattr(method, "__wrapped__"):
+                setattr(cls, name, fmi_call(method))
+        step = cls.__dict__.get("do_step")
+        if step is not None and not hasattr(step, "__wrapped__"):
+            cls.do_step = fmi_step(step)
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)

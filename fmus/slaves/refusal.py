@@ -21,7 +21,9 @@ queue before it reads the exception, and with a message queued the exception is 
 (the host then reads "unknown error", measured). So a call that refuses logs nothing else first.
 
 ``fmi_call`` wraps each method the binary calls, so an unforeseen exception (a bug, an input nobody
-thought of) also leaves through ``refuse``, never raw.
+thought of) also leaves through ``refuse``, never raw; ``fmi_step`` turns one from a ``do_step`` into
+a logged fmi2Discard. ``PlatoonSlave.__init_subclass__`` applies them to every subclass's overrides
+too (LiveVehicle's), so no slave can forget it.
 
 The status a host sees for a refused call is therefore fmi2Fatal, not the fmi2Error the call
 deserves: the binary offers nothing else (docs/fmus.md, "Failures").
@@ -41,6 +43,8 @@ from __future__ import annotations
 import functools
 import sys
 from typing import Any, Callable, NoReturn, TypeVar
+
+from pythonfmu.enums import Fmi2Status
 
 _KEPT_FOR_THE_BINARY: list[Any] = []
 
@@ -67,6 +71,21 @@ def keep_module_globals(cls: type) -> None:
     module = sys.modules.get(cls.__module__)
     if module is not None:
         _KEPT_FOR_THE_BINARY.append(vars(module))
+
+
+def fmi_step(method: Method) -> Method:
+    """A subclass's ``do_step`` as the binary may call it: an exception becomes a logged fmi2Discard."""
+
+    @functools.wraps(method)
+    def step(self: Any, current_time: float, step_size: float) -> bool:
+        try:
+            return bool(method(self, current_time, step_size))
+        except Exception as error:  # noqa: BLE001
+            self.log(f"{self.instance_name}: step from t = {current_time:.6g} s failed: {type(error).__name__}: "
+                     f"{error}", Fmi2Status.error)
+            return False
+
+    return step  # type: ignore[return-value]
 
 
 def fmi_call(method: Method) -> Method:
