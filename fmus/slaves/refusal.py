@@ -9,10 +9,12 @@ memory: the host segfaults (issue 18, item 12).
 The binary reports a failure in no other way. It ignores what ``exit_initialization_mode``, the
 getters, the setters and the state methods return, so only an exception can fail them; only
 ``do_step`` has a return value it maps (False -> fmi2Discard). So a call that must fail raises,
-through ``refuse`` alone: it hands the binary one extra reference to each of the three objects it is
-about to drop, so its unbalanced decrements cost nothing, the instance stays alive, and every later
-call on it runs on live objects and fails (or works) cleanly. The kept references are a few list
-entries per refused call, freed at interpreter exit.
+through ``refuse`` alone: it gives each of the three objects the binary is about to release one
+extra reference (``Py_IncRef``, owned by nobody, so the binary's unbalanced decrement takes exactly
+that one), the instance stays alive, and every later call on it runs on live objects and fails (or
+works) cleanly. Held in a list instead, the extra reference would be released twice in the end (by
+the binary and by the list): the instance was then freed while still listed, and the next garbage
+collection crashed the host (measured: a Python and a native engine run in one process).
 
 The reason travels in the exception: the binary logs it, with status fmi2Fatal, as
 ``Fatal py exception encountered: [getReal] PyObject_CallMethod\n<reason>`` (a host
@@ -40,13 +42,21 @@ reference it will drop just in time, once per call.
 
 from __future__ import annotations
 
+import ctypes
 import functools
 import sys
 from typing import Any, Callable, NoReturn, TypeVar
 
 from pythonfmu.enums import Fmi2Status
 
-_KEPT_FOR_THE_BINARY: list[Any] = []
+_incref = ctypes.pythonapi.Py_IncRef
+_incref.argtypes = [ctypes.py_object]
+_incref.restype = None
+
+
+def _reference_for_the_binary(thing: Any) -> None:
+    """One reference to ``thing`` that the binary's unbalanced Py_DECREF will take."""
+    _incref(thing)
 
 Method = TypeVar("Method", bound=Callable[..., Any])
 
@@ -61,7 +71,8 @@ class CallRefused(Exception):
 def refuse(slave: Any, reason: str) -> NoReturn:
     """Fail the current FMI call of ``slave`` with ``reason``, keeping the instance alive."""
     # The three objects cleanPyObject() releases: pClass_, pInstance_, pMessages_.
-    _KEPT_FOR_THE_BINARY.extend((type(slave), slave, slave._get_log_queue()))
+    for thing in (type(slave), slave, slave._get_log_queue()):
+        _reference_for_the_binary(thing)
     raise CallRefused(reason)
 
 
@@ -70,7 +81,7 @@ def keep_module_globals(cls: type) -> None:
     to release."""
     module = sys.modules.get(cls.__module__)
     if module is not None:
-        _KEPT_FOR_THE_BINARY.append(vars(module))
+        _reference_for_the_binary(vars(module))
 
 
 def fmi_step(method: Method) -> Method:
