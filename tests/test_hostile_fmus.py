@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from fmpy import read_model_description, simulate_fmu
 
-from tests.hostile_fmus import TIMEOUT, all_cases, problems, run_host, unzip
+from tests.hostile_fmus import DISCARD, FATAL, TIMEOUT, Case, all_cases, problems, run_host, unzip
 
 LIBCOSIM_HOST = Path(__file__).resolve().parent / "hostile_libcosim_host.py"
 
@@ -234,3 +234,22 @@ def test_the_fmus_declare_they_need_a_python_installation(fmu_dir, name):
     assert root.find("CoSimulation").get("needsExecutionTool") == "true"
     assert validate_fmu(str(fmu_dir / f"{name}.fmu")) == []
     assert simulate_fmu(str(fmu_dir / f"{name}.fmu"), stop_time=0.1)["time"][-1] == pytest.approx(0.1)
+
+
+# --- a subclass's own FMI methods: LiveVehicle ------------------------------------------------------
+
+
+def test_a_live_vehicle_refuses_state_calls_and_keeps_the_host_alive(fmu_dir, tmp_path):
+    """LiveVehicle raises on fmi2GetFMUstate (a robot cannot be rolled back). Raw, that exception made
+    pythonfmu free the instance and the next call crash the host; every PlatoonSlave subclass's FMI
+    methods are now guarded like the base's. No robot is needed: initialization ends without one
+    (LiveVehicle reports it at the first step)."""
+    from fmus.build import LIVE_FMU, build_fmus
+
+    build_fmus(fmu_dir, names=(LIVE_FMU,))
+    unzipped = unzip(fmu_dir / f"{LIVE_FMU}.fmu", tmp_path / LIVE_FMU)
+    case = Case(LIVE_FMU, "fmi2GetFMUstate twice", {"hil.connect_timeout": 0.3},
+                [["exit"], ["get_state"], ["get"], ["step", 0.0, 0.01], ["get_state"]],
+                lambda outcome: [] if [c["status"] for c in outcome.calls if "args" in c] == [0, FATAL, 0, DISCARD, FATAL]
+                and outcome.logged("a live robot has no FMU state") else [f"unexpected: {outcome.calls}"])
+    assert problems(case, run_host(unzipped, case)) == []
