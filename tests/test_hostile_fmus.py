@@ -253,3 +253,23 @@ def test_a_live_vehicle_refuses_state_calls_and_keeps_the_host_alive(fmu_dir, tm
                 lambda outcome: [] if [c["status"] for c in outcome.calls if "args" in c] == [0, FATAL, 0, DISCARD, FATAL]
                 and outcome.logged("a live robot has no FMU state") else [f"unexpected: {outcome.calls}"])
     assert problems(case, run_host(unzipped, case)) == []
+
+
+# --- item 13: how a run reports a discarded step ----------------------------------------------------
+
+
+def test_a_discarded_step_of_any_vehicle_is_reported_with_its_reason(fmu_dir):
+    """A -100 m/s speed pulse on vehicle 2 (not the last one created): its fmi2DoStep answers
+    fmi2Discard with the reason logged, and the run's error names it. The Python engine used to
+    lose it (FMPy's logger proxy handed every message to the component created last) and said only
+    "fmi2DoStep failed with status 2 (discard)". (The native engine keeps its own log per instance.)"""
+    from orchestrator.config import config_from_mapping
+    from orchestrator.run import run_scenario
+
+    config = config_from_mapping({
+        "name": "discard", "simulation": {"stop_time": 2.0, "step": 0.01}, "platoon": {"count": 4},
+        "disturbance": [{"vehicle": 2, "kind": "speed", "start": 1.0, "duration": 0.5, "value": -100.0}]})
+    result = run_scenario(config, "", None, engine="python", fmu_dir=fmu_dir)
+    assert result.status == "failed"
+    assert result.error.startswith("vehicle2 failed at t = 1 s: vehicle2: step from t = 1 s"), result.error
+    assert "speed fell" in result.error and "\n" not in result.error, result.error
