@@ -107,10 +107,14 @@ def _build_one(name: str, out_dir: Path, guid: str) -> Path:
     out_dir.mkdir(parents=True, exist_ok=True)
     target = out_dir / f"{name}.fmu"
     partial = target.with_suffix(".fmu.partial")
-    with zipfile.ZipFile(partial, "w") as archive:
-        for entry in sorted(entries):
-            archive.writestr(_zip_entry(entry), entries[entry])
-    partial.replace(target)  # never leave a half-written FMU under the final name
+    try:
+        with zipfile.ZipFile(partial, "w") as archive:
+            for entry in sorted(entries):
+                archive.writestr(_zip_entry(entry), entries[entry])
+        partial.replace(target)  # never leave a half-written FMU under the final name
+    except BaseException:  # e.g. a full disk: no half-written .partial left behind either
+        partial.unlink(missing_ok=True)
+        raise
     return target
 
 
