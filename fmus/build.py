@@ -10,6 +10,7 @@ changes and a trace can name the model version it ran.
 from __future__ import annotations
 
 import hashlib
+import importlib.metadata
 import importlib
 import sys
 import tempfile
@@ -17,9 +18,6 @@ import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from xml.etree import ElementTree
-
-import pythonfmu
-from pythonfmu.builder import FmuBuilder
 
 import fmus
 from fmus.documentation import documentation_html
@@ -50,7 +48,7 @@ def bundled_sources() -> list[Path]:
 
 def source_digest() -> str:
     """Digest of everything that shapes an FMU: bundled sources, builder modules, pythonfmu version."""
-    digest = hashlib.sha256(pythonfmu.__version__.encode())
+    digest = hashlib.sha256(importlib.metadata.version("pythonfmu").encode())
     for path in bundled_sources() + [PACKAGE_DIR / "build.py", PACKAGE_DIR / "modeldescription.py", PACKAGE_DIR / "documentation.py"]:
         digest.update(str(path.relative_to(PACKAGE_DIR)).encode())
         digest.update(path.read_bytes())
@@ -85,6 +83,8 @@ def _zip_entry(name: str) -> zipfile.ZipInfo:
 
 def _build_one(name: str, out_dir: Path, guid: str) -> Path:
     version = fmus.__version__
+    from pythonfmu.builder import FmuBuilder  # only to build: checking that FMUs are current needs none of it
+
     with tempfile.TemporaryDirectory(prefix="platoon-build-") as scratch:
         # pythonfmu imports the script by its stem from the script's folder.
         sys.path.insert(0, str(PACKAGE_DIR / "slaves"))

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import html
 
-from fmus.slaves.base import PlatoonSlave
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only: checking that the FMUs are current must not import pythonfmu
+    from fmus.slaves.base import PlatoonSlave
 
 PAPER = (
     "I. T. Erekson, R. Sharma, A. Ratnoo, R. Gerdes, "

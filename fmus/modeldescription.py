@@ -21,7 +21,10 @@ from typing import Any
 from xml.dom.minidom import parseString
 from xml.etree.ElementTree import Element, SubElement, tostring
 
-from fmus.slaves.base import PlatoonSlave
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only: checking that the FMUs are current must not import pythonfmu
+    from fmus.slaves.base import PlatoonSlave
 
 # SI base-unit exponents of every unit our variables use.
 UNITS: dict[str, dict[str, int]] = {

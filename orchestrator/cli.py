@@ -109,7 +109,7 @@ def _execute(config: Config, text: str, trace, engine: str, quiet: bool, trace_w
         tick = update
         progress.start()
     try:
-        return run_scenario(config, text, trace, engine=engine, tick=tick, trace_writer=trace_writer)
+        return run_scenario(config, text, trace, engine=engine, tick=tick, trace_writer=trace_writer, summarize=not quiet)
     finally:
         if progress is not None:
             progress.stop()
@@ -192,7 +192,8 @@ def run(
     if result.status != "completed":
         _fail(1, f"run {result.status}: {result.error} (trace up to that point: {result.trace})")
     if not quiet:
-        summaries = summarize(load(result.trace), parsed)
+        # accumulated while stepping; the trace is read again only if the run's end was not the planned one
+        summaries = result.summary if result.summary is not None else summarize(load(result.trace), parsed)
         out.print(_summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine}, last 10 % of {parsed.simulation.stop_time:g} s"))
     out.print(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)")
     if compare:
@@ -513,6 +514,23 @@ def bench_scenarios(
     kinds = _csv("--variants", variants, suite.VARIANTS)
     _bench("scenarios", lambda progress: suite.run(configs or None, chosen, kinds, rounds, overrides, progress=progress),
            suite.markdown, out_dir, quiet)
+
+
+@bench_app.command("wholerun")
+def bench_wholerun(
+    n: Counts = "16",
+    steps: Steps = 10_000,
+    variants: Annotated[str, typer.Option(help="comma-separated: platoon (default run, traced, table), platoon-q (-q --trace-every 100), libcosim (no observer), libcosim-outputs (time series of every output), libcosim-last-value")] = "platoon,platoon-q,libcosim,libcosim-outputs,libcosim-last-value",
+    rounds: Rounds = 5,
+    out_dir: OutDir = Path("runs/bench"),
+    quiet: Quiet = False,
+) -> None:
+    """Whole `platoon run` processes against libcosim running the same system from an SSP (0 threads)."""
+    from .bench import wholerun as suite
+
+    kinds, counts = _csv("--variants", variants, suite.VARIANTS), _counts(n)
+    _bench("wholerun", lambda progress: suite.run(counts, steps, rounds, kinds, progress=progress), suite.markdown,
+           out_dir, quiet)
 
 
 @bench_app.command("instances")

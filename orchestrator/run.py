@@ -6,6 +6,7 @@ Whatever happens, the trace keeps every step recorded so far and says how the ru
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import os
 import platform
@@ -15,9 +16,6 @@ import time as clock
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
-
-import fmpy
-import pythonfmu
 
 import fmus
 from fmus.build import DEFAULT_OUT, build_fmus
@@ -29,6 +27,7 @@ from .components import ComponentError, FmuComponent, UnpackedFmu
 from .config import Config
 from .live import LiveReporter, check_live_options, live_component, live_names
 from .master import Master
+from .metrics import RunningSummary, VehicleSummary, running_summary
 from .realtime import Pacer
 from .native import NativeComponent, NativeMaster, available as native_available
 from .scenario import Scenario, build_scenario, step_count
@@ -82,14 +81,18 @@ class RunResult:
     timings: dict[str, float] = field(default_factory=dict)
     # with live vehicles: "pacing" (step jitter, overruns) and each live vehicle's link statistics
     live: dict[str, dict] = field(default_factory=dict)
+    # run_scenario(..., summarize=True) of a completed run: the summary of the recorded rows, as
+    # `platoon report` computes it from the trace (None otherwise)
+    summary: list[VehicleSummary] | None = None
 
 
 def tool_versions() -> dict[str, str]:
     return {
         "platoon-cosim": __version__,
         "fmus": fmus.__version__,
-        "fmpy": fmpy.__version__,
-        "pythonfmu": pythonfmu.__version__,
+        # from the installed metadata: importing pythonfmu only for its version costs ~80 ms of start-up
+        "fmpy": importlib.metadata.version("fmpy"),
+        "pythonfmu": importlib.metadata.version("pythonfmu"),
         "python": platform.python_version(),
     }
 
@@ -243,6 +246,7 @@ def run_scenario(
     foxglove: bool = True,
     scene_rate: float = SCENE_RATE,
     trace_writer: str = "auto",
+    summarize: bool = False,
 ) -> RunResult:
     """Run ``config`` with ``engine`` and write the trace to ``out`` (``None``: record nothing).
 
@@ -254,7 +258,9 @@ def run_scenario(
     ``foxglove`` adds the Foxglove channels (scene at ``scene_rate`` Hz of simulated time, errors,
     transforms, log). SIGINT and SIGTERM stop the run at the next communication point with status
     "interrupted"; the trace is finalized with every point recorded up to there. ``trace_writer``:
-    where the trace is encoded (``TRACE_WRITERS``); both give the same file.
+    where the trace is encoded (``TRACE_WRITERS``); both give the same file. ``summarize``: accumulate
+    the per-vehicle summary of the recorded rows while stepping (``RunResult.summary``), so printing it
+    needs no second read of the trace.
     """
     engine = engine or default_engine(config)
     if engine not in ENGINES:
@@ -313,6 +319,9 @@ def run_scenario(
         writer.log(0.0, "Info", f"run started: {config.name}, {config.platoon.count} vehicles, {config.platoon.law} law, "
                                 f"{engine} engine ({sim.master}), step {sim.step:g} s, stop {sim.stop_time:g} s")
         record = writer.record
+        feed = _SummaryFeed(config, components, steps, sim.trace_every) if summarize else None
+        if feed is not None:
+            record = feed.tee(record)
         marks["setup"] = clock.perf_counter()
 
         def observe(t: float, values: list[list[float]]) -> None:
@@ -341,7 +350,10 @@ def run_scenario(
             master = NativeMaster(native_components, scenario.connections, scenario.schedules, sim.master)
             master.initialize(0.0)
             marks["initialize"] = clock.perf_counter()
-            master.run_blocks(sim.step, steps, None if out is None else writer.write_block, every=sim.trace_every,
+            sink = None if out is None else writer.write_block
+            if feed is not None:
+                sink = feed.tee_blocks(sink)
+            master.run_blocks(sim.step, steps, sink, every=sim.trace_every,
                               block=WORKER_BLOCK if writer_kind == "process" else BLOCK, tick=tick, check=stop.check,
                               deliver_interval=FLUSH_INTERVAL / 2, initialize=False)
         else:
@@ -392,8 +404,55 @@ def run_scenario(
             stop.restore()
             _release(target)
     marks["finish"] = clock.perf_counter()
+    summary = feed.result() if feed is not None and status == "completed" else None
     return RunResult(target.where() if target is not None else None, steps, marks["finish"] - started, status, error,
-                     signum, _phase_durations(marks), live_summary)
+                     signum, _phase_durations(marks), live_summary, summary)
+
+
+class _SummaryFeed:
+    """Hands the rows the trace records (same decimation) to a ``RunningSummary``, in blocks."""
+
+    BLOCK = 1024
+
+    def __init__(self, config: Config, components: list[tuple[str, list[str]]], steps: int, every: int) -> None:
+        step = config.simulation.step
+        # the last recorded point is the last multiple of ``every`` steps; rows are every * step apart
+        expected_end = (steps // every) * every * step
+        self.summary: RunningSummary = running_summary(config, components, 0.0, expected_end, margin=0.5 * every * step)
+        self.every = every
+        self._count = 0
+        self._rows: list[list[float]] = []
+
+    def tee(self, record: Callable[[float, list[list[float]]], None]) -> Callable[[float, list[list[float]]], None]:
+        """``record``, also feeding the summary."""
+        def both(t: float, outputs: list[list[float]]) -> None:
+            record(t, outputs)
+            if self._count % self.every == 0:
+                row = [t]
+                for values in outputs:
+                    row.extend(values)
+                self._rows.append(row)
+                if len(self._rows) >= self.BLOCK:
+                    self._flush()
+            self._count += 1
+        return both
+
+    def tee_blocks(self, sink: Callable[[object], None] | None) -> Callable[[object], None]:
+        """``sink`` (may be None) for the native loop's decimated blocks, also feeding the summary."""
+        def both(rows: object) -> None:
+            if sink is not None:
+                sink(rows)
+            self.summary.add(rows)
+        return both
+
+    def _flush(self) -> None:
+        if self._rows:
+            self.summary.add(self._rows)
+            self._rows = []
+
+    def result(self) -> list[VehicleSummary] | None:
+        self._flush()
+        return self.summary.result()
 
 
 def _release(target: Claim | None) -> None:

@@ -19,6 +19,7 @@ from .format import (
     FOOTER_LENGTH,
     TraceError,
     channel_kind,
+    vehicle_names,
 )
 
 
@@ -71,8 +72,7 @@ class Trace:
         return self.channels[name]
 
     def vehicles(self) -> list[str]:
-        names = [n for n in self.channels if n.startswith("vehicle") and n[len("vehicle"):].isdigit()]
-        return sorted(names, key=lambda n: int(n[len("vehicle"):]))
+        return vehicle_names(self.channels)
 
 
 def _flatten(record: dict[str, Any], prefix: str = "") -> dict[str, Any]:
