@@ -295,7 +295,7 @@ def _load_trace(trace: Path):
     try:
         return load(trace)
     except TraceError as error:  # says what is wrong and what to do (e.g. `platoon trace recover`)
-        _fail(2, f"trace {trace}: {error}")
+        _fail(2, f"trace {trace}: not a readable MCAP trace: {error}")
     except Exception as error:  # any other reader failure means the file is not a usable trace
         _fail(2, f"trace {trace}: not a readable MCAP trace ({error}); try `platoon trace recover {trace}`")
 
