@@ -60,14 +60,16 @@ def start(*args: object, cwd: Path) -> subprocess.Popen[str]:
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
-def wait_for_size(path: Path, size: int, process: subprocess.Popen[str], timeout: float = 120) -> None:
+def wait_for_size(trace: Path, size: int, process: subprocess.Popen[str], timeout: float = 120) -> None:
+    """Until the run's trace file (its aside file, or the trace itself for code that writes in place)
+    holds more than ``size`` bytes."""
     deadline = time.monotonic() + timeout
-    while not (path.is_file() and path.stat().st_size > size):
+    while not any(p.is_file() and p.stat().st_size > size for p in (aside(trace), trace)):
         if process.poll() is not None:
             raise AssertionError(f"the run ended early ({process.returncode}): {process.stderr.read()}")
         if time.monotonic() > deadline:
             os.killpg(process.pid, signal.SIGKILL)
-            raise AssertionError(f"{path} did not grow past {size} bytes")
+            raise AssertionError(f"{trace} (or its aside file) did not grow past {size} bytes")
         time.sleep(0.05)
 
 
@@ -116,10 +118,13 @@ def test_a_second_run_on_a_trace_being_written_is_refused_and_the_first_finishes
     trace = work / "shared.mcap"
     first = start("run", "victim.toml", *LONG, "--out", trace, "-q", "--trace-writer", "inline", cwd=work)
     try:
-        wait_for_size(aside(trace), 100_000, first)
+        wait_for_size(trace, 100_000, first)
         second = platoon("run", "victim.toml", *SHORT, "--out", trace, "-q", cwd=work)
         assert second.returncode == 2
         one_line_error(second, "another process is writing", str(trace))
+        busy = platoon("trace", "recover", aside(trace), cwd=work)  # nor is it recovered while written
+        assert busy.returncode == 2
+        one_line_error(busy, "a running run is writing it")
     finally:
         os.killpg(first.pid, signal.SIGINT)
         code = first.wait(timeout=120)
@@ -186,7 +191,7 @@ def test_a_killed_run_leaves_the_old_trace_intact_and_its_own_data_recoverable(w
     assert platoon("run", "victim.toml", *SHORT, "--out", trace, "-q", cwd=work).returncode == 0
     old = trace.read_bytes()
     run = start("run", "victim.toml", *LONG, "--out", trace, "-q", "--trace-writer", "inline", cwd=work)
-    wait_for_size(aside(trace), 300_000, run)
+    wait_for_size(trace, 300_000, run)
     assert trace.read_bytes() == old  # nothing happens to the old trace while the new one is written
     os.killpg(run.pid, signal.SIGKILL)
     run.wait(timeout=60)
@@ -303,15 +308,16 @@ print(before, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 
 
 def test_recover_streams_a_large_trace(tmp_path: Path) -> None:
-    """Peak memory of `recover` grows by far less than the input (it held ~4.7x the input before)."""
+    """Peak memory of `recover` grows by far less than the input (it held every message before: a peak
+    of ~3x the input above the imports on this file, 7.5x on a real trace; docs/trace-format.md)."""
     from orchestrator.trace import TraceWriter
 
     big = tmp_path / "big.mcap"
     names = [f"vehicle{k}" for k in range(1, 41)]
     writer = TraceWriter(big, [(name, [f"y{j}" for j in range(10)]) for name in names])
-    rows = np.random.default_rng(4).standard_normal((4000, 1 + 10 * len(names)))
+    rows = np.random.default_rng(4).standard_normal((2000, 1 + 10 * len(names)))
     for block in range(5):
-        rows[:, 0] = np.arange(block * 4000, (block + 1) * 4000) * 0.01
+        rows[:, 0] = np.arange(block * 2000, (block + 1) * 2000) * 0.01
         writer.write_block(rows)
     writer.close()
     size = big.stat().st_size
@@ -321,7 +327,7 @@ def test_recover_streams_a_large_trace(tmp_path: Path) -> None:
     assert probe.returncode == 0, probe.stderr
     before, peak = (int(v) * 1024 for v in probe.stdout.split())  # ru_maxrss is in KiB on Linux
     assert peak - before < 0.25 * size, (before, peak, size)
-    assert len(load(tmp_path / "out.mcap").component("vehicle40")["t"]) == 20_000
+    assert len(load(tmp_path / "out.mcap").component("vehicle40")["t"]) == 10_000
 
 
 # --- 5. a full disk: one clear line, what was written stays recoverable, no litter ------------------
@@ -467,12 +473,16 @@ def test_a_second_ctrl_c_during_a_long_step_is_an_interruption(work: Path, engin
     run = start("run", "victim.toml", "--set", "simulation.step=1.0", "--set", "simulation.max_substep=1e-5",
                 "--set", "simulation.stop_time=1000.0", "--out", trace, "-q", "--engine", engine,
                 "--trace-writer", "inline", cwd=work)
-    wait_for_size(aside(trace), 1000, run)  # the run wrote its start: it is in its first steps now
-    time.sleep(1.0)
-    os.killpg(run.pid, signal.SIGINT)
-    time.sleep(0.5)
-    os.killpg(run.pid, signal.SIGINT)  # the user insists: stop inside the step
-    _, stderr = run.communicate(timeout=120)
+    wait_for_size(trace, 1000, run)  # the run wrote its start: it is in its first steps now
+    try:
+        time.sleep(1.0)
+        os.killpg(run.pid, signal.SIGINT)
+        time.sleep(0.5)
+        os.killpg(run.pid, signal.SIGINT)  # the user insists: stop inside the step
+        _, stderr = run.communicate(timeout=120)
+    finally:
+        if run.poll() is None:  # never leave a 1000-step run behind
+            os.killpg(run.pid, signal.SIGKILL)
     assert run.returncode == 130, stderr
     assert "run interrupted" in stderr and "Traceback" not in stderr
     record = run_record(trace)
@@ -482,7 +492,7 @@ def test_a_second_ctrl_c_during_a_long_step_is_an_interruption(work: Path, engin
 def test_a_stalled_trace_writer_process_does_not_hold_the_run(work: Path) -> None:
     trace = work / "stalled.mcap"
     run = start("run", "victim.toml", *LONG, "--out", trace, "-q", "--trace-writer", "process", cwd=work)
-    wait_for_size(aside(trace), 200_000, run)
+    wait_for_size(trace, 200_000, run)
     children = Path(f"/proc/{run.pid}/task/{run.pid}/children").read_text().split()
     workers = [int(pid) for pid in children if b"orchestrator.trace.serve" in Path(f"/proc/{pid}/cmdline").read_bytes()]
     assert len(workers) == 1
@@ -494,10 +504,11 @@ def test_a_stalled_trace_writer_process_does_not_hold_the_run(work: Path) -> Non
         os.kill(run.pid, signal.SIGINT)  # the user insists
         _, stderr = run.communicate(timeout=60)  # far below the writer's 600 s close timeout
     finally:
-        try:
-            os.kill(workers[0], signal.SIGKILL)
-        except ProcessLookupError:
-            pass
+        for pid in (workers[0], run.pid):
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
     assert run.returncode == 130, stderr
     one_line_error((run.returncode, "", stderr), "interrupted", "trace writer process")
     assert not Path(f"/proc/{workers[0]}").exists() or "zombie" in Path(f"/proc/{workers[0]}/status").read_text()
