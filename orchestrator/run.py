@@ -262,24 +262,23 @@ def run_scenario(
     the per-vehicle summary of the recorded rows while stepping (``RunResult.summary``), so printing it
     needs no second read of the trace.
     """
-    engine = engine or default_engine(config)
-    if engine not in ENGINES:
-        raise ValueError(f"unknown engine {engine!r}; expected one of {', '.join(ENGINES)}")
-    check_live_options(config, engine, trace_writer)
-    scenario = build_scenario(config)
-    sim = config.simulation
-    steps = step_count(sim.stop_time, sim.step)
-    live = live_names(config) if engine == "python" else set()
-    writer_kind = "inline" if live else choose_trace_writer(trace_writer, steps // sim.trace_every + 1,
-                                                            len(scenario.components))
     target = claim(out) if isinstance(out, (str, Path)) else out
-    # the trace writer process starts first: its start-up overlaps unpacking and instantiating the FMUs
-    try:
-        trace_process = TraceProcess(keep_fds=(target.fd,)) if target is not None and writer_kind == "process" else None
-    except BaseException:
-        _release(target)
-        raise
-    try:
+    trace_process: TraceProcess | None = None
+    try:  # whatever fails before the run starts: no lock kept, no empty aside file left behind
+        engine = engine or default_engine(config)
+        if engine not in ENGINES:
+            raise ValueError(f"unknown engine {engine!r}; expected one of {', '.join(ENGINES)}")
+        check_live_options(config, engine, trace_writer)
+        scenario = build_scenario(config)
+        sim = config.simulation
+        steps = step_count(sim.stop_time, sim.step)
+        live = live_names(config) if engine == "python" else set()
+        writer_kind = "inline" if live else choose_trace_writer(trace_writer, steps // sim.trace_every + 1,
+                                                                len(scenario.components))
+        # the trace writer process starts first: its start-up overlaps unpacking and instantiating the FMUs;
+        # it inherits the trace's lock, so the path stays claimed while it still writes
+        if target is not None and writer_kind == "process":
+            trace_process = TraceProcess(keep_fds=(target.fd,))
         fmus_by_kind = _open_fmus(fmu_dir)
     except BaseException:
         if trace_process is not None:

@@ -361,7 +361,7 @@ def test_a_full_disk_ends_the_run_with_one_line_and_the_trace_recoverable(work: 
     assert fixed.component("vehicle4")["t"][-1] > 2.0  # several seconds fit in 700 kB; all of them come back
 
 
-def test_recover_and_build_on_a_full_disk_end_with_one_line_and_no_litter(work: Path, reference: Path) -> None:
+def test_recover_build_export_and_report_on_a_full_disk_end_with_one_line(work: Path, reference: Path) -> None:
     prefix = _tmpfs_prefix(work, "200k")
     result = platoon("trace", "recover", reference, "--out", "small/fixed.mcap", cwd=work, prefix=prefix)
     assert result.returncode == 2
@@ -372,6 +372,10 @@ def test_recover_and_build_on_a_full_disk_end_with_one_line_and_no_litter(work: 
     assert result.returncode == 2
     one_line_error(result, "No space left on device")
     assert [p.name for p in (work / "left").rglob("*") if p.is_file()] == []
+    for command in (("export", reference, "--csv", "small/csv"), ("report", reference, "--plots", "small/plots")):
+        result = platoon(*command, cwd=work, prefix=("unshare", "-rm", str(work / "on-small-disk.sh"), "20k"))
+        assert result.returncode == 2, command
+        one_line_error(result, "No space left on device", command[2])
 
 
 # --- 8. bad output paths of report, export and recover -----------------------------------------------
