@@ -86,7 +86,8 @@ def model_description(slave: PlatoonSlave, guid: str, version: str) -> bytes:
             "numberOfEventIndicators": "0",
         },
     )
-    SubElement(root, "CoSimulation", {"modelIdentifier": model_name, **CAPABILITIES})
+    # a slave class may override a flag (LiveVehicle: a real robot has no FMU state to save)
+    SubElement(root, "CoSimulation", {"modelIdentifier": model_name, **CAPABILITIES, **getattr(cls, "capabilities", {})})
 
     used_units = sorted({info.unit for info in cls.variables if info.unit})
     unit_definitions = SubElement(root, "UnitDefinitions")

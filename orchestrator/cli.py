@@ -49,14 +49,14 @@ def _load(config: Path, overrides: list[str]) -> tuple[Config, str]:
 
 @app.command()
 def build(
-    out_dir: Annotated[Path, typer.Option("--out", help="folder for Vehicle.fmu and VirtualTarget.fmu")] = Path("build/fmus"),
+    out_dir: Annotated[Path, typer.Option("--out", help="folder for Vehicle.fmu, VirtualTarget.fmu and LiveVehicle.fmu")] = Path("build/fmus"),
     force: Annotated[bool, typer.Option(help="rebuild even if up to date")] = False,
 ) -> None:
-    """Build the Vehicle and VirtualTarget FMUs (only when their sources changed)."""
-    from fmus.build import build_fmus
+    """Build the Vehicle, VirtualTarget and LiveVehicle FMUs (only when their sources changed)."""
+    from fmus.build import ALL_FMUS, build_fmus
 
     try:
-        built_fmus = build_fmus(out_dir, force=force)
+        built_fmus = build_fmus(out_dir, force=force, names=ALL_FMUS)
     except OSError as error:  # a full disk, a read-only folder ...: the FMUs already in place are untouched
         where = f" {error.filename}" if error.filename else ""
         _fail(2, f"build --out {out_dir}: cannot write the FMUs{where}: {error.strerror or error}")
@@ -90,6 +90,25 @@ def _summary_table(summaries, config: Config, title: str) -> Table:
             f"{s.speed - config.platoon.speed:+.3e}", f"{s.path_error_max:.3e}",
         )
     return table
+
+
+def _time_split(entered: float | None, loaded: float | None, timings: dict[str, float], now: float | None) -> str:
+    """``-v``: where this process's wall time went, from the interpreter's start to now (a few lines)."""
+    def seconds(value: float | None) -> str:
+        return "?" if value is None else f"{value:.2f} s"
+
+    run_total = sum(timings.values())
+    config_time = None if entered is None or loaded is None else loaded - entered
+    rest = None if now is None or loaded is None else now - loaded - run_total
+    phases = ", ".join(f"{name} {timings[name]:.2f} s" for name in ("setup", "initialize", "steps", "finish")
+                       if name in timings)
+    return "\n".join([
+        f"wall time since the process started: {seconds(now)}",
+        f"  start-up: interpreter and imports {seconds(entered)}, config {seconds(config_time)},",
+        f"            FMUs checked and unpacked {seconds(timings.get('open'))}",
+        f"  run: {phases}",
+        f"  after the run (summary, output): {seconds(rest)}",
+    ])
 
 
 def _execute(config: Config, text: str, trace, engine: str, quiet: bool, trace_writer: str = "auto"):
@@ -152,8 +171,12 @@ def run(
     engine_name: Annotated[Optional[str], typer.Option("--engine", help="native (compiled stepping core; default when built) or python (FMPy); same results")] = None,
     trace_writer: Annotated[str, typer.Option("--trace-writer", help="where the trace is encoded: process (a second process), inline, or auto (a second process for long runs on a multi-core machine); same file")] = "auto",
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="also print where the wall time went: start-up (imports, config, FMUs), the run's phases, the summary")] = False,
 ) -> None:
     """Run a scenario: wire the FMUs as the paper's Fig. 2, step them, write an MCAP trace."""
+    from .startup import seconds_since_process_start
+
+    entered = seconds_since_process_start()  # the interpreter and the imports so far
     from .metrics import summarize
     from .run import default_trace_path
     from .trace import load
@@ -161,6 +184,7 @@ def run(
     if trace_every is not None:
         overrides = [*overrides, f"simulation.trace_every={trace_every}"]
     parsed, text = _load(config, overrides)
+    loaded = seconds_since_process_start()
     from .run import default_engine
 
     if engine_name not in (None, "native", "python"):
@@ -196,6 +220,8 @@ def run(
         summaries = result.summary if result.summary is not None else summarize(load(result.trace), parsed)
         out.print(_summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine}, last 10 % of {parsed.simulation.stop_time:g} s"))
     out.print(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)")
+    if verbose:
+        err.print(_time_split(entered, loaded, result.timings, seconds_since_process_start()), highlight=False)
     if compare:
         from .compare import deviations
 
@@ -628,6 +654,13 @@ def bench_cores(
 from .hil_cli import register as _register_hil  # noqa: E402  (the m3pi-emulator and m3pi-serial commands)
 
 _register_hil(app, bench_app)
+from .sweep.cli import register as _register_sweep  # noqa: E402  (sweep, sweep-plot, bench sweep)
+
+_register_sweep(app, bench_app)
+
+from .ssp_cli import register as _register_ssp  # noqa: E402  (export-ssp: the platoon for other tools)
+
+_register_ssp(app)
 
 
 def main() -> None:

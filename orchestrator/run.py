@@ -76,7 +76,8 @@ class RunResult:
     status: str  # "completed" | "failed" | "interrupted"
     error: str | None = None
     signal: int | None = None  # SIGINT or SIGTERM when interrupted
-    # wall seconds by phase: "setup" (trace writer, metadata), "initialize" (instantiate, initialization
+    # wall seconds by phase: "open" (FMUs checked and unpacked, before wall_time starts), "setup" (trace
+    # writer, metadata), "initialize" (instantiate, initialization
     # mode), "steps" (the stepping loop, recording included), "finish" (FMUs closed, trace finalized)
     timings: dict[str, float] = field(default_factory=dict)
     # with live vehicles: "pacing" (step jitter, overruns) and each live vehicle's link statistics
@@ -277,6 +278,7 @@ def run_scenario(
                                                                 len(scenario.components))
         # the trace writer process starts first: its start-up overlaps unpacking and instantiating the FMUs;
         # it inherits the trace's lock, so the path stays claimed while it still writes
+        opening = clock.perf_counter()
         if target is not None and writer_kind == "process":
             trace_process = TraceProcess(keep_fds=(target.fd,))
         fmus_by_kind = _open_fmus(fmu_dir)
@@ -287,6 +289,7 @@ def run_scenario(
         raise
     started = clock.perf_counter()
     marks = {"start": started}  # phase boundaries, for RunResult.timings
+    opened = started - opening  # FMUs checked and unpacked, trace writer process started (not in wall_time)
     writer: TraceWriter | TraceWorker | NullTraceWriter | None = None
     master = None
     reporter: LiveReporter | None = None
@@ -405,7 +408,7 @@ def run_scenario(
     marks["finish"] = clock.perf_counter()
     summary = feed.result() if feed is not None and status == "completed" else None
     return RunResult(target.where() if target is not None else None, steps, marks["finish"] - started, status, error,
-                     signum, _phase_durations(marks), live_summary, summary)
+                     signum, {"open": opened, **_phase_durations(marks)}, live_summary, summary)
 
 
 class _SummaryFeed:

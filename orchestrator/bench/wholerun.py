@@ -55,18 +55,25 @@ def _overrides(n: int, steps: int, step: float) -> list[str]:
 
 
 def write_system(n: int, steps: int, folder: Path, fmu_dir: Path) -> Path:
-    """The SSD of the config's system with ``n`` vehicles and ``steps`` steps (libcosim, 0 worker threads)."""
+    """The SSD of the config's system with ``n`` vehicles and ``steps`` steps (libcosim, 0 worker threads):
+    the package of ``platoon export-ssp``, unpacked into ``folder`` (libcosim then loads the .ssd as it
+    did before the exporter existed, with no unzipping in the timed process)."""
+    import zipfile
+
     from orchestrator.config import load_config
     from orchestrator.scenario import build_scenario
+    from orchestrator.ssp import write_ssp
 
-    from .libcosim import write_ssp
     from .platoon import fmu_files
 
     base, _ = load_config(CONFIG, [])
     config, _ = load_config(CONFIG, _overrides(n, steps, base.simulation.step))
     if config.simulation.master != "jacobi":
         raise BenchError(f"{CONFIG}: master {config.simulation.master!r}; libcosim's fixed-step algorithm is Jacobi")
-    return write_ssp(folder, build_scenario(config), fmu_files(fmu_dir), worker_threads=0)
+    package = write_ssp(folder / "platoon.ssp", build_scenario(config), fmu_files(fmu_dir), worker_threads=0)
+    with zipfile.ZipFile(package) as archive:
+        archive.extractall(folder)
+    return folder / "SystemStructure.ssd"
 
 
 def measure(variant: str, n: int, steps: int, step: float, ssd: Path, scratch: Path) -> dict[str, Any]:
