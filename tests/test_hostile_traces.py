@@ -25,6 +25,7 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from orchestrator.trace import load
+from tests.conftest import SPEED_TO_ZERO
 
 REPO = Path(__file__).resolve().parents[1]
 PAPER = REPO / "configs" / "paper" / "platoon.toml"
@@ -184,6 +185,12 @@ def test_run_replaces_a_file_that_is_not_a_trace_only_when_told(work: Path) -> N
     result = platoon("run", "victim.toml", *SHORT, "--out", notes, "-q", "--overwrite", cwd=work)
     assert result.returncode == 0, result.stderr
     assert load(notes).run["status"] == "completed"
+    # a failed run's trace is finalized and put in place too (a trace is replaced without being told)
+    (work / "failing.toml").write_text(PAPER.read_text() + SPEED_TO_ZERO)
+    failed = platoon("run", "failing.toml", *SHORT, "--out", notes, "-q", cwd=work)
+    assert failed.returncode == 1
+    one_line_error(failed, "run failed", f"trace up to that point: {notes}")
+    assert load(notes).run["status"] == "failed" and not aside(notes).exists()
 
 
 def test_a_killed_run_leaves_the_old_trace_intact_and_its_own_data_recoverable(work: Path) -> None:
