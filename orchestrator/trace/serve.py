@@ -7,7 +7,9 @@ numpy, no config validation), so that it is ready while the stepping process sti
 
 Rows arrive as raw float64 bytes (``width`` values per row), already checked finite and decimated by
 the stepping process. If the inbox closes without "close" (the stepping process was killed), the
-worker writes every row it received, records the run as ``aborted`` and finalizes the file.
+worker writes every row it received, records the run as ``aborted`` and finalizes the file (and puts
+it in place, when its arguments name a ``publish`` path). A write failure (a full disk) is reported
+as one line, not a traceback.
 """
 
 from __future__ import annotations

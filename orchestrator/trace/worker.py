@@ -22,7 +22,11 @@ Nothing is lost when things go wrong:
 * Ctrl-C reaches the whole process group; the worker ignores SIGINT and SIGTERM and finishes when
   the stepping process closes the trace (with the run's final status) after its own handling.
 * If the stepping process dies without closing (SIGKILL, a crash), the worker sees the pipe close,
-  writes every block it received, records the run as ``aborted`` and finalizes the file.
+  writes every block it received, records the run as ``aborted``, finalizes the file and puts it in
+  place (``publish``: the aside file is renamed onto the trace's path; the worker inherited the
+  path's lock, so no other run can take the path meanwhile).
+* A signal while the stepping process waits for the worker to finish (a second Ctrl-C) ends the
+  wait: the worker is killed, its file keeps its complete chunks. A stalled worker never holds a run.
 * If the worker dies, the stepping process raises ``TraceWorkerError`` at its next hand-over; the
   complete chunks on disk can be recovered with ``platoon trace recover``.
 """
