@@ -171,7 +171,7 @@ def test_run_never_replaces_its_own_config_even_through_a_link(work: Path) -> No
         for extra in ((), ("--overwrite",)):
             result = platoon("run", "victim.toml", *SHORT, "--out", target, "-q", *extra, cwd=work)
             assert result.returncode == 2, (target, extra, result.stdout)
-            one_line_error(result, "is victim.toml itself")
+            one_line_error(result, "the same file as victim.toml")
             assert config.read_bytes() == before
 
 
@@ -286,7 +286,7 @@ def test_recover_never_overwrites_an_existing_out_or_its_own_input(reference: Pa
         for extra in ((), ("--overwrite",)):
             result = platoon("trace", "recover", source, "--out", tmp_path / alias, *extra, cwd=tmp_path)
             assert result.returncode == 2, (alias, extra)
-            one_line_error(result, "source.mcap itself (the same file)")
+            one_line_error(result, "the same file as", "source.mcap, which this command reads")
             assert source.read_bytes() == original
     replaced = platoon("trace", "recover", source, "--out", existing, "--overwrite", cwd=tmp_path)
     assert replaced.returncode == 0, replaced.stderr

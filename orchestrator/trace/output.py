@@ -59,7 +59,7 @@ def check_replaceable(final: Path, overwrite: bool = False, protect: Iterable[Pa
     """
     for kept in protect:
         if _same_file(final, kept):
-            raise OutputError(f"{what} {final}: is {kept} itself (the same file); choose another path")
+            raise OutputError(f"{what} {final}: is the same file as {kept}, which this command reads; choose another path")
     if final.is_dir():
         raise OutputError(f"{what} {final}: is a folder; give a file name")
     if final.exists() and not overwrite and final.stat().st_size > 0 and not is_mcap(final):
