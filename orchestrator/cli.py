@@ -509,7 +509,7 @@ def _per_fmu_step(suite_name: str, engines: str, n: str, steps: int, rounds: int
 
 
 @bench_app.command("steps")
-def bench_steps(engines: Engines = "native,python,fmpy-bare,libcosim,libcosim-0threads,slaves",
+def bench_steps(engines: Engines = "native,python,fmpy-bare,libcosim,libcosim-0threads,libcosim-0threads-lastvalue,slaves",
                 n: Counts = "4,16,64,256", steps: Steps = 1000, rounds: Rounds = 5,
                 out_dir: OutDir = Path("runs/bench"), quiet: Quiet = False) -> None:
     """Microseconds per FMU-step of our engines, the bare FMPy loop, libcosim and the floor, by N."""
