@@ -20,11 +20,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from xml.etree import ElementTree
 
+# Imported here, first, on purpose: our FMUs run in the host's interpreter, and if one runs before
+# anything imported pythonfmu, it imports pythonfmu from the FMU's resources folder, a copy without
+# the runtime binaries that the builder copies into every FMU (see _builder). It costs nothing extra:
+# the FMUs' slaves import pythonfmu in every run anyway.
+import pythonfmu  # noqa: F401
+
 import fmus
 from fmus.documentation import documentation_html
 from fmus.modeldescription import guid_for, model_description
 
-PACKAGE_DIR = Path(fmus.__file__).resolve().parent
+# this file's own folder, not fmus.__file__: an FMU run in this process first may have imported the
+# package from its resources folder (which holds neither this file nor, after the run, anything)
+PACKAGE_DIR = Path(__file__).resolve().parent
 FMU_NAMES = ("Vehicle", "VirtualTarget")  # what every run uses
 LIVE_FMU = "LiveVehicle"  # a live robot as an FMU (platoon build --live, platoon export-ssp of a live config)
 ALL_FMUS = FMU_NAMES + (LIVE_FMU,)
@@ -95,9 +103,29 @@ def _zip_entry(name: str) -> zipfile.ZipInfo:
     return info
 
 
+class BuildError(RuntimeError):
+    """An FMU cannot be built in this process (the message says why and what to do)."""
+
+
+def _builder() -> type:
+    """pythonfmu's FmuBuilder, from a pythonfmu that carries its runtime binaries.
+
+    An FMU run in this process before (FMPy loading one of ours) imports ``pythonfmu`` from the FMU's
+    resources folder when nothing imported it earlier; that copy has no binaries, and its builder
+    would write FMUs without any. Refuse instead of writing a broken FMU.
+    """
+    from pythonfmu import builder
+
+    binaries = Path(builder.__file__).resolve().parent / "resources" / "binaries"
+    if not any(binaries.rglob("*.so")) and not any(binaries.rglob("*.dll")) and not any(binaries.rglob("*.dylib")):
+        raise BuildError(f"pythonfmu was imported from {Path(builder.__file__).parent}, which has no runtime "
+                         f"binaries (an FMU's resources folder?); build the FMUs in a fresh process: platoon build")
+    return builder.FmuBuilder
+
+
 def _build_one(name: str, out_dir: Path, guid: str) -> Path:
     version = fmus.__version__
-    from pythonfmu.builder import FmuBuilder  # only to build: checking that FMUs are current needs none of it
+    FmuBuilder = _builder()  # only to build: checking that FMUs are current needs none of pythonfmu
 
     with tempfile.TemporaryDirectory(prefix="platoon-build-") as scratch:
         # pythonfmu imports the script by its stem from the script's folder.
@@ -113,6 +141,8 @@ def _build_one(name: str, out_dir: Path, guid: str) -> Path:
             for item in archive.infolist():
                 if item.filename != "modelDescription.xml" and not item.is_dir():
                     entries[item.filename] = archive.read(item)
+    if not any(entry.startswith("binaries/") for entry in entries):
+        raise BuildError(f"{name}.fmu: pythonfmu's builder produced no binaries; the FMU was not written")
     for path in bundled_sources(name):
         entries[f"resources/{path.relative_to(_ROOT).as_posix()}"] = path.read_bytes()
     entries["modelDescription.xml"] = model_description(slave, guid, version)

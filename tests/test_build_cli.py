@@ -34,3 +34,44 @@ def test_build_writes_every_fmu_then_reuses_them_and_repairs_a_damaged_one(tmp_p
     assert third["LiveVehicle"].endswith("(up to date)")
     assert fmu_guid(tmp_path / "Vehicle.fmu") == expected_guid("Vehicle")
     assert not list(tmp_path.glob("*.partial"))
+
+
+_RUN_THEN_BUILD = """
+import sys, zipfile
+from pathlib import Path
+{first}
+import fmpy
+fmpy.simulate_fmu(sys.argv[1], stop_time=0.05)  # our FMU runs in this interpreter
+from fmus.build import BuildError, build_fmus
+out = Path(sys.argv[2])
+try:
+    built = build_fmus(out, force=True)
+except BuildError as error:
+    print("refused:", error)
+for fmu in sorted(out.glob("*.fmu")):
+    names = zipfile.ZipFile(fmu).namelist()
+    print(fmu.name, any(n.startswith("binaries/") and n.endswith(".so") for n in names))
+"""
+
+
+def _run_then_build(fmu_dir: Path, out: Path, first: str) -> list[str]:
+    script = _RUN_THEN_BUILD.format(first=first)
+    result = subprocess.run([sys.executable, "-c", script, str(fmu_dir / "Vehicle.fmu"), str(out)],
+                            capture_output=True, text=True, cwd=out.parent, timeout=300)
+    assert result.returncode == 0, result.stderr
+    return result.stdout.splitlines()
+
+
+def test_a_build_after_an_fmu_ran_in_process_writes_fmus_with_their_binaries(fmu_dir, tmp_path):
+    """The usual order (the build module imported first, as `platoon` and the tests do)."""
+    lines = _run_then_build(fmu_dir, tmp_path / "out", "import fmus.build")
+    assert sorted(lines) == ["Vehicle.fmu True", "VirtualTarget.fmu True"], lines
+
+
+def test_a_build_never_writes_an_fmu_without_binaries(fmu_dir, tmp_path):
+    """pythonfmu first imported by an FMU (from its resources, a copy without binaries): the build
+    refuses with the reason instead of writing FMUs that no host can load."""
+    lines = _run_then_build(fmu_dir, tmp_path / "out", "")
+    assert lines and lines[0].startswith("refused: pythonfmu was imported from"), lines
+    assert "platoon build" in lines[0]
+    assert lines[1:] == [], lines  # nothing written
