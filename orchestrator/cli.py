@@ -181,6 +181,9 @@ def run(
     trace = trace or default_trace_path(parsed, engine)
     _check_writable(trace)
     result = _execute(parsed, text, trace, engine, quiet, trace_writer)
+    from .viewer_cli import write_run_layout
+
+    layout = write_run_layout(result.trace, parsed)  # the Foxglove view fitted to this run, beside its trace
     if result.live:
         from .hil_cli import live_table
 
@@ -194,6 +197,7 @@ def run(
         summaries = result.summary if result.summary is not None else summarize(load(result.trace), parsed)
         out.print(_summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine}, last 10 % of {parsed.simulation.stop_time:g} s"))
     out.print(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)")
+    out.print(f"layout: {layout}  (open both in Foxglove: docs/foxglove.md)")
     if verbose:
         err.print(_time_split(entered, loaded, result.timings, seconds_since_process_start()), highlight=False)
     if compare:
@@ -549,6 +553,9 @@ _register_sweep(app, bench_app)
 from .ssp_cli import register as _register_ssp  # noqa: E402  (export-ssp: the platoon for other tools)
 
 _register_ssp(app)
+from .viewer_cli import register as _register_viewer  # noqa: E402  (layout, figure: what users look at)
+
+_register_viewer(app)
 
 
 def main() -> None:

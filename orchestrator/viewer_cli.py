@@ -1,0 +1,141 @@
+"""What users look at: ``platoon layout`` (a Foxglove layout fitted to one run) and ``platoon figure``
+(the paper's figure pair from two traces). Kept apart from cli.py so that the viewing commands sit
+together; ``platoon run`` calls ``write_run_layout`` once, after the run.
+
+A static layout cannot fit both the paper's 50 m circle and the m3pi's 1 m one (the 3D panel's camera
+is fixed by the layout), so each run gets its own: ``runs/x.mcap`` gets ``runs/x.layout.json`` (the
+trace's stem: the pair sorts together, and the viewer's file dialog, which filters on ``.json``, shows it).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any, Optional
+
+import typer
+
+if TYPE_CHECKING:
+    from .config import Config
+
+FIGURE_SUFFIXES = (".pdf", ".svg", ".png")
+
+
+@dataclass(frozen=True)
+class RunView:
+    """What a layout needs from a trace: its config and the vehicles it recorded."""
+
+    config: "Config"
+    vehicles: list[str]
+
+
+def layout_path(trace: Path) -> Path:
+    """The layout written beside a trace: ``runs/x.mcap`` -> ``runs/x.layout.json``."""
+    return trace.with_name(trace.stem + ".layout.json")
+
+
+def run_layout(config: "Config", vehicles: int) -> dict[str, Any]:
+    from .trace.foxglove import SceneSettings, layout
+
+    return layout(vehicles, SceneSettings.of(config))
+
+
+def write_run_layout(trace: Path, config: "Config") -> Path:
+    """Write the layout fitted to ``config``'s run beside ``trace``; returns its path."""
+    path = layout_path(trace)
+    path.write_text(json.dumps(run_layout(config, config.platoon.count), indent=2) + "\n")
+    return path
+
+
+def read_run_view(trace: Path) -> RunView:
+    """The config and vehicle names of a trace from its summary and metadata (no message is read).
+
+    Raises ValueError with a one-line reason when the file is not a trace written by ``platoon run``.
+    """
+    from mcap.reader import make_reader
+
+    from .config import ConfigError, config_from_mapping
+    from .trace.format import CHANNEL_PREFIX, vehicle_names
+
+    if not trace.is_file():
+        raise ValueError("no such file")
+    try:
+        with open(trace, "rb") as stream:
+            reader = make_reader(stream)
+            summary = reader.get_summary()
+            metadata = {item.name: dict(item.metadata) for item in reader.iter_metadata()}
+    except Exception as error:  # any reader failure: not a usable trace
+        raise ValueError(f"not a readable MCAP trace ({error})") from None
+    if summary is None:
+        raise ValueError("not a finished MCAP trace (no summary); try `platoon trace recover`")
+    record = metadata.get("platoon.config", {})
+    if "resolved" not in record:
+        raise ValueError("has no platoon.config metadata (not written by platoon run?)")
+    try:
+        config = config_from_mapping(json.loads(record["resolved"]))
+    except (ConfigError, json.JSONDecodeError) as error:
+        raise ValueError(f"its recorded config is not valid: {error}") from None
+    topics = [channel.topic[len(CHANNEL_PREFIX):] for channel in summary.channels.values()
+              if channel.topic.startswith(CHANNEL_PREFIX)]
+    return RunView(config, vehicle_names(topics))
+
+
+def layout_command(
+    trace: Annotated[Path, typer.Argument(help="trace written by `platoon run`")],
+    out: Annotated[Optional[Path], typer.Option("--out", help="layout file (default: beside the trace, <stem>.layout.json)")] = None,
+) -> None:
+    """Write a Foxglove/Lichtblick layout fitted to a trace: its path in view, one plot series per vehicle."""
+    from .cli import _fail, out as console
+
+    try:
+        view = read_run_view(trace)
+    except ValueError as error:
+        _fail(2, f"trace {trace}: {error}")
+    if not view.vehicles:
+        _fail(2, f"trace {trace}: records no vehicle")
+    path = out or layout_path(trace)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(run_layout(view.config, len(view.vehicles)), indent=2) + "\n")
+    except OSError as error:
+        _fail(2, f"--out {path}: cannot write the layout there: {error.strerror or error}")
+    console.print(f"wrote {path}", highlight=False, soft_wrap=True)
+
+
+def figure_command(
+    first: Annotated[Path, typer.Argument(help="trace of the left column (the paper: regular law)")],
+    second: Annotated[Path, typer.Argument(help="trace of the right column (the paper: sine law)")],
+    out: Annotated[Path, typer.Option("--out", help="figure file: .pdf, .svg (vector) or .png")],
+) -> None:
+    """Draw the paper's figure pair from two traces: velocity, distance and path errors, and X-Y, side by side."""
+    from .cli import _fail, _load_trace, out as console
+
+    if out.suffix.lower() not in FIGURE_SUFFIXES:
+        _fail(2, f"--out {out}: expected a file ending in {', '.join(FIGURE_SUFFIXES)}")
+    from .config import ConfigError, config_from_mapping
+    from .figure import draw_pair, save
+
+    runs = []
+    for trace in (first, second):
+        loaded = _load_trace(trace)
+        if loaded.config is None:
+            _fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
+        if not loaded.vehicles():
+            _fail(2, f"trace {trace}: records no vehicle")
+        try:
+            runs.append((loaded, config_from_mapping(loaded.config)))
+        except ConfigError as error:
+            _fail(2, f"trace {trace}: its recorded config is not valid: {error}")
+    figure = draw_pair(runs)
+    try:
+        save(figure, out)
+    except OSError as error:
+        _fail(2, f"--out {out}: cannot write the figure there: {error.strerror or error}")
+    console.print(f"wrote {out}", highlight=False, soft_wrap=True)
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``layout`` and ``figure`` to ``platoon``."""
+    app.command("layout")(layout_command)
+    app.command("figure")(figure_command)
