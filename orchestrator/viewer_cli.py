@@ -56,10 +56,13 @@ def read_run_view(trace: Path) -> RunView:
     from mcap.reader import make_reader
 
     from .config import ConfigError, config_from_mapping
-    from .trace.format import CHANNEL_PREFIX, vehicle_names
+    from .trace.format import CHANNEL_PREFIX, MAGIC, vehicle_names
 
     if not trace.is_file():
         raise ValueError("no such file")
+    with open(trace, "rb") as stream:
+        if stream.read(len(MAGIC)) != MAGIC:
+            raise ValueError("not an MCAP file (no MCAP magic at its start)")
     try:
         with open(trace, "rb") as stream:
             reader = make_reader(stream)
@@ -107,6 +110,7 @@ def figure_command(
     first: Annotated[Path, typer.Argument(help="trace of the left column (the paper: regular law)")],
     second: Annotated[Path, typer.Argument(help="trace of the right column (the paper: sine law)")],
     out: Annotated[Path, typer.Option("--out", help="figure file: .pdf, .svg (vector) or .png")],
+    dpi: Annotated[int, typer.Option(min=30, max=1200, help="dots per inch of a PNG (the figure is 12.4 x 15 in)")] = 150,
 ) -> None:
     """Draw the paper's figure pair from two traces: velocity, distance and path errors, and X-Y, side by side."""
     from .cli import _fail, _load_trace, out as console
@@ -129,7 +133,7 @@ def figure_command(
             _fail(2, f"trace {trace}: its recorded config is not valid: {error}")
     figure = draw_pair(runs)
     try:
-        save(figure, out)
+        save(figure, out, dpi)
     except OSError as error:
         _fail(2, f"--out {out}: cannot write the figure there: {error.strerror or error}")
     console.print(f"wrote {out}", highlight=False, soft_wrap=True)

@@ -58,6 +58,7 @@ PATH_PIXELS = 2.0  # the path's line width on screen
 TRAIL_PIXELS = 3.0  # a vehicle's trail width on screen
 TRAIL_SHARE = 0.08  # a trail covers at most this share of a circle's circumference ...
 TRAIL_GAP_SHARE = 0.4  # ... and of d*, so trails show recent motion, never the whole circle
+LABEL_OFFSET = 0.04  # labels sit this share of the view's extent off the path (outside a circle, left of a line)
 LABEL_ALL_UP_TO = 10  # platoons up to this size get a "vehicleN" label per vehicle, larger ones "N"
 
 
@@ -211,6 +212,7 @@ class FoxgloveChannels:
         self._history = {name: deque(maxlen=max(2, int(round(scale.history * scene_rate)))) for name in self.vehicles}
         size = scale.size
         self._size = size
+        self._label_offset = LABEL_OFFSET * scale.extent
         self._box = fg.Vector3(x=size, y=0.45 * size, z=0.35 * size)
         self._labels = {name: vehicle_label(name, len(self.vehicles)) for name in self.names}
         self._colors = dict(zip(self.vehicles, vehicle_colors(len(self.vehicles))))
@@ -280,6 +282,15 @@ class FoxgloveChannels:
         low, high = min(along) - margin, max(along) + margin
         return [fg.Point3(x=p.center[0] + s * ux, y=p.center[1] + s * uy, z=0.0) for s in (low, high)]
 
+    def _outward(self, x: float, y: float, heading: float) -> tuple[float, float]:
+        """Unit vector off the path where a label does not cover the vehicles: outward of a circle, left of a line."""
+        if self._path_points is not None:
+            dx, dy = x - self.settings.center[0], y - self.settings.center[1]
+            r = math.hypot(dx, dy)
+            if r > 0.0:
+                return dx / r, dy / r
+        return -math.sin(heading), math.cos(heading)
+
     def _scene(self, stamp: int, outputs: Sequence[Sequence[float]]) -> list[tuple[int, bytes]]:
         when = _timestamp(stamp)
         poses = []
@@ -303,8 +314,10 @@ class FoxgloveChannels:
             transforms.append(fg.FrameTransform(
                 timestamp=when, parent_frame_id=ROOT_FRAME, child_frame_id=name,
                 translation=fg.Vector3(x=x, y=y, z=0.0), rotation=_quaternion(heading)))
+            nx, ny = self._outward(x, y, heading)
             label = fg.TextPrimitive(
-                pose=fg.Pose(position=fg.Vector3(x=x, y=y, z=0.8 * size), orientation=self._level),
+                pose=fg.Pose(position=fg.Vector3(x=x + self._label_offset * nx, y=y + self._label_offset * ny,
+                                                 z=0.8 * size), orientation=self._level),
                 billboard=True, font_size=12.0, scale_invariant=True, color=self._white, text=self._labels[name])
             # a dash along the heading, drawn in screen pixels: the vehicle shows however far one zooms out
             back = fg.Point3(x=x - 0.5 * size * math.cos(heading), y=y - 0.5 * size * math.sin(heading), z=0.01 * size)
