@@ -32,6 +32,24 @@ out = Console()
 err = Console(stderr=True)
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        from .run import tool_versions
+
+        versions = tool_versions()
+        out.print(f"platoon {versions.pop('platoon-cosim')} ("
+                  + ", ".join(f"{name} {version}" for name, version in versions.items()) + ")", highlight=False)
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(
+    version: Annotated[bool, typer.Option("--version", callback=_print_version, is_eager=True,
+                                          help="print the version (and of the FMUs, FMPy, pythonfmu, Python) and exit")] = False,
+) -> None:
+    """Platoon co-simulation: trajectory-shaping guidance FMUs, config-driven runs, MCAP traces."""
+
+
 def _fail(code: int, message: str) -> None:
     err.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
@@ -74,9 +92,17 @@ def _progress_runner(steps: int, quiet: bool):
 
 
 def _summary_table(summaries, config: Config, title: str) -> Table:
-    table = Table(title=title, title_justify="left")
-    for column in ("vehicle", "path offset [m]", "gap - d* [m]", "speed - V_c [m/s]", "max |path error| [m]"):
-        table.add_column(column, justify="right" if column != "vehicle" else "left")
+    """The per-vehicle summary; headers escaped, else rich reads the units "[m]" as markup and drops them."""
+    from .metrics import STEADY_FRACTION, first_disturbance
+
+    disturbed = first_disturbance(config)  # max |path error| is taken from the first disturbance on (metrics.py)
+    interval = "whole run" if disturbed is None else f"t >= {disturbed:g} s"
+    table = Table(title=title, title_justify="left", caption_justify="left",
+                  caption=f"path offset, gap, speed: means over the last {STEADY_FRACTION:.0%} of the recorded time")
+    for column in ("vehicle", "path offset [m]", "gap - d* [m]", "speed - V_c [m/s]", f"max |path error| [m], {interval}"):
+        table.add_column(escape(column), justify="right" if column != "vehicle" else "left",
+                         min_width=len("max |path error|") if column.startswith("max") else None,  # unbroken
+                         max_width=len("path offset") if column.startswith("path") else None)  # fits 80 columns
     for s in summaries:
         table.add_row(
             s.name, f"{s.path_offset:+.3e}", f"{s.gap - config.platoon.d_star:+.3e}",

@@ -30,7 +30,7 @@ SHORT = ("--set", "simulation.stop_time=1.0", "-q")
 
 def platoon(*args: object, cwd: Path) -> subprocess.CompletedProcess[str]:
     """``platoon ARGS`` from this checkout (PYTHONPATH), without a terminal."""
-    env = {**os.environ, "COLUMNS": "100", "NO_COLOR": "1", "TERM": "dumb", "PYTHONPATH": str(REPO)}
+    env = {**os.environ, "COLUMNS": "80", "NO_COLOR": "1", "TERM": "dumb", "PYTHONPATH": str(REPO)}
     env.pop("FORCE_COLOR", None)
     return subprocess.run([sys.executable, "-c", "from orchestrator.cli import main; main()", *map(str, args)],
                           cwd=cwd, env=env, capture_output=True, text=True, timeout=180)

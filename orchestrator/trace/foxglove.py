@@ -58,7 +58,7 @@ PATH_PIXELS = 2.0  # the path's line width on screen
 TRAIL_PIXELS = 3.0  # a vehicle's trail width on screen
 TRAIL_SHARE = 0.08  # a trail covers at most this share of a circle's circumference ...
 TRAIL_GAP_SHARE = 0.4  # ... and of d*, so trails show recent motion, never the whole circle
-LABEL_OFFSET = 0.04  # labels sit this share of the view's extent off the path (outside a circle, left of a line)
+LABEL_OFFSET = 0.06  # labels sit this share of the view's extent off the path (outside a circle, left of a line)
 LABEL_ALL_UP_TO = 10  # platoons up to this size get a "vehicleN" label per vehicle, larger ones "N"
 
 
