@@ -209,7 +209,7 @@ def run(
     result = _execute(parsed, text, trace, engine, quiet, trace_writer)
     from .viewer_cli import write_run_layout
 
-    layout = write_run_layout(result.trace, parsed)  # the Foxglove view fitted to this run, beside its trace
+    layout = write_run_layout(trace, parsed)  # the Foxglove view fitted to this run, beside its trace (None: warned)
     if result.live:
         from .hil_cli import live_table
 
@@ -223,7 +223,8 @@ def run(
         summaries = result.summary if result.summary is not None else summarize(load(result.trace), parsed)
         out.print(_summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine}, last 10 % of {parsed.simulation.stop_time:g} s"))
     out.print(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)")
-    out.print(f"layout: {layout}  (open both in Foxglove: docs/foxglove.md)")
+    if layout is not None:
+        out.print(f"layout: {layout}  (open both in Foxglove: docs/foxglove.md)")
     if verbose:
         err.print(_time_split(entered, loaded, result.timings, seconds_since_process_start()), highlight=False)
     if compare:

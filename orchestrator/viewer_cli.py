@@ -41,10 +41,20 @@ def run_layout(config: "Config", vehicles: int) -> dict[str, Any]:
     return layout(vehicles, SceneSettings.of(config))
 
 
-def write_run_layout(trace: Path, config: "Config") -> Path:
-    """Write the layout fitted to ``config``'s run beside ``trace``; returns its path."""
+def write_run_layout(trace: Path, config: "Config") -> Path | None:
+    """Write the layout fitted to ``config``'s run beside ``trace``; returns its path.
+
+    A layout that cannot be written (disk full, a folder in its place) costs the user nothing of the
+    run: a warning on stderr and None, and the run's summary and exit status stand.
+    """
     path = layout_path(trace)
-    path.write_text(json.dumps(run_layout(config, config.platoon.count), indent=2) + "\n")
+    try:
+        path.write_text(json.dumps(run_layout(config, config.platoon.count), indent=2) + "\n")
+    except OSError as error:
+        from .cli import err
+
+        err.print(f"warning: layout {path} not written: {error.strerror or error}", highlight=False, markup=False, soft_wrap=True)
+        return None
     return path
 
 

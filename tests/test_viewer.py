@@ -209,3 +209,11 @@ def test_bad_inputs_exit_2_with_one_line(runs: dict[str, Path], tmp_path: Path) 
         assert result.returncode == 2, (args, result.stderr)
         assert reason in error_line(result), result.stderr
     assert not (tmp_path / "fig.jpg").exists() and not (tmp_path / "fig.pdf").exists()
+
+
+def test_run_whose_layout_cannot_be_written_keeps_its_trace(tmp_path: Path) -> None:
+    (tmp_path / "x.layout.json").mkdir()  # a folder where the layout goes
+    result = platoon("run", PAPER, *SHORT, "--out", tmp_path / "x.mcap", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert result.stderr.strip().startswith("warning: layout") and len(result.stderr.strip().splitlines()) == 1
+    assert load(tmp_path / "x.mcap").run["status"] == "completed"
