@@ -95,7 +95,7 @@ def read_run_view(trace: Path) -> RunView:
 
 
 def layout_command(
-    trace: Annotated[Path, typer.Argument(help="trace written by `platoon run`")],
+    trace: Annotated[Path, typer.Argument(metavar="TRACE.mcap", help="trace written by `platoon run`")],
     out: Annotated[Optional[Path], typer.Option("--out", help="layout file (default: beside the trace, <stem>.layout.json)")] = None,
 ) -> None:
     """Write a Foxglove/Lichtblick layout fitted to a trace: its path in view, one plot series per vehicle."""
@@ -117,8 +117,8 @@ def layout_command(
 
 
 def figure_command(
-    first: Annotated[Path, typer.Argument(help="trace of the left column (the paper: regular law)")],
-    second: Annotated[Path, typer.Argument(help="trace of the right column (the paper: sine law)")],
+    first: Annotated[Path, typer.Argument(metavar="A.mcap", help="trace of the left column (the paper: regular law)")],
+    second: Annotated[Path, typer.Argument(metavar="B.mcap", help="trace of the right column (the paper: sine law)")],
     out: Annotated[Path, typer.Option("--out", help="figure file: .pdf, .svg (vector) or .png")],
     dpi: Annotated[int, typer.Option(min=30, max=1200, help="dots per inch of a PNG (the figure is 12.4 x 15 in)")] = 150,
 ) -> None:

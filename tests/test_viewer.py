@@ -217,3 +217,54 @@ def test_run_whose_layout_cannot_be_written_keeps_its_trace(tmp_path: Path) -> N
     assert result.returncode == 0, result.stderr
     assert result.stderr.strip().startswith("warning: layout") and len(result.stderr.strip().splitlines()) == 1
     assert load(tmp_path / "x.mcap").run["status"] == "completed"
+
+
+# --- in the real viewer (Lichtblick in headless Chromium, the project's viewer tools; ~25 s) -----------
+
+RENDER = Path(os.environ.get("PLATOON_VIEWER_RENDER", REPO.parent / "shared" / "viewer" / "render.mjs"))
+
+
+def _viewer_missing() -> str | None:
+    import shutil
+
+    if shutil.which("node") is None:
+        return "node is not installed"
+    if not RENDER.is_file():
+        return f"no viewer at {RENDER} (set PLATOON_VIEWER_RENDER to render.mjs)"
+    if not Path("/usr/bin/chromium").is_file() and shutil.which("chromium") is None:
+        return "chromium is not installed"
+    return None
+
+
+def test_the_viewer_shows_every_m3pi_robot_and_titled_plots(tmp_path: Path) -> None:
+    """The m3pi's 1 m circle, opened with the layout `platoon run` wrote: each robot's colour shows in the
+    3D panel's screenshot (the paper-sized static layout shows an empty panel there) and each plot has
+    its title."""
+    missing = _viewer_missing()
+    if missing:
+        pytest.skip(missing)
+    import matplotlib.image
+    import numpy as np
+
+    from orchestrator.trace.foxglove import vehicle_colors
+
+    trace = tmp_path / "m3pi.mcap"
+    result = platoon("run", M3PI, "--set", "simulation.stop_time=2.0", "-q", "--out", trace, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert (tmp_path / "m3pi.layout.json").is_file()  # written by platoon run, beside the trace
+    shots = tmp_path / "shots"
+    rendered = subprocess.run(["node", str(RENDER), "--settle", "2", str(trace), str(tmp_path / "m3pi.layout.json"),
+                               str(shots)], capture_output=True, text=True, timeout=170)
+    if rendered.returncode == 2:
+        pytest.skip(f"viewer not set up: {rendered.stderr.strip()[-200:]}")
+    assert rendered.returncode == 0, rendered.stdout[-2000:] + rendered.stderr[-2000:]
+    report = json.loads((shots / "report.json").read_text())
+    titles = {panel["id"]: panel["title"] for panel in report["panels"]}
+    assert titles["Plot!path"] == "path error [m]" and titles["Plot!gap"] == "gap error d - d* [m]"
+    assert titles["Plot!speed"] == "speed error V - V_c [m/s]"
+    three_d = next(panel for panel in report["panels"] if panel["id"] == "3D!platoon")
+    image = matplotlib.image.imread(shots / three_d["file"])[..., :3]
+    for number, color in enumerate(vehicle_colors(6), start=1):
+        # within 0.1 of the vehicle's colour on every channel (its flat screen-size dash, lit box faces)
+        pixels = int((np.abs(image - np.array(color)).max(axis=2) < 0.1).sum())
+        assert pixels >= 100, f"vehicle{number}: {pixels} pixels of its colour in the 3D panel"
