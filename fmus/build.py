@@ -10,6 +10,7 @@ changes and a trace can name the model version it ran.
 from __future__ import annotations
 
 import hashlib
+import os
 import importlib.metadata
 import importlib
 import sys
@@ -119,11 +120,17 @@ def _build_one(name: str, out_dir: Path, guid: str) -> Path:
 
     out_dir.mkdir(parents=True, exist_ok=True)
     target = out_dir / f"{name}.fmu"
-    partial = target.with_suffix(".fmu.partial")
-    with zipfile.ZipFile(partial, "w") as archive:
-        for entry in sorted(entries):
-            archive.writestr(_zip_entry(entry), entries[entry])
-    partial.replace(target)  # never leave a half-written FMU under the final name
+    # one name per process: two runs that find the FMUs out of date build them side by side, each
+    # renaming its own complete file into place (the last one wins; both are the same FMU)
+    partial = target.with_name(f"{target.name}.{os.getpid()}.partial")
+    try:
+        with zipfile.ZipFile(partial, "w") as archive:
+            for entry in sorted(entries):
+                archive.writestr(_zip_entry(entry), entries[entry])
+        partial.replace(target)  # never leave a half-written FMU under the final name
+    except BaseException:  # e.g. a full disk: no half-written .partial left behind either
+        partial.unlink(missing_ok=True)
+        raise
     return target
 
 

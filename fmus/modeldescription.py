@@ -8,8 +8,12 @@ including the capability flags, each set on purpose:
   than ``max_substep``, so any step size integrates with the same accuracy.
 * canGetAndSetFMUstate / canSerializeFMUstate: true. The slaves save every value and the whole
   stepper (state vector, time, input samples), tested by a rollback test.
-* needsExecutionTool: false. The FMU talks to no external tool; it embeds a Python interpreter
-  through libpython, a shared-library dependency documented in docs/fmus.md.
+* needsExecutionTool: true. FMI 2.0 (section 2.2.x, the CoSimulation element): "If true, a tool is
+  needed to execute the model". Our binary executes nothing itself: it hands the model (Python
+  source in resources/) to the Python installation of the host, which must provide libpython 3.11
+  and its standard library (docs/fmus.md, "What a host needs"). That installation is the tool. The
+  importers we run them with (FMPy simulate and validate, libcosim, our C host) treat the flag as
+  information and run the FMUs as before (tests/test_hostile_fmus.py).
 * canBeInstantiatedOnlyOncePerProcess: false. All state lives on the instance (tested with two
   platoons in one process).
 """
@@ -39,7 +43,7 @@ UNITS: dict[str, dict[str, int]] = {
 }
 
 CAPABILITIES = {
-    "needsExecutionTool": "false",
+    "needsExecutionTool": "true",
     "canHandleVariableCommunicationStepSize": "true",
     "canInterpolateInputs": "false",
     "maxOutputDerivativeOrder": "0",
@@ -136,15 +140,24 @@ def model_description(slave: PlatoonSlave, guid: str, version: str) -> bytes:
             type_attributes["max"] = _format(info.max)
         SubElement(scalar, info.type, type_attributes)
 
+    # FMI 2.0.x, section 2.2.8 (ModelStructure): an Unknown's dependencies name the knowns it is
+    # computed from, and no dependencies attribute means "all of them". The knowns differ per list:
+    # for <Outputs> (at communication points) they are the inputs and the states, so a parameter is
+    # never listed; for <InitialUnknowns> (Initialization Mode) they are the inputs, the variables
+    # with initial="exact" - all our parameters (causality parameter, variability fixed: initial
+    # defaults to exact) - and the independent variable. So an output that starts from a parameter
+    # (a vehicle's x from initial.x) names it there (``initial_depends_on``).
     structure = SubElement(root, "ModelStructure")
-    for section in ("Outputs", "InitialUnknowns"):
+    for section, dependencies_of in (("Outputs", lambda info: info.depends_on),
+                                     ("InitialUnknowns", lambda info: info.initial_depends_on)):
         node = SubElement(structure, section)
         for info in cls.variables:
             if info.causality != "output":
                 continue
             attributes = {"index": str(index_of[info.name])}
-            if info.depends_on is not None:
-                attributes["dependencies"] = " ".join(str(index_of[n]) for n in info.depends_on)
+            dependencies = dependencies_of(info)
+            if dependencies is not None:
+                attributes["dependencies"] = " ".join(str(index_of[n]) for n in sorted(dependencies, key=index_of.get))
             SubElement(node, "Unknown", attributes)
 
     return parseString(tostring(root, "UTF-8")).toprettyxml(indent="  ", encoding="UTF-8")

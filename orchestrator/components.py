@@ -17,6 +17,7 @@ from ctypes import PYFUNCTYPE, byref, c_double, c_int, c_size_t, c_void_p, cast
 from dataclasses import dataclass
 from pathlib import Path
 from functools import partial
+from itertools import count
 from struct import Struct
 from typing import Any, Callable, Sequence
 
@@ -61,6 +62,24 @@ def resolved_functions(slave: FMU2Slave) -> dict[str, Any]:
     """The ctypes functions FMPy resolved from the FMU's library, by fmi2 name ({} if FMPy stops
     keeping them, and its wrappers stand in)."""
     return getattr(slave, "_functions", {})
+
+
+# FMPy's addLoggerProxy keeps ONE logger per process (the last one registered) and hands it every
+# message of every FMU instance. Each component's messages are told apart by the componentEnvironment
+# it passes to fmi2Instantiate (a number of its own) and routed to its deque here; before, every
+# message went to the component created last, and a failure of another one was reported without its
+# reason ("fmi2DoStep failed with status 2").
+_MESSAGES_BY_ENVIRONMENT: dict[int, deque[str]] = {}
+_ENVIRONMENTS = count(1)
+
+
+def _route_log(env: Any, instance: bytes, status: int, category: bytes, message: bytes) -> None:
+    messages = _MESSAGES_BY_ENVIRONMENT.get(env or 0)
+    if messages is not None:
+        messages.append(message.decode("utf-8", "replace") if message else "")
+
+
+_LOGGER = fmi2CallbackLoggerTYPE(_route_log)  # one callback object for the life of the process
 
 
 def _not_instantiated(*args: Any) -> int:
@@ -166,7 +185,10 @@ class FmuComponent:
             instanceName=name,
         )
         self._callbacks = fmi2CallbackFunctions()
-        self._callbacks.logger = fmi2CallbackLoggerTYPE(self._log)
+        self._environment = next(_ENVIRONMENTS)
+        _MESSAGES_BY_ENVIRONMENT[self._environment] = self.messages
+        self._callbacks.logger = _LOGGER
+        self._callbacks.componentEnvironment = self._environment
         self._callbacks.allocateMemory = fmi2CallbackAllocateMemoryTYPE(calloc)
         self._callbacks.freeMemory = fmi2CallbackFreeMemoryTYPE(free)
         addLoggerProxy(byref(self._callbacks))
@@ -212,10 +234,6 @@ class FmuComponent:
         self._get_real = partial(raw("fmi2GetReal"), instance, self._out_refs, c_size_t(len(self.outputs)),
                                  self._out_values)
         self._do_step = partial(raw("fmi2DoStep"), instance, self._step_from, self._step_size, c_int(fmi2True))
-
-    def _log(self, env: Any, instance: bytes, status: int, category: bytes, message: bytes) -> None:
-        text = message.decode("utf-8", "replace") if message else ""
-        self.messages.append(text)
 
     def _fail(self, error: Exception) -> ComponentError:
         reason = self.messages[-1] if self.messages else str(error)
@@ -290,3 +308,4 @@ class FmuComponent:
             self._slave.fmi2FreeInstance(self._slave.component)
             self._instantiated = False
             self._set_real = self._get_real = self._do_step = _not_instantiated
+        _MESSAGES_BY_ENVIRONMENT.pop(self._environment, None)

@@ -32,7 +32,8 @@ from .realtime import Pacer
 from .native import NativeComponent, NativeMaster, available as native_available
 from .scenario import Scenario, build_scenario, step_count
 from .trace.foxglove import SCENE_RATE, FoxgloveChannels, SceneSettings
-from .trace.writer import NullTraceWriter, TraceWriter
+from .trace.output import Claim, claim, claim_new
+from .trace.writer import NullTraceWriter, TraceWriteError, TraceWriter
 from .trace.format import BLOCK, FLUSH_INTERVAL
 from .trace.worker import WORKER_BLOCK, TraceProcess, TraceWorker, TraceWorkerError
 
@@ -119,15 +120,17 @@ def open_trace_writer(
     scene_rate: float = SCENE_RATE,
     foxglove: bool = True,
     process: TraceProcess | None = None,
+    publish: Path | None = None,
 ) -> "TraceWriter | TraceWorker":
     """A run's trace writer, encoding in this process ("inline") or in a worker ("process"): same file.
 
-    ``foxglove`` adds the Foxglove channels at ``scene_rate``; ``process`` is a worker started earlier.
+    ``foxglove`` adds the Foxglove channels at ``scene_rate``; ``process`` is a worker started earlier;
+    ``publish``: the final path, ``path`` being the aside file renamed onto it once finalized.
     """
     if kind == "process":
-        return TraceWorker(path, components, descriptions, every=every, process=process,
+        return TraceWorker(path, components, descriptions, every=every, process=process, publish=publish,
                            foxglove=(SceneSettings.of(config), components, scene_rate) if foxglove else None)
-    return TraceWriter(path, components, descriptions, every=every,
+    return TraceWriter(path, components, descriptions, every=every, publish=publish,
                        foxglove=FoxgloveChannels(config, components, scene_rate) if foxglove else None)
 
 
@@ -158,7 +161,10 @@ def _finalize_trace(writer: "TraceWriter | TraceWorker | NullTraceWriter", statu
         writer.metadata("platoon.run", run_record)
         writer.close()
     except TraceWorkerError as failure:
-        status, error = "failed", str(failure).splitlines()[0]
+        if status != "interrupted":
+            status, error = "failed", str(failure).splitlines()[0]
+    except TraceWriteError as failure:  # e.g. a full disk: the file keeps its complete chunks
+        status, error = "failed", str(failure)
     return status, error
 
 
@@ -186,7 +192,9 @@ class _StopRequest:
     communication point: the run stops between two steps, never inside an FMU call (pythonfmu FMUs
     run Python code, where a KeyboardInterrupt would turn into an FMU error). A second signal while
     the loop still runs raises at once, in case a component hangs. After the loop, signals are only
-    noted until the trace is finalized; then the previous handlers come back.
+    noted until the trace is finalized (except while waiting for a trace writer process, which a
+    further signal stops: ``finishing``); then the previous handlers come back. A second signal raised
+    inside an FMU call makes that call fail: ``forced`` tells the run it was an interruption.
     """
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -194,10 +202,13 @@ class _StopRequest:
     def __init__(self) -> None:
         self.signum = 0
         self.armed = False
+        self.forced = False  # a second signal raised Interrupted, possibly inside an FMU call
+        self.finishing = False  # waiting for the trace writer process: any further signal ends the wait
         self._previous: dict[int, object] = {}
 
     def _handler(self, signum: int, frame: object) -> None:
-        if self.signum and self.armed:
+        if self.signum and (self.armed or self.finishing):
+            self.forced = True
             raise Interrupted(signum)
         self.signum = self.signum or signum
 
@@ -229,7 +240,7 @@ def _signal_text(signum: int) -> str:
 def run_scenario(
     config: Config,
     config_text: str,
-    out: Path | None,
+    out: Path | Claim | None,
     engine: str | None = None,
     fmu_dir: Path = DEFAULT_OUT,
     tick: Tick | None = None,
@@ -240,6 +251,11 @@ def run_scenario(
 ) -> RunResult:
     """Run ``config`` with ``engine`` and write the trace to ``out`` (``None``: record nothing).
 
+    ``out`` is a path (claimed here: ``orchestrator.trace.output.claim``, which raises ``OutputError``
+    for a path in use by another run or holding a file that is not a trace) or a ``Claim`` made by
+    the caller. The trace is written aside (``<out>.partial``) and put in place once finalized;
+    ``RunResult.trace`` is where the data ended up.
+
     ``foxglove`` adds the Foxglove channels (scene at ``scene_rate`` Hz of simulated time, errors,
     transforms, log). SIGINT and SIGTERM stop the run at the next communication point with status
     "interrupted"; the trace is finalized with every point recorded up to there. ``trace_writer``:
@@ -247,24 +263,29 @@ def run_scenario(
     the per-vehicle summary of the recorded rows while stepping (``RunResult.summary``), so printing it
     needs no second read of the trace.
     """
-    engine = engine or default_engine(config)
-    if engine not in ENGINES:
-        raise ValueError(f"unknown engine {engine!r}; expected one of {', '.join(ENGINES)}")
-    check_live_options(config, engine, trace_writer)
-    scenario = build_scenario(config)
-    sim = config.simulation
-    steps = step_count(sim.stop_time, sim.step)
-    live = live_names(config) if engine == "python" else set()
-    writer_kind = "inline" if live else choose_trace_writer(trace_writer, steps // sim.trace_every + 1,
-                                                            len(scenario.components))
-    # the trace writer process starts first: its start-up overlaps unpacking and instantiating the FMUs
-    opening = clock.perf_counter()
-    trace_process = TraceProcess() if out is not None and writer_kind == "process" else None
-    try:
+    target = claim(out) if isinstance(out, (str, Path)) else out
+    trace_process: TraceProcess | None = None
+    try:  # whatever fails before the run starts: no lock kept, no empty aside file left behind
+        engine = engine or default_engine(config)
+        if engine not in ENGINES:
+            raise ValueError(f"unknown engine {engine!r}; expected one of {', '.join(ENGINES)}")
+        check_live_options(config, engine, trace_writer)
+        scenario = build_scenario(config)
+        sim = config.simulation
+        steps = step_count(sim.stop_time, sim.step)
+        live = live_names(config) if engine == "python" else set()
+        writer_kind = "inline" if live else choose_trace_writer(trace_writer, steps // sim.trace_every + 1,
+                                                                len(scenario.components))
+        # the trace writer process starts first: its start-up overlaps unpacking and instantiating the FMUs;
+        # it inherits the trace's lock, so the path stays claimed while it still writes
+        opening = clock.perf_counter()
+        if target is not None and writer_kind == "process":
+            trace_process = TraceProcess(keep_fds=(target.fd,))
         fmus_by_kind = _open_fmus(fmu_dir)
     except BaseException:
         if trace_process is not None:
             trace_process.close()
+        _release(target)
         raise
     started = clock.perf_counter()
     marks = {"start": started}  # phase boundaries, for RunResult.timings
@@ -283,13 +304,13 @@ def run_scenario(
             for spec in scenario.components
         }
         components = [(spec.name, outputs[spec.name]) for spec in scenario.components]
-        if out is None:
+        if target is None:
             writer = NullTraceWriter()
         else:
-            writer = open_trace_writer(writer_kind, out, components,
+            writer = open_trace_writer(writer_kind, target.aside, components,
                                        {name: _descriptions(fmu) for name, fmu in kinds.items()}, config,
                                        every=sim.trace_every, scene_rate=scene_rate, foxglove=foxglove,
-                                       process=trace_process)
+                                       process=trace_process, publish=target.final)
         writer.metadata("platoon.config", {"toml": config_text, "resolved": config.model_dump_json()})
         writer.metadata("platoon.fmus", {kind: fmu.guid for kind, fmu in fmus_by_kind.items()})
         writer.metadata("platoon.tool", tool_versions())
@@ -340,12 +361,17 @@ def run_scenario(
         else:
             _run_monolithic(scenario, outputs, fmus_by_kind, observe, steps, tick)
     except ComponentError as failure:
-        status, error, failed_at = "failed", str(failure), failure.time
+        if stop.forced:  # a second signal, raised inside an FMU call, made it fail: an interruption
+            signum, status = stop.signum, "interrupted"
+        else:
+            status, error, failed_at = "failed", str(failure), failure.time
     except KeyboardInterrupt as interruption:
         signum = getattr(interruption, "signum", signal.SIGINT)
         status = "interrupted"
     except TraceWorkerError as failure:  # the trace writer process died: the run cannot be recorded further
         status, error = "failed", str(failure).splitlines()[0]
+    except TraceWriteError as failure:  # the trace cannot be written (e.g. a full disk): stop, keep what is on disk
+        status, error = "failed", str(failure)
     except Exception as unexpected:  # a bug, not a component failure: keep the trace, say so, re-raise
         status, error = "failed", f"{type(unexpected).__name__}: {unexpected}"
         raise
@@ -362,17 +388,27 @@ def run_scenario(
             if reporter is not None:  # stamped at the last communication point the master reached
                 live_summary = reporter.finish(master.time if master is not None else 0.0)
             if writer is not None:
-                status, error = _finalize_trace(writer, status, error, failed_at, signum, engine, sim.master)
+                stop.finishing = isinstance(writer, TraceWorker)  # a signal may end the wait for the worker
+                try:
+                    status, error = _finalize_trace(writer, status, error, failed_at, signum, engine, sim.master)
+                except KeyboardInterrupt as interruption:  # while the trace writer process finished the file
+                    signum = signum or getattr(interruption, "signum", signal.SIGINT)
+                    status = "interrupted"
+                    error = (f"{_signal_text(signum)} while the trace writer process finished the file; its "
+                             f"complete chunks are in {target.aside if target else '?'} (`platoon trace recover`)")
+                finally:
+                    stop.finishing = False
             if trace_process is not None:
                 trace_process.close()  # only if no writer took it (the writer was never created)
             for fmu in fmus_by_kind.values():
                 fmu.cleanup()
         finally:
             stop.restore()
+            _release(target)
     marks["finish"] = clock.perf_counter()
     summary = feed.result() if feed is not None and status == "completed" else None
-    return RunResult(Path(out) if out is not None else None, steps, marks["finish"] - started, status, error, signum,
-                     {"open": opened, **_phase_durations(marks)}, live_summary, summary)
+    return RunResult(target.where() if target is not None else None, steps, marks["finish"] - started, status, error,
+                     signum, {"open": opened, **_phase_durations(marks)}, live_summary, summary)
 
 
 class _SummaryFeed:
@@ -419,6 +455,18 @@ class _SummaryFeed:
     def result(self) -> list[VehicleSummary] | None:
         self._flush()
         return self.summary.result()
+
+
+def _release(target: Claim | None) -> None:
+    """Drop the trace path's lock; an aside file that never got a byte is removed (no litter)."""
+    if target is None:
+        return
+    try:
+        if target.aside.exists() and target.aside.stat().st_size == 0:
+            target.aside.unlink()
+    except OSError:
+        pass
+    target.release()
 
 
 def _phase_durations(marks: dict[str, float]) -> dict[str, float]:
@@ -472,10 +520,12 @@ def _run_monolithic(
         raise ComponentError("platoon (monolithic)", t, str(failure)) from None
 
 
-def default_trace_path(config: Config, engine: str | None = None) -> Path:
+def default_trace_path(config: Config, engine: str | None = None) -> Claim:
+    """Claim a fresh ``runs/<name>[-monolithic]-<time>.mcap`` (``-2``, ``-3`` ... when two runs of one
+    config start in the same second): never a path another run or an existing file uses."""
     stamp = clock.strftime("%Y%m%d-%H%M%S")
     suffix = "-monolithic" if engine == "monolithic" else ""
-    return Path("runs") / f"{config.name}{suffix}-{stamp}.mcap"
+    return claim_new(Path("runs"), f"{config.name}{suffix}-{stamp}")
 
 
 def resolved_json(config: Config) -> str:

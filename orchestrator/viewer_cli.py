@@ -58,6 +58,20 @@ def write_run_layout(trace: Path, config: "Config") -> Path | None:
     return path
 
 
+def recorded_config(raw: Any) -> "Config":
+    """The config a trace recorded; ValueError (one line) if it is invalid or held inf/NaN (no view fits those)."""
+    from .config import ConfigError
+    from .stored_config import stored_config
+
+    try:
+        config, non_finite = stored_config(raw)
+    except ConfigError as error:
+        raise ValueError(f"its recorded config is not valid: {error}") from None
+    if non_finite:
+        raise ValueError(f"its recorded config held values that were not finite ({', '.join(non_finite)})")
+    return config
+
+
 def read_run_view(trace: Path) -> RunView:
     """The config and vehicle names of a trace from its summary and metadata (no message is read).
 
@@ -65,7 +79,6 @@ def read_run_view(trace: Path) -> RunView:
     """
     from mcap.reader import make_reader
 
-    from .config import ConfigError, config_from_mapping
     from .trace.format import CHANNEL_PREFIX, MAGIC, vehicle_names
 
     if not trace.is_file():
@@ -86,9 +99,10 @@ def read_run_view(trace: Path) -> RunView:
     if "resolved" not in record:
         raise ValueError("has no platoon.config metadata (not written by platoon run?)")
     try:
-        config = config_from_mapping(json.loads(record["resolved"]))
-    except (ConfigError, json.JSONDecodeError) as error:
-        raise ValueError(f"its recorded config is not valid: {error}") from None
+        raw = json.loads(record["resolved"])
+    except json.JSONDecodeError as error:
+        raise ValueError(f"its recorded config is not JSON: {error}") from None
+    config = recorded_config(raw)
     topics = [channel.topic[len(CHANNEL_PREFIX):] for channel in summary.channels.values()
               if channel.topic.startswith(CHANNEL_PREFIX)]
     return RunView(config, vehicle_names(topics))
@@ -127,7 +141,6 @@ def figure_command(
 
     if out.suffix.lower() not in FIGURE_SUFFIXES:
         _fail(2, f"--out {out}: expected a file ending in {', '.join(FIGURE_SUFFIXES)}")
-    from .config import ConfigError, config_from_mapping
     from .figure import draw_pair, save
 
     runs = []
@@ -135,12 +148,13 @@ def figure_command(
         loaded = _load_trace(trace)
         if loaded.config is None:
             _fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
-        if not loaded.vehicles():
-            _fail(2, f"trace {trace}: records no vehicle")
+        if not loaded.vehicles() or any(len(loaded.component(v)["t"]) == 0 for v in loaded.vehicles()):
+            _fail(2, f"trace {trace}: no recorded communication point, nothing to draw "
+                     f"(run {loaded.run.get('status', '?')})")
         try:
-            runs.append((loaded, config_from_mapping(loaded.config)))
-        except ConfigError as error:
-            _fail(2, f"trace {trace}: its recorded config is not valid: {error}")
+            runs.append((loaded, recorded_config(loaded.config)))
+        except ValueError as error:
+            _fail(2, f"trace {trace}: {error}")
     figure = draw_pair(runs)
     try:
         save(figure, out, dpi)

@@ -2,7 +2,8 @@
 
 Lateral information flows backward (the target's, then each vehicle's pose, speed and rates into the
 vehicle behind); velocity information flows forward (each vehicle's speed, gap and rates into the
-component ahead, vehicle 1's into the target). Every signal travels with the sender's ``time``.
+component ahead, vehicle 1's into the target). Every signal travels with the sender's ``output_time``
+(into the receiver's ``*.time`` input).
 The master, the SSP export and the libcosim tests all read this one list.
 """
 
@@ -12,14 +13,19 @@ from dataclasses import dataclass
 
 TARGET = "target"
 
+# Every FMU's output naming the time its other outputs describe; it feeds the receiver's <side>.time.
+OUTPUT_TIME = "output_time"
+
 # (sender output, receiver input) pairs for each direction of flow.
 LATERAL_SIGNALS = tuple(
-    (name, f"target.{name}") for name in ("x", "y", "heading", "speed", "speed_rate", "turn_rate", "time")
-)
+    (name, f"target.{name}") for name in ("x", "y", "heading", "speed", "speed_rate", "turn_rate")
+) + ((OUTPUT_TIME, "target.time"),)
 FOLLOWER_SIGNALS = tuple(
-    (name, f"follower.{name}") for name in ("speed", "gap", "speed_rate", "gap_rate", "time")
+    (name, f"follower.{name}") for name in ("speed", "gap", "speed_rate", "gap_rate")
+) + ((OUTPUT_TIME, "follower.time"),)
+LEAD_SIGNALS = tuple((name, f"lead.{name}") for name in ("speed", "gap", "speed_rate", "gap_rate")) + (
+    (OUTPUT_TIME, "lead.time"),
 )
-LEAD_SIGNALS = tuple((name, f"lead.{name}") for name in ("speed", "gap", "speed_rate", "gap_rate", "time"))
 
 
 @dataclass(frozen=True)

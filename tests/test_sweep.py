@@ -221,7 +221,8 @@ def test_the_runs_die_with_a_killed_sweep(tmp_path: Path, fmu_dir: Path) -> None
         deadline = time.monotonic() + 120
         while True:
             runs = [p for p in _children(sweep.pid) if _alive(p)]
-            if len(runs) == 2 and len(list((tmp_path / "out" / "traces").glob("*.part"))) == 2:
+            # *.part.partial: run_scenario writes aside until it finalizes (docs/trace-format.md)
+            if len(runs) == 2 and len(list((tmp_path / "out" / "traces").glob("*.part*"))) == 2:
                 break  # both runs are writing their traces
             assert sweep.poll() is None and time.monotonic() < deadline, "the sweep did not start its two runs"
             time.sleep(POLL)

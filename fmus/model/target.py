@@ -70,5 +70,5 @@ class VirtualTargetStepper:
             "turn_rate": target_speed * curvature,
             "curvature": curvature,
             "arc_length": self.arc_length,
-            "time": t,
+            "output_time": t,
         }

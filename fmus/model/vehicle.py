@@ -170,5 +170,5 @@ class VehicleStepper:
             "gap_rate": (dx * relative_vx + dy * relative_vy) / gap,
             "wheel.right": wheel_right,
             "wheel.left": wheel_left,
-            "time": t,
+            "output_time": t,
         }

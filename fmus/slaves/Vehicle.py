@@ -14,7 +14,7 @@ from pythonfmu.default_experiment import DefaultExperiment
 
 from fmus.model.dynamics import M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEEL_SPEED_MAX
 from fmus.model.factory import vehicle_parameter_errors, vehicle_stepper
-from fmus.model.vehicle import VEHICLE_INPUTS as _INPUT_ATTRIBUTES, VehicleStepper
+from fmus.model.vehicle import VEHICLE_INPUTS as _INPUT_ATTRIBUTES
 from fmus.slaves import defaults as d
 from fmus.slaves.base import PlatoonSlave, VariableInfo, real
 
@@ -50,12 +50,12 @@ def _inputs() -> tuple[VariableInfo, ...]:
         real("target.speed", "input", "Target speed", "m/s", start=d.SPEED, min=0.0),
         real("target.speed_rate", "input", "Target speed rate dV/dt (for extrapolation)", "m/s2", start=0.0),
         real("target.turn_rate", "input", "Target heading rate (for arc extrapolation)", "rad/s", start=d.TARGET_TURN_RATE),
-        real("target.time", "input", "Time the target values describe (the sender's 'time' output)", "s", start=0.0),
+        real("target.time", "input", "Time the target values describe (the sender's output_time)", "s", start=0.0),
         real("follower.speed", "input", "Speed of the vehicle behind (unused when is_last)", "m/s", start=d.SPEED, min=0.0),
         real("follower.gap", "input", "Distance of the vehicle behind to this vehicle (unused when is_last)", "m", start=d.D_STAR, min=0.0),
         real("follower.speed_rate", "input", "Speed rate of the vehicle behind (for extrapolation)", "m/s2", start=0.0),
         real("follower.gap_rate", "input", "Rate of the gap of the vehicle behind (for extrapolation)", "m/s", start=0.0),
-        real("follower.time", "input", "Time the follower values describe (the sender's 'time' output)", "s", start=0.0),
+        real("follower.time", "input", "Time the follower values describe (the sender's output_time)", "s", start=0.0),
         real("disturbance.lateral_acceleration", "input", "Lateral acceleration added to the guidance command", "m/s2", start=0.0),
         real("disturbance.speed", "input", "Speed added over ground (an external push the speed loop does not see)", "m/s", start=0.0),
     )
@@ -63,10 +63,11 @@ def _inputs() -> tuple[VariableInfo, ...]:
 
 def _outputs() -> tuple[VariableInfo, ...]:
     return (
-        real("x", "output", "Position x", "m", depends_on=STATE_OUTPUT),
-        real("y", "output", "Position y", "m", depends_on=STATE_OUTPUT),
-        real("heading", "output", "Heading, counter-clockwise from the x axis (not wrapped)", "rad", depends_on=STATE_OUTPUT),
-        real("speed", "output", "Speed over ground", "m/s"),
+        real("x", "output", "Position x", "m", depends_on=STATE_OUTPUT, initial_depends_on=("initial.x",)),
+        real("y", "output", "Position y", "m", depends_on=STATE_OUTPUT, initial_depends_on=("initial.y",)),
+        real("heading", "output", "Heading, counter-clockwise from the x axis (not wrapped)", "rad", depends_on=STATE_OUTPUT,
+             initial_depends_on=("initial.heading",)),
+        real("speed", "output", "Speed over ground", "m/s", initial_depends_on=("initial.speed", "disturbance.speed")),
         real("speed_rate", "output", "Rate of the speed over ground, dV/dt", "m/s2"),
         real("turn_rate", "output", "Heading rate", "rad/s"),
         real("lateral_acceleration", "output", "Lateral acceleration acting: guidance command plus disturbance", "m/s2"),
@@ -74,7 +75,8 @@ def _outputs() -> tuple[VariableInfo, ...]:
         real("gap_rate", "output", "Rate of the distance to the target, dd/dt", "m/s"),
         real("wheel.right", "output", "Right wheel speed (m3pi state; kinematic: eq. 10 equivalent)", "m/s"),
         real("wheel.left", "output", "Left wheel speed (m3pi state; kinematic: eq. 11 equivalent)", "m/s"),
-        real("time", "output", "Time the outputs describe", "s", depends_on=STATE_OUTPUT),
+        real("output_time", "output", "Time the outputs describe (the communication point they belong to); wire it to the receiver's *.time input", "s", depends_on=STATE_OUTPUT,
+             initial_depends_on=()),  # the start time, which is no variable
     )
 
 
@@ -89,11 +91,8 @@ class Vehicle(PlatoonSlave):
     input_attributes = _INPUT_ATTRIBUTES
     default_experiment = DefaultExperiment(start_time=0.0, stop_time=d.STOP_TIME, step_size=d.STEP)
 
-    def parameter_errors(self) -> list[str]:
-        return vehicle_parameter_errors(self.values)
-
-    def make_stepper(self, start_time: float) -> VehicleStepper:
-        return vehicle_stepper(self.values, start_time)
+    parameter_errors_of = staticmethod(vehicle_parameter_errors)
+    stepper_of = staticmethod(vehicle_stepper)
 
 
 assert set(_INPUT_ATTRIBUTES) == {i.name for i in _inputs()}

@@ -9,7 +9,6 @@ from __future__ import annotations
 from pythonfmu.default_experiment import DefaultExperiment
 
 from fmus.model.factory import target_parameter_errors, target_stepper
-from fmus.model.target import VirtualTargetStepper
 from fmus.slaves import defaults as d
 from fmus.slaves.base import PlatoonSlave, VariableInfo, real
 
@@ -22,6 +21,8 @@ _INPUT_ATTRIBUTES = {
 }
 
 STATE_OUTPUT = ()
+# What the target's place on its path is computed from at the start.
+PLACE = ("path.kind", "path.radius", "path.x0", "path.y0", "path.heading", "path.direction", "initial.arc_length")
 
 
 class VirtualTarget(PlatoonSlave):
@@ -43,22 +44,23 @@ class VirtualTarget(PlatoonSlave):
         real("lead.gap", "input", "Lead vehicle distance d_1 to this target", "m", start=d.D_STAR, min=0.0),
         real("lead.speed_rate", "input", "Lead vehicle speed rate (for extrapolation)", "m/s2", start=0.0),
         real("lead.gap_rate", "input", "Rate of the lead vehicle's gap (for extrapolation)", "m/s", start=0.0),
-        real("lead.time", "input", "Time the lead values describe (the lead's 'time' output)", "s", start=0.0),
-        real("x", "output", "Target position x", "m", depends_on=STATE_OUTPUT),
-        real("y", "output", "Target position y", "m", depends_on=STATE_OUTPUT),
-        real("heading", "output", "Path tangent heading at the target", "rad", depends_on=STATE_OUTPUT),
+        real("lead.time", "input", "Time the lead values describe (the lead's output_time)", "s", start=0.0),
+        real("x", "output", "Target position x", "m", depends_on=STATE_OUTPUT, initial_depends_on=PLACE),
+        real("y", "output", "Target position y", "m", depends_on=STATE_OUTPUT, initial_depends_on=PLACE),
+        real("heading", "output", "Path tangent heading at the target", "rad", depends_on=STATE_OUTPUT,
+             initial_depends_on=PLACE),
         real("speed", "output", "Target speed V_0 = V_1 d*/d_1", "m/s"),
         real("speed_rate", "output", "Rate of the target speed", "m/s2"),
         real("turn_rate", "output", "Heading rate V_0 times curvature", "rad/s"),
-        real("curvature", "output", "Signed path curvature at the target", "1/m", depends_on=STATE_OUTPUT),
-        real("arc_length", "output", "Arc length s travelled along the path", "m", depends_on=STATE_OUTPUT),
-        real("time", "output", "Time the outputs describe", "s", depends_on=STATE_OUTPUT),
+        real("curvature", "output", "Signed path curvature at the target", "1/m", depends_on=STATE_OUTPUT,
+             initial_depends_on=("path.kind", "path.radius", "path.direction")),
+        real("arc_length", "output", "Arc length s travelled along the path", "m", depends_on=STATE_OUTPUT,
+             initial_depends_on=("initial.arc_length",)),
+        real("output_time", "output", "Time the outputs describe (the communication point they belong to); wire it to the receiver's target.time input", "s", depends_on=STATE_OUTPUT,
+             initial_depends_on=()),  # the start time, which is no variable
     )
     input_attributes = _INPUT_ATTRIBUTES
     default_experiment = DefaultExperiment(start_time=0.0, stop_time=d.STOP_TIME, step_size=d.STEP)
 
-    def parameter_errors(self) -> list[str]:
-        return target_parameter_errors(self.values)
-
-    def make_stepper(self, start_time: float) -> VirtualTargetStepper:
-        return target_stepper(self.values, start_time)
+    parameter_errors_of = staticmethod(target_parameter_errors)
+    stepper_of = staticmethod(target_stepper)

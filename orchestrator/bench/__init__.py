@@ -35,4 +35,4 @@ variant alike. ``common.py`` holds what they share (child processes, interleavin
 # The engines the per-FMU-step suites know (described in engines.py); here so that the CLI can list
 # them without importing FMPy.
 ENGINES = ("native", "native-buffer", "native-traced", "native-offload", "python", "fmpy-bare", "libcosim",
-           "libcosim-0threads", "slaves")
+           "libcosim-0threads", "libcosim-0threads-lastvalue", "slaves")

@@ -10,7 +10,10 @@
   fmpy-bare          (d) a bare FMPy loop: FMU2Slave setReal / doStep / getReal, value references resolved once
   libcosim           (e) libcosim (libcosimpy), default worker threads (CosimExecution.from_step_size)
   libcosim-0threads  (f) libcosim loaded from an SSP file (written at run time from our wiring) with
-                         <osp:FixedStepAlgorithm numWorkerThreads="0">
+                         <osp:FixedStepAlgorithm numWorkerThreads="0">; no observer while timed (libcosim
+                         records nothing, as our engines with tracing off)
+  libcosim-0threads-lastvalue  the same with libcosim's last-value observer while timed (reads every
+                         variable after each step): the baseline before issue 22, kept to show its cost
   slaves             (g) the floor: fmus.slaves.Vehicle / VirtualTarget called directly, no FMI at all
 
 Timed: the communication steps after initialization (libcosim initializes on its first step, so it
@@ -40,10 +43,11 @@ LABELS = {
     "python": "(c) Python engine (Master + FmuComponent)",
     "fmpy-bare": "(d) bare FMPy loop (FMU2Slave)",
     "libcosim": "(e) libcosim, default worker threads",
-    "libcosim-0threads": "(f) libcosim from SSP, numWorkerThreads=0",
+    "libcosim-0threads": "(f) libcosim from SSP, numWorkerThreads=0, no observer",
+    "libcosim-0threads-lastvalue": "libcosim from SSP, 0 threads, last-value observer",
     "slaves": "(g) floor: slave classes called directly",
 }
-LIBCOSIM_ENGINES = ("libcosim", "libcosim-0threads")
+LIBCOSIM_ENGINES = ("libcosim", "libcosim-0threads", "libcosim-0threads-lastvalue")
 
 
 _collected_at: list[float] = []  # perf_counter() at the start of every garbage collection in this process
@@ -209,6 +213,7 @@ def measure_step(engine: str, n: int, steps: int, coupling: str = "extrapolate",
         "fmpy-bare": lambda: run_fmpy_bare(n, steps, coupling, fmu_dir),
         "libcosim": lambda: run_libcosim(n, steps, False, coupling, fmu_dir),
         "libcosim-0threads": lambda: run_libcosim(n, steps, True, coupling, fmu_dir),
+        "libcosim-0threads-lastvalue": lambda: run_libcosim(n, steps, True, coupling, fmu_dir, observer="last-value"),
         "slaves": lambda: run_slaves(n, steps, coupling, fmu_dir),
     }
     gc.callbacks.append(_note_collection)

@@ -22,7 +22,7 @@ from . import ENGINES
 from .engines import LABELS, LIBCOSIM_ENGINES
 from .platoon import STEP, fmu_files
 
-DEFAULT_ENGINES = ("native", "python", "fmpy-bare", "libcosim", "libcosim-0threads", "slaves")
+DEFAULT_ENGINES = ("native", "python", "fmpy-bare", "libcosim", "libcosim-0threads", "libcosim-0threads-lastvalue", "slaves")
 DEFAULT_N = (4, 16, 64, 256)
 AGREEMENT = 1e-6  # m: libcosim's nanosecond grid differs from t_k = k h by ulps, nothing else may differ
 RATIOS = (  # (name, numerator, denominator)
@@ -32,6 +32,8 @@ RATIOS = (  # (name, numerator, denominator)
     ("python / fmpy-bare (floor <= 0.8)", "python", "fmpy-bare"),
     ("native / slaves (overhead over the floor)", "native", "slaves"),
     ("native-buffer / native", "native-buffer", "native"),
+    ("libcosim-0threads-lastvalue / libcosim-0threads (the old baseline's observer)", "libcosim-0threads-lastvalue",
+     "libcosim-0threads"),
 )
 
 

@@ -113,7 +113,9 @@ class OutputFolder:
 
     def _remove_leftovers(self) -> None:
         """Partial traces and temporary files of runs a killed sweep had under way (redone now)."""
-        for leftover in [*self.traces.glob("*.part"), *self.results.glob(".*.tmp"), *self.root.glob(".*.tmp")]:
+        # *.partial: the aside file run_scenario writes a trace to until it is finalized (trace/output.py)
+        for leftover in [*self.traces.glob("*.part"), *self.traces.glob("*.partial"), *self.results.glob(".*.tmp"),
+                         *self.root.glob(".*.tmp")]:
             leftover.unlink(missing_ok=True)
 
     # -- runs ----------------------------------------------------------------------------------------
