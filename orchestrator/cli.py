@@ -235,7 +235,7 @@ def run(
     result = _execute(parsed, text, target, engine, quiet, trace_writer)
     from .viewer_cli import write_run_layout
 
-    layout = write_run_layout(trace, parsed)  # the Foxglove view fitted to this run, beside its trace (None: warned)
+    layout = write_run_layout(trace, parsed, warn=result.status == "completed")  # beside the trace; None: not written
     if result.live:
         from .hil_cli import live_table
 

@@ -10,6 +10,7 @@ trace's stem: the pair sorts together, and the viewer's file dialog, which filte
 from __future__ import annotations
 
 import json
+from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Optional
@@ -41,16 +42,22 @@ def run_layout(config: "Config", vehicles: int) -> dict[str, Any]:
     return layout(vehicles, SceneSettings.of(config))
 
 
-def write_run_layout(trace: Path, config: "Config") -> Path | None:
+def write_run_layout(trace: Path, config: "Config", warn: bool = True) -> Path | None:
     """Write the layout fitted to ``config``'s run beside ``trace``; returns its path.
 
     A layout that cannot be written (disk full, a folder in its place) costs the user nothing of the
-    run: a warning on stderr and None, and the run's summary and exit status stand.
+    run: None, and the run's summary and exit status stand; ``warn`` says so in one line on stderr (a
+    run that failed or was stopped says only that, in its one error line).
     """
     path = layout_path(trace)
     try:
         path.write_text(json.dumps(run_layout(config, config.platoon.count), indent=2) + "\n")
     except OSError as error:
+        with suppress(OSError):  # no half-written layout (a folder in its place stays)
+            if path.is_file():
+                path.unlink()
+        if not warn:
+            return None
         from .cli import err
 
         err.print(f"warning: layout {path} not written: {error.strerror or error}", highlight=False, markup=False, soft_wrap=True)
