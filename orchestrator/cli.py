@@ -34,6 +34,24 @@ out = Console()
 err = Console(stderr=True)
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        from .run import tool_versions
+
+        versions = tool_versions()
+        out.print(f"platoon {versions.pop('platoon-cosim')} ("
+                  + ", ".join(f"{name} {version}" for name, version in versions.items()) + ")", highlight=False)
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(
+    version: Annotated[bool, typer.Option("--version", callback=_print_version, is_eager=True,
+                                          help="print the version (and of the FMUs, FMPy, pythonfmu, Python) and exit")] = False,
+) -> None:
+    """Platoon co-simulation: trajectory-shaping guidance FMUs, config-driven runs, MCAP traces."""
+
+
 def _fail(code: int, message: str) -> None:
     err.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
@@ -81,9 +99,17 @@ def _progress_runner(steps: int, quiet: bool):
 
 
 def _summary_table(summaries, config: Config, title: str) -> Table:
-    table = Table(title=title, title_justify="left")
-    for column in ("vehicle", "path offset [m]", "gap - d* [m]", "speed - V_c [m/s]", "max |path error| [m]"):
-        table.add_column(column, justify="right" if column != "vehicle" else "left")
+    """The per-vehicle summary; headers escaped, else rich reads the units "[m]" as markup and drops them."""
+    from .metrics import STEADY_FRACTION, first_disturbance
+
+    disturbed = first_disturbance(config)  # max |path error| is taken from the first disturbance on (metrics.py)
+    interval = "whole run" if disturbed is None else f"t >= {disturbed:g} s"
+    table = Table(title=title, title_justify="left", caption_justify="left",
+                  caption=f"path offset, gap, speed: means over the last {STEADY_FRACTION:.0%} of the recorded time")
+    for column in ("vehicle", "path offset [m]", "gap - d* [m]", "speed - V_c [m/s]", f"max |path error| [m], {interval}"):
+        table.add_column(escape(column), justify="right" if column != "vehicle" else "left",
+                         min_width=len("max |path error|") if column.startswith("max") else None,  # unbroken
+                         max_width=len("path offset") if column.startswith("path") else None)  # fits 80 columns
     for s in summaries:
         table.add_row(
             s.name, f"{s.path_offset:+.3e}", f"{s.gap - config.platoon.d_star:+.3e}",
@@ -207,6 +233,9 @@ def run(
     if compare:  # checked now, claimed when its turn comes (no empty aside file if the run fails)
         _check_output(reference_path, overwrite, [config])
     result = _execute(parsed, text, target, engine, quiet, trace_writer)
+    from .viewer_cli import write_run_layout
+
+    layout = write_run_layout(trace, parsed, warn=result.status == "completed")  # beside the trace; None: not written
     if result.live:
         from .hil_cli import live_table
 
@@ -220,6 +249,8 @@ def run(
         summaries = result.summary if result.summary is not None else summarize(load(result.trace), parsed)
         out.print(_summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine}, last 10 % of {parsed.simulation.stop_time:g} s"))
     out.print(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)")
+    if layout is not None:
+        out.print(f"layout: {layout}  (open both in Foxglove: docs/foxglove.md)")
     if verbose:
         err.print(_time_split(entered, loaded, result.timings, seconds_since_process_start()), highlight=False)
     if compare:
@@ -661,6 +692,9 @@ _register_sweep(app, bench_app)
 from .ssp_cli import register as _register_ssp  # noqa: E402  (export-ssp: the platoon for other tools)
 
 _register_ssp(app)
+from .viewer_cli import register as _register_viewer  # noqa: E402  (layout, figure: what users look at)
+
+_register_viewer(app)
 
 
 def main() -> None:

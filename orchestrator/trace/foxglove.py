@@ -41,7 +41,7 @@ ROOT_FRAME = "world"
 ERROR_FIELDS = ("path_error", "gap_error", "speed_error")
 
 SCENE_RATE = 10.0  # Hz of simulated time
-HISTORY = 5.0  # s of simulated time behind each vehicle
+HISTORY = 5.0  # s of simulated time behind each vehicle, at most (scene_scale shortens it)
 PATH_POINTS = 180  # points of a circle path's line loop
 
 # Matplotlib's tab10 (also the colours of `platoon report --plots`), as 0..1 RGB.
@@ -52,6 +52,72 @@ PALETTE = [
 ]
 
 Write = Callable[[int, int, bytes], None]  # (channel id, log time ns, data)
+
+MARKER_PIXELS = 9.0  # the screen-size dash drawn on every vehicle, so that it shows at any zoom
+PATH_PIXELS = 2.0  # the path's line width on screen
+TRAIL_PIXELS = 3.0  # a vehicle's trail width on screen
+TRAIL_SHARE = 0.08  # a trail covers at most this share of a circle's circumference ...
+TRAIL_GAP_SHARE = 0.4  # ... and of d*, so trails show recent motion, never the whole circle
+LABEL_OFFSET = 0.06  # labels sit this share of the view's extent off the path (outside a circle, left of a line)
+LABEL_ALL_UP_TO = 10  # platoons up to this size get a "vehicleN" label per vehicle, larger ones "N"
+
+
+def vehicle_colors(count: int) -> list[tuple[float, float, float]]:
+    """One colour per vehicle: tab10 up to 10 vehicles, else viridis from vehicle 1 to vehicle ``count``.
+
+    The same colours in the 3D scene, the layout's plot series and ``platoon figure``, so that a
+    vehicle is the same colour everywhere; viridis (a scale, not a cycle) keeps 100 vehicles apart by
+    their place in the platoon, where a 10-colour cycle would repeat.
+    """
+    if count <= len(PALETTE):
+        return PALETTE[:count]
+    from matplotlib import colormaps  # only for large platoons: importing matplotlib costs ~0.2 s
+
+    scale = colormaps["viridis"]
+    return [tuple(float(c) for c in scale(i / (count - 1))[:3]) for i in range(count)]  # type: ignore[misc]
+
+
+def hex_color(rgb: tuple[float, float, float]) -> str:
+    return "#" + "".join(f"{round(255 * c):02x}" for c in rgb)
+
+
+def vehicle_label(name: str, vehicles: int) -> str:
+    """A vehicle's label in the scene: its name, or only its number in a large platoon (less clutter)."""
+    if vehicles <= LABEL_ALL_UP_TO or not name.startswith("vehicle"):
+        return name
+    return name[len("vehicle"):]
+
+
+@dataclass(frozen=True)
+class SceneScale:
+    """Sizes that follow a run's scale, so that a 50 m and a 1 m circle look alike on screen.
+
+    ``extent``: the length the view must show (a circle's diameter, a line platoon's length); ``size``:
+    a vehicle's box length, a fraction of the extent but never longer than the space between vehicles;
+    ``history``: seconds of trail behind each vehicle.
+    """
+
+    extent: float
+    size: float
+    history: float
+
+
+def scene_scale(settings: "SceneSettings", vehicles: int, history: float = HISTORY) -> SceneScale:
+    count = max(vehicles, 1)
+    d_star = settings.d_star
+    if settings.path_kind == "circle":
+        circumference = 2.0 * math.pi * settings.radius
+        extent = 2.0 * settings.radius
+        spacing = min(d_star, circumference / count)
+        trail = min(TRAIL_SHARE * circumference, TRAIL_GAP_SHARE * d_star)
+    else:
+        extent = (count + 1) * d_star  # the target and every vehicle, d* apart
+        spacing = d_star
+        trail = TRAIL_GAP_SHARE * d_star
+    size = min(0.08 * extent, 0.6 * spacing)
+    speed = abs(settings.v_c)
+    return SceneScale(extent, size, min(history, trail / speed) if speed > 0 else history)
+
 
 
 def errors_schema(vehicles: Sequence[str]) -> bytes:
@@ -142,11 +208,14 @@ class FoxgloveChannels:
         self.v_c = settings.v_c
         self.period = 1.0 / scene_rate if scene_rate > 0 else math.inf
         self._next_scene = 0.0
-        self._history = {name: deque(maxlen=max(2, int(round(history * scene_rate)))) for name in self.vehicles}
-        size = min(4.5, 0.15 * self.d_star)  # a car on the paper's circle, a 10 cm robot for the m3pi runs
+        scale = scene_scale(settings, len(self.vehicles), history)
+        self._history = {name: deque(maxlen=max(2, int(round(scale.history * scene_rate)))) for name in self.vehicles}
+        size = scale.size
         self._size = size
+        self._label_offset = LABEL_OFFSET * scale.extent
         self._box = fg.Vector3(x=size, y=0.45 * size, z=0.35 * size)
-        self._colors = {name: PALETTE[i % len(PALETTE)] for i, name in enumerate(self.vehicles)}
+        self._labels = {name: vehicle_label(name, len(self.vehicles)) for name in self.names}
+        self._colors = dict(zip(self.vehicles, vehicle_colors(len(self.vehicles))))
         self._path_points = self._circle_points() if settings.path_kind == "circle" else None
         self._errors_template = ('{"t":%s' + "".join(
             f',"{name}":{{"path_error":%s,"gap_error":%s,"speed_error":%s}}' for name in self.vehicles) + "}").encode()
@@ -213,6 +282,15 @@ class FoxgloveChannels:
         low, high = min(along) - margin, max(along) + margin
         return [fg.Point3(x=p.center[0] + s * ux, y=p.center[1] + s * uy, z=0.0) for s in (low, high)]
 
+    def _outward(self, x: float, y: float, heading: float) -> tuple[float, float]:
+        """Unit vector off the path where a label does not cover the vehicles: outward of a circle, left of a line."""
+        if self._path_points is not None:
+            dx, dy = x - self.settings.center[0], y - self.settings.center[1]
+            r = math.hypot(dx, dy)
+            if r > 0.0:
+                return dx / r, dy / r
+        return -math.sin(heading), math.cos(heading)
+
     def _scene(self, stamp: int, outputs: Sequence[Sequence[float]]) -> list[tuple[int, bytes]]:
         when = _timestamp(stamp)
         poses = []
@@ -221,14 +299,13 @@ class FoxgloveChannels:
             ix, iy, ih = self._pose[name]
             poses.append((values[ix], values[iy], values[ih]))
         size = self._size
-        thickness = 0.08 * size
         points = self._path_points if self._path_points is not None else self._line_points(poses)
         entities = [
             fg.SceneEntity(
                 timestamp=when, frame_id=ROOT_FRAME, id="path",
                 lines=[fg.LinePrimitive(
                     type=fg.LinePrimitiveLineType.LineLoop if self._path_points is not None else fg.LinePrimitiveLineType.LineStrip,
-                    thickness=thickness, scale_invariant=False, points=points, color=self._grey)],
+                    thickness=PATH_PIXELS, scale_invariant=True, points=points, color=self._grey)],
             )
         ]
         transforms = []
@@ -237,9 +314,14 @@ class FoxgloveChannels:
             transforms.append(fg.FrameTransform(
                 timestamp=when, parent_frame_id=ROOT_FRAME, child_frame_id=name,
                 translation=fg.Vector3(x=x, y=y, z=0.0), rotation=_quaternion(heading)))
+            nx, ny = self._outward(x, y, heading)
             label = fg.TextPrimitive(
-                pose=fg.Pose(position=fg.Vector3(x=x, y=y, z=0.8 * size), orientation=self._level),
-                billboard=True, font_size=14.0, scale_invariant=True, color=self._white, text=name)
+                pose=fg.Pose(position=fg.Vector3(x=x + self._label_offset * nx, y=y + self._label_offset * ny,
+                                                 z=0.8 * size), orientation=self._level),
+                billboard=True, font_size=12.0, scale_invariant=True, color=self._white, text=self._labels[name])
+            # a dash along the heading, drawn in screen pixels: the vehicle shows however far one zooms out
+            back = fg.Point3(x=x - 0.5 * size * math.cos(heading), y=y - 0.5 * size * math.sin(heading), z=0.01 * size)
+            front = fg.Point3(x=x + 0.5 * size * math.cos(heading), y=y + 0.5 * size * math.sin(heading), z=0.01 * size)
             if name in self._history:
                 color = self._solid[name]
                 history = self._history[name]
@@ -249,8 +331,10 @@ class FoxgloveChannels:
                     cubes=[fg.CubePrimitive(pose=pose, size=self._box, color=color)],
                     arrows=[fg.ArrowPrimitive(pose=pose, shaft_length=0.9 * size, shaft_diameter=0.1 * size,
                                               head_length=0.4 * size, head_diameter=0.25 * size, color=color)],
-                    lines=[fg.LinePrimitive(type=fg.LinePrimitiveLineType.LineStrip, thickness=0.5 * thickness,
-                                            scale_invariant=False, points=list(history), color=self._faded[name])],
+                    lines=[fg.LinePrimitive(type=fg.LinePrimitiveLineType.LineStrip, thickness=TRAIL_PIXELS,
+                                            scale_invariant=True, points=list(history), color=self._faded[name]),
+                           fg.LinePrimitive(type=fg.LinePrimitiveLineType.LineList, thickness=MARKER_PIXELS,
+                                            scale_invariant=True, points=[back, front], color=color)],
                     texts=[label],
                 ))
             else:  # the virtual target
@@ -260,6 +344,8 @@ class FoxgloveChannels:
                                                 color=self._white)],
                     arrows=[fg.ArrowPrimitive(pose=pose, shaft_length=0.6 * size, shaft_diameter=0.08 * size,
                                               head_length=0.3 * size, head_diameter=0.2 * size, color=self._white)],
+                    lines=[fg.LinePrimitive(type=fg.LinePrimitiveLineType.LineList, thickness=0.7 * MARKER_PIXELS,
+                                            scale_invariant=True, points=[back, front], color=self._white)],
                     texts=[label],
                 ))
         self.scenes += 1
@@ -278,66 +364,128 @@ class FoxgloveChannels:
 
 # --- the layout ---------------------------------------------------------------------------------
 
-def _plot(title: str, field: str, vehicles: int) -> dict[str, Any]:
+VIEW_MARGIN = 1.3  # the 3D panel shows this many times the run's extent (a margin for labels, offsets)
+LEGEND_UP_TO = 12  # plots of larger platoons show no legend: their series take the scene's colour scale
+
+
+def message_path(topic: str, *fields: str) -> str:
+    """A Foxglove message path; a field whose name holds anything but letters, digits or ``_`` is quoted.
+
+    ``message_path("/platoon/vehicle1", "wheel.right")`` is ``/platoon/vehicle1."wheel.right"``: unquoted,
+    the viewer reads field ``wheel``, then ``right``, and plots nothing.
+    """
+    def part(name: str) -> str:
+        if name.replace("_", "a").isalnum() and not name[0].isdigit():
+            return name
+        return '"' + name.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+    return topic + "".join("." + part(name) for name in fields)
+
+
+def _plot(title: str, field: str, vehicles: Sequence[str], colors: Sequence[tuple[float, float, float]]) -> dict[str, Any]:
+    legend = "left" if len(vehicles) <= LEGEND_UP_TO else "none"
     return {
-        "title": title,
+        "foxglovePanelTitle": title,  # the key Lichtblick and Foxglove read for a panel's title
         "paths": [
             {
-                "value": f"{ERRORS_TOPIC}.vehicle{i}.{field}",
+                "value": message_path(ERRORS_TOPIC, name, field),
                 "enabled": True,
                 "timestampMethod": "receiveTime",
-                "label": f"vehicle {i}",
+                "label": name.replace("vehicle", "vehicle "),
+                "color": hex_color(rgb),
             }
-            for i in range(1, vehicles + 1)
+            for name, rgb in zip(vehicles, colors)
         ],
         "showXAxisLabels": True,
         "showYAxisLabels": True,
-        "showLegend": True,
-        "legendDisplay": "floating",
-        "showPlotValuesInLegend": True,
+        "showLegend": legend != "none",
+        "legendDisplay": legend,  # beside the plot, never over the transient and the disturbance
+        "showPlotValuesInLegend": False,  # the values at the cursor carry 17 digits: the axis says enough
         "isSynced": True,
         "xAxisVal": "timestamp",
-        "sidebarDimension": 240,
+        "sidebarDimension": 150,
     }
 
 
-def layout(vehicles: int = 6) -> dict[str, Any]:
-    """The classic Foxglove layout: a 3D panel beside Plot panels of path, gap and speed errors."""
+def _nice_step(length: float) -> float:
+    """1, 2 or 5 times a power of ten, about a fifth of ``length``: the grid's cell."""
+    raw = length / 5.0
+    power = 10.0 ** math.floor(math.log10(raw))
+    return next(step * power for step in (1.0, 2.0, 5.0, 10.0) if step * power >= raw)
+
+
+def _camera(settings: SceneSettings, vehicles: int) -> tuple[dict[str, Any], dict[str, Any], str, str]:
+    """(camera, grid layer, follow mode, follow frame): a top view fitted to the run's extent.
+
+    A circle is seen whole, centred; a line platoon moves away from any fixed view, so the camera
+    follows the position of its middle vehicle, the platoon's length across the panel.
+    """
+    scale = scene_scale(settings, vehicles)
+    distance = VIEW_MARGIN * scale.extent  # an orthographic top view shows about `distance` across its height
+    circle = settings.path_kind == "circle"
+    target = [settings.center[0], settings.center[1], 0.0] if circle else [0.0, 0.0, 0.0]
+    camera = {
+        "distance": distance, "perspective": False, "phi": 0.0, "thetaOffset": 0.0,
+        "targetOffset": [0.0, 0.0, 0.0], "target": target, "targetOrientation": [0.0, 0.0, 0.0, 1.0],
+        "fovy": 45.0, "near": 0.001 * distance, "far": 1000.0 * distance,
+    }
+    step = _nice_step(scale.extent)
+    cells = 2 * math.ceil(0.5 * distance * 1.8 / step)
+    grid = {"visible": circle, "frameLocked": True, "label": "Grid", "instanceId": "grid",
+            "layerId": "foxglove.Grid", "size": cells * step, "divisions": cells, "lineWidth": 1,
+            "color": "#248eff40", "position": target, "rotation": [0, 0, 0], "order": 1}
+    if circle:
+        return camera, grid, "follow-none", ROOT_FRAME
+    return camera, grid, "follow-position", f"vehicle{(vehicles + 1) // 2}"
+
+
+def default_settings() -> SceneSettings:
+    """The paper's circle (R = 50 m, d* = 75 m, V_c = 25 m/s): the static layout's view."""
+    return SceneSettings(None, "circle", (0.0, 0.0), 50.0, 0.0, 75.0, 25.0)
+
+
+def layout(vehicles: int = 6, settings: SceneSettings | None = None) -> dict[str, Any]:
+    """A Foxglove layout: a 3D panel (fitted to ``settings``' path) beside plots of path, gap and speed errors.
+
+    ``platoon layout TRACE`` and ``platoon run`` pass the run's settings and vehicle count (one series
+    per vehicle, the camera fitted to its path); without them, the paper's circle.
+    """
+    settings = settings or default_settings()
+    names = [f"vehicle{i}" for i in range(1, vehicles + 1)]
+    colors = vehicle_colors(vehicles)
+    camera, grid, follow_mode, follow_frame = _camera(settings, vehicles)
+    hidden = {f"frame:{frame}": {"visible": False} for frame in (ROOT_FRAME, "target", *names)}
     topics = {SCENE_TOPIC: {"visible": True}, TF_TOPIC: {"visible": True}}
     three_d = {
-        "cameraState": {
-            "distance": 250.0, "perspective": False, "phi": 0.0, "thetaOffset": 0.0,
-            "targetOffset": [0.0, 0.0, 0.0], "target": [0.0, 0.0, 0.0],
-            "targetOrientation": [0.0, 0.0, 0.0, 1.0], "fovy": 45.0, "near": 0.5, "far": 5000.0,
-        },
-        "followMode": "follow-none",
-        "followTf": ROOT_FRAME,
+        "foxglovePanelTitle": "platoon (top view)",
+        "cameraState": camera,
+        "followMode": follow_mode,
+        "followTf": follow_frame,
+        # the frames exist so that entities resolve; their axes and links to `world` would only clutter
         "scene": {"enableStats": False, "transforms": {"showLabel": False, "axisScale": 1.0}},
-        "transforms": {},
+        "transforms": hidden,
         "topics": topics,
-        "layers": {
-            "grid": {"visible": True, "frameLocked": True, "label": "Grid", "instanceId": "grid",
-                     "layerId": "foxglove.Grid", "size": 200, "divisions": 20, "lineWidth": 1,
-                     "color": "#248eff40", "position": [0, 0, 0], "rotation": [0, 0, 0], "order": 1},
-        },
+        "layers": {"grid": grid},
         "publish": {"type": "point", "poseTopic": "/move_base_simple/goal", "pointTopic": "/clicked_point",
                     "poseEstimateTopic": "/initialpose", "poseEstimateXDeviation": 0.5,
                     "poseEstimateYDeviation": 0.5, "poseEstimateThetaDeviation": 0.26179939},
         "imageMode": {},
     }
+    scale_note = "" if vehicles <= LEGEND_UP_TO else f" (colour: vehicle 1 purple to {vehicles} yellow)"
     return {
         "configById": {
             "3D!platoon": three_d,
-            "Plot!path": _plot("path error [m]", "path_error", vehicles),
-            "Plot!gap": _plot("gap error d - d* [m]", "gap_error", vehicles),
-            "Plot!speed": _plot("speed error V - V_c [m/s]", "speed_error", vehicles),
-            "RosOut!log": {"searchTerms": [], "minLogLevel": 1, "topicToRender": LOG_TOPIC},
+            "Plot!path": _plot(f"path error [m]{scale_note}", "path_error", names, colors),
+            "Plot!gap": _plot(f"gap error d - d* [m]{scale_note}", "gap_error", names, colors),
+            "Plot!speed": _plot(f"speed error V - V_c [m/s]{scale_note}", "speed_error", names, colors),
+            "RosOut!log": {"foxglovePanelTitle": "run log", "searchTerms": [], "minLogLevel": 1,
+                           "topicToRender": LOG_TOPIC},
         },
         "globalVariables": {},
         "userNodes": {},
         "playbackConfig": {"speed": 1.0},
         "layout": {
-            "first": {"first": "3D!platoon", "second": "RosOut!log", "direction": "column", "splitPercentage": 80},
+            "first": {"first": "3D!platoon", "second": "RosOut!log", "direction": "column", "splitPercentage": 82},
             "second": {
                 "first": "Plot!path",
                 "second": {"first": "Plot!gap", "second": "Plot!speed", "direction": "column"},
@@ -350,8 +498,8 @@ def layout(vehicles: int = 6) -> dict[str, Any]:
     }
 
 
-def layout_json(vehicles: int = 6) -> str:
-    return json.dumps(layout(vehicles), indent=2) + "\n"
+def layout_json(vehicles: int = 6, settings: SceneSettings | None = None) -> str:
+    return json.dumps(layout(vehicles, settings), indent=2) + "\n"
 
 
 if __name__ == "__main__":  # python -m orchestrator.trace.foxglove [VEHICLES] > layouts/platoon.json
