@@ -21,28 +21,39 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 from rich.table import Table
 
 from .bench import ENGINES as BENCH_ENGINES
-from .config import Config, ConfigError, load_config
+from .config import Config, ConfigError, parse_config, read_config_text
 
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
     help="Platoon co-simulation: trajectory-shaping guidance FMUs, config-driven runs, MCAP traces.",
 )
-out = Console()
-err = Console(stderr=True)
+# No rich markup in what we print: names, paths and config text are the user's ("[[disturbance]]",
+# "runs/[a]/x.mcap") and must appear as written. The one styled line (_fail) asks for markup itself.
+out = Console(markup=False)
+err = Console(stderr=True, markup=False)
+AllowLong = Annotated[bool, typer.Option("--allow-long", help="run even above the size limits (docs/config.md: more than "
+                                         "1e6 steps, 1000 substeps per step or 1e8 FMU-substeps)")]
 
 
 def _fail(code: int, message: str) -> None:
-    err.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
+    err.print(f"[bold red]error:[/] {escape(message)}", markup=True, highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 
 
-def _load(config: Path, overrides: list[str]) -> tuple[Config, str]:
+def _load(config: Path, overrides: list[str], allow_long: bool = True) -> tuple[Config, str]:
+    """The validated config and its text as read (stored in the trace); exit 2 naming the problem.
+    ``allow_long=False`` also refuses a run above the size limits (orchestrator/limits.py)."""
+    from .limits import check_run_size
+
     try:
-        parsed, _ = load_config(config, overrides)
+        text = read_config_text(config)
+        parsed, _ = parse_config(text, config.stem, overrides)
+        if not allow_long:
+            check_run_size(parsed)
     except ConfigError as error:
         _fail(2, f"config {config}: {error}")
-    return parsed, config.read_text()
+    return parsed, text
 
 
 @app.command()
@@ -75,7 +86,8 @@ def _progress_runner(steps: int, quiet: bool):
 
 def _summary_table(summaries, config: Config, title: str) -> Table:
     table = Table(title=title, title_justify="left")
-    for column in ("vehicle", "path offset [m]", "gap - d* [m]", "speed - V_c [m/s]", "max |path error| [m]"):
+    # units on a second header line: the table fits 80 columns (they used to vanish as rich markup)
+    for column in ("vehicle", "path offset\n[m]", "gap - d*\n[m]", "speed - V_c\n[m/s]", "max |path error|\n[m]"):
         table.add_column(column, justify="right" if column != "vehicle" else "left")
     for s in summaries:
         table.add_row(
@@ -129,6 +141,7 @@ def run(
     trace_every: Annotated[Optional[int], typer.Option("--trace-every", min=1, help="record every K-th communication point (overrides simulation.trace_every)")] = None,
     engine_name: Annotated[Optional[str], typer.Option("--engine", help="native (compiled stepping core; default when built) or python (FMPy); same results")] = None,
     trace_writer: Annotated[str, typer.Option("--trace-writer", help="where the trace is encoded: process (a second process), inline, or auto (a second process for long runs on a multi-core machine); same file")] = "auto",
+    allow_long: AllowLong = False,
 ) -> None:
     """Run a scenario: wire the FMUs as the paper's Fig. 2, step them, write an MCAP trace."""
     from .metrics import summarize
@@ -137,7 +150,7 @@ def run(
 
     if trace_every is not None:
         overrides = [*overrides, f"simulation.trace_every={trace_every}"]
-    parsed, text = _load(config, overrides)
+    parsed, text = _load(config, overrides, allow_long)
     from .run import default_engine
 
     if engine_name not in (None, "native", "python"):
@@ -267,11 +280,20 @@ def analyze(
     config: Annotated[Path, typer.Argument(help="scenario TOML file")],
     overrides: Annotated[list[str], typer.Option("--set", help="override a key")] = [],
     string_stability: Annotated[bool, typer.Option(help="also run the scenario and report peak-error ratios")] = True,
+    allow_long: AllowLong = False,
 ) -> None:
     """Linearize about the circular equilibrium; eigenvalues next to the paper's eq. 9; string stability."""
     from .analysis import eigen_report, string_stability_report
+    from .limits import check_analyze_size, check_run_size
 
     parsed, text = _load(config, overrides)
+    if not allow_long:
+        try:
+            check_analyze_size(parsed)
+            if string_stability and parsed.disturbance:  # only then is the scenario run (twice)
+                check_run_size(parsed)
+        except ConfigError as error:
+            _fail(2, f"config {config}: {error}")
     try:
         report_text = eigen_report(parsed)
     except ValueError as error:

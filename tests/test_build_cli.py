@@ -9,11 +9,13 @@ from pathlib import Path
 from fmus.build import expected_guid, fmu_guid
 
 PLATOON = Path(sys.executable).parent / "platoon"
+REPO = Path(__file__).resolve().parents[1]
 
 
 def _build(out: Path) -> dict[str, str]:
     result = subprocess.run([str(PLATOON), "build", "--out", str(out)], capture_output=True, text=True,
-                            env={"COLUMNS": "200", "PATH": "/usr/bin:/bin"}, check=True)
+                            env={"COLUMNS": "200", "PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO)},  # this tree's code
+                            check=True)
     return {Path(line.split()[0]).stem: line for line in result.stdout.splitlines() if line.strip()}
 
 
