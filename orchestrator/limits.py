@@ -47,14 +47,14 @@ def check_run_size(config: Config) -> None:
     """Raise ``ConfigError`` naming the number and the limit when a run of ``config`` is absurdly big."""
     steps, per_step, work = run_size(config)
     if steps > MAX_STEPS:
-        raise ConfigError(f"simulation.stop_time / simulation.step = {steps} steps: more than {MAX_STEPS} "
+        raise ConfigError(f"simulation.stop_time / simulation.step = {steps:,} steps: more than {MAX_STEPS:,} "
                           f"(a run this long needs {ALLOW_LONG})")
     if per_step > MAX_SUBSTEPS_PER_STEP:
-        raise ConfigError(f"simulation.step / simulation.max_substep = {per_step} RK4 substeps per step: more than "
-                          f"{MAX_SUBSTEPS_PER_STEP} (a run this fine needs {ALLOW_LONG})")
+        raise ConfigError(f"simulation.step / simulation.max_substep = {per_step:,} RK4 substeps per step: more than "
+                          f"{MAX_SUBSTEPS_PER_STEP:,} (a run this fine needs {ALLOW_LONG})")
     if work > MAX_FMU_SUBSTEPS:
-        raise ConfigError(f"{steps} steps x {per_step} substeps x {config.platoon.count + 1} components = {work:.3g} "
-                          f"FMU-substeps: more than {MAX_FMU_SUBSTEPS:.0e} (hours of work; a run this big needs "
+        raise ConfigError(f"{steps:,} steps x {per_step:,} substeps x {config.platoon.count + 1:,} components = {work:,} "
+                          f"FMU-substeps: more than {MAX_FMU_SUBSTEPS:,} (hours of work; a run this big needs "
                           f"{ALLOW_LONG})")
 
 
@@ -62,5 +62,5 @@ def check_analyze_size(config: Config) -> None:
     """Raise ``ConfigError`` when ``platoon analyze`` would linearize more vehicles than ``MAX_ANALYZE_VEHICLES``."""
     if config.platoon.count > MAX_ANALYZE_VEHICLES:
         raise ConfigError(f"platoon.count = {config.platoon.count}: analyze linearizes at most {MAX_ANALYZE_VEHICLES} "
-                          f"vehicles ({4 * config.platoon.count} states; the time grows as N^3 and the eigenvalue "
+                          f"vehicles ({4 * config.platoon.count:,} states; the time grows as N^3 and the eigenvalue "
                           f"families do not depend on N: try --set platoon.count=10, or {ALLOW_LONG})")

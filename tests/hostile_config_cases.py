@@ -19,6 +19,7 @@ REPO = Path(__file__).resolve().parents[1]
 PLATOON = Path(sys.executable).parent / "platoon"
 PAPER = str(REPO / "configs" / "paper" / "platoon.toml")
 SHORT = ["--set", "simulation.stop_time=1.0"]
+PULSE = 'disturbance=[{vehicle=2, kind="speed", start=1.0, duration=1.0, value=1.0}]'  # analyze then runs it
 
 SETS = [  # run PAPER --set X: every one must be refused
     "simulation.stop_time=inf", "simulation.stop_time=nan", "simulation.step=inf", "simulation.max_substep=nan",
@@ -27,7 +28,7 @@ SETS = [  # run PAPER --set X: every one must be refused
     "m3pi.track=nan", "vehicles.1.k_v=inf", "vehicles.1.initial={x=inf, y=0.0, heading=0.0, speed=1.0}",
     'disturbance=[{vehicle=1, kind="speed", start=nan, duration=1.0, value=1.0}]',
     'disturbance=[{vehicle=1, kind="speed", start=1.0, duration=1.0, value=1e308}]', "hil.pose_timeout=nan",
-    "simulation.stop_time=1e12", "simulation.step=1e-300", "simulation.max_substep=1e-12", "platoon.count=10000",
+    "simulation.stop_time=1e12", "simulation.step=1e-300", "simulation.max_substep=1e-12",
     "platoon.d_star=100.0", 'name="a\\u0000b"', 'name="../../x"', 'description="\\u001b[2J"',
     "platoon.count=3 x=1", "platoon.count=3\nx=1", "platoon.count=3 # note",
 ]
@@ -46,7 +47,9 @@ def cases(folder: Path) -> list[tuple[str, list[str]]]:
         ("run --trace-every 1e29", ["run", PAPER, *SHORT, "--trace-every", "1" + "0" * 29]),
         ("analyze --set platoon.d_star=100.0", ["analyze", PAPER, "--set", "platoon.d_star=100.0"]),
         ("analyze --set platoon.count=1000", ["analyze", PAPER, "--set", "platoon.count=1000"]),
-        ("analyze --set simulation.stop_time=1e12", ["analyze", PAPER, "--set", "simulation.stop_time=1e12"]),
+        ("run --set platoon.count=10000 (for the default 100 s)", ["run", PAPER, "--set", "platoon.count=10000"]),
+        ("analyze --set simulation.stop_time=1e12, a disturbance", ["analyze", PAPER, "--set", "simulation.stop_time=1e12",
+                                                                    "--set", PULSE]),
         ("m3pi-emulator --set platoon.k_v=inf", ["m3pi-emulator", "--config", PAPER, "--set", "platoon.k_v=inf"]),
     ]
     return found

@@ -201,10 +201,10 @@ PULSE = 'disturbance=[{vehicle=2, kind="speed", start=1.0, duration=1.0, value=1
 
 @pytest.mark.parametrize("command", ["run", "analyze"])
 @pytest.mark.parametrize("assignments, pieces", [
-    (["simulation.stop_time=1e12"], ["100000000000000 steps", f"more than {MAX_STEPS}", "--allow-long"]),
-    (["simulation.max_substep=1e-12"], ["10000000000 RK4 substeps per step", f"more than {MAX_SUBSTEPS_PER_STEP}"]),
+    (["simulation.stop_time=1e12"], ["100,000,000,000,000 steps", f"more than {MAX_STEPS:,}", "--allow-long"]),
+    (["simulation.max_substep=1e-12"], ["10,000,000,000 RK4 substeps per step", f"more than {MAX_SUBSTEPS_PER_STEP:,}"]),
     (["simulation.stop_time=10000", "simulation.max_substep=0.0001"],
-     ["1000000 steps x 100 substeps x 5 components = 5e+08 FMU-substeps", "more than 1e+08"]),
+     ["1,000,000 steps x 100 substeps x 5 components = 500,000,000 FMU-substeps", "more than 100,000,000"]),
     (["simulation.step=1e-300"], ["1e+302 steps", "at most 2**53", "no option lifts this"]),
 ])
 def test_absurd_sizes_are_refused_with_the_numbers(command: str, assignments: list[str], pieces: list[str],
@@ -223,7 +223,7 @@ def test_analyze_without_a_disturbance_runs_nothing_so_needs_no_size_limit(workd
 def test_allow_long_lifts_the_size_limits(workdir: Path, tmp_path: Path) -> None:
     """1112 substeps per step is above the limit; two steps of it are quick, and run with the flag."""
     sets = ["--set", "simulation.stop_time=0.02", "--set", "simulation.max_substep=0.000009"]
-    refused(platoon("run", PAPER, *sets, "-q", "--out", tmp_path / "a.mcap", cwd=workdir), "1112 RK4 substeps per step")
+    refused(platoon("run", PAPER, *sets, "-q", "--out", tmp_path / "a.mcap", cwd=workdir), "1,112 RK4 substeps per step")
     result = platoon("run", PAPER, *sets, "-q", "--allow-long", "--out", tmp_path / "a.mcap", cwd=workdir)
     assert result.returncode == 0, result.stderr
     assert len(load(tmp_path / "a.mcap").component("vehicle1")["t"]) == 3
@@ -241,7 +241,7 @@ def test_the_limits_are_above_the_longest_shipped_run_and_below_absurd() -> None
 
 def test_ten_thousand_vehicles_for_the_default_100_s_are_above_the_work_limit() -> None:
     config = config_from_mapping({"platoon": {"count": 10000}, "path": {"radius": 1e6}})
-    with pytest.raises(ConfigError, match=r"^10000 steps x 1 substeps x 10001 components = 1e\+08 FMU-substeps"):
+    with pytest.raises(ConfigError, match=r"^10,000 steps x 1 substeps x 10,001 components = 100,010,000 FMU-substeps"):
         check_run_size(config)
 
 
