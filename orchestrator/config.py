@@ -60,16 +60,21 @@ NAME_PATTERN = r"^\w[\w .,+=@#()-]{0,99}$"
 NAME_RULE = "letters, digits, spaces and . , + = @ # ( ) - _, starting with a letter or digit, at most 100 characters"
 
 
-def _no_control_characters(text: str) -> str:
+def _clean_text(text: str) -> str:
     """Free text may span lines and hold tabs, but no NUL or other control character (they break file
-    names, Zenoh endpoints, terminals and C strings further on)."""
+    names, Zenoh endpoints, terminals and C strings further on), and must be encodable as UTF-8 (a
+    command-line argument that was not UTF-8 arrives with lone surrogates, which no file can hold)."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise _Expected("must be valid UTF-8 text") from None
     bad = [c for c in text if (ord(c) < 0x20 and c not in "\t\n\r") or ord(c) == 0x7F]
     if bad:
         raise _Expected(f"must be text without control characters (found {bad[0]!r})")
     return text
 
 
-Text = Annotated[str, AfterValidator(_no_control_characters)]
+Text = Annotated[str, AfterValidator(_clean_text)]
 Name = Annotated[str, Field(pattern=NAME_PATTERN)]
 
 # Steps and substeps are counted in integers from float ratios: exact only up to 2**53.
@@ -306,10 +311,14 @@ def _unwrap(annotation: Any) -> tuple[Any, list[Any]]:
 def _range_text(field: tuple[Any, list[Any]]) -> str:
     """"a finite number > 0 and <= 1000", "an integer >= 1": the declared range of a numeric key."""
     annotation, metadata = field
-    bounds = [f"{word} {getattr(item, name):g}" for item in metadata for name, word in _BOUND_WORDS
+    bounds = [f"{word} {_number(getattr(item, name))}" for item in metadata for name, word in _BOUND_WORDS
               if isinstance(item, getattr(annotated_types, name.capitalize())) and hasattr(item, name)]
     kind = "an integer" if annotation is int else "a finite number"
     return " and ".join([f"{kind} {bounds[0]}" if bounds else kind, *bounds[1:]])
+
+
+def _number(value: float | int) -> str:
+    return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 def _explain(error: ValidationError) -> str:
@@ -320,6 +329,7 @@ def _explain(error: ValidationError) -> str:
     key = _key_of(loc)
     if "error" in ctx and isinstance(ctx["error"], _RuleError):  # a rule of a nested table names its own key
         return f"{key}.{ctx['error']}" if key else str(ctx["error"])
+    key = key or "a key"  # the key itself is what is wrong (not UTF-8)
     if first["type"] == "extra_forbidden":
         return f"{key}: unknown key"
     if first["type"] == "missing":

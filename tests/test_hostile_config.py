@@ -273,6 +273,19 @@ def test_a_config_with_a_utf8_byte_order_mark_is_read(workdir: Path, tmp_path: P
     assert trace.metadata["platoon.config"]["toml"] == text  # stored as read, without the mark
 
 
+@pytest.mark.parametrize("assignment, key", [(b"description=\xff", "description"), (b"name=r\xfcn", "name"),
+                                             (b'vehicles.1.connect=["tcp/\xff"]', "vehicles.1.connect[0]")])
+def test_a_set_value_that_is_not_utf8_exits_2(assignment: bytes, key: str, workdir: Path, tmp_path: Path) -> None:
+    """A non-UTF-8 argument reaches Python with lone surrogates: refused, not a traceback when the
+    trace metadata is encoded."""
+    result = subprocess.run([str(PLATOON), "run", str(PAPER), *SHORT, "-q", "--set", assignment, "--out",
+                             str(tmp_path / "never.mcap")], cwd=workdir, capture_output=True, text=True, timeout=120,
+                            env={**os.environ, "PYTHONPATH": str(REPO), "NO_COLOR": "1"})
+    line = refused(result, f"{key} = ")
+    assert "must be valid UTF-8 text" in line or "must be letters, digits" in line, line
+    assert not (tmp_path / "never.mcap").exists()
+
+
 @pytest.mark.parametrize("every", ["101", "100000000000000000000000000000"])
 def test_trace_every_above_the_step_count_exits_2(every: str, workdir: Path, tmp_path: Path) -> None:
     result = platoon("run", PAPER, *SHORT, "--trace-every", every, "--out", tmp_path / "never.mcap", cwd=workdir)
