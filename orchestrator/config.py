@@ -7,7 +7,7 @@ line naming the key, the value and what was expected.
 
 Every number has a declared range, in one place: the annotated types below (``Positive``, ``Angle``,
 ...), which pydantic enforces and ``_explain`` quotes back (``platoon.k_v = inf: must be a finite
-number > 0 and <= 1000``). No float key accepts inf or NaN (``allow_inf_nan=False`` for all).
+number >= 0.001 and <= 1000``). No float key accepts inf or NaN (``allow_inf_nan=False`` for all).
 """
 
 from __future__ import annotations
@@ -39,6 +39,9 @@ class _Expected(ValueError):
 # Ranges. A platoon lives on a ground plane: 1000 km is far beyond any scenario and keeps doubles at
 # sub-micrometre resolution (ulp(1e6) = 1.2e-10 m), so lengths and coordinates stay within it.
 LENGTH_MAX = 1e6  # m
+# The smallest length, speed, gain or time constant: a millimetre, a millimetre per second, a speed
+# loop of 1000 s. Below, nothing physical is left and the analysis and the models divide by ~0.
+SMALL = 1e-3
 SPEED_MAX = 1000.0  # m/s: three times the speed of sound, far above any vehicle
 GAIN_MAX = 1000.0  # 1/s: a speed loop faster than 1 ms is not a vehicle (and needs substeps below 1 ms)
 ANGLE_MAX = 2.0 * math.pi  # rad: one turn either way states every direction
@@ -47,9 +50,9 @@ PULSE_MAX = 1e6  # m/s² or m/s: a disturbance beyond this only produces overflo
 # Every float is finite (allow_inf_nan=False above); these add the range.
 Positive = Annotated[float, Field(gt=0.0)]
 Length = Annotated[float, Field(ge=-LENGTH_MAX, le=LENGTH_MAX)]
-PositiveLength = Annotated[float, Field(gt=0.0, le=LENGTH_MAX)]
-Speed = Annotated[float, Field(gt=0.0, le=SPEED_MAX)]
-Gain = Annotated[float, Field(gt=0.0, le=GAIN_MAX)]
+PositiveLength = Annotated[float, Field(ge=SMALL, le=LENGTH_MAX)]
+Speed = Annotated[float, Field(ge=SMALL, le=SPEED_MAX)]
+Gain = Annotated[float, Field(ge=SMALL, le=GAIN_MAX)]
 Angle = Annotated[float, Field(ge=-ANGLE_MAX, le=ANGLE_MAX)]
 Pulse = Annotated[float, Field(ge=-PULSE_MAX, le=PULSE_MAX)]
 
@@ -104,9 +107,9 @@ class PathConfig(_Strict):
 
 
 class M3pi(_Strict):
-    track: Annotated[float, Field(gt=0.0, le=10.0)] = Field(M3PI_TRACK, description="m")
-    wheel_speed_max: Annotated[float, Field(gt=0.0, le=100.0)] = Field(M3PI_WHEEL_SPEED_MAX, description="m/s")
-    motor_time_constant: Annotated[float, Field(gt=0.0, le=100.0)] = Field(M3PI_MOTOR_TIME_CONSTANT, description="s")
+    track: Annotated[float, Field(ge=SMALL, le=10.0)] = Field(M3PI_TRACK, description="m")
+    wheel_speed_max: Annotated[float, Field(ge=SMALL, le=100.0)] = Field(M3PI_WHEEL_SPEED_MAX, description="m/s")
+    motor_time_constant: Annotated[float, Field(ge=SMALL, le=100.0)] = Field(M3PI_MOTOR_TIME_CONSTANT, description="s")
 
 
 Law = Literal["sine", "regular"]
@@ -127,7 +130,7 @@ class Initial(_Strict):
 
     radial_offset: Length = Field(0.0, description="vehicle 1 moved this far off the path (outward), m")
     heading_error: Angle = Field(0.0, description="added to vehicle 1's heading, rad")
-    speed_factor: Annotated[float, Field(gt=0.0, le=10.0)] = Field(1.0, description="every vehicle starts at this fraction of V_c")
+    speed_factor: Annotated[float, Field(ge=SMALL, le=10.0)] = Field(1.0, description="every vehicle starts at this fraction of V_c")
 
 
 class VehicleState(_Strict):
@@ -309,7 +312,7 @@ def _unwrap(annotation: Any) -> tuple[Any, list[Any]]:
 
 
 def _range_text(field: tuple[Any, list[Any]]) -> str:
-    """"a finite number > 0 and <= 1000", "an integer >= 1": the declared range of a numeric key."""
+    """"a finite number >= 0.001 and <= 1000", "an integer >= 1": the declared range of a numeric key."""
     annotation, metadata = field
     bounds = [f"{word} {_number(getattr(item, name))}" for item in metadata for name, word in _BOUND_WORDS
               if isinstance(item, getattr(annotated_types, name.capitalize())) and hasattr(item, name)]

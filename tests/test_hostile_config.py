@@ -144,25 +144,29 @@ def test_no_float_key_accepts_inf_or_nan(key: str, value: float) -> None:
 RANGES = [
     ("simulation.stop_time", 0.0, "a finite number > 0", 1.0),
     ("simulation.max_substep", -0.01, "a finite number > 0", 0.001),
-    ("path.radius", 1.1e6, "a finite number > 0 and <= 1e+06", 1e6),
+    ("path.radius", 1.1e6, "a finite number >= 0.001 and <= 1e+06", 1e6),
     ("path.center[0]", -2e6, "a finite number >= -1e+06 and <= 1e+06", -1e6),
     ("path.heading", 7.0, "a finite number >= -6.28319 and <= 6.28319", -6.0),
-    ("platoon.d_star", 0.0, "a finite number > 0 and <= 1e+06", 1e-3),
-    ("platoon.k_v", 1001.0, "a finite number > 0 and <= 1000", 1000.0),
-    ("platoon.speed", 1e4, "a finite number > 0 and <= 1000", 1000.0),
+    ("platoon.d_star", 0.0, "a finite number >= 0.001 and <= 1e+06", 1e-3),
+    ("platoon.k_v", 1001.0, "a finite number >= 0.001 and <= 1000", 1000.0),
+    ("platoon.k_v", 1e-200, "a finite number >= 0.001 and <= 1000", 1e-3),  # analyze divided by k_v^2 = 0
+    ("platoon.speed", 1e4, "a finite number >= 0.001 and <= 1000", 1000.0),
+    ("platoon.speed", 1e-300, "a finite number >= 0.001 and <= 1000", 1e-3),
     ("platoon.count", 10001, "an integer >= 1 and <= 10000", 10000),
     ("initial.radial_offset", 1e7, "a finite number >= -1e+06 and <= 1e+06", -1e6),
-    ("initial.speed_factor", 11.0, "a finite number > 0 and <= 10", 10.0),
-    ("m3pi.track", 0.0, "a finite number > 0 and <= 10", 0.2),
+    ("initial.speed_factor", 11.0, "a finite number >= 0.001 and <= 10", 10.0),
+    ("m3pi.track", 0.0, "a finite number >= 0.001 and <= 10", 0.2),
+    ("m3pi.motor_time_constant", 1e-9, "a finite number >= 0.001 and <= 100", 1e-3),
     ("disturbance[0].start", -1.0, "a finite number >= 0", 0.0),
     ("disturbance[0].value", -1e7, "a finite number >= -1e+06 and <= 1e+06", -1e6),
-    ("vehicles.1.k_v", 0.0, "a finite number > 0 and <= 1000", 2.0),
+    ("vehicles.1.k_v", 0.0, "a finite number >= 0.001 and <= 1000", 2.0),
+    ("vehicles.1.initial.speed", 0.0, "a finite number >= 0.001 and <= 1000", 1e-3),
     ("vehicles.1.initial.heading", -7.0, "a finite number >= -6.28319 and <= 6.28319", 3.0),
     ("hil.pose_timeout", 6.0, "a finite number > 0 and <= 5", 5.0),
 ]
 
 
-@pytest.mark.parametrize("key, outside, expected, inside", RANGES, ids=[r[0] for r in RANGES])
+@pytest.mark.parametrize("key, outside, expected, inside", RANGES, ids=[f"{r[0]}={r[1]}" for r in RANGES])
 def test_each_key_states_its_range(key: str, outside: Any, expected: str, inside: Any) -> None:
     with pytest.raises(ConfigError) as raised:
         config_from_mapping(mapping_with(key, outside))
@@ -322,6 +326,20 @@ def test_control_characters_in_free_text_exit_2(key: str, text: str, workdir: Pa
 def test_analyze_at_d_star_equal_to_the_diameter_exits_2_with_the_reason(extra: list[str], workdir: Path) -> None:
     result = platoon("analyze", PAPER, *extra, "--set", "platoon.d_star=100.0", cwd=workdir)
     refused(result, "platoon.d_star = 100.0: expected less than 2 * path.radius = 100.0", "equilibrium is degenerate")
+
+
+@pytest.mark.parametrize("corner", [
+    {"platoon": {"k_v": 1e-3, "speed": 1e-3, "d_star": 1e-3}, "path": {"radius": 1e6}},
+    {"platoon": {"k_v": 1e3, "speed": 1e3, "d_star": 1e-3}, "path": {"radius": 1e6}},
+    {"platoon": {"d_star": 1.999e-3}, "path": {"radius": 1e-3}},
+    {"platoon": {"d_star": 1e6}, "path": {"radius": 1e6}},
+], ids=["slow", "fast", "tiny circle", "huge circle"])
+def test_analyze_reports_at_the_corners_of_the_ranges(corner: dict[str, Any]) -> None:
+    """Whatever the config accepts, the linearization gives a verdict (no division by ~0)."""
+    from orchestrator.analysis import eigen_report
+
+    report = eigen_report(config_from_mapping({"name": "corner", **corner}))
+    assert "verdict: exponentially stable" in report, report
 
 
 def test_analyze_just_inside_the_diameter_reports(workdir: Path) -> None:
