@@ -22,6 +22,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationErr
 
 from bridge.protocol import DEFAULT_PREFIX, check_prefix
 from fmus.model.dynamics import M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEEL_SPEED_MAX
+from fmus.model.integrate import substep_count
 
 
 class ConfigError(ValueError):
@@ -79,6 +80,11 @@ def _clean_text(text: str) -> str:
 
 Text = Annotated[str, AfterValidator(_clean_text)]
 Name = Annotated[str, Field(pattern=NAME_PATTERN)]
+
+# RK4 alone is stable on dx/dt = -x/T for substeps h < 2.785 T (its real stability interval); coupled
+# to the guidance through the speed chain it needs a margin: the paper's platoon at k_v = 1000 1/s
+# diverged at h = 2.5 T and ran at h = 2 T (measured, docs/config.md).
+RK4_STABILITY = 2.0
 
 # Steps and substeps are counted in integers from float ratios: exact only up to 2**53.
 COUNT_LIMIT = 2**53
@@ -233,10 +239,32 @@ class Config(_Strict):
                 f"simulation: {steps:.3g} steps (stop_time / step) x {substeps:.3g} RK4 substeps each (step / "
                 f"max_substep) = {steps * substeps:.3g} substeps per FMU: expected at most 2**53 = {COUNT_LIMIT:.3g} "
                 "(beyond it step counts are not exact in double precision; no option lifts this)"))
+        self._check_stiffness()
         if sim.trace_every > self.steps:
             raise _rule("simulation.trace_every", sim.trace_every, f"at most the run's {self.steps} steps "
                         "(stop_time / step), so that a point after t = 0 is recorded")
         return self
+
+    def _check_stiffness(self) -> None:
+        """Every first-order lag must be resolved by the RK4 substep, or the integration blows up.
+
+        RK4 on dx/dt = -x/T needs h/T below RK4_STABILITY; beyond it the speed loop (T = 1/k_v) or an
+        m3pi motor (T = motor_time_constant) diverges within a few steps, and the run then fails with a
+        NaN in whichever component reads it first, often not the one at fault. ``h`` is the substep the
+        FMUs take: step / ceil(step / max_substep).
+        """
+        sim = self.simulation
+        h = sim.step / substep_count(sim.step, sim.max_substep)
+        lags = [(f"vehicles.{key}.k_v" if v.k_v is not None else "platoon.k_v", 1.0 / (v.k_v or self.platoon.k_v))
+                for key, v in self.vehicles.items()] + [("platoon.k_v", 1.0 / self.platoon.k_v)]
+        if any((v.dynamics or self.platoon.dynamics) == "m3pi" for v in map(self.override, range(1, self.platoon.count + 1))):
+            lags.append(("m3pi.motor_time_constant", self.m3pi.motor_time_constant))
+        key, lag = min(lags, key=lambda item: item[1])
+        if h > RK4_STABILITY * lag:
+            raise _rule("simulation.max_substep", sim.max_substep,
+                        f"RK4 substeps of at most {RK4_STABILITY:g} x the fastest lag, here {key} (time constant "
+                        f"{lag:g} s): max_substep <= {RK4_STABILITY * lag:.3g} s (the substep is now {h:.3g} s; "
+                        "beyond it the integration diverges)")
 
     @property
     def steps(self) -> int:

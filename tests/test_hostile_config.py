@@ -148,7 +148,7 @@ RANGES = [
     ("path.center[0]", -2e6, "a finite number >= -1e+06 and <= 1e+06", -1e6),
     ("path.heading", 7.0, "a finite number >= -6.28319 and <= 6.28319", -6.0),
     ("platoon.d_star", 0.0, "a finite number >= 0.001 and <= 1e+06", 1e-3),
-    ("platoon.k_v", 1001.0, "a finite number >= 0.001 and <= 1000", 1000.0),
+    ("platoon.k_v", 1001.0, "a finite number >= 0.001 and <= 1000", 200.0),  # 1000 needs a smaller substep
     ("platoon.k_v", 1e-200, "a finite number >= 0.001 and <= 1000", 1e-3),  # analyze divided by k_v^2 = 0
     ("platoon.speed", 1e4, "a finite number >= 0.001 and <= 1000", 1000.0),
     ("platoon.speed", 1e-300, "a finite number >= 0.001 and <= 1000", 1e-3),
@@ -172,6 +172,27 @@ def test_each_key_states_its_range(key: str, outside: Any, expected: str, inside
         config_from_mapping(mapping_with(key, outside))
     assert str(raised.value) == f"{key} = {outside!r}: must be {expected}"
     config_from_mapping(mapping_with(key, inside))
+
+
+@pytest.mark.parametrize("assignments, key, limit", [
+    (["platoon.k_v=1000"], "platoon.k_v (time constant 0.001 s)", "max_substep <= 0.002 s"),
+    (["vehicles.2.k_v=500"], "vehicles.2.k_v (time constant 0.002 s)", "max_substep <= 0.004 s"),
+    (["platoon.dynamics=m3pi", "m3pi.motor_time_constant=0.001"], "m3pi.motor_time_constant (time constant 0.001 s)",
+     "max_substep <= 0.002 s"),
+])
+def test_a_lag_faster_than_the_substep_is_refused_not_blamed_on_another_component(
+        assignments: list[str], key: str, limit: str, workdir: Path, tmp_path: Path) -> None:
+    """RK4 diverged on these and the run failed later, at the m3pi motor as a NaN in the *target*."""
+    sets = [arg for assignment in assignments for arg in ("--set", assignment)]
+    result = platoon("run", PAPER, *SHORT, *sets, "-q", "--out", tmp_path / "never.mcap", cwd=workdir)
+    refused(result, "simulation.max_substep = 0.01: expected RK4 substeps of at most 2 x the fastest lag", key, limit)
+    fine = platoon("run", PAPER, *SHORT, *sets, "--set", "simulation.max_substep=0.001", "-q", "--out",
+                   tmp_path / "fine.mcap", cwd=workdir)
+    assert fine.returncode == 0, fine.stderr
+
+
+def test_a_fast_motor_is_no_concern_of_kinematic_vehicles() -> None:
+    config_from_mapping({"m3pi": {"motor_time_constant": 0.001}})
 
 
 COMMANDS = {  # every command that loads a config, with what it needs besides the config
@@ -330,7 +351,8 @@ def test_analyze_at_d_star_equal_to_the_diameter_exits_2_with_the_reason(extra: 
 
 @pytest.mark.parametrize("corner", [
     {"platoon": {"k_v": 1e-3, "speed": 1e-3, "d_star": 1e-3}, "path": {"radius": 1e6}},
-    {"platoon": {"k_v": 1e3, "speed": 1e3, "d_star": 1e-3}, "path": {"radius": 1e6}},
+    {"platoon": {"k_v": 1e3, "speed": 1e3, "d_star": 1e-3}, "path": {"radius": 1e6},
+     "simulation": {"max_substep": 1e-3}},
     {"platoon": {"d_star": 1.999e-3}, "path": {"radius": 1e-3}},
     {"platoon": {"d_star": 1e6}, "path": {"radius": 1e6}},
 ], ids=["slow", "fast", "tiny circle", "huge circle"])
