@@ -10,6 +10,8 @@ changes and a trace can name the model version it ran.
 from __future__ import annotations
 
 import hashlib
+import os
+import importlib.metadata
 import importlib
 import sys
 import tempfile
@@ -18,18 +20,26 @@ from dataclasses import dataclass
 from pathlib import Path
 from xml.etree import ElementTree
 
-import pythonfmu
-from pythonfmu.builder import FmuBuilder
-
 import fmus
 from fmus.documentation import documentation_html
 from fmus.modeldescription import guid_for, model_description
 
 PACKAGE_DIR = Path(fmus.__file__).resolve().parent
-FMU_NAMES = ("Vehicle", "VirtualTarget")
+FMU_NAMES = ("Vehicle", "VirtualTarget")  # what every run uses
+LIVE_FMU = "LiveVehicle"  # a live robot as an FMU (platoon build --live, platoon export-ssp of a live config)
+ALL_FMUS = FMU_NAMES + (LIVE_FMU,)
 DEFAULT_OUT = Path("build") / "fmus"
 _ZIP_TIME = (2020, 1, 1, 0, 0, 0)
 _BUNDLED_SUBPACKAGES = ("model", "slaves")
+_ROOT = PACKAGE_DIR.parent  # the folder holding fmus/, bridge/ and orchestrator/ (repository or site-packages)
+# What an FMU carries beyond fmus/model and fmus/slaves: the LiveVehicle FMU runs the bridge's host side
+# (bridge.live and what it imports) and the orchestrator's pacer, so it needs nothing but zenoh installed.
+_ONLY_IN = {"LiveVehicle.py": LIVE_FMU}
+_EXTRA_SOURCES = {
+    LIVE_FMU: ("bridge/__init__.py", "bridge/live.py", "bridge/protocol.py", "bridge/session.py", "bridge/states.py",
+               "orchestrator/__init__.py", "orchestrator/interface.py", "orchestrator/errors.py",
+               "orchestrator/realtime.py"),
+}
 
 
 @dataclass(frozen=True)
@@ -40,25 +50,27 @@ class BuiltFmu:
     rebuilt: bool
 
 
-def bundled_sources() -> list[Path]:
-    """The package files an FMU carries as resources (the model code must need nothing else)."""
+def bundled_sources(name: str = "Vehicle") -> list[Path]:
+    """The package files FMU ``name`` carries as resources (its code must need nothing else)."""
     files = [PACKAGE_DIR / "__init__.py"]
     for sub in _BUNDLED_SUBPACKAGES:
-        files += sorted((PACKAGE_DIR / sub).glob("*.py"))
-    return files
+        files += sorted(path for path in (PACKAGE_DIR / sub).glob("*.py") if _ONLY_IN.get(path.name, name) == name)
+    return files + [_ROOT / extra for extra in _EXTRA_SOURCES.get(name, ())]
 
 
-def source_digest() -> str:
-    """Digest of everything that shapes an FMU: bundled sources, builder modules, pythonfmu version."""
-    digest = hashlib.sha256(pythonfmu.__version__.encode())
-    for path in bundled_sources() + [PACKAGE_DIR / "build.py", PACKAGE_DIR / "modeldescription.py", PACKAGE_DIR / "documentation.py"]:
-        digest.update(str(path.relative_to(PACKAGE_DIR)).encode())
+def source_digest(name: str = "Vehicle") -> str:
+    """Digest of everything that shapes FMU ``name``: bundled sources, builder modules, pythonfmu version."""
+    digest = hashlib.sha256(importlib.metadata.version("pythonfmu").encode())
+    for path in bundled_sources(name) + [PACKAGE_DIR / "build.py", PACKAGE_DIR / "modeldescription.py",
+                                         PACKAGE_DIR / "documentation.py"]:
+        digest.update(str(path.relative_to(PACKAGE_DIR) if path.is_relative_to(PACKAGE_DIR)
+                          else path.relative_to(_ROOT)).encode())
         digest.update(path.read_bytes())
     return digest.hexdigest()
 
 
 def expected_guid(name: str) -> str:
-    return guid_for(source_digest(), name)
+    return guid_for(source_digest(name), name)
 
 
 def fmu_guid(path: Path) -> str | None:
@@ -103,6 +115,8 @@ def _zip_entry(name: str) -> zipfile.ZipInfo:
 
 def _build_one(name: str, out_dir: Path, guid: str) -> Path:
     version = fmus.__version__
+    from pythonfmu.builder import FmuBuilder  # only to build: checking that FMUs are current needs none of it
+
     with tempfile.TemporaryDirectory(prefix="platoon-build-") as scratch:
         # pythonfmu imports the script by its stem from the script's folder.
         sys.path.insert(0, str(PACKAGE_DIR / "slaves"))
@@ -117,27 +131,32 @@ def _build_one(name: str, out_dir: Path, guid: str) -> Path:
             for item in archive.infolist():
                 if item.filename != "modelDescription.xml" and not item.is_dir():
                     entries[item.filename] = archive.read(item)
-    for path in bundled_sources():
-        entries[f"resources/fmus/{path.relative_to(PACKAGE_DIR).as_posix()}"] = path.read_bytes()
+    for path in bundled_sources(name):
+        entries[f"resources/{path.relative_to(_ROOT).as_posix()}"] = path.read_bytes()
     entries["modelDescription.xml"] = model_description(slave, guid, version)
     entries["documentation/index.html"] = documentation_html(slave, version).encode()
 
     out_dir.mkdir(parents=True, exist_ok=True)
     target = out_dir / f"{name}.fmu"
-    partial = target.with_suffix(".fmu.partial")
-    with zipfile.ZipFile(partial, "w") as archive:
-        for entry in sorted(entries):
-            archive.writestr(_zip_entry(entry), entries[entry])
-    partial.replace(target)  # never leave a half-written FMU under the final name
+    # one name per process: two runs that find the FMUs out of date build them side by side, each
+    # renaming its own complete file into place (the last one wins; both are the same FMU)
+    partial = target.with_name(f"{target.name}.{os.getpid()}.partial")
+    try:
+        with zipfile.ZipFile(partial, "w") as archive:
+            for entry in sorted(entries):
+                archive.writestr(_zip_entry(entry), entries[entry])
+        partial.replace(target)  # never leave a half-written FMU under the final name
+    except BaseException:  # e.g. a full disk: no half-written .partial left behind either
+        partial.unlink(missing_ok=True)
+        raise
     return target
 
 
-def build_fmus(out_dir: Path = DEFAULT_OUT, force: bool = False) -> list[BuiltFmu]:
-    """Build every FMU into ``out_dir`` unless an up-to-date one (same GUID) is already there."""
-    digest = source_digest()
+def build_fmus(out_dir: Path = DEFAULT_OUT, force: bool = False, names: tuple[str, ...] = FMU_NAMES) -> list[BuiltFmu]:
+    """Build FMUs ``names`` into ``out_dir`` unless an up-to-date one (same GUID) is already there."""
     built = []
-    for name in FMU_NAMES:
-        guid = guid_for(digest, name)
+    for name in names:
+        guid = expected_guid(name)
         path = Path(out_dir) / f"{name}.fmu"
         if not force and path.exists() and is_complete(path, name, guid):
             built.append(BuiltFmu(name, path, guid, rebuilt=False))

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import html
 
-from fmus.slaves.base import PlatoonSlave
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only: checking that the FMUs are current must not import pythonfmu
+    from fmus.slaves.base import PlatoonSlave
 
 PAPER = (
     "I. T. Erekson, R. Sharma, A. Ratnoo, R. Gerdes, "
@@ -31,6 +34,15 @@ first-order motor lag, unicycle kinematics: V = (v<sub>r</sub> + v<sub>l</sub>)/
 where V<sub>1</sub> and d<sub>1</sub> are the lead vehicle's speed and distance to the target.</p>
 """,
 }
+EQUATIONS["LiveVehicle"] = EQUATIONS["Vehicle"] + """
+<h2>A live robot</h2>
+<p>The pose (x, y, &gamma;<sub>v</sub>) is the robot's, measured by its motion capture and received over Zenoh
+(keys <code>&lt;hil.prefix&gt;/m3pi/&lt;hil.robot&gt;/pose</code>, <code>.../cmd/wheels</code>); the guidance above runs on it
+each step and the wheel commands go to the robot with a deadline of <code>hil.command_validity</code>. Each doStep
+returns when the wall clock has reached its end. No valid pose for <code>hil.pose_timeout</code>, or the robot's
+liveliness token gone: a stop command is sent and doStep returns fmi2Error with the reason in the log.
+Needs the <code>eclipse-zenoh</code> Python package. Protocol: docs/hil.md of platoon-cosim.</p>
+"""
 
 COUPLING = """
 <h2>Coupling between communication points</h2>

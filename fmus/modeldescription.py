@@ -21,7 +21,10 @@ from typing import Any
 from xml.dom.minidom import parseString
 from xml.etree.ElementTree import Element, SubElement, tostring
 
-from fmus.slaves.base import PlatoonSlave
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # annotations only: checking that the FMUs are current must not import pythonfmu
+    from fmus.slaves.base import PlatoonSlave
 
 # SI base-unit exponents of every unit our variables use.
 UNITS: dict[str, dict[str, int]] = {
@@ -83,7 +86,8 @@ def model_description(slave: PlatoonSlave, guid: str, version: str) -> bytes:
             "numberOfEventIndicators": "0",
         },
     )
-    SubElement(root, "CoSimulation", {"modelIdentifier": model_name, **CAPABILITIES})
+    # a slave class may override a flag (LiveVehicle: a real robot has no FMU state to save)
+    SubElement(root, "CoSimulation", {"modelIdentifier": model_name, **CAPABILITIES, **getattr(cls, "capabilities", {})})
 
     used_units = sorted({info.unit for info in cls.variables if info.unit})
     unit_definitions = SubElement(root, "UnitDefinitions")

@@ -11,8 +11,10 @@ from __future__ import annotations
 import json
 import os
 import sys
+import warnings
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Iterator, Optional
 
 import typer
 from rich.console import Console
@@ -58,13 +60,18 @@ def _load(config: Path, overrides: list[str], allow_long: bool = True) -> tuple[
 
 @app.command()
 def build(
-    out_dir: Annotated[Path, typer.Option("--out", help="folder for Vehicle.fmu and VirtualTarget.fmu")] = Path("build/fmus"),
+    out_dir: Annotated[Path, typer.Option("--out", help="folder for Vehicle.fmu, VirtualTarget.fmu and LiveVehicle.fmu")] = Path("build/fmus"),
     force: Annotated[bool, typer.Option(help="rebuild even if up to date")] = False,
 ) -> None:
-    """Build the Vehicle and VirtualTarget FMUs (only when their sources changed)."""
-    from fmus.build import build_fmus
+    """Build the Vehicle, VirtualTarget and LiveVehicle FMUs (only when their sources changed)."""
+    from fmus.build import ALL_FMUS, build_fmus
 
-    for built in build_fmus(out_dir, force=force):
+    try:
+        built_fmus = build_fmus(out_dir, force=force, names=ALL_FMUS)
+    except OSError as error:  # a full disk, a read-only folder ...: the FMUs already in place are untouched
+        where = f" {error.filename}" if error.filename else ""
+        _fail(2, f"build --out {out_dir}: cannot write the FMUs{where}: {error.strerror or error}")
+    for built in built_fmus:
         state = "built" if built.rebuilt else "up to date"
         out.print(f"{built.path}  {built.guid}  ({state})")
 
@@ -97,7 +104,26 @@ def _summary_table(summaries, config: Config, title: str) -> Table:
     return table
 
 
-def _execute(config: Config, text: str, trace: Path, engine: str, quiet: bool, trace_writer: str = "auto"):
+def _time_split(entered: float | None, loaded: float | None, timings: dict[str, float], now: float | None) -> str:
+    """``-v``: where this process's wall time went, from the interpreter's start to now (a few lines)."""
+    def seconds(value: float | None) -> str:
+        return "?" if value is None else f"{value:.2f} s"
+
+    run_total = sum(timings.values())
+    config_time = None if entered is None or loaded is None else loaded - entered
+    rest = None if now is None or loaded is None else now - loaded - run_total
+    phases = ", ".join(f"{name} {timings[name]:.2f} s" for name in ("setup", "initialize", "steps", "finish")
+                       if name in timings)
+    return "\n".join([
+        f"wall time since the process started: {seconds(now)}",
+        f"  start-up: interpreter and imports {seconds(entered)}, config {seconds(config_time)},",
+        f"            FMUs checked and unpacked {seconds(timings.get('open'))}",
+        f"  run: {phases}",
+        f"  after the run (summary, output): {seconds(rest)}",
+    ])
+
+
+def _execute(config: Config, text: str, trace, engine: str, quiet: bool, trace_writer: str = "auto"):
     from .run import run_scenario
     from .scenario import step_count
 
@@ -114,20 +140,35 @@ def _execute(config: Config, text: str, trace: Path, engine: str, quiet: bool, t
         tick = update
         progress.start()
     try:
-        return run_scenario(config, text, trace, engine=engine, tick=tick, trace_writer=trace_writer)
+        return run_scenario(config, text, trace, engine=engine, tick=tick, trace_writer=trace_writer, summarize=not quiet)
     finally:
         if progress is not None:
             progress.stop()
 
 
-def _check_writable(trace: Path) -> None:
-    """Fail before any work when the trace cannot be created (missing permission, a file as folder ...)."""
+OVERWRITE_HELP = "replace an existing --out even if it is not an MCAP trace (never the command's own input)"
+
+
+def _check_output(path: Path, overwrite: bool, protect: list[Path], what: str = "--out") -> None:
+    """Exit 2 with one line if ``path`` must not be replaced (trace/output.py: check_replaceable)."""
+    from .trace.output import OutputError, check_replaceable
+
     try:
-        trace.parent.mkdir(parents=True, exist_ok=True)
-        with open(trace, "ab"):
-            pass
-    except OSError as error:
-        _fail(2, f"--out {trace}: cannot write the trace there: {error.strerror or error}")
+        check_replaceable(path, overwrite, protect, what)
+    except OutputError as error:
+        _fail(2, str(error))
+
+
+def _claim_trace(trace: Optional[Path], overwrite: bool, protect: list[Path], default):
+    """Claim the trace path before any work (orchestrator/trace/output.py): exit 2 with one line if it is
+    in use by another run, is a file that is not a trace (without --overwrite), is the config, or cannot
+    be written."""
+    from .trace.output import OutputError, claim
+
+    try:
+        return claim(trace, overwrite, protect) if trace is not None else default()
+    except OutputError as error:
+        _fail(2, str(error))
 
 
 @app.command()
@@ -141,9 +182,14 @@ def run(
     trace_every: Annotated[Optional[int], typer.Option("--trace-every", min=1, help="record every K-th communication point (overrides simulation.trace_every)")] = None,
     engine_name: Annotated[Optional[str], typer.Option("--engine", help="native (compiled stepping core; default when built) or python (FMPy); same results")] = None,
     trace_writer: Annotated[str, typer.Option("--trace-writer", help="where the trace is encoded: process (a second process), inline, or auto (a second process for long runs on a multi-core machine); same file")] = "auto",
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="also print where the wall time went: start-up (imports, config, FMUs), the run's phases, the summary")] = False,
     allow_long: AllowLong = False,
 ) -> None:
     """Run a scenario: wire the FMUs as the paper's Fig. 2, step them, write an MCAP trace."""
+    from .startup import seconds_since_process_start
+
+    entered = seconds_since_process_start()  # the interpreter and the imports so far
     from .metrics import summarize
     from .run import default_trace_path
     from .trace import load
@@ -151,6 +197,7 @@ def run(
     if trace_every is not None:
         overrides = [*overrides, f"simulation.trace_every={trace_every}"]
     parsed, text = _load(config, overrides, allow_long)
+    loaded = seconds_since_process_start()
     from .run import default_engine
 
     if engine_name not in (None, "native", "python"):
@@ -167,9 +214,12 @@ def run(
         check_live_options(parsed, engine, trace_writer)
     except LiveRunError as error:
         _fail(2, f"config {config}: {error}")
-    trace = trace or default_trace_path(parsed, engine)
-    _check_writable(trace)
-    result = _execute(parsed, text, trace, engine, quiet, trace_writer)
+    target = _claim_trace(trace, overwrite, [config], lambda: default_trace_path(parsed, engine))
+    trace = target.final
+    reference_path = trace.with_name(trace.stem + "-monolithic.mcap")
+    if compare:  # checked now, claimed when its turn comes (no empty aside file if the run fails)
+        _check_output(reference_path, overwrite, [config])
+    result = _execute(parsed, text, target, engine, quiet, trace_writer)
     if result.live:
         from .hil_cli import live_table
 
@@ -179,14 +229,16 @@ def run(
     if result.status != "completed":
         _fail(1, f"run {result.status}: {result.error} (trace up to that point: {result.trace})")
     if not quiet:
-        summaries = summarize(load(result.trace), parsed)
+        # accumulated while stepping; the trace is read again only if the run's end was not the planned one
+        summaries = result.summary if result.summary is not None else summarize(load(result.trace), parsed)
         out.print(_summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine}, last 10 % of {parsed.simulation.stop_time:g} s"))
     out.print(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)")
+    if verbose:
+        err.print(_time_split(entered, loaded, result.timings, seconds_since_process_start()), highlight=False)
     if compare:
         from .compare import deviations
 
-        reference_path = trace.with_name(trace.stem + "-monolithic.mcap")
-        reference = _execute(parsed, text, reference_path, "monolithic", quiet)
+        reference = _execute(parsed, text, _claim_trace(reference_path, overwrite, [config], None), "monolithic", quiet)
         if reference.status != "completed":
             _fail(1, f"monolithic reference {reference.status}: {reference.error}")
         worst = deviations(load(result.trace), load(reference.trace))
@@ -203,34 +255,88 @@ def report(
     plots: Annotated[Optional[Path], typer.Option("--plots", help="write the paper's figure panels as PNG here")] = None,
 ) -> None:
     """Summarize a trace (path offset, gap, speed, max path error) and draw the paper's panels."""
-    from .config import config_from_mapping
     from .metrics import report_json, summarize
+    from .stored_config import stored_config
 
+    if plots is not None and plots.exists() and not plots.is_dir():
+        _fail(2, f"--plots {plots}: is a file; give a folder for the PNG files")
     loaded = _load_trace(trace)
     if loaded.config is None:
         _fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
-    config = config_from_mapping(loaded.config)
-    summaries = summarize(loaded, config)
-    if as_json:
-        out.print_json(json.dumps(report_json(summaries)))
-    else:
-        out.print(_summary_table(summaries, config, f"{trace.name}: {config.platoon.law} law ({loaded.run.get('status', '?')})"))
-    if plots is not None:
-        from .plots import write_plots
+    try:
+        config, non_finite = stored_config(loaded.config)
+    except ConfigError as error:
+        _fail(2, f"trace {trace}: its stored config is not valid: {error}")
+    note = (err.print if as_json else out.print)
+    if non_finite:
+        note(f"warning: the run's config held values that were not finite (stored as null): {', '.join(non_finite)}; "
+             f"figures that depend on them are nan", highlight=False, soft_wrap=True)
+    _note_recovery(loaded, note)
+    run_record = loaded.run
+    status = run_record.get("status", "?")
+    empty = not loaded.vehicles() or any(len(loaded.component(v)["t"]) == 0 for v in loaded.vehicles())
+    if empty:  # e.g. a run that failed before its first communication point: nothing to summarize or plot
+        reason = f": {run_record['error']}" if run_record.get("error") else ""
+        message = f"trace {trace}: no recorded communication point, nothing to summarize (run {status}{reason})"
+        if as_json:
+            out.print_json(json.dumps({"status": status, "error": run_record.get("error", ""), "vehicles": []}))
+            err.print(message, highlight=False, soft_wrap=True)
+        else:
+            out.print(message, highlight=False, soft_wrap=True)
+        return
+    with _quiet_nan(bool(non_finite)):  # nan figures were announced above
+        summaries = summarize(loaded, config)
+        if as_json:
+            out.print_json(json.dumps(report_json(summaries)))
+        else:
+            out.print(_summary_table(summaries, config, f"{trace.name}: {config.platoon.law} law ({status})"))
+        if plots is not None:
+            from .plots import write_plots
 
-        for path in write_plots(loaded, config, plots):
-            (err if as_json else out).print(f"wrote {path}")
+            try:
+                written = write_plots(loaded, config, plots)
+            except OSError as error:
+                _fail(2, f"--plots {plots}: cannot write the plots there: {error.strerror or error}")
+            for path in written:
+                note(f"wrote {path}")
+
+
+@contextmanager
+def _quiet_nan(quiet: bool) -> Iterator[None]:
+    """Silence numpy's invalid-value warnings when a config's non-finite values make figures nan on purpose."""
+    if not quiet:
+        yield
+        return
+    import numpy as np
+
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        yield
+
+
+def _note_recovery(loaded, note) -> None:
+    """A trace written by `platoon trace recover` with damaged stretches skipped: say which time is missing."""
+    record = loaded.metadata.get("platoon.recovery")
+    if not record or record.get("damaged", "0") == "0":
+        return
+    from .trace.recovery import describe_lost
+
+    lost = [tuple(pair) for pair in json.loads(record.get("lost", "[]"))]
+    note(f"warning: recovered from a damaged trace; data is missing between {describe_lost(lost)}",
+         highlight=False, soft_wrap=True)
 
 
 def _load_trace(trace: Path):
-    from .trace import load
+    from .trace import TraceError, load
 
     if not trace.is_file():
         _fail(2, f"trace {trace}: no such file")
     try:
         return load(trace)
-    except Exception as error:  # any reader failure means the file is not a usable trace
-        _fail(2, f"trace {trace}: not a readable MCAP trace ({error})")
+    except TraceError as error:  # says what is wrong and what to do (e.g. `platoon trace recover`)
+        _fail(2, f"trace {trace}: not a readable MCAP trace: {error}")
+    except Exception as error:  # any other reader failure means the file is not a usable trace
+        _fail(2, f"trace {trace}: not a readable MCAP trace ({error}); try `platoon trace recover {trace}`")
 
 
 @app.command()
@@ -241,8 +347,15 @@ def export(
     """Export a trace: one CSV per component (t, then its outputs) and errors.csv (path, gap, speed errors)."""
     from .trace import export_csv
 
+    if csv_dir.exists() and not csv_dir.is_dir():
+        _fail(2, f"--csv {csv_dir}: is a file; give a folder for the CSV files")
     loaded = _load_trace(trace)
-    for path in export_csv(loaded, csv_dir):
+    _note_recovery(loaded, err.print)
+    try:
+        written = export_csv(loaded, csv_dir)
+    except OSError as error:
+        _fail(2, f"--csv {csv_dir}: cannot write the CSV files there: {error.strerror or error}")
+    for path in written:
         out.print(f"wrote {path}", highlight=False, soft_wrap=True)
 
 
@@ -252,27 +365,53 @@ app.add_typer(trace_app, name="trace")
 
 @trace_app.command("recover")
 def trace_recover(
-    broken: Annotated[Path, typer.Argument(help="an unfinished trace (the run was killed)")],
+    broken: Annotated[Path, typer.Argument(help="an unfinished or damaged trace (e.g. the run was killed)")],
     fixed: Annotated[Optional[Path], typer.Option("--out", help="recovered trace (default BROKEN-recovered.mcap)")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing --out (never BROKEN itself)")] = False,
 ) -> None:
-    """Rewrite the complete chunks of an unfinished trace into a valid one (losing at most the last chunk)."""
+    """Rewrite the intact chunks of an unfinished or damaged trace into a valid one; say what was lost."""
     from .trace import TraceError, recover
+    from .trace.output import OutputError, check_in_use, claim, publish
+    from .trace.recovery import describe_lost
 
     if not broken.is_file():
         _fail(2, f"trace {broken}: no such file")
-    fixed = fixed or broken.with_name(broken.stem + "-recovered.mcap")
-    if fixed.resolve() == broken.resolve():
-        _fail(2, f"--out {fixed}: must differ from the trace being recovered")
+    if fixed is None:
+        name = broken.name[:-len(".partial")] if broken.name.endswith(".mcap.partial") else broken.name
+        fixed = broken.with_name(Path(name).stem + "-recovered.mcap")
     try:
-        result = recover(broken, fixed)
-    except TraceError as error:
+        check_in_use(broken)
+        if fixed.exists() and not overwrite and not _same(fixed, broken):
+            raise OutputError(f"--out {fixed}: exists; pass --overwrite to replace it")
+        target = claim(fixed, overwrite=True, protect=[broken], suffix=".recovering")
+    except OutputError as error:
         _fail(2, str(error))
+    try:
+        result = recover(broken, target.aside)
+        publish(target.aside, target.final)
+    except (TraceError, OSError) as error:
+        target.aside.unlink(missing_ok=True)  # no half-written file left behind
+        target.release()
+        if isinstance(error, TraceError):
+            _fail(2, str(error))
+        _fail(2, f"--out {fixed}: cannot write the recovered trace: {error.strerror or error} (nothing written)")
+    target.release()
+    stretches = "stretch" if result.damaged == 1 else "stretches"
+    damage = f"; {result.damaged} damaged {stretches} skipped, data lost between {describe_lost(result.lost)}" if result.damaged else ""
     if result.steps == 0:
-        _fail(1, f"trace {broken}: no complete communication point to recover ({result.chunks} complete chunks); wrote {fixed} with its metadata only")
+        _fail(1, f"trace {broken}: no complete communication point to recover ({result.chunks} intact chunks{damage}); "
+                 f"wrote {fixed} with its metadata only")
     span = f"t = 0 .. {result.last_time:.6g} s" if result.last_time is not None else "no time"
-    state = "a complete file" if result.finished else f"{result.chunks} complete chunks"
-    out.print(f"recovered {result.steps} communication points ({span}, {result.messages} messages) from {state}: {fixed}",
-              highlight=False, soft_wrap=True)
+    state = "a complete file" if result.finished else f"{result.chunks} intact chunks"
+    out.print(f"recovered {result.steps} communication points ({span}, {result.messages} messages) from {state}: {fixed}"
+              f"{damage}", highlight=False, soft_wrap=True)
+
+
+def _same(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
 
 
 @app.command()
@@ -425,6 +564,23 @@ def bench_scenarios(
            suite.markdown, out_dir, quiet)
 
 
+@bench_app.command("wholerun")
+def bench_wholerun(
+    n: Counts = "16",
+    steps: Steps = 10_000,
+    variants: Annotated[str, typer.Option(help="comma-separated: platoon (default run, traced, table), platoon-q (-q --trace-every 100), libcosim (no observer), libcosim-outputs (time series of every output), libcosim-last-value")] = "platoon,platoon-q,libcosim,libcosim-outputs,libcosim-last-value",
+    rounds: Rounds = 5,
+    out_dir: OutDir = Path("runs/bench"),
+    quiet: Quiet = False,
+) -> None:
+    """Whole `platoon run` processes against libcosim running the same system from an SSP (0 threads)."""
+    from .bench import wholerun as suite
+
+    kinds, counts = _csv("--variants", variants, suite.VARIANTS), _counts(n)
+    _bench("wholerun", lambda progress: suite.run(counts, steps, rounds, kinds, progress=progress), suite.markdown,
+           out_dir, quiet)
+
+
 @bench_app.command("instances")
 def bench_instances(
     engines: Annotated[str, typer.Option(help="comma-separated: native, fmpy")] = "native,fmpy",
@@ -520,6 +676,13 @@ def bench_cores(
 from .hil_cli import register as _register_hil  # noqa: E402  (the m3pi-emulator and m3pi-serial commands)
 
 _register_hil(app, bench_app)
+from .sweep.cli import register as _register_sweep  # noqa: E402  (sweep, sweep-plot, bench sweep)
+
+_register_sweep(app, bench_app)
+
+from .ssp_cli import register as _register_ssp  # noqa: E402  (export-ssp: the platoon for other tools)
+
+_register_ssp(app)
 
 
 def main() -> None:

@@ -33,7 +33,7 @@ from fmpy.fmi2 import (
 )
 from fmpy.fmi1 import FMICallException
 from fmpy.logging import addLoggerProxy
-from fmpy.simulation import calloc, free
+from fmpy import calloc, free  # (fmpy.simulation re-exports them, at ~100 ms of imports)
 
 from .errors import ComponentError  # noqa: F401  (re-exported: the engines raise it from here)
 from .interface import Component  # noqa: F401  (re-exported: the interface FmuComponent implements)

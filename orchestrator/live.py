@@ -44,12 +44,12 @@ def check_live_options(config: Config, engine: str, trace_writer: str) -> None:
                            "(use auto or inline)")
 
 
-def live_component(spec: ComponentSpec, fmu: UnpackedFmu, config: Config, vehicle: int) -> Component:
-    """The live robot standing in for ``spec``'s Vehicle FMU."""
-    from bridge.live import LiveSettings, LiveVehicle  # Zenoh is imported only by runs that need it
+def live_settings(config: Config, vehicle: int):
+    """Where vehicle ``vehicle``'s robot is and how patient the host is with it (a ``bridge.live.LiveSettings``)."""
+    from bridge.live import LiveSettings  # Zenoh is imported only by runs that need it
 
     override, hil = config.override(vehicle), config.hil
-    settings = LiveSettings(
+    return LiveSettings(
         robot=config.robot_id(vehicle),
         prefix=override.prefix or hil.prefix,
         connect=tuple(override.connect or ()),
@@ -60,6 +60,13 @@ def live_component(spec: ComponentSpec, fmu: UnpackedFmu, config: Config, vehicl
         command_validity=hil.command_validity,
         max_pose_age=hil.max_pose_age,
     )
+
+
+def live_component(spec: ComponentSpec, fmu: UnpackedFmu, config: Config, vehicle: int) -> Component:
+    """The live robot standing in for ``spec``'s Vehicle FMU."""
+    from bridge.live import LiveVehicle
+
+    settings = live_settings(config, vehicle)
     inputs = [v.name for v in fmu.description.modelVariables if v.causality == "input"]
     outputs = [v.name for v in fmu.description.modelVariables if v.causality == "output"]
     starts = fmu.start_values()

@@ -10,12 +10,14 @@ when there is none).
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import Sequence
 
 import numpy as np
 
 from .config import Config
 from .scenario import path_of
 from .trace import Trace
+from .trace.format import vehicle_names
 
 STEADY_FRACTION = 0.1
 
@@ -39,25 +41,114 @@ def first_disturbance(config: Config) -> float | None:
     return min((d.start for d in config.disturbance), default=None)
 
 
+SUMMARY_OUTPUTS = ("x", "y", "gap", "speed")  # what a vehicle's summary reads
+SUMMARY_BLOCK = 4096  # rows folded at a time when summarizing a loaded trace
+
+
+class RunningSummary:
+    """The per-vehicle summary, accumulated from rows as they are recorded (one pass, bounded memory).
+
+    ``platoon run`` feeds it every recorded row, so printing the table does not re-read the trace;
+    ``summarize`` feeds it a trace's rows: one implementation of the summary either way. Rows are flat,
+    ``[t, outputs of every component...]``, in blocks.
+
+    The steady window is the last ``STEADY_FRACTION`` of the recorded time span, whose end is only
+    known at the last row. The caller predicts it (``expected_end``); rows clearly inside or outside the
+    predicted window are folded into sums at once, and the few rows within ``margin`` of its start are
+    kept until ``result`` knows the real end. If the real end lies too far from the prediction (a run
+    that stopped early), ``result`` returns None and the caller reads the trace instead.
+    """
+
+    def __init__(self, config: Config, columns: dict[str, dict[str, int]], start: float,
+                 expected_end: float, margin: float) -> None:
+        self.names = vehicle_names(list(columns))
+        self._columns = np.array([[columns[n][o] for o in SUMMARY_OUTPUTS] for n in self.names], dtype=np.intp)
+        self._distance = np.frompyfunc(path_of(config).signed_distance, 2, 1)
+        self._disturbed_from = first_disturbance(config)
+        self._start = start
+        self._margin = margin
+        self._predicted = expected_end - STEADY_FRACTION * (expected_end - start)
+        count = len(self.names)
+        self._steady_sums = np.zeros((count, 3))  # path error, gap, speed
+        self._steady_rows = 0
+        self._boundary: list[np.ndarray] = []  # rows near the predicted window start: (t, errors, gaps, speeds)
+        self._error_max = np.full(count, -np.inf)
+        # gap and speed are summed as deviations from d* and V_c: a mean of values near 25 m/s would
+        # carry rounding noise (~1e-12 over 10^3 rows) larger than the deviations the table shows
+        self._reference = np.array([0.0, config.platoon.d_star, config.platoon.speed])
+        self._rows = 0
+        self.last_time: float | None = None
+
+    def add(self, rows: np.ndarray) -> None:
+        """Fold a block of flat rows into the summary."""
+        rows = np.asarray(rows, dtype=float)
+        if rows.ndim != 2 or not len(rows):
+            return
+        t = rows[:, 0]
+        picked = rows[:, self._columns]  # rows x vehicles x (x, y, gap, speed)
+        errors = self._distance(picked[:, :, 0], picked[:, :, 1]).astype(float)
+        window = t >= self._disturbed_from if self._disturbed_from is not None else np.ones(len(t), dtype=bool)
+        if window.any():
+            self._error_max = np.maximum(self._error_max, np.max(np.abs(errors[window]), axis=0))
+        values = np.stack([errors, picked[:, :, 2], picked[:, :, 3]], axis=2) - self._reference  # rows x vehicles x 3
+        inside = t > self._predicted + self._margin
+        near = ~inside & (t >= self._predicted - self._margin)
+        if inside.any():
+            self._steady_sums += values[inside].sum(axis=0)
+            self._steady_rows += int(inside.sum())
+        for index in np.flatnonzero(near):
+            self._boundary.append((float(t[index]), values[index]))
+        self._rows += len(t)
+        self.last_time = float(t[-1])
+
+    def result(self) -> list[VehicleSummary] | None:
+        """The summaries, or None when the recorded span ended too far from the predicted end."""
+        if self.last_time is None:
+            return None
+        threshold = self.last_time - STEADY_FRACTION * (self.last_time - self._start)
+        if abs(threshold - self._predicted) >= self._margin:
+            return None
+        sums, count = self._steady_sums.copy(), self._steady_rows
+        for t, values in self._boundary:
+            if t >= threshold:
+                sums += values
+                count += 1
+        means = sums / count + self._reference
+        error_max = np.where(np.isfinite(self._error_max), self._error_max, np.nan)
+        return [VehicleSummary(name, float(means[i, 0]), float(means[i, 1]), float(means[i, 2]), float(error_max[i]))
+                for i, name in enumerate(self.names)]
+
+
+def running_summary(config: Config, components: Sequence[tuple[str, Sequence[str]]], start: float,
+                    expected_end: float, margin: float) -> RunningSummary:
+    """A ``RunningSummary`` for flat rows of ``components`` (name, output names) in this order."""
+    columns: dict[str, dict[str, int]] = {}
+    offset = 1  # column 0 is t
+    for name, outputs in components:
+        columns[name] = {output: offset + i for i, output in enumerate(outputs)}
+        offset += len(outputs)
+    vehicles = {n: columns[n] for n in vehicle_names(list(columns))}
+    return RunningSummary(config, vehicles, start, expected_end, margin)
+
+
 def summarize(trace: Trace, config: Config) -> list[VehicleSummary]:
-    summaries = []
-    start = first_disturbance(config)
-    for name in trace.vehicles():
-        channel = trace.component(name)
-        t = channel["t"]
-        steady = t >= t[-1] - STEADY_FRACTION * (t[-1] - t[0])
-        errors = path_errors(config, channel["x"], channel["y"])
-        window = t >= start if start is not None else np.ones_like(t, dtype=bool)
-        summaries.append(
-            VehicleSummary(
-                name,
-                float(np.mean(errors[steady])),
-                float(np.mean(channel["gap"][steady])),
-                float(np.mean(channel["speed"][steady])),
-                float(np.max(np.abs(errors[window]))) if window.any() else float("nan"),
-            )
-        )
-    return summaries
+    """The summary of a trace's recorded rows (the same computation ``platoon run`` does as it records)."""
+    names = vehicle_names(list(trace.channels))
+    if not names:
+        return []
+    t = trace.component(names[0])["t"]
+    if not len(t):
+        return []
+    components = [(n, SUMMARY_OUTPUTS) for n in names]
+    end = float(t[-1])
+    # the end is known exactly here: a margin of rounding size keeps only rows at the window's start aside
+    summary = running_summary(config, components, float(t[0]), end, margin=1e-9 * (abs(end) + 1.0))
+    for first in range(0, len(t), SUMMARY_BLOCK):
+        block = slice(first, first + SUMMARY_BLOCK)
+        summary.add(np.column_stack([t[block]] + [trace.component(n)[o][block] for n in names for o in SUMMARY_OUTPUTS]))
+    result = summary.result()
+    assert result is not None  # the predicted end is the real one
+    return result
 
 
 def report_json(summaries: list[VehicleSummary]) -> dict:

@@ -6,6 +6,7 @@ Whatever happens, the trace keeps every step recorded so far and says how the ru
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import os
 import platform
@@ -15,9 +16,6 @@ import time as clock
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
-
-import fmpy
-import pythonfmu
 
 import fmus
 from fmus.build import DEFAULT_OUT, build_fmus
@@ -29,11 +27,13 @@ from .components import ComponentError, FmuComponent, UnpackedFmu
 from .config import Config
 from .live import LiveReporter, check_live_options, live_component, live_names
 from .master import Master
+from .metrics import RunningSummary, VehicleSummary, running_summary
 from .realtime import Pacer
 from .native import NativeComponent, NativeMaster, available as native_available
 from .scenario import Scenario, build_scenario, step_count
 from .trace.foxglove import SCENE_RATE, FoxgloveChannels, SceneSettings
-from .trace.writer import NullTraceWriter, TraceWriter
+from .trace.output import Claim, claim, claim_new
+from .trace.writer import NullTraceWriter, TraceWriteError, TraceWriter
 from .trace.format import BLOCK, FLUSH_INTERVAL
 from .trace.worker import WORKER_BLOCK, TraceProcess, TraceWorker, TraceWorkerError
 
@@ -76,19 +76,24 @@ class RunResult:
     status: str  # "completed" | "failed" | "interrupted"
     error: str | None = None
     signal: int | None = None  # SIGINT or SIGTERM when interrupted
-    # wall seconds by phase: "setup" (trace writer, metadata), "initialize" (instantiate, initialization
+    # wall seconds by phase: "open" (FMUs checked and unpacked, before wall_time starts), "setup" (trace
+    # writer, metadata), "initialize" (instantiate, initialization
     # mode), "steps" (the stepping loop, recording included), "finish" (FMUs closed, trace finalized)
     timings: dict[str, float] = field(default_factory=dict)
     # with live vehicles: "pacing" (step jitter, overruns) and each live vehicle's link statistics
     live: dict[str, dict] = field(default_factory=dict)
+    # run_scenario(..., summarize=True) of a completed run: the summary of the recorded rows, as
+    # `platoon report` computes it from the trace (None otherwise)
+    summary: list[VehicleSummary] | None = None
 
 
 def tool_versions() -> dict[str, str]:
     return {
         "platoon-cosim": __version__,
         "fmus": fmus.__version__,
-        "fmpy": fmpy.__version__,
-        "pythonfmu": pythonfmu.__version__,
+        # from the installed metadata: importing pythonfmu only for its version costs ~80 ms of start-up
+        "fmpy": importlib.metadata.version("fmpy"),
+        "pythonfmu": importlib.metadata.version("pythonfmu"),
         "python": platform.python_version(),
     }
 
@@ -115,15 +120,17 @@ def open_trace_writer(
     scene_rate: float = SCENE_RATE,
     foxglove: bool = True,
     process: TraceProcess | None = None,
+    publish: Path | None = None,
 ) -> "TraceWriter | TraceWorker":
     """A run's trace writer, encoding in this process ("inline") or in a worker ("process"): same file.
 
-    ``foxglove`` adds the Foxglove channels at ``scene_rate``; ``process`` is a worker started earlier.
+    ``foxglove`` adds the Foxglove channels at ``scene_rate``; ``process`` is a worker started earlier;
+    ``publish``: the final path, ``path`` being the aside file renamed onto it once finalized.
     """
     if kind == "process":
-        return TraceWorker(path, components, descriptions, every=every, process=process,
+        return TraceWorker(path, components, descriptions, every=every, process=process, publish=publish,
                            foxglove=(SceneSettings.of(config), components, scene_rate) if foxglove else None)
-    return TraceWriter(path, components, descriptions, every=every,
+    return TraceWriter(path, components, descriptions, every=every, publish=publish,
                        foxglove=FoxgloveChannels(config, components, scene_rate) if foxglove else None)
 
 
@@ -154,7 +161,10 @@ def _finalize_trace(writer: "TraceWriter | TraceWorker | NullTraceWriter", statu
         writer.metadata("platoon.run", run_record)
         writer.close()
     except TraceWorkerError as failure:
-        status, error = "failed", str(failure).splitlines()[0]
+        if status != "interrupted":
+            status, error = "failed", str(failure).splitlines()[0]
+    except TraceWriteError as failure:  # e.g. a full disk: the file keeps its complete chunks
+        status, error = "failed", str(failure)
     return status, error
 
 
@@ -182,7 +192,9 @@ class _StopRequest:
     communication point: the run stops between two steps, never inside an FMU call (pythonfmu FMUs
     run Python code, where a KeyboardInterrupt would turn into an FMU error). A second signal while
     the loop still runs raises at once, in case a component hangs. After the loop, signals are only
-    noted until the trace is finalized; then the previous handlers come back.
+    noted until the trace is finalized (except while waiting for a trace writer process, which a
+    further signal stops: ``finishing``); then the previous handlers come back. A second signal raised
+    inside an FMU call makes that call fail: ``forced`` tells the run it was an interruption.
     """
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -190,10 +202,13 @@ class _StopRequest:
     def __init__(self) -> None:
         self.signum = 0
         self.armed = False
+        self.forced = False  # a second signal raised Interrupted, possibly inside an FMU call
+        self.finishing = False  # waiting for the trace writer process: any further signal ends the wait
         self._previous: dict[int, object] = {}
 
     def _handler(self, signum: int, frame: object) -> None:
-        if self.signum and self.armed:
+        if self.signum and (self.armed or self.finishing):
+            self.forced = True
             raise Interrupted(signum)
         self.signum = self.signum or signum
 
@@ -225,41 +240,56 @@ def _signal_text(signum: int) -> str:
 def run_scenario(
     config: Config,
     config_text: str,
-    out: Path | None,
+    out: Path | Claim | None,
     engine: str | None = None,
     fmu_dir: Path = DEFAULT_OUT,
     tick: Tick | None = None,
     foxglove: bool = True,
     scene_rate: float = SCENE_RATE,
     trace_writer: str = "auto",
+    summarize: bool = False,
 ) -> RunResult:
     """Run ``config`` with ``engine`` and write the trace to ``out`` (``None``: record nothing).
+
+    ``out`` is a path (claimed here: ``orchestrator.trace.output.claim``, which raises ``OutputError``
+    for a path in use by another run or holding a file that is not a trace) or a ``Claim`` made by
+    the caller. The trace is written aside (``<out>.partial``) and put in place once finalized;
+    ``RunResult.trace`` is where the data ended up.
 
     ``foxglove`` adds the Foxglove channels (scene at ``scene_rate`` Hz of simulated time, errors,
     transforms, log). SIGINT and SIGTERM stop the run at the next communication point with status
     "interrupted"; the trace is finalized with every point recorded up to there. ``trace_writer``:
-    where the trace is encoded (``TRACE_WRITERS``); both give the same file.
+    where the trace is encoded (``TRACE_WRITERS``); both give the same file. ``summarize``: accumulate
+    the per-vehicle summary of the recorded rows while stepping (``RunResult.summary``), so printing it
+    needs no second read of the trace.
     """
-    engine = engine or default_engine(config)
-    if engine not in ENGINES:
-        raise ValueError(f"unknown engine {engine!r}; expected one of {', '.join(ENGINES)}")
-    check_live_options(config, engine, trace_writer)
-    scenario = build_scenario(config)
-    sim = config.simulation
-    steps = step_count(sim.stop_time, sim.step)
-    live = live_names(config) if engine == "python" else set()
-    writer_kind = "inline" if live else choose_trace_writer(trace_writer, steps // sim.trace_every + 1,
-                                                            len(scenario.components))
-    # the trace writer process starts first: its start-up overlaps unpacking and instantiating the FMUs
-    trace_process = TraceProcess() if out is not None and writer_kind == "process" else None
-    try:
+    target = claim(out) if isinstance(out, (str, Path)) else out
+    trace_process: TraceProcess | None = None
+    try:  # whatever fails before the run starts: no lock kept, no empty aside file left behind
+        engine = engine or default_engine(config)
+        if engine not in ENGINES:
+            raise ValueError(f"unknown engine {engine!r}; expected one of {', '.join(ENGINES)}")
+        check_live_options(config, engine, trace_writer)
+        scenario = build_scenario(config)
+        sim = config.simulation
+        steps = step_count(sim.stop_time, sim.step)
+        live = live_names(config) if engine == "python" else set()
+        writer_kind = "inline" if live else choose_trace_writer(trace_writer, steps // sim.trace_every + 1,
+                                                                len(scenario.components))
+        # the trace writer process starts first: its start-up overlaps unpacking and instantiating the FMUs;
+        # it inherits the trace's lock, so the path stays claimed while it still writes
+        opening = clock.perf_counter()
+        if target is not None and writer_kind == "process":
+            trace_process = TraceProcess(keep_fds=(target.fd,))
         fmus_by_kind = _open_fmus(fmu_dir)
     except BaseException:
         if trace_process is not None:
             trace_process.close()
+        _release(target)
         raise
     started = clock.perf_counter()
     marks = {"start": started}  # phase boundaries, for RunResult.timings
+    opened = started - opening  # FMUs checked and unpacked, trace writer process started (not in wall_time)
     writer: TraceWriter | TraceWorker | NullTraceWriter | None = None
     master = None
     reporter: LiveReporter | None = None
@@ -274,13 +304,13 @@ def run_scenario(
             for spec in scenario.components
         }
         components = [(spec.name, outputs[spec.name]) for spec in scenario.components]
-        if out is None:
+        if target is None:
             writer = NullTraceWriter()
         else:
-            writer = open_trace_writer(writer_kind, out, components,
+            writer = open_trace_writer(writer_kind, target.aside, components,
                                        {name: _descriptions(fmu) for name, fmu in kinds.items()}, config,
                                        every=sim.trace_every, scene_rate=scene_rate, foxglove=foxglove,
-                                       process=trace_process)
+                                       process=trace_process, publish=target.final)
         writer.metadata("platoon.config", {"toml": config_text, "resolved": config.model_dump_json()})
         writer.metadata("platoon.fmus", {kind: fmu.guid for kind, fmu in fmus_by_kind.items()})
         writer.metadata("platoon.tool", tool_versions())
@@ -291,6 +321,9 @@ def run_scenario(
         writer.log(0.0, "Info", f"run started: {config.name}, {config.platoon.count} vehicles, {config.platoon.law} law, "
                                 f"{engine} engine ({sim.master}), step {sim.step:g} s, stop {sim.stop_time:g} s")
         record = writer.record
+        feed = _SummaryFeed(config, components, steps, sim.trace_every) if summarize else None
+        if feed is not None:
+            record = feed.tee(record)
         marks["setup"] = clock.perf_counter()
 
         def observe(t: float, values: list[list[float]]) -> None:
@@ -319,18 +352,26 @@ def run_scenario(
             master = NativeMaster(native_components, scenario.connections, scenario.schedules, sim.master)
             master.initialize(0.0)
             marks["initialize"] = clock.perf_counter()
-            master.run_blocks(sim.step, steps, None if out is None else writer.write_block, every=sim.trace_every,
+            sink = None if out is None else writer.write_block
+            if feed is not None:
+                sink = feed.tee_blocks(sink)
+            master.run_blocks(sim.step, steps, sink, every=sim.trace_every,
                               block=WORKER_BLOCK if writer_kind == "process" else BLOCK, tick=tick, check=stop.check,
                               deliver_interval=FLUSH_INTERVAL / 2, initialize=False)
         else:
             _run_monolithic(scenario, outputs, fmus_by_kind, observe, steps, tick)
     except ComponentError as failure:
-        status, error, failed_at = "failed", str(failure), failure.time
+        if stop.forced:  # a second signal, raised inside an FMU call, made it fail: an interruption
+            signum, status = stop.signum, "interrupted"
+        else:
+            status, error, failed_at = "failed", str(failure), failure.time
     except KeyboardInterrupt as interruption:
         signum = getattr(interruption, "signum", signal.SIGINT)
         status = "interrupted"
     except TraceWorkerError as failure:  # the trace writer process died: the run cannot be recorded further
         status, error = "failed", str(failure).splitlines()[0]
+    except TraceWriteError as failure:  # the trace cannot be written (e.g. a full disk): stop, keep what is on disk
+        status, error = "failed", str(failure)
     except Exception as unexpected:  # a bug, not a component failure: keep the trace, say so, re-raise
         status, error = "failed", f"{type(unexpected).__name__}: {unexpected}"
         raise
@@ -347,16 +388,85 @@ def run_scenario(
             if reporter is not None:  # stamped at the last communication point the master reached
                 live_summary = reporter.finish(master.time if master is not None else 0.0)
             if writer is not None:
-                status, error = _finalize_trace(writer, status, error, failed_at, signum, engine, sim.master)
+                stop.finishing = isinstance(writer, TraceWorker)  # a signal may end the wait for the worker
+                try:
+                    status, error = _finalize_trace(writer, status, error, failed_at, signum, engine, sim.master)
+                except KeyboardInterrupt as interruption:  # while the trace writer process finished the file
+                    signum = signum or getattr(interruption, "signum", signal.SIGINT)
+                    status = "interrupted"
+                    error = (f"{_signal_text(signum)} while the trace writer process finished the file; its "
+                             f"complete chunks are in {target.aside if target else '?'} (`platoon trace recover`)")
+                finally:
+                    stop.finishing = False
             if trace_process is not None:
                 trace_process.close()  # only if no writer took it (the writer was never created)
             for fmu in fmus_by_kind.values():
                 fmu.cleanup()
         finally:
             stop.restore()
+            _release(target)
     marks["finish"] = clock.perf_counter()
-    return RunResult(Path(out) if out is not None else None, steps, marks["finish"] - started, status, error, signum,
-                     _phase_durations(marks), live_summary)
+    summary = feed.result() if feed is not None and status == "completed" else None
+    return RunResult(target.where() if target is not None else None, steps, marks["finish"] - started, status, error,
+                     signum, {"open": opened, **_phase_durations(marks)}, live_summary, summary)
+
+
+class _SummaryFeed:
+    """Hands the rows the trace records (same decimation) to a ``RunningSummary``, in blocks."""
+
+    BLOCK = 1024
+
+    def __init__(self, config: Config, components: list[tuple[str, list[str]]], steps: int, every: int) -> None:
+        step = config.simulation.step
+        # the last recorded point is the last multiple of ``every`` steps; rows are every * step apart
+        expected_end = (steps // every) * every * step
+        self.summary: RunningSummary = running_summary(config, components, 0.0, expected_end, margin=0.5 * every * step)
+        self.every = every
+        self._count = 0
+        self._rows: list[list[float]] = []
+
+    def tee(self, record: Callable[[float, list[list[float]]], None]) -> Callable[[float, list[list[float]]], None]:
+        """``record``, also feeding the summary."""
+        def both(t: float, outputs: list[list[float]]) -> None:
+            record(t, outputs)
+            if self._count % self.every == 0:
+                row = [t]
+                for values in outputs:
+                    row.extend(values)
+                self._rows.append(row)
+                if len(self._rows) >= self.BLOCK:
+                    self._flush()
+            self._count += 1
+        return both
+
+    def tee_blocks(self, sink: Callable[[object], None] | None) -> Callable[[object], None]:
+        """``sink`` (may be None) for the native loop's decimated blocks, also feeding the summary."""
+        def both(rows: object) -> None:
+            if sink is not None:
+                sink(rows)
+            self.summary.add(rows)
+        return both
+
+    def _flush(self) -> None:
+        if self._rows:
+            self.summary.add(self._rows)
+            self._rows = []
+
+    def result(self) -> list[VehicleSummary] | None:
+        self._flush()
+        return self.summary.result()
+
+
+def _release(target: Claim | None) -> None:
+    """Drop the trace path's lock; an aside file that never got a byte is removed (no litter)."""
+    if target is None:
+        return
+    try:
+        if target.aside.exists() and target.aside.stat().st_size == 0:
+            target.aside.unlink()
+    except OSError:
+        pass
+    target.release()
 
 
 def _phase_durations(marks: dict[str, float]) -> dict[str, float]:
@@ -410,10 +520,12 @@ def _run_monolithic(
         raise ComponentError("platoon (monolithic)", t, str(failure)) from None
 
 
-def default_trace_path(config: Config, engine: str | None = None) -> Path:
+def default_trace_path(config: Config, engine: str | None = None) -> Claim:
+    """Claim a fresh ``runs/<name>[-monolithic]-<time>.mcap`` (``-2``, ``-3`` ... when two runs of one
+    config start in the same second): never a path another run or an existing file uses."""
     stamp = clock.strftime("%Y%m%d-%H%M%S")
     suffix = "-monolithic" if engine == "monolithic" else ""
-    return Path("runs") / f"{config.name}{suffix}-{stamp}.mcap"
+    return claim_new(Path("runs"), f"{config.name}{suffix}-{stamp}")
 
 
 def resolved_json(config: Config) -> str:

@@ -83,6 +83,16 @@ def test_scenarios_times_whole_processes(tmp_path: Path, fmu_dir: Path) -> None:
     assert all(s["steps"] == 5 and s["wall_s"] > s["run_wall_s"] > 0 for s in data["samples"])
 
 
+def test_wholerun_times_our_runs_and_libcosim_on_the_same_system(tmp_path: Path, fmu_dir: Path) -> None:
+    result = platoon("bench", "wholerun", "--n", "2", "--steps", "20", "--rounds", "1", "--out-dir", tmp_path, cwd=REPO)
+    data = written(result, tmp_path, "wholerun")
+    assert {s["variant"] for s in data["samples"]} == set(data["variants"]) == {
+        "platoon", "platoon-q", "libcosim", "libcosim-outputs", "libcosim-last-value"}
+    assert all(s["wall_s"] > 0 and s["exit"] == 0 for s in data["samples"])
+    assert set(data["ratios"]["2"]) >= {"platoon / libcosim", "platoon-q / libcosim", "libcosim-last-value / libcosim"}
+    assert "platoon / libcosim" in result.stdout and "(floor 1.15)" in result.stdout
+
+
 def test_flatness_times_both_orders(tmp_path: Path, fmu_dir: Path) -> None:
     result = platoon("bench", "flatness", "--n", "1,5", "--steps", "3", "--rounds", "1", "--repeats", "1",
                      "--out-dir", tmp_path, cwd=REPO)
@@ -119,6 +129,7 @@ def test_callgrind_splits_the_master_from_the_fmus(tmp_path: Path, fmu_dir: Path
     (["instances", "--engines", "libcosim"], ["--engines 'libcosim'", "native, fmpy"]),
     (["instances", "--wirings", "ring"], ["--wirings 'ring'", "instances, platoon"]),
     (["scenarios", "--variants", "traced,fast"], ["--variants 'traced,fast'", "untraced"]),
+    (["wholerun", "--variants", "platoon,libcosim-fast"], ["--variants 'platoon,libcosim-fast'", "libcosim-outputs"]),
     (["scenarios", "--config", "no/such.toml"], ["no/such.toml", "not found"]),
     (["scenarios", "--config", str(SINGLE), "--set", "platoon.count=0"], ["platoon.count"]),
     (["callgrind", "--engines", "libcosim"], ["--engines 'libcosim'", "fmpy-bare"]),

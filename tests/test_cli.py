@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import os
 import subprocess
 import sys
@@ -260,3 +261,15 @@ def test_run_failure_mid_run_exits_1_and_keeps_trace(workdir: Path, tmp_path: Pa
     assert result.returncode == 1, result.returncode
     assert "speed fell" in loaded.run["error"], loaded.run["error"]
     assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+
+
+def test_run_verbose_splits_the_wall_time_from_the_process_start(tmp_path):
+    result = platoon("run", REPO / "configs" / "paper" / "single.toml", "--set", "simulation.stop_time=0.5",
+                     "--out", tmp_path / "t.mcap", "-q", "-v", cwd=REPO)
+    assert result.returncode == 0, result.stderr
+    lines = [line.strip() for line in result.stderr.splitlines()]
+    total = next(line for line in lines if line.startswith("wall time since the process started:"))
+    assert re.fullmatch(r"wall time since the process started: \d+\.\d\d s", total), total
+    for piece in ("interpreter and imports", "config", "FMUs checked and unpacked", "run: setup", "initialize",
+                  "steps", "finish", "after the run"):
+        assert re.search(re.escape(piece) + r"[^0-9?]*\d+\.\d\d s", result.stderr), piece

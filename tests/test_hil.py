@@ -210,7 +210,8 @@ def finish(process: subprocess.Popen, timeout: float = 120) -> tuple[int, str, s
 def wait_for_running(trace: Path, process: subprocess.Popen, seconds: float = 30) -> None:
     """Until the run is stepping (its trace file has grown past the header), then a little longer."""
     deadline = time.monotonic() + seconds
-    while not (trace.exists() and trace.stat().st_size > 2000):
+    aside = trace.with_name(trace.name + ".partial")  # written there until finalized (docs/trace-format.md)
+    while not (aside.exists() and aside.stat().st_size > 2000):
         assert process.poll() is None, process.communicate()
         assert time.monotonic() < deadline, "the run did not start"
         time.sleep(0.05)

@@ -61,3 +61,31 @@ def test_the_trace_package_has_no_import_circle() -> None:
     for module in sorted(graph):
         visit(module, ())
     assert graph["format"] == set(), "format is the bottom of the package"
+
+
+def test_every_fmu_carries_the_project_modules_its_slave_imports() -> None:
+    """An FMU runs on the code in its resources (a host need not have this project installed): every
+    project module its slave imports, directly or through other project modules, is bundled."""
+    from fmus.build import ALL_FMUS, bundled_sources
+
+    def module_file(name: str) -> Path | None:
+        for candidate in (REPO / Path(*name.split(".")).with_suffix(".py"), REPO / Path(*name.split(".")) / "__init__.py"):
+            if candidate.is_file():
+                return candidate
+        return None
+
+    for fmu in ALL_FMUS:
+        bundled = {path.resolve() for path in bundled_sources(fmu)}
+        pending, seen = [REPO / "fmus" / "slaves" / f"{fmu}.py"], set()
+        while pending:
+            path = pending.pop()
+            if path in seen:
+                continue
+            seen.add(path)
+            assert path.resolve() in bundled, f"{fmu}.fmu does not carry {path.relative_to(REPO)}"
+            package = ".".join(path.relative_to(REPO).with_suffix("").parts[:-1])
+            for name in imported_modules(path, package):
+                if name.split(".")[0] in ("fmus", "bridge", "orchestrator"):
+                    parts = name.split(".")
+                    pending += [found for found in (module_file(".".join(parts[:k])) for k in range(1, len(parts) + 1))
+                                if found is not None]

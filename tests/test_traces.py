@@ -382,10 +382,11 @@ def test_run_whose_trace_writer_process_dies_fails_cleanly_and_the_chunks_stay(t
     no exception escapes, and the file's complete chunks recover."""
     config = paper("simulation.stop_time=300.0")
     out = tmp_path / "worker-killed.mcap"
+    aside = tmp_path / "worker-killed.mcap.partial"
     killed = []
 
     def tick(k: int) -> None:
-        if not killed and out.stat().st_size > 300_000:  # the worker has written chunks
+        if not killed and aside.stat().st_size > 300_000:  # the worker has written chunks (aside, until finalized)
             children = Path(f"/proc/{os.getpid()}/task/{os.getpid()}/children").read_text().split()
             workers = [int(pid) for pid in children
                        if "orchestrator.trace.serve" in Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")]
@@ -395,8 +396,9 @@ def test_run_whose_trace_writer_process_dies_fails_cleanly_and_the_chunks_stay(t
 
     result = run_scenario(config, PAPER.read_text(), out, fmu_dir=fmu_dir, tick=tick, trace_writer="process")
     assert killed and result.status == "failed"
-    assert result.error.startswith("the trace writer process failed;") and "platoon trace recover" in result.error
-    recovered = recover(out, tmp_path / "fixed.mcap")
+    assert result.error.startswith("the trace writer process failed") and "platoon trace recover" in result.error
+    assert result.trace == aside and not out.exists()  # never finalized: the data stays aside
+    recovered = recover(aside, tmp_path / "fixed.mcap")
     assert recovered.steps >= 1 and not recovered.finished
 
 
@@ -449,7 +451,8 @@ def start_long_run(trace: Path, cwd: Path, writer: str) -> subprocess.Popen[str]
     while time.monotonic() - started < 60:
         if process.poll() is not None:
             raise AssertionError(f"run ended early ({process.returncode}): {process.stderr.read()}")
-        if time.monotonic() - started > 2.0 and trace.is_file() and trace.stat().st_size > 200_000:
+        aside = trace.with_name(trace.name + ".partial")  # where a run writes until it finalizes the trace
+        if time.monotonic() - started > 2.0 and aside.is_file() and aside.stat().st_size > 200_000:
             return process
         time.sleep(0.05)
     os.killpg(process.pid, signal.SIGKILL)
@@ -541,8 +544,8 @@ def test_signal_finalizes_the_trace(signalled, case: str) -> None:
 def killed(request, tmp_path_factory: pytest.TempPathFactory):
     """A run whose whole process group was killed with SIGKILL: (broken path, CLI result, recovered path, Recovery)."""
     folder = tmp_path_factory.mktemp(f"killed-{request.param}")
-    broken = folder / "killed.mcap"
-    process = start_long_run(broken, folder, request.param)
+    trace = folder / "killed.mcap"
+    process = start_long_run(trace, folder, request.param)
     try:
         assert len(group_members(process)) == (2 if request.param == "process" else 1)  # the run (and its writer)
     finally:
@@ -550,6 +553,8 @@ def killed(request, tmp_path_factory: pytest.TempPathFactory):
     process.communicate(timeout=60)
     assert process.returncode == -signal.SIGKILL
     wait_group_gone(process)
+    broken = trace.with_name(trace.name + ".partial")  # never finalized: the data stays in the aside file
+    assert not trace.exists()
     fixed = folder / "fixed.mcap"
     cli = platoon("trace", "recover", broken, "--out", fixed, cwd=folder)
     details = recover(broken, folder / "fixed-again.mcap")

@@ -11,6 +11,8 @@
 * ``profile``: where the native engine's time goes, in one process, with ``perf`` (``profile.py``);
 * ``flatness``: why the cost per FMU-step grows with N: stepping order, idle instances (``flatness.py``);
 * ``callgrind``: instructions and simulated cache misses per FMU-step, the master's own apart (``flatness.py``);
+* ``hil``: Zenoh round trip and step jitter of live runs on loopback (``hil.py``);
+* ``sweep``: wall time of a sweep with 1, 2, ... local workers and on Dask; the speed-up (``sweep.py``);
 * ``cores LABEL=PATH LABEL=PATH``: the native engine with two or more builds of _core.c (``flatness.py``).
 
 ``python -m orchestrator.bench.<name>`` (each module's docstring has its options):

@@ -1,21 +1,21 @@
 """libcosim (libcosimpy, the C++ Open Simulation Platform master) on our own FMUs and wiring.
 
 Two set-ups, as issue 10 asks: ``CosimExecution.from_step_size`` with libcosim's default worker
-threads, and an SSP file written at run time from our wiring with
-``<osp:FixedStepAlgorithm numWorkerThreads="0">`` (every FMU stepped on the calling thread, as ours).
+threads, and an SSP package written at run time by ``orchestrator.ssp.write_ssp`` (the exporter of
+``platoon export-ssp``) with ``<osp:FixedStepAlgorithm numWorkerThreads="0">`` (every FMU stepped on
+the calling thread, as ours).
 """
 
 from __future__ import annotations
 
-import shutil
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
-from xml.sax.saxutils import quoteattr
 
 from fmus.build import DEFAULT_OUT
 
+from ..ssp import write_ssp
 from .common import BenchError
 from .platoon import STEP, fmu_files, scenario_for
 
@@ -25,83 +25,6 @@ NANOSECONDS = 1_000_000_000
 def _check(ok: object, what: str) -> None:
     if not ok:
         raise BenchError(f"libcosim: {what} failed")
-
-
-_SSV = {"Real": "ssv:Real", "Integer": "ssv:Integer", "Boolean": "ssv:Boolean", "String": "ssv:String"}
-
-
-def _ssv_value(kind: str, value: Any) -> str:
-    if kind == "Real":
-        return repr(float(value))
-    if kind == "Integer":
-        return str(int(value))
-    if kind == "Boolean":
-        return "true" if value else "false"
-    return str(value)
-
-
-def write_ssp(folder: Path, scenario, fmu_paths: dict[str, Path], worker_threads: int | None) -> Path:
-    """An SSD (SSP 1.0 system structure) of the scenario: components with their parameters as
-    ParameterValues, every connection of the wiring, and the OSP fixed-step algorithm annotation."""
-    from fmpy import read_model_description
-
-    folder.mkdir(parents=True, exist_ok=True)
-    for path in fmu_paths.values():
-        shutil.copy(path, folder / path.name)
-
-    variables = {kind: {v.name: v for v in read_model_description(str(path)).modelVariables}
-                 for kind, path in fmu_paths.items()}
-    kind_of = {spec.name: spec.fmu for spec in scenario.components}
-    connectors: dict[str, dict[str, str]] = {spec.name: {} for spec in scenario.components}
-    for c in scenario.connections:
-        connectors[c.source][c.output] = "output"
-        connectors[c.destination][c.input] = "input"
-    lines = [
-        '<?xml version="1.0" encoding="UTF-8"?>',
-        '<ssd:SystemStructureDescription name="platoon" version="1.0"'
-        ' xmlns:ssd="http://ssp-standard.org/SSP1/SystemStructureDescription"'
-        ' xmlns:ssc="http://ssp-standard.org/SSP1/SystemStructureCommon"'
-        ' xmlns:ssv="http://ssp-standard.org/SSP1/SystemStructureParameterValues"'
-        ' xmlns:osp="http://opensimulationplatform.com/SSP/OSPAnnotations">',
-        '  <ssd:System name="platoon">',
-        '    <ssd:Elements>',
-    ]
-    for spec in scenario.components:
-        lines.append(f'      <ssd:Component name={quoteattr(spec.name)} source={quoteattr(fmu_paths[spec.fmu].name)}>')
-        lines.append('        <ssd:Connectors>')
-        for name, kind in connectors[spec.name].items():
-            lines.append(f'          <ssd:Connector name={quoteattr(name)} kind="{kind}"><ssc:Real/></ssd:Connector>')
-        lines.append('        </ssd:Connectors>')
-        lines.append('        <ssd:ParameterBindings><ssd:ParameterBinding><ssd:ParameterValues>')
-        lines.append('          <ssv:ParameterSet version="1.0" name="initialValues"><ssv:Parameters>')
-        for name, value in spec.parameters.items():
-            kind = variables[kind_of[spec.name]][name].type
-            lines.append(f'            <ssv:Parameter name={quoteattr(name)}><{_SSV[kind]} '
-                         f'value={quoteattr(_ssv_value(kind, value))}/></ssv:Parameter>')
-        lines.append('          </ssv:Parameters></ssv:ParameterSet>')
-        lines.append('        </ssd:ParameterValues></ssd:ParameterBinding></ssd:ParameterBindings>')
-        lines.append('      </ssd:Component>')
-    lines.append('    </ssd:Elements>')
-    lines.append('    <ssd:Connections>')
-    for c in scenario.connections:
-        lines.append(f'      <ssd:Connection startElement={quoteattr(c.source)} startConnector={quoteattr(c.output)}'
-                     f' endElement={quoteattr(c.destination)} endConnector={quoteattr(c.input)}/>')
-    lines.append('    </ssd:Connections>')
-    lines.append('  </ssd:System>')
-    threads = "" if worker_threads is None else f' numWorkerThreads="{worker_threads}"'
-    lines += [
-        '  <ssd:DefaultExperiment startTime="0.0">',
-        '    <ssd:Annotations>',
-        '      <ssc:Annotation type="com.opensimulationplatform">',
-        f'        <osp:Algorithm><osp:FixedStepAlgorithm baseStepSize="{STEP!r}"{threads}/></osp:Algorithm>',
-        '      </ssc:Annotation>',
-        '    </ssd:Annotations>',
-        '  </ssd:DefaultExperiment>',
-        '</ssd:SystemStructureDescription>',
-    ]
-    path = folder / "SystemStructure.ssd"
-    path.write_text("\n".join(lines) + "\n")
-    return path
 
 
 def run_libcosim(n: int, steps: int, from_ssp: bool, coupling: str = "extrapolate",
@@ -119,8 +42,8 @@ def run_libcosim(n: int, steps: int, from_ssp: bool, coupling: str = "extrapolat
     step_ns = int(round(STEP * NANOSECONDS))
     slaves = []
     if from_ssp:
-        folder = Path(tempfile.mkdtemp(prefix="bench-ssp-"))
-        execution = CosimExecution.from_ssp_file(str(write_ssp(folder, scenario, paths, worker_threads=0)))
+        package = Path(tempfile.mkdtemp(prefix="bench-ssp-")) / "platoon.ssp"
+        execution = CosimExecution.from_ssp_file(str(write_ssp(package, scenario, paths, worker_threads=0)))
     else:
         execution = CosimExecution.from_step_size(step_ns)
         for spec in scenario.components:

@@ -6,6 +6,8 @@ the recovery (``recovery``) all take their constants from here.
 
 from __future__ import annotations
 
+from typing import Iterable
+
 from mcap.records import Channel, Schema
 
 CHANNEL_PREFIX = "/platoon/"
@@ -24,6 +26,12 @@ FOOTER_LENGTH = 1 + 8 + 8 + 8 + 4  # opcode, record length, summary start, summa
 
 class TraceError(ValueError):
     """A file that is not a usable trace; the message says why and what to do."""
+
+
+def vehicle_names(names: "Iterable[str]") -> list[str]:
+    """The vehicles among component names (``vehicle<k>``), in platoon order."""
+    vehicles = [n for n in names if n.startswith("vehicle") and n[len("vehicle"):].isdigit()]
+    return sorted(vehicles, key=lambda n: int(n[len("vehicle"):]))
 
 
 def channel_name(component: str) -> str:

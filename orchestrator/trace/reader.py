@@ -19,6 +19,7 @@ from .format import (
     FOOTER_LENGTH,
     TraceError,
     channel_kind,
+    vehicle_names,
 )
 
 
@@ -71,8 +72,7 @@ class Trace:
         return self.channels[name]
 
     def vehicles(self) -> list[str]:
-        names = [n for n in self.channels if n.startswith("vehicle") and n[len("vehicle"):].isdigit()]
-        return sorted(names, key=lambda n: int(n[len("vehicle"):]))
+        return vehicle_names(self.channels)
 
 
 def _flatten(record: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -125,24 +125,13 @@ def load(path: str | Path) -> Trace:
         error_rows: list[list[float]] = []
         error_keys: list[str] = []
         log: list[LogLine] = []
-        for _, channel, message in reader.iter_messages(topics=wanted, log_time_order=True):
-            kind = kinds[channel.id]
-            if kind in ("component", "live"):
-                name = channel.topic[len(CHANNEL_PREFIX):] if channel.topic.startswith(CHANNEL_PREFIX) else channel.topic
-                if kind == "live":
-                    name = LIVE_KEY + name
-                record = json.loads(message.data)
-                if name not in keys:
-                    keys[name] = list(record)
-                    rows[name] = []
-                rows[name].append([record[k] for k in keys[name]])
-            elif kind == "errors":
-                record = _flatten(json.loads(message.data))
-                if not error_keys:
-                    error_keys = list(record)
-                error_rows.append([record[k] for k in error_keys])
-            elif channel.topic == LOG_TOPIC:
-                log.append(decode_log(message.data))
+        try:
+            _read_messages(reader, wanted, kinds, rows, keys, error_rows, error_keys, log)
+        except TraceError:
+            raise
+        except Exception as error:  # a chunk fails its CRC, cannot be decompressed, or a record is damaged
+            raise TraceError(f"damaged MCAP file: a chunk does not check ({error}); recover every intact chunk "
+                             f"with `platoon trace recover {path}`") from None
         metadata = {item.name: dict(item.metadata) for item in reader.iter_metadata()}
     for cid, ch in summary.channels.items():  # a component with no message yet still appears, empty
         if kinds[cid] == "component":
@@ -155,6 +144,30 @@ def load(path: str | Path) -> Trace:
     live = {name[len(LIVE_KEY):]: _columns(keys[name], rows[name]) for name in rows if name.startswith(LIVE_KEY)}
     errors = _columns(error_keys, error_rows) if error_keys else {}
     return Trace(path, channels, metadata, errors, log, topics, live)
+
+
+def _read_messages(reader: Any, wanted: list[str], kinds: dict[int, str], rows: dict[str, list[list[float]]],
+                   keys: dict[str, list[str]], error_rows: list[list[float]], error_keys: list[str],
+                   log: list[LogLine]) -> None:
+    """Decode the wanted channels' messages in log-time order into the row and log lists."""
+    for _, channel, message in reader.iter_messages(topics=wanted, log_time_order=True):
+        kind = kinds[channel.id]
+        if kind in ("component", "live"):
+            name = channel.topic[len(CHANNEL_PREFIX):] if channel.topic.startswith(CHANNEL_PREFIX) else channel.topic
+            if kind == "live":
+                name = LIVE_KEY + name
+            record = json.loads(message.data)
+            if name not in keys:
+                keys[name] = list(record)
+                rows[name] = []
+            rows[name].append([record[k] for k in keys[name]])
+        elif kind == "errors":
+            record = _flatten(json.loads(message.data))
+            if not error_keys:
+                error_keys.extend(record)
+            error_rows.append([record[k] for k in error_keys])
+        elif channel.topic == LOG_TOPIC:
+            log.append(decode_log(message.data))
 
 
 LIVE_KEY = "\0live:"  # keeps live streams apart from components while reading (no topic holds a NUL)

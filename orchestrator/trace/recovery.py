@@ -1,120 +1,252 @@
-"""Recovering an unfinished trace (a killed run): keep every complete chunk, write a valid file."""
+"""Recovering a trace that is unfinished (a killed run) or damaged (a flipped bit, garbage in the middle).
+
+Every record is read in file order straight from the file, never the whole file at once: one pass
+finds the intact records (a chunk is intact when it decompresses and its CRC checks), one pass copies
+their messages into a new file. A damaged stretch is skipped: the reader looks for the next record
+that checks (a chunk by its CRC, a metadata record by its exact structure) and goes on from there,
+so one bad chunk loses only its own time range, which the result names. Memory holds one chunk at a
+time, whatever the size of the file (docs/trace-format.md, "Recovering").
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import io
+import json
+import struct
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import BinaryIO, Iterator
 
-from mcap.exceptions import McapError
-from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.data_stream import ReadDataStream
+from mcap.records import Channel, Chunk, Message, Metadata, Schema
+from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-from .format import (
-    CHUNK_SIZE,
-    TraceError,
-    channel_kind,
-)
+from .format import CHUNK_SIZE, MAGIC, TraceError, channel_kind
 
+_HEADER = struct.Struct("<BQ")  # a record's opcode and content length
+_CHUNK, _METADATA, _SCHEMA, _CHANNEL, _MESSAGE = 0x06, 0x0C, 0x03, 0x04, 0x05
+_DATA_END, _FOOTER = 0x0F, 0x02
+_KNOWN = set(range(0x01, 0x10))  # opcodes MCAP defines
+# how to find the start of the next intact record after a damaged stretch: a marker inside it, and
+# how far the record starts before the marker (our chunks are zstd; our metadata names are platoon.*)
+_CHUNK_MARKER, _CHUNK_BACK = b"\x04\x00\x00\x00zstd", 1 + 8 + 8 + 8 + 8 + 4  # opcode .. CRC, then "zstd"
+_METADATA_MARKER, _METADATA_BACK = b"platoon.", 1 + 8 + 4
+_SEARCH_BLOCK = 1 << 20
+_RECORD_LIMIT = 1 << 31  # a record claiming more than this is damage, not data
 
-# --- recovery --------------------------------------------------------------------------------------
 
 @dataclass(frozen=True)
 class Recovery:
     source: Path
     destination: Path
-    chunks: int  # complete chunks read
+    chunks: int  # intact chunks read
     messages: int  # messages written
-    dropped: int  # messages of complete chunks dropped past the last complete row
+    dropped: int  # messages of intact chunks dropped past the last complete row
     steps: int  # rows (communication points) recovered
     last_time: float | None
-    finished: bool  # the source had its footer (nothing was missing)
+    finished: bool  # the source had its footer (its end was reached)
+    # damaged stretches skipped, each as (after, before) in s of simulated time: the last intact
+    # message time before it and the first after it (None: nothing intact before / after it)
+    lost: list[tuple[float | None, float | None]] = field(default_factory=list)
+    damaged: int = 0  # damaged stretches skipped
+    cut: bool = False  # the file ends inside a record (the usual end of a killed run's file)
+
+
+@dataclass
+class _Scan:
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    channels: dict[int, Channel] = field(default_factory=dict)
+    metadata: list[Metadata] = field(default_factory=list)
+    chunks: list[int] = field(default_factory=list)  # offsets of intact chunks
+    last: dict[int, int] = field(default_factory=dict)  # per channel: latest log time
+    lost: list[tuple[int | None, int | None]] = field(default_factory=list)  # ns
+    damaged: int = 0
+    finished: bool = False
+    cut: bool = False  # the file ends inside a record (a killed run's last chunk)
+
+
+def _read_at(stream: BinaryIO, position: int, size: int) -> bytes:
+    stream.seek(position)
+    return stream.read(size)
+
+
+def _parse(stream: BinaryIO, position: int, size: int) -> tuple[int, int, object] | None:
+    """The record at ``position``: (opcode, end offset, parsed content or None); None if it does not check."""
+    head = _read_at(stream, position, _HEADER.size)
+    if len(head) < _HEADER.size:
+        return None
+    opcode, length = _HEADER.unpack(head)
+    end = position + _HEADER.size + length
+    if opcode not in _KNOWN or length > _RECORD_LIMIT or end > size:
+        return None
+    if opcode in (_DATA_END, _FOOTER):
+        return opcode, end, None
+    if opcode not in (_CHUNK, _METADATA, _SCHEMA, _CHANNEL, _MESSAGE):
+        return opcode, end, None  # indexes, statistics, attachments: rebuilt or not ours; skipped
+    body = stream.read(length)
+    data = ReadDataStream(io.BytesIO(body))
+    try:
+        if opcode == _CHUNK:
+            chunk = Chunk.read(data)
+            if data.count != length:
+                return None
+            return opcode, end, breakup_chunk(chunk, validate_crc=True)
+        record = {_METADATA: Metadata, _SCHEMA: Schema, _CHANNEL: Channel}.get(opcode)
+        parsed = Message.read(data, length) if record is None else record.read(data)
+        if data.count != length:
+            return None
+        return opcode, end, parsed
+    except Exception:  # bad lengths, bad UTF-8, a CRC mismatch, zstd errors: damage
+        return None
+
+
+def _resync(stream: BinaryIO, start: int, size: int) -> tuple[int, tuple[int, int, object]] | None:
+    """The first intact chunk or metadata record at or after ``start``, with where it starts."""
+    overlap = max(len(_CHUNK_MARKER), len(_METADATA_MARKER))
+    block_start = start
+    while block_start < size:
+        block = _read_at(stream, block_start, _SEARCH_BLOCK + overlap)
+        candidates = []
+        for marker, back in ((_CHUNK_MARKER, _CHUNK_BACK), (_METADATA_MARKER, _METADATA_BACK)):
+            found = block.find(marker)
+            while found >= 0:
+                candidates.append(block_start + found - back)
+                found = block.find(marker, found + 1)
+        for candidate in sorted(set(candidates)):
+            if candidate >= start:
+                parsed = _parse(stream, candidate, size)
+                if parsed is not None and parsed[0] in (_CHUNK, _METADATA):
+                    return candidate, parsed
+        block_start += _SEARCH_BLOCK
+    return None
+
+
+def _records(stream: BinaryIO, size: int, scan: _Scan) -> Iterator[tuple[int, int, object]]:
+    """Intact records in file order (position, opcode, content), skipping damage and noting it in ``scan``."""
+    position = len(MAGIC)
+    while position < size:
+        parsed = _parse(stream, position, size)
+        if parsed is None:
+            found = _resync(stream, position + 1, size)
+            if found is None:  # nothing intact follows: the file is cut short here
+                scan.cut = True
+                return
+            scan.damaged += 1
+            scan.lost.append((max(scan.last.values(), default=None), None))
+            position, parsed = found
+        opcode, end, content = parsed
+        if opcode in (_DATA_END, _FOOTER):
+            scan.finished = True
+            return
+        yield position, opcode, content
+        position = end
+
+
+def _scan(stream: BinaryIO, size: int) -> _Scan:
+    scan = _Scan()
+    for position, opcode, content in _records(stream, size, scan):
+        items = content if opcode == _CHUNK else [content]
+        if opcode == _CHUNK:
+            scan.chunks.append(position)
+        first: int | None = None
+        for item in items:
+            if isinstance(item, Schema):
+                scan.schemas[item.id] = item
+            elif isinstance(item, Channel):
+                scan.channels[item.id] = item
+            elif isinstance(item, Metadata):
+                scan.metadata.append(item)
+            elif isinstance(item, Message):
+                first = item.log_time if first is None else min(first, item.log_time)
+                scan.last[item.channel_id] = max(scan.last.get(item.channel_id, item.log_time), item.log_time)
+        if first is not None and scan.lost and scan.lost[-1][1] is None:
+            scan.lost[-1] = (scan.lost[-1][0], first)  # the damage ends where intact messages resume
+    return scan
+
+
+def _check_source(stream: BinaryIO, source: Path, size: int) -> None:
+    if size == 0:
+        raise TraceError(f"trace {source}: is empty (0 bytes), nothing to recover")
+    if _read_at(stream, 0, len(MAGIC)) != MAGIC:
+        raise TraceError(f"trace {source}: not an MCAP file (no MCAP magic at its start), nothing to recover")
 
 
 def recover(source: str | Path, destination: str | Path) -> Recovery:
-    """Rewrite what an unfinished trace holds into a valid, indexed file.
+    """Rewrite what an unfinished or damaged trace holds into a valid, indexed file at ``destination``.
 
-    Reads records in file order with a non-seeking reader, keeps every chunk whose CRC checks and
-    stops at the first record that is cut short or damaged. The result is trimmed to the last
-    communication point that every component channel reached (a chunk may end inside a row), so all
-    channels end at the same time. Metadata records are kept; if the run's ``platoon.run`` record
-    is missing (the process was killed), one with status ``recovered`` is added.
+    Keeps every intact chunk, skipping damaged stretches (``Recovery.lost`` names the simulated time
+    they held). The result is trimmed to the last communication point that every component channel
+    reached (a chunk may end inside a row), so all channels end at the same time. Metadata records
+    are kept; if the run's ``platoon.run`` record is missing (the process was killed), one with
+    status ``recovered`` is added, and ``platoon.recovery`` says what was lost. ``destination`` is
+    written as given (the command line writes it aside and renames it: trace/output.py). Raises
+    ``TraceError`` for an empty or non-MCAP source.
     """
     source, destination = Path(source), Path(destination)
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
-    messages: list[Message] = []
-    metadata: list[Metadata] = []
-    chunks = 0
-    finished = False
     with open(source, "rb") as stream:
-        reader = StreamReader(stream, emit_chunks=True, validate_crcs=False, record_size_limit=1 << 30)
-        try:
-            for record in reader.records:
-                if isinstance(record, Chunk):
-                    try:
-                        inner = breakup_chunk(record, validate_crc=True)
-                    except Exception:
-                        break
-                    chunks += 1
-                    records = inner
-                else:
-                    records = [record]
-                for item in records:
-                    if isinstance(item, Schema):
-                        schemas[item.id] = item
-                    elif isinstance(item, Channel):
-                        channels[item.id] = item
-                    elif isinstance(item, Message):
-                        messages.append(item)
-                    elif isinstance(item, Metadata):
-                        metadata.append(item)
-                if isinstance(record, (DataEnd, Footer)):
-                    finished = True
-                    break
-        except McapError as error:
-            if "magic" in str(error).lower() and chunks == 0 and not channels:
-                raise TraceError(f"{source}: not an MCAP file ({error})") from None
-        except Exception:  # cut short: EOF inside a record, a garbage length, ...
-            pass
-    components = {cid for cid, ch in channels.items() if channel_kind(ch, schemas.get(ch.schema_id)) == "component"}
-    last: dict[int, int] = {}
-    for message in messages:
-        if message.channel_id in components:
-            last[message.channel_id] = max(last.get(message.channel_id, -1), message.log_time)
-    if components:
-        complete = min(last.get(cid, -1) for cid in components)  # -1: some component has no message
-        kept = [m for m in messages if m.log_time <= complete]
-    else:
-        complete, kept = None, messages
-    dropped = len(messages) - len(kept)
-    destination.parent.mkdir(parents=True, exist_ok=True)
-    with open(destination, "wb") as stream:
-        writer = Writer(stream, compression=CompressionType.ZSTD, chunk_size=CHUNK_SIZE)
-        writer.start(profile="", library="platoon-cosim (recovered)")
-        schema_ids = {sid: writer.register_schema(s.name, s.encoding, s.data) for sid, s in sorted(schemas.items())}
-        channel_ids = {
-            cid: writer.register_channel(c.topic, c.message_encoding, schema_ids.get(c.schema_id, 0), dict(c.metadata))
-            for cid, c in sorted(channels.items())
-        }
-        kept.sort(key=lambda m: m.log_time)  # stable: file order within one time
-        for m in kept:
-            writer.add_message(channel_ids[m.channel_id], m.log_time, m.data, m.publish_time, m.sequence)
-        names = {item.name for item in metadata}
-        for item in metadata:
-            writer.add_metadata(item.name, dict(item.metadata))
-        first = min(components) if components else None
-        steps = sum(1 for m in kept if m.channel_id == first)
-        last_time = complete * 1e-9 if complete is not None and complete >= 0 else None
-        if "platoon.run" not in names:
-            start = next((dict(item.metadata) for item in metadata if item.name == "platoon.start"), {})
-            writer.add_metadata("platoon.run", {
-                "status": "recovered",
-                "error": f"the run ended without finalizing its trace (killed?); recovered from {source.name}",
-                "engine": start.get("engine", ""),
-                "master": start.get("master", ""),
-                "steps_recorded": str(steps),
-                "last_time": "" if last_time is None else repr(last_time),
+        size = source.stat().st_size
+        _check_source(stream, source, size)
+        scan = _scan(stream, size)
+        if not scan.channels and not scan.metadata:
+            raise TraceError(f"trace {source}: holds no intact MCAP record (no channel, no metadata), nothing to recover")
+        schemas, channels = scan.schemas, scan.channels
+        components = {cid for cid, ch in channels.items()
+                      if channel_kind(ch, schemas.get(ch.schema_id)) == "component"}
+        complete = min((scan.last.get(cid, -1) for cid in components), default=None)  # -1: a component never wrote
+        with open(destination, "wb") as out:
+            writer = Writer(out, compression=CompressionType.ZSTD, chunk_size=CHUNK_SIZE)
+            writer.start(profile="", library="platoon-cosim (recovered)")
+            schema_ids = {sid: writer.register_schema(s.name, s.encoding, s.data) for sid, s in sorted(schemas.items())}
+            channel_ids = {cid: writer.register_channel(c.topic, c.message_encoding, schema_ids.get(c.schema_id, 0),
+                                                        dict(c.metadata))
+                           for cid, c in sorted(channels.items())}
+            first = min(components) if components else None
+            kept = dropped = steps = 0
+            for position in scan.chunks:  # second pass: one chunk in memory at a time
+                parsed = _parse(stream, position, size)
+                assert parsed is not None  # it checked in the first pass
+                for item in parsed[2]:  # type: ignore[union-attr]
+                    if not isinstance(item, Message) or item.channel_id not in channel_ids:
+                        continue
+                    if complete is not None and item.log_time > complete:
+                        dropped += 1
+                        continue
+                    writer.add_message(channel_ids[item.channel_id], item.log_time, item.data, item.publish_time,
+                                       item.sequence)
+                    kept += 1
+                    steps += item.channel_id == first
+            names = {item.name for item in scan.metadata}
+            for item in scan.metadata:
+                if item.name != "platoon.recovery":
+                    writer.add_metadata(item.name, dict(item.metadata))
+            last_time = complete * 1e-9 if complete is not None and complete >= 0 else None
+            if "platoon.run" not in names:
+                start = next((dict(item.metadata) for item in scan.metadata if item.name == "platoon.start"), {})
+                writer.add_metadata("platoon.run", {
+                    "status": "recovered",
+                    "error": f"the run ended without finalizing its trace (killed?); recovered from {source.name}",
+                    "engine": start.get("engine", ""),
+                    "master": start.get("master", ""),
+                    "steps_recorded": str(steps),
+                    "last_time": "" if last_time is None else repr(last_time),
+                })
+            lost = [(None if a is None else a * 1e-9, None if b is None else b * 1e-9) for a, b in scan.lost]
+            writer.add_metadata("platoon.recovery", {
+                "source": source.name,
+                "finished": "true" if scan.finished else "false",
+                "chunks": str(len(scan.chunks)),
+                "damaged": str(scan.damaged),
+                "cut_short": "true" if scan.cut else "false",
+                "lost": json.dumps(lost),
             })
-        writer.finish()
-    return Recovery(source, destination, chunks, len(kept), dropped, steps, last_time, finished)
+            writer.finish()
+    return Recovery(source, destination, len(scan.chunks), kept, dropped, steps, last_time, scan.finished,
+                    lost, scan.damaged, scan.cut)
+
+
+def describe_lost(lost: list[tuple[float | None, float | None]]) -> str:
+    """``t = 10.2 .. 11.4 s`` per lost stretch ("the start" / "the end" for open sides), comma-separated."""
+    def side(value: float | None, open_text: str) -> str:
+        return open_text if value is None else f"{value:.6g}"
+    return ", ".join(f"t = {side(a, 'start')} .. {side(b, 'end')} s" for a, b in lost)

@@ -7,7 +7,9 @@ numpy, no config validation), so that it is ready while the stepping process sti
 
 Rows arrive as raw float64 bytes (``width`` values per row), already checked finite and decimated by
 the stepping process. If the inbox closes without "close" (the stepping process was killed), the
-worker writes every row it received, records the run as ``aborted`` and finalizes the file.
+worker writes every row it received, records the run as ``aborted`` and finalizes the file (and puts
+it in place, when its arguments name a ``publish`` path). A write failure (a full disk) is reported
+as one line, not a traceback.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import traceback  # noqa: E402
 from multiprocessing.connection import Connection  # noqa: E402
 from typing import Any  # noqa: E402
 
-from .writer import TraceWriter  # noqa: E402
+from .writer import TraceWriteError, TraceWriter  # noqa: E402
 
 ABORTED = "the stepping process ended without closing the trace (killed?); every point it handed over is kept"
 
@@ -49,6 +51,9 @@ def serve(inbox: Connection, outbox: Connection) -> None:
 
             foxglove = FoxgloveChannels(*foxglove)
         writer = TraceWriter(foxglove=foxglove, **arguments)
+    except TraceWriteError as error:  # a full disk, ...: one line says it all
+        outbox.send(("error", str(error)))
+        return
     except BaseException:
         outbox.send(("error", traceback.format_exc()))
         return
@@ -70,10 +75,12 @@ def serve(inbox: Connection, outbox: Connection) -> None:
                 return
             else:
                 raise ValueError(f"unexpected message {kind!r}")
-    except BaseException:
-        text = traceback.format_exc()
+    except BaseException as error:
+        text = str(error) if isinstance(error, TraceWriteError) else traceback.format_exc()
         try:
             writer.close()  # what was written stays readable
+        except OSError:
+            pass  # the file could not be finished (e.g. the disk is full): its complete chunks stay
         finally:
             try:
                 outbox.send(("error", text))

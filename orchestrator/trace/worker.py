@@ -22,7 +22,11 @@ Nothing is lost when things go wrong:
 * Ctrl-C reaches the whole process group; the worker ignores SIGINT and SIGTERM and finishes when
   the stepping process closes the trace (with the run's final status) after its own handling.
 * If the stepping process dies without closing (SIGKILL, a crash), the worker sees the pipe close,
-  writes every block it received, records the run as ``aborted`` and finalizes the file.
+  writes every block it received, records the run as ``aborted``, finalizes the file and puts it in
+  place (``publish``: the aside file is renamed onto the trace's path; the worker inherited the
+  path's lock, so no other run can take the path meanwhile).
+* A signal while the stepping process waits for the worker to finish (a second Ctrl-C) ends the
+  wait: the worker is killed, its file keeps its complete chunks. A stalled worker never holds a run.
 * If the worker dies, the stepping process raises ``TraceWorkerError`` at its next hand-over; the
   complete chunks on disk can be recovered with ``platoon trace recover``.
 """
@@ -73,11 +77,13 @@ class TraceProcess:
     """A trace writer process, started and waiting for its writer's arguments (``TraceWorker`` sends them).
 
     Created at the very start of a run, it lets the worker's start-up overlap everything
-    the stepping process does before its first step; ``close()`` ends an unused one.
+    the stepping process does before its first step; ``close()`` ends an unused one. ``keep_fds``:
+    descriptors the worker inherits and keeps open for its life, e.g. the trace's lock
+    (orchestrator/trace/output.py), so the path stays locked while the worker still writes.
     """
 
-    def __init__(self) -> None:
-        self.process, self.outbox, self.status = _start_worker()
+    def __init__(self, keep_fds: Sequence[int] = ()) -> None:
+        self.process, self.outbox, self.status = _start_worker(keep_fds)
         self.taken = False
 
     def close(self) -> None:
@@ -94,7 +100,7 @@ class TraceProcess:
         self.status.close()
 
 
-def _start_worker() -> tuple[subprocess.Popen[bytes], Connection, Connection]:
+def _start_worker(keep_fds: Sequence[int] = ()) -> tuple[subprocess.Popen[bytes], Connection, Connection]:
     """Start ``python -m orchestrator.trace.serve INBOX STATUS`` with two pipes: blocks in, status out."""
     inbox_read, inbox_write = os.pipe()
     status_read, status_write = os.pipe()
@@ -104,7 +110,7 @@ def _start_worker() -> tuple[subprocess.Popen[bytes], Connection, Connection]:
     environment = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
     try:
         process = subprocess.Popen([sys.executable, "-m", "orchestrator.trace.serve", str(inbox_read), str(status_write)],
-                                   pass_fds=(inbox_read, status_write), stdin=subprocess.DEVNULL, env=environment)
+                                   pass_fds=(inbox_read, status_write, *keep_fds), stdin=subprocess.DEVNULL, env=environment)
     except BaseException:
         for fd in (inbox_read, inbox_write, status_read, status_write):
             os.close(fd)
@@ -136,6 +142,7 @@ class TraceWorker:
         flush_interval: float = FLUSH_INTERVAL,
         chunk_size: int = CHUNK_SIZE,
         process: TraceProcess | None = None,
+        publish: Path | None = None,
     ) -> None:
         self.path = Path(path)
         self.components = [(name, list(outputs)) for name, outputs in components]
@@ -158,7 +165,8 @@ class TraceWorker:
         process.taken = True
         self._process, self._outbox, self._status = process.process, process.outbox, process.status
         self._send(("arguments", {"path": self.path, "components": self.components, "descriptions": descriptions,
-                                  "foxglove": foxglove, "flush_interval": flush_interval, "chunk_size": chunk_size}))
+                                  "foxglove": foxglove, "flush_interval": flush_interval, "chunk_size": chunk_size,
+                                  "publish": publish}))
 
     # --- what the worker says -------------------------------------------------------------------
 
@@ -170,8 +178,15 @@ class TraceWorker:
                 end.close()
             except OSError:
                 pass
-        self._failure = TraceWorkerError(f"the trace writer process failed; {self.path} holds its complete chunks "
-                                         f"(`platoon trace recover {self.path}` if it is unfinished):\n{text}")
+        lines = [line.strip() for line in text.strip().splitlines() if line.strip()] or ["no reason given"]
+        if len(lines) == 1:  # a reason the worker phrased itself (e.g. a full disk: it names the file)
+            summary = f"the trace writer process failed: {lines[0]}"
+            if "recover" not in lines[0]:
+                summary += f"; {self.path} holds its complete chunks (`platoon trace recover {self.path}`)"
+        else:  # a traceback: its last line is the exception
+            summary = (f"the trace writer process failed ({lines[-1]}); {self.path} holds its complete chunks "
+                       f"(`platoon trace recover {self.path}` if it is unfinished)")
+        self._failure = TraceWorkerError(f"{summary}\n{text}" if len(lines) > 1 else summary)
         return self._failure
 
     def _read_status(self) -> tuple[str, Any]:
@@ -254,13 +269,24 @@ class TraceWorker:
             self._send(("call", ("metadata", (name, values))))
 
     def close(self) -> None:
-        """Ship what is buffered, let the worker encode its backlog and finalize the file; raise if it failed."""
+        """Ship what is buffered, let the worker encode its backlog and finalize the file; raise if it failed.
+
+        A ``KeyboardInterrupt`` while waiting (the run's signal handler raises one for a signal that
+        arrives while the trace is being finalized) ends the wait: the worker is killed, its file keeps
+        every complete chunk (recoverable), and the interrupt propagates. A stalled worker never
+        holds a run hostage.
+        """
         if self._closed:
             return  # a failure was raised where it was found
         try:
-            self.flush()
-        finally:
-            self._finish()
+            try:
+                self.flush()
+            finally:
+                self._finish()
+        except KeyboardInterrupt:
+            self._process.kill()
+            self._fail("interrupted while the trace writer process was finishing the file; it was stopped")
+            raise
 
     def _finish(self) -> None:
         self._send(("close", None))

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import struct
 import time as clock
 from itertools import chain
@@ -270,8 +271,19 @@ class _Encoder:
         self._file.flush()
 
     def close(self) -> None:
-        self._writer.finish()
+        try:
+            self._writer.finish()
+        except OSError:
+            self.abandon()
+            raise
         self._file.close()
+
+    def abandon(self) -> None:
+        """Close the file without finishing it (after a write failure): no more bytes are written."""
+        try:
+            self._file.close()  # closes the descriptor even when flushing the buffered tail fails
+        except OSError:  # the tail could not be written either; the complete chunks stay
+            pass
 
 
 def non_finite_error(components: Sequence[tuple[str, Sequence[str]]], row: Sequence[float]) -> ComponentError:
@@ -285,6 +297,19 @@ def non_finite_error(components: Sequence[tuple[str, Sequence[str]]], row: Seque
     return ComponentError(components[0][0], time, "outputs overflow")
 
 
+class TraceWriteError(OSError):
+    """The trace file could not be written (disk full, file too large, I/O error): one line saying
+    what happened and where the complete chunks written so far are."""
+
+
+def _write_error(path: Path, error: OSError) -> TraceWriteError:
+    reason = error.strerror or str(error)
+    failure = TraceWriteError(f"cannot write the trace {path}: {reason}; the complete chunks written so far are kept "
+                              f"there (`platoon trace recover {path}`)")
+    failure.errno = error.errno  # str() stays the sentence above
+    return failure
+
+
 class TraceWriter:
     """Writes a run's trace in this process.
 
@@ -292,6 +317,10 @@ class TraceWriter:
     buffered and encoded in blocks), and ``write_block(rows)`` for blocks of flat rows a native loop
     already decimated. Either way a row holding a non-finite output is not written: the rows before it
     are, and ``ComponentError`` names the component, the output and the time.
+
+    ``publish``: the final path; ``path`` is then the aside file (orchestrator/trace/output.py), renamed
+    onto ``publish`` once ``close`` has finalized it. If writing fails (``OSError``: a full disk ...), the
+    writer raises ``TraceWriteError`` once, writes nothing more, and leaves the file where it is.
     """
 
     def __init__(
@@ -304,10 +333,16 @@ class TraceWriter:
         foxglove: "FoxgloveChannels | None" = None,
         flush_interval: float = FLUSH_INTERVAL,
         chunk_size: int = CHUNK_SIZE,
+        publish: Path | None = None,
     ) -> None:
         self.path = Path(path)
+        self.publish = None if publish is None else Path(publish)
         self.components = [(name, list(outputs)) for name, outputs in components]
-        self._encoder = _Encoder(self.path, self.components, descriptions, foxglove, flush_interval, chunk_size)
+        self._broken = False
+        try:
+            self._encoder = _Encoder(self.path, self.components, descriptions, foxglove, flush_interval, chunk_size)
+        except OSError as error:
+            raise _write_error(self.path, error) from None
         self.foxglove = foxglove
         self.every = every
         self.block = block
@@ -347,13 +382,24 @@ class TraceWriter:
         """Rows recorded so far, handed over or still buffered."""
         return self.recorded + len(self._rows)
 
+    def _guarded(self, action: Any, *args: Any) -> None:
+        """Run an encoder call; an OSError breaks the writer (nothing more is written) and is raised once."""
+        if self._broken:
+            return
+        try:
+            action(*args)
+        except OSError as error:
+            self._broken = True
+            raise _write_error(self.path, error) from None
+
     def _deliver(self, rows: list[list[float]]) -> None:
         if rows:
-            self._encoder.rows(rows)
-            self.recorded += len(rows)
-            self.last_time = rows[-1][0]
+            self._guarded(self._encoder.rows, rows)
+            if not self._broken:
+                self.recorded += len(rows)
+                self.last_time = rows[-1][0]
         else:
-            self._encoder.tick()
+            self._guarded(self._encoder.tick)
 
     def flush(self) -> None:
         """Hand the buffered rows to the encoder (up to the first non-finite one, which raises)."""
@@ -368,12 +414,12 @@ class TraceWriter:
     def log(self, time: float, level: str, message: str) -> None:
         """A line on ``/platoon/log`` (foxglove.Log) at simulation ``time``: Info, Warning or Error."""
         if self.foxglove is not None and not self._closed:
-            self._encoder.log(time, level, message)
+            self._guarded(self._encoder.log, time, level, message)
 
     def live(self, stream: str, time: float, fields: dict[str, float]) -> None:
         """A live link's raw message on ``/platoon/<stream>`` (e.g. ``vehicle3/pose``) at simulation ``time``;
         every message of a stream has the fields of its first (finite numbers; others are not written)."""
-        if self._closed:
+        if self._closed or self._broken:
             return
         entry = self._live.get(stream)
         if entry is None:
@@ -381,19 +427,32 @@ class TraceWriter:
         keys, channel = entry
         values = [fields.get(key, math.nan) for key in keys]
         if math.isfinite(sum(values)):
-            self._encoder.live_message(channel, time, values)
+            self._guarded(self._encoder.live_message, channel, time, values)
 
     def metadata(self, name: str, values: dict[str, Any]) -> None:
-        self._encoder.metadata(name, {k: v if isinstance(v, str) else json.dumps(v) for k, v in values.items()})
+        self._guarded(self._encoder.metadata, name,
+                      {k: v if isinstance(v, str) else json.dumps(v) for k, v in values.items()})
 
     def close(self) -> None:
+        """Finalize the file (footer, indexes) and put it in place (``publish``); on a write failure the
+        file stays where it is, unfinished, and ``TraceWriteError`` is raised (once)."""
         if self._closed:
             return
         self._closed = True
         try:
             self.flush()
         finally:
-            self._encoder.close()
+            if self._broken:
+                self._encoder.abandon()
+            else:
+                self._guarded(self._encoder.close)
+        if self._broken:
+            return
+        if self.publish is not None:
+            try:
+                os.replace(self.path, self.publish)
+            except OSError as error:
+                raise _write_error(self.path, error) from None
 
 
 class NullTraceWriter:

@@ -1,0 +1,77 @@
+"""libcosim running an SSP to its end, as a whole process: the baseline of ``platoon bench wholerun``.
+
+Run by path (``python .../libcosim_process.py SSD STEPS OBSERVER``), not with ``-m``: it imports the
+standard library and libcosimpy only, so its start-up is libcosim's own, as a user's script would be.
+
+OBSERVER says what libcosim records while stepping, so that the baseline does the same work as the
+run it is compared with:
+
+* ``none``: nothing (as an untraced run);
+* ``outputs``: a time-series observer on every output of every component, every step (the values a
+  traced ``platoon run`` records);
+* ``last-value``: libcosim's last-value observer, which reads every variable of every component
+  after each step (what the earlier benchmark attached, more work than an untraced run).
+
+Prints one ``RESULT {json}`` line (final x, y of every component) and leaves with ``os._exit``
+(pythonfmu FMUs live in this interpreter; see orchestrator/bench/child.py).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+
+OBSERVERS = ("none", "outputs", "last-value")
+
+
+def main(ssd: str, steps: int, observer: str) -> dict:
+    from libcosimpy.CosimEnums import CosimVariableCausality, CosimVariableType
+    from libcosimpy.CosimExecution import CosimExecution
+    from libcosimpy.CosimLogging import CosimLogLevel, log_output_level
+    from libcosimpy.CosimObserver import CosimObserver
+
+    log_output_level(CosimLogLevel.ERROR)
+    execution = CosimExecution.from_ssp_file(ssd)
+    slaves = {info.name.decode(): info.index for info in execution.slave_infos()}
+    variables = {name: execution.slave_variables(index) for name, index in slaves.items()}
+    if observer == "last-value":
+        watch = CosimObserver.create_last_value()
+        if not execution.add_observer(watch):
+            raise RuntimeError("libcosim: adding the last-value observer failed")
+    elif observer == "outputs":
+        series = CosimObserver.create_time_series(buffer_size=steps + 1)
+        if not execution.add_observer(series):
+            raise RuntimeError("libcosim: adding the time-series observer failed")
+        for name, index in slaves.items():
+            for variable in variables[name]:
+                if CosimVariableCausality(variable.causality) == CosimVariableCausality.OUTPUT:
+                    series.start_time_series(index, variable.reference, CosimVariableType(variable.type))
+    if not execution.step(steps):
+        raise RuntimeError("libcosim: stepping failed")
+    final = {}  # the final positions, where an observer recorded them (the no-observer run has none)
+    for name, index in slaves.items():
+        refs = {v.name.decode(): v.reference for v in variables[name]}
+        if observer == "last-value":
+            final[name] = list(watch.last_real_values(index, [refs["x"], refs["y"]]))
+        elif observer == "outputs":
+            final[name] = [series.time_series_real_samples(index, refs[key], steps, 1)[2][-1] for key in ("x", "y")]
+    return {"final": final, "time_ns": execution.status().current_time}
+
+
+if __name__ == "__main__":
+    arguments = sys.argv[1:]
+    code = 0
+    try:
+        if len(arguments) != 3 or arguments[2] not in OBSERVERS:
+            raise SystemExit(f"usage: libcosim_process.py SSD STEPS {'|'.join(OBSERVERS)}")
+        result = main(arguments[0], int(arguments[1]), arguments[2])
+        sys.stdout.write("RESULT " + json.dumps(result) + "\n")
+    except BaseException as error:  # report, then leave without interpreter teardown all the same
+        import traceback
+
+        traceback.print_exc()
+        code = 1
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)

@@ -1,0 +1,153 @@
+"""Suite ``wholerun``: what a whole ``platoon run`` costs against libcosim running the same system (issue 22).
+
+Every sample is a whole process timed from outside (``timed_process``: start-up, stepping, tracing,
+finalization, exit), on the paper platoon (configs/paper/platoon.toml, Jacobi) with N vehicles:
+
+* ``platoon``: ``platoon run CONFIG --set platoon.count=N --out TRACE``, the default a user runs:
+  progress bar off (not a terminal), every step traced, the summary table printed;
+* ``platoon-q``: ``platoon run ... -q --trace-every 100``;
+* ``libcosim``: libcosim (libcosimpy) from an SSP of the same system with ``numWorkerThreads=0``, no
+  observer: nothing recorded;
+* ``libcosim-outputs``: the same with a time-series observer on every output, every step: the values
+  a traced run records (the baseline that does the work of ``platoon``);
+* ``libcosim-last-value``: the same with libcosim's last-value observer, which reads every variable of
+  every component after each step; the baseline the earlier per-step benchmark used (docs/performance.md
+  says why that was not a fair reference).
+
+The SSP is written once, before timing (orchestrator/bench/libcosim.py). Variants run interleaved and
+rotated, ``rounds`` times; ratios are taken within a round (paired) and their median is reported.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+from fmus.build import DEFAULT_OUT
+
+from .common import PAPER_CONFIGS, RESULT, BenchError, BenchUsageError, Progress, interleaved, markdown_table
+from .scenarios import platoon_command, timed_process
+
+VARIANTS = ("platoon", "platoon-q", "libcosim", "libcosim-outputs", "libcosim-last-value")
+OBSERVER = {"libcosim": "none", "libcosim-outputs": "outputs", "libcosim-last-value": "last-value"}
+CONFIG = PAPER_CONFIGS / "platoon.toml"
+SPARSE_TRACE = 100  # platoon-q records every 100th communication point
+# the ratios the issue sets floors on: (name, numerator, denominator, floor)
+FLOORS = (
+    ("platoon / libcosim", "platoon", "libcosim", 1.15),
+    ("platoon-q / libcosim", "platoon-q", "libcosim", 1.05),
+)
+OTHER_RATIOS = (
+    ("platoon / libcosim-outputs", "platoon", "libcosim-outputs"),
+    ("libcosim-outputs / libcosim", "libcosim-outputs", "libcosim"),
+    ("libcosim-last-value / libcosim", "libcosim-last-value", "libcosim"),
+)
+
+
+def _overrides(n: int, steps: int, step: float) -> list[str]:
+    return [f"platoon.count={n}", f"simulation.stop_time={steps * step!r}"]
+
+
+def write_system(n: int, steps: int, folder: Path, fmu_dir: Path) -> Path:
+    """The SSD of the config's system with ``n`` vehicles and ``steps`` steps (libcosim, 0 worker threads):
+    the package of ``platoon export-ssp``, unpacked into ``folder`` (libcosim then loads the .ssd as it
+    did before the exporter existed, with no unzipping in the timed process)."""
+    import zipfile
+
+    from orchestrator.config import load_config
+    from orchestrator.scenario import build_scenario
+    from orchestrator.ssp import write_ssp
+
+    from .platoon import fmu_files
+
+    base, _ = load_config(CONFIG, [])
+    config, _ = load_config(CONFIG, _overrides(n, steps, base.simulation.step))
+    if config.simulation.master != "jacobi":
+        raise BenchError(f"{CONFIG}: master {config.simulation.master!r}; libcosim's fixed-step algorithm is Jacobi")
+    package = write_ssp(folder / "platoon.ssp", build_scenario(config), fmu_files(fmu_dir), worker_threads=0)
+    with zipfile.ZipFile(package) as archive:
+        archive.extractall(folder)
+    return folder / "SystemStructure.ssd"
+
+
+def measure(variant: str, n: int, steps: int, step: float, ssd: Path, scratch: Path) -> dict[str, Any]:
+    trace = scratch / "trace.mcap"
+    trace.unlink(missing_ok=True)
+    if variant.startswith("platoon"):
+        sets = [arg for override in _overrides(n, steps, step) for arg in ("--set", override)]
+        command = [*platoon_command(), "run", str(CONFIG), "--out", str(trace), *sets]
+        if variant == "platoon-q":
+            command += ["-q", "--trace-every", str(SPARSE_TRACE)]
+    else:
+        command = [sys.executable, str(Path(__file__).with_name("libcosim_process.py")), str(ssd), str(steps),
+                   OBSERVER[variant]]
+    wall, usage, stdout, stderr = timed_process(command, scratch)
+    if usage["exit"] != 0:
+        raise BenchError(f"{' '.join(command)} exited {usage['exit']}:\n{stdout[-2000:]}\n{stderr[-2000:]}")
+    if variant.startswith("platoon"):
+        if not trace.is_file() or (variant == "platoon") != ("max |path error|" in stdout):
+            raise BenchError(f"{' '.join(command)}: no trace, or the summary table {'missing' if variant == 'platoon' else 'printed'}")
+    else:
+        line = next((line for line in stdout.splitlines() if line.startswith(RESULT)), None)
+        if line is None or json.loads(line[len(RESULT):])["time_ns"] != round(steps * step * 1e9):
+            raise BenchError(f"{' '.join(command)}: libcosim did not reach the end:\n{stdout[-2000:]}")
+    return {"variant": variant, "n": n, "wall_s": wall, **usage}
+
+
+def run(ns: Sequence[int] = (16,), steps: int = 10_000, rounds: int = 5, variants: Sequence[str] = VARIANTS,
+        fmu_dir: Path = DEFAULT_OUT, progress: Progress | None = None) -> dict[str, Any]:
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        raise BenchUsageError(f"unknown variant(s) {', '.join(unknown)}; expected some of {', '.join(VARIANTS)}")
+    if not CONFIG.is_file():
+        raise BenchUsageError(f"{CONFIG} not found: run from the repository")
+    try:
+        import libcosimpy  # noqa: F401
+    except ImportError:
+        raise BenchUsageError("libcosimpy is not installed (pip install -e '.[test]')") from None
+    from orchestrator.config import load_config
+
+    step = load_config(CONFIG, [])[0].simulation.step
+    started = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="bench-wholerun-") as scratch:
+        systems = {n: write_system(n, steps, Path(scratch) / f"ssp-{n}", fmu_dir) for n in ns}
+        # one untimed run of each kind first: FMUs built and extracted, files in the page cache
+        warm = write_system(ns[0], 10, Path(scratch) / "warm", fmu_dir)
+        for variant in ("platoon", "libcosim"):
+            measure(variant, ns[0], 10, step, warm, Path(scratch))
+        samples = interleaved(rounds, list(ns), list(variants),
+                              lambda n, variant: measure(variant, n, steps, step, systems[n], Path(scratch)),
+                              lambda s: f"N={s['n']:<4} {s['variant']:<20} {s['wall_s']:7.2f} s  {s['max_rss_kib'] / 1024:6.0f} MiB",
+                              progress)
+    medians = {n: {v: {key: statistics.median(s[key] for s in samples if s["n"] == n and s["variant"] == v)
+                       for key in ("wall_s", "user_s", "sys_s", "max_rss_kib")}
+                   for v in variants} for n in ns}
+    ratios: dict[int, dict[str, float]] = {}
+    for n in ns:
+        by_round = {(s["round"], s["variant"]): s["wall_s"] for s in samples if s["n"] == n}
+        for name, top, bottom, *_ in (*FLOORS, *OTHER_RATIOS):
+            if top in variants and bottom in variants:
+                ratios.setdefault(n, {})[name] = statistics.median(by_round[r, top] / by_round[r, bottom] for r in range(rounds))
+    return {"config": str(CONFIG), "ns": list(ns), "steps": steps, "rounds": rounds, "variants": list(variants),
+            "cli": platoon_command(), "medians": medians, "ratios": ratios,
+            "floors": {name: floor for name, _, _, floor in FLOORS}, "samples": samples,
+            "seconds": time.perf_counter() - started}
+
+
+def markdown(result: dict[str, Any]) -> str:
+    variants = result["variants"]
+    rows = [[n, *(f"{result['medians'][n][v]['wall_s']:.2f} ({result['medians'][n][v]['max_rss_kib'] / 1024:.0f})"
+                  for v in variants)] for n in result["ns"]]
+    names = list(dict.fromkeys(k for r in result["ratios"].values() for k in r))
+    floors = result["floors"]
+    ratio_rows = [[n, *(f"{result['ratios'][n][k]:.2f}" + (" (floor %.2f)" % floors[k] if k in floors else "")
+                        for k in names)] for n in result["ns"]]
+    return (f"whole-process wall time in s (peak RSS in MiB), median of {result['rounds']} interleaved rounds, "
+            f"{result['steps']} steps\n\n" + markdown_table(["N", *variants], rows)
+            + "\n\nratios, median of the per-round ratios\n\n" + markdown_table(["N", *names], ratio_rows))

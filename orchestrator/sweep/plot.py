@@ -1,0 +1,125 @@
+"""``platoon sweep-plot``: a sweep's results as maps, |value| over two parameters, a panel per a third.
+
+The defaults draw the shipped campaign (configs/sweeps/offset_map.toml): the last vehicle's steady
+path offset against d*/R and platoon length, the regular law's panel beside the sine law's, on one
+logarithmic colour scale (the sine law's offsets are ~1e-9 m, the regular law's metres). Each cell
+says the signed value; a run that failed is marked so.
+
+The rows are those of DIR/results.csv; axes may name any config key, varied or not, read from each
+run's resolved config (DIR/results/<id>.json), or ``d_star/R`` (platoon.d_star / path.radius).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only; never needs a display
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.colors import LogNorm  # noqa: E402
+
+RATIO = "d_star/R"
+
+
+class PlotError(ValueError):
+    """The folder or the options cannot make a map; the message names which."""
+
+
+def _records(folder: Path) -> list[dict[str, Any]]:
+    table = folder / "results.csv"
+    try:
+        with open(table, newline="") as file:
+            ids = [row["id"] for row in csv.DictReader(file)]
+    except OSError:
+        raise PlotError(f"{folder}: no results.csv (not a platoon sweep --out folder, or no run finished yet)") from None
+    records = []
+    for identifier in ids:
+        try:
+            records.append(json.loads((folder / "results" / f"{identifier}.json").read_text()))
+        except (OSError, ValueError):
+            raise PlotError(f"{folder}: results.csv names run {identifier}, whose results/{identifier}.json is unreadable") from None
+    if not records:
+        raise PlotError(f"{folder}/results.csv: no finished run yet")
+    return records
+
+
+def _lookup(record: dict[str, Any], key: str) -> Any:
+    """``key`` for one run: its varied value, else its resolved config's, else None."""
+    if key in record["values"]:
+        return record["values"][key]
+    node: Any = record.get("config")
+    if node is None:
+        return None
+    if key == RATIO:
+        return node["platoon"]["d_star"] / node["path"]["radius"]
+    for part in key.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def _label(value: Any) -> str:
+    return f"{value:.3g}" if isinstance(value, float) else str(value)
+
+
+def draw_map(folder: Path, value: str, x: str, y: str, panel: str, png: Path) -> Path:
+    records = [r for r in _records(folder) if r["status"] != "invalid"]
+    columns = {name for r in records for name in r["metrics"]}
+    if value not in columns and any(r["status"] == "completed" for r in records):
+        raise PlotError(f"--value {value}: not a result column (e.g. {', '.join(sorted(columns)[:4])}, last.path_offset)")
+    cells: dict[tuple[Any, Any, Any], float] = {}
+    axes_options = {"--panel": panel, "--y": y, "--x": x}
+    for record in records:
+        where = tuple(_lookup(record, key) for key in axes_options.values())
+        for (option, key), found in zip(axes_options.items(), where):
+            if found is None:
+                raise PlotError(f"{option} {key}: no such config key in run {record['id']}")
+        if where in cells:
+            varied = ", ".join(record["values"])
+            raise PlotError(f"several runs fall on {panel}={where[0]}, {y}={where[1]}, {x}={_label(where[2])}: "
+                            f"choose --x, --y and --panel among the varied keys ({varied}) so that one run fills each cell")
+        metric = record["metrics"].get(value) if record["status"] == "completed" else None
+        cells[where] = float(metric) if metric is not None else math.nan
+    panels = list(dict.fromkeys(key[0] for key in cells))
+    ys = sorted({key[1] for key in cells})
+    xs = sorted({key[2] for key in cells})
+    magnitudes = [abs(v) for v in cells.values() if math.isfinite(v) and v != 0.0]
+    low, high = (min(magnitudes), max(magnitudes)) if magnitudes else (1e-12, 1.0)
+    norm = LogNorm(vmin=low, vmax=max(high, low * 10))
+
+    figure, axes = plt.subplots(1, len(panels), figsize=(0.8 + 0.85 * len(xs) * len(panels) + 1.2, 1.6 + 0.55 * len(ys)),
+                                dpi=120, squeeze=False, sharey=True, layout="constrained")
+    image = None
+    for axis, name in zip(axes[0], panels):
+        grid = np.full((len(ys), len(xs)), math.nan)
+        for (p, yv, xv), v in cells.items():
+            if p == name:
+                grid[ys.index(yv), xs.index(xv)] = v
+        shown = np.ma.masked_invalid(np.clip(np.abs(grid), norm.vmin, None))
+        image = axis.imshow(shown, norm=norm, cmap="viridis", origin="lower", aspect="auto")
+        for row in range(len(ys)):
+            for column in range(len(xs)):
+                v = grid[row, column]
+                missing = (name, ys[row], xs[column]) not in cells
+                text = "" if missing else ("failed" if math.isnan(v) else f"{v:.2g}")
+                bright = not math.isnan(v) and norm(max(abs(v), norm.vmin)) > 0.6
+                axis.text(column, row, text, ha="center", va="center", fontsize=7, color="black" if bright else "white")
+        axis.set_facecolor("0.35")
+        axis.set_xticks(range(len(xs)), [_label(v) for v in xs])
+        axis.set_yticks(range(len(ys)), [_label(v) for v in ys])
+        axis.set_xlabel("d*/R" if x == RATIO else x)
+        axis.set_title(f"{panel} = {name}")
+    axes[0][0].set_ylabel(y)
+    figure.suptitle(f"{value}: signed value in each cell, its magnitude in colour")
+    figure.colorbar(image, ax=axes[0].tolist(), label=f"|{value}|", shrink=0.9)
+    png.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(png)
+    plt.close(figure)
+    return png

@@ -1,0 +1,130 @@
+"""The live robot as an FMU: ``platoon export-ssp configs/hil/m3pi_live3.toml`` puts LiveVehicle.fmu in
+place of vehicle 3, and libcosim runs that package against a real ``platoon m3pi-emulator`` process on
+127.0.0.1.
+
+libcosim runs in a process of its own whose import machinery has had this project's packages taken
+away (``tests/ssp_libcosim.py --isolate``): the FMUs run on the code in their resources and on the
+Python environment's packages (zenoh) only.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bridge.protocol import decode_wheels
+from orchestrator.bench.hil import free_port
+from orchestrator.config import load_config
+from orchestrator.metrics import path_errors
+from tests.test_hil import KEYS, LIVE3, emulator, endpoint
+from tests.test_ssp import platoon
+
+pytest.importorskip("libcosimpy")
+
+RUNNER = Path(__file__).parent / "ssp_libcosim.py"
+REPO = Path(__file__).resolve().parents[1]
+
+
+def export_live(tmp_path: Path, port: int, stop_time: float, *sets: str) -> Path:
+    package = tmp_path / "live.ssp"
+    arguments = ["export-ssp", str(LIVE3), "--out", str(package), "--set", f"simulation.stop_time={stop_time}",
+                 "--set", f'vehicles.3.connect=["{endpoint(port)}"]']
+    for assignment in sets:
+        arguments += ["--set", assignment]
+    result = platoon(*arguments)
+    assert result.returncode == 0, result.stderr
+    assert "live robot: vehicle3 (LiveVehicle.fmu)" in result.stdout
+    return package
+
+
+def libcosim(package: Path, tmp_path: Path, *options: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, str(RUNNER), str(package), "--isolate", *options], cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def test_libcosim_runs_the_exported_live_platoon_and_the_live_vehicle_converges(tmp_path: Path) -> None:
+    """Every vehicle, the live one included, ends within 20 mm of the path over its last second (the
+    criterion of tests/test_hil.py; the all-FMU run converges by about 15 s)."""
+    port = free_port()
+    package = export_live(tmp_path, port, 20.0)
+    with emulator(port, tmp_path) as (_, log):
+        started = time.monotonic()
+        run = libcosim(package, tmp_path, "--tail", "100")
+        out, _ = run.communicate(timeout=120)
+        elapsed = time.monotonic() - started
+        time.sleep(0.3)
+        robot_side = log.read_text()
+    assert run.returncode == 0, out
+    assert "steps completed" in out and "end 20.0" in out, out
+    assert elapsed >= 20.0, f"20 s of simulated time took {elapsed:.1f} s of wall time: not paced"  # a lower bound
+    modules = dict(line.split()[1:] for line in out.splitlines() if line.startswith("module "))
+    assert set(modules) == {"fmus", "bridge", "orchestrator"}
+    assert all("/resources/" in path and not path.startswith(str(REPO)) for path in modules.values()), modules
+    assert "robot 3: configured -> running" in robot_side and "running -> stopped (stop command)" in robot_side
+    config, _ = load_config(LIVE3)
+    samples = [line.split()[1:] for line in out.splitlines() if line.startswith("sample ")]
+    times = sorted({round(float(t) * 100) for _, t, _, _ in samples})  # in steps of 0.01 s
+    assert times == list(range(1901, 2001))
+    errors = {}
+    for vehicle in (f"vehicle{k}" for k in range(1, 7)):
+        x = np.array([float(s[2]) for s in samples if s[0] == vehicle])
+        y = np.array([float(s[3]) for s in samples if s[0] == vehicle])
+        assert len(x) == 100
+        errors[vehicle] = float(np.abs(path_errors(config, x, y)).max())
+    print(f"\n[live FMU in libcosim] {elapsed:.1f} s wall for 20 s; largest path error over the last second: "
+          + ", ".join(f"{name} {error * 1e3:.2f} mm" for name, error in errors.items()))
+    for vehicle, error in errors.items():
+        assert error < 0.020, f"{vehicle}: {error * 1e3:.1f} mm off the path over the last second"
+
+
+def test_a_lost_robot_fails_the_step_with_its_reason_after_a_stop_command(tmp_path: Path) -> None:
+    """The emulator frozen (SIGSTOP) mid-run: after pose_timeout the FMU's doStep returns fmi2Error with
+    the reason in its log (libcosim prints it and stops), and its last wheel commands are stops,
+    seen by a third Zenoh session that listens to the FMU."""
+    from bridge.session import open_session, zenoh_config
+
+    port, host_port = free_port(), free_port()
+    package = export_live(tmp_path, port, 60.0, f'vehicles.3.listen=["{endpoint(host_port)}"]')
+    commands = []
+    with emulator(port, tmp_path) as (robot, log):
+        run = libcosim(package, tmp_path)
+        try:
+            deadline = time.monotonic() + 60
+            while "configured -> running" not in log.read_text():
+                assert run.poll() is None, run.communicate()[0]
+                assert time.monotonic() < deadline, "the live FMU never commanded the robot"
+                time.sleep(0.05)
+            with open_session(zenoh_config(connect=[endpoint(host_port)]), "test") as session:
+                subscriber = session.declare_subscriber(
+                    KEYS.wheels, lambda sample: commands.append(decode_wheels(sample.payload.to_bytes())))
+                time.sleep(1.0)
+                os.kill(robot.pid, signal.SIGSTOP)
+                out, _ = run.communicate(timeout=30)
+                time.sleep(0.2)
+                subscriber.undeclare()
+        finally:
+            if run.poll() is None:
+                run.kill()
+                run.communicate()
+    assert run.returncode == 1 and "steps failed" in out, out
+    assert "robot 3 (platoon/m3pi/3) lost: no valid pose for" in out, out
+    assert "[FMI status=error" in out and "vehicle3 failed at t = " in out, out
+    assert len(commands) > 50, len(commands)  # the run's commands reached the third session
+    last = max(commands, key=lambda command: command.seq)
+    assert (last.left, last.right) == (0.0, 0.0)
+    assert sum(1 for c in commands if (c.left, c.right) == (0.0, 0.0)) >= 3  # the stop is sent 3 times
+
+
+def test_no_robot_fails_the_first_step_with_a_reason_that_names_the_keys(tmp_path: Path) -> None:
+    package = export_live(tmp_path, free_port(), 5.0, "hil.connect_timeout=1.0")
+    out, _ = libcosim(package, tmp_path).communicate(timeout=120)
+    assert "steps failed" in out and "end 0.0" in out, out
+    assert ("vehicle3 failed at t = 0 s: robot 3 (platoon/m3pi/3) did not appear within 1 s: no liveliness token "
+            "on platoon/m3pi/3/alive") in out, out

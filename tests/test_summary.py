@@ -1,0 +1,68 @@
+"""`platoon run` prints its summary from the rows it recorded, without reading its trace again, and
+the numbers are those `platoon report` computes from the trace.
+
+Both sides sum the same float64 deviations, in blocks of different sizes: the order of the additions
+differs, so they agree to rounding (n * eps relative, n ~ 10^3 rows: 1e-12 is a safe bound), not bit
+for bit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import astuple
+
+import pytest
+from typer.testing import CliRunner
+
+import orchestrator.trace
+from orchestrator.cli import app
+from orchestrator.config import load_config
+from orchestrator.metrics import summarize
+from orchestrator.run import run_scenario
+from orchestrator.trace import load
+from tests.conftest import REPO, SPEED_TO_ZERO
+
+PLATOON = REPO / "configs" / "paper" / "platoon.toml"
+LATERAL = REPO / "configs" / "paper" / "platoon_front_lateral.toml"
+
+
+def _agree(ours, theirs) -> None:
+    assert [s.name for s in ours] == [s.name for s in theirs]
+    for a, b in zip(ours, theirs):
+        assert astuple(a)[1:] == pytest.approx(astuple(b)[1:], rel=1e-12, abs=1e-15), (a, b)
+
+
+@pytest.mark.parametrize("engine", ["native", "python"])
+@pytest.mark.parametrize("every", [1, 7])  # 7 does not divide the 2000 steps: the window's end moves
+@pytest.mark.parametrize("config_path", [PLATOON, LATERAL], ids=["platoon", "front_lateral"])
+def test_run_summary_equals_the_report_of_its_trace(tmp_path, fmu_dir, engine, every, config_path):
+    config, text = load_config(config_path, ["simulation.stop_time=40.0", f"simulation.trace_every={every}"])
+    out = tmp_path / "run.mcap"
+    result = run_scenario(config, text, out, engine=engine, fmu_dir=fmu_dir, summarize=True)
+    assert result.status == "completed"
+    assert result.summary is not None
+    _agree(result.summary, summarize(load(out), config))
+
+
+def test_a_run_that_stops_early_has_no_running_summary(tmp_path, fmu_dir):
+    """Its steady window is not the planned one (the CLI prints no table for a failed run anyway)."""
+    failing = tmp_path / "failing.toml"
+    failing.write_text(PLATOON.read_text() + SPEED_TO_ZERO)
+    config, text = load_config(failing, ["simulation.stop_time=5.0"])
+    result = run_scenario(config, text, tmp_path / "run.mcap", fmu_dir=fmu_dir, summarize=True)
+    assert result.status == "failed"
+    assert result.summary is None
+
+
+def test_platoon_run_prints_its_table_without_reading_the_trace(tmp_path, fmu_dir, monkeypatch):
+    def no_reading(path):
+        raise AssertionError(f"the trace {path} was read again")
+
+    monkeypatch.setattr(orchestrator.trace, "load", no_reading)
+    out = tmp_path / "run.mcap"
+    result = CliRunner().invoke(app, ["run", str(PLATOON), "--set", "simulation.stop_time=20.0", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "vehicle4" in result.output and "max |path error|" in result.output
+    monkeypatch.undo()
+    config, _ = load_config(PLATOON, ["simulation.stop_time=20.0"])
+    last = summarize(load(out), config)[-1]
+    assert f"{last.path_offset:+.3e}" in result.output

@@ -1,0 +1,328 @@
+"""``platoon sweep`` and ``platoon sweep-plot`` end to end (issue 20), as real subprocesses.
+
+What a user relies on: every point of the sweep gets exactly one row in results.csv, whatever stopped
+the sweep before (SIGKILL included), and a restart redoes nothing finished; a failing or rejected run
+is recorded with its error while the others go on; the row's per-vehicle columns are what
+``platoon report --json`` says of the run's trace; a Dask cluster gives the same rows as local workers.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from orchestrator.metrics import report_json, summarize
+from orchestrator.sweep.worker import flatten_report
+from orchestrator.trace import load
+from tests.conftest import SPEED_TO_ZERO
+from tests.test_cli import error_line
+
+REPO = Path(__file__).resolve().parents[1]
+PLATOON = Path(sys.executable).parent / "platoon"
+PAPER = REPO / "configs" / "paper" / "platoon.toml"
+POLL = 0.05  # s between looks at a running sweep's folder (synchronization only, nothing timed is asserted)
+
+
+def platoon(*args: object, cwd: Path = REPO, timeout: float = 300) -> subprocess.CompletedProcess[str]:
+    """The console script on this tree's code (PYTHONPATH: the worktree, not another editable install)."""
+    return subprocess.run([str(PLATOON), *map(str, args)], cwd=cwd, env=_env(), capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def _env() -> dict[str, str]:
+    env = {**os.environ, "COLUMNS": "200", "NO_COLOR": "1", "TERM": "dumb", "PYTHONPATH": str(REPO)}
+    env.pop("FORCE_COLOR", None)
+    return env
+
+
+def sweep_file(folder: Path, text: str, base: Path = PAPER, name: str = "sweep.toml") -> Path:
+    path = folder / name
+    path.write_text(f'base = "{base}"\n{text}')
+    return path
+
+
+def rows(out: Path) -> list[dict[str, str]]:
+    with open(out / "results.csv", newline="") as file:
+        return list(csv.DictReader(file))
+
+
+def report_of(out: Path, row: dict[str, str]) -> dict[str, float]:
+    """What ``platoon report --json`` says of the row's trace, flattened as the row's columns."""
+    trace = load(out / row["trace"])
+    from orchestrator.config import config_from_mapping
+
+    return flatten_report(report_json(summarize(trace, config_from_mapping(trace.config))))
+
+
+def assert_row_is_its_report(out: Path, row: dict[str, str]) -> None:
+    """The row's summary is accumulated while the run records (as ``platoon run`` prints it), the report's
+    from the trace read back: the same sums in blocks of other sizes, so equal to rounding (1e-12
+    relative, as tests/test_summary.py argues), not bit for bit."""
+    expected = report_of(out, row)
+    assert {k for k in row if k.startswith(("vehicle", "last.")) and row[k]} == set(expected)
+    for key, value in expected.items():
+        if math.isnan(value):  # path_error_max: no disturbance started within the run
+            assert math.isnan(float(row[key])), key
+        else:
+            assert float(row[key]) == pytest.approx(value, rel=1e-12, abs=1e-15), key
+
+
+# --- bad sweep files: exit 2, one line naming the file and the key ----------------------------------
+
+BAD_SWEEPS = {
+    "unknown-table": ('[grids]\n"platoon.count" = [1]\n', ["grids", "unknown key"]),
+    "not-a-list": ('[grid]\n"platoon.count" = 4\n', ["grid 'platoon.count'", "list"]),
+    "listed-twice": ('[grid]\n"platoon.count" = [2, 2]\n', ["'platoon.count'", "2 is listed twice"]),
+    "unknown-config-key": ('[grid]\n"platoon.colour" = ["red"]\n', ["platoon.colour", "unknown key"]),
+    "bad-range": ('[random]\nsamples = 2\nranges = { "platoon.k_v" = [2.0, 1.0] }\n', ["'platoon.k_v'", "low <= high"]),
+    "nothing-varies": ('[set]\n"platoon.count" = 2\n', ["nothing varies"]),
+    "both-set-and-grid": ('[set]\n"platoon.count" = 2\n[grid]\n"platoon.count" = [1, 2]\n', ["'platoon.count'", "both"]),
+}
+
+
+@pytest.mark.parametrize("text, pieces", BAD_SWEEPS.values(), ids=BAD_SWEEPS.keys())
+def test_a_bad_sweep_file_exits_2_naming_file_and_key(tmp_path: Path, text: str, pieces: list[str]) -> None:
+    path = sweep_file(tmp_path, text)
+    result = platoon("sweep", path, "--out", tmp_path / "out")
+    assert result.returncode == 2, result.stderr
+    line = error_line(result)
+    assert str(path) in line
+    for piece in pieces:
+        assert piece in line, line
+
+
+def test_a_missing_base_exits_2(tmp_path: Path) -> None:
+    path = sweep_file(tmp_path, '[grid]\n"platoon.count" = [1]\n', base=tmp_path / "nowhere.toml")
+    result = platoon("sweep", path, "--out", tmp_path / "out")
+    assert result.returncode == 2
+    assert "nowhere.toml" in error_line(result) and "no such file" in error_line(result)
+
+
+# --- failures are recorded, the sweep goes on ------------------------------------------------------
+
+def test_failed_and_rejected_runs_are_recorded_and_the_others_run(tmp_path: Path, fmu_dir: Path) -> None:
+    # A -100 m/s pulse on vehicle 4 from t = 1 s: a run that stops before it completes, one that goes past
+    # it fails (speed below zero); d* = 120 m > 2R is rejected by the config and never runs.
+    base = tmp_path / "base.toml"
+    base.write_text(PAPER.read_text() + SPEED_TO_ZERO)
+    path = sweep_file(tmp_path, '[grid]\n"simulation.stop_time" = [0.5, 2.0]\n"platoon.d_star" = [75.0, 120.0]\n', base=base)
+    out = tmp_path / "out"
+    result = platoon("sweep", path, "--out", out, "--workers", "2")
+    assert result.returncode == 1, result.stderr
+    assert "3 of 4 runs failed or were rejected" in result.stderr
+    by_point = {(r["simulation.stop_time"], r["platoon.d_star"]): r for r in rows(out)}
+    assert len(by_point) == 4
+    completed = by_point[("0.5", "75.0")]
+    assert completed["status"] == "completed" and completed["error"] == "" and float(completed["wall_time"]) > 0
+    assert_row_is_its_report(out, completed)
+    assert completed["last.path_offset"] == completed["vehicle4.path_offset"]
+    failed = by_point[("2.0", "75.0")]
+    assert failed["status"] == "failed" and "vehicle4 failed at t = 1" in failed["error"] and "speed" in failed["error"]
+    assert load(out / failed["trace"]).run["status"] == "failed"  # its trace is kept, up to the failure
+    assert failed["last.path_offset"] == ""
+    for stop in ("0.5", "2.0"):
+        rejected = by_point[(stop, "120.0")]
+        assert rejected["status"] == "invalid" and "platoon.d_star = 120.0" in rejected["error"] and rejected["trace"] == ""
+
+    # started again: everything is done, nothing is redone (the result files stay as they were)
+    before = {p.name: p.read_bytes() for p in (out / "results").iterdir()}
+    again = platoon("sweep", path, "--out", out)
+    assert again.returncode == 1 and "4 done before, 0 to run" in again.stderr
+    assert {p.name: p.read_bytes() for p in (out / "results").iterdir()} == before
+    assert len(rows(out)) == 4
+
+    # --retry-failed: the three runs not completed run again (and fail again), the completed one stays
+    retried = platoon("sweep", path, "--out", out, "--retry-failed")
+    assert retried.returncode == 1 and "1 done before, 3 to run" in retried.stderr
+    assert (out / "results" / f"{completed['id']}.json").read_bytes() == before[f"{completed['id']}.json"]
+    assert [(r["id"], r["status"]) for r in rows(out)] == [(r["id"], r["status"]) for r in by_point.values()]
+
+
+# --- SIGKILL mid-way, then resume -------------------------------------------------------------------
+
+def _children(pid: int) -> list[int]:
+    """Processes whose parent is ``pid`` (Linux /proc)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                found.append(int(entry.name))
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_a_sweep_killed_with_sigkill_resumes_with_every_row_exactly_once(tmp_path: Path, fmu_dir: Path) -> None:
+    k_v = [round(0.4 + 0.1 * i, 2) for i in range(8)]
+    path = sweep_file(tmp_path, '[set]\n"simulation.stop_time" = 30.0\n[grid]\n'
+                                f'"platoon.k_v" = [{", ".join(map(str, k_v))}]\n')
+    out = tmp_path / "out"
+    command = [str(PLATOON), "sweep", str(path), "--out", str(out), "--workers", "2"]
+    sweep = subprocess.Popen(command, cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        runs_under_way: list[int] = []
+        deadline = time.monotonic() + 240
+        while len(list((out / "results").glob("*.json"))) < 2:  # two runs committed, others under way
+            runs_under_way = [p for p in _children(sweep.pid) if _alive(p)] or runs_under_way
+            assert sweep.poll() is None, sweep.communicate()
+            assert time.monotonic() < deadline, "the sweep committed no run in 240 s"
+            time.sleep(POLL)
+        runs_under_way = [p for p in _children(sweep.pid) if _alive(p)] or runs_under_way
+        sweep.kill()
+    finally:
+        if sweep.poll() is None:
+            sweep.kill()
+        sweep.communicate()
+    assert sweep.returncode == -signal.SIGKILL
+    done_before = {p.name: p.read_bytes() for p in (out / "results").glob("*.json")}
+    assert 2 <= len(done_before) < len(k_v), "the sweep finished before the kill: nothing was tested"
+    assert runs_under_way, "no run process was seen under the sweep"
+
+    result = platoon("sweep", path, "--out", out, "--workers", "2")
+    assert result.returncode == 0, result.stderr
+    assert f"{len(done_before)} done before, {len(k_v) - len(done_before)} to run" in result.stderr
+    table = rows(out)
+    assert sorted(float(r["platoon.k_v"]) for r in table) == k_v  # every point, exactly once
+    assert len({r["id"] for r in table}) == len(k_v)
+    assert all(r["status"] == "completed" for r in table)
+    for name, content in done_before.items():  # finished before the kill: not redone
+        assert (out / "results" / name).read_bytes() == content
+    assert not list((out / "traces").glob("*.part"))
+    assert sorted(p.name for p in (out / "traces").iterdir()) == sorted(f"{r['id']}.mcap" for r in table)
+    for row in table:
+        assert_row_is_its_report(out, row)
+
+
+def test_the_runs_die_with_a_killed_sweep(tmp_path: Path, fmu_dir: Path) -> None:
+    # runs of 10^5 simulated seconds (an hour or more here): alive after the kill only if they outlive their sweep
+    path = sweep_file(tmp_path, '[grid]\n"simulation.stop_time" = [100000.0]\n"platoon.k_v" = [0.5, 0.6]\n')
+    sweep = subprocess.Popen([str(PLATOON), "sweep", str(path), "--out", str(tmp_path / "out"), "--workers", "2"],
+                             cwd=REPO, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    runs: list[int] = []
+    try:
+        deadline = time.monotonic() + 120
+        while True:
+            runs = [p for p in _children(sweep.pid) if _alive(p)]
+            # *.part.partial: run_scenario writes aside until it finalizes (docs/trace-format.md)
+            if len(runs) == 2 and len(list((tmp_path / "out" / "traces").glob("*.part*"))) == 2:
+                break  # both runs are writing their traces
+            assert sweep.poll() is None and time.monotonic() < deadline, "the sweep did not start its two runs"
+            time.sleep(POLL)
+        sweep.kill()
+        sweep.wait()
+        deadline = time.monotonic() + 30
+        while any(_alive(p) for p in runs) and time.monotonic() < deadline:
+            time.sleep(POLL)
+        assert not any(_alive(p) for p in runs), "run processes outlived the killed sweep"
+    finally:
+        if sweep.poll() is None:
+            sweep.kill()
+        for pid in runs:  # only if the test failed: the orphans it found, by their pid
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
+# --- random samples ---------------------------------------------------------------------------------
+
+def test_random_samples_are_reproducible_and_more_samples_keep_the_first(tmp_path: Path, fmu_dir: Path) -> None:
+    sweep = '[set]\n"simulation.stop_time" = 0.5\n[grid]\n"platoon.law" = ["sine", "regular"]\n[random]\nseed = 7\n'
+    ranges = 'ranges = { "platoon.k_v" = [0.3, 1.0], "platoon.count" = [2, 3] }\n'
+    path = sweep_file(tmp_path, sweep + "samples = 2\n" + ranges)
+    out = tmp_path / "out"
+    assert platoon("sweep", path, "--out", out).returncode == 0
+    first = rows(out)
+    assert [(r["platoon.law"], r["sample"]) for r in first] == [("sine", "0"), ("sine", "1"), ("regular", "0"), ("regular", "1")]
+    for row in first:
+        assert 0.3 <= float(row["platoon.k_v"]) <= 1.0 and row["platoon.count"] in ("2", "3")
+        assert row[f"vehicle{row['platoon.count']}.path_offset"] == row["last.path_offset"]
+    samples = {r["sample"]: (r["platoon.k_v"], r["platoon.count"]) for r in first if r["platoon.law"] == "sine"}
+    assert samples == {r["sample"]: (r["platoon.k_v"], r["platoon.count"]) for r in first if r["platoon.law"] == "regular"}
+
+    path.write_text(path.read_text().replace("samples = 2", "samples = 3"))
+    result = platoon("sweep", path, "--out", out)
+    assert result.returncode == 0 and "4 done before, 2 to run" in result.stderr
+    assert [r for r in rows(out) if r["sample"] != "2"] == first
+
+
+# --- Dask -------------------------------------------------------------------------------------------
+
+def test_a_dask_local_cluster_gives_the_rows_of_local_workers(tmp_path: Path, fmu_dir: Path) -> None:
+    distributed = pytest.importorskip("distributed")
+    path = sweep_file(tmp_path, '[set]\n"simulation.stop_time" = 5.0\n[grid]\n"platoon.law" = ["sine", "regular"]\n'
+                                '"platoon.count" = [1, 3]\n"platoon.d_star" = [50.0, 150.0]\n')
+    local = platoon("sweep", path, "--out", tmp_path / "local", "--workers", "2")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as cluster:
+        remote = platoon("sweep", path, "--out", tmp_path / "dask", "--scheduler", cluster.scheduler_address)
+    assert local.returncode == remote.returncode == 1, (local.stderr, remote.stderr)  # d* = 150 m is rejected
+    local_rows, dask_rows = rows(tmp_path / "local"), rows(tmp_path / "dask")
+    assert [r["status"] for r in dask_rows].count("completed") == 4
+    strip = lambda table: [{k: v for k, v in r.items() if k != "wall_time"} for r in table]  # noqa: E731
+    assert strip(dask_rows) == strip(local_rows)  # same metric values, to the last digit
+    for row in dask_rows:
+        if row["status"] == "completed":
+            assert float(row["wall_time"]) > 0
+            assert_row_is_its_report(tmp_path / "dask", row)  # the trace came back whole from the worker
+
+
+def test_parquet_holds_the_rows_of_the_csv(tmp_path: Path, fmu_dir: Path) -> None:
+    parquet = pytest.importorskip("pyarrow.parquet")
+    path = sweep_file(tmp_path, '[set]\n"simulation.stop_time" = 0.5\n[grid]\n"platoon.count" = [1, 2]\n')
+    out = tmp_path / "out"
+    assert platoon("sweep", path, "--out", out).returncode == 0
+    table = parquet.read_table(out / "results.parquet").to_pylist()
+    csv_rows = rows(out)
+    assert [r["id"] for r in table] == [r["id"] for r in csv_rows]
+    assert [r["last.gap"] for r in table] == [float(r["last.gap"]) for r in csv_rows]
+    assert table[0]["vehicle2.gap"] is None and math.isfinite(table[1]["vehicle2.gap"])
+
+
+# --- the map ----------------------------------------------------------------------------------------
+
+def test_sweep_plot_draws_the_map_and_names_a_bad_column(tmp_path: Path, fmu_dir: Path) -> None:
+    path = sweep_file(tmp_path, '[set]\n"simulation.stop_time" = 2.0\n[grid]\n"platoon.law" = ["regular", "sine"]\n'
+                                '"platoon.count" = [1, 2]\n"platoon.d_star" = [25.0, 75.0]\n')
+    out = tmp_path / "out"
+    assert platoon("sweep", path, "--out", out).returncode == 0
+    result = platoon("sweep-plot", out)
+    assert result.returncode == 0, result.stderr
+    png = out / "map.png"
+    assert f"wrote {png}" in result.stdout.replace("\n", "")
+    import matplotlib.image
+
+    image = matplotlib.image.imread(png)
+    assert image.shape[0] > 200 and image.shape[1] > 400  # two panels side by side
+    bad = platoon("sweep-plot", out, "--value", "last.colour")
+    assert bad.returncode == 2 and "--value last.colour" in error_line(bad)
+    ambiguous = platoon("sweep-plot", out, "--panel", "platoon.k_v")  # law and k_v: two runs per cell
+    assert ambiguous.returncode == 2 and "several runs fall on" in error_line(ambiguous)
+
+
+def test_bench_sweep_measures_each_worker_count(tmp_path: Path, fmu_dir: Path) -> None:
+    """Functional only: the suite runs real sweeps and reports a speed-up; the numbers are not asserted."""
+    from tests.test_bench import written
+
+    result = platoon("bench", "sweep", "--runs", "2", "--stop-time", "1", "--rounds", "1", "--workers", "1,2",
+                     "--no-dask", "--out-dir", tmp_path, "-q")
+    data = written(result, tmp_path, "sweep")
+    assert set(data["medians"]) == {"local-1", "local-2"} and data["speedup"]["local-1"] == 1.0
+    assert all(s["wall_time"] > 0 for s in data["samples"]) and len(data["samples"]) == 2
+    assert "speed-up vs local-1" in result.stdout
