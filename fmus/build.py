@@ -92,7 +92,7 @@ def is_complete(path: Path, name: str, guid: str) -> bool:
     if fmu_guid(path) != guid:
         return False
     required = {f"binaries/{platform}/{name}{sharedLibraryExtension}", f"resources/{name}.py"}
-    required |= {f"resources/fmus/{source.relative_to(PACKAGE_DIR).as_posix()}" for source in bundled_sources()}
+    required |= {f"resources/{source.relative_to(_ROOT).as_posix()}" for source in bundled_sources(name)}
     try:
         with zipfile.ZipFile(path) as archive:
             sizes = {item.filename: item.file_size for item in archive.infolist()}
