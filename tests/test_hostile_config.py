@@ -273,6 +273,17 @@ def test_ten_thousand_vehicles_for_the_default_100_s_are_above_the_work_limit() 
         check_run_size(config)
 
 
+def test_a_sweep_point_above_the_size_limits_is_invalid_not_run(tmp_path: Path) -> None:
+    from orchestrator.sweep.plan import plan
+    from orchestrator.sweep.spec import load_sweep
+
+    sweep = tmp_path / "long.toml"
+    sweep.write_text(f'base = "{PAPER}"\n[grid]\n"simulation.stop_time" = [1.0, 1e12]\n')
+    runs = plan(load_sweep(sweep))
+    assert [run.config is not None for run in runs] == [True, False]
+    assert "100,000,000,000,000 steps: more than 1,000,000" in runs[1].error
+
+
 def test_analyze_refuses_a_platoon_too_big_to_linearize(workdir: Path, tmp_path: Path) -> None:
     result = platoon("analyze", PAPER, "--no-string-stability", "--set", "platoon.count=1000",
                      "--set", "path.radius=20000.0", cwd=workdir, timeout=60)
@@ -287,6 +298,13 @@ def test_a_config_that_is_not_utf8_exits_2(command: str, workdir: Path, tmp_path
     config.write_bytes('description = "Düsseldorf"\n'.encode("latin-1"))
     refused(platoon(*COMMANDS[command](config, tmp_path), cwd=workdir),
             f"config {config}: not UTF-8 text: byte 0xfc at line 1")
+
+
+def test_a_sweep_file_that_is_not_utf8_exits_2(workdir: Path, tmp_path: Path) -> None:
+    sweep = tmp_path / "latin1.toml"
+    sweep.write_bytes(f'base = "{PAPER}"\n# Düsseldorf\n[grid]\n"platoon.count" = [1, 2]\n'.encode("latin-1"))
+    refused(platoon("sweep", sweep, "--out", tmp_path / "out", cwd=workdir),
+            f"sweep file {sweep}: not UTF-8 text: byte 0xfc at line 2")
 
 
 def test_a_config_with_a_utf8_byte_order_mark_is_read(workdir: Path, tmp_path: Path) -> None:
