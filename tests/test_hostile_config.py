@@ -199,6 +199,7 @@ COMMANDS = {  # every command that loads a config, with what it needs besides th
     "run": lambda config, tmp: ["run", config, "-q", "--out", tmp / "never.mcap"],
     "analyze": lambda config, tmp: ["analyze", config],
     "m3pi-emulator": lambda config, tmp: ["m3pi-emulator", "--config", config],
+    "export-ssp": lambda config, tmp: ["export-ssp", config, "--out", tmp / "never.ssp"],
     "bench scenarios": lambda config, tmp: ["bench", "scenarios", "--config", config, "--rounds", "1", "-q",
                                             "--out-dir", tmp / "bench"],
 }
