@@ -34,15 +34,20 @@ SETS = [  # run PAPER --set X: every one must be refused
 ]
 
 
-def cases(folder: Path) -> list[tuple[str, list[str]]]:
+def cases(folder: Path) -> list[tuple[str, list[str | bytes]]]:
     latin = folder / "latin1.toml"
     latin.write_bytes('description = "Düsseldorf"\n'.encode("latin-1"))
+    latin_sweep = folder / "sweep-latin1.toml"
+    latin_sweep.write_bytes(f'base = "{PAPER}"\n# Düsseldorf\n[grid]\n"platoon.count" = [1, 2]\n'.encode("latin-1"))
     found = [(f"run --set {value!r}", ["run", PAPER, *SHORT, "--set", value, "--out", str(folder / "x.mcap")])
              for value in SETS]
     found += [
         ("run non-UTF-8 config", ["run", str(latin)]),
         ("analyze non-UTF-8 config", ["analyze", str(latin)]),
         ("m3pi-emulator non-UTF-8 config", ["m3pi-emulator", "--config", str(latin)]),
+        ("export-ssp non-UTF-8 config", ["export-ssp", str(latin), "--out", str(folder / "x.ssp")]),
+        ("sweep non-UTF-8 sweep file", ["sweep", str(latin_sweep), "--out", str(folder / "sweep")]),
+        ("run --set description=<not UTF-8>", ["run", PAPER, *SHORT, "--set", b"description=\xff"]),
         ("run --trace-every 101 (100 steps)", ["run", PAPER, *SHORT, "--trace-every", "101"]),
         ("run --trace-every 1e29", ["run", PAPER, *SHORT, "--trace-every", "1" + "0" * 29]),
         ("analyze --set platoon.d_star=100.0", ["analyze", PAPER, "--set", "platoon.d_star=100.0"]),
@@ -55,7 +60,7 @@ def cases(folder: Path) -> list[tuple[str, list[str]]]:
     return found
 
 
-def outcome(argv: list[str], cwd: Path) -> str:
+def outcome(argv: list[str | bytes], cwd: Path) -> str:
     env = {**os.environ, "PYTHONPATH": str(REPO), "NO_COLOR": "1", "TERM": "dumb", "COLUMNS": "200"}
     try:
         result = subprocess.run([str(PLATOON), *argv], cwd=cwd, env=env, capture_output=True, text=True, timeout=60)
