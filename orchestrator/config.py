@@ -257,7 +257,9 @@ class Config(_Strict):
         h = sim.step / substep_count(sim.step, sim.max_substep)
         lags = [(f"vehicles.{key}.k_v" if v.k_v is not None else "platoon.k_v", 1.0 / (v.k_v or self.platoon.k_v))
                 for key, v in self.vehicles.items()] + [("platoon.k_v", 1.0 / self.platoon.k_v)]
-        if any((v.dynamics or self.platoon.dynamics) == "m3pi" for v in map(self.override, range(1, self.platoon.count + 1))):
+        overridden_away = sum(1 for v in self.vehicles.values() if v.dynamics not in (None, "m3pi"))
+        if any(v.dynamics == "m3pi" for v in self.vehicles.values()) or (
+                self.platoon.dynamics == "m3pi" and overridden_away < self.platoon.count):  # some vehicle is an m3pi
             lags.append(("m3pi.motor_time_constant", self.m3pi.motor_time_constant))
         key, lag = min(lags, key=lambda item: item[1])
         if h > RK4_STABILITY * lag:
