@@ -91,6 +91,24 @@ def fmu_guid(path: Path) -> str | None:
     return root.get("guid")
 
 
+def is_complete(path: Path, name: str, guid: str) -> bool:
+    """True when ``path`` is a whole, intact build of ``name`` with ``guid``: every entry passes its CRC,
+    and it holds the model description with that GUID, the binary for this platform and the bundled
+    sources. The GUID alone does not make an FMU runnable (a copy stripped of its binary has it too)."""
+    from fmpy import platform, sharedLibraryExtension
+
+    if fmu_guid(path) != guid:
+        return False
+    required = {f"binaries/{platform}/{name}{sharedLibraryExtension}", f"resources/{name}.py"}
+    required |= {f"resources/{source.relative_to(_ROOT).as_posix()}" for source in bundled_sources(name)}
+    try:
+        with zipfile.ZipFile(path) as archive:
+            sizes = {item.filename: item.file_size for item in archive.infolist()}
+            return all(sizes.get(entry, 0) > 0 for entry in required) and archive.testzip() is None
+    except (OSError, zipfile.BadZipFile):
+        return False
+
+
 def _slave_instance(name: str):
     module = importlib.import_module(f"fmus.slaves.{name}")
     return getattr(module, name)(instance_name="modelDescription")
@@ -170,7 +188,7 @@ def build_fmus(out_dir: Path = DEFAULT_OUT, force: bool = False, names: tuple[st
     for name in names:
         guid = expected_guid(name)
         path = Path(out_dir) / f"{name}.fmu"
-        if not force and path.exists() and fmu_guid(path) == guid:
+        if not force and path.exists() and is_complete(path, name, guid):
             built.append(BuiltFmu(name, path, guid, rebuilt=False))
             continue
         built.append(BuiltFmu(name, _build_one(name, Path(out_dir), guid), guid, rebuilt=True))

@@ -270,24 +270,22 @@ def peak_ratios(peaks: list[float]) -> list[float]:
 
 def string_stability_report(config: Config, config_text: str) -> str:
     """Peak path, gap and speed errors per vehicle after the first disturbance, and their ratios."""
-    import tempfile
-    from pathlib import Path
-
     from .metrics import path_errors
     from .run import run_scenario
+    from .scratch import ScratchDir
     from .trace import load
 
     if not config.disturbance:
         return "string stability: the config has no [[disturbance]]; add one to measure peak-error ratios"
     start = min(d.start for d in config.disturbance)
-    with tempfile.TemporaryDirectory() as scratch:
-        result = run_scenario(config, config_text, Path(scratch) / "analysis.mcap")
+    with ScratchDir("analyze") as scratch:  # removed by the next run if this one is killed
+        result = run_scenario(config, config_text, scratch / "analysis.mcap")
         if result.status != "completed":
             return f"string stability: the run {result.status}: {result.error}"
         trace = load(result.trace)
     reference_config = config.model_copy(update={"disturbance": []})
-    with tempfile.TemporaryDirectory() as scratch:
-        reference = load(run_scenario(reference_config, config_text, Path(scratch) / "reference.mcap").trace)
+    with ScratchDir("analyze") as scratch:
+        reference = load(run_scenario(reference_config, config_text, scratch / "reference.mcap").trace)
     lines = [f"string stability (peak deviation from the undisturbed run after t = {start:g} s):",
              f"  {'vehicle':10s} {'path [m]':>12s} {'gap [m]':>12s} {'speed [m/s]':>12s}"]
     peaks = {"path": [], "gap": [], "speed": []}

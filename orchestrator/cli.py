@@ -23,15 +23,19 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 from rich.table import Table
 
 from .bench import ENGINES as BENCH_ENGINES
-from .config import Config, ConfigError, load_config
+from .config import Config, ConfigError, parse_config, read_config_text
 
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
     help="Platoon co-simulation: trajectory-shaping guidance FMUs, config-driven runs, MCAP traces.",
 )
-out = Console()
-err = Console(stderr=True)
+# No rich markup in what we print: names, paths and config text are the user's ("[[disturbance]]",
+# "runs/[a]/x.mcap") and must appear as written. The one styled line (_fail) asks for markup itself.
+out = Console(markup=False)
+err = Console(stderr=True, markup=False)
+AllowLong = Annotated[bool, typer.Option("--allow-long", help="run even above the size limits (docs/config.md: more than "
+                                         "1e6 steps, 1000 substeps per step or 1e8 FMU-substeps)")]
 
 
 def _print_version(value: bool) -> None:
@@ -53,16 +57,23 @@ def _options(
 
 
 def _fail(code: int, message: str) -> None:
-    err.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
+    err.print(f"[bold red]error:[/] {escape(message)}", markup=True, highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 
 
-def _load(config: Path, overrides: list[str]) -> tuple[Config, str]:
+def _load(config: Path, overrides: list[str], allow_long: bool = True) -> tuple[Config, str]:
+    """The validated config and its text as read (stored in the trace); exit 2 naming the problem.
+    ``allow_long=False`` also refuses a run above the size limits (orchestrator/limits.py)."""
+    from .limits import check_run_size
+
     try:
-        parsed, _ = load_config(config, overrides)
+        text = read_config_text(config)
+        parsed, _ = parse_config(text, config.stem, overrides)
+        if not allow_long:
+            check_run_size(parsed)
     except ConfigError as error:
         _fail(2, f"config {config}: {error}")
-    return parsed, config.read_text()
+    return parsed, text
 
 
 @app.command()
@@ -99,7 +110,7 @@ def _progress_runner(steps: int, quiet: bool):
 
 
 def _summary_table(summaries, config: Config, title: str) -> Table:
-    """The per-vehicle summary; headers escaped, else rich reads the units "[m]" as markup and drops them."""
+    """The per-vehicle summary (the consoles print text literally: the units "[m]" are not markup)."""
     from .metrics import STEADY_FRACTION, first_disturbance
 
     disturbed = first_disturbance(config)  # max |path error| is taken from the first disturbance on (metrics.py)
@@ -107,7 +118,7 @@ def _summary_table(summaries, config: Config, title: str) -> Table:
     table = Table(title=title, title_justify="left", caption_justify="left",
                   caption=f"path offset, gap, speed: means over the last {STEADY_FRACTION:.0%} of the recorded time")
     for column in ("vehicle", "path offset [m]", "gap - d* [m]", "speed - V_c [m/s]", f"max |path error| [m], {interval}"):
-        table.add_column(escape(column), justify="right" if column != "vehicle" else "left",
+        table.add_column(column, justify="right" if column != "vehicle" else "left",
                          min_width=len("max |path error|") if column.startswith("max") else None,  # unbroken
                          max_width=len("path offset") if column.startswith("path") else None)  # fits 80 columns
     for s in summaries:
@@ -198,6 +209,7 @@ def run(
     trace_writer: Annotated[str, typer.Option("--trace-writer", help="where the trace is encoded: process (a second process), inline, or auto (a second process for long runs on a multi-core machine); same file")] = "auto",
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="also print where the wall time went: start-up (imports, config, FMUs), the run's phases, the summary")] = False,
+    allow_long: AllowLong = False,
 ) -> None:
     """Run a scenario: wire the FMUs as the paper's Fig. 2, step them, write an MCAP trace."""
     from .startup import seconds_since_process_start
@@ -209,7 +221,7 @@ def run(
 
     if trace_every is not None:
         overrides = [*overrides, f"simulation.trace_every={trace_every}"]
-    parsed, text = _load(config, overrides)
+    parsed, text = _load(config, overrides, allow_long)
     loaded = seconds_since_process_start()
     from .run import default_engine
 
@@ -247,7 +259,7 @@ def run(
     if not quiet:
         # accumulated while stepping; the trace is read again only if the run's end was not the planned one
         summaries = result.summary if result.summary is not None else summarize(load(result.trace), parsed)
-        out.print(_summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine}, last 10 % of {parsed.simulation.stop_time:g} s"))
+        out.print(_summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine}, {parsed.simulation.stop_time:g} s"))
     out.print(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)")
     if layout is not None:
         out.print(f"layout: {layout}  (open both in Foxglove: docs/foxglove.md)")
@@ -437,11 +449,20 @@ def analyze(
     config: Annotated[Path, typer.Argument(help="scenario TOML file")],
     overrides: Annotated[list[str], typer.Option("--set", help="override a key")] = [],
     string_stability: Annotated[bool, typer.Option(help="also run the scenario and report peak-error ratios")] = True,
+    allow_long: AllowLong = False,
 ) -> None:
     """Linearize about the circular equilibrium; eigenvalues next to the paper's eq. 9; string stability."""
     from .analysis import eigen_report, string_stability_report
+    from .limits import check_analyze_size, check_run_size
 
     parsed, text = _load(config, overrides)
+    if not allow_long:
+        try:
+            check_analyze_size(parsed)
+            if string_stability and parsed.disturbance:  # only then is the scenario run (twice)
+                check_run_size(parsed)
+        except ConfigError as error:
+            _fail(2, f"config {config}: {error}")
     try:
         report_text = eigen_report(parsed)
     except ValueError as error:

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import shutil
 from collections import deque
-import tempfile
 from ctypes import PYFUNCTYPE, byref, c_double, c_int, c_size_t, c_void_p, cast
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +38,7 @@ from fmpy import calloc, free  # (fmpy.simulation re-exports them, at ~100 ms of
 
 from .errors import ComponentError  # noqa: F401  (re-exported: the engines raise it from here)
 from .interface import Component  # noqa: F401  (re-exported: the interface FmuComponent implements)
+from .scratch import ScratchDir
 
 
 # An fmi2 function returning fmi2Status, called with arguments that are already ctypes objects, holding
@@ -101,18 +101,28 @@ def _status_returning(method: Any) -> Any:
 
 @dataclass
 class UnpackedFmu:
-    """An FMU extracted once; any number of instances share the folder."""
+    """An FMU extracted once; any number of instances share the folder.
+
+    ``open`` extracts into a ``ScratchDir``: removed by ``cleanup``, and by the next run if this
+    process is killed first.
+    """
 
     path: Path
     directory: Path
     description: Any
     _owns_directory: bool = True
+    _scratch: ScratchDir | None = None
 
     @classmethod
     def open(cls, path: Path) -> "UnpackedFmu":
-        directory = Path(tempfile.mkdtemp(prefix=f"platoon-{Path(path).stem}-"))
-        extract(str(path), str(directory))
-        return cls(Path(path), directory, read_model_description(str(path)))
+        scratch = ScratchDir(f"fmu-{Path(path).stem}")
+        try:
+            extract(str(path), str(scratch.path))
+            description = read_model_description(str(path))
+        except BaseException:
+            scratch.remove()
+            raise
+        return cls(Path(path), scratch.path, description, True, scratch)
 
     @property
     def guid(self) -> str:
@@ -130,7 +140,9 @@ class UnpackedFmu:
         return values
 
     def cleanup(self) -> None:
-        if self._owns_directory:
+        if self._scratch is not None:
+            self._scratch.remove()
+        elif self._owns_directory:
             shutil.rmtree(self.directory, ignore_errors=True)
 
 

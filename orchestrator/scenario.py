@@ -6,13 +6,12 @@ vehicle starts, how they are connected and which inputs follow a schedule.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
 from fmus.model.paths import make_path
 
-from .config import Config
+from .config import Config, step_count  # noqa: F401  (step_count re-exported: the engines import it from here)
 from .wiring import TARGET, Connection, platoon_connections, vehicle_name
 
 DISTURBANCE_INPUTS = {
@@ -141,7 +140,3 @@ def build_scenario(config: Config) -> Scenario:
     ]
     return Scenario(config, components, platoon_connections(platoon.count), schedules)
 
-
-def step_count(stop_time: float, step: float) -> int:
-    """Number of communication steps; the last one ends at stop_time (to rounding)."""
-    return max(1, int(math.floor(stop_time / step + 1e-9)))

@@ -32,7 +32,7 @@ SUMMARY_KEYS = {"name", "path_offset", "gap", "speed", "path_error_max"}
 def platoon(*args: object, cwd: Path) -> subprocess.CompletedProcess[str]:
     """Run the console script as a user would, without a terminal (no progress bar, no colour)."""
     assert PLATOON.is_file(), f"console script not installed next to the interpreter: {PLATOON}"
-    env = {**os.environ, "COLUMNS": "80", "NO_COLOR": "1", "TERM": "dumb"}
+    env = {**os.environ, "COLUMNS": "80", "NO_COLOR": "1", "TERM": "dumb", "PYTHONPATH": str(REPO)}  # this tree's code
     env.pop("FORCE_COLOR", None)
     return subprocess.run(
         [str(PLATOON), *map(str, args)], cwd=cwd, env=env, capture_output=True, text=True, timeout=120
@@ -83,8 +83,8 @@ BAD_CONFIGS = {
     "count-bool": ("[platoon]\ncount = true\n", [], ["platoon.count", "True", "integer"]),
     "d-star-over-diameter": (None, ["platoon.d_star=150"], ["platoon.d_star", "150", "2 * path.radius = 100"]),
     "radius-too-small": ("[path]\nradius = 10.0\n[platoon]\nd_star = 25.0\n", [], ["platoon.d_star", "25.0", "2 * path.radius = 20"]),
-    "count-zero": (None, ["platoon.count=0"], ["platoon.count", "= 0", "greater than or equal to 1"]),
-    "step-negative": (None, ["simulation.step=-0.01"], ["simulation.step", "-0.01", "greater than 0"]),
+    "count-zero": (None, ["platoon.count=0"], ["platoon.count", "= 0", "must be an integer >= 1"]),
+    "step-negative": (None, ["simulation.step=-0.01"], ["simulation.step", "-0.01", "must be a finite number > 0"]),
     "step-over-stop": (None, ["simulation.stop_time=0.001"], ["simulation.step", "simulation.stop_time"]),
     "disturbance-vehicle-5": (DISTURBANCE_ON_VEHICLE_5, [], ["disturbance[0].vehicle", "5", "platoon.count = 4"]),
     "override-vehicle-7": (None, ["vehicles.7.law=sine"], ["vehicles.7", "platoon.count = 4"]),

@@ -87,7 +87,7 @@ def test_export_refuses_bad_input_in_one_line_and_keeps_an_existing_package(tmp_
     bad = platoon("export-ssp", str(PAPER), "--set", "platoon.count=0", "--out", str(package))
     assert bad.returncode == 2 and not package.exists()
     assert bad.stderr.strip().splitlines() == [
-        f"error: config {PAPER}: platoon.count = 0: input should be greater than or equal to 1"]
+        f"error: config {PAPER}: platoon.count = 0: must be an integer >= 1 and <= 10000"]
     assert platoon("export-ssp", str(PAPER), "--out", str(package)).returncode == 0
     before = package.read_bytes()
     again = platoon("export-ssp", str(PAPER), "--set", "platoon.count=2", "--out", str(package))

@@ -212,8 +212,9 @@ def test_a_sweep_killed_with_sigkill_resumes_with_every_row_exactly_once(tmp_pat
 
 
 def test_the_runs_die_with_a_killed_sweep(tmp_path: Path, fmu_dir: Path) -> None:
-    # runs of 10^5 simulated seconds (an hour or more here): alive after the kill only if they outlive their sweep
-    path = sweep_file(tmp_path, '[grid]\n"simulation.stop_time" = [100000.0]\n"platoon.k_v" = [0.5, 0.6]\n')
+    # runs of 10^4 simulated seconds (10^6 steps, the most a run may take without --allow-long; minutes
+    # here): alive after the kill only if they outlive their sweep
+    path = sweep_file(tmp_path, '[grid]\n"simulation.stop_time" = [10000.0]\n"platoon.k_v" = [0.5, 0.6]\n')
     sweep = subprocess.Popen([str(PLATOON), "sweep", str(path), "--out", str(tmp_path / "out"), "--workers", "2"],
                              cwd=REPO, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     runs: list[int] = []

@@ -138,12 +138,17 @@ def run(configs: Sequence[Path] | None = None, engines: Sequence[str] = ENGINES,
                          f"variants: {', '.join(VARIANTS)}")
     paths = find_configs(configs)
     from orchestrator.config import ConfigError, load_config
+    from orchestrator.limits import check_run_size
 
-    for path in paths:  # a bad config or override is a usage error before anything runs
+    for path in paths:  # a bad config or override, or an absurdly long run, is a usage error before anything runs
         try:
-            load_config(path, list(overrides))
+            config = load_config(path, list(overrides))[0]
         except ConfigError as error:
             raise BenchUsageError(f"config {path}: {error}") from None
+        try:
+            check_run_size(config)
+        except ConfigError as error:
+            raise BenchUsageError(f"config {path}: {error}; benchmarks take no --allow-long: time a shorter run") from None
     from .platoon import fmu_files
 
     fmu_files(fmu_dir)  # build once, as the first `platoon run` would

@@ -83,7 +83,7 @@ def measure(variant: str, n: int, steps: int, step: float, ssd: Path, scratch: P
         sets = [arg for override in _overrides(n, steps, step) for arg in ("--set", override)]
         command = [*platoon_command(), "run", str(CONFIG), "--out", str(trace), *sets]
         if variant == "platoon-q":
-            command += ["-q", "--trace-every", str(SPARSE_TRACE)]
+            command += ["-q", "--trace-every", str(min(SPARSE_TRACE, steps))]  # at most the run's steps
     else:
         command = [sys.executable, str(Path(__file__).with_name("libcosim_process.py")), str(ssd), str(steps),
                    OBSERVER[variant]]

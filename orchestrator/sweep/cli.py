@@ -61,11 +61,11 @@ class _Display:
         status = record["status"]
         if status != "completed":
             self.console.print(f"[red]run {run.id} {status}[/] ({escape(_describe(run))}): {escape(record['error'])}",
-                               highlight=False, soft_wrap=True)
+                               markup=True, highlight=False, soft_wrap=True)
         elif self.bar is None:
             wall = record["wall_time"]
             self.console.print(f"run {run.id} completed ({escape(_describe(run))}) in {wall:.2f} s  [{done} done]",
-                               highlight=False, soft_wrap=True)
+                               markup=True, highlight=False, soft_wrap=True)
 
     def close(self) -> None:
         if self.bar is not None:

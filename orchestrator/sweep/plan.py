@@ -17,10 +17,10 @@ import json
 import math
 import random
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
-from ..config import Config, ConfigError, load_config
+from ..config import Config, ConfigError, load_config, read_config_text
+from ..limits import check_run_size
 from .spec import RandomRange, Scalar, SweepError, SweepSpec
 
 ID_LENGTH = 12  # hex digits of the run id: collisions are out of reach for any sweep a person runs
@@ -86,7 +86,7 @@ def plan(spec: SweepSpec) -> list[Run]:
     except ConfigError as error:
         what = f"base {spec.base}" + (" with [set]" if fixed else "")
         raise SweepError(f"sweep file {spec.path}: {what}: {error}") from None
-    base_text = Path(spec.base).read_text()
+    base_text = read_config_text(spec.base)  # as load_config read it (a byte-order mark dropped)
     runs: list[Run] = []
     for values in points(spec):
         overrides = fixed + [f"{key}={toml_literal(value)}" for key, value in values.items() if key != "sample"]
@@ -94,6 +94,7 @@ def plan(spec: SweepSpec) -> list[Run]:
         text = f"{base_text.rstrip()}\n\n# platoon sweep {spec.path}, run {identifier}: --set " + " --set ".join(overrides) + "\n"
         try:
             config, raw = load_config(spec.base, overrides)
+            check_run_size(config)  # an absurdly long run is rejected like an invalid one (no --allow-long here)
         except ConfigError as error:
             if "unknown key" in str(error):  # a key of the sweep file that no config has: every run would fail
                 raise SweepError(f"sweep file {spec.path}: {error}") from None

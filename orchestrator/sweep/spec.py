@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..config import ConfigError, read_config_text
+
 Scalar = str | int | float | bool
 # Columns of results.csv that a varied key must not shadow
 RESERVED = ("id", "sample", "status", "error", "wall_time", "trace")
@@ -87,9 +89,9 @@ def load_sweep(path: str | Path) -> SweepSpec:
     """Read and check the sweep file ``path``."""
     path = Path(path)
     try:
-        raw = tomllib.loads(path.read_text())
-    except OSError as error:
-        raise SweepError(f"sweep file {path}: cannot read it: {error.strerror or error}") from None
+        raw = tomllib.loads(read_config_text(path))  # UTF-8 (a byte-order mark dropped), as a config
+    except ConfigError as error:
+        raise SweepError(f"sweep file {path}: {error}") from None
     except tomllib.TOMLDecodeError as error:
         raise SweepError(f"sweep file {path}: not valid TOML: {error}") from None
     where = f"sweep file {path}:"
