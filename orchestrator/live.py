@@ -82,22 +82,24 @@ class LiveReporter:
         self.writer, self.pacer = writer, pacer
         self._next_stats = 0.0
 
-    def __call__(self, t: float) -> None:
+    def __call__(self, t: float, final: bool = False) -> None:
         writer = self.writer
         for component in self.live:
             for event in component.drain_events():
                 writer.log(t, event.level, event.message)
             for record in component.drain_records():
                 writer.live(f"{component.name}/{record.stream}", t, record.fields)
-        if t >= self._next_stats:
+        if t >= self._next_stats or final:
             self._next_stats = t + LINK_STATS_INTERVAL
             for component in self.live:
                 numbers = {k: float(v) for k, v in component.link_statistics().items() if isinstance(v, (int, float))}
                 writer.live(f"{component.name}/link", t, numbers)
 
     def finish(self, t: float) -> dict[str, dict[str, Any]]:
-        """Drain what is left, record the summary as ``platoon.hil`` metadata, and return it."""
-        self(t)
+        """Drain what is left, record the links' final statistics (the last ``/link`` message always
+        holds the final counts, however close to the previous one the run ended) and the summary as
+        ``platoon.hil`` metadata, and return it."""
+        self(t, final=True)
         summary = {"pacing": self.pacer.summary()}
         summary.update({c.name: c.link_statistics() for c in self.live})
         self.writer.metadata("platoon.hil", {name: json.dumps(values) for name, values in summary.items()})
