@@ -71,12 +71,11 @@ class RunningSummary:
         count = len(self.names)
         self._steady_sums = np.zeros((count, 3))  # path error, gap, speed
         self._steady_rows = 0
-        self._boundary: list[np.ndarray] = []  # rows near the predicted window start: (t, errors, gaps, speeds)
+        self._boundary: list[tuple[float, np.ndarray]] = []  # rows near the predicted window start: (t, values)
         self._error_max = np.full(count, -np.inf)
         # gap and speed are summed as deviations from d* and V_c: a mean of values near 25 m/s would
         # carry rounding noise (~1e-12 over 10^3 rows) larger than the deviations the table shows
         self._reference = np.array([0.0, config.platoon.d_star, config.platoon.speed])
-        self._rows = 0
         self.last_time: float | None = None
 
     def add(self, rows: np.ndarray) -> None:
@@ -98,7 +97,6 @@ class RunningSummary:
             self._steady_rows += int(inside.sum())
         for index in np.flatnonzero(near):
             self._boundary.append((float(t[index]), values[index]))
-        self._rows += len(t)
         self.last_time = float(t[-1])
 
     def result(self) -> list[VehicleSummary] | None:

@@ -54,7 +54,7 @@ def _overrides(n: int, steps: int, step: float) -> list[str]:
     return [f"platoon.count={n}", f"simulation.stop_time={steps * step!r}"]
 
 
-def write_system(n: int, steps: int, folder: Path, fmu_dir: Path) -> Path:
+def write_system(n: int, steps: int, step: float, folder: Path, fmu_dir: Path) -> Path:
     """The SSD of the config's system with ``n`` vehicles and ``steps`` steps (libcosim, 0 worker threads):
     the package of ``platoon export-ssp``, unpacked into ``folder`` (libcosim then loads the .ssd as it
     did before the exporter existed, with no unzipping in the timed process)."""
@@ -66,8 +66,7 @@ def write_system(n: int, steps: int, folder: Path, fmu_dir: Path) -> Path:
 
     from .platoon import fmu_files
 
-    base, _ = load_config(CONFIG, [])
-    config, _ = load_config(CONFIG, _overrides(n, steps, base.simulation.step))
+    config, _ = load_config(CONFIG, _overrides(n, steps, step))
     if config.simulation.master != "jacobi":
         raise BenchError(f"{CONFIG}: master {config.simulation.master!r}; libcosim's fixed-step algorithm is Jacobi")
     package = write_ssp(folder / "platoon.ssp", build_scenario(config), fmu_files(fmu_dir), worker_threads=0)
@@ -116,9 +115,9 @@ def run(ns: Sequence[int] = (16,), steps: int = 10_000, rounds: int = 5, variant
     step = load_config(CONFIG, [])[0].simulation.step
     started = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench-wholerun-") as scratch:
-        systems = {n: write_system(n, steps, Path(scratch) / f"ssp-{n}", fmu_dir) for n in ns}
+        systems = {n: write_system(n, steps, step, Path(scratch) / f"ssp-{n}", fmu_dir) for n in ns}
         # one untimed run of each kind first: FMUs built and extracted, files in the page cache
-        warm = write_system(ns[0], 10, Path(scratch) / "warm", fmu_dir)
+        warm = write_system(ns[0], 10, step, Path(scratch) / "warm", fmu_dir)
         for variant in ("platoon", "libcosim"):
             measure(variant, ns[0], 10, step, warm, Path(scratch))
         samples = interleaved(rounds, list(ns), list(variants),
