@@ -14,16 +14,17 @@ import sys
 import warnings
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated, Iterator, Optional
+from typing import TYPE_CHECKING, Annotated, Iterator, Optional
 
 import typer
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-from rich.table import Table
 
 from .bench import ENGINES as BENCH_ENGINES
 from .config import Config, ConfigError, parse_config, read_config_text
+
+if TYPE_CHECKING:  # rich's progress bar and table are imported where used: `platoon run -q` needs neither
+    from rich.table import Table
 
 app = typer.Typer(
     add_completion=False,
@@ -97,6 +98,8 @@ def build(
 def _progress_runner(steps: int, quiet: bool):
     if quiet or not sys.stderr.isatty() and not sys.stdout.isatty():
         return None, None
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
     progress = Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
@@ -111,6 +114,8 @@ def _progress_runner(steps: int, quiet: bool):
 
 def _summary_table(summaries, config: Config, title: str) -> Table:
     """The per-vehicle summary (the consoles print text literally: the units "[m]" are not markup)."""
+    from rich.table import Table
+
     from .metrics import STEADY_FRACTION, first_disturbance
 
     disturbed = first_disturbance(config)  # max |path error| is taken from the first disturbance on (metrics.py)
@@ -129,20 +134,24 @@ def _summary_table(summaries, config: Config, title: str) -> Table:
     return table
 
 
-def _time_split(entered: float | None, loaded: float | None, timings: dict[str, float], now: float | None) -> str:
+def _time_split(entered: float | None, loaded: float | None, imported: float | None, timings: dict[str, float],
+                now: float | None) -> str:
     """``-v``: where this process's wall time went, from the interpreter's start to now (a few lines)."""
     def seconds(value: float | None) -> str:
         return "?" if value is None else f"{value:.2f} s"
 
+    def between(start: float | None, end: float | None) -> float | None:
+        return None if start is None or end is None else end - start
+
     run_total = sum(timings.values())
-    config_time = None if entered is None or loaded is None else loaded - entered
-    rest = None if now is None or loaded is None else now - loaded - run_total
+    rest = None if now is None or imported is None else now - imported - run_total
     phases = ", ".join(f"{name} {timings[name]:.2f} s" for name in ("setup", "initialize", "steps", "finish")
                        if name in timings)
     return "\n".join([
         f"wall time since the process started: {seconds(now)}",
-        f"  start-up: interpreter and imports {seconds(entered)}, config {seconds(config_time)},",
-        f"            FMUs checked and unpacked {seconds(timings.get('open'))}",
+        f"  start-up: interpreter and imports {seconds(entered)}, config {seconds(between(entered, loaded))},",
+        f"            run modules imported {seconds(between(loaded, imported))}, "
+        f"FMUs checked and unpacked {seconds(timings.get('open'))}",
         f"  run: {phases}",
         f"  after the run (summary, output): {seconds(rest)}",
     ])
@@ -215,16 +224,13 @@ def run(
     from .startup import seconds_since_process_start
 
     entered = seconds_since_process_start()  # the interpreter and the imports so far
-    from .metrics import summarize
-    from .run import default_trace_path
-    from .trace import load
-
     if trace_every is not None:
         overrides = [*overrides, f"simulation.trace_every={trace_every}"]
     parsed, text = _load(config, overrides, allow_long)
     loaded = seconds_since_process_start()
-    from .run import default_engine
+    from .run import default_engine, default_trace_path
 
+    imported = seconds_since_process_start()  # the engines, FMPy, numpy, the trace writer
     if engine_name not in (None, "native", "python"):
         _fail(2, f"--engine {engine_name!r}: expected native or python")
     if engine_name == "native" and default_engine() != "native":
@@ -257,6 +263,9 @@ def run(
     if result.status != "completed":
         _fail(1, f"run {result.status}: {result.error} (trace up to that point: {result.trace})")
     if not quiet:
+        from .metrics import summarize
+        from .trace import load
+
         # accumulated while stepping; the trace is read again only if the run's end was not the planned one
         summaries = result.summary if result.summary is not None else summarize(load(result.trace), parsed)
         out.print(_summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine}, {parsed.simulation.stop_time:g} s"))
@@ -264,9 +273,10 @@ def run(
     if layout is not None:
         out.print(f"layout: {layout}  (open both in Foxglove: docs/foxglove.md)")
     if verbose:
-        err.print(_time_split(entered, loaded, result.timings, seconds_since_process_start()), highlight=False)
+        err.print(_time_split(entered, loaded, imported, result.timings, seconds_since_process_start()), highlight=False)
     if compare:
         from .compare import deviations
+        from .trace import load
 
         reference = _execute(parsed, text, _claim_trace(reference_path, overwrite, [config], None), "monolithic", quiet)
         if reference.status != "completed":
@@ -512,6 +522,8 @@ class _BenchProgress:
         self.bar: Progress | None = None
         self.task = None
         if not quiet and err.is_terminal:
+            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
             self.bar = Progress(TextColumn("[bold]measuring"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                                 TimeElapsedColumn(), TimeRemainingColumn(), console=err, transient=True)
 

@@ -38,6 +38,8 @@ from fmpy import calloc, free  # (fmpy.simulation re-exports them, at ~100 ms of
 
 from .errors import ComponentError  # noqa: F401  (re-exported: the engines raise it from here)
 from .interface import Component  # noqa: F401  (re-exported: the interface FmuComponent implements)
+from . import fmu_cache
+from .fmu_cache import HeldFmu
 from .scratch import ScratchDir
 
 
@@ -104,7 +106,8 @@ class UnpackedFmu:
     """An FMU extracted once; any number of instances share the folder.
 
     ``open`` extracts into a ``ScratchDir``: removed by ``cleanup``, and by the next run if this
-    process is killed first.
+    process is killed first. ``open_cached`` uses the per-user cache of extracted FMUs
+    (orchestrator/fmu_cache.py) and only releases its hold on ``cleanup``.
     """
 
     path: Path
@@ -112,6 +115,7 @@ class UnpackedFmu:
     description: Any
     _owns_directory: bool = True
     _scratch: ScratchDir | None = None
+    _held: HeldFmu | None = None
 
     @classmethod
     def open(cls, path: Path) -> "UnpackedFmu":
@@ -123,6 +127,22 @@ class UnpackedFmu:
             scratch.remove()
             raise
         return cls(Path(path), scratch.path, description, True, scratch)
+
+    @classmethod
+    def open_cached(cls, path: Path) -> "UnpackedFmu":
+        """``open``, from the cache of extracted FMUs: unzipped and checked against the FMI schema once
+        per FMU file, its files checked against the zip's CRCs at every use; a private extraction
+        (``open``) when the cache cannot serve (orchestrator/fmu_cache.py)."""
+        held = fmu_cache.hold(Path(path))
+        if held is None:
+            return cls.open(path)
+        try:
+            # the same bytes as in the zip (CRC-checked just now), schema-checked when the entry was made
+            description = read_model_description(str(held.directory), validate=False)
+        except BaseException:
+            held.release()
+            raise
+        return cls(Path(path), held.directory, description, False, None, held)
 
     @property
     def guid(self) -> str:
@@ -140,7 +160,9 @@ class UnpackedFmu:
         return values
 
     def cleanup(self) -> None:
-        if self._scratch is not None:
+        if self._held is not None:
+            self._held.release()
+        elif self._scratch is not None:
             self._scratch.remove()
         elif self._owns_directory:
             shutil.rmtree(self.directory, ignore_errors=True)

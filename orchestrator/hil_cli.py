@@ -11,11 +11,12 @@ import math
 import signal
 import threading
 from pathlib import Path
-from typing import Annotated, Any, Optional
+from typing import TYPE_CHECKING, Annotated, Any, Optional
 
 import typer
-from rich import box
-from rich.table import Table
+
+if TYPE_CHECKING:  # imported where used: registering these commands must not slow every `platoon` start
+    from rich.table import Table
 
 Endpoints = Annotated[list[str], typer.Option(help="Zenoh endpoint, e.g. tcp/127.0.0.1:7447 (repeatable)")]
 
@@ -55,6 +56,9 @@ def live_table(summary: dict[str, dict[str, Any]]) -> Table:
             f"{ms_text(stats.get('round_trip.median'))}/{ms_text(stats.get('round_trip.p99'))}",
             f"{ms_text(stats.get('pose_age.median'))}/{ms_text(stats.get('pose_age.max'))}",
         ))
+    from rich import box
+    from rich.table import Table
+
     table = Table(title=title, title_justify="left", caption_justify="left", box=box.SIMPLE_HEAD, pad_edge=False,
                   collapse_padding=True)
     for index, header in enumerate(headers):  # every cell whole: the widths a row needs, no ellipsis

@@ -10,14 +10,16 @@ when there is none).
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
 from .config import Config
 from .scenario import path_of
-from .trace import Trace
 from .trace.format import vehicle_names
+
+if TYPE_CHECKING:  # a run accumulates its summary without the trace reader (mcap's reader: start-up time)
+    from .trace import Trace
 
 STEADY_FRACTION = 0.1
 

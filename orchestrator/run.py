@@ -107,7 +107,7 @@ def _descriptions(fmu: UnpackedFmu) -> dict[str, str]:
 
 
 def _open_fmus(fmu_dir: Path) -> dict[str, UnpackedFmu]:
-    return {built.name: UnpackedFmu.open(built.path) for built in build_fmus(fmu_dir)}
+    return {built.name: UnpackedFmu.open_cached(built.path) for built in build_fmus(fmu_dir)}
 
 
 def open_trace_writer(

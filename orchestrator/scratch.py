@@ -25,18 +25,38 @@ MAKING_GRACE = 60.0  # s
 
 
 class ScratchDir:
-    """A folder in the temp directory, held by this process until ``remove`` (or its death)."""
+    """A folder in the temp directory (or in ``parent``), held by this process until ``remove`` or
+    ``publish`` (or its death)."""
 
-    def __init__(self, label: str) -> None:
-        sweep()
-        making = Path(tempfile.mkdtemp(prefix=f"{MAKING}{label}-"))
+    def __init__(self, label: str, parent: Path | None = None) -> None:
+        sweep(parent)
+        making = Path(tempfile.mkdtemp(prefix=f"{MAKING}{label}-", dir=parent))
         self._lock: int | None = os.open(making / LOCK_NAME, os.O_CREAT | os.O_RDWR, 0o600)
         fcntl.flock(self._lock, fcntl.LOCK_EX)
         # every folder under PREFIX is locked from the moment it appears: a free lock means a dead owner
         self.path = making.with_name(PREFIX + making.name[len(MAKING):])
         making.rename(self.path)
+        self._published = False
+
+    def publish(self, target: Path) -> bool:
+        """Rename the folder to ``target`` (a name no sweep matches) and give it up: from now on it is not
+        scratch, nothing here removes it. False, and the folder removed, if ``target`` exists already
+        (another process published the same thing first). The lock file goes along (``.owner.lock``)."""
+        try:
+            self.path.rename(target)  # atomic; fails on an existing non-empty folder
+        except OSError:
+            self.remove()
+            return False
+        self.path = target
+        if self._lock is not None:
+            os.close(self._lock)
+            self._lock = None
+        self._published = True
+        return True
 
     def remove(self) -> None:
+        if self._published:
+            return
         shutil.rmtree(self.path, ignore_errors=True)
         if self._lock is not None:
             os.close(self._lock)  # after the folder is gone: no sweeper can take it for a dead one

@@ -270,6 +270,6 @@ def test_run_verbose_splits_the_wall_time_from_the_process_start(tmp_path):
     lines = [line.strip() for line in result.stderr.splitlines()]
     total = next(line for line in lines if line.startswith("wall time since the process started:"))
     assert re.fullmatch(r"wall time since the process started: \d+\.\d\d s", total), total
-    for piece in ("interpreter and imports", "config", "FMUs checked and unpacked", "run: setup", "initialize",
+    for piece in ("interpreter and imports", "config", "run modules imported", "FMUs checked and unpacked", "run: setup", "initialize",
                   "steps", "finish", "after the run"):
         assert re.search(re.escape(piece) + r"[^0-9?]*\d+\.\d\d s", result.stderr), piece

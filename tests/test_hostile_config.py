@@ -394,7 +394,7 @@ def test_analyze_just_inside_the_diameter_reports(workdir: Path) -> None:
 
 # --- 11: smaller ones ---------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("name", ["../../x", "/tmp/x", "a/b", ".hidden", "-rf", "a\nb", ""])
+@pytest.mark.parametrize("name", ["../../x", "/tmp/x", "a/b", ".hidden", "-rf", "a\nb", "", "a" * 101, "é" * 101])
 def test_a_name_that_is_not_a_file_name_is_refused(name: str) -> None:
     with pytest.raises(ConfigError, match=r"^name = .*: must be letters, digits"):
         config_from_mapping({"name": name})
@@ -482,9 +482,11 @@ def extraction_folders(temp: Path) -> list[Path]:
 
 
 def test_a_sigkilled_run_leaves_no_extracted_fmus_behind(workdir: Path, tmp_path: Path) -> None:
+    """Without the FMU cache (PLATOON_FMU_CACHE=off, or when it cannot serve) a run extracts privately."""
     temp = tmp_path / "tmp"
     temp.mkdir()
-    environment = {**os.environ, "PYTHONPATH": str(REPO), "TMPDIR": str(temp)}
+    private = {"TMPDIR": str(temp), "PLATOON_FMU_CACHE": "off"}
+    environment = {**os.environ, "PYTHONPATH": str(REPO), **private}
     victim = subprocess.Popen([str(PLATOON), "run", PAPER, "-q", "--set", "simulation.stop_time=10000",
                                "--out", tmp_path / "killed.mcap"], cwd=workdir, env=environment,
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -497,9 +499,35 @@ def test_a_sigkilled_run_leaves_no_extracted_fmus_behind(workdir: Path, tmp_path
         victim.send_signal(signal.SIGKILL)
         victim.wait()
     assert len(extraction_folders(temp)) == len(FMU_NAMES)  # nothing can clean up at SIGKILL itself ...
-    result = platoon("run", PAPER, *SHORT, "-q", "--out", tmp_path / "next.mcap", cwd=workdir, env={"TMPDIR": str(temp)})
+    result = platoon("run", PAPER, *SHORT, "-q", "--out", tmp_path / "next.mcap", cwd=workdir, env=private)
     assert result.returncode == 0, result.stderr
     assert extraction_folders(temp) == []  # ... but the next run sweeps them, and removes its own
+
+
+def test_a_sigkilled_run_leaves_the_fmu_cache_usable(workdir: Path, tmp_path: Path) -> None:
+    """With the cache, a run extracts nothing into the temp folder; killed while it holds its FMUs, it
+    leaves the cache as it was: the next run uses the same entries."""
+    temp, cache = tmp_path / "tmp", tmp_path / "cache"
+    temp.mkdir()
+    cached = {"TMPDIR": str(temp), "PLATOON_FMU_CACHE": str(cache)}
+    victim = subprocess.Popen([str(PLATOON), "run", PAPER, "-q", "--set", "simulation.stop_time=10000",
+                               "--out", tmp_path / "killed.mcap"], cwd=workdir,
+                              env={**os.environ, "PYTHONPATH": str(REPO), **cached},
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        partial = tmp_path / "killed.mcap.partial"  # claimed empty first, written once the FMUs are held
+        while not (partial.exists() and partial.stat().st_size > 0) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert partial.stat().st_size > 0, "the run never started"
+    finally:
+        victim.send_signal(signal.SIGKILL)
+        victim.wait()
+    made = sorted(cache.iterdir())
+    assert len(made) == len(FMU_NAMES) and extraction_folders(temp) == []
+    result = platoon("run", PAPER, *SHORT, "-q", "--out", tmp_path / "next.mcap", cwd=workdir, env=cached)
+    assert result.returncode == 0, result.stderr
+    assert sorted(cache.iterdir()) == made and extraction_folders(temp) == []
 
 
 def test_a_live_owners_scratch_folder_is_never_swept(tmp_path: Path) -> None:

@@ -11,14 +11,16 @@ from __future__ import annotations
 import os
 import signal
 from pathlib import Path
-from typing import Annotated, Any, Optional
+from typing import TYPE_CHECKING, Annotated, Any, Optional
 
 import typer
 from rich.markup import escape
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from .plan import Run
 from .spec import SweepError
+
+if TYPE_CHECKING:  # imported where used: registering these commands must not slow every `platoon` start
+    from rich.progress import Progress
 
 
 def _cores() -> int:
@@ -47,6 +49,8 @@ class _Display:
         earlier = f", {done} done before" if done else ""
         self.console.print(f"sweep: {total} runs{earlier}, {todo} to run", highlight=False)
         if self.console.is_terminal and todo:
+            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
             self.bar = Progress(TextColumn("[bold]sweep"), BarColumn(), TextColumn("{task.completed}/{task.total} runs"),
                                 TextColumn("[red]{task.fields[failed]} failed"), TimeElapsedColumn(),
                                 TextColumn("left"), TimeRemainingColumn(), console=self.console, transient=True)

@@ -1,0 +1,84 @@
+"""What `platoon run` loads before its first step (issue 22, docs/performance.md "Whole runs").
+
+Start-up was ~0.5 s against libcosim's ~0.25 s; part of it were libraries a run never needed. These
+tests keep them out: a run imports no plotting, sweep or analysis code, and the 3D scene's colours of
+a large platoon are matplotlib's viridis without importing matplotlib.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from orchestrator.trace.foxglove import PALETTE, vehicle_colors
+
+REPO = Path(__file__).resolve().parents[1]
+
+# What a run must not import (module names, or package prefixes ending in "."): plotting, dataframes,
+# the Dask cluster, the sweep runner, the analysis, the figure code and the trace reader (a run
+# accumulates its summary while stepping; it reads its trace only when the run ended early)
+NOT_FOR_A_RUN = ("matplotlib.", "PIL.", "dask.", "distributed.", "pandas.", "scipy.", "zenoh.",
+                 "orchestrator.analysis", "orchestrator.plots", "orchestrator.figure", "orchestrator.sweep.runner",
+                 "orchestrator.sweep.executors", "orchestrator.trace.reader", "mcap.reader", "rich.progress",
+                 "rich.table")
+
+_PROBE = """
+import json, sys
+from orchestrator.cli import app
+sys.argv = ["platoon", *sys.argv[1:]]
+try:
+    app()
+except SystemExit as done:
+    code = done.code
+names = sorted(sys.modules)
+print("MODULES " + json.dumps({"code": code, "modules": names}))
+"""
+
+
+def imported_by(*args: str, cwd: Path) -> list[str]:
+    """The modules a `platoon` command loaded, in a fresh interpreter."""
+    environment = {**os.environ, "PYTHONPATH": str(REPO), "NO_COLOR": "1", "TERM": "dumb"}
+    result = subprocess.run([sys.executable, "-c", _PROBE, *args], cwd=cwd, env=environment, capture_output=True,
+                            text=True, timeout=120)
+    line = next((line for line in result.stdout.splitlines() if line.startswith("MODULES ")), None)
+    assert line is not None, result.stdout + result.stderr
+    probe = json.loads(line[len("MODULES "):])
+    assert probe["code"] in (0, None), result.stdout + result.stderr
+    return probe["modules"]
+
+
+def unwanted(modules: list[str]) -> list[str]:
+    return [name for name in modules
+            if any(name == banned or name.startswith(banned) or name + "." == banned for banned in NOT_FOR_A_RUN)]
+
+
+def test_a_quiet_run_of_a_large_platoon_imports_nothing_it_does_not_need(tmp_path: Path, fmu_dir: Path) -> None:
+    # 12 vehicles: more than the 10-colour palette, so the scene's colours come from viridis
+    modules = imported_by("run", str(REPO / "configs" / "paper" / "platoon.toml"), "--set", "platoon.count=12",
+                          "--set", "simulation.stop_time=0.2", "-q", "--trace-every", "10",
+                          "--out", str(tmp_path / "t.mcap"), cwd=REPO)
+    assert "orchestrator.run" in modules and "orchestrator.native" in modules  # it did run
+    assert unwanted(modules) == []
+
+
+def test_the_cli_alone_imports_none_of_it(tmp_path: Path) -> None:
+    modules = imported_by("--version", cwd=tmp_path)
+    assert unwanted(modules) == []
+
+
+@pytest.mark.parametrize("count", [*range(11, 40), 64, 100, 255, 256, 257, 1000])
+def test_large_platoons_get_matplotlibs_viridis(count: int) -> None:
+    from matplotlib import colormaps
+
+    scale = colormaps["viridis"]
+    expected = [tuple(float(c) for c in scale(i / (count - 1))[:3]) for i in range(count)]
+    assert vehicle_colors(count) == expected
+
+
+def test_small_platoons_keep_the_palette() -> None:
+    assert vehicle_colors(len(PALETTE)) == PALETTE and vehicle_colors(3) == PALETTE[:3]
