@@ -27,7 +27,6 @@ from xml.etree import ElementTree
 import pythonfmu  # noqa: F401
 
 import fmus
-from fmus.documentation import documentation_html
 from fmus.modeldescription import guid_for, model_description
 
 # this file's own folder, not fmus.__file__: an FMU run in this process first may have imported the
@@ -142,6 +141,8 @@ def _builder() -> type:
 
 
 def _build_one(name: str, out_dir: Path, guid: str) -> Path:
+    from fmus.documentation import documentation_html  # only to build (html.entities: start-up time of every run)
+
     version = fmus.__version__
     FmuBuilder = _builder()  # only to build: checking that FMUs are current needs none of pythonfmu
 

@@ -1,4 +1,5 @@
-"""How long this process has existed: the part of a run's wall time spent before the run started.
+"""How long this process has existed (the part of a run's wall time spent before the run started), and
+what a run's process sets up before its imports.
 
 ``platoon run -v`` splits a run's wall time into start-up (interpreter, imports, config, FMUs
 checked and unpacked), the run's own phases and the summary. The interpreter's start is not
@@ -22,3 +23,13 @@ def seconds_since_process_start() -> float | None:
     ticks = os.sysconf("SC_CLK_TCK")
     started = int(fields[19]) / ticks  # field 22 of stat; fields[0] here is field 3 (state)
     return max(0.0, now - started)
+
+
+def single_threaded_blas() -> None:
+    """Ask numpy's OpenBLAS for one thread, unless the user chose a number: call before numpy is imported.
+
+    A run does no linear algebra, yet OpenBLAS starts a thread per core when numpy is imported: ~0.04 s
+    of CPU and up to ~0.1 s of wall time in every run's start-up on a 2-core machine (docs/performance.md,
+    "Whole runs"). The trace writer process inherits the setting.
+    """
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")

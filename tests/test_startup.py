@@ -36,20 +36,29 @@ try:
 except SystemExit as done:
     code = done.code
 names = sorted(sys.modules)
-print("MODULES " + json.dumps({"code": code, "modules": names}))
+import os
+threads = len(os.listdir("/proc/self/task"))  # the run's own: inline trace writer, no pool of any kind
+print("MODULES " + json.dumps({"code": code, "modules": names, "threads": threads,
+                               "blas": os.environ.get("OPENBLAS_NUM_THREADS")}))
 """
 
 
-def imported_by(*args: str, cwd: Path) -> list[str]:
-    """The modules a `platoon` command loaded, in a fresh interpreter."""
-    environment = {**os.environ, "PYTHONPATH": str(REPO), "NO_COLOR": "1", "TERM": "dumb"}
+def probe(*args: str, cwd: Path, env: dict[str, str] | None = None, drop: tuple[str, ...] = ()) -> dict:
+    """A `platoon` command run in a fresh interpreter: {code, modules it loaded, threads at its end, blas}."""
+    environment = {key: value for key, value in os.environ.items() if key not in drop}
+    environment.update({"PYTHONPATH": str(REPO), "NO_COLOR": "1", "TERM": "dumb", **(env or {})})
     result = subprocess.run([sys.executable, "-c", _PROBE, *args], cwd=cwd, env=environment, capture_output=True,
                             text=True, timeout=120)
     line = next((line for line in result.stdout.splitlines() if line.startswith("MODULES ")), None)
     assert line is not None, result.stdout + result.stderr
-    probe = json.loads(line[len("MODULES "):])
-    assert probe["code"] in (0, None), result.stdout + result.stderr
-    return probe["modules"]
+    found = json.loads(line[len("MODULES "):])
+    assert found["code"] in (0, None), result.stdout + result.stderr
+    return found
+
+
+def imported_by(*args: str, cwd: Path) -> list[str]:
+    """The modules a `platoon` command loaded, in a fresh interpreter."""
+    return probe(*args, cwd=cwd)["modules"]
 
 
 def unwanted(modules: list[str]) -> list[str]:
@@ -64,6 +73,22 @@ def test_a_quiet_run_of_a_large_platoon_imports_nothing_it_does_not_need(tmp_pat
                           "--out", str(tmp_path / "t.mcap"), cwd=REPO)
     assert "orchestrator.run" in modules and "orchestrator.native" in modules  # it did run
     assert unwanted(modules) == []
+
+
+def quiet_run(tmp_path: Path) -> list[str]:
+    return ["run", str(REPO / "configs" / "paper" / "platoon.toml"), "--set", "simulation.stop_time=0.2", "-q",
+            "--trace-every", "10", "--out", str(tmp_path / "t.mcap")]
+
+
+def test_a_run_starts_no_blas_threads(tmp_path: Path, fmu_dir: Path) -> None:
+    """numpy's OpenBLAS would start a thread per core at import; a run does no linear algebra."""
+    found = probe(*quiet_run(tmp_path), cwd=REPO, drop=("OPENBLAS_NUM_THREADS",))
+    assert found["blas"] == "1" and found["threads"] == 1, found
+
+
+def test_a_users_blas_setting_is_kept(tmp_path: Path, fmu_dir: Path) -> None:
+    found = probe(*quiet_run(tmp_path), cwd=REPO, env={"OPENBLAS_NUM_THREADS": "2"})
+    assert found["blas"] == "2" and found["threads"] == 2, found
 
 
 def test_the_cli_alone_imports_none_of_it(tmp_path: Path) -> None:
