@@ -6,6 +6,10 @@ it can stand in for a vehicle FMU without the master noticing.
 
 FmuComponent keeps FMPy's bound fmi2 functions and preallocated ctypes arrays, so each step costs
 one fmi2SetReal, one fmi2DoStep and one fmi2GetReal call and no per-call allocation.
+
+FMPy is imported when first needed (``_fmpy``): the native engine steps FMUs without it, and an FMU
+opened from the cache needs none of it either, so a native run does not pay for importing it (FMPy,
+attrs, lxml: ~0.05 s of start-up, docs/performance.md "Whole runs").
 """
 
 from __future__ import annotations
@@ -20,21 +24,7 @@ from itertools import count
 from struct import Struct
 from typing import Any, Callable, Sequence
 
-from fmpy import extract, read_model_description
-from fmpy.fmi2 import (
-    FMU2Slave,
-    fmi2CallbackAllocateMemoryTYPE,
-    fmi2CallbackFreeMemoryTYPE,
-    fmi2CallbackFunctions,
-    fmi2CallbackLoggerTYPE,
-    fmi2Real,
-    fmi2True,
-    fmi2Warning,
-    fmi2ValueReference,
-)
-from fmpy.fmi1 import FMICallException
-from fmpy.logging import addLoggerProxy
-from fmpy import calloc, free  # (fmpy.simulation re-exports them, at ~100 ms of imports)
+from types import SimpleNamespace
 
 from .errors import ComponentError  # noqa: F401  (re-exported: the engines raise it from here)
 from .interface import Component  # noqa: F401  (re-exported: the interface FmuComponent implements)
@@ -50,6 +40,30 @@ _RAW_FMI2_CALL = PYFUNCTYPE(c_int)
 
 _RAW_CALLS: dict[int, Any] = {}
 
+_FMI2_WARNING = 1  # fmi2Warning: a status above it is a failure (FMI 2.0, fmi2Status)
+_FMPY: SimpleNamespace | None = None
+
+
+def _fmpy() -> SimpleNamespace:
+    """What FmuComponent uses of FMPy, imported on first use (see the module's docstring)."""
+    global _FMPY
+    if _FMPY is None:
+        from fmpy import calloc, free  # (fmpy.simulation re-exports them, at ~100 ms of imports)
+        from fmpy.fmi1 import FMICallException
+        from fmpy.fmi2 import (FMU2Slave, fmi2CallbackAllocateMemoryTYPE, fmi2CallbackFreeMemoryTYPE,
+                               fmi2CallbackFunctions, fmi2CallbackLoggerTYPE, fmi2Real, fmi2True,
+                               fmi2ValueReference)
+        from fmpy.logging import addLoggerProxy
+
+        _FMPY = SimpleNamespace(
+            FMU2Slave=FMU2Slave, FMICallException=FMICallException, addLoggerProxy=addLoggerProxy,
+            fmi2CallbackFunctions=fmi2CallbackFunctions, fmi2Real=fmi2Real, fmi2True=fmi2True,
+            fmi2ValueReference=fmi2ValueReference, allocate=fmi2CallbackAllocateMemoryTYPE(calloc),
+            free=fmi2CallbackFreeMemoryTYPE(free),
+            logger=fmi2CallbackLoggerTYPE(_route_log),  # one callback object for the life of the process
+        )
+    return _FMPY
+
 
 def _raw_fmi2_call(address: int) -> Any:
     """One ``_RAW_FMI2_CALL`` per function address: every instance of an FMU calls the same code (its
@@ -60,7 +74,7 @@ def _raw_fmi2_call(address: int) -> Any:
     return call
 
 
-def resolved_functions(slave: FMU2Slave) -> dict[str, Any]:
+def resolved_functions(slave: Any) -> dict[str, Any]:
     """The ctypes functions FMPy resolved from the FMU's library, by fmi2 name ({} if FMPy stops
     keeping them, and its wrappers stand in)."""
     return getattr(slave, "_functions", {})
@@ -81,9 +95,6 @@ def _route_log(env: Any, instance: bytes, status: int, category: bytes, message:
         messages.append(message.decode("utf-8", "replace") if message else "")
 
 
-_LOGGER = fmi2CallbackLoggerTYPE(_route_log)  # one callback object for the life of the process
-
-
 def _not_instantiated(*args: Any) -> int:
     raise RuntimeError("the FMU is not instantiated (initialize it first; a closed component cannot step)")
 
@@ -94,7 +105,7 @@ def _status_returning(method: Any) -> Any:
     def call(*args: Any) -> int:
         try:
             method(*args)
-        except FMICallException as error:
+        except _fmpy().FMICallException as error:
             return int(error.status)
         return 0
 
@@ -119,6 +130,8 @@ class UnpackedFmu:
 
     @classmethod
     def open(cls, path: Path) -> "UnpackedFmu":
+        from fmpy import extract, read_model_description
+
         scratch = ScratchDir(f"fmu-{Path(path).stem}")
         try:
             extract(str(path), str(scratch.path))
@@ -132,17 +145,13 @@ class UnpackedFmu:
     def open_cached(cls, path: Path) -> "UnpackedFmu":
         """``open``, from the cache of extracted FMUs: unzipped and checked against the FMI schema once
         per FMU file, its files checked against the zip's CRCs at every use; a private extraction
-        (``open``) when the cache cannot serve (orchestrator/fmu_cache.py)."""
+        (``open``) when the cache cannot serve (orchestrator/fmu_cache.py). ``description`` is then a
+        ``fmu_cache.Description``: the fields of FMPy's that a run reads."""
         held = fmu_cache.hold(Path(path))
         if held is None:
             return cls.open(path)
-        try:
-            # the same bytes as in the zip (CRC-checked just now), schema-checked when the entry was made
-            description = read_model_description(str(held.directory), validate=False)
-        except BaseException:
-            held.release()
-            raise
-        return cls(Path(path), held.directory, description, False, None, held)
+        # as FMPy read it (and checked it against the FMI schema) when the entry was made: no FMPy now
+        return cls(Path(path), held.directory, held.description, False, None, held)
 
     @property
     def guid(self) -> str:
@@ -212,24 +221,25 @@ class FmuComponent:
         self._variables = variables
         self.messages: deque[str] = deque(maxlen=50)  # the latest FMU log lines, for error reports
         self._time = 0.0
-        self._slave = FMU2Slave(
+        api = _fmpy()
+        self._slave = api.FMU2Slave(
             guid=fmu.guid,
             unzipDirectory=str(fmu.directory),
             modelIdentifier=fmu.description.coSimulation.modelIdentifier,
             instanceName=name,
         )
-        self._callbacks = fmi2CallbackFunctions()
+        self._callbacks = api.fmi2CallbackFunctions()
         self._environment = next(_ENVIRONMENTS)
         _MESSAGES_BY_ENVIRONMENT[self._environment] = self.messages
-        self._callbacks.logger = _LOGGER
+        self._callbacks.logger = api.logger
         self._callbacks.componentEnvironment = self._environment
-        self._callbacks.allocateMemory = fmi2CallbackAllocateMemoryTYPE(calloc)
-        self._callbacks.freeMemory = fmi2CallbackFreeMemoryTYPE(free)
-        addLoggerProxy(byref(self._callbacks))
-        self._in_refs = (fmi2ValueReference * len(self.inputs))(*[variables[n].valueReference for n in self.inputs])
-        self._in_values = (fmi2Real * len(self.inputs))()
-        self._out_refs = (fmi2ValueReference * len(self.outputs))(*[variables[n].valueReference for n in self.outputs])
-        self._out_values = (fmi2Real * len(self.outputs))()
+        self._callbacks.allocateMemory = api.allocate
+        self._callbacks.freeMemory = api.free
+        api.addLoggerProxy(byref(self._callbacks))
+        self._in_refs = (api.fmi2ValueReference * len(self.inputs))(*[variables[n].valueReference for n in self.inputs])
+        self._in_values = (api.fmi2Real * len(self.inputs))()
+        self._out_refs = (api.fmi2ValueReference * len(self.outputs))(*[variables[n].valueReference for n in self.outputs])
+        self._out_values = (api.fmi2Real * len(self.outputs))()
         # Bulk copies between Python floats and the arrays, one C loop each way: struct packs the input
         # vector straight into the array's buffer, and a float64 view of the output array lists it
         # (ctypes' own slicing converts and checks element by element, several times slower).
@@ -267,7 +277,7 @@ class FmuComponent:
                                  self._in_values)
         self._get_real = partial(raw("fmi2GetReal"), instance, self._out_refs, c_size_t(len(self.outputs)),
                                  self._out_values)
-        self._do_step = partial(raw("fmi2DoStep"), instance, self._step_from, self._step_size, c_int(fmi2True))
+        self._do_step = partial(raw("fmi2DoStep"), instance, self._step_from, self._step_size, c_int(_fmpy().fmi2True))
 
     def _fail(self, error: Exception) -> ComponentError:
         reason = self.messages[-1] if self.messages else str(error)
@@ -284,7 +294,7 @@ class FmuComponent:
             slave.setupExperiment(startTime=start_time)
             self._set_parameters()
             slave.enterInitializationMode()
-        except FMICallException as error:
+        except _fmpy().FMICallException as error:
             raise self._fail(error) from None
         except Exception as error:  # instantiation failure is a plain Exception in FMPy
             raise self._fail(error) from None
@@ -303,18 +313,18 @@ class FmuComponent:
     def end_initialization(self) -> None:
         try:
             self._slave.exitInitializationMode()
-        except FMICallException as error:
+        except _fmpy().FMICallException as error:
             raise self._fail(error) from None
 
     def set_inputs(self, values: Sequence[float]) -> None:
         self._pack_inputs(self._in_values, 0, *values)
         status = self._set_real()
-        if status > fmi2Warning:
+        if status > _FMI2_WARNING:
             self._raise("fmi2SetReal", status)
 
     def get_outputs(self) -> list[float]:
         status = self._get_real()
-        if status > fmi2Warning:
+        if status > _FMI2_WARNING:
             self._raise("fmi2GetReal", status)
         return self._output_view.tolist()
 
@@ -323,18 +333,18 @@ class FmuComponent:
         self._step_from.value = time
         self._step_size.value = step
         status = self._do_step()
-        if status > fmi2Warning:
+        if status > _FMI2_WARNING:
             self._raise("fmi2DoStep", status)
 
     def _raise(self, function: str, status: int) -> None:
         """Fail a call whose status is above fmi2Warning, with the exception FMPy's wrapper would raise."""
-        raise self._fail(FMICallException(function=function, status=status)) from None
+        raise self._fail(_fmpy().FMICallException(function=function, status=status)) from None
 
     def close(self) -> None:
         if self._instantiated:
             try:
                 self._slave.terminate()
-            except FMICallException:
+            except _fmpy().FMICallException:
                 pass
             # Free the instance but keep the shared library loaded: a pythonfmu binary leaves objects
             # in the host's interpreter, and unloading it (FMPy's freeInstance does) corrupts the heap

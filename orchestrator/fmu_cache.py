@@ -26,6 +26,11 @@ What keeps it safe:
 * **Bounded**: at most ``KEEP`` entries; when a new one is made, the least recently used beyond that
   are removed unless in use.
 
+The entry also keeps what a run reads of the model description (``description.json``: the GUID, the
+model identifier, each variable's name, value reference, type, causality, variability, initial, start,
+description and unit, as FMPy parsed them when the entry was made, with a CRC-32 of its own), so a
+run of the native engine needs no FMPy at all (``Description``).
+
 Files the FMU writes into its folder while running (e.g. ``__pycache__`` of a Python FMU's scripts,
 which now survive between runs) are not in the zip, and so are neither checked nor in the way.
 """
@@ -35,6 +40,7 @@ from __future__ import annotations
 import fcntl
 import hashlib
 import io
+import json
 import os
 import shutil
 import time
@@ -42,6 +48,7 @@ import zipfile
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from .scratch import LOCK_NAME, PREFIX, ScratchDir, sweep
 
@@ -49,7 +56,39 @@ CACHE_ENV = "PLATOON_FMU_CACHE"
 KEEP = 8  # entries kept (the project's FMUs are ~0.3 MB zipped, ~1 MB extracted)
 ENTRY_PREFIX = "fmu-"
 FILES = "fmu"  # the FMU's own files, inside the entry (beside the lock file)
+DESCRIPTION = "description.json"
+_VARIABLE_FIELDS = ("name", "valueReference", "type", "causality", "variability", "initial", "start", "description",
+                    "unit")
 _ATTEMPTS = 4  # an entry vanishing (replaced, evicted) between looking and locking is retried
+
+
+@dataclass(frozen=True)
+class Variable:
+    """The fields of FMPy's ``ModelVariable`` that a run reads."""
+
+    name: str
+    valueReference: int
+    type: str
+    causality: str
+    variability: str | None
+    initial: str | None
+    start: str | None
+    description: str | None
+    unit: str | None
+
+
+@dataclass(frozen=True)
+class CoSimulation:
+    modelIdentifier: str
+
+
+@dataclass(frozen=True)
+class Description:
+    """The part of FMPy's ``ModelDescription`` that a run reads, under the same names."""
+
+    guid: str
+    coSimulation: CoSimulation
+    modelVariables: list[Variable]
 
 
 @dataclass
@@ -57,6 +96,7 @@ class HeldFmu:
     """An FMU's extracted files in the cache, held (shared lock) until ``release``."""
 
     directory: Path
+    description: Description
     _lock: int | None
 
     def release(self) -> None:
@@ -102,7 +142,8 @@ def hold(fmu: Path, root: Path | None = None) -> HeldFmu | None:
                     _make(fmu, entry)
                 continue
             try:
-                intact = _intact(entry / FILES, members)
+                description = _read_description(entry / DESCRIPTION)
+                intact = description is not None and _intact(entry / FILES, members)
                 if intact:
                     now = time.time_ns()  # last use, for eviction (the kernel's own stamp is ~4 ms coarse)
                     os.utime(entry / LOCK_NAME, ns=(now, now))
@@ -110,7 +151,7 @@ def hold(fmu: Path, root: Path | None = None) -> HeldFmu | None:
                 os.close(lock)
                 raise
             if intact:
-                return HeldFmu(entry / FILES, lock)
+                return HeldFmu(entry / FILES, description, lock)
             if not _discard(entry, lock):  # damaged, and another run has it open: leave it to them
                 return None
     except OSError:
@@ -182,12 +223,32 @@ def _make(fmu: Path, entry: Path) -> None:
     maker = ScratchDir(entry.name, parent=entry.parent)  # also sweeps dead makers in the cache
     try:
         extract(str(fmu), str(maker.path / FILES))
-        read_model_description(str(maker.path / FILES))  # the FMI schema check, once per entry
+        description = read_model_description(str(maker.path / FILES))  # the FMI schema check, once per entry
+        _write_description(maker.path / DESCRIPTION, description)
     except BaseException:
         maker.remove()
         raise
     if maker.publish(entry):
         _evict(entry.parent)
+
+
+def _write_description(path: Path, description: Any) -> None:
+    record = {"guid": description.guid, "modelIdentifier": description.coSimulation.modelIdentifier,
+              "variables": [{field: getattr(v, field) for field in _VARIABLE_FIELDS} for v in description.modelVariables]}
+    path.write_text(json.dumps({"crc32": zlib.crc32(json.dumps(record, sort_keys=True).encode()), "record": record}))
+
+
+def _read_description(path: Path) -> Description | None:
+    """The entry's model description; None if missing or damaged."""
+    try:
+        stored = json.loads(path.read_bytes())
+        record = stored["record"]
+        if zlib.crc32(json.dumps(record, sort_keys=True).encode()) != stored["crc32"]:
+            return None
+        return Description(record["guid"], CoSimulation(record["modelIdentifier"]),
+                           [Variable(**variable) for variable in record["variables"]])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def _discard(entry: Path, lock: int) -> bool:

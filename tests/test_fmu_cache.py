@@ -16,12 +16,13 @@ from pathlib import Path
 
 import pytest
 
+from fmus.build import ALL_FMUS, build_fmus, fmi_platform
 from orchestrator import fmu_cache
 from orchestrator.components import UnpackedFmu
 from orchestrator.scratch import PREFIX
 
 REPO = Path(__file__).resolve().parents[1]
-BINARY = "binaries/linux64/Vehicle.so"
+BINARY = "binaries/{}/Vehicle{}".format(*fmi_platform())
 
 
 @pytest.fixture
@@ -207,15 +208,27 @@ def test_a_run_from_the_cache_records_what_a_private_one_does(tmp_path: Path, fm
     from orchestrator.run import run_scenario
     from orchestrator.trace import load
 
+    from mcap.reader import make_reader
+
+    def declared(path: Path) -> tuple[list, list]:
+        """The file's schemas and channels (names, encodings, data, metadata: the outputs' descriptions)."""
+        with open(path, "rb") as stream:
+            summary = make_reader(stream).get_summary()
+        return (sorted((s.name, s.encoding, s.data) for s in summary.schemas.values()),
+                sorted((c.topic, c.message_encoding, sorted(c.metadata.items())) for c in summary.channels.values()))
+
     config = config_from_mapping({"name": "cached", "platoon": {"count": 3}, "simulation": {"stop_time": 1.0}})
-    traces = {}
+    traces, files = {}, []
     for mode in ("off", str(tmp_path / "cache"), str(tmp_path / "cache")):  # private, cache made, cache used
         monkeypatch.setenv(fmu_cache.CACHE_ENV, mode)
         out = tmp_path / f"{len(traces)}.mcap"
         assert run_scenario(config, "", out, fmu_dir=fmu_dir).status == "completed"
         traces[len(traces)] = load(out)
+        files.append(out)
     assert len(entries(tmp_path / "cache")) == 2  # Vehicle and VirtualTarget
+    assert declared(files[0]) == declared(files[1]) == declared(files[2])
     first = traces[0]
+    assert first.metadata["platoon.fmus"] == traces[1].metadata["platoon.fmus"] == traces[2].metadata["platoon.fmus"]
     for other in (traces[1], traces[2]):
         assert first.channels.keys() == other.channels.keys() and first.errors.keys() == other.errors.keys()
         for name, columns in first.channels.items():
@@ -239,3 +252,31 @@ def test_making_an_entry_sweeps_what_killed_private_runs_left(vehicle: Path, roo
     (dead / ".owner.lock").touch()  # its owner's lock died with it
     fmu_cache.hold(vehicle, root).release()
     assert not dead.exists()
+
+
+@pytest.mark.parametrize("name", ALL_FMUS)
+def test_the_cached_description_is_fmpys(fmu_dir: Path, root: Path, name: str) -> None:
+    """A run from the cache reads the model description without FMPy: every field it reads must be
+    what FMPy reads from the FMU."""
+    from fmpy import read_model_description
+
+    fmu = next(built.path for built in build_fmus(fmu_dir, names=ALL_FMUS) if built.name == name)
+    held = fmu_cache.hold(fmu, root)
+    expected, got = read_model_description(str(fmu)), held.description
+    held.release()
+    assert got.guid == expected.guid and got.coSimulation.modelIdentifier == expected.coSimulation.modelIdentifier
+    assert len(got.modelVariables) == len(expected.modelVariables) > 0
+    for ours, fmpys in zip(got.modelVariables, expected.modelVariables):
+        for field in fmu_cache._VARIABLE_FIELDS:
+            assert getattr(ours, field) == getattr(fmpys, field), (ours.name, field)
+
+
+def test_a_damaged_cached_description_is_made_again(vehicle: Path, root: Path) -> None:
+    held = fmu_cache.hold(vehicle, root)
+    held.release()
+    stored = held.directory.parent / fmu_cache.DESCRIPTION
+    stored.write_text(stored.read_text().replace('"output"', '"input"', 1))  # still valid JSON
+    again = fmu_cache.hold(vehicle, root)
+    assert again is not None and again.description == held.description
+    again.release()
+    assert len(entries(root)) == 1 and leftovers(root) == []

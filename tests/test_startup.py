@@ -20,9 +20,10 @@ from orchestrator.trace.foxglove import PALETTE, vehicle_colors
 REPO = Path(__file__).resolve().parents[1]
 
 # What a run must not import (module names, or package prefixes ending in "."): plotting, dataframes,
-# the Dask cluster, the sweep runner, the analysis, the figure code and the trace reader (a run
-# accumulates its summary while stepping; it reads its trace only when the run ended early)
-NOT_FOR_A_RUN = ("matplotlib.", "PIL.", "dask.", "distributed.", "pandas.", "scipy.", "zenoh.",
+# the Dask cluster, the sweep runner, the analysis, the figure code, the trace reader (a run
+# accumulates its summary while stepping; it reads its trace only when the run ended early), and FMPy
+# (the native engine steps the FMUs itself; their cached model description needs no FMPy)
+NOT_FOR_A_RUN = ("matplotlib.", "PIL.", "dask.", "distributed.", "pandas.", "scipy.", "zenoh.", "fmpy.", "lxml.",
                  "orchestrator.analysis", "orchestrator.plots", "orchestrator.figure", "orchestrator.sweep.runner",
                  "orchestrator.sweep.executors", "orchestrator.trace.reader", "mcap.reader", "rich.progress",
                  "rich.table")
@@ -107,3 +108,12 @@ def test_large_platoons_get_matplotlibs_viridis(count: int) -> None:
 
 def test_small_platoons_keep_the_palette() -> None:
     assert vehicle_colors(len(PALETTE)) == PALETTE and vehicle_colors(3) == PALETTE[:3]
+
+
+def test_the_fmi_platform_is_fmpys() -> None:
+    """fmus.build names this machine's binaries folder without importing FMPy; FMPy's names rule."""
+    import fmpy
+
+    from fmus.build import fmi_platform
+
+    assert fmi_platform() == (fmpy.platform, fmpy.sharedLibraryExtension)
