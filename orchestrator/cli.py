@@ -221,15 +221,15 @@ def run(
     allow_long: AllowLong = False,
 ) -> None:
     """Run a scenario: wire the FMUs as the paper's Fig. 2, step them, write an MCAP trace."""
-    from .startup import seconds_since_process_start, single_threaded_blas
+    from .startup import loading_a_run, seconds_since_process_start
 
     entered = seconds_since_process_start()  # the interpreter and the imports so far
     if trace_every is not None:
         overrides = [*overrides, f"simulation.trace_every={trace_every}"]
     parsed, text = _load(config, overrides, allow_long)
     loaded = seconds_since_process_start()
-    single_threaded_blas()  # before numpy is imported
-    from .run import default_engine, default_trace_path
+    with loading_a_run():  # one BLAS thread, no garbage collection while the run's modules load
+        from .run import default_engine, default_trace_path
 
     imported = seconds_since_process_start()  # the engines, FMPy, numpy, the trace writer
     if engine_name not in (None, "native", "python"):

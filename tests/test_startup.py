@@ -29,7 +29,9 @@ NOT_FOR_A_RUN = ("matplotlib.", "PIL.", "dask.", "distributed.", "pandas.", "sci
                  "rich.table")
 
 _PROBE = """
-import json, sys
+import gc, json, sys
+full = []
+gc.callbacks.append(lambda phase, info: full.append(1) if phase == "stop" and info["generation"] == 2 else None)
 from orchestrator.cli import app
 sys.argv = ["platoon", *sys.argv[1:]]
 try:
@@ -40,7 +42,7 @@ names = sorted(sys.modules)
 import os
 threads = len(os.listdir("/proc/self/task"))  # the run's own: inline trace writer, no pool of any kind
 print("MODULES " + json.dumps({"code": code, "modules": names, "threads": threads,
-                               "blas": os.environ.get("OPENBLAS_NUM_THREADS")}))
+                               "blas": os.environ.get("OPENBLAS_NUM_THREADS"), "full_collections": len(full)}))
 """
 
 
@@ -85,6 +87,12 @@ def test_a_run_starts_no_blas_threads(tmp_path: Path, fmu_dir: Path) -> None:
     """numpy's OpenBLAS would start a thread per core at import; a run does no linear algebra."""
     found = probe(*quiet_run(tmp_path), cwd=REPO, drop=("OPENBLAS_NUM_THREADS",))
     assert found["blas"] == "1" and found["threads"] == 1, found
+
+
+def test_a_run_makes_no_full_garbage_collection(tmp_path: Path, fmu_dir: Path) -> None:
+    """Start-up objects live as long as the process: loading them must not cost full collections
+    (orchestrator/startup.py, loading_a_run)."""
+    assert probe(*quiet_run(tmp_path), cwd=REPO)["full_collections"] == 0
 
 
 def test_a_users_blas_setting_is_kept(tmp_path: Path, fmu_dir: Path) -> None:
