@@ -3,7 +3,7 @@
 A run used to extract each FMU into a fresh scratch folder, read its model description from the zip
 and check it against the FMI schema, and delete the folder at the end: ~0.05 s of every run's start-up
 (docs/performance.md, "Whole runs"). Now each FMU file is extracted once into
-``~/.cache/platoon-cosim/fmus/fmu-<stem>-<sha256 of the file>/`` (``$XDG_CACHE_HOME`` is honoured;
+``~/.cache/platoon-cosim/fmus/fmu-<stem>-<sha256 of the file, 128 bits>/`` (``$XDG_CACHE_HOME`` is honoured;
 ``PLATOON_FMU_CACHE`` names another folder, or ``off``), and later runs use that folder.
 
 What keeps it safe:
@@ -25,6 +25,8 @@ What keeps it safe:
   key, so no run ever sees its folder change under it (the kernel drops a killed run's lock).
 * **Bounded**: at most ``KEEP`` entries; when a new one is made, the least recently used beyond that
   are removed unless in use.
+* **Private**: the cache folder is made for the user alone; one that others can write into is not
+  used (it could hold a binary we never unzipped: a CRC is no defence against a forger).
 
 The entry also keeps what a run reads of the model description (``description.json``: the GUID, the
 model identifier, each variable's name, value reference, type, causality, variability, initial, start,
