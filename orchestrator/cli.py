@@ -227,6 +227,7 @@ def run(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar and no table")] = False,
     trace_every: Annotated[Optional[int], typer.Option("--trace-every", min=1, help="record every K-th communication point (overrides simulation.trace_every)")] = None,
     engine_name: Annotated[Optional[str], typer.Option("--engine", help="native (compiled stepping core; default when built) or python (FMPy); same results")] = None,
+    fmu_kind: Annotated[Optional[str], typer.Option("--fmus", help="native (C FMUs, default where a C compiler can build them) or python (pythonfmu FMUs); same results (overrides simulation.fmus)")] = None,
     trace_writer: Annotated[str, typer.Option("--trace-writer", help="where the trace is encoded: process (a second process), inline, or auto (a second process for long runs on a multi-core machine); same file")] = "auto",
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="also print where the wall time went: start-up (imports, config, FMUs), the run's phases, the summary")] = False,
@@ -242,6 +243,8 @@ def run(
 
     if trace_every is not None:
         overrides = [*overrides, f"simulation.trace_every={trace_every}"]
+    if fmu_kind is not None:
+        overrides = [*overrides, f"simulation.fmus={json.dumps(fmu_kind)}"]
     parsed, text = _load(config, overrides, allow_long)
     loaded = seconds_since_process_start()
     from .run import default_engine
@@ -265,7 +268,14 @@ def run(
     reference_path = trace.with_name(trace.stem + "-monolithic.mcap")
     if compare:  # checked now, claimed when its turn comes (no empty aside file if the run fails)
         _check_output(reference_path, overwrite, [config])
-    result = _execute(parsed, text, target, engine, quiet, trace_writer)
+    from fmus.build import BuildError
+
+    from .fmu_kinds import FmuKindError
+
+    try:
+        result = _execute(parsed, text, target, engine, quiet, trace_writer)
+    except (FmuKindError, BuildError) as error:  # nothing was run, the trace path is released
+        _fail(2, f"config {config}: {error}")
     from .viewer_cli import write_run_layout
 
     layout = write_run_layout(trace, parsed, warn=result.status == "completed")  # beside the trace; None: not written
@@ -280,7 +290,7 @@ def run(
     if not quiet:
         # accumulated while stepping; the trace is read again only if the run's end was not the planned one
         summaries = result.summary if result.summary is not None else summarize(load(result.trace), parsed)
-        out.print(_summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine}, {parsed.simulation.stop_time:g} s"))
+        out.print(_summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine}, {result.fmus} FMUs, {parsed.simulation.stop_time:g} s"))
     out.print(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)")
     if layout is not None:
         out.print(f"layout: {layout}  (open both in Foxglove: docs/foxglove.md)")
@@ -571,22 +581,28 @@ def _bench(suite: str, measure, render, out_dir: Path, quiet: bool) -> None:
     out.print(f"results: {write_result(out_dir, suite, result)}", highlight=False, soft_wrap=True)
 
 
-def _per_fmu_step(suite_name: str, engines: str, n: str, steps: int, rounds: int, out_dir: Path, quiet: bool) -> None:
+def _per_fmu_step(suite_name: str, engines: str, n: str, steps: int, rounds: int, out_dir: Path, quiet: bool,
+                  **options) -> None:
     """The two suites of FMU-step costs (``steps``, ``coupling``): same options, same checks."""
     from importlib import import_module
 
     suite = import_module(f".bench.{suite_name}", __package__)
     chosen, counts = _csv("--engines", engines, BENCH_ENGINES), _counts(n)
-    _bench(suite_name, lambda progress: suite.run(chosen, counts, steps, rounds, progress=progress), suite.markdown,
-           out_dir, quiet)
+    _bench(suite_name, lambda progress: suite.run(chosen, counts, steps, rounds, progress=progress, **options),
+           suite.markdown, out_dir, quiet)
 
 
 @bench_app.command("steps")
 def bench_steps(engines: Engines = "native,python,fmpy-bare,libcosim,libcosim-0threads,libcosim-0threads-lastvalue,slaves",
                 n: Counts = "4,16,64,256", steps: Steps = 1000, rounds: Rounds = 5,
-                out_dir: OutDir = Path("runs/bench"), quiet: Quiet = False) -> None:
-    """Microseconds per FMU-step of our engines, the bare FMPy loop, libcosim and the floor, by N."""
-    _per_fmu_step("steps", engines, n, steps, rounds, out_dir, quiet)
+                out_dir: OutDir = Path("runs/bench"), quiet: Quiet = False,
+                fmus: Annotated[Optional[str], typer.Option("--fmus", help="comma-separated FMU kinds: python, native (default: both where a C compiler builds the native ones)")] = None) -> None:
+    """Microseconds per FMU-step of our engines, the bare FMPy loop, libcosim and the floor, by N, for the
+    pythonfmu FMUs and the native ones."""
+    from .fmu_kinds import FMU_KINDS
+
+    kinds = None if fmus is None else _csv("--fmus", fmus, FMU_KINDS)
+    _per_fmu_step("steps", engines, n, steps, rounds, out_dir, quiet, fmu_kinds=kinds)
 
 
 @bench_app.command("coupling")

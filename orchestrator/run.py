@@ -18,13 +18,14 @@ from pathlib import Path
 from typing import Callable
 
 import fmus
-from fmus.build import DEFAULT_OUT, build_fmus
+from fmus.build import DEFAULT_OUT, FMU_NAMES
 from fmus.model.factory import target_stepper, vehicle_stepper
 from fmus.model.platoon import PlatoonSystem
 
 from . import __version__
 from .components import ComponentError, FmuComponent, UnpackedFmu
 from .config import Config
+from .fmu_kinds import resolve_fmu_kind
 from .live import LiveReporter, check_live_options, live_component, live_names
 from .master import Master
 from .metrics import RunningSummary, VehicleSummary, running_summary
@@ -85,6 +86,7 @@ class RunResult:
     # run_scenario(..., summarize=True) of a completed run: the summary of the recorded rows, as
     # `platoon report` computes it from the trace (None otherwise)
     summary: list[VehicleSummary] | None = None
+    fmus: str = ""  # the FMU kind stepped: "native" or "python" (orchestrator/fmu_kinds.py)
 
 
 def tool_versions() -> dict[str, str]:
@@ -106,8 +108,10 @@ def _descriptions(fmu: UnpackedFmu) -> dict[str, str]:
     }
 
 
-def _open_fmus(fmu_dir: Path) -> dict[str, UnpackedFmu]:
-    return {built.name: UnpackedFmu.open(built.path) for built in build_fmus(fmu_dir)}
+def _open_fmus(fmu_dir: Path, kind: str) -> dict[str, UnpackedFmu]:
+    from .fmu_kinds import ensure_fmus
+
+    return {name: UnpackedFmu.open(path) for name, path in ensure_fmus(fmu_dir, kind, FMU_NAMES).items()}
 
 
 def open_trace_writer(
@@ -281,7 +285,8 @@ def run_scenario(
         opening = clock.perf_counter()
         if target is not None and writer_kind == "process":
             trace_process = TraceProcess(keep_fds=(target.fd,))
-        fmus_by_kind = _open_fmus(fmu_dir)
+        fmu_kind = resolve_fmu_kind(config.simulation.fmus)
+        fmus_by_kind = _open_fmus(fmu_dir, fmu_kind)
     except BaseException:
         if trace_process is not None:
             trace_process.close()
@@ -314,12 +319,13 @@ def run_scenario(
         writer.metadata("platoon.config", {"toml": config_text, "resolved": config.model_dump_json()})
         writer.metadata("platoon.fmus", {kind: fmu.guid for kind, fmu in fmus_by_kind.items()})
         writer.metadata("platoon.tool", tool_versions())
-        writer.metadata("platoon.start", {"engine": engine, "master": sim.master, "trace_every": str(sim.trace_every),
+        writer.metadata("platoon.start", {"engine": engine, "fmus": fmu_kind, "master": sim.master,
+                                          "trace_every": str(sim.trace_every),
                                           "trace_writer": writer_kind,
                                           "scene_rate": repr(float(scene_rate)) if foxglove else "",
                                           "started": clock.strftime("%Y-%m-%dT%H:%M:%S%z")})
         writer.log(0.0, "Info", f"run started: {config.name}, {config.platoon.count} vehicles, {config.platoon.law} law, "
-                                f"{engine} engine ({sim.master}), step {sim.step:g} s, stop {sim.stop_time:g} s")
+                                f"{engine} engine ({sim.master}), {fmu_kind} FMUs, step {sim.step:g} s, stop {sim.stop_time:g} s")
         record = writer.record
         feed = _SummaryFeed(config, components, steps, sim.trace_every) if summarize else None
         if feed is not None:
@@ -408,7 +414,7 @@ def run_scenario(
     marks["finish"] = clock.perf_counter()
     summary = feed.result() if feed is not None and status == "completed" else None
     return RunResult(target.where() if target is not None else None, steps, marks["finish"] - started, status, error,
-                     signum, {"open": opened, **_phase_durations(marks)}, live_summary, summary)
+                     signum, {"open": opened, **_phase_durations(marks)}, live_summary, summary, fmu_kind)
 
 
 class _SummaryFeed:

@@ -81,7 +81,9 @@ def sweep(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only failures and the final line")] = False,
 ) -> None:
     """Run a parameter sweep (a grid and/or random samples over a base config); stop and resume at will."""
-    from fmus.build import DEFAULT_OUT, build_fmus
+    from fmus.build import DEFAULT_OUT
+
+    from ..fmu_kinds import prepare_fmus
 
     from ..cli import _fail, out
     from .executors import DaskExecutor, Executor, LocalExecutor, SweepAborted
@@ -99,7 +101,7 @@ def sweep(
     except SweepError as error:
         _fail(2, str(error))
     fmu_dir = DEFAULT_OUT.resolve()
-    build_fmus(fmu_dir)  # once, before the workers start (each run only checks that they are up to date)
+    prepare_fmus(fmu_dir)  # once, before the workers start (each run only checks that they are up to date)
     display = _Display(quiet)
     try:
         executor: Executor = DaskExecutor(scheduler) if scheduler is not None else LocalExecutor(workers or _cores())

@@ -134,14 +134,14 @@ def terminate_children() -> None:
 def _fmus_here(fmu_dir: str) -> Path:
     """The FMUs on this (possibly remote) host: ``fmu_dir`` if the client's folder is here, else a
     per-user cache built once (a lock, since several worker processes may start together)."""
-    from fmus.build import build_fmus
+    from ..fmu_kinds import prepare_fmus
 
     wanted = Path(fmu_dir)
     folder = wanted if wanted.is_dir() else Path(tempfile.gettempdir()) / f"platoon-sweep-fmus-{os.getuid()}"
     folder.mkdir(parents=True, exist_ok=True)
     with open(folder / ".build.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        build_fmus(folder)
+        prepare_fmus(folder)
     return folder
 
 
