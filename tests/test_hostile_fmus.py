@@ -104,10 +104,13 @@ def run_libcosim(fmu: Path, case: dict) -> tuple[int, list[dict], str]:
 @pytest.mark.parametrize("fmu, name", [("Vehicle", "target.x"), ("Vehicle", "follower.gap"),
                                        ("VirtualTarget", "lead.gap")])
 @pytest.mark.parametrize("value", [math.inf, math.nan])
-def test_libcosim_survives_a_non_finite_input(fmu_dir, fmu, name, value):
+@pytest.mark.parametrize("kind", ["python", "native"])
+def test_libcosim_survives_a_non_finite_input(request, kind, fmu, name, value):
     """libcosim sets the input through its override manipulator: every step then fails (our setReal
-    refuses the value, naming it), libcosim reports it, and the process goes on and ends normally."""
-    code, records, text = run_libcosim(fmu_dir / f"{fmu}.fmu", {"override": {name: value}, "steps": 3})
+    refuses the value, naming it), libcosim reports it, and the process goes on and ends normally.
+    The same for the pythonfmu FMUs and their native twins."""
+    folder = request.getfixturevalue("fmu_dir" if kind == "python" else "native_fmu_dir")
+    code, records, text = run_libcosim(folder / f"{fmu}.fmu", {"override": {name: value}, "steps": 3})
     assert code == 0 and records[-1] == {"end": True}, text[-2000:]
     assert [r["ok"] for r in records if "step" in r] == [False, False, False]
     assert f"refused {name} = {value}: values must be finite" in text
