@@ -261,3 +261,65 @@ def sys_executable() -> str:
     import sys
 
     return sys.executable
+
+
+# --- the C helpers that make the numbers and the messages Python's ------------------------------------
+
+
+@pytest.fixture(scope="module")
+def c_helpers(tmp_path_factory):
+    """fmus/native/pymath.h's py_hypot and framework.c's fw_text_float, compiled as the FMUs are."""
+    import ctypes
+
+    from fmus.native_build import CFLAGS, NATIVE_SOURCES, NoCompiler, compiler
+
+    try:
+        cc = compiler()
+    except NoCompiler as error:
+        pytest.skip(str(error))
+    folder = tmp_path_factory.mktemp("c_helpers")
+    (folder / "probe.c").write_text(
+        '#include "pymath.h"\n#include "framework.h"\n#include <string.h>\n'
+        "double probe_hypot(double x, double y) { return py_hypot(x, y); }\n"
+        "void probe_repr(double x, char *out) { FwText t; fw_text_clear(&t); fw_text_float(&t, x); strcpy(out, t.text); }\n")
+    library = folder / "probe.so"
+    subprocess.run([cc, *[flag for flag in CFLAGS if flag != "-fvisibility=hidden"], f"-I{NATIVE_SOURCES}",
+                    str(folder / "probe.c"), str(NATIVE_SOURCES / "framework.c"), "-o", str(library), "-lm"],
+                   check=True, capture_output=True)
+    probe = ctypes.CDLL(str(library))
+    probe.probe_hypot.restype = ctypes.c_double
+    probe.probe_hypot.argtypes = [ctypes.c_double, ctypes.c_double]
+    probe.probe_repr.argtypes = [ctypes.c_double, ctypes.c_char_p]
+    return probe
+
+
+def test_py_hypot_is_pythons_math_hypot_to_the_last_bit(c_helpers):
+    """glibc's hypot differs from math.hypot in the last bit for about 0.2 % of arguments; py_hypot
+    never does: 200 000 random pairs over the whole range of doubles, and the edge cases."""
+    import math
+    import random
+
+    generator = random.Random(21)
+    pairs = [(generator.uniform(-1, 1) * 10.0 ** generator.uniform(-3, 3),
+              generator.uniform(-1, 1) * 10.0 ** generator.uniform(-3, 3)) for _ in range(100_000)]
+    pairs += [(generator.uniform(-1, 1) * 10.0 ** generator.uniform(-310, 308),
+               generator.uniform(-1, 1) * 10.0 ** generator.uniform(-310, 308)) for _ in range(100_000)]
+    pairs += [(0.0, 0.0), (-0.0, 5e-324), (5e-324, 5e-324), (1e-310, 2.2250738585072014e-308), (3.0, 4.0),
+              (1e308, 1e308), (1.7e308, 1.7e308), (math.inf, math.nan), (math.nan, 1.0), (-math.inf, 0.0)]
+    wrong = [(x, y) for x, y in pairs
+             if not (c_helpers.probe_hypot(x, y) == math.hypot(x, y)
+                     or math.isnan(c_helpers.probe_hypot(x, y)) and math.isnan(math.hypot(x, y)))]
+    assert wrong == []
+
+
+def test_reasons_print_numbers_as_python_does(c_helpers):
+    """The native FMUs' refusals quote values as the pythonfmu FMUs' do (repr of a float)."""
+    import ctypes
+    import math
+
+    values = [0.0, -0.0, -1.0, 75.0, 0.01, 1e-05, 0.0001, 1e16, 1e15, 123456789012345.6, 2.5e-300, 1e308,
+              -43.30127018922194, 1 / 3, math.inf, -math.inf, math.nan, 100.0, 5e-324]
+    buffer = ctypes.create_string_buffer(64)
+    for value in values:
+        c_helpers.probe_repr(value, buffer)
+        assert buffer.value.decode() == repr(value)

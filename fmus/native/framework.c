@@ -68,8 +68,8 @@ void fw_text_float(FwText *out, double value)
     }
     char mantissa[24];
     size_t count = 0;
-    for (; *p && *p != 'e'; ++p) {
-        if (*p != '.' && count < sizeof mantissa - 1) mantissa[count++] = *p;
+    for (; *p && *p != 'e'; ++p) { /* the digits only: the decimal point may be a host locale's ',' */
+        if (*p >= '0' && *p <= '9' && count < sizeof mantissa - 1) mantissa[count++] = *p;
     }
     mantissa[count] = '\0';
     int exponent = *p == 'e' ? atoi(p + 1) : 0;
