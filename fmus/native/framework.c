@@ -68,8 +68,8 @@ void fw_text_float(FwText *out, double value)
     }
     char mantissa[24];
     size_t count = 0;
-    for (; *p && *p != 'e'; ++p) {
-        if (*p != '.' && count < sizeof mantissa - 1) mantissa[count++] = *p;
+    for (; *p && *p != 'e'; ++p) { /* the digits only: the decimal point may be a host locale's ',' */
+        if (*p >= '0' && *p <= '9' && count < sizeof mantissa - 1) mantissa[count++] = *p;
     }
     mantissa[count] = '\0';
     int exponent = *p == 'e' ? atoi(p + 1) : 0;
@@ -218,10 +218,19 @@ static int set_start_values(Instance *instance)
     return 1;
 }
 
+#define FW_INSTANCE_MAGIC 0x504c544eu /* "PLTN" */
+#define FW_STATE_MAGIC 0x504c5453u    /* "PLTS" */
+
+int fw_is_instance(const void *pointer)
+{
+    return pointer && ((const Instance *)pointer)->magic == FW_INSTANCE_MAGIC;
+}
+
 Instance *fw_instantiate(const ModelDef *model, const char *name, FwLogFunction log, void *host, int logging_on)
 {
     Instance *instance = calloc(1, sizeof *instance);
     if (!instance) return NULL;
+    instance->magic = FW_INSTANCE_MAGIC;
     int count = model->variable_count;
     instance->model = model;
     instance->name = copy_text(name ? name : "");
@@ -232,9 +241,10 @@ Instance *fw_instantiate(const ModelDef *model, const char *name, FwLogFunction 
     instance->reals = calloc((size_t)count, sizeof *instance->reals);
     instance->integers = calloc((size_t)count, sizeof *instance->integers);
     instance->strings = calloc((size_t)count, sizeof *instance->strings);
+    instance->scratch = calloc((size_t)count, sizeof *instance->scratch);
     instance->config = calloc(1, model->config_size ? model->config_size : 1);
-    if (!instance->name || !instance->reals || !instance->integers || !instance->strings || !instance->config ||
-        !set_start_values(instance)) {
+    if (!instance->name || !instance->reals || !instance->integers || !instance->strings || !instance->scratch ||
+        !instance->config || !set_start_values(instance)) {
         fw_free(instance);
         return NULL;
     }
@@ -244,12 +254,14 @@ Instance *fw_instantiate(const ModelDef *model, const char *name, FwLogFunction 
 void fw_free(Instance *instance)
 {
     if (!instance) return;
+    instance->magic = 0;
     if (instance->strings) {
         for (int vr = 0; vr < instance->model->variable_count; ++vr) free(instance->strings[vr]);
     }
     free(instance->strings);
     free(instance->integers);
     free(instance->reals);
+    free(instance->scratch);
     free(instance->config);
     free(instance->failure);
     free(instance->name);
@@ -333,13 +345,18 @@ FwStatus fw_reset(Instance *instance)
 
 /* --- outputs ----------------------------------------------------------------------------------------- */
 
-/* The names and values of the outputs in values that are not finite, or 0 if all are. */
+/* How many outputs in values are not finite (0 if all are); their names and values into names
+ * unless it is NULL. */
 static int not_finite_outputs(const Instance *instance, const double *values, FwText *names)
 {
     int count = 0;
     for (int vr = 0; vr < instance->model->variable_count; ++vr) {
         const VariableDef *variable = &instance->model->variables[vr];
         if (variable->causality != CAUSALITY_OUTPUT || isfinite(values[vr])) continue;
+        if (!names) {
+            ++count;
+            continue;
+        }
         fw_text_append(names, "%s%s = ", count ? ", " : "", variable->name);
         fw_text_float(names, values[vr]);
         ++count;
@@ -368,19 +385,16 @@ static FwStatus current_outputs(Instance *instance)
         instance->model->configure(instance);
         instance->time = instance->start_time;
     }
-    double *values = malloc((size_t)instance->model->variable_count * sizeof *values);
-    if (!values) return fw_refuse(instance, "out of memory");
+    double *values = instance->scratch;
     memcpy(values, instance->reals, (size_t)instance->model->variable_count * sizeof *values);
     instance->model->outputs(instance, values);
     FwText names;
     fw_text_clear(&names);
     if (not_finite_outputs(instance, values, &names)) {
-        free(values);
         return fw_refuse(instance, "output(s) %s not finite at t = %.6g s; check the inputs", names.text,
                          instance->time);
     }
     copy_outputs(instance, values);
-    free(values);
     return FW_OK;
 }
 
@@ -582,18 +596,13 @@ FwStatus fw_do_step(Instance *instance, double t, double h)
         return FW_DISCARD;
     }
     int count = instance->model->variable_count;
-    double *values = malloc((size_t)count * sizeof *values);
-    if (!values) {
-        memcpy(instance->state, state, sizeof state);
-        instance->time = time;
-        return fw_refuse(instance, "out of memory");
-    }
+    double *values = instance->scratch;
     memcpy(values, instance->reals, (size_t)count * sizeof *values);
     instance->model->outputs(instance, values);
-    FwText names;
-    fw_text_clear(&names);
-    if (not_finite_outputs(instance, values, &names)) {
-        free(values);
+    if (not_finite_outputs(instance, values, NULL)) {
+        FwText names;
+        fw_text_clear(&names);
+        not_finite_outputs(instance, values, &names);
         memcpy(instance->state, state, sizeof state);
         instance->time = time;
         fw_log(instance, FW_DISCARD, "step from t = %.6g s by h = %.6g s refused: output(s) %s would not be finite; "
@@ -601,7 +610,6 @@ FwStatus fw_do_step(Instance *instance, double t, double h)
         return FW_DISCARD;
     }
     copy_outputs(instance, values);
-    free(values);
     return FW_OK;
 }
 
@@ -621,6 +629,7 @@ FwStatus fw_do_step(Instance *instance, double t, double h)
 #define STATE_FORMAT 1u
 
 struct FwState {
+    unsigned int magic; /* FW_STATE_MAGIC while alive */
     const ModelDef *model;
     Mode mode;
     double start_time;
@@ -633,7 +642,8 @@ struct FwState {
 
 static void state_release(FwState *state)
 {
-    if (!state) return;
+    if (!state || state->magic != FW_STATE_MAGIC) return;
+    state->magic = 0;
     if (state->strings) {
         for (int vr = 0; vr < state->model->variable_count; ++vr) free(state->strings[vr]);
     }
@@ -647,6 +657,7 @@ static FwState *state_new(const ModelDef *model)
 {
     FwState *state = calloc(1, sizeof *state);
     if (!state) return NULL;
+    state->magic = FW_STATE_MAGIC;
     state->model = model;
     state->reals = calloc((size_t)model->variable_count, sizeof *state->reals);
     state->integers = calloc((size_t)model->variable_count, sizeof *state->integers);
@@ -688,7 +699,7 @@ FwStatus fw_get_state(Instance *instance, FwState **state)
     REFUSE_IF_FAILED(instance);
     if (!state) return fw_refuse(instance, "getFMUstate: the state pointer is NULL");
     FwState *target = *state;
-    if (target && target->model != instance->model) {
+    if (target && (target->magic != FW_STATE_MAGIC || target->model != instance->model)) {
         return fw_refuse(instance, "getFMUstate: the state to overwrite is not one of this model's");
     }
     if (!target && !(target = state_new(instance->model))) return fw_refuse(instance, "getFMUstate: out of memory");
@@ -710,6 +721,7 @@ FwStatus fw_set_state(Instance *instance, const FwState *state)
 {
     REFUSE_IF_FAILED(instance);
     if (!state) return fw_refuse(instance, "refused the FMU state: it is NULL");
+    if (state->magic != FW_STATE_MAGIC) return fw_refuse(instance, "refused the FMU state: it is not a live FMU state");
     if (state->model != instance->model) {
         return fw_refuse(instance, "refused the FMU state: it is a state of another model, not of %s",
                          instance->model->identifier);
@@ -830,6 +842,7 @@ static void write_state(Writer *w, const FwState *state)
 FwStatus fw_serialized_size(Instance *instance, const FwState *state, size_t *size)
 {
     if (!state || !size) return fw_refuse(instance, "serializedFMUstateSize: a NULL argument");
+    if (state->magic != FW_STATE_MAGIC) return fw_refuse(instance, "serializedFMUstateSize: not a live FMU state");
     Writer w = {NULL, 0, 0, 0};
     write_state(&w, state);
     *size = w.position;
@@ -839,6 +852,7 @@ FwStatus fw_serialized_size(Instance *instance, const FwState *state, size_t *si
 FwStatus fw_serialize(Instance *instance, const FwState *state, unsigned char *bytes, size_t size)
 {
     if (!state || !bytes) return fw_refuse(instance, "serializeFMUstate: a NULL argument");
+    if (state->magic != FW_STATE_MAGIC) return fw_refuse(instance, "serializeFMUstate: not a live FMU state");
     Writer w = {bytes, size, 0, 0};
     write_state(&w, state);
     if (w.overflow) return fw_refuse(instance, "serializeFMUstate: %zu bytes are too few", size);
