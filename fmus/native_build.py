@@ -14,14 +14,16 @@ FMUs is taken from the same Python declarations at build time, so nothing is wri
 The binary is built with the system C compiler (``$CC`` or ``cc``) and FMI's own headers from FMPy's
 copy (``fmpy/c-code``). The FMU also carries the C sources and the generated header (``sources/``),
 so it can be compiled for another platform with one compiler command (docs/fmus.md). The GUID is a
-digest of everything that shapes the FMU (C sources, generated header and model description,
-compiler and flags, FMI headers), so an FMU is rebuilt exactly when one of them changes; the archive
+digest of everything that shapes the FMU (C sources, the Python declarations behind the generated
+header and model description, builder, compiler flags, FMI headers: ``_digest``), so an FMU is rebuilt
+exactly when one of them changes; the archive
 is written aside and moved into place (``fmus.build.write_fmu``), reproducibly.
 """
 
 from __future__ import annotations
 
 import hashlib
+import importlib.metadata
 import json
 import os
 import shutil
@@ -33,9 +35,9 @@ from pathlib import Path
 from xml.etree import ElementTree
 
 import fmus
-from fmus.build import DEFAULT_OUT, FMU_NAMES, PACKAGE_DIR, BuildError, _slave_instance, archive_is_whole, write_fmu
-from fmus.documentation import documentation_html
-from fmus.modeldescription import CAPABILITIES, guid_for, model_description
+from fmus.build import (DEFAULT_OUT, FMU_NAMES, PACKAGE_DIR, BuildError, _slave_instance, archive_is_whole,
+                        bundled_sources, write_fmu)
+from fmus.modeldescription import CAPABILITIES, guid_for
 
 NATIVE_SOURCES = PACKAGE_DIR / "native"
 NATIVE_OUT = DEFAULT_OUT / "native"
@@ -123,32 +125,26 @@ def variables_header(slave, guid: str) -> str:
     return "\n".join(lines)
 
 
-def _compiler_identity(cc: str) -> str:
-    try:
-        return subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=60).stdout.splitlines()[0]
-    except (OSError, IndexError, subprocess.SubprocessError):
-        return cc
+def _digest(name: str) -> str:
+    """Digest of everything that shapes FMU ``name`` but its GUID (which is made from it), read from files
+    only: the C sources, the Python declarations the generated header, model description and
+    documentation come from (the pythonfmu FMU's sources, fmus.build.bundled_sources), the builder
+    modules, FMI's headers, the compiler flags and pythonfmu's version (it numbers the variables).
 
-
-def _digest(name: str, slave, cc: str) -> str:
-    """Digest of everything that shapes FMU ``name`` but its GUID (which is made from it)."""
-    digest = hashlib.sha256()
-    placeholder = "{00000000-0000-0000-0000-000000000000}"
-    parts = {
-        "variables.h": variables_header(slave, placeholder).encode(),
-        "modelDescription.xml": model_description(slave, placeholder, fmus.__version__, RUNTIME, CAPABILITIES_NATIVE,
-                                                  sources_of(name)),
-        "documentation": documentation_html(slave, fmus.__version__, NATIVE_HOST).encode(),
-        "compiler": f"{_compiler_identity(cc)} {' '.join(CFLAGS + LIBS)}".encode(),
-        "builder": (PACKAGE_DIR / "native_build.py").read_bytes(),
-    }
-    for file in sorted(set(sources_of(name) + HEADERS)):
-        parts[f"sources/{file}"] = (NATIVE_SOURCES / file).read_bytes()
-    for file in FMI_HEADERS:
-        parts[f"fmi/{file}"] = (fmi_headers() / file).read_bytes()
-    for key in sorted(parts):
-        digest.update(key.encode())
-        digest.update(hashlib.sha256(parts[key]).digest())
+    No slave is instantiated and no compiler is asked: a run checks its FMUs with this before every
+    start (issue 22), and FMUs built elsewhere are usable on a machine without a compiler. The
+    compiler's identity is not part of it: with -ffp-contract=off every compiler gives the numbers of
+    fmus/model (tests/test_native_fmus.py), so the GUID names the model, not the compiler's bytes."""
+    digest = hashlib.sha256(importlib.metadata.version("pythonfmu").encode())
+    digest.update(" ".join(CFLAGS + LIBS).encode())
+    files = [NATIVE_SOURCES / file for file in sorted(set(sources_of(name) + HEADERS))]
+    files += bundled_sources(name)
+    files += [PACKAGE_DIR / module for module in ("native_build.py", "build.py", "modeldescription.py",
+                                                  "documentation.py")]
+    files += [fmi_headers() / file for file in FMI_HEADERS]
+    for path in files:
+        digest.update(path.name.encode())
+        digest.update(hashlib.sha256(path.read_bytes()).digest())
     return digest.hexdigest()
 
 
@@ -181,6 +177,9 @@ def compile_binary(name: str, header: str, cc: str, scratch: Path) -> bytes:
 
 
 def _build_one(name: str, slave, guid: str, cc: str, out_dir: Path) -> Path:
+    from fmus.documentation import documentation_html
+    from fmus.modeldescription import model_description
+
     header = variables_header(slave, guid)
     with tempfile.TemporaryDirectory(prefix="platoon-native-") as scratch:
         binary = compile_binary(name, header, cc, Path(scratch))
@@ -196,24 +195,25 @@ def _build_one(name: str, slave, guid: str, cc: str, out_dir: Path) -> Path:
     return write_fmu(out_dir / f"{name}.fmu", entries)
 
 
-def expected_guid(name: str, cc: str | None = None) -> str:
-    return guid_for(_digest(name, _slave_instance(name), cc or compiler()), f"native:{name}")
+def expected_guid(name: str) -> str:
+    return guid_for(_digest(name), f"native:{name}")
 
 
 def build_native_fmus(out_dir: Path = NATIVE_OUT, force: bool = False,
                       names: tuple[str, ...] = FMU_NAMES) -> list[BuiltNativeFmu]:
     """Build the native FMUs ``names`` into ``out_dir`` unless an up-to-date one is already there.
-    Raises NoCompiler (one line) when there is no C compiler, BuildError when compiling fails."""
-    cc = compiler()
+    Raises NoCompiler (one line) when one must be built and there is no C compiler, BuildError when
+    compiling fails. Up-to-date FMUs need no compiler (nor pythonfmu: nothing is imported to check)."""
     built = []
     for name in names:
-        slave = _slave_instance(name)
-        guid = guid_for(_digest(name, slave, cc), f"native:{name}")
+        guid = expected_guid(name)
         path = Path(out_dir) / f"{name}.fmu"
         if not force and path.exists() and is_complete(path, name, guid):
             built.append(BuiltNativeFmu(name, path, guid, rebuilt=False))
             continue
-        built.append(BuiltNativeFmu(name, _build_one(name, slave, guid, cc, Path(out_dir)), guid, rebuilt=True))
+        cc = compiler()
+        built.append(BuiltNativeFmu(name, _build_one(name, _slave_instance(name), guid, cc, Path(out_dir)), guid,
+                                    rebuilt=True))
     return built
 
 

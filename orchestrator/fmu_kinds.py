@@ -36,11 +36,22 @@ def native_buildable() -> bool:
     return True
 
 
-def resolve_fmu_kind(requested: str | None) -> str:
+def native_built(fmu_dir: Path) -> bool:
+    """True when current native FMUs are in place below ``fmu_dir`` (built here or copied from a machine
+    with a compiler): they run without one."""
+    from fmus.build import FMU_NAMES
+    from fmus.native_build import expected_guid, is_complete
+
+    folder = fmu_folder(fmu_dir, "native")
+    return all(is_complete(folder / f"{name}.fmu", name, expected_guid(name)) for name in FMU_NAMES)
+
+
+def resolve_fmu_kind(requested: str | None, fmu_dir: Path | None = None) -> str:
     """The kind a run uses: the one requested (``--fmus`` over ``simulation.fmus``), else native where
-    it can be built, else python."""
+    it can be built or is built already (below ``fmu_dir``), else python."""
     if requested is None:
-        return "native" if native_buildable() else "python"
+        buildable = native_buildable() or (fmu_dir is not None and native_built(fmu_dir))
+        return "native" if buildable else "python"
     if requested not in FMU_KINDS:
         raise FmuKindError(f"unknown FMU kind {requested!r}; expected one of {', '.join(FMU_KINDS)}")
     return requested

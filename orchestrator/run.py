@@ -285,7 +285,7 @@ def run_scenario(
         opening = clock.perf_counter()
         if target is not None and writer_kind == "process":
             trace_process = TraceProcess(keep_fds=(target.fd,))
-        fmu_kind = resolve_fmu_kind(config.simulation.fmus)
+        fmu_kind = resolve_fmu_kind(config.simulation.fmus, fmu_dir)
         fmus_by_kind = _open_fmus(fmu_dir, fmu_kind)
     except BaseException:
         if trace_process is not None:

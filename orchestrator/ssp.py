@@ -239,5 +239,5 @@ def export_ssp(config: Config, out: Path, fmu_dir: Path, force: bool = False, wo
     scenario = build_scenario(config)
     components = export_components(config, scenario)
     kinds = tuple(sorted({spec.fmu for spec in components}))
-    fmu_paths = ensure_fmus(fmu_dir, resolve_fmu_kind(config.simulation.fmus), kinds)
+    fmu_paths = ensure_fmus(fmu_dir, resolve_fmu_kind(config.simulation.fmus, fmu_dir), kinds)
     return write_ssp(out, scenario, fmu_paths, components, worker_threads=worker_threads, force=force)

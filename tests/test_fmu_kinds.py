@@ -93,3 +93,21 @@ def test_native_without_a_compiler_is_one_clear_line(tmp_path: Path) -> None:
     done = _platoon("run", config, "--out", "y.mcap", "--set", "simulation.stop_time=1", "-q", env=env, cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     assert load(tmp_path / "y.mcap").metadata["platoon.start"]["fmus"] == "python"
+
+
+def test_native_fmus_built_elsewhere_run_without_a_compiler(tmp_path: Path) -> None:
+    """Current native FMUs in place (copied from a machine with a compiler) are what a run picks by
+    default, and checking them needs no compiler."""
+    import shutil
+
+    from fmus.native_build import build_native_fmus
+
+    folder = tmp_path / "build" / "fmus" / "native"
+    for built in build_native_fmus():
+        folder.mkdir(parents=True, exist_ok=True)
+        shutil.copy(built.path, folder / built.path.name)
+    env = {**os.environ, "PATH": str(tmp_path / "no-tools"), "CC": ""}
+    config = str(REPO / "configs" / "paper" / "single.toml")
+    done = _platoon("run", config, "--out", "z.mcap", "--set", "simulation.stop_time=1", "-q", env=env, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert load(tmp_path / "z.mcap").metadata["platoon.start"]["fmus"] == "native"
