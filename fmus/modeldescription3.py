@@ -68,12 +68,16 @@ CAPABILITIES = {
     "providesEvaluateDiscreteStates": "false",
 }
 
-# What the C layer logs under (fmus/native/fmi3.c); a host enables them with fmi3SetDebugLogging.
+# What the framework logs under (fmus/native/framework.c, the same names as the FMI 2.0 FMUs'):
+# refusals always, other messages when the host turned logging on.
 LOG_CATEGORIES = {
-    "logStatusError": "Calls refused with fmi3Error: invalid parameters, unknown value references, "
-                      "calls in the wrong state, unsupported functions",
-    "logStatusDiscard": "Steps refused with fmi3Discard: the new state or outputs would not be finite, "
-                        "or the step size is out of range",
+    "logStatusWarning": "Messages with status fmi3Warning",
+    "logStatusDiscard": "Steps refused with fmi3Discard (the motion breaks down or its outputs would not be "
+                        "finite; the state is kept)",
+    "logStatusError": "Calls refused with fmi3Error, with the reason (invalid parameters, unknown value "
+                      "references, calls in the wrong state, unsupported functions)",
+    "logStatusFatal": "Messages with status fmi3Fatal",
+    "logAll": "Every message, also those with status fmi3OK (with logging on)",
 }
 
 
