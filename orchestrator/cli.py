@@ -81,7 +81,7 @@ def build(
     out_dir: Annotated[Path, typer.Option("--out", help="folder for Vehicle.fmu, VirtualTarget.fmu and LiveVehicle.fmu")] = Path("build/fmus"),
     force: Annotated[bool, typer.Option(help="rebuild even if up to date")] = False,
 ) -> None:
-    """Build the Vehicle, VirtualTarget and LiveVehicle FMUs (only when their sources changed)."""
+    """Build the Vehicle, VirtualTarget and LiveVehicle FMUs, and the native Vehicle and VirtualTarget into OUT/native (only when their sources changed)."""
     from fmus.build import ALL_FMUS, build_fmus
 
     try:
@@ -92,6 +92,27 @@ def build(
     for built in built_fmus:
         state = "built" if built.rebuilt else "up to date"
         out.print(f"{built.path}  {built.guid}  ({state})")
+    _build_native(out_dir, force)
+
+
+def _build_native(out_dir: Path, force: bool) -> None:
+    """The native twins into OUT/native (fmus/native_build.py); no compiler is one line, not a failure."""
+    from fmus.build import BuildError
+    from fmus.native_build import NoCompiler, build_native_fmus
+
+    try:
+        built_fmus = build_native_fmus(out_dir / "native", force=force)
+    except NoCompiler as error:
+        err.print(f"note: {error}")
+        return
+    except BuildError as error:
+        _fail(2, f"build: {error}")
+    except OSError as error:
+        where = f" {error.filename}" if error.filename else ""
+        _fail(2, f"build --out {out_dir}: cannot write the native FMUs{where}: {error.strerror or error}")
+    for built in built_fmus:
+        state = "built" if built.rebuilt else "up to date"
+        out.print(f"{built.path}  {built.guid}  ({state}, native)")
 
 
 def _progress_runner(steps: int, quiet: bool):
