@@ -7,7 +7,8 @@
  * adds is mapped here:
  *
  * - fmi3EnterInitializationMode carries the start time (FMI 2.0: fmi2SetupExperiment).
- * - The independent variable `time` (PLATOON_TIME_VALUE_REFERENCE, fmus/modeldescription3.py) can be
+ * - The independent variable `time` (PLATOON_TIME_VALUE_REFERENCE, generated into fmi3config.h from
+ *   fmus/modeldescription3.py) can be
  *   read with fmi3GetFloat64 (the time the state describes), never set.
  * - fmi3DoStep reports lastSuccessfulTime (the time of the state after the call: t + h after a
  *   step, the unchanged time after a refused one) and never asks to terminate, to handle events or
@@ -24,11 +25,8 @@
 #include <string.h>
 
 #include "fmi3Functions.h"
+#include "fmi3config.h" /* generated: PLATOON_TIME_VALUE_REFERENCE */
 #include "framework.h"
-
-#ifndef PLATOON_TIME_VALUE_REFERENCE
-#error "PLATOON_TIME_VALUE_REFERENCE (fmus.modeldescription3.TIME_VALUE_REFERENCE) must be defined"
-#endif
 
 extern const ModelDef MODEL;
 
