@@ -106,7 +106,7 @@ def _build_native(out_dir: Path, force: bool) -> None:
         built_fmus = build_native_fmus(out_dir / "native", force=force)
         built_fmus += build_fmi3_fmus(out_dir / "fmi3", force=force)
     except NoCompiler as error:
-        err.print(f"note: {error}")
+        err.print(f"note: {error}", soft_wrap=True)
         return
     except BuildError as error:
         _fail(2, f"build: {error}")

@@ -578,36 +578,6 @@ def test_fmu_state_round_trip_in_memory_and_serialized_into_another_instance(bui
         instance.freeInstance()
 
 
-def test_platoon_build_writes_the_fmi3_fmus_then_reuses_them_and_repairs_a_damaged_one(tmp_path):
-    from fmus.native_build import NoCompiler
-    from fmus.native_build3 import expected_token
-
-    try:
-        tokens = {name: expected_token(name) for name in MODELS}
-    except NoCompiler as error:
-        pytest.skip(str(error))
-    platoon = [sys.executable, "-c", "import sys; sys.argv[0] = 'platoon'; from orchestrator.cli import main; main()"]
-
-    def build() -> dict[str, str]:
-        result = subprocess.run([*platoon, "build", "--out", str(tmp_path)], capture_output=True, text=True, cwd=REPO,
-                                env={"COLUMNS": "200", "PATH": "/usr/bin:/bin"}, timeout=TIMEOUT)
-        assert result.returncode == 0, result.stderr
-        return {Path(line.split()[0]).stem: line for line in result.stdout.splitlines()
-                if line.strip() and Path(line.split()[0]).parent == tmp_path / "fmi3"}
-
-    first = build()
-    assert set(first) == set(MODELS)
-    for name, line in first.items():
-        assert line.endswith("(built, native FMI 3.0)") and tokens[name] in line
-        assert fmpy.read_model_description(str(tmp_path / "fmi3" / f"{name}.fmu")).guid == tokens[name]
-    assert all(line.endswith("(up to date, native FMI 3.0)") for line in build().values())
-    (tmp_path / "fmi3" / "Vehicle.fmu").write_bytes(b"not a zip")
-    third = build()
-    assert third["Vehicle"].endswith("(built, native FMI 3.0)")
-    assert third["VirtualTarget"].endswith("(up to date, native FMI 3.0)")
-    assert validate_fmu(str(tmp_path / "fmi3" / "Vehicle.fmu")) == []
-
-
 @pytest.mark.parametrize("name", MODELS)
 def test_fmpy_rebuilds_the_binary_from_the_fmus_sources_and_it_runs_the_same(built, name, tmp_path):
     """sources/ and sources/buildDescription.xml are all an importer needs to compile the FMU for its

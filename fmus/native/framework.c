@@ -68,8 +68,8 @@ void fw_text_float(FwText *out, double value)
     }
     char mantissa[24];
     size_t count = 0;
-    for (; *p && *p != 'e'; ++p) {
-        if (*p != '.' && count < sizeof mantissa - 1) mantissa[count++] = *p;
+    for (; *p && *p != 'e'; ++p) { /* the digits only: the decimal point may be a host locale's ',' */
+        if (*p >= '0' && *p <= '9' && count < sizeof mantissa - 1) mantissa[count++] = *p;
     }
     mantissa[count] = '\0';
     int exponent = *p == 'e' ? atoi(p + 1) : 0;
@@ -232,9 +232,10 @@ Instance *fw_instantiate(const ModelDef *model, const char *name, FwLogFunction 
     instance->reals = calloc((size_t)count, sizeof *instance->reals);
     instance->integers = calloc((size_t)count, sizeof *instance->integers);
     instance->strings = calloc((size_t)count, sizeof *instance->strings);
+    instance->scratch = calloc((size_t)count, sizeof *instance->scratch);
     instance->config = calloc(1, model->config_size ? model->config_size : 1);
-    if (!instance->name || !instance->reals || !instance->integers || !instance->strings || !instance->config ||
-        !set_start_values(instance)) {
+    if (!instance->name || !instance->reals || !instance->integers || !instance->strings || !instance->scratch ||
+        !instance->config || !set_start_values(instance)) {
         fw_free(instance);
         return NULL;
     }
@@ -250,6 +251,7 @@ void fw_free(Instance *instance)
     free(instance->strings);
     free(instance->integers);
     free(instance->reals);
+    free(instance->scratch);
     free(instance->config);
     free(instance->failure);
     free(instance->name);
@@ -333,13 +335,18 @@ FwStatus fw_reset(Instance *instance)
 
 /* --- outputs ----------------------------------------------------------------------------------------- */
 
-/* The names and values of the outputs in values that are not finite, or 0 if all are. */
+/* How many outputs in values are not finite (0 if all are); their names and values into names
+ * unless it is NULL. */
 static int not_finite_outputs(const Instance *instance, const double *values, FwText *names)
 {
     int count = 0;
     for (int vr = 0; vr < instance->model->variable_count; ++vr) {
         const VariableDef *variable = &instance->model->variables[vr];
         if (variable->causality != CAUSALITY_OUTPUT || isfinite(values[vr])) continue;
+        if (!names) {
+            ++count;
+            continue;
+        }
         fw_text_append(names, "%s%s = ", count ? ", " : "", variable->name);
         fw_text_float(names, values[vr]);
         ++count;
@@ -368,19 +375,16 @@ static FwStatus current_outputs(Instance *instance)
         instance->model->configure(instance);
         instance->time = instance->start_time;
     }
-    double *values = malloc((size_t)instance->model->variable_count * sizeof *values);
-    if (!values) return fw_refuse(instance, "out of memory");
+    double *values = instance->scratch;
     memcpy(values, instance->reals, (size_t)instance->model->variable_count * sizeof *values);
     instance->model->outputs(instance, values);
     FwText names;
     fw_text_clear(&names);
     if (not_finite_outputs(instance, values, &names)) {
-        free(values);
         return fw_refuse(instance, "output(s) %s not finite at t = %.6g s; check the inputs", names.text,
                          instance->time);
     }
     copy_outputs(instance, values);
-    free(values);
     return FW_OK;
 }
 
@@ -582,18 +586,13 @@ FwStatus fw_do_step(Instance *instance, double t, double h)
         return FW_DISCARD;
     }
     int count = instance->model->variable_count;
-    double *values = malloc((size_t)count * sizeof *values);
-    if (!values) {
-        memcpy(instance->state, state, sizeof state);
-        instance->time = time;
-        return fw_refuse(instance, "out of memory");
-    }
+    double *values = instance->scratch;
     memcpy(values, instance->reals, (size_t)count * sizeof *values);
     instance->model->outputs(instance, values);
-    FwText names;
-    fw_text_clear(&names);
-    if (not_finite_outputs(instance, values, &names)) {
-        free(values);
+    if (not_finite_outputs(instance, values, NULL)) {
+        FwText names;
+        fw_text_clear(&names);
+        not_finite_outputs(instance, values, &names);
         memcpy(instance->state, state, sizeof state);
         instance->time = time;
         fw_log(instance, FW_DISCARD, "step from t = %.6g s by h = %.6g s refused: output(s) %s would not be finite; "
@@ -601,7 +600,6 @@ FwStatus fw_do_step(Instance *instance, double t, double h)
         return FW_DISCARD;
     }
     copy_outputs(instance, values);
-    free(values);
     return FW_OK;
 }
 

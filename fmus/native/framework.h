@@ -109,6 +109,7 @@ struct Instance {
     int *integers;    /* Integer and Boolean, by value reference */
     char **strings;   /* String, by value reference (owned copies) */
     int outputs_valid;
+    double *scratch;  /* variable_count doubles: outputs computed before they are accepted */
     char *failure;    /* why the instance failed (MODE_FAILED), owned */
     void *config;     /* the model's cached parameters */
 };

@@ -27,6 +27,8 @@
 
 #include <float.h>
 #include <math.h>
+#include <stdint.h>
+#include <string.h>
 
 /* Python's min(a, b) and max(a, b) for floats. */
 static inline double py_min(double a, double b) { return b < a ? b : a; }
@@ -55,12 +57,22 @@ static inline void py_exact_product(double x, double y, double *hi, double *lo)
 /* CPython's vector_norm for two nonnegative finite numbers, max their maximum > 0. */
 static double py_norm2(double a, double b, double max)
 {
-    int max_e;
-    frexp(max, &max_e);
-    if (max_e < -1023) { /* subnormal: 2^-max_e would overflow; scale up first */
+    /* frexp(max, &max_e) and scale = ldexp(1.0, -max_e), read and written as IEEE bits (exact
+     * either way; the library calls were a tenth of a Vehicle step) */
+    uint64_t bits;
+    memcpy(&bits, &max, sizeof bits);
+    int biased = (int)(bits >> 52 & 0x7ff);
+    if (biased == 0) { /* subnormal: 2^-max_e would overflow; scale up first */
         return DBL_MIN * py_norm2(a / DBL_MIN, b / DBL_MIN, max / DBL_MIN);
     }
-    double scale = ldexp(1.0, -max_e);
+    int max_e = biased - 1022; /* max = m 2^max_e with 0.5 <= m < 1 */
+    double scale;
+    if (max_e < 1023) {
+        uint64_t scale_bits = (uint64_t)(1023 - max_e) << 52;
+        memcpy(&scale, &scale_bits, sizeof scale);
+    } else { /* 2^-1023 or 2^-1024 is subnormal */
+        scale = ldexp(1.0, -max_e);
+    }
     double csum = 1.0, frac1 = 0.0, frac2 = 0.0;
     double values[2] = {a, b};
     for (int i = 0; i < 2; ++i) {
