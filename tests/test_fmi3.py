@@ -417,16 +417,25 @@ def test_c_host_is_refused_an_fmi3_fmu_for_a_token_from_another_build(built, hos
 
 # --- failures and FMU state ---------------------------------------------------------------------------
 
-def _logging_instance(path: Path, messages: list):
-    """An FMI 3.0 instance of the FMU at ``path`` whose log messages go to ``messages``."""
+def _slave(path: Path):
+    """FMPy's FMU3Slave of the FMU at ``path`` (its library loaded, no instance yet), and its value references."""
     from fmpy.fmi3 import FMU3Slave
 
     md = fmpy.read_model_description(str(path))
     fmu = FMU3Slave(guid=md.guid, unzipDirectory=fmpy.extract(str(path)),
                     modelIdentifier=md.coSimulation.modelIdentifier, instanceName="under_test")
-    fmu.instantiate(logMessage=lambda env, status, category, message: messages.append(
-        [status, category.decode(), message.decode()]))
     return fmu, {v.name: v.valueReference for v in md.modelVariables}
+
+
+def _logger(messages: list):
+    return lambda env, status, category, message: messages.append([status, category.decode(), message.decode()])
+
+
+def _logging_instance(path: Path, messages: list):
+    """An FMI 3.0 instance of the FMU at ``path`` whose log messages go to ``messages``."""
+    fmu, refs = _slave(path)
+    fmu.instantiate(logMessage=_logger(messages))
+    return fmu, refs
 
 
 def _status(call, *args) -> int:
@@ -599,3 +608,33 @@ def test_fmpy_rebuilds_the_binary_from_the_fmus_sources_and_it_runs_the_same(bui
                                 start_values=start_values)
     for column in shipped.dtype.names:
         assert np.array_equal(rebuilt[column], shipped[column]), column
+
+
+def test_what_the_fmu_does_not_support_is_refused_with_the_reason(built):
+    """Event mode, Model Exchange, types the models do not have: NULL or fmi3Error, the reason logged."""
+    from ctypes import c_size_t
+
+    from fmpy.fmi3 import fmi3LogMessageCallback
+
+    messages: list = []
+    path = built["fmi3"]["Vehicle"]
+    fmu, refs = _slave(path)
+    with pytest.raises(Exception, match="Failed to instantiate"):
+        fmu.instantiate(eventModeUsed=True, logMessage=_logger(messages))
+    assert "has no event mode" in messages[-1][2]
+    logger = fmi3LogMessageCallback(_logger(messages))
+    instance = fmu._functions["fmi3InstantiateModelExchange"](b"me", fmu.guid.encode(), b"", False, False, None, logger)
+    assert instance is None and "Model Exchange is not supported" in messages[-1][2]
+    fmu.freeLibrary()
+
+    fmu, refs = _logging_instance(path, messages)
+    assert _status(fmu.enterEventMode) == 3 and "fmi3EnterEventMode is not supported" in messages[-1][2]
+    assert _status(fmu.getFloat32, [refs["x"]]) == 3 and "no Float32 variables" in messages[-1][2]
+    count = c_size_t(0)
+    assert fmu._functions["fmi3GetNumberOfContinuousStates"](fmu.component, count) == 3
+    assert "co-simulation FMU" in messages[-1][2]
+    fmu.enterInitializationMode(startTime=0.0)  # and the instance still works
+    fmu.exitInitializationMode()
+    fmu.doStep(0.0, 0.01)
+    fmu.terminate()
+    fmu.freeInstance()
