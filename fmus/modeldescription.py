@@ -13,7 +13,8 @@ including the capability flags, each set on purpose:
   source in resources/) to the Python installation of the host, which must provide libpython 3.11
   and its standard library (docs/fmus.md, "What a host needs"). That installation is the tool. The
   importers we run them with (FMPy simulate and validate, libcosim, our C host) treat the flag as
-  information and run the FMUs as before (tests/test_hostile_fmus.py).
+  information and run the FMUs as before (tests/test_hostile_fmus.py). The native twins
+  (fmus/native_build.py) declare "false": their binary is the model.
 * canBeInstantiatedOnlyOncePerProcess: false. All state lives on the instance (tested with two
   platoons in one process).
 """

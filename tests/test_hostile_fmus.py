@@ -120,9 +120,12 @@ def test_libcosim_survives_a_non_finite_input(request, kind, fmu, name, value):
 
 @pytest.mark.xfail(strict=True, reason="libcosim (libcosimpy 0.0.6) aborts its own process when an FMU fails "
                    "to initialize: 'terminate called after throwing an instance of cosim::error' (seen for the "
-                   "fmi2Fatal our FMUs answer, and on main for the same case); only a false fmi2OK would avoid it")
-def test_libcosim_survives_an_invalid_parameter(fmu_dir):
-    code, records, text = run_libcosim(fmu_dir / "Vehicle.fmu", {"parameters": {"d_star": -1.0}, "steps": 2})
+                   "fmi2Fatal the pythonfmu FMUs answer, on main for the same case, and for the native FMUs' "
+                   "fmi2Error); only a false fmi2OK would avoid it")
+@pytest.mark.parametrize("kind", ["python", "native"])
+def test_libcosim_survives_an_invalid_parameter(request, kind):
+    folder = request.getfixturevalue("fmu_dir" if kind == "python" else "native_fmu_dir")
+    code, records, text = run_libcosim(folder / "Vehicle.fmu", {"parameters": {"d_star": -1.0}, "steps": 2})
     assert "d_star = -1.0: must be a finite number > 0" in text  # the reason reached libcosim's log
     assert code == 0, text[-1500:]
 

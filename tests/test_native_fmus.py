@@ -323,3 +323,89 @@ def test_reasons_print_numbers_as_python_does(c_helpers):
     for value in values:
         c_helpers.probe_repr(value, buffer)
         assert buffer.value.decode() == repr(value)
+
+
+# --- NULL pointers, wrong references, wrong types, a double free: fmi2Error, never a crash ------------
+
+_CARELESS_HOST = r'''
+import ctypes, json, sys
+from ctypes import POINTER, byref, c_char_p, c_double, c_int, c_size_t, c_uint, c_void_p
+lib = ctypes.CDLL(sys.argv[1])
+guid = sys.argv[2].encode()
+# the logger is variadic; its first three arguments after the format come as the next parameters (x86-64
+# passes them in registers like any others); every format the FMU logs with holds only %s
+LOGGER = ctypes.CFUNCTYPE(None, c_void_p, c_char_p, c_int, c_char_p, c_char_p, c_void_p, c_void_p, c_void_p)
+logs = []
+def log(env, name, status, category, message, *args):
+    text = message.decode()
+    for argument in args[:text.count("%s")]:
+        text = text.replace("%s", ctypes.string_at(argument).decode(), 1)
+    logs.append(text)
+logger = LOGGER(log)
+class Callbacks(ctypes.Structure):
+    _fields_ = [("logger", LOGGER), ("allocate", c_void_p), ("free", c_void_p), ("finished", c_void_p),
+                ("environment", c_void_p)]
+callbacks = Callbacks(logger, None, None, None, None)
+lib.fmi2Instantiate.restype = c_void_p
+lib.fmi2Instantiate.argtypes = [c_char_p, c_int, c_char_p, c_char_p, POINTER(Callbacks), c_int, c_int]
+for name in ("fmi2GetReal", "fmi2SetReal", "fmi2GetString", "fmi2SetString", "fmi2DoStep", "fmi2FreeInstance",
+             "fmi2ExitInitializationMode", "fmi2EnterInitializationMode", "fmi2GetFMUstate", "fmi2SetFMUstate",
+             "fmi2GetBoolean", "fmi2DeSerializeFMUstate", "fmi2SerializedFMUstateSize"):
+    getattr(lib, name).argtypes = None
+lib.fmi2DoStep.argtypes = [c_void_p, c_double, c_double, c_int]
+statuses = {}
+def record(key, value):
+    statuses[key] = value
+    print(json.dumps({key: value}), flush=True)
+record("instantiate with a wrong GUID", lib.fmi2Instantiate(b"x", 1, b"{wrong}", b"", byref(callbacks), 0, 0) is None)
+record("instantiate as model exchange", lib.fmi2Instantiate(b"x", 0, guid, b"", byref(callbacks), 0, 0) is None)
+record("instantiate without callbacks", lib.fmi2Instantiate(b"x", 1, guid, b"", None, 0, 0) is None)
+c = c_void_p(lib.fmi2Instantiate(b"x", 1, guid, b"", byref(callbacks), 0, 0))
+refs, values = (c_uint * 2)(0, 1), (c_double * 2)()
+record("doStep(NULL)", lib.fmi2DoStep(None, 0.0, 0.01, 1))
+record("getReal(NULL instance)", lib.fmi2GetReal(None, refs, c_size_t(1), values))
+record("getReal of reference 999", lib.fmi2GetReal(c, (c_uint * 1)(999), c_size_t(1), values))
+record("getReal with NULL arrays", lib.fmi2GetReal(c, None, c_size_t(2), None))
+record("getReal of a String", lib.fmi2GetReal(c, (c_uint * 1)(0), c_size_t(1), values))
+record("getBoolean of a Real", lib.fmi2GetBoolean(c, (c_uint * 1)(1), c_size_t(1), (c_int * 1)()))
+record("setString with a NULL value", lib.fmi2SetString(c, (c_uint * 1)(0), c_size_t(1), (c_char_p * 1)(None)))
+record("setFMUstate(NULL)", lib.fmi2SetFMUstate(c, None))
+record("setFMUstate(the instance)", lib.fmi2SetFMUstate(c, c))
+record("deSerialize(NULL bytes)", lib.fmi2DeSerializeFMUstate(c, None, c_size_t(8), byref(c_void_p())))
+record("serializedSize(NULL state)", lib.fmi2SerializedFMUstateSize(c, None, byref(c_size_t())))
+lib.fmi2EnterInitializationMode(c)
+record("exit", lib.fmi2ExitInitializationMode(c))
+record("setReal of an output", lib.fmi2SetReal(c, (c_uint * 1)(29), c_size_t(1), (c_double * 1)(1.0)))
+record("setReal of a parameter after initialization", lib.fmi2SetReal(c, (c_uint * 1)(1), c_size_t(1), (c_double * 1)(1.0)))
+record("doStep", lib.fmi2DoStep(c, 0.0, 0.01, 1))
+lib.fmi2FreeInstance(c)
+lib.fmi2FreeInstance(c)  # again
+record("doStep on a freed instance", lib.fmi2DoStep(c, 0.01, 0.01, 1))
+record("logs", logs)
+'''
+
+
+def test_careless_calls_are_refused_and_never_crash(native_fmu_dir, tmp_path):
+    """A host in a process of its own calls the native Vehicle's binary with NULL pointers, unknown
+    value references, wrong types, an output or a fixed parameter to set, a freed instance: each
+    call answers fmi2Error (3) or NULL, the reasons are logged, the process ends normally."""
+    import json
+    import sys
+
+    with zipfile.ZipFile(native_fmu_dir / "Vehicle.fmu") as archive:
+        binary = tmp_path / "Vehicle.so"
+        binary.write_bytes(archive.read(binary_entry("Vehicle")))
+    guid = read_model_description(str(native_fmu_dir / "Vehicle.fmu")).guid
+    result = subprocess.run([sys.executable, "-c", _CARELESS_HOST, str(binary), guid], capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 0, result.stderr[-2000:]
+    statuses = {key: value for line in result.stdout.splitlines() for key, value in json.loads(line).items()}
+    logs = statuses.pop("logs")
+    assert statuses.pop("exit") == statuses.pop("doStep") == 0  # the instance worked in between
+    instantiated = {key: statuses.pop(key) for key in list(statuses) if key.startswith("instantiate")}
+    assert all(instantiated.values()), instantiated  # each refused: NULL
+    assert statuses == {key: 3 for key in statuses}, statuses
+    for reason in ("does not match this binary's", "fmi2ModelExchange is not supported", "no variable has value reference 999",
+                   "law (value reference 0) is a String, not a Real", "x is an output", "d_star: a parameter is fixed",
+                   "the value of law is NULL", "the FMU state: it is NULL", "not a live FMU state"):
+        assert any(reason in line for line in logs), (reason, logs)

@@ -30,11 +30,12 @@ static void log_to_host(Instance *instance, FwStatus status, const char *categor
                            message);
 }
 
-/* The instance behind c, or NULL: the calls below answer fmi2Error for NULL (nobody to log to). */
+/* The instance behind c; the calls below answer fmi2Error for NULL or anything that is not a live
+ * instance (nobody to log to). */
 #define INSTANCE(c) ((Instance *)(c))
 #define CHECK(c)                                                                                        \
     do {                                                                                                \
-        if (!(c)) return fmi2Error;                                                                     \
+        if (!fw_is_instance(c)) return fmi2Error;                                                       \
     } while (0)
 
 const char *fmi2GetTypesPlatform(void) { return fmi2TypesPlatform; }
@@ -88,7 +89,7 @@ fmi2Component fmi2Instantiate(fmi2String instanceName, fmi2Type fmuType, fmi2Str
 
 void fmi2FreeInstance(fmi2Component c)
 {
-    if (!c) return;
+    if (!fw_is_instance(c)) return; /* NULL, or freed already */
     free(INSTANCE(c)->host);
     fw_free(INSTANCE(c));
 }

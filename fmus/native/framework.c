@@ -218,10 +218,19 @@ static int set_start_values(Instance *instance)
     return 1;
 }
 
+#define FW_INSTANCE_MAGIC 0x504c544eu /* "PLTN" */
+#define FW_STATE_MAGIC 0x504c5453u    /* "PLTS" */
+
+int fw_is_instance(const void *pointer)
+{
+    return pointer && ((const Instance *)pointer)->magic == FW_INSTANCE_MAGIC;
+}
+
 Instance *fw_instantiate(const ModelDef *model, const char *name, FwLogFunction log, void *host, int logging_on)
 {
     Instance *instance = calloc(1, sizeof *instance);
     if (!instance) return NULL;
+    instance->magic = FW_INSTANCE_MAGIC;
     int count = model->variable_count;
     instance->model = model;
     instance->name = copy_text(name ? name : "");
@@ -245,6 +254,7 @@ Instance *fw_instantiate(const ModelDef *model, const char *name, FwLogFunction 
 void fw_free(Instance *instance)
 {
     if (!instance) return;
+    instance->magic = 0;
     if (instance->strings) {
         for (int vr = 0; vr < instance->model->variable_count; ++vr) free(instance->strings[vr]);
     }
@@ -619,6 +629,7 @@ FwStatus fw_do_step(Instance *instance, double t, double h)
 #define STATE_FORMAT 1u
 
 struct FwState {
+    unsigned int magic; /* FW_STATE_MAGIC while alive */
     const ModelDef *model;
     Mode mode;
     double start_time;
@@ -631,7 +642,8 @@ struct FwState {
 
 static void state_release(FwState *state)
 {
-    if (!state) return;
+    if (!state || state->magic != FW_STATE_MAGIC) return;
+    state->magic = 0;
     if (state->strings) {
         for (int vr = 0; vr < state->model->variable_count; ++vr) free(state->strings[vr]);
     }
@@ -645,6 +657,7 @@ static FwState *state_new(const ModelDef *model)
 {
     FwState *state = calloc(1, sizeof *state);
     if (!state) return NULL;
+    state->magic = FW_STATE_MAGIC;
     state->model = model;
     state->reals = calloc((size_t)model->variable_count, sizeof *state->reals);
     state->integers = calloc((size_t)model->variable_count, sizeof *state->integers);
@@ -686,7 +699,7 @@ FwStatus fw_get_state(Instance *instance, FwState **state)
     REFUSE_IF_FAILED(instance);
     if (!state) return fw_refuse(instance, "getFMUstate: the state pointer is NULL");
     FwState *target = *state;
-    if (target && target->model != instance->model) {
+    if (target && (target->magic != FW_STATE_MAGIC || target->model != instance->model)) {
         return fw_refuse(instance, "getFMUstate: the state to overwrite is not one of this model's");
     }
     if (!target && !(target = state_new(instance->model))) return fw_refuse(instance, "getFMUstate: out of memory");
@@ -708,6 +721,7 @@ FwStatus fw_set_state(Instance *instance, const FwState *state)
 {
     REFUSE_IF_FAILED(instance);
     if (!state) return fw_refuse(instance, "refused the FMU state: it is NULL");
+    if (state->magic != FW_STATE_MAGIC) return fw_refuse(instance, "refused the FMU state: it is not a live FMU state");
     if (state->model != instance->model) {
         return fw_refuse(instance, "refused the FMU state: it is a state of another model, not of %s",
                          instance->model->identifier);
@@ -828,6 +842,7 @@ static void write_state(Writer *w, const FwState *state)
 FwStatus fw_serialized_size(Instance *instance, const FwState *state, size_t *size)
 {
     if (!state || !size) return fw_refuse(instance, "serializedFMUstateSize: a NULL argument");
+    if (state->magic != FW_STATE_MAGIC) return fw_refuse(instance, "serializedFMUstateSize: not a live FMU state");
     Writer w = {NULL, 0, 0, 0};
     write_state(&w, state);
     *size = w.position;
@@ -837,6 +852,7 @@ FwStatus fw_serialized_size(Instance *instance, const FwState *state, size_t *si
 FwStatus fw_serialize(Instance *instance, const FwState *state, unsigned char *bytes, size_t size)
 {
     if (!state || !bytes) return fw_refuse(instance, "serializeFMUstate: a NULL argument");
+    if (state->magic != FW_STATE_MAGIC) return fw_refuse(instance, "serializeFMUstate: not a live FMU state");
     Writer w = {bytes, size, 0, 0};
     write_state(&w, state);
     if (w.overflow) return fw_refuse(instance, "serializeFMUstate: %zu bytes are too few", size);

@@ -96,6 +96,7 @@ typedef struct {
 typedef void (*FwLogFunction)(Instance *instance, FwStatus status, const char *category, const char *message);
 
 struct Instance {
+    unsigned int magic; /* FW_INSTANCE_MAGIC while alive: fw_is_instance */
     const ModelDef *model;
     char *name;
     Mode mode;
@@ -119,6 +120,10 @@ struct Instance {
 /* A new instance with every variable at its start value, or NULL (out of memory). */
 Instance *fw_instantiate(const ModelDef *model, const char *name, FwLogFunction log, void *host, int logging_on);
 void fw_free(Instance *instance);
+/* Nonzero if pointer is a live instance of this binary: the FMI layers refuse anything else
+ * (NULL, an instance freed already, a state handed over as an instance) instead of using it.
+ * Best effort: a pointer into memory that was never ours cannot be told apart safely. */
+int fw_is_instance(const void *pointer);
 FwStatus fw_setup_experiment(Instance *instance, double start_time);
 FwStatus fw_enter_initialization(Instance *instance);
 FwStatus fw_exit_initialization(Instance *instance);
