@@ -511,6 +511,53 @@ def test_invalid_parameters_give_fmi3error_with_the_reasons_and_every_later_call
     assert answers["terminate"] == 0
 
 
+def careless_calls(path: str) -> None:
+    """Run in a child process: NULL, freed and foreign pointers handed to the FMI 3.0 binary; each
+    call's status printed as JSON (a crash ends the process instead)."""
+    from ctypes import byref, c_double, c_uint
+
+    from fmpy.fmi3 import fmi3FMUState
+
+    messages: list = []
+    fmu, refs = _logging_instance(Path(path), messages)
+    call = fmu._functions
+    vr, value = c_uint(refs["x"]), c_double()
+    state = fmi3FMUState()
+    fmu.enterInitializationMode(startTime=0.0)
+    fmu.exitInitializationMode()
+    answers = {"get state": call["fmi3GetFMUState"](fmu.component, byref(state))}
+    answers |= {
+        "NULL get": call["fmi3GetFloat64"](None, byref(vr), 1, byref(value), 1),
+        "NULL step": call["fmi3DoStep"](None, 0.0, 0.01, False, None, None, None, None),
+        "state as instance": call["fmi3GetFloat64"](state, byref(vr), 1, byref(value), 1),
+        "NULL state set": call["fmi3SetFMUState"](fmu.component, None),
+        "step with NULL outputs": call["fmi3DoStep"](fmu.component, 0.0, 0.01, False, None, None, None, None),
+        "free state": call["fmi3FreeFMUState"](fmu.component, byref(state)),
+    }
+    component = fmu.component
+    call["fmi3FreeInstance"](component)
+    answers |= {
+        "freed get": call["fmi3GetFloat64"](component, byref(vr), 1, byref(value), 1),
+        "freed terminate": call["fmi3Terminate"](component),
+    }
+    call["fmi3FreeInstance"](component)  # twice: nothing happens
+    call["fmi3FreeInstance"](None)
+    answers["logs"] = [message for _, _, message in messages]
+    print(json.dumps(answers))
+
+
+def test_null_freed_and_foreign_pointers_are_refused_and_never_crash(built):
+    result = subprocess.run(
+        [sys.executable, "-c", "import sys; from tests.test_fmi3 import careless_calls as run; run(sys.argv[1])",
+         str(built["fmi3"]["Vehicle"])], capture_output=True, text=True, timeout=TIMEOUT, cwd=REPO)
+    assert result.returncode == 0, result.stderr[-2000:]  # the double free included
+    answers = json.loads(result.stdout.splitlines()[-1])
+    logs = answers.pop("logs")
+    assert (answers.pop("get state"), answers.pop("step with NULL outputs"), answers.pop("free state")) == (0, 0, 0)
+    assert answers == dict.fromkeys(answers, 3), answers  # fmi3Error for each
+    assert any("the FMU state: it is NULL" in line for line in logs), logs
+
+
 def test_a_step_with_non_finite_results_is_discarded_and_the_state_kept(built):
     """An input that makes the outputs overflow: fmi3Discard, lastSuccessfulTime where the step began,
     and once the input is sane again the run goes on exactly as one that never saw the bad step."""

@@ -48,10 +48,10 @@ static void log_to_host(Instance *instance, FwStatus status, const char *categor
 }
 
 #define INSTANCE(c) ((Instance *)(c))
-/* NULL has nobody to log to: fmi3Error. */
+/* NULL or anything that is not a live instance (freed already, a state) has nobody to log to: fmi3Error. */
 #define CHECK(c)                                                                                        \
     do {                                                                                                \
-        if (!(c)) return fmi3Error;                                                                     \
+        if (!fw_is_instance(c)) return fmi3Error;                                                       \
     } while (0)
 
 /* Every variable is a scalar: as many values as value references, and arrays where there are any. */
@@ -175,7 +175,7 @@ fmi3Instance fmi3InstantiateScheduledExecution(fmi3String instanceName, fmi3Stri
 
 void fmi3FreeInstance(fmi3Instance instance)
 {
-    if (!instance) return;
+    if (!fw_is_instance(instance)) return; /* NULL, or freed already */
     free(INSTANCE(instance)->host);
     fw_free(INSTANCE(instance));
 }
