@@ -7,8 +7,9 @@ versions, so a host's wiring and the C variable tables serve both. What FMI 3.0 
 * Types: Real is Float64, Integer is Int32; a String's start value is a ``<Start value=.../>`` child.
 * ``instantiationToken`` replaces ``guid``: derived like the FMI 2.0 GUID from the digest of the
   sources, with the FMI version in the name, so the two FMUs of one model never share a token.
-* Exactly one independent variable, ``time`` (FMI 3.0, section 2.4.7.4: an FMU "must define" it;
-  FMPy's validation requires one). Its value reference is ``TIME_VALUE_REFERENCE``, see there.
+* Exactly one independent variable, ``time`` (FMI 3.0, section 2.4.7.4, causality: "Exactly one
+  variable of an FMU must be defined as independent"; FMPy's validation checks it), never set.
+  Its value reference is ``TIME_VALUE_REFERENCE``, see there.
 * ModelStructure lists unknowns and their dependencies by value reference (FMI 2.0: by index into
   ModelVariables), in ``<Output>`` and ``<InitialUnknown>`` elements. The knowns at communication
   points also include the parameters and the independent variable (FMI 3.0, section 2.4.8, the

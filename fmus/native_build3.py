@@ -9,9 +9,10 @@ differs is made here:
 * ``variables.h``: the FMI 2.0 build's generator, with the instantiationToken where the GUID goes
   (fmi3.c compares the host's token with ``MODEL.guid``);
 * ``fmi3config.h``: the value reference of ``time``, generated from ``TIME_VALUE_REFERENCE``;
-* ``binaries/<FMI 3.0 platform tuple>/<model>.so`` (``x86_64-linux`` here, FMI 3.0 section 2.5.1.1);
-* ``sources/buildDescription.xml`` (FMI 3.0's list of the sources, section 2.5.1.3), so an importer
-  that compiles FMUs (FMPy) can build the binary for its own platform.
+* ``binaries/<FMI 3.0 platform tuple>/<model>.so`` (``x86_64-linux`` here; FMI 3.0 section 2.5.1,
+  "Platform Tuple Definition");
+* ``sources/buildDescription.xml`` (FMI 3.0's list of the sources, section 2.5.1, "Directory
+  sources"), so an importer that compiles FMUs (FMPy) can build the binary for its own platform.
 
 The token is a digest of everything that shapes the FMU, as the FMI 2.0 GUID is, so an FMU is rebuilt
 exactly when one of them changes; the archive is written reproducibly (``fmus.build.write_fmu``).

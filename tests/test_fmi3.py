@@ -680,6 +680,10 @@ def test_what_the_fmu_does_not_support_is_refused_with_the_reason(built):
     count = c_size_t(0)
     assert fmu._functions["fmi3GetNumberOfContinuousStates"](fmu.component, count) == 3
     assert "co-simulation FMU" in messages[-1][2]
+    declared = [category.name for category in fmpy.read_model_description(str(path)).logCategories]
+    assert len(declared) == 5 and _status(fmu.setDebugLogging, True, declared) == 0
+    assert _status(fmu.setDebugLogging, True, ["logEverything"]) == 3
+    assert "unknown log category logEverything" in messages[-1][2]
     fmu.enterInitializationMode(startTime=0.0)  # and the instance still works
     fmu.exitInitializationMode()
     fmu.doStep(0.0, 0.01)
