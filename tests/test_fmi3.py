@@ -3,8 +3,10 @@
 Their model description (``fmus.modeldescription3``) is checked against the FMI 3.0 schema that FMPy
 ships and against the FMI 2.0 description of the same model: same names, value references, types,
 start values, units. The FMUs themselves (``fmus/native/fmi3.c``) are checked against the FMI 2.0
-native FMUs, which run the same C model: equal trajectories in FMPy, in a hand-stepped platoon and
-in a plain C host.
+native FMUs, which run the same C model: bit-equal trajectories in FMPy, in a hand-stepped platoon
+and in plain C hosts with no environment. Then what a host relies on when things go wrong: invalid
+parameters and bad pointers (in a process of their own, so a crash shows as one), a step whose
+results would not be finite, unsupported calls, and FMU states, in memory and serialized.
 """
 
 from __future__ import annotations
@@ -18,8 +20,8 @@ from pathlib import Path
 
 import fmpy
 import numpy as np
-from fmpy.validation import validate_fmu
 import pytest
+from fmpy.validation import validate_fmu
 from lxml import etree
 
 from fmus.build import _slave_instance
