@@ -43,7 +43,10 @@ NATIVE_HOST3 = """<p>A native FMI 3.0 FMU: its binary is compiled C (this FMU's 
 <code>sources/buildDescription.xml</code>) and needs nothing on the host but the C library and its math library: no
 Python, no environment variables. To build it for another platform:
 <code>cc -std=c99 -O2 -fPIC -shared -ffp-contract=off -I&lt;FMI 3.0 headers&gt; -Isources sources/*.c -o
-&lt;model&gt;.so -lm</code>. See docs/fmus.md in the platoon-cosim repository.</p>"""
+&lt;model&gt;.so -lm</code>. See docs/fmus.md in the platoon-cosim repository.</p>
+<p>FMI 3.0: the table below names the types as the FMI 2.0 twins do; here Real is <code>Float64</code> and
+Integer <code>Int32</code>, with the same value references, and the independent variable <code>time</code> has
+value reference """ + str(TIME_VALUE_REFERENCE) + """ (readable, never set).</p>"""
 
 
 def sources_of3(name: str) -> tuple[str, ...]:
