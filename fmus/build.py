@@ -82,13 +82,13 @@ def expected_guid(name: str) -> str:
 
 
 def fmu_guid(path: Path) -> str | None:
-    """GUID recorded in an FMU's model description, or None if unreadable."""
+    """GUID (FMI 2.0) or instantiationToken (FMI 3.0) recorded in an FMU's model description, or None if unreadable."""
     try:
         with zipfile.ZipFile(path) as archive:
             root = ElementTree.fromstring(archive.read("modelDescription.xml"))
     except (OSError, KeyError, zipfile.BadZipFile, ElementTree.ParseError):
         return None
-    return root.get("guid")
+    return root.get("guid") or root.get("instantiationToken")  # FMI 2.0, FMI 3.0
 
 
 def is_complete(path: Path, name: str, guid: str) -> bool:

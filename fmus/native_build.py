@@ -161,15 +161,20 @@ def is_complete(path: Path, name: str, guid: str) -> bool:
     return archive_is_whole(path, guid, required)
 
 
-def compile_binary(name: str, header: str, cc: str, scratch: Path) -> bytes:
-    """The shared library of FMU ``name``, compiled in ``scratch`` from copies of the sources."""
+def compile_binary(name: str, header: str, cc: str, scratch: Path, files: tuple[str, ...] | None = None,
+                   generated: dict[str, str] | None = None) -> bytes:
+    """The shared library of FMU ``name``, compiled in ``scratch`` from copies of the sources: the C
+    ``files`` (default: this FMI 2.0 build's, ``sources_of(name)``; the FMI 3.0 build, fmus/native_build3.py,
+    swaps fmi2.c for fmi3.c) with variables.h and any further ``generated`` headers (name: text)."""
+    files = files or sources_of(name)
     sources = scratch / "sources"
     sources.mkdir()
-    for file in sources_of(name) + HEADERS:
+    for file in files + HEADERS:
         shutil.copyfile(NATIVE_SOURCES / file, sources / file)
-    (sources / GENERATED_HEADER).write_text(header)
+    for file, text in {GENERATED_HEADER: header, **(generated or {})}.items():
+        (sources / file).write_text(text)
     output = scratch / f"{name}.so"
-    command = [cc, *CFLAGS, f"-I{fmi_headers()}", "-I.", *sources_of(name), "-o", str(output), *LIBS]
+    command = [cc, *CFLAGS, f"-I{fmi_headers()}", "-I.", *files, "-o", str(output), *LIBS]
     result = subprocess.run(command, cwd=sources, capture_output=True, text=True, timeout=600)
     if result.returncode != 0:
         raise BuildError(f"{name}: compiling the native FMU failed ({' '.join(command)}):\n{result.stderr.strip()}")

@@ -81,7 +81,7 @@ def build(
     out_dir: Annotated[Path, typer.Option("--out", help="folder for Vehicle.fmu, VirtualTarget.fmu and LiveVehicle.fmu")] = Path("build/fmus"),
     force: Annotated[bool, typer.Option(help="rebuild even if up to date")] = False,
 ) -> None:
-    """Build the Vehicle, VirtualTarget and LiveVehicle FMUs, and the native Vehicle and VirtualTarget into OUT/native (only when their sources changed)."""
+    """Build the Vehicle, VirtualTarget and LiveVehicle FMUs, and the native Vehicle and VirtualTarget into OUT/native (FMI 2.0) and OUT/fmi3 (FMI 3.0) (only when their sources changed)."""
     from fmus.build import ALL_FMUS, build_fmus
 
     try:
@@ -96,12 +96,15 @@ def build(
 
 
 def _build_native(out_dir: Path, force: bool) -> None:
-    """The native twins into OUT/native (fmus/native_build.py); no compiler is one line, not a failure."""
+    """The native twins into OUT/native (fmus/native_build.py) and, as FMI 3.0 FMUs, into OUT/fmi3
+    (fmus/native_build3.py); no compiler is one line, not a failure."""
     from fmus.build import BuildError
     from fmus.native_build import NoCompiler, build_native_fmus
+    from fmus.native_build3 import build_fmi3_fmus
 
     try:
         built_fmus = build_native_fmus(out_dir / "native", force=force)
+        built_fmus += build_fmi3_fmus(out_dir / "fmi3", force=force)
     except NoCompiler as error:
         err.print(f"note: {error}", soft_wrap=True)
         return
@@ -112,7 +115,7 @@ def _build_native(out_dir: Path, force: bool) -> None:
         _fail(2, f"build --out {out_dir}: cannot write the native FMUs{where}: {error.strerror or error}")
     for built in built_fmus:
         state = "built" if built.rebuilt else "up to date"
-        out.print(f"{built.path}  {built.guid}  ({state}, native)")
+        out.print(f"{built.path}  {built.guid}  ({state}, native{' FMI 3.0' if built.path.parent.name == 'fmi3' else ''})")
 
 
 def _progress_runner(steps: int, quiet: bool):
