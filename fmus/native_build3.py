@@ -31,7 +31,7 @@ from fmus.build import DEFAULT_OUT, FMU_NAMES, PACKAGE_DIR, _slave_instance, arc
 from fmus.documentation import documentation_html
 from fmus.modeldescription3 import TIME_VALUE_REFERENCE, instantiation_token_for, model_description3
 from fmus.native_build import (CFLAGS, GENERATED_HEADER, HEADERS, LIBS, MODEL_SOURCE, NATIVE_SOURCES, BuiltNativeFmu,
-                               _compiler_identity, compile_binary, compiler, fmi_headers, variables_header)
+                               compile_binary, compiler, fmi_headers, variables_header)
 
 FMI3_OUT = DEFAULT_OUT / "fmi3"
 FMI3_LAYER = "fmi3.c"
@@ -99,10 +99,11 @@ def _entries(name: str, slave, token: str, binary: bytes) -> dict[str, bytes]:
     return entries
 
 
-def _digest(name: str, slave, cc: str) -> str:
-    """Digest of everything that shapes FMU ``name`` but its token (which is made from it)."""
+def _digest(name: str, slave) -> str:
+    """Digest of everything that shapes FMU ``name`` but its token (which is made from it). As for the
+    FMI 2.0 build (fmus/native_build.py, ``_digest``), the compiler's flags count, not its identity."""
     parts = _entries(name, slave, PLACEHOLDER_TOKEN, b"")
-    parts["compiler"] = f"{_compiler_identity(cc)} {' '.join(CFLAGS + LIBS)}".encode()
+    parts["compiler flags"] = " ".join(CFLAGS + LIBS).encode()
     for module in ("native_build.py", "native_build3.py", "modeldescription3.py"):
         parts[f"builder/{module}"] = (PACKAGE_DIR / module).read_bytes()
     for file in FMI3_HEADERS:
@@ -122,8 +123,8 @@ def is_complete3(path: Path, name: str, token: str) -> bool:
     return archive_is_whole(path, token, required)
 
 
-def expected_token(name: str, cc: str | None = None) -> str:
-    return instantiation_token_for(_digest(name, _slave_instance(name), cc or compiler()), f"native:{name}")
+def expected_token(name: str) -> str:
+    return instantiation_token_for(_digest(name, _slave_instance(name)), f"native:{name}")
 
 
 def _build_one(name: str, slave, token: str, cc: str, out_dir: Path) -> Path:
@@ -137,15 +138,16 @@ def build_fmi3_fmus(out_dir: Path = FMI3_OUT, force: bool = False,
                     names: tuple[str, ...] = FMU_NAMES) -> list[BuiltNativeFmu]:
     """Build the FMI 3.0 FMUs ``names`` into ``out_dir`` unless an up-to-date one is already there (each
     BuiltNativeFmu's ``guid`` is the FMU's instantiationToken).
-    Raises NoCompiler (one line) when there is no C compiler, BuildError when compiling fails."""
-    cc = compiler()
+    Raises NoCompiler (one line) when one must be built and there is no C compiler, BuildError when
+    compiling fails."""
     built = []
     for name in names:
         slave = _slave_instance(name)
-        token = instantiation_token_for(_digest(name, slave, cc), f"native:{name}")
+        token = instantiation_token_for(_digest(name, slave), f"native:{name}")
         path = Path(out_dir) / f"{name}.fmu"
         if not force and path.exists() and is_complete3(path, name, token):
             built.append(BuiltNativeFmu(name, path, token, rebuilt=False))
             continue
-        built.append(BuiltNativeFmu(name, _build_one(name, slave, token, cc, Path(out_dir)), token, rebuilt=True))
+        built.append(BuiltNativeFmu(name, _build_one(name, slave, token, compiler(), Path(out_dir)), token,
+                                    rebuilt=True))
     return built

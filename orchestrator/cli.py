@@ -91,7 +91,7 @@ def build(
         _fail(2, f"build --out {out_dir}: cannot write the FMUs{where}: {error.strerror or error}")
     for built in built_fmus:
         state = "built" if built.rebuilt else "up to date"
-        out.print(f"{built.path}  {built.guid}  ({state})")
+        out.print(f"{built.path}  {built.guid}  ({state})", soft_wrap=True)
     _build_native(out_dir, force)
 
 
@@ -115,7 +115,7 @@ def _build_native(out_dir: Path, force: bool) -> None:
         _fail(2, f"build --out {out_dir}: cannot write the native FMUs{where}: {error.strerror or error}")
     for built in built_fmus:
         state = "built" if built.rebuilt else "up to date"
-        out.print(f"{built.path}  {built.guid}  ({state}, native{' FMI 3.0' if built.path.parent.name == 'fmi3' else ''})")
+        out.print(f"{built.path}  {built.guid}  ({state}, native{' FMI 3.0' if built.path.parent.name == 'fmi3' else ''})", soft_wrap=True)
 
 
 def _progress_runner(steps: int, quiet: bool):

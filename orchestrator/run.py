@@ -189,6 +189,9 @@ class Interrupted(KeyboardInterrupt):
         self.signum = signum
 
 
+STALLED_WRITER_GRACE = 2.0  # s a trace writer process may take nothing after a second signal before it is stopped
+
+
 class _StopRequest:
     """Signal handlers for the length of a run.
 
@@ -316,7 +319,9 @@ def run_scenario(
                                        {name: _descriptions(fmu) for name, fmu in kinds.items()}, config,
                                        every=sim.trace_every, scene_rate=scene_rate, foxglove=foxglove,
                                        process=trace_process, publish=target.final)
-        writer.metadata("platoon.config", {"toml": config_text, "resolved": config.model_dump_json()})
+        # an optional key left absent (simulation.fmus) stays absent: a null in a stored config stands for a
+        # number that was not finite (orchestrator/stored_config.py)
+        writer.metadata("platoon.config", {"toml": config_text, "resolved": config.model_dump_json(exclude_none=True)})
         writer.metadata("platoon.fmus", {kind: fmu.guid for kind, fmu in fmus_by_kind.items()})
         writer.metadata("platoon.tool", tool_versions())
         writer.metadata("platoon.start", {"engine": engine, "fmus": fmu_kind, "master": sim.master,
@@ -396,6 +401,12 @@ def run_scenario(
             if writer is not None:
                 stop.finishing = isinstance(writer, TraceWorker)  # a signal may end the wait for the worker
                 try:
+                    if stop.forced and isinstance(writer, TraceWorker) and writer.stalled(STALLED_WRITER_GRACE):
+                        # The user insisted (a second signal, which may have been spent breaking a send into
+                        # the full pipe of a worker that takes nothing: the native FMUs fill it in a moment)
+                        # and the worker still takes nothing: finalizing would block on that pipe again.
+                        writer.abandon("stopped: it took no data after a second signal")
+                        raise KeyboardInterrupt
                     status, error = _finalize_trace(writer, status, error, failed_at, signum, engine, sim.master)
                 except KeyboardInterrupt as interruption:  # while the trace writer process finished the file
                     signum = signum or getattr(interruption, "signum", signal.SIGINT)
