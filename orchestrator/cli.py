@@ -215,6 +215,7 @@ def run(
     live_port: Annotated[int, typer.Option("--live-port", min=0, max=65535, help="port of the --live server")] = 8765,
     live_host: Annotated[str, typer.Option("--live-host", help="address the --live server binds; anything but 127.0.0.1 lets other machines watch (no authentication)")] = "127.0.0.1",
     live_speed: Annotated[float, typer.Option("--live-speed", min=0.0, help="with --live: simulated seconds per wall second (1: real time; 0: as fast as it runs)")] = 1.0,
+    live_wait: Annotated[bool, typer.Option("--live-wait", help="with --live: start stepping once a viewer shows the scene, so it sees the whole run")] = False,
 ) -> None:
     """Run a scenario: wire the FMUs as the paper's Fig. 2, step them, write an MCAP trace."""
     from .startup import seconds_since_process_start
@@ -245,11 +246,13 @@ def run(
     except LiveRunError as error:
         _fail(2, f"config {config}: {error}")
     view = None
+    if not live and (live_port, live_host, live_speed, live_wait) != (8765, "127.0.0.1", 1.0, False):
+        _fail(2, "--live-port, --live-host, --live-speed and --live-wait go with --live (add it to watch the run)")
     if live:  # before the trace is claimed: a port in use stops the run with nothing written
         from .live_view import LiveViewError, start_live_view
 
         try:
-            view = start_live_view(parsed, live_host, live_port, live_speed, err)
+            view = start_live_view(parsed, live_host, live_port, live_speed, err, live_wait)
         except LiveViewError as error:
             _fail(2, str(error))
     target = _claim_trace(trace, overwrite, [config], lambda: default_trace_path(parsed, engine))

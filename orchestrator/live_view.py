@@ -23,13 +23,16 @@ The trace is written exactly as without ``--live``: the view only reads the rows
 
 from __future__ import annotations
 
+import errno
 import math
+import threading
 import time as clock
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
+from .live_bridge import SubprotocolRelay
 from .realtime import Pacer
 from .trace.encoding import ChannelSpec, ComponentMessages, LiveStream
-from .trace.foxglove import FoxgloveChannels
+from .trace.foxglove import SCENE_TOPIC, FoxgloveChannels
 
 if TYPE_CHECKING:
     from .config import Config
@@ -52,18 +55,37 @@ def app_url(url: str) -> str:
 class LiveView:
     """A Foxglove WebSocket server for one run; ``open`` declares the run's channels, ``tee`` feeds them."""
 
-    def __init__(self, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, speed: float = 1.0, rate: float = RATE) -> None:
+    def __init__(self, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, speed: float = 1.0, rate: float = RATE,
+                 wait: bool = False) -> None:
         import foxglove  # the Rust server and its threads start only for a live run
+        from foxglove.websocket import ServerListener
 
         self._foxglove = foxglove
         self.context = foxglove.Context()
-        try:
-            self.server = foxglove.start_server(name="platoon-cosim", host=host, port=port, context=self.context)
-        except RuntimeError as error:  # e.g. "FoxgloveError: Failed to bind port: Address already in use"
-            reason = str(error).split("Failed to bind port: ", 1)[-1].removeprefix("FoxgloveError: ")
-            hint = "; another run or program uses it: pick another with --live-port PORT" if "in use" in reason else ""
-            raise LiveViewError(f"--live: cannot serve on {host}:{port}: {reason}{hint}") from None
-        self.host, self.port = host, self.server.port
+        self.wait = wait
+        self.watched = threading.Event()  # set once a viewer subscribed to the scene
+
+        class Watchers(ServerListener):
+            def on_subscribe(self, client: Any, channel: Any) -> None:
+                if channel.topic == SCENE_TOPIC:
+                    watched.set()
+
+        watched = self.watched
+        try:  # the user's port: the relay that also lets older viewers in (orchestrator/live_bridge.py)
+            self.relay = SubprotocolRelay(host, port)
+        except OSError as error:
+            hint = "; another run or program uses it: pick another with --live-port PORT" if error.errno == errno.EADDRINUSE else ""
+            raise LiveViewError(f"--live: cannot serve on {host}:{port}: {error.strerror or error}{hint}") from None
+        try:  # the SDK's server, reached through the relay only
+            # Time: the server says what time it is, the simulated time of the frames (stamped as in the
+            # trace), so a viewer's clock and plot axes run in simulated seconds, as with the trace file
+            self.server = foxglove.start_server(name="platoon-cosim", host="127.0.0.1", port=0, context=self.context,
+                                                capabilities=[foxglove.Capability.Time], server_listener=Watchers())
+        except RuntimeError as error:
+            self.relay.close()
+            raise LiveViewError(f"--live: the Foxglove server did not start: {error}") from None
+        self.relay.start(self.server.port)
+        self.host, self.port = host, self.relay.port
         self.speed, self.interval = speed, 1.0 / rate
         self.paced = speed > 0
         self._channels: list[Any] = []
@@ -74,8 +96,10 @@ class LiveView:
         return f"ws://{host}:{self.port}"
 
     def open(self, config: "Config", components: Sequence[tuple[str, Sequence[str]]],
-             descriptions: dict[str, dict[str, str]] | None, every: int, scene_rate: float, on_wall_clock: bool) -> None:
-        """Advertise the run's channels. ``on_wall_clock``: the run is paced already (a live robot)."""
+             descriptions: dict[str, dict[str, str]] | None, every: int, scene_rate: float, on_wall_clock: bool,
+             check: Callable[[], object] = lambda: None) -> None:
+        """Advertise the run's channels; with ``wait``, return once a viewer subscribed to the scene (``check()``
+        meanwhile, which raises to stop waiting, e.g. on Ctrl-C). ``on_wall_clock``: the run is paced already."""
         self.rows = ComponentMessages(components, descriptions)
         self.components = [self._advertise(spec) for spec in self.rows.specs]
         self.foxglove = FoxgloveChannels(config, components, scene_rate)
@@ -91,6 +115,8 @@ class LiveView:
         self._pacing = False
         self._latest: list[float] | None = None
         self._sent_at = -float("inf")
+        while self.wait and not self.watched.wait(0.1):
+            check()
 
     def _advertise(self, spec: ChannelSpec) -> int:
         channel = self._foxglove.Channel(
@@ -139,6 +165,7 @@ class LiveView:
             return
         time = row[0]
         stamp = int(round(time * 1e9))
+        self.server.broadcast_time(stamp)
         self._send(list(zip(range(len(self.components)), self.rows.encode(row))), stamp)
         self._send(self.foxglove.snapshot(time, stamp, self.rows.outputs(row)), stamp)
         self._sent_at = clock.monotonic()
@@ -200,6 +227,7 @@ class LiveView:
         for channel in self._channels:
             channel.close()
         self.server.stop()
+        self.relay.close()
 
 
 class LiveTee:
@@ -241,14 +269,14 @@ class LiveTee:
         self.view.link(stream, time, fields)
 
 
-def start_live_view(config: "Config", host: str, port: int, speed: float, warn: Any) -> LiveView:
+def start_live_view(config: "Config", host: str, port: int, speed: float, warn: Any, wait: bool = False) -> LiveView:
     """The CLI's ``--live``: check the options against the config, start the server (``LiveViewError``:
     one line, nothing started); ``warn`` (a rich Console) gets the warning for a host other machines reach."""
     live = config.live_vehicles()
     if live and speed != 1.0:
         raise LiveViewError(f"--live-speed {speed:g}: this config has a live robot (vehicle {', '.join(map(str, live))}), "
                             f"which runs in real time; leave --live-speed at 1")
-    view = LiveView(host, port, speed)
+    view = LiveView(host, port, speed, wait=wait)
     if host not in LOOPBACK:
         warn.print(f"warning: --live-host {host}: the live view is open to every machine that reaches this one "
                    f"on port {view.port} (no authentication; anyone there sees the run)", highlight=False, soft_wrap=True)
@@ -267,3 +295,5 @@ def announce(view: LiveView, trace: Any, config: "Config", out: Any) -> None:
               f"on its address, or Open connection > Foxglove WebSocket)", highlight=False, soft_wrap=True)
     if layout is not None:
         out.print(f"  layout: {layout}  (Layouts > Import from file)", highlight=False, soft_wrap=True)
+    if view.wait:
+        out.print("  waiting for a viewer to open the scene before the run starts ...", highlight=False)

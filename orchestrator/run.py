@@ -317,7 +317,8 @@ def run_scenario(
                                        every=sim.trace_every, scene_rate=scene_rate, foxglove=foxglove,
                                        process=trace_process, publish=target.final)
         if live_view is not None:  # the view sees what the trace records; a live robot's run is paced already
-            live_view.open(config, components, descriptions, sim.trace_every, scene_rate, on_wall_clock=bool(live))
+            live_view.open(config, components, descriptions, sim.trace_every, scene_rate, on_wall_clock=bool(live),
+                           check=stop.check)
             writer = live_view.tee(writer)
         writer.metadata("platoon.config", {"toml": config_text, "resolved": config.model_dump_json()})
         writer.metadata("platoon.fmus", {kind: fmu.guid for kind, fmu in fmus_by_kind.items()})

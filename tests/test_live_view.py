@@ -53,26 +53,32 @@ def start_run(out: Path, port: int, *args: str) -> subprocess.Popen[str]:
 
 @dataclass
 class Watched:
-    """What the client saw: the advertised channels by id, and every message (topic, timestamp, payload)."""
+    """What the client saw: the advertised channels by id, every message (topic, timestamp, payload) and
+    the server's time announcements (ns)."""
 
     channels: dict[int, dict] = field(default_factory=dict)
     messages: list[tuple[str, int, bytes]] = field(default_factory=list)
+    times: list[int] = field(default_factory=list)
     closed: bool = False
 
 
-async def _watch(port: int, run: subprocess.Popen[str], interrupt_after: int | None) -> Watched:
+CURRENT = ["foxglove.sdk.v1", "foxglove.websocket.v1"]  # as Foxglove offers them
+LEGACY = ["foxglove.websocket.v1"]  # as Lichtblick 1.10.8 does (the viewer of ../shared/viewer)
+
+
+async def _watch(port: int, run: subprocess.Popen[str], interrupt_after: int | None, offer: list[str]) -> Watched:
     url = f"ws://127.0.0.1:{port}"
     seen = Watched()
     while True:  # the server comes up once the config is read; the run waits for nobody
         try:
-            connection = await websockets.connect(url, subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"])
+            connection = await websockets.connect(url, subprotocols=offer)
             break
         except OSError:
             if run.poll() is not None:
                 raise AssertionError(f"the run ended (exit {run.returncode}) before its live view accepted a client")
             await asyncio.sleep(0.05)
     async with connection:
-        assert connection.subprotocol in ("foxglove.sdk.v1", "foxglove.websocket.v1")
+        assert connection.subprotocol == offer[0]
         frames = 0
         while True:
             try:
@@ -88,6 +94,9 @@ async def _watch(port: int, run: subprocess.Popen[str], interrupt_after: int | N
                     await connection.send(json.dumps({"op": "subscribe", "subscriptions": [
                         {"id": channel["id"], "channelId": channel["id"]} for channel in message["channels"]]}))
                 continue
+            if data[0] == 2:  # Time: the server's clock, the simulated time of the frame that follows
+                seen.times.append(struct.unpack_from("<Q", data, 1)[0])
+                continue
             assert data[0] == 1  # MessageData
             subscription, stamp = struct.unpack_from("<IQ", data, 1)
             topic = seen.channels[subscription]["topic"]
@@ -98,9 +107,9 @@ async def _watch(port: int, run: subprocess.Popen[str], interrupt_after: int | N
                     run.send_signal(signal.SIGINT)  # as Ctrl-C in the terminal
 
 
-def watch(port: int, run: subprocess.Popen[str], interrupt_after: int | None = None) -> Watched:
+def watch(port: int, run: subprocess.Popen[str], interrupt_after: int | None = None, offer: list[str] = CURRENT) -> Watched:
     try:
-        seen = asyncio.run(asyncio.wait_for(_watch(port, run, interrupt_after), GIVE_UP))
+        seen = asyncio.run(asyncio.wait_for(_watch(port, run, interrupt_after, offer), GIVE_UP))
         run.wait(timeout=GIVE_UP)
     finally:
         if run.poll() is None:
@@ -131,7 +140,7 @@ def protobuf_class(channel: dict):
 
 def test_live_view_serves_the_traces_channels_and_data(tmp_path: Path) -> None:
     out, port = tmp_path / "live.mcap", free_port()
-    run = start_run(out, port, "--set", "simulation.stop_time=4")
+    run = start_run(out, port, "--set", "simulation.stop_time=4", "--live-wait")
     seen = watch(port, run)
     assert run.returncode == 0, out.with_suffix(".stderr").read_text()
     assert seen.closed  # the server closes once the run is over
@@ -185,15 +194,21 @@ def test_live_view_serves_the_traces_channels_and_data(tmp_path: Path) -> None:
             position = entities[name].cubes[0].pose.position
             index = rows[name][stamp]
             assert (position.x, position.y) == (trace.component(name)["x"][index], trace.component(name)["y"][index])
-    assert scenes[-1][0] == int(round(4.0 * 1e9))
+    assert scenes[-1][0] == int(round(4.0 * 1e9))  # the last point is shown
+    # --live-wait: the run started once the client subscribed, so it saw the run from its start
+    assert scenes[0][0] < 0.1e9
+    assert any(b"run started" in payload for topic, _, payload in seen.messages if topic == "/platoon/log")
     stamps = [stamp for stamp, _ in scenes]
     assert stamps == sorted(stamps)
+    # the viewer's clock is simulated time: the server announces each frame's time (Time capability)
+    assert seen.times == sorted(seen.times) and set(stamps) <= set(seen.times)
 
 
 def test_ctrl_c_during_a_live_run_keeps_a_finalized_trace(tmp_path: Path) -> None:
+    """Also: a viewer that offers only the protocol's old name (Lichtblick 1.10.8) is served."""
     out, port = tmp_path / "stopped.mcap", free_port()
     run = start_run(out, port, "--set", "simulation.stop_time=60", "--engine", "python")
-    seen = watch(port, run, interrupt_after=3)
+    seen = watch(port, run, interrupt_after=3, offer=LEGACY)
     assert run.returncode == 130, out.with_suffix(".stderr").read_text()
     trace = load(out)
     assert trace.run["status"] == "interrupted"
