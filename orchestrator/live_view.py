@@ -15,8 +15,11 @@ What is sent, and when (docs/foxglove.md, "Watch a run live"):
 * **Bounded**: at most ``RATE`` frames per wall second, each the latest recorded point: every
   component's message, the errors, the transforms and the whole scene (so a viewer that connects late
   sees everything at once). Log lines and a robot link's raw messages are sent as they come.
+* **In simulated time**: messages carry the simulated time, as in the trace, and the server announces
+  it with each frame (the Time capability), so the viewer's clock and plot axes read simulated seconds.
 * **Non-blocking**: the SDK's server runs in its own threads and drops the oldest messages of a
-  client that does not keep up; the run never waits for a viewer.
+  client that does not keep up; the run never waits for a viewer, except with ``wait``
+  (``--live-wait``), once, before its first step.
 
 The trace is written exactly as without ``--live``: the view only reads the rows the writer gets.
 """
@@ -41,6 +44,7 @@ DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
 RATE = 30.0  # frames per wall second at most: smooth to the eye, a few hundred messages a second
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
+SETTLE = 0.5  # s without a new subscription after which --live-wait takes a viewer's subscriptions as complete
 
 
 class LiveViewError(ValueError):
@@ -64,13 +68,16 @@ class LiveView:
         self.context = foxglove.Context()
         self.wait = wait
         self.watched = threading.Event()  # set once a viewer subscribed to the scene
+        self.subscribed_at = 0.0  # monotonic time of the latest subscription
+
+        view = self
 
         class Watchers(ServerListener):
             def on_subscribe(self, client: Any, channel: Any) -> None:
+                view.subscribed_at = clock.monotonic()
                 if channel.topic == SCENE_TOPIC:
-                    watched.set()
+                    view.watched.set()
 
-        watched = self.watched
         try:  # the user's port: the relay that also lets older viewers in (orchestrator/live_bridge.py)
             self.relay = SubprotocolRelay(host, port)
         except OSError as error:
@@ -84,7 +91,6 @@ class LiveView:
         except RuntimeError as error:
             self.relay.close()
             raise LiveViewError(f"--live: the Foxglove server did not start: {error}") from None
-        self.relay.start(self.server.port)
         self.host, self.port = host, self.relay.port
         self.speed, self.interval = speed, 1.0 / rate
         self.paced = speed > 0
@@ -115,7 +121,13 @@ class LiveView:
         self._pacing = False
         self._latest: list[float] | None = None
         self._sent_at = -float("inf")
-        while self.wait and not self.watched.wait(0.1):
+        # viewers reach the server only now (until then they wait in the port's backlog): the SDK's server
+        # refuses a subscription to a channel advertised while a client is connected ("Unknown channel ID")
+        # now and then, so every channel of the run exists before the first viewer gets in
+        self.relay.start(self.server.port)
+        # a viewer subscribes to its panels' channels one after the other: once it has the scene, the
+        # run starts when no subscription came for SETTLE seconds, so the first frame reaches them all
+        while self.wait and not (self.watched.wait(0.05) and clock.monotonic() - self.subscribed_at >= SETTLE):
             check()
 
     def _advertise(self, spec: ChannelSpec) -> int:

@@ -69,9 +69,9 @@ LEGACY = ["foxglove.websocket.v1"]  # as Lichtblick 1.10.8 does (the viewer of .
 async def _watch(port: int, run: subprocess.Popen[str], interrupt_after: int | None, offer: list[str]) -> Watched:
     url = f"ws://127.0.0.1:{port}"
     seen = Watched()
-    while True:  # the server comes up once the config is read; the run waits for nobody
+    while True:  # the port opens once the config is read; the handshake completes once the channels exist
         try:
-            connection = await websockets.connect(url, subprotocols=offer)
+            connection = await websockets.connect(url, subprotocols=offer, open_timeout=None)
             break
         except OSError:
             if run.poll() is not None:
