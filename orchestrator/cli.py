@@ -269,6 +269,8 @@ def run(
     finally:
         if view is not None:
             view.close()
+            if (lag := view.lag_note()) is not None:
+                err.print(lag, highlight=False, soft_wrap=True)
     from .viewer_cli import write_run_layout
 
     layout = write_run_layout(trace, parsed, warn=result.status == "completed")  # beside the trace; None: not written

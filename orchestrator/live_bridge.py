@@ -1,8 +1,8 @@
 """Let viewers that know the Foxglove WebSocket protocol only by its old name watch a live run.
 
 foxglove-sdk's server (0.30) accepts the WebSocket subprotocol ``foxglove.sdk.v1`` only; Lichtblick
-before 1.2x (the open-source Foxglove fork, e.g. 1.10.8) and other older clients offer only
-``foxglove.websocket.v1`` and are refused at the handshake ("Check that the WebSocket server ...
+releases from before it learnt that name (the open-source Foxglove fork, e.g. 1.10.8) and other older
+clients offer only ``foxglove.websocket.v1`` and are refused at the handshake ("Check that the WebSocket server ...
 supports protocol version foxglove.websocket.v1"). The two are the same protocol under two names
 (Foxglove's own statement, and why Lichtblick later added the new name beside the old one).
 

@@ -44,6 +44,7 @@ DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
 RATE = 30.0  # frames per wall second at most: smooth to the eye, a few hundred messages a second
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
+LAG_NOTE = 1.0  # wall seconds behind the pace from which the run says it could not keep up
 SETTLE = 0.5  # s without a new subscription after which --live-wait takes a viewer's subscriptions as complete
 
 
@@ -225,9 +226,15 @@ class LiveView:
         options["tick"] = paced
         return options
 
-    def pacing(self) -> dict[str, float] | None:
-        """How well the run kept the pace (``Pacer.summary``), or None when it was not paced."""
-        return None if self._pacer is None or not self._pacer.lateness else self._pacer.summary()
+    def lag_note(self) -> str | None:
+        """One line if the run could not keep the pace it was asked for (it steps slower), else None."""
+        pacer = getattr(self, "_pacer", None)
+        late = 0.0 if pacer is None else pacer.worst_overrun / self.speed  # the pacer's clock runs `speed` times faster
+        if late < LAG_NOTE:
+            return None
+        pace = "real time" if self.speed == 1.0 else f"{self.speed:g}x real time"
+        return (f"live: the run fell behind {pace} by up to {late:.1f} s (it steps slower than that here; "
+                f"a smaller --live-speed keeps the view even)")
 
     def tee(self, writer: Any) -> "LiveTee":
         return LiveTee(writer, self)
