@@ -158,14 +158,11 @@ class LiveView:
         if len(rows) == 0:
             return
         times = rows[:, 0]
-        advance, split = self.foxglove.advance, self.rows.outputs
-        index = 0
-        while index < len(rows):  # only the rows at scene ticks are looked at one by one
-            index += int((times[index:] >= self.foxglove.next_scene - 1e-9).argmax())
-            if times[index] < self.foxglove.next_scene - 1e-9:
+        while True:  # only the rows at scene ticks are looked at one by one (advance moves the next tick on)
+            index = int(times.searchsorted(self.foxglove.next_scene - 1e-9))  # the first row at or after it
+            if index == len(rows):
                 break
-            advance(float(times[index]), split(rows[index].tolist()))
-            index += 1
+            self.foxglove.advance(float(times[index]), self.rows.outputs(rows[index].tolist()))
         self._latest = rows[-1].tolist()
         # paced, a block is one frame's steps (block_options); else at most one frame per interval
         if self._pacer is not None or clock.monotonic() - self._sent_at >= self.interval:
@@ -179,7 +176,7 @@ class LiveView:
         time = row[0]
         stamp = int(round(time * 1e9))
         self.server.broadcast_time(stamp)
-        self._send(list(zip(range(len(self.components)), self.rows.encode(row))), stamp)
+        self._send(list(zip(self.components, self.rows.encode(row))), stamp)
         self._send(self.foxglove.snapshot(time, stamp, self.rows.outputs(row)), stamp)
         self._sent_at = clock.monotonic()
 

@@ -127,6 +127,14 @@ def trace_channels(path: Path) -> dict[str, tuple[str, str, str, bytes]]:
                       summary.schemas[c.schema_id].data) for c in summary.channels.values()}
 
 
+def trace_messages(path: Path, topic: str) -> dict[int, bytes]:
+    """Log time -> message bytes of one topic of a trace file."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as stream:
+        return {message.log_time: message.data for _, _, message in make_reader(stream).iter_messages(topics=[topic])}
+
+
 def protobuf_class(channel: dict):
     """The message class of an advertised protobuf channel, from the schema the server sent (as the viewer does)."""
     pytest.importorskip("google.protobuf")
@@ -195,6 +203,13 @@ def test_live_view_serves_the_traces_channels_and_data(tmp_path: Path) -> None:
             index = rows[name][stamp]
             assert (position.x, position.y) == (trace.component(name)["x"][index], trace.component(name)["y"][index])
     assert scenes[-1][0] == int(round(4.0 * 1e9))  # the last point is shown
+    # at the trace's scene ticks (10 Hz of simulated time) the frame is the trace's scene, trails included
+    recorded_scenes = trace_messages(out, "/platoon/scene")
+    matched = [(stamp, payload) for topic, stamp, payload in seen.messages
+               if topic == "/platoon/scene" and stamp in recorded_scenes]
+    assert matched and matched[-1][0] == scenes[-1][0]
+    for stamp, payload in matched:
+        assert payload == recorded_scenes[stamp], stamp
     # --live-wait: the run started once the client subscribed, so it saw the run from its start
     assert scenes[0][0] < 0.1e9
     assert any(b"run started" in payload for topic, _, payload in seen.messages if topic == "/platoon/log")
