@@ -42,11 +42,11 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
-def start_run(out: Path, port: int, *args: str) -> subprocess.Popen[str]:
+def start_run(out: Path, port: int, *args: str, config: Path = PAPER) -> subprocess.Popen[str]:
     """``platoon run --live`` as a user starts it (this tree's code), output to files beside the trace."""
     env = {**os.environ, "COLUMNS": "80", "NO_COLOR": "1", "TERM": "dumb", "PYTHONPATH": str(REPO)}
     return subprocess.Popen(
-        [str(PLATOON), "run", str(PAPER), "--out", str(out), "--live", "--live-port", str(port), *args],
+        [str(PLATOON), "run", str(config), "--out", str(out), "--live", "--live-port", str(port), *args],
         cwd=out.parent, env=env, stdout=open(out.with_suffix(".stdout"), "w"), stderr=open(out.with_suffix(".stderr"), "w"),
         text=True)
 
@@ -233,6 +233,29 @@ def test_ctrl_c_during_a_live_run_keeps_a_finalized_trace(tmp_path: Path) -> Non
     assert t[-1] == last and np.allclose(np.diff(t), 0.01)  # every step up to the stop
     log = [m for topic, _, m in seen.messages if topic == "/platoon/log"]
     assert log and b"interrupted by SIGINT" in log[-1]  # the viewer is told, as the trace's log says
+
+
+def test_a_live_robots_run_shows_its_link_streams(tmp_path: Path) -> None:
+    """A hardware-in-the-loop run (configs/hil/, the emulator standing in for robot 3): the view serves
+    the robot link's raw streams as the trace records them, and the run is not paced twice."""
+    from tests.test_hil import emulator, endpoint
+
+    robot_port, port, out = free_port(), free_port(), tmp_path / "hil.mcap"
+    with emulator(robot_port, tmp_path):
+        run = start_run(out, port, "--set", "simulation.stop_time=2", "--set", f'vehicles.3.connect=["{endpoint(robot_port)}"]',
+                        "--live-wait", config=REPO / "configs" / "hil" / "m3pi_live3.toml")
+        seen = watch(port, run)
+    assert run.returncode == 0, out.with_suffix(".stderr").read_text()
+    assert load(out).run["status"] == "completed"
+    from mcap.reader import make_reader
+
+    for topic in ("/platoon/vehicle3/pose", "/platoon/vehicle3/command"):
+        received = [(stamp, payload) for t, stamp, payload in seen.messages if t == topic]
+        with open(out, "rb") as stream:
+            recorded = [(m.log_time, m.data) for _, _, m in make_reader(stream).iter_messages(topics=[topic], log_time_order=False)]
+        # a link's channel appears with its first message, mid-run: a viewer has every message from the
+        # moment its subscription arrived, the same bytes in the same order as the trace, to the end
+        assert received and received == recorded[len(recorded) - len(received):], topic
 
 
 def test_a_port_in_use_exits_2_with_one_line_and_writes_nothing(tmp_path: Path) -> None:
