@@ -172,7 +172,7 @@ def _time_split(entered: float | None, loaded: float | None, timings: dict[str, 
     ])
 
 
-def _execute(config: Config, text: str, trace, engine: str, quiet: bool, trace_writer: str = "auto"):
+def _execute(config: Config, text: str, trace, engine: str, quiet: bool, trace_writer: str = "auto", live_view=None):
     from .run import run_scenario
     from .scenario import step_count
 
@@ -189,7 +189,8 @@ def _execute(config: Config, text: str, trace, engine: str, quiet: bool, trace_w
         tick = update
         progress.start()
     try:
-        return run_scenario(config, text, trace, engine=engine, tick=tick, trace_writer=trace_writer, summarize=not quiet)
+        return run_scenario(config, text, trace, engine=engine, tick=tick, trace_writer=trace_writer, summarize=not quiet,
+                            live_view=live_view)
     finally:
         if progress is not None:
             progress.stop()
@@ -235,6 +236,11 @@ def run(
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="also print where the wall time went: start-up (imports, config, FMUs), the run's phases, the summary")] = False,
     allow_long: AllowLong = False,
+    live: Annotated[bool, typer.Option("--live", help="serve the run on a Foxglove WebSocket while it runs (open it in Foxglove or Lichtblick; docs/foxglove.md), paced to real time")] = False,
+    live_port: Annotated[int, typer.Option("--live-port", min=0, max=65535, help="port of the --live server")] = 8765,
+    live_host: Annotated[str, typer.Option("--live-host", help="address the --live server binds; anything but 127.0.0.1 lets other machines watch (no authentication)")] = "127.0.0.1",
+    live_speed: Annotated[float, typer.Option("--live-speed", min=0.0, help="with --live: simulated seconds per wall second (1: real time; 0: as fast as it runs)")] = 1.0,
+    live_wait: Annotated[bool, typer.Option("--live-wait", help="with --live: start stepping once a viewer shows the scene, so it sees the whole run")] = False,
 ) -> None:
     """Run a scenario: wire the FMUs as the paper's Fig. 2, step them, write an MCAP trace."""
     from .startup import seconds_since_process_start
@@ -266,6 +272,16 @@ def run(
         check_live_options(parsed, engine, trace_writer)
     except LiveRunError as error:
         _fail(2, f"config {config}: {error}")
+    view = None
+    if not live and (live_port, live_host, live_speed, live_wait) != (8765, "127.0.0.1", 1.0, False):
+        _fail(2, "--live-port, --live-host, --live-speed and --live-wait go with --live (add it to watch the run)")
+    if live:  # before the trace is claimed: a port in use stops the run with nothing written
+        from .live_view import LiveViewError, start_live_view
+
+        try:
+            view = start_live_view(parsed, live_host, live_port, live_speed, err, live_wait)
+        except LiveViewError as error:
+            _fail(2, str(error))
     target = _claim_trace(trace, overwrite, [config], lambda: default_trace_path(parsed, engine))
     trace = target.final
     reference_path = trace.with_name(trace.stem + "-monolithic.mcap")
@@ -275,10 +291,19 @@ def run(
 
     from .fmu_kinds import FmuKindError
 
+    if view is not None:
+        from .live_view import announce
+
+        announce(view, trace, parsed, out)
     try:
-        result = _execute(parsed, text, target, engine, quiet, trace_writer)
+        result = _execute(parsed, text, target, engine, quiet, trace_writer, view)
     except (FmuKindError, BuildError) as error:  # nothing was run, the trace path is released
         _fail(2, f"config {config}: {error}")
+    finally:
+        if view is not None:
+            view.close()
+            if (lag := view.lag_note()) is not None:
+                err.print(lag, highlight=False, soft_wrap=True)
     from .viewer_cli import write_run_layout
 
     layout = write_run_layout(trace, parsed, warn=result.status == "completed")  # beside the trace; None: not written

@@ -15,7 +15,7 @@ import threading
 import time as clock
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import fmus
 from fmus.build import DEFAULT_OUT, FMU_NAMES
@@ -37,6 +37,9 @@ from .trace.output import Claim, claim, claim_new
 from .trace.writer import NullTraceWriter, TraceWriteError, TraceWriter
 from .trace.format import BLOCK, FLUSH_INTERVAL
 from .trace.worker import WORKER_BLOCK, TraceProcess, TraceWorker, TraceWorkerError
+
+if TYPE_CHECKING:
+    from .live_view import LiveView
 
 # Where the trace is encoded: "inline" in the stepping process, "process" in a second process
 # (orchestrator/trace/worker.py), "auto": a second process when the machine has a spare core and the
@@ -255,6 +258,7 @@ def run_scenario(
     scene_rate: float = SCENE_RATE,
     trace_writer: str = "auto",
     summarize: bool = False,
+    live_view: "LiveView | None" = None,
 ) -> RunResult:
     """Run ``config`` with ``engine`` and write the trace to ``out`` (``None``: record nothing).
 
@@ -268,7 +272,8 @@ def run_scenario(
     "interrupted"; the trace is finalized with every point recorded up to there. ``trace_writer``:
     where the trace is encoded (``TRACE_WRITERS``); both give the same file. ``summarize``: accumulate
     the per-vehicle summary of the recorded rows while stepping (``RunResult.summary``), so printing it
-    needs no second read of the trace.
+    needs no second read of the trace. ``live_view``: a started ``LiveView`` (orchestrator/live_view.py)
+    that shows what the trace records, the run paced as it says; the caller closes it.
     """
     target = claim(out) if isinstance(out, (str, Path)) else out
     trace_process: TraceProcess | None = None
@@ -312,13 +317,17 @@ def run_scenario(
             for spec in scenario.components
         }
         components = [(spec.name, outputs[spec.name]) for spec in scenario.components]
+        descriptions = {name: _descriptions(fmu) for name, fmu in kinds.items()}
         if target is None:
             writer = NullTraceWriter()
         else:
-            writer = open_trace_writer(writer_kind, target.aside, components,
-                                       {name: _descriptions(fmu) for name, fmu in kinds.items()}, config,
+            writer = open_trace_writer(writer_kind, target.aside, components, descriptions, config,
                                        every=sim.trace_every, scene_rate=scene_rate, foxglove=foxglove,
                                        process=trace_process, publish=target.final)
+        if live_view is not None:  # the view sees what the trace records; a live robot's run is paced already
+            live_view.open(config, components, descriptions, sim.trace_every, scene_rate, on_wall_clock=bool(live),
+                           check=stop.check)
+            writer = live_view.tee(writer)
         # an optional key left absent (simulation.fmus) stays absent: a null in a stored config stands for a
         # number that was not finite (orchestrator/stored_config.py)
         writer.metadata("platoon.config", {"toml": config_text, "resolved": config.model_dump_json(exclude_none=True)})
@@ -366,9 +375,12 @@ def run_scenario(
             sink = None if out is None else writer.write_block
             if feed is not None:
                 sink = feed.tee_blocks(sink)
+            delivery = {"tick": tick, "deliver_interval": FLUSH_INTERVAL / 2}
+            if live_view is not None:  # blocks at the view's frame rate, the run paced between them
+                delivery = live_view.block_options(sim.step, tick, FLUSH_INTERVAL / 2)
             master.run_blocks(sim.step, steps, sink, every=sim.trace_every,
-                              block=WORKER_BLOCK if writer_kind == "process" else BLOCK, tick=tick, check=stop.check,
-                              deliver_interval=FLUSH_INTERVAL / 2, initialize=False)
+                              block=WORKER_BLOCK if writer_kind == "process" else BLOCK, check=stop.check,
+                              initialize=False, **delivery)
         else:
             _run_monolithic(scenario, outputs, fmus_by_kind, observe, steps, tick)
     except ComponentError as failure:
@@ -399,13 +411,15 @@ def run_scenario(
             if reporter is not None:  # stamped at the last communication point the master reached
                 live_summary = reporter.finish(master.time if master is not None else 0.0)
             if writer is not None:
-                stop.finishing = isinstance(writer, TraceWorker)  # a signal may end the wait for the worker
+                # a signal may end the wait for the worker (behind a live view's tee: `traced`)
+                stop.finishing = isinstance(getattr(writer, "traced", writer), TraceWorker)
                 try:
-                    if stop.forced and isinstance(writer, TraceWorker) and writer.stalled(STALLED_WRITER_GRACE):
+                    worker = getattr(writer, "traced", writer)
+                    if stop.forced and isinstance(worker, TraceWorker) and worker.stalled(STALLED_WRITER_GRACE):
                         # The user insisted (a second signal, which may have been spent breaking a send into
                         # the full pipe of a worker that takes nothing: the native FMUs fill it in a moment)
                         # and the worker still takes nothing: finalizing would block on that pipe again.
-                        writer.abandon("stopped: it took no data after a second signal")
+                        worker.abandon("stopped: it took no data after a second signal")
                         raise KeyboardInterrupt
                     status, error = _finalize_trace(writer, status, error, failed_at, signum, engine, sim.master)
                 except KeyboardInterrupt as interruption:  # while the trace writer process finished the file
