@@ -110,22 +110,23 @@ def _progress_runner(steps: int, quiet: bool):
 
 
 def _summary_table(summaries, config: Config, title: str) -> Table:
-    """The per-vehicle summary (the consoles print text literally: the units "[m]" are not markup)."""
-    from .metrics import STEADY_FRACTION, first_disturbance
+    """The per-vehicle summary (the consoles print text literally: the units "[m]" are not markup); the same
+    quantities, keys and units as `platoon report --json` (metrics.SUMMARY_COLUMNS, summary_rows)."""
+    from .metrics import STEADY_FRACTION, SUMMARY_COLUMNS, path_error_interval, summary_rows
 
-    disturbed = first_disturbance(config)  # max |path error| is taken from the first disturbance on (metrics.py)
-    interval = "whole run" if disturbed is None else f"t >= {disturbed:g} s"
+    _, interval = path_error_interval(config)  # max |path error| is taken from the first disturbance on (metrics.py)
     table = Table(title=title, title_justify="left", caption_justify="left",
                   caption=f"path offset, gap, speed: means over the last {STEADY_FRACTION:.0%} of the recorded time")
-    for column in ("vehicle", "path offset [m]", "gap - d* [m]", "speed - V_c [m/s]", f"max |path error| [m], {interval}"):
-        table.add_column(column, justify="right" if column != "vehicle" else "left",
-                         min_width=len("max |path error|") if column.startswith("max") else None,  # unbroken
-                         max_width=len("path offset") if column.startswith("path") else None)  # fits 80 columns
-    for s in summaries:
-        table.add_row(
-            s.name, f"{s.path_offset:+.3e}", f"{s.gap - config.platoon.d_star:+.3e}",
-            f"{s.speed - config.platoon.speed:+.3e}", f"{s.path_error_max:.3e}",
-        )
+    table.add_column("vehicle", justify="left")
+    for column in SUMMARY_COLUMNS:
+        header = f"{column.label} [{column.unit}]" + (f", {interval}" if column.key == "path_error_max" else "")
+        table.add_column(header, justify="right",
+                         min_width=len(column.label) if column.key == "path_error_max" else None,  # unbroken
+                         max_width=len("path offset") if column.key == "path_offset" else None)  # fits 80 columns
+    for row in summary_rows(summaries, config):
+        signed = "{:+.3e}"
+        table.add_row(str(row["name"]), *((signed if column.key != "path_error_max" else "{:.3e}").format(row[column.key])
+                                           for column in SUMMARY_COLUMNS))
     return table
 
 
@@ -317,7 +318,8 @@ def report(
     with _quiet_nan(bool(non_finite)):  # nan figures were announced above
         summaries = summarize(loaded, config)
         if as_json:
-            out.print_json(json.dumps(report_json(summaries)))
+            out.print_json(json.dumps({"trace": str(trace), "law": config.platoon.law, "status": status,
+                                        **report_json(summaries, config)}))
         else:
             out.print(_summary_table(summaries, config, f"{trace.name}: {config.platoon.law} law ({status})"))
         if plots is not None:

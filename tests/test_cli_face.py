@@ -31,3 +31,56 @@ def test_summary_table_shows_units_and_the_interval_of_the_max_path_error(tmp_pa
                         cwd=tmp_path)
     assert disturbed.returncode == 0, disturbed.stderr
     assert "t >= 35 s" in disturbed.stdout  # from the first disturbance on (orchestrator/metrics.py)
+
+
+# The table's headers, as a reader meets them, and the JSON key each one promises (docs/trace-format.md)
+TABLE_KEYS = {"path offset": "path_offset", "gap - d*": "gap_error", "speed - V_c": "speed_error",
+              "max |path error|": "path_error_max"}
+
+
+def table_of(stdout: str) -> tuple[list[str], dict[str, list[str]]]:
+    """The summary table printed by run/report: its headers (wrapped lines joined) and rows by vehicle."""
+    lines = stdout.splitlines()
+    header_lines = [line for line in lines if line.startswith("┃")]
+    cells = [[cell.strip() for cell in line.strip("┃").split("┃")] for line in header_lines]
+    headers = [" ".join(part for part in column if part) for column in zip(*cells)]
+    rows = {}
+    for line in lines:
+        if line.startswith("│ vehicle"):
+            values = [cell.strip() for cell in line.strip("│").split("│")]
+            rows[values[0]] = values[1:]
+    return headers, rows
+
+
+def test_report_json_and_the_table_report_the_same_quantities(tmp_path: Path) -> None:
+    import json
+    import re
+
+    trace = tmp_path / "front.mcap"
+    run = platoon("run", FRONT_LATERAL, "--set", "simulation.stop_time=36.0", "--out", trace, cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    table = platoon("report", trace, cwd=tmp_path)
+    as_json = platoon("report", trace, "--json", cwd=tmp_path)
+    assert table.returncode == 0 and as_json.returncode == 0, table.stderr + as_json.stderr
+    report = json.loads(as_json.stdout)
+    headers, rows = table_of(table.stdout)
+    assert table_of(run.stdout)[1] == rows  # `platoon run` prints the same table as `platoon report`
+    assert headers[0] == "vehicle" and len(headers) == 1 + len(TABLE_KEYS)
+    keys = []
+    for header in headers[1:]:
+        match = re.fullmatch(r"(.+?) \[(.+?)\](?:, (.+))?", header)
+        assert match, header
+        label, unit, interval = match.groups()
+        key = TABLE_KEYS[label]
+        keys.append(key)
+        assert report["units"][key] == unit, (key, unit)  # same unit, stated in the JSON
+        if key == "path_error_max":
+            assert interval == report["path_error_max_interval"]["text"] == "t >= 35 s"
+            assert report["path_error_max_interval"]["from_s"] == 35.0
+    assert [v["name"] for v in report["vehicles"]] == list(rows) == ["vehicle1", "vehicle2", "vehicle3", "vehicle4"]
+    for vehicle in report["vehicles"]:
+        for key, cell in zip(keys, rows[vehicle["name"]]):
+            assert cell == (f"{vehicle[key]:.3e}" if key == "path_error_max" else f"{vehicle[key]:+.3e}"), (key, cell)
+        # the absolute values beside the deviations: gap - d* and speed - V_c of the recorded config
+        assert vehicle["gap"] - 75.0 == vehicle["gap_error"] and vehicle["speed"] - 25.0 == vehicle["speed_error"]
+    assert report["steady_window"]["last_fraction"] == 0.1 and "last 10%" in table.stdout

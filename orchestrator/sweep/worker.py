@@ -74,7 +74,7 @@ def _run(request: dict[str, Any]) -> dict[str, Any]:
     outcome: dict[str, Any] = {"status": result.status, "error": result.error or "", "wall_time": result.wall_time}
     if result.status == "completed":
         summaries = result.summary if result.summary is not None else summarize(load(trace), config)
-        outcome["metrics"] = flatten_report(report_json(summaries))
+        outcome["metrics"] = flatten_report(report_json(summaries, config))
     return outcome
 
 
