@@ -34,6 +34,17 @@ app = typer.Typer(
 # "runs/[a]/x.mcap") and must appear as written. The one styled line (_fail) asks for markup itself.
 out = Console(markup=False)
 err = Console(stderr=True, markup=False)
+# Metavars that show what an option takes (typer would print <str> or <list[str]>)
+SET_METAVAR = "KEY=VALUE"
+RUN_ENGINES = ("native", "python")  # --engine; --monolithic picks the third engine (run.ENGINES)
+
+
+def choices_metavar(choices: tuple[str, ...]) -> str:
+    """``<a|b|c>``: the allowed values of an option, as typer shows a choice type, for an option we check
+    ourselves (so a wrong value is our one-line error, not typer's framed box)."""
+    return "<" + "|".join(choices) + ">"
+
+
 AllowLong = Annotated[bool, typer.Option("--allow-long", help="run even above the size limits (docs/config.md: more than "
                                          "1e6 steps, 1000 substeps per step or 1e8 FMU-substeps)")]
 
@@ -201,13 +212,13 @@ def _claim_trace(trace: Optional[Path], overwrite: bool, protect: list[Path], de
 def run(
     config: Annotated[Path, typer.Argument(help="scenario TOML file, e.g. configs/paper/platoon.toml")],
     trace: Annotated[Optional[Path], typer.Option("--out", help="trace file (default runs/<name>-<time>.mcap)")] = None,
-    overrides: Annotated[list[str], typer.Option("--set", help="override a key, e.g. --set platoon.law=regular")] = [],
+    overrides: Annotated[list[str], typer.Option("--set", metavar=SET_METAVAR, help="override a key, e.g. --set platoon.law=regular")] = [],
     monolithic: Annotated[bool, typer.Option("--monolithic", help="integrate the whole platoon as one system (reference)")] = False,
     compare: Annotated[bool, typer.Option("--compare-monolithic", help="also run the monolithic reference and print the largest deviations")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar and no table")] = False,
     trace_every: Annotated[Optional[int], typer.Option("--trace-every", min=1, help="record every K-th communication point (overrides simulation.trace_every)")] = None,
-    engine_name: Annotated[Optional[str], typer.Option("--engine", help="native (compiled stepping core; default when built) or python (FMPy); same results")] = None,
-    trace_writer: Annotated[str, typer.Option("--trace-writer", help="where the trace is encoded: process (a second process), inline, or auto (a second process for long runs on a multi-core machine); same file")] = "auto",
+    engine_name: Annotated[Optional[str], typer.Option("--engine", metavar=choices_metavar(RUN_ENGINES), help="native (compiled stepping core; default when built) or python (FMPy); same results")] = None,
+    trace_writer: Annotated[str, typer.Option("--trace-writer", metavar=choices_metavar(("auto", "inline", "process")), help="where the trace is encoded: process (a second process), inline, or auto (a second process for long runs on a multi-core machine); same file")] = "auto",
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="also print where the wall time went: start-up (imports, config, FMUs), the run's phases, the summary")] = False,
     allow_long: AllowLong = False,
@@ -226,7 +237,7 @@ def run(
     loaded = seconds_since_process_start()
     from .run import default_engine
 
-    if engine_name not in (None, "native", "python"):
+    if engine_name is not None and engine_name not in RUN_ENGINES:
         _fail(2, f"--engine {engine_name!r}: expected native or python")
     if engine_name == "native" and default_engine() != "native":
         _fail(2, "--engine native: the compiled core is not built here (reinstall with a C compiler: pip install -e .)")
@@ -449,7 +460,7 @@ def _same(a: Path, b: Path) -> bool:
 @app.command()
 def analyze(
     config: Annotated[Path, typer.Argument(help="scenario TOML file")],
-    overrides: Annotated[list[str], typer.Option("--set", help="override a key")] = [],
+    overrides: Annotated[list[str], typer.Option("--set", metavar=SET_METAVAR, help="override a key, as for platoon run")] = [],
     string_stability: Annotated[bool, typer.Option(help="also run the scenario and report peak-error ratios")] = True,
     allow_long: AllowLong = False,
 ) -> None:
@@ -480,8 +491,8 @@ app.add_typer(bench_app, name="bench")
 ROUNDS_HELP = "interleaved repetitions (each variant once per round, order rotated); medians over rounds"
 OutDir = Annotated[Path, typer.Option("--out-dir", help="folder for the JSON results")]
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only the tables and the result file")]
-Engines = Annotated[str, typer.Option(help=f"comma-separated, of: {', '.join(BENCH_ENGINES)}")]
-Counts = Annotated[str, typer.Option("--n", help="comma-separated vehicle counts")]
+Engines = Annotated[str, typer.Option(metavar="ENGINE,...", help=f"comma-separated, of: {', '.join(BENCH_ENGINES)}")]
+Counts = Annotated[str, typer.Option("--n", metavar="N,...", help="comma-separated vehicle counts")]
 Steps = Annotated[int, typer.Option(min=1, help="communication steps of 0.01 s per measurement")]
 Rounds = Annotated[int, typer.Option(min=1, help=ROUNDS_HELP)]
 
@@ -579,11 +590,11 @@ def bench_coupling(engines: Engines = "native,slaves", n: Counts = "4,16,64", st
 
 @bench_app.command("scenarios")
 def bench_scenarios(
-    configs: Annotated[list[Path], typer.Option("--config", help="scenario TOML (repeatable; default configs/paper/*.toml)")] = [],
-    engines: Annotated[str, typer.Option(help="comma-separated: native, python")] = "native,python",
-    variants: Annotated[str, typer.Option(help="comma-separated: cli-traced (platoon run --out X -q), traced, untraced")] = "cli-traced,traced,untraced",
+    configs: Annotated[list[Path], typer.Option("--config", metavar="CONFIG", help="scenario TOML (repeatable; default configs/paper/*.toml)")] = [],
+    engines: Annotated[str, typer.Option(metavar="ENGINE,...", help="comma-separated: native, python")] = "native,python",
+    variants: Annotated[str, typer.Option(metavar="VARIANT,...", help="comma-separated: cli-traced (platoon run --out X -q), traced, untraced")] = "cli-traced,traced,untraced",
     rounds: Rounds = 3,
-    overrides: Annotated[list[str], typer.Option("--set", help="override a key in every scenario")] = [],
+    overrides: Annotated[list[str], typer.Option("--set", metavar=SET_METAVAR, help="override a key in every scenario")] = [],
     out_dir: OutDir = Path("runs/bench"),
     quiet: Quiet = False,
 ) -> None:
@@ -600,7 +611,7 @@ def bench_scenarios(
 def bench_wholerun(
     n: Counts = "16",
     steps: Steps = 10_000,
-    variants: Annotated[str, typer.Option(help="comma-separated: platoon (default run, traced, table), platoon-q (-q --trace-every 100), libcosim (no observer), libcosim-outputs (time series of every output), libcosim-last-value")] = "platoon,platoon-q,libcosim,libcosim-outputs,libcosim-last-value",
+    variants: Annotated[str, typer.Option(metavar="VARIANT,...", help="comma-separated: platoon (default run, traced, table), platoon-q (-q --trace-every 100), libcosim (no observer), libcosim-outputs (time series of every output), libcosim-last-value")] = "platoon,platoon-q,libcosim,libcosim-outputs,libcosim-last-value",
     rounds: Rounds = 5,
     out_dir: OutDir = Path("runs/bench"),
     quiet: Quiet = False,
@@ -615,9 +626,9 @@ def bench_wholerun(
 
 @bench_app.command("instances")
 def bench_instances(
-    engines: Annotated[str, typer.Option(help="comma-separated: native, fmpy")] = "native,fmpy",
+    engines: Annotated[str, typer.Option(metavar="ENGINE,...", help="comma-separated: native, fmpy")] = "native,fmpy",
     n: Counts = "4,16,64,256",
-    wirings: Annotated[str, typer.Option(help="comma-separated: instances (unconnected), platoon (wired, settle sweeps)")] = "instances,platoon",
+    wirings: Annotated[str, typer.Option(metavar="WIRING,...", help="comma-separated: instances (unconnected), platoon (wired, settle sweeps)")] = "instances,platoon",
     rounds: Rounds = 3,
     out_dir: OutDir = Path("runs/bench"),
     quiet: Quiet = False,
@@ -670,11 +681,11 @@ CORE_BUILD_HELP = "LABEL=PATH of a built orchestrator/native/_core .so (copy it 
 @bench_app.command("callgrind")
 def bench_callgrind(
     n: Counts = "4,16,64,256",
-    engines: Annotated[str, typer.Option(help="comma-separated: native, python, fmpy-bare")] = "native",
+    engines: Annotated[str, typer.Option(metavar="ENGINE,...", help="comma-separated: native, python, fmpy-bare")] = "native",
     fmu_steps: Annotated[int, typer.Option(min=1, help="FMU-steps per measurement (steps = this / (N + 1))")] = 2500,
-    ll: Annotated[str, typer.Option("--ll", help="comma-separated last-level caches to simulate: l2 (this machine's "
+    ll: Annotated[str, typer.Option("--ll", metavar="CACHE,...", help="comma-separated last-level caches to simulate: l2 (this machine's "
                                                "512 KiB L2), detected (valgrind's choice, the L3)")] = "l2",
-    cores: Annotated[list[str], typer.Option("--core", help=f"{CORE_BUILD_HELP}; repeatable (native engine; default: the installed core)")] = [],
+    cores: Annotated[list[str], typer.Option("--core", metavar="LABEL=PATH", help=f"{CORE_BUILD_HELP}; repeatable (native engine; default: the installed core)")] = [],
     out_dir: OutDir = Path("runs/bench"),
     quiet: Quiet = False,
 ) -> None:

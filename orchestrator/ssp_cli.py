@@ -12,7 +12,7 @@ import typer
 def export_ssp(
     config: Annotated[Path, typer.Argument(help="scenario TOML file, e.g. configs/paper/platoon.toml")],
     out: Annotated[Optional[Path], typer.Option("--out", help="the package to write (default: <config name>.ssp here)")] = None,
-    overrides: Annotated[list[str], typer.Option("--set", help="override a key, as for platoon run")] = [],
+    overrides: Annotated[list[str], typer.Option("--set", metavar="KEY=VALUE", help="override a key, as for platoon run")] = [],
     force: Annotated[bool, typer.Option("--force", help="replace an existing --out file")] = False,
     worker_threads: Annotated[int, typer.Option("--worker-threads", min=0, help="libcosim's numWorkerThreads; 0 steps every FMU on the calling thread (our FMUs share one Python interpreter, so more threads only add synchronization)")] = 0,
 ) -> None:

@@ -84,3 +84,44 @@ def test_report_json_and_the_table_report_the_same_quantities(tmp_path: Path) ->
         # the absolute values beside the deviations: gap - d* and speed - V_c of the recorded config
         assert vehicle["gap"] - 75.0 == vehicle["gap_error"] and vehicle["speed"] - 25.0 == vehicle["speed_error"]
     assert report["steady_window"]["last_fraction"] == 0.1 and "last 10%" in table.stdout
+
+
+def every_command() -> list[list[str]]:
+    """The argument lists that reach each command and group of `platoon` (walked from the click tree)."""
+    import typer
+
+    from orchestrator.cli import app
+
+    found: list[list[str]] = []
+
+    def walk(command: object, path: list[str]) -> None:
+        found.append(path)
+        for name, sub in getattr(command, "commands", {}).items():  # a group (typer's own click)
+            walk(sub, [*path, name])
+
+    walk(typer.main.get_command(app), [])
+    return found
+
+
+def test_every_help_names_what_its_options_take() -> None:
+    """`--help` of every command shows the allowed values of an option with a fixed set (no bare <str>)."""
+    from typer.testing import CliRunner
+
+    from orchestrator.cli import app
+    from orchestrator.run import ENGINES, TRACE_WRITERS
+
+    commands = every_command()
+    assert ["run"] in commands and ["bench", "steps"] in commands and ["trace", "recover"] in commands
+    assert ["m3pi-emulator"] in commands and ["bench", "hil"] in commands
+    runner = CliRunner()
+    helps = {}
+    for path in commands:
+        result = runner.invoke(app, [*path, "--help"], env={"COLUMNS": "100", "NO_COLOR": "1", "TERM": "dumb"})
+        assert result.exit_code == 0 and result.exception is None, (path, result.output)
+        assert "<str>" not in result.output, (path, result.output)
+        helps[" ".join(path)] = result.output
+    run_help = helps["run"]
+    engines = [engine for engine in ENGINES if engine != "monolithic"]  # --monolithic picks that one
+    assert f"<{'|'.join(engines)}>" in run_help
+    assert f"<{'|'.join(TRACE_WRITERS)}>" in run_help
+    assert "KEY=VALUE" in run_help and "KEY=VALUE" in helps["analyze"] and "KEY=VALUE" in helps["m3pi-emulator"]
