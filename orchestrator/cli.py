@@ -105,21 +105,6 @@ def build(
         out.print(f"{built.path}  {built.guid}  ({state})")
 
 
-def _progress_runner(steps: int, quiet: bool):
-    if quiet or not sys.stderr.isatty() and not sys.stdout.isatty():
-        return None, None
-    progress = Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        TextColumn("{task.percentage:>5.1f}%"),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        console=err,
-        transient=True,
-    )
-    return progress, progress.add_task("simulating", total=steps)
-
-
 def _summary_table(summaries, config: Config, title: str) -> Table:
     """The per-vehicle summary (the consoles print text literally: the units "[m]" are not markup); the same
     quantities, keys and units as `platoon report --json` (metrics.SUMMARY_COLUMNS, summary_rows)."""
@@ -161,26 +146,13 @@ def _time_split(entered: float | None, loaded: float | None, timings: dict[str, 
 
 
 def _execute(config: Config, text: str, trace, engine: str, quiet: bool, trace_writer: str = "auto"):
+    from .progress import progress
     from .run import run_scenario
     from .scenario import step_count
 
     steps = step_count(config.simulation.stop_time, config.simulation.step)
-    progress, task = _progress_runner(steps, quiet)
-    tick = None
-    if progress is not None:
-        every = max(1, steps // 200)
-
-        def update(k: int) -> None:
-            if k % every == 0 or k == steps:
-                progress.update(task, completed=k)
-
-        tick = update
-        progress.start()
-    try:
+    with progress(steps, "simulating", err, quiet) as tick:  # a bar on a terminal, plain lines in a pipe or a log
         return run_scenario(config, text, trace, engine=engine, tick=tick, trace_writer=trace_writer, summarize=not quiet)
-    finally:
-        if progress is not None:
-            progress.stop()
 
 
 OVERWRITE_HELP = "replace an existing --out even if it is not an MCAP trace (never the command's own input)"
@@ -482,7 +454,10 @@ def analyze(
         _fail(2, f"config {config}: {error}")
     out.print(report_text, highlight=False, soft_wrap=True)
     if string_stability:
-        out.print(string_stability_report(parsed, text), highlight=False, soft_wrap=True)
+        from .progress import progress
+
+        shown = lambda label, total: progress(total, label, err)  # noqa: E731  (the runs: bar or plain lines)
+        out.print(string_stability_report(parsed, text, shown), highlight=False, soft_wrap=True)
 
 
 bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks of issue 10 (JSON under runs/bench/; not pass/fail tests).")

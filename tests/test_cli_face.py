@@ -125,3 +125,53 @@ def test_every_help_names_what_its_options_take() -> None:
     assert f"<{'|'.join(engines)}>" in run_help
     assert f"<{'|'.join(TRACE_WRITERS)}>" in run_help
     assert "KEY=VALUE" in run_help and "KEY=VALUE" in helps["analyze"] and "KEY=VALUE" in helps["m3pi-emulator"]
+
+
+def progress_lines(stderr: str, label: str, total: int) -> list[int]:
+    """The percentages of ``label``'s plain progress lines (orchestrator/progress.py) in ``stderr``."""
+    import re
+
+    pattern = re.compile(rf"{re.escape(label)}: (\d+)% \((\d+)/{total} steps\), [\d.:]+ (s|min) elapsed(, about .+ left)?")
+    found = []
+    for line in stderr.splitlines():
+        if line.startswith(f"{label}:"):
+            match = pattern.fullmatch(line)
+            assert match, line
+            found.append(int(match.group(1)))
+    return found
+
+
+def piped(*args: object, cwd: Path) -> "subprocess.CompletedProcess[str]":
+    """``platoon ARGS`` with stdout and stderr pipes (as in CI), a progress line at every tenth."""
+    import os
+    import subprocess
+    import sys
+
+    from tests.test_viewer import REPO
+
+    env = {**os.environ, "PYTHONPATH": str(REPO), "PLATOON_PROGRESS_SECONDS": "0", "COLUMNS": "80"}
+    for name in ("FORCE_COLOR", "TERM", "NO_COLOR"):
+        env.pop(name, None)
+    return subprocess.run([sys.executable, "-c", "from orchestrator.cli import main; main()", *map(str, args)],
+                          cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, timeout=300)
+
+
+def test_a_run_in_a_pipe_prints_plain_progress_lines(tmp_path: Path) -> None:
+    result = piped("run", PAPER, "--set", "simulation.stop_time=20", "--out", tmp_path / "a.mcap", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "\x1b" not in result.stderr + result.stdout  # no colour, no cursor movement: a log reads as text
+    percents = progress_lines(result.stderr, "simulating", 2000)
+    assert len(percents) >= 5 and percents == sorted(set(percents)) and percents[-1] == 100, result.stderr
+    assert "trace:" in result.stdout and "simulating" not in result.stdout  # progress on stderr, results on stdout
+
+
+def test_analyze_of_100_vehicles_in_a_pipe_shows_the_progress_of_its_runs(tmp_path: Path) -> None:
+    hundred = PAPER.parents[1] / "bench" / "platoon100-1h.toml"
+    kick = 'disturbance=[{vehicle=1, kind="lateral_acceleration", start=5.0, duration=1.0, value=1.0}]'
+    result = piped("analyze", hundred, "--set", "simulation.stop_time=20", "--set", kick, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "\x1b" not in result.stderr + result.stdout
+    for label in ("disturbed run (1/2)", "undisturbed run (2/2)"):
+        percents = progress_lines(result.stderr, label, 200)
+        assert len(percents) >= 3 and percents == sorted(set(percents)) and percents[-1] == 100, result.stderr
+    assert "string stability" in result.stdout
