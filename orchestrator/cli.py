@@ -84,6 +84,10 @@ def _load(config: Path, overrides: list[str], allow_long: bool = True) -> tuple[
             check_run_size(parsed)
     except ConfigError as error:
         _fail(2, f"config {config}: {error}")
+    from .config_warnings import config_warnings
+
+    for warning in config_warnings(parsed):  # valid, but probably not what was meant: the run still goes
+        err.print(f"warning: config {config}: {warning}", highlight=False, soft_wrap=True)
     return parsed, text
 
 
@@ -730,3 +734,7 @@ def main() -> None:
         sys.stdout.flush()
         sys.stderr.flush()
     os._exit(code)
+
+
+if __name__ == "__main__":  # python -m orchestrator.cli ARGS: the platoon command
+    main()

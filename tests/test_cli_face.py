@@ -175,3 +175,41 @@ def test_analyze_of_100_vehicles_in_a_pipe_shows_the_progress_of_its_runs(tmp_pa
         percents = progress_lines(result.stderr, label, 200)
         assert len(percents) >= 3 and percents == sorted(set(percents)) and percents[-1] == 100, result.stderr
     assert "string stability" in result.stdout
+
+
+def test_a_platoon_longer_than_its_circle_is_warned_about_and_still_runs(tmp_path: Path) -> None:
+    trace = tmp_path / "seven.mcap"
+    result = platoon("run", PAPER, "--set", "platoon.count=7", "--set", "simulation.stop_time=1.0", "--out", trace,
+                     cwd=tmp_path)
+    assert result.returncode == 0, result.stderr  # a warning, not an error: the run goes
+    warnings = [line for line in result.stderr.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1, result.stderr
+    # the numbers (7 x 75 m = 525 m against 2 pi 50 m = 314.2 m) and the keys to change
+    for piece in ("7 x 75 m = 525 m", "314.2 m", "platoon.count", "platoon.d_star", "path.radius"):
+        assert piece in warnings[0], (piece, warnings[0])
+    assert trace.is_file() and "vehicle7" in result.stdout
+    bigger_circle = platoon("run", PAPER, "--set", "platoon.count=7", "--set", "path.radius=100",
+                            "--set", "simulation.stop_time=1.0", "--out", tmp_path / "fits.mcap", cwd=tmp_path)
+    assert bigger_circle.returncode == 0 and "warning:" not in bigger_circle.stderr, bigger_circle.stderr
+
+
+def test_no_shipped_scenario_is_warned_about() -> None:
+    """The paper's configs (and every other shipped scenario) give no warning at all."""
+    from orchestrator.config import load_config
+    from orchestrator.config_warnings import config_warnings
+
+    configs = sorted(PAPER.parents[1].glob("*/*.toml"))
+    scenarios = [path for path in configs if path.parent.name != "sweeps"]
+    assert len(scenarios) >= 9
+    for path in scenarios:
+        assert config_warnings(load_config(path)[0]) == [], path
+
+
+def test_an_m3pi_asked_for_more_than_its_wheels_give_is_warned_about(tmp_path: Path) -> None:
+    """An m3pi in the paper's 25 m/s platoon (the old docs/config.md example, which failed at 7.24 s)."""
+    result = platoon("run", PAPER, "--set", "vehicles.3.dynamics=m3pi", "--set", "simulation.stop_time=1.0",
+                     "--out", tmp_path / "m3pi.mcap", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    warnings = [line for line in result.stderr.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1 and "vehicle 3 is an m3pi" in warnings[0], result.stderr
+    assert "m3pi.wheel_speed_max = 1 m/s" in warnings[0] and "platoon.speed = 25 m/s" in warnings[0]
