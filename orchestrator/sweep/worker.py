@@ -79,7 +79,13 @@ def _run(request: dict[str, Any]) -> dict[str, Any]:
 
 
 def main() -> None:
-    request = json.loads(sys.stdin.read())
+    from ..internal_entry import check_arguments
+
+    check_arguments(sys.argv[1:], "python -m orchestrator.sweep.worker < REQUEST.json", __doc__, count=0)
+    try:
+        request = json.loads(sys.stdin.read())
+    except ValueError:
+        sys.exit("error: python -m orchestrator.sweep.worker reads a run request (JSON) on stdin; `platoon sweep` sends it")
     _die_with_parent(request["parent"])
     try:
         outcome = _run(request)
