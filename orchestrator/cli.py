@@ -738,3 +738,43 @@ def main() -> None:
 
 if __name__ == "__main__":  # python -m orchestrator.cli ARGS: the platoon command
     main()
+
+
+class _PlainFlags:
+    """``--help`` without a ``<bool>`` after each flag: a flag takes no value, and a newcomer reading
+    ``--quiet <bool>`` would type ``--quiet true``."""
+
+    def get_params(self, ctx):  # type: ignore[no-untyped-def]
+        params = super().get_params(ctx)  # type: ignore[misc]
+        for param in params:
+            if getattr(param, "is_flag", False) and param.metavar is None:
+                param.metavar = " "  # shown instead of the type: nothing
+        return params
+
+
+class _PlainFlagsCommand(_PlainFlags, typer.core.TyperCommand):
+    pass
+
+
+class _PlainFlagsGroup(_PlainFlags, typer.core.TyperGroup):
+    pass
+
+
+def _plain_flags(typer_app: typer.Typer) -> None:
+    """Every command and group of ``typer_app`` (and its sub-apps) shows its flags plainly."""
+    def default(cls: object, base: type) -> bool:  # not chosen by whoever declared it: typer's default
+        return cls is None or cls is base or isinstance(cls, typer.models.DefaultPlaceholder)
+
+    if default(typer_app.info.cls, typer.core.TyperGroup):
+        typer_app.info.cls = _PlainFlagsGroup
+    for command in typer_app.registered_commands:
+        if default(command.cls, typer.core.TyperCommand):
+            command.cls = _PlainFlagsCommand
+    for group in typer_app.registered_groups:
+        if default(group.cls, typer.core.TyperGroup):
+            group.cls = _PlainFlagsGroup
+        if group.typer_instance is not None:
+            _plain_flags(group.typer_instance)
+
+
+_plain_flags(app)

@@ -119,6 +119,7 @@ def test_every_help_names_what_its_options_take() -> None:
         result = runner.invoke(app, [*path, "--help"], env={"COLUMNS": "100", "NO_COLOR": "1", "TERM": "dumb"})
         assert result.exit_code == 0 and result.exception is None, (path, result.output)
         assert "<str>" not in result.output, (path, result.output)
+        assert "<bool>" not in result.output, (path, result.output)  # a flag takes no value
         helps[" ".join(path)] = result.output
     run_help = helps["run"]
     engines = [engine for engine in ENGINES if engine != "monolithic"]  # --monolithic picks that one
