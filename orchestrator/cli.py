@@ -248,9 +248,9 @@ def run(
         # accumulated while stepping; the trace is read again only if the run's end was not the planned one
         summaries = result.summary if result.summary is not None else summarize(load(result.trace), parsed)
         out.print(_summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine}, {parsed.simulation.stop_time:g} s"))
-    out.print(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)")
+    out.print(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)", highlight=False, soft_wrap=True)
     if layout is not None:
-        out.print(f"layout: {layout}  (open both in Foxglove: docs/foxglove.md)")
+        out.print(f"layout: {layout}  (open both in Foxglove: docs/foxglove.md)", highlight=False, soft_wrap=True)  # one line in a log
     if verbose:
         err.print(_time_split(entered, loaded, result.timings, seconds_since_process_start()), highlight=False)
     if compare:
