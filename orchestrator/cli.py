@@ -123,10 +123,9 @@ def _summary_table(summaries, config: Config, title: str) -> Table:
         table.add_column(header, justify="right",
                          min_width=len(column.label) if column.key == "path_error_max" else None,  # unbroken
                          max_width=len("path offset") if column.key == "path_offset" else None)  # fits 80 columns
-    for row in summary_rows(summaries, config):
-        signed = "{:+.3e}"
-        table.add_row(str(row["name"]), *((signed if column.key != "path_error_max" else "{:.3e}").format(row[column.key])
-                                           for column in SUMMARY_COLUMNS))
+    for row in summary_rows(summaries, config):  # deviations signed; the largest |error| is a magnitude
+        table.add_row(str(row["name"]), *(f"{row[c.key]:.3e}" if c.key == "path_error_max" else f"{row[c.key]:+.3e}"
+                                           for c in SUMMARY_COLUMNS))
     return table
 
 

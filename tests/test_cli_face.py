@@ -1,8 +1,16 @@
-"""The CLI as a newcomer meets it: ``platoon --version`` and a summary table that names its units and
-the interval its max |path error| is taken over, at 80 columns (the console script, in a subprocess)."""
+"""The CLI as a newcomer meets it (the console script, in subprocesses): ``platoon --version``; a summary
+table that names its units and the interval its max |path error| is taken over, at 80 columns, and
+reports what ``report --json`` reports; every ``--help`` naming what its options take; plain progress
+lines when the output is a pipe (run, and analyze of 100 vehicles); a warning for a config that runs
+but was probably not meant (a platoon longer than its circle, an m3pi slower than V_c)."""
 
 from __future__ import annotations
 
+import json
+import os
+import re
+import subprocess
+import sys
 from pathlib import Path
 
 from orchestrator import __version__
@@ -25,8 +33,8 @@ def test_summary_table_shows_units_and_the_interval_of_the_max_path_error(tmp_pa
         assert unit in plain.stdout
     assert "max |path error|" in plain.stdout and "whole run" in plain.stdout
     assert "means over the last 10% of the recorded time" in plain.stdout
-    for line in plain.stdout.splitlines():
-        assert len(line) <= 80, line
+    for line in plain.stdout.splitlines():  # the table fits 80 columns; a path line stays whole (copyable)
+        assert len(line) <= 80 or line.startswith(("trace: ", "layout: ")), line
     disturbed = platoon("run", FRONT_LATERAL, "--set", "simulation.stop_time=36.0", "--out", tmp_path / "b.mcap",
                         cwd=tmp_path)
     assert disturbed.returncode == 0, disturbed.stderr
@@ -53,9 +61,6 @@ def table_of(stdout: str) -> tuple[list[str], dict[str, list[str]]]:
 
 
 def test_report_json_and_the_table_report_the_same_quantities(tmp_path: Path) -> None:
-    import json
-    import re
-
     trace = tmp_path / "front.mcap"
     run = platoon("run", FRONT_LATERAL, "--set", "simulation.stop_time=36.0", "--out", trace, cwd=tmp_path)
     assert run.returncode == 0, run.stderr
@@ -130,8 +135,6 @@ def test_every_help_names_what_its_options_take() -> None:
 
 def progress_lines(stderr: str, label: str, total: int) -> list[int]:
     """The percentages of ``label``'s plain progress lines (orchestrator/progress.py) in ``stderr``."""
-    import re
-
     pattern = re.compile(rf"{re.escape(label)}: (\d+)% \((\d+)/{total} steps\), [\d.:]+ (s|min) elapsed(, about .+ left)?")
     found = []
     for line in stderr.splitlines():
@@ -142,12 +145,8 @@ def progress_lines(stderr: str, label: str, total: int) -> list[int]:
     return found
 
 
-def piped(*args: object, cwd: Path) -> "subprocess.CompletedProcess[str]":
+def piped(*args: object, cwd: Path) -> subprocess.CompletedProcess[str]:
     """``platoon ARGS`` with stdout and stderr pipes (as in CI), a progress line at every tenth."""
-    import os
-    import subprocess
-    import sys
-
     from tests.test_viewer import REPO
 
     env = {**os.environ, "PYTHONPATH": str(REPO), "PLATOON_PROGRESS_SECONDS": "0", "COLUMNS": "80"}
