@@ -260,6 +260,10 @@ def parse_only(command: str, root: Path) -> None:
     assert helped.returncode == 0 and "Traceback" not in helped.stderr, helped.stderr
     context = group.make_context(" ".join(["platoon", *path]), list(rest))  # raises on an unknown option or a bad value
     assert context.params, command
+    if isinstance(context.params.get("config"), Path):  # and the config with its --set overrides validates
+        from orchestrator.config import load_config
+
+        load_config(root / context.params["config"], context.params.get("overrides") or [])
 
 
 @pytest.mark.parametrize("block", BLOCKS, ids=[f"{b.doc}:{b.line}" for b in BLOCKS])
