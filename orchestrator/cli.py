@@ -34,6 +34,17 @@ app = typer.Typer(
 # "runs/[a]/x.mcap") and must appear as written. The one styled line (_fail) asks for markup itself.
 out = Console(markup=False)
 err = Console(stderr=True, markup=False)
+# Metavars that show what an option takes (typer would print <str> or <list[str]>)
+SET_METAVAR = "KEY=VALUE"
+RUN_ENGINES = ("native", "python")  # --engine; --monolithic picks the third engine (run.ENGINES)
+
+
+def choices_metavar(choices: tuple[str, ...]) -> str:
+    """``<a|b|c>``: the allowed values of an option, as typer shows a choice type, for an option we check
+    ourselves (so a wrong value is our one-line error, not typer's framed box)."""
+    return "<" + "|".join(choices) + ">"
+
+
 AllowLong = Annotated[bool, typer.Option("--allow-long", help="run even above the size limits (docs/config.md: more than "
                                          "1e6 steps, 1000 substeps per step or 1e8 FMU-substeps)")]
 
@@ -73,6 +84,10 @@ def _load(config: Path, overrides: list[str], allow_long: bool = True) -> tuple[
             check_run_size(parsed)
     except ConfigError as error:
         _fail(2, f"config {config}: {error}")
+    from .config_warnings import config_warnings
+
+    for warning in config_warnings(parsed):  # valid, but probably not what was meant: the run still goes
+        err.print(f"warning: config {config}: {warning}", highlight=False, soft_wrap=True)
     return parsed, text
 
 
@@ -118,38 +133,23 @@ def _build_native(out_dir: Path, force: bool) -> None:
         out.print(f"{built.path}  {built.guid}  ({state}, native{' FMI 3.0' if built.path.parent.name == 'fmi3' else ''})", soft_wrap=True)
 
 
-def _progress_runner(steps: int, quiet: bool):
-    if quiet or not sys.stderr.isatty() and not sys.stdout.isatty():
-        return None, None
-    progress = Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        TextColumn("{task.percentage:>5.1f}%"),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        console=err,
-        transient=True,
-    )
-    return progress, progress.add_task("simulating", total=steps)
-
-
 def _summary_table(summaries, config: Config, title: str) -> Table:
-    """The per-vehicle summary (the consoles print text literally: the units "[m]" are not markup)."""
-    from .metrics import STEADY_FRACTION, first_disturbance
+    """The per-vehicle summary (the consoles print text literally: the units "[m]" are not markup); the same
+    quantities, keys and units as `platoon report --json` (metrics.SUMMARY_COLUMNS, summary_rows)."""
+    from .metrics import STEADY_FRACTION, SUMMARY_COLUMNS, path_error_interval, summary_rows
 
-    disturbed = first_disturbance(config)  # max |path error| is taken from the first disturbance on (metrics.py)
-    interval = "whole run" if disturbed is None else f"t >= {disturbed:g} s"
+    _, interval = path_error_interval(config)  # max |path error| is taken from the first disturbance on (metrics.py)
     table = Table(title=title, title_justify="left", caption_justify="left",
                   caption=f"path offset, gap, speed: means over the last {STEADY_FRACTION:.0%} of the recorded time")
-    for column in ("vehicle", "path offset [m]", "gap - d* [m]", "speed - V_c [m/s]", f"max |path error| [m], {interval}"):
-        table.add_column(column, justify="right" if column != "vehicle" else "left",
-                         min_width=len("max |path error|") if column.startswith("max") else None,  # unbroken
-                         max_width=len("path offset") if column.startswith("path") else None)  # fits 80 columns
-    for s in summaries:
-        table.add_row(
-            s.name, f"{s.path_offset:+.3e}", f"{s.gap - config.platoon.d_star:+.3e}",
-            f"{s.speed - config.platoon.speed:+.3e}", f"{s.path_error_max:.3e}",
-        )
+    table.add_column("vehicle", justify="left")
+    for column in SUMMARY_COLUMNS:
+        header = f"{column.label} [{column.unit}]" + (f", {interval}" if column.key == "path_error_max" else "")
+        table.add_column(header, justify="right",
+                         min_width=len(column.label) if column.key == "path_error_max" else None,  # unbroken
+                         max_width=len("path offset") if column.key == "path_offset" else None)  # fits 80 columns
+    for row in summary_rows(summaries, config):  # deviations signed; the largest |error| is a magnitude
+        table.add_row(str(row["name"]), *(f"{row[c.key]:.3e}" if c.key == "path_error_max" else f"{row[c.key]:+.3e}"
+                                           for c in SUMMARY_COLUMNS))
     return table
 
 
@@ -173,27 +173,14 @@ def _time_split(entered: float | None, loaded: float | None, timings: dict[str, 
 
 
 def _execute(config: Config, text: str, trace, engine: str, quiet: bool, trace_writer: str = "auto", live_view=None):
+    from .progress import progress
     from .run import run_scenario
     from .scenario import step_count
 
     steps = step_count(config.simulation.stop_time, config.simulation.step)
-    progress, task = _progress_runner(steps, quiet)
-    tick = None
-    if progress is not None:
-        every = max(1, steps // 200)
-
-        def update(k: int) -> None:
-            if k % every == 0 or k == steps:
-                progress.update(task, completed=k)
-
-        tick = update
-        progress.start()
-    try:
+    with progress(steps, "simulating", err, quiet) as tick:  # a bar on a terminal, plain lines in a pipe or a log
         return run_scenario(config, text, trace, engine=engine, tick=tick, trace_writer=trace_writer, summarize=not quiet,
                             live_view=live_view)
-    finally:
-        if progress is not None:
-            progress.stop()
 
 
 OVERWRITE_HELP = "replace an existing --out even if it is not an MCAP trace (never the command's own input)"
@@ -225,14 +212,14 @@ def _claim_trace(trace: Optional[Path], overwrite: bool, protect: list[Path], de
 def run(
     config: Annotated[Path, typer.Argument(help="scenario TOML file, e.g. configs/paper/platoon.toml")],
     trace: Annotated[Optional[Path], typer.Option("--out", help="trace file (default runs/<name>-<time>.mcap)")] = None,
-    overrides: Annotated[list[str], typer.Option("--set", help="override a key, e.g. --set platoon.law=regular")] = [],
+    overrides: Annotated[list[str], typer.Option("--set", metavar=SET_METAVAR, help="override a key, e.g. --set platoon.law=regular")] = [],
     monolithic: Annotated[bool, typer.Option("--monolithic", help="integrate the whole platoon as one system (reference)")] = False,
     compare: Annotated[bool, typer.Option("--compare-monolithic", help="also run the monolithic reference and print the largest deviations")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar and no table")] = False,
     trace_every: Annotated[Optional[int], typer.Option("--trace-every", min=1, help="record every K-th communication point (overrides simulation.trace_every)")] = None,
-    engine_name: Annotated[Optional[str], typer.Option("--engine", help="native (compiled stepping core; default when built) or python (FMPy); same results")] = None,
-    fmu_kind: Annotated[Optional[str], typer.Option("--fmus", help="native (C FMUs, default where a C compiler can build them) or python (pythonfmu FMUs); same results (overrides simulation.fmus)")] = None,
-    trace_writer: Annotated[str, typer.Option("--trace-writer", help="where the trace is encoded: process (a second process), inline, or auto (a second process for long runs on a multi-core machine); same file")] = "auto",
+    engine_name: Annotated[Optional[str], typer.Option("--engine", metavar=choices_metavar(RUN_ENGINES), help="native (compiled stepping core; default when built) or python (FMPy); same results")] = None,
+    fmu_kind: Annotated[Optional[str], typer.Option("--fmus", metavar=choices_metavar(("native", "python")), help="native (C FMUs, default where a C compiler can build them) or python (pythonfmu FMUs); same results (overrides simulation.fmus)")] = None,
+    trace_writer: Annotated[str, typer.Option("--trace-writer", metavar=choices_metavar(("auto", "inline", "process")), help="where the trace is encoded: process (a second process), inline, or auto (a second process for long runs on a multi-core machine); same file")] = "auto",
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="also print where the wall time went: start-up (imports, config, FMUs), the run's phases, the summary")] = False,
     allow_long: AllowLong = False,
@@ -258,7 +245,7 @@ def run(
     loaded = seconds_since_process_start()
     from .run import default_engine
 
-    if engine_name not in (None, "native", "python"):
+    if engine_name is not None and engine_name not in RUN_ENGINES:
         _fail(2, f"--engine {engine_name!r}: expected native or python")
     if engine_name == "native" and default_engine() != "native":
         _fail(2, "--engine native: the compiled core is not built here (reinstall with a C compiler: pip install -e .)")
@@ -319,9 +306,9 @@ def run(
         # accumulated while stepping; the trace is read again only if the run's end was not the planned one
         summaries = result.summary if result.summary is not None else summarize(load(result.trace), parsed)
         out.print(_summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine}, {result.fmus} FMUs, {parsed.simulation.stop_time:g} s"))
-    out.print(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)")
+    out.print(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)", highlight=False, soft_wrap=True)
     if layout is not None:
-        out.print(f"layout: {layout}  (open both in Foxglove: docs/foxglove.md)")
+        out.print(f"layout: {layout}  (open both in Foxglove: docs/foxglove.md)", highlight=False, soft_wrap=True)  # one line in a log
     if verbose:
         err.print(_time_split(entered, loaded, result.timings, seconds_since_process_start()), highlight=False)
     if compare:
@@ -376,7 +363,8 @@ def report(
     with _quiet_nan(bool(non_finite)):  # nan figures were announced above
         summaries = summarize(loaded, config)
         if as_json:
-            out.print_json(json.dumps(report_json(summaries)))
+            out.print_json(json.dumps({"trace": str(trace), "law": config.platoon.law, "status": status,
+                                        **report_json(summaries, config)}))
         else:
             out.print(_summary_table(summaries, config, f"{trace.name}: {config.platoon.law} law ({status})"))
         if plots is not None:
@@ -506,7 +494,7 @@ def _same(a: Path, b: Path) -> bool:
 @app.command()
 def analyze(
     config: Annotated[Path, typer.Argument(help="scenario TOML file")],
-    overrides: Annotated[list[str], typer.Option("--set", help="override a key")] = [],
+    overrides: Annotated[list[str], typer.Option("--set", metavar=SET_METAVAR, help="override a key, as for platoon run")] = [],
     string_stability: Annotated[bool, typer.Option(help="also run the scenario and report peak-error ratios")] = True,
     allow_long: AllowLong = False,
 ) -> None:
@@ -528,7 +516,10 @@ def analyze(
         _fail(2, f"config {config}: {error}")
     out.print(report_text, highlight=False, soft_wrap=True)
     if string_stability:
-        out.print(string_stability_report(parsed, text), highlight=False, soft_wrap=True)
+        from .progress import progress
+
+        shown = lambda label, total: progress(total, label, err)  # noqa: E731  (the runs: bar or plain lines)
+        out.print(string_stability_report(parsed, text, shown), highlight=False, soft_wrap=True)
 
 
 bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks of issue 10 (JSON under runs/bench/; not pass/fail tests).")
@@ -537,8 +528,8 @@ app.add_typer(bench_app, name="bench")
 ROUNDS_HELP = "interleaved repetitions (each variant once per round, order rotated); medians over rounds"
 OutDir = Annotated[Path, typer.Option("--out-dir", help="folder for the JSON results")]
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only the tables and the result file")]
-Engines = Annotated[str, typer.Option(help=f"comma-separated, of: {', '.join(BENCH_ENGINES)}")]
-Counts = Annotated[str, typer.Option("--n", help="comma-separated vehicle counts")]
+Engines = Annotated[str, typer.Option(metavar="ENGINE,...", help=f"comma-separated, of: {', '.join(BENCH_ENGINES)}")]
+Counts = Annotated[str, typer.Option("--n", metavar="N,...", help="comma-separated vehicle counts")]
 Steps = Annotated[int, typer.Option(min=1, help="communication steps of 0.01 s per measurement")]
 Rounds = Annotated[int, typer.Option(min=1, help=ROUNDS_HELP)]
 
@@ -624,7 +615,7 @@ def _per_fmu_step(suite_name: str, engines: str, n: str, steps: int, rounds: int
 def bench_steps(engines: Engines = "native,python,fmpy-bare,libcosim,libcosim-0threads,libcosim-0threads-lastvalue,slaves",
                 n: Counts = "4,16,64,256", steps: Steps = 1000, rounds: Rounds = 5,
                 out_dir: OutDir = Path("runs/bench"), quiet: Quiet = False,
-                fmus: Annotated[Optional[str], typer.Option("--fmus", help="comma-separated FMU kinds: python, native (default: both where a C compiler builds the native ones)")] = None) -> None:
+                fmus: Annotated[Optional[str], typer.Option("--fmus", metavar="KIND,...", help="comma-separated FMU kinds: python, native (default: both where a C compiler builds the native ones)")] = None) -> None:
     """Microseconds per FMU-step of our engines, the bare FMPy loop, libcosim and the floor, by N, for the
     pythonfmu FMUs and the native ones."""
     from .fmu_kinds import FMU_KINDS
@@ -642,11 +633,11 @@ def bench_coupling(engines: Engines = "native,slaves", n: Counts = "4,16,64", st
 
 @bench_app.command("scenarios")
 def bench_scenarios(
-    configs: Annotated[list[Path], typer.Option("--config", help="scenario TOML (repeatable; default configs/paper/*.toml)")] = [],
-    engines: Annotated[str, typer.Option(help="comma-separated: native, python")] = "native,python",
-    variants: Annotated[str, typer.Option(help="comma-separated: cli-traced (platoon run --out X -q), traced, untraced")] = "cli-traced,traced,untraced",
+    configs: Annotated[list[Path], typer.Option("--config", metavar="CONFIG", help="scenario TOML (repeatable; default configs/paper/*.toml)")] = [],
+    engines: Annotated[str, typer.Option(metavar="ENGINE,...", help="comma-separated: native, python")] = "native,python",
+    variants: Annotated[str, typer.Option(metavar="VARIANT,...", help="comma-separated: cli-traced (platoon run --out X -q), traced, untraced")] = "cli-traced,traced,untraced",
     rounds: Rounds = 3,
-    overrides: Annotated[list[str], typer.Option("--set", help="override a key in every scenario")] = [],
+    overrides: Annotated[list[str], typer.Option("--set", metavar=SET_METAVAR, help="override a key in every scenario")] = [],
     out_dir: OutDir = Path("runs/bench"),
     quiet: Quiet = False,
 ) -> None:
@@ -663,7 +654,7 @@ def bench_scenarios(
 def bench_wholerun(
     n: Counts = "16",
     steps: Steps = 10_000,
-    variants: Annotated[str, typer.Option(help="comma-separated: platoon (default run, traced, table), platoon-q (-q --trace-every 100), libcosim (no observer), libcosim-outputs (time series of every output), libcosim-last-value")] = "platoon,platoon-q,libcosim,libcosim-outputs,libcosim-last-value",
+    variants: Annotated[str, typer.Option(metavar="VARIANT,...", help="comma-separated: platoon (default run, traced, table), platoon-q (-q --trace-every 100), libcosim (no observer), libcosim-outputs (time series of every output), libcosim-last-value")] = "platoon,platoon-q,libcosim,libcosim-outputs,libcosim-last-value",
     rounds: Rounds = 5,
     out_dir: OutDir = Path("runs/bench"),
     quiet: Quiet = False,
@@ -678,9 +669,9 @@ def bench_wholerun(
 
 @bench_app.command("instances")
 def bench_instances(
-    engines: Annotated[str, typer.Option(help="comma-separated: native, fmpy")] = "native,fmpy",
+    engines: Annotated[str, typer.Option(metavar="ENGINE,...", help="comma-separated: native, fmpy")] = "native,fmpy",
     n: Counts = "4,16,64,256",
-    wirings: Annotated[str, typer.Option(help="comma-separated: instances (unconnected), platoon (wired, settle sweeps)")] = "instances,platoon",
+    wirings: Annotated[str, typer.Option(metavar="WIRING,...", help="comma-separated: instances (unconnected), platoon (wired, settle sweeps)")] = "instances,platoon",
     rounds: Rounds = 3,
     out_dir: OutDir = Path("runs/bench"),
     quiet: Quiet = False,
@@ -733,11 +724,11 @@ CORE_BUILD_HELP = "LABEL=PATH of a built orchestrator/native/_core .so (copy it 
 @bench_app.command("callgrind")
 def bench_callgrind(
     n: Counts = "4,16,64,256",
-    engines: Annotated[str, typer.Option(help="comma-separated: native, python, fmpy-bare")] = "native",
+    engines: Annotated[str, typer.Option(metavar="ENGINE,...", help="comma-separated: native, python, fmpy-bare")] = "native",
     fmu_steps: Annotated[int, typer.Option(min=1, help="FMU-steps per measurement (steps = this / (N + 1))")] = 2500,
-    ll: Annotated[str, typer.Option("--ll", help="comma-separated last-level caches to simulate: l2 (this machine's "
+    ll: Annotated[str, typer.Option("--ll", metavar="CACHE,...", help="comma-separated last-level caches to simulate: l2 (this machine's "
                                                "512 KiB L2), detected (valgrind's choice, the L3)")] = "l2",
-    cores: Annotated[list[str], typer.Option("--core", help=f"{CORE_BUILD_HELP}; repeatable (native engine; default: the installed core)")] = [],
+    cores: Annotated[list[str], typer.Option("--core", metavar="LABEL=PATH", help=f"{CORE_BUILD_HELP}; repeatable (native engine; default: the installed core)")] = [],
     out_dir: OutDir = Path("runs/bench"),
     quiet: Quiet = False,
 ) -> None:
@@ -807,3 +798,47 @@ def main() -> None:
         sys.stdout.flush()
         sys.stderr.flush()
     os._exit(code)
+
+
+if __name__ == "__main__":  # python -m orchestrator.cli ARGS: the platoon command
+    main()
+
+
+class _PlainFlags:
+    """``--help`` without a ``<bool>`` after each flag: a flag takes no value, and a newcomer reading
+    ``--quiet <bool>`` would type ``--quiet true``."""
+
+    def get_params(self, ctx):  # type: ignore[no-untyped-def]
+        params = super().get_params(ctx)  # type: ignore[misc]
+        for param in params:
+            if getattr(param, "is_flag", False) and param.metavar is None:
+                param.metavar = " "  # shown instead of the type: nothing
+        return params
+
+
+class _PlainFlagsCommand(_PlainFlags, typer.core.TyperCommand):
+    pass
+
+
+class _PlainFlagsGroup(_PlainFlags, typer.core.TyperGroup):
+    pass
+
+
+def _plain_flags(typer_app: typer.Typer) -> None:
+    """Every command and group of ``typer_app`` (and its sub-apps) shows its flags plainly."""
+    def default(cls: object, base: type) -> bool:  # not chosen by whoever declared it: typer's default
+        return cls is None or cls is base or isinstance(cls, typer.models.DefaultPlaceholder)
+
+    if default(typer_app.info.cls, typer.core.TyperGroup):
+        typer_app.info.cls = _PlainFlagsGroup
+    for command in typer_app.registered_commands:
+        if default(command.cls, typer.core.TyperCommand):
+            command.cls = _PlainFlagsCommand
+    for group in typer_app.registered_groups:
+        if default(group.cls, typer.core.TyperGroup):
+            group.cls = _PlainFlagsGroup
+        if group.typer_instance is not None:
+            _plain_flags(group.typer_instance)
+
+
+_plain_flags(app)

@@ -13,9 +13,9 @@ import typer
 def export_ssp(
     config: Annotated[Path, typer.Argument(help="scenario TOML file, e.g. configs/paper/platoon.toml")],
     out: Annotated[Optional[Path], typer.Option("--out", help="the package to write (default: <config name>.ssp here)")] = None,
-    overrides: Annotated[list[str], typer.Option("--set", help="override a key, as for platoon run")] = [],
+    overrides: Annotated[list[str], typer.Option("--set", metavar="KEY=VALUE", help="override a key, as for platoon run")] = [],
     force: Annotated[bool, typer.Option("--force", help="replace an existing --out file")] = False,
-    fmu_kind: Annotated[Optional[str], typer.Option("--fmus", help="native (C FMUs: no Python needed where the package runs; default where a C compiler can build them) or python (pythonfmu); overrides simulation.fmus")] = None,
+    fmu_kind: Annotated[Optional[str], typer.Option("--fmus", metavar="<native|python>", help="native (C FMUs: no Python needed where the package runs; default where a C compiler can build them) or python (pythonfmu); overrides simulation.fmus")] = None,
     worker_threads: Annotated[int, typer.Option("--worker-threads", min=0, help="libcosim's numWorkerThreads; 0 steps every FMU on the calling thread (pythonfmu FMUs share one Python interpreter, so more threads only add synchronization)")] = 0,
 ) -> None:
     """Write the platoon of CONFIG as an SSP 1.0 package: FMUs, parameters, Fig. 2 wiring, step."""

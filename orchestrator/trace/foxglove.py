@@ -545,4 +545,10 @@ def layout_json(vehicles: int = 6, settings: SceneSettings | None = None) -> str
 if __name__ == "__main__":  # python -m orchestrator.trace.foxglove [VEHICLES] > layouts/platoon.json
     import sys
 
+    from ..internal_entry import check_arguments
+
+    usage = "python -m orchestrator.trace.foxglove [VEHICLES] > layouts/platoon.json"
+    check_arguments(sys.argv[1:], usage, "Prints the static Foxglove layout for VEHICLES vehicles (default 6); "
+                    "`platoon layout TRACE.mcap` fits one to a run.", fits=lambda args: len(args) <= 1 and all(
+                        arg.isdigit() for arg in args))
     print(layout_json(int(sys.argv[1]) if len(sys.argv) > 1 else 6), end="")
