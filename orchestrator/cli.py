@@ -225,7 +225,7 @@ def run(
     allow_long: AllowLong = False,
     live: Annotated[bool, typer.Option("--live", help="serve the run on a Foxglove WebSocket while it runs (open it in Foxglove or Lichtblick; docs/foxglove.md), paced to real time")] = False,
     live_port: Annotated[int, typer.Option("--live-port", min=0, max=65535, help="port of the --live server")] = 8765,
-    live_host: Annotated[str, typer.Option("--live-host", help="address the --live server binds; anything but 127.0.0.1 lets other machines watch (no authentication)")] = "127.0.0.1",
+    live_host: Annotated[str, typer.Option("--live-host", metavar="ADDRESS", help="address the --live server binds; anything but 127.0.0.1 lets other machines watch (no authentication)")] = "127.0.0.1",
     live_speed: Annotated[float, typer.Option("--live-speed", min=0.0, help="with --live: simulated seconds per wall second (1: real time; 0: as fast as it runs)")] = 1.0,
     live_wait: Annotated[bool, typer.Option("--live-wait", help="with --live: start stepping once a viewer shows the scene, so it sees the whole run")] = False,
 ) -> None:

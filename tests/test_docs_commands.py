@@ -107,6 +107,10 @@ SPECIAL: dict[tuple[str, str], Shorten | Parse | Skip | Expect] = {
                       "--set simulation.stop_time=400 --trace-every 10 --out runs/long.mcap"):
         Expect(1, "failed at t = 208.3 s", "the section's point: with the paper's k_v 100 vehicles break down "
                                            "(its table: fails at t = 208.3 s); the trace keeps what was recorded"),
+    ("docs/foxglove.md", "platoon run configs/paper/platoon.toml --out runs/platoon.mcap --live --live-wait"):
+        Shorten("platoon run configs/paper/platoon.toml --out runs/platoon.mcap --live --live-port 8799 --live-speed 0"
+                + SHORT, "--live-wait waits for a viewer (none here) and the run is paced to the wall clock: the same "
+                         "live server, unpaced, 2 s, on a port no test uses; tests/test_live_view.py watches it"),
     ("docs/sweeps.md", "pip install 'platoon-cosim[dask]'"): Skip("needs the network (the extra is checked below)"),
     ("docs/sweeps.md", "dask scheduler &"): Skip("Dask's own command; tests/test_sweep.py runs a real Dask cluster"),
     ("docs/sweeps.md", "dask worker tcp://127.0.0.1:8786 --nworkers 2 --nthreads 1 &"): Skip("as dask scheduler"),
@@ -145,7 +149,7 @@ def _broken_traces(root: Path) -> None:
 
 
 SETUP = {("docs/reproduction.md", 54): _sweep_cut_short, ("docs/sweeps.md", 7): _sweep_cut_short,
-         ("docs/trace-format.md", 215): _broken_traces}
+         ("docs/trace-format.md", 216): _broken_traces}
 
 
 @dataclass
