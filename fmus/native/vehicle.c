@@ -182,15 +182,42 @@ static void follower_at(const Instance *instance, double t, double *speed, doubl
     *gap = linear_extrapolate(r[VR_FOLLOWER_GAP], r[VR_FOLLOWER_GAP_RATE], dt);
 }
 
+/* The target as one step (or one outputs call) sees it: target_at is a pure function of t, and RK4's
+ * second and third stages ask for the same instant, the outputs for the instant evaluate just used,
+ * so each instant is extrapolated once (same numbers: the same function, called once instead of
+ * twice). Not in the Python model, where the saving would not be worth a cache: it only saves time. */
+typedef struct {
+    const Instance *instance;
+    int known;
+    double t;
+    double target[4];
+} TargetSight;
+
+static TargetSight target_sight(const Instance *instance)
+{
+    TargetSight sight = {instance, 0, 0.0, {0.0, 0.0, 0.0, 0.0}};
+    return sight;
+}
+
+static const double *target_seen(TargetSight *sight, double t)
+{
+    if (!sight->known || sight->t != t) {
+        target_at(sight->instance, t, sight->target);
+        sight->t = t;
+        sight->known = 1;
+    }
+    return sight->target;
+}
+
 /* VehicleStepper.evaluate with fmus.model.vehicle.VehicleModel.evaluate: the state derivative, the
  * acting lateral acceleration and the distance to the target. */
-static void evaluate(const Instance *instance, double t, const double *state, double *derivative,
+static void evaluate(TargetSight *sight, double t, const double *state, double *derivative,
                      double *acceleration, double *distance)
 {
+    const Instance *instance = sight->instance;
     const VehicleConfig *config = config_of(instance);
     const double *r = instance->reals;
-    double target[4];
-    target_at(instance, t, target);
+    const double *target = target_seen(sight, t);
     double follower_speed, follower_gap;
     follower_at(instance, t, &follower_speed, &follower_gap);
     double added_acceleration = r[VR_DISTURBANCE_LATERAL_ACCELERATION];
@@ -210,7 +237,7 @@ static void evaluate(const Instance *instance, double t, const double *state, do
 static void derivative_of(void *context, double t, const double *state, double *derivative)
 {
     double acceleration, distance;
-    evaluate((const Instance *)context, t, state, derivative, &acceleration, &distance);
+    evaluate((TargetSight *)context, t, state, derivative, &acceleration, &distance);
 }
 
 /* VehicleStepper.step with VehicleStepper.check */
@@ -219,7 +246,8 @@ static int vehicle_step(Instance *instance, double t, double h, FwText *why)
     const VehicleConfig *config = config_of(instance);
     double state[FW_MAX_STATE];
     memcpy(state, instance->state, sizeof state);
-    integrate(derivative_of, instance, t, state, config->state_size, h, config->max_substep);
+    TargetSight sight = target_sight(instance);
+    integrate(derivative_of, &sight, t, state, config->state_size, h, config->max_substep);
     double time = t + h;
     for (int i = 0; i < config->state_size; ++i) {
         if (!isfinite(state[i])) {
@@ -245,11 +273,11 @@ static void vehicle_outputs(const Instance *instance, double *values)
     const double *state = instance->state;
     double added_speed = instance->reals[VR_DISTURBANCE_SPEED];
     double derivative[FW_MAX_STATE], acceleration, gap;
-    evaluate(instance, t, state, derivative, &acceleration, &gap);
+    TargetSight sight = target_sight(instance);
+    evaluate(&sight, t, state, derivative, &acceleration, &gap);
     double x = state[0], y = state[1], heading = state[2];
     double speed = dynamics_speed(config, state, added_speed);
-    double target[4];
-    target_at(instance, t, target);
+    const double *target = target_seen(&sight, t);
     double dx = target[0] - x, dy = target[1] - y;
     double relative_vx = target[3] * cos(target[2]) - speed * cos(heading);
     double relative_vy = target[3] * sin(target[2]) - speed * sin(heading);
