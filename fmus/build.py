@@ -81,13 +81,13 @@ def expected_guid(name: str) -> str:
 
 
 def fmu_guid(path: Path) -> str | None:
-    """GUID recorded in an FMU's model description, or None if unreadable."""
+    """GUID (FMI 2.0) or instantiationToken (FMI 3.0) recorded in an FMU's model description, or None if unreadable."""
     try:
         with zipfile.ZipFile(path) as archive:
             root = ElementTree.fromstring(archive.read("modelDescription.xml"))
     except (OSError, KeyError, zipfile.BadZipFile, ElementTree.ParseError):
         return None
-    return root.get("guid")
+    return root.get("guid") or root.get("instantiationToken")  # FMI 2.0, FMI 3.0
 
 
 def fmi_platform() -> tuple[str, str]:
@@ -108,10 +108,15 @@ def is_complete(path: Path, name: str, guid: str) -> bool:
     and it holds the model description with that GUID, the binary for this platform and the bundled
     sources. The GUID alone does not make an FMU runnable (a copy stripped of its binary has it too)."""
     platform, suffix = fmi_platform()
-    if fmu_guid(path) != guid:
-        return False
     required = {f"binaries/{platform}/{name}{suffix}", f"resources/{name}.py"}
     required |= {f"resources/{source.relative_to(_ROOT).as_posix()}" for source in bundled_sources(name)}
+    return archive_is_whole(path, guid, required)
+
+
+def archive_is_whole(path: Path, guid: str, required: set[str]) -> bool:
+    """``path`` has ``guid``, every entry of ``required`` (not empty) and passes every CRC."""
+    if fmu_guid(path) != guid:
+        return False
     try:
         with zipfile.ZipFile(path) as archive:
             sizes = {item.filename: item.file_size for item in archive.infolist()}
@@ -179,8 +184,12 @@ def _build_one(name: str, out_dir: Path, guid: str) -> Path:
     entries["modelDescription.xml"] = model_description(slave, guid, version)
     entries["documentation/index.html"] = documentation_html(slave, version).encode()
 
-    out_dir.mkdir(parents=True, exist_ok=True)
-    target = out_dir / f"{name}.fmu"
+    return write_fmu(out_dir / f"{name}.fmu", entries)
+
+
+def write_fmu(target: Path, entries: dict[str, bytes]) -> Path:
+    """Write an FMU archive reproducibly (sorted entries, fixed timestamps) aside, then move it into place."""
+    target.parent.mkdir(parents=True, exist_ok=True)
     # one name per process: two runs that find the FMUs out of date build them side by side, each
     # renaming its own complete file into place (the last one wins; both are the same FMU)
     partial = target.with_name(f"{target.name}.{os.getpid()}.partial")

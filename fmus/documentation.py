@@ -55,7 +55,13 @@ The state is integrated with RK4 substeps no longer than <code>max_substep</code
 """
 
 
-def documentation_html(slave: PlatoonSlave, version: str) -> str:
+PYTHONFMU_HOST = """<p>A pythonfmu FMU: its binary embeds CPython through libpython 3.11 and imports the model from
+<code>resources/</code> (standard library only). A Python host (FMPy, libcosimpy) needs nothing more; a C or C++ host
+must preload the matching libpython (the FMU binary leaves the Python symbols to the process, so <code>LD_LIBRARY_PATH</code> alone is not enough) and set <code>PYTHONHOME</code> to that Python's
+prefix. See docs/fmus.md in the platoon-cosim repository.</p>"""
+
+
+def documentation_html(slave: PlatoonSlave, version: str, host_requirements: str = PYTHONFMU_HOST) -> str:
     cls = type(slave)
     rows = []
     for info in cls.variables:
@@ -90,10 +96,7 @@ def documentation_html(slave: PlatoonSlave, version: str) -> str:
 {EQUATIONS[cls.__name__]}
 {COUPLING}
 <h2>Host requirements</h2>
-<p>A pythonfmu FMU: its binary embeds CPython through libpython 3.11 and imports the model from
-<code>resources/</code> (standard library only). A Python host (FMPy, libcosimpy) needs nothing more; a C or C++ host
-must preload the matching libpython (the FMU binary leaves the Python symbols to the process, so <code>LD_LIBRARY_PATH</code> alone is not enough) and set <code>PYTHONHOME</code> to that Python's
-prefix. See docs/fmus.md in the platoon-cosim repository.</p>
+{host_requirements}
 <h2>Variables</h2>
 {table}
 </body></html>

@@ -13,7 +13,8 @@ including the capability flags, each set on purpose:
   source in resources/) to the Python installation of the host, which must provide libpython 3.11
   and its standard library (docs/fmus.md, "What a host needs"). That installation is the tool. The
   importers we run them with (FMPy simulate and validate, libcosim, our C host) treat the flag as
-  information and run the FMUs as before (tests/test_hostile_fmus.py).
+  information and run the FMUs as before (tests/test_hostile_fmus.py). The native twins
+  (fmus/native_build.py) declare "false": their binary is the model.
 * canBeInstantiatedOnlyOncePerProcess: false. All state lives on the instance (tested with two
   platoons in one process).
 """
@@ -71,8 +72,15 @@ def _format(value: Any) -> str:
     return str(value)
 
 
-def model_description(slave: PlatoonSlave, guid: str, version: str) -> bytes:
-    """The modelDescription.xml of ``slave`` (an instance, so value references are known)."""
+PYTHONFMU_TOOL = "pythonfmu runtime"
+
+
+def model_description(slave: PlatoonSlave, guid: str, version: str, runtime: str = PYTHONFMU_TOOL,
+                      capabilities: dict[str, str] | None = None, source_files: tuple[str, ...] = ()) -> bytes:
+    """The modelDescription.xml of ``slave`` (an instance, so value references are known).
+
+    The native twins (fmus/native_build.py) share it: same variables and references, their own
+    ``runtime`` in generationTool, their own capability flags, and the C files in sources/."""
     cls = type(slave)
     model_name = cls.__name__
     root = Element(
@@ -85,13 +93,18 @@ def model_description(slave: PlatoonSlave, guid: str, version: str) -> bytes:
             "author": cls.author,
             "version": version,
             "license": cls.license,
-            "generationTool": f"platoon-cosim {version} (pythonfmu runtime)",
+            "generationTool": f"platoon-cosim {version} ({runtime})",
             "variableNamingConvention": "structured",
             "numberOfEventIndicators": "0",
         },
     )
     # a slave class may override a flag (LiveVehicle: a real robot has no FMU state to save)
-    SubElement(root, "CoSimulation", {"modelIdentifier": model_name, **CAPABILITIES, **getattr(cls, "capabilities", {})})
+    flags = capabilities if capabilities is not None else {**CAPABILITIES, **getattr(cls, "capabilities", {})}
+    co_simulation = SubElement(root, "CoSimulation", {"modelIdentifier": model_name, **flags})
+    if source_files:
+        sources = SubElement(co_simulation, "SourceFiles")
+        for name in source_files:
+            SubElement(sources, "File", {"name": name})
 
     used_units = sorted({info.unit for info in cls.variables if info.unit})
     unit_definitions = SubElement(root, "UnitDefinitions")

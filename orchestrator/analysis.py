@@ -11,7 +11,9 @@ has the paper's 4 states per vehicle, so the analysis uses kinematic dynamics.
 from __future__ import annotations
 
 import math
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -23,6 +25,9 @@ from fmus.model.vehicle import VehicleModel, VehicleStepper
 
 from .config import Config
 from .scenario import path_of
+
+# progress(label, steps) -> a context manager giving a tick(steps done) or None (orchestrator/progress.py)
+Progress = Callable[[str, int], AbstractContextManager[Callable[[int], None] | None]]
 
 # Central differences with this relative perturbation: truncation ~1e-12, rounding ~1e-10.
 _PERTURBATION = 1e-6
@@ -268,24 +273,31 @@ def peak_ratios(peaks: list[float]) -> list[float]:
     return [b / a if a > 0 else math.inf for a, b in zip(peaks, peaks[1:])]
 
 
-def string_stability_report(config: Config, config_text: str) -> str:
-    """Peak path, gap and speed errors per vehicle after the first disturbance, and their ratios."""
+def string_stability_report(config: Config, config_text: str, progress: Progress | None = None) -> str:
+    """Peak path, gap and speed errors per vehicle after the first disturbance, and their ratios.
+
+    ``progress(label, steps)``: a context manager giving each of the two runs its tick (the caller's
+    bar or progress lines), None for none.
+    """
     from .metrics import path_errors
     from .run import run_scenario
+    from .scenario import step_count
     from .scratch import ScratchDir
     from .trace import load
 
     if not config.disturbance:
         return "string stability: the config has no [[disturbance]]; add one to measure peak-error ratios"
     start = min(d.start for d in config.disturbance)
-    with ScratchDir("analyze") as scratch:  # removed by the next run if this one is killed
-        result = run_scenario(config, config_text, scratch / "analysis.mcap")
+    steps = step_count(config.simulation.stop_time, config.simulation.step)
+    shown = progress or (lambda label, total: nullcontext())
+    with ScratchDir("analyze") as scratch, shown("disturbed run (1/2)", steps) as tick:  # scratch: removed by the next run if this one is killed
+        result = run_scenario(config, config_text, scratch / "analysis.mcap", tick=tick)
         if result.status != "completed":
             return f"string stability: the run {result.status}: {result.error}"
         trace = load(result.trace)
     reference_config = config.model_copy(update={"disturbance": []})
-    with ScratchDir("analyze") as scratch:
-        reference = load(run_scenario(reference_config, config_text, scratch / "reference.mcap").trace)
+    with ScratchDir("analyze") as scratch, shown("undisturbed run (2/2)", steps) as tick:
+        reference = load(run_scenario(reference_config, config_text, scratch / "reference.mcap", tick=tick).trace)
     lines = [f"string stability (peak deviation from the undisturbed run after t = {start:g} s):",
              f"  {'vehicle':10s} {'path [m]':>12s} {'gap [m]':>12s} {'speed [m/s]':>12s}"]
     peaks = {"path": [], "gap": [], "speed": []}

@@ -35,6 +35,17 @@ app = typer.Typer(
 # "runs/[a]/x.mcap") and must appear as written. The one styled line (_fail) asks for markup itself.
 out = Console(markup=False)
 err = Console(stderr=True, markup=False)
+# Metavars that show what an option takes (typer would print <str> or <list[str]>)
+SET_METAVAR = "KEY=VALUE"
+RUN_ENGINES = ("native", "python")  # --engine; --monolithic picks the third engine (run.ENGINES)
+
+
+def choices_metavar(choices: tuple[str, ...]) -> str:
+    """``<a|b|c>``: the allowed values of an option, as typer shows a choice type, for an option we check
+    ourselves (so a wrong value is our one-line error, not typer's framed box)."""
+    return "<" + "|".join(choices) + ">"
+
+
 AllowLong = Annotated[bool, typer.Option("--allow-long", help="run even above the size limits (docs/config.md: more than "
                                          "1e6 steps, 1000 substeps per step or 1e8 FMU-substeps)")]
 
@@ -74,6 +85,10 @@ def _load(config: Path, overrides: list[str], allow_long: bool = True) -> tuple[
             check_run_size(parsed)
     except ConfigError as error:
         _fail(2, f"config {config}: {error}")
+    from .config_warnings import config_warnings
+
+    for warning in config_warnings(parsed):  # valid, but probably not what was meant: the run still goes
+        err.print(f"warning: config {config}: {warning}", highlight=False, soft_wrap=True)
     return parsed, text
 
 
@@ -82,7 +97,7 @@ def build(
     out_dir: Annotated[Path, typer.Option("--out", help="folder for Vehicle.fmu, VirtualTarget.fmu and LiveVehicle.fmu")] = Path("build/fmus"),
     force: Annotated[bool, typer.Option(help="rebuild even if up to date")] = False,
 ) -> None:
-    """Build the Vehicle, VirtualTarget and LiveVehicle FMUs (only when their sources changed)."""
+    """Build the Vehicle, VirtualTarget and LiveVehicle FMUs, and the native Vehicle and VirtualTarget into OUT/native (FMI 2.0) and OUT/fmi3 (FMI 3.0) (only when their sources changed)."""
     from fmus.build import ALL_FMUS, build_fmus
 
     try:
@@ -92,45 +107,52 @@ def build(
         _fail(2, f"build --out {out_dir}: cannot write the FMUs{where}: {error.strerror or error}")
     for built in built_fmus:
         state = "built" if built.rebuilt else "up to date"
-        out.print(f"{built.path}  {built.guid}  ({state})")
+        out.print(f"{built.path}  {built.guid}  ({state})", soft_wrap=True)
+    _build_native(out_dir, force)
 
 
-def _progress_runner(steps: int, quiet: bool):
-    if quiet or not sys.stderr.isatty() and not sys.stdout.isatty():
-        return None, None
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+def _build_native(out_dir: Path, force: bool) -> None:
+    """The native twins into OUT/native (fmus/native_build.py) and, as FMI 3.0 FMUs, into OUT/fmi3
+    (fmus/native_build3.py); no compiler is one line, not a failure."""
+    from fmus.build import BuildError
+    from fmus.native_build import NoCompiler, build_native_fmus
+    from fmus.native_build3 import build_fmi3_fmus
 
-    progress = Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        TextColumn("{task.percentage:>5.1f}%"),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        console=err,
-        transient=True,
-    )
-    return progress, progress.add_task("simulating", total=steps)
+    try:
+        built_fmus = build_native_fmus(out_dir / "native", force=force)
+        built_fmus += build_fmi3_fmus(out_dir / "fmi3", force=force)
+    except NoCompiler as error:
+        err.print(f"note: {error}", soft_wrap=True)
+        return
+    except BuildError as error:
+        _fail(2, f"build: {error}")
+    except OSError as error:
+        where = f" {error.filename}" if error.filename else ""
+        _fail(2, f"build --out {out_dir}: cannot write the native FMUs{where}: {error.strerror or error}")
+    for built in built_fmus:
+        state = "built" if built.rebuilt else "up to date"
+        out.print(f"{built.path}  {built.guid}  ({state}, native{' FMI 3.0' if built.path.parent.name == 'fmi3' else ''})", soft_wrap=True)
 
 
 def _summary_table(summaries, config: Config, title: str) -> Table:
-    """The per-vehicle summary (the consoles print text literally: the units "[m]" are not markup)."""
+    """The per-vehicle summary (the consoles print text literally: the units "[m]" are not markup); the same
+    quantities, keys and units as `platoon report --json` (metrics.SUMMARY_COLUMNS, summary_rows)."""
     from rich.table import Table
 
-    from .metrics import STEADY_FRACTION, first_disturbance
+    from .metrics import STEADY_FRACTION, SUMMARY_COLUMNS, path_error_interval, summary_rows
 
-    disturbed = first_disturbance(config)  # max |path error| is taken from the first disturbance on (metrics.py)
-    interval = "whole run" if disturbed is None else f"t >= {disturbed:g} s"
+    _, interval = path_error_interval(config)  # max |path error| is taken from the first disturbance on (metrics.py)
     table = Table(title=title, title_justify="left", caption_justify="left",
                   caption=f"path offset, gap, speed: means over the last {STEADY_FRACTION:.0%} of the recorded time")
-    for column in ("vehicle", "path offset [m]", "gap - d* [m]", "speed - V_c [m/s]", f"max |path error| [m], {interval}"):
-        table.add_column(column, justify="right" if column != "vehicle" else "left",
-                         min_width=len("max |path error|") if column.startswith("max") else None,  # unbroken
-                         max_width=len("path offset") if column.startswith("path") else None)  # fits 80 columns
-    for s in summaries:
-        table.add_row(
-            s.name, f"{s.path_offset:+.3e}", f"{s.gap - config.platoon.d_star:+.3e}",
-            f"{s.speed - config.platoon.speed:+.3e}", f"{s.path_error_max:.3e}",
-        )
+    table.add_column("vehicle", justify="left")
+    for column in SUMMARY_COLUMNS:
+        header = f"{column.label} [{column.unit}]" + (f", {interval}" if column.key == "path_error_max" else "")
+        table.add_column(header, justify="right",
+                         min_width=len(column.label) if column.key == "path_error_max" else None,  # unbroken
+                         max_width=len("path offset") if column.key == "path_offset" else None)  # fits 80 columns
+    for row in summary_rows(summaries, config):  # deviations signed; the largest |error| is a magnitude
+        table.add_row(str(row["name"]), *(f"{row[c.key]:.3e}" if c.key == "path_error_max" else f"{row[c.key]:+.3e}"
+                                           for c in SUMMARY_COLUMNS))
     return table
 
 
@@ -157,27 +179,15 @@ def _time_split(entered: float | None, loaded: float | None, imported: float | N
     ])
 
 
-def _execute(config: Config, text: str, trace, engine: str, quiet: bool, trace_writer: str = "auto"):
+def _execute(config: Config, text: str, trace, engine: str, quiet: bool, trace_writer: str = "auto", live_view=None):
+    from .progress import progress
     from .run import run_scenario
     from .scenario import step_count
 
     steps = step_count(config.simulation.stop_time, config.simulation.step)
-    progress, task = _progress_runner(steps, quiet)
-    tick = None
-    if progress is not None:
-        every = max(1, steps // 200)
-
-        def update(k: int) -> None:
-            if k % every == 0 or k == steps:
-                progress.update(task, completed=k)
-
-        tick = update
-        progress.start()
-    try:
-        return run_scenario(config, text, trace, engine=engine, tick=tick, trace_writer=trace_writer, summarize=not quiet)
-    finally:
-        if progress is not None:
-            progress.stop()
+    with progress(steps, "simulating", err, quiet) as tick:  # a bar on a terminal, plain lines in a pipe or a log
+        return run_scenario(config, text, trace, engine=engine, tick=tick, trace_writer=trace_writer, summarize=not quiet,
+                            live_view=live_view)
 
 
 OVERWRITE_HELP = "replace an existing --out even if it is not an MCAP trace (never the command's own input)"
@@ -209,16 +219,22 @@ def _claim_trace(trace: Optional[Path], overwrite: bool, protect: list[Path], de
 def run(
     config: Annotated[Path, typer.Argument(help="scenario TOML file, e.g. configs/paper/platoon.toml")],
     trace: Annotated[Optional[Path], typer.Option("--out", help="trace file (default runs/<name>-<time>.mcap)")] = None,
-    overrides: Annotated[list[str], typer.Option("--set", help="override a key, e.g. --set platoon.law=regular")] = [],
+    overrides: Annotated[list[str], typer.Option("--set", metavar=SET_METAVAR, help="override a key, e.g. --set platoon.law=regular")] = [],
     monolithic: Annotated[bool, typer.Option("--monolithic", help="integrate the whole platoon as one system (reference)")] = False,
     compare: Annotated[bool, typer.Option("--compare-monolithic", help="also run the monolithic reference and print the largest deviations")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar and no table")] = False,
     trace_every: Annotated[Optional[int], typer.Option("--trace-every", min=1, help="record every K-th communication point (overrides simulation.trace_every)")] = None,
-    engine_name: Annotated[Optional[str], typer.Option("--engine", help="native (compiled stepping core; default when built) or python (FMPy); same results")] = None,
-    trace_writer: Annotated[str, typer.Option("--trace-writer", help="where the trace is encoded: process (a second process), inline, or auto (a second process for long runs on a multi-core machine); same file")] = "auto",
+    engine_name: Annotated[Optional[str], typer.Option("--engine", metavar=choices_metavar(RUN_ENGINES), help="native (compiled stepping core; default when built) or python (FMPy); same results")] = None,
+    fmu_kind: Annotated[Optional[str], typer.Option("--fmus", metavar=choices_metavar(("native", "python")), help="native (C FMUs, default where a C compiler can build them) or python (pythonfmu FMUs); same results (overrides simulation.fmus)")] = None,
+    trace_writer: Annotated[str, typer.Option("--trace-writer", metavar=choices_metavar(("auto", "inline", "process")), help="where the trace is encoded: process (a second process), inline, or auto (a second process for long runs on a multi-core machine); same file")] = "auto",
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="also print where the wall time went: start-up (imports, config, FMUs), the run's phases, the summary")] = False,
     allow_long: AllowLong = False,
+    live: Annotated[bool, typer.Option("--live", help="serve the run on a Foxglove WebSocket while it runs (open it in Foxglove or Lichtblick; docs/foxglove.md), paced to real time")] = False,
+    live_port: Annotated[int, typer.Option("--live-port", min=0, max=65535, help="port of the --live server")] = 8765,
+    live_host: Annotated[str, typer.Option("--live-host", metavar="ADDRESS", help="address the --live server binds; anything but 127.0.0.1 lets other machines watch (no authentication)")] = "127.0.0.1",
+    live_speed: Annotated[float, typer.Option("--live-speed", min=0.0, help="with --live: simulated seconds per wall second (1: real time; 0: as fast as it runs)")] = 1.0,
+    live_wait: Annotated[bool, typer.Option("--live-wait", help="with --live: start stepping once a viewer shows the scene, so it sees the whole run")] = False,
 ) -> None:
     """Run a scenario: wire the FMUs as the paper's Fig. 2, step them, write an MCAP trace."""
     from .startup import loading_a_run, seconds_since_process_start
@@ -226,13 +242,15 @@ def run(
     entered = seconds_since_process_start()  # the interpreter and the imports so far
     if trace_every is not None:
         overrides = [*overrides, f"simulation.trace_every={trace_every}"]
+    if fmu_kind is not None:
+        overrides = [*overrides, f"simulation.fmus={json.dumps(fmu_kind)}"]
     parsed, text = _load(config, overrides, allow_long)
     loaded = seconds_since_process_start()
     with loading_a_run():  # one BLAS thread, no garbage collection while the run's modules load
         from .run import default_engine, default_trace_path
 
-    imported = seconds_since_process_start()  # the engines, FMPy, numpy, the trace writer
-    if engine_name not in (None, "native", "python"):
+    imported = seconds_since_process_start()  # the engines, numpy, the trace writer
+    if engine_name is not None and engine_name not in RUN_ENGINES:
         _fail(2, f"--engine {engine_name!r}: expected native or python")
     if engine_name == "native" and default_engine() != "native":
         _fail(2, "--engine native: the compiled core is not built here (reinstall with a C compiler: pip install -e .)")
@@ -246,12 +264,38 @@ def run(
         check_live_options(parsed, engine, trace_writer)
     except LiveRunError as error:
         _fail(2, f"config {config}: {error}")
+    view = None
+    if not live and (live_port, live_host, live_speed, live_wait) != (8765, "127.0.0.1", 1.0, False):
+        _fail(2, "--live-port, --live-host, --live-speed and --live-wait go with --live (add it to watch the run)")
+    if live:  # before the trace is claimed: a port in use stops the run with nothing written
+        from .live_view import LiveViewError, start_live_view
+
+        try:
+            view = start_live_view(parsed, live_host, live_port, live_speed, err, live_wait)
+        except LiveViewError as error:
+            _fail(2, str(error))
     target = _claim_trace(trace, overwrite, [config], lambda: default_trace_path(parsed, engine))
     trace = target.final
     reference_path = trace.with_name(trace.stem + "-monolithic.mcap")
     if compare:  # checked now, claimed when its turn comes (no empty aside file if the run fails)
         _check_output(reference_path, overwrite, [config])
-    result = _execute(parsed, text, target, engine, quiet, trace_writer)
+    from fmus.build import BuildError
+
+    from .fmu_kinds import FmuKindError
+
+    if view is not None:
+        from .live_view import announce
+
+        announce(view, trace, parsed, out)
+    try:
+        result = _execute(parsed, text, target, engine, quiet, trace_writer, view)
+    except (FmuKindError, BuildError) as error:  # nothing was run, the trace path is released
+        _fail(2, f"config {config}: {error}")
+    finally:
+        if view is not None:
+            view.close()
+            if (lag := view.lag_note()) is not None:
+                err.print(lag, highlight=False, soft_wrap=True)
     from .viewer_cli import write_run_layout
 
     layout = write_run_layout(trace, parsed, warn=result.status == "completed")  # beside the trace; None: not written
@@ -269,10 +313,10 @@ def run(
 
         # accumulated while stepping; the trace is read again only if the run's end was not the planned one
         summaries = result.summary if result.summary is not None else summarize(load(result.trace), parsed)
-        out.print(_summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine}, {parsed.simulation.stop_time:g} s"))
-    out.print(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)")
+        out.print(_summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine} engine, {result.fmus} FMUs, {parsed.simulation.stop_time:g} s"))
+    out.print(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)", highlight=False, soft_wrap=True)
     if layout is not None:
-        out.print(f"layout: {layout}  (open both in Foxglove: docs/foxglove.md)")
+        out.print(f"layout: {layout}  (open both in Foxglove: docs/foxglove.md)", highlight=False, soft_wrap=True)  # one line in a log
     if verbose:
         err.print(_time_split(entered, loaded, imported, result.timings, seconds_since_process_start()), highlight=False)
     if compare:
@@ -328,7 +372,8 @@ def report(
     with _quiet_nan(bool(non_finite)):  # nan figures were announced above
         summaries = summarize(loaded, config)
         if as_json:
-            out.print_json(json.dumps(report_json(summaries)))
+            out.print_json(json.dumps({"trace": str(trace), "law": config.platoon.law, "status": status,
+                                        **report_json(summaries, config)}))
         else:
             out.print(_summary_table(summaries, config, f"{trace.name}: {config.platoon.law} law ({status})"))
         if plots is not None:
@@ -458,7 +503,7 @@ def _same(a: Path, b: Path) -> bool:
 @app.command()
 def analyze(
     config: Annotated[Path, typer.Argument(help="scenario TOML file")],
-    overrides: Annotated[list[str], typer.Option("--set", help="override a key")] = [],
+    overrides: Annotated[list[str], typer.Option("--set", metavar=SET_METAVAR, help="override a key, as for platoon run")] = [],
     string_stability: Annotated[bool, typer.Option(help="also run the scenario and report peak-error ratios")] = True,
     allow_long: AllowLong = False,
 ) -> None:
@@ -480,7 +525,10 @@ def analyze(
         _fail(2, f"config {config}: {error}")
     out.print(report_text, highlight=False, soft_wrap=True)
     if string_stability:
-        out.print(string_stability_report(parsed, text), highlight=False, soft_wrap=True)
+        from .progress import progress
+
+        shown = lambda label, total: progress(total, label, err)  # noqa: E731  (the runs: bar or plain lines)
+        out.print(string_stability_report(parsed, text, shown), highlight=False, soft_wrap=True)
 
 
 bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks of issue 10 (JSON under runs/bench/; not pass/fail tests).")
@@ -489,8 +537,8 @@ app.add_typer(bench_app, name="bench")
 ROUNDS_HELP = "interleaved repetitions (each variant once per round, order rotated); medians over rounds"
 OutDir = Annotated[Path, typer.Option("--out-dir", help="folder for the JSON results")]
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only the tables and the result file")]
-Engines = Annotated[str, typer.Option(help=f"comma-separated, of: {', '.join(BENCH_ENGINES)}")]
-Counts = Annotated[str, typer.Option("--n", help="comma-separated vehicle counts")]
+Engines = Annotated[str, typer.Option(metavar="ENGINE,...", help=f"comma-separated, of: {', '.join(BENCH_ENGINES)}")]
+Counts = Annotated[str, typer.Option("--n", metavar="N,...", help="comma-separated vehicle counts")]
 Steps = Annotated[int, typer.Option(min=1, help="communication steps of 0.01 s per measurement")]
 Rounds = Annotated[int, typer.Option(min=1, help=ROUNDS_HELP)]
 
@@ -563,22 +611,28 @@ def _bench(suite: str, measure, render, out_dir: Path, quiet: bool) -> None:
     out.print(f"results: {write_result(out_dir, suite, result)}", highlight=False, soft_wrap=True)
 
 
-def _per_fmu_step(suite_name: str, engines: str, n: str, steps: int, rounds: int, out_dir: Path, quiet: bool) -> None:
+def _per_fmu_step(suite_name: str, engines: str, n: str, steps: int, rounds: int, out_dir: Path, quiet: bool,
+                  **options) -> None:
     """The two suites of FMU-step costs (``steps``, ``coupling``): same options, same checks."""
     from importlib import import_module
 
     suite = import_module(f".bench.{suite_name}", __package__)
     chosen, counts = _csv("--engines", engines, BENCH_ENGINES), _counts(n)
-    _bench(suite_name, lambda progress: suite.run(chosen, counts, steps, rounds, progress=progress), suite.markdown,
-           out_dir, quiet)
+    _bench(suite_name, lambda progress: suite.run(chosen, counts, steps, rounds, progress=progress, **options),
+           suite.markdown, out_dir, quiet)
 
 
 @bench_app.command("steps")
 def bench_steps(engines: Engines = "native,python,fmpy-bare,libcosim,libcosim-0threads,libcosim-0threads-lastvalue,slaves",
                 n: Counts = "4,16,64,256", steps: Steps = 1000, rounds: Rounds = 5,
-                out_dir: OutDir = Path("runs/bench"), quiet: Quiet = False) -> None:
-    """Microseconds per FMU-step of our engines, the bare FMPy loop, libcosim and the floor, by N."""
-    _per_fmu_step("steps", engines, n, steps, rounds, out_dir, quiet)
+                out_dir: OutDir = Path("runs/bench"), quiet: Quiet = False,
+                fmus: Annotated[Optional[str], typer.Option("--fmus", metavar="KIND,...", help="comma-separated FMU kinds: python, native (default: both where a C compiler builds the native ones)")] = None) -> None:
+    """Microseconds per FMU-step of our engines, the bare FMPy loop, libcosim and the floor, by N, for the
+    pythonfmu FMUs and the native ones."""
+    from .fmu_kinds import FMU_KINDS
+
+    kinds = None if fmus is None else _csv("--fmus", fmus, FMU_KINDS)
+    _per_fmu_step("steps", engines, n, steps, rounds, out_dir, quiet, fmu_kinds=kinds)
 
 
 @bench_app.command("coupling")
@@ -590,11 +644,11 @@ def bench_coupling(engines: Engines = "native,slaves", n: Counts = "4,16,64", st
 
 @bench_app.command("scenarios")
 def bench_scenarios(
-    configs: Annotated[list[Path], typer.Option("--config", help="scenario TOML (repeatable; default configs/paper/*.toml)")] = [],
-    engines: Annotated[str, typer.Option(help="comma-separated: native, python")] = "native,python",
-    variants: Annotated[str, typer.Option(help="comma-separated: cli-traced (platoon run --out X -q), traced, untraced")] = "cli-traced,traced,untraced",
+    configs: Annotated[list[Path], typer.Option("--config", metavar="CONFIG", help="scenario TOML (repeatable; default configs/paper/*.toml)")] = [],
+    engines: Annotated[str, typer.Option(metavar="ENGINE,...", help="comma-separated: native, python")] = "native,python",
+    variants: Annotated[str, typer.Option(metavar="VARIANT,...", help="comma-separated: cli-traced (platoon run --out X -q), traced, untraced")] = "cli-traced,traced,untraced",
     rounds: Rounds = 3,
-    overrides: Annotated[list[str], typer.Option("--set", help="override a key in every scenario")] = [],
+    overrides: Annotated[list[str], typer.Option("--set", metavar=SET_METAVAR, help="override a key in every scenario")] = [],
     out_dir: OutDir = Path("runs/bench"),
     quiet: Quiet = False,
 ) -> None:
@@ -611,7 +665,7 @@ def bench_scenarios(
 def bench_wholerun(
     n: Counts = "16",
     steps: Steps = 10_000,
-    variants: Annotated[str, typer.Option(help="comma-separated: platoon (default run, traced, table), platoon-q (-q --trace-every 100), libcosim (no observer), libcosim-outputs (time series of every output), libcosim-last-value")] = "platoon,platoon-q,libcosim,libcosim-outputs,libcosim-last-value",
+    variants: Annotated[str, typer.Option(metavar="VARIANT,...", help="comma-separated: platoon (default run, traced, table), platoon-q (-q --trace-every 100), libcosim (no observer), libcosim-outputs (time series of every output), libcosim-last-value")] = "platoon,platoon-q,libcosim,libcosim-outputs,libcosim-last-value",
     rounds: Rounds = 5,
     out_dir: OutDir = Path("runs/bench"),
     quiet: Quiet = False,
@@ -626,9 +680,9 @@ def bench_wholerun(
 
 @bench_app.command("instances")
 def bench_instances(
-    engines: Annotated[str, typer.Option(help="comma-separated: native, fmpy")] = "native,fmpy",
+    engines: Annotated[str, typer.Option(metavar="ENGINE,...", help="comma-separated: native, fmpy")] = "native,fmpy",
     n: Counts = "4,16,64,256",
-    wirings: Annotated[str, typer.Option(help="comma-separated: instances (unconnected), platoon (wired, settle sweeps)")] = "instances,platoon",
+    wirings: Annotated[str, typer.Option(metavar="WIRING,...", help="comma-separated: instances (unconnected), platoon (wired, settle sweeps)")] = "instances,platoon",
     rounds: Rounds = 3,
     out_dir: OutDir = Path("runs/bench"),
     quiet: Quiet = False,
@@ -681,11 +735,11 @@ CORE_BUILD_HELP = "LABEL=PATH of a built orchestrator/native/_core .so (copy it 
 @bench_app.command("callgrind")
 def bench_callgrind(
     n: Counts = "4,16,64,256",
-    engines: Annotated[str, typer.Option(help="comma-separated: native, python, fmpy-bare")] = "native",
+    engines: Annotated[str, typer.Option(metavar="ENGINE,...", help="comma-separated: native, python, fmpy-bare")] = "native",
     fmu_steps: Annotated[int, typer.Option(min=1, help="FMU-steps per measurement (steps = this / (N + 1))")] = 2500,
-    ll: Annotated[str, typer.Option("--ll", help="comma-separated last-level caches to simulate: l2 (this machine's "
+    ll: Annotated[str, typer.Option("--ll", metavar="CACHE,...", help="comma-separated last-level caches to simulate: l2 (this machine's "
                                                "512 KiB L2), detected (valgrind's choice, the L3)")] = "l2",
-    cores: Annotated[list[str], typer.Option("--core", help=f"{CORE_BUILD_HELP}; repeatable (native engine; default: the installed core)")] = [],
+    cores: Annotated[list[str], typer.Option("--core", metavar="LABEL=PATH", help=f"{CORE_BUILD_HELP}; repeatable (native engine; default: the installed core)")] = [],
     out_dir: OutDir = Path("runs/bench"),
     quiet: Quiet = False,
 ) -> None:
@@ -755,3 +809,47 @@ def main() -> None:
         sys.stdout.flush()
         sys.stderr.flush()
     os._exit(code)
+
+
+if __name__ == "__main__":  # python -m orchestrator.cli ARGS: the platoon command
+    main()
+
+
+class _PlainFlags:
+    """``--help`` without a ``<bool>`` after each flag: a flag takes no value, and a newcomer reading
+    ``--quiet <bool>`` would type ``--quiet true``."""
+
+    def get_params(self, ctx):  # type: ignore[no-untyped-def]
+        params = super().get_params(ctx)  # type: ignore[misc]
+        for param in params:
+            if getattr(param, "is_flag", False) and param.metavar is None:
+                param.metavar = " "  # shown instead of the type: nothing
+        return params
+
+
+class _PlainFlagsCommand(_PlainFlags, typer.core.TyperCommand):
+    pass
+
+
+class _PlainFlagsGroup(_PlainFlags, typer.core.TyperGroup):
+    pass
+
+
+def _plain_flags(typer_app: typer.Typer) -> None:
+    """Every command and group of ``typer_app`` (and its sub-apps) shows its flags plainly."""
+    def default(cls: object, base: type) -> bool:  # not chosen by whoever declared it: typer's default
+        return cls is None or cls is base or isinstance(cls, typer.models.DefaultPlaceholder)
+
+    if default(typer_app.info.cls, typer.core.TyperGroup):
+        typer_app.info.cls = _PlainFlagsGroup
+    for command in typer_app.registered_commands:
+        if default(command.cls, typer.core.TyperCommand):
+            command.cls = _PlainFlagsCommand
+    for group in typer_app.registered_groups:
+        if default(group.cls, typer.core.TyperGroup):
+            group.cls = _PlainFlagsGroup
+        if group.typer_instance is not None:
+            _plain_flags(group.typer_instance)
+
+
+_plain_flags(app)

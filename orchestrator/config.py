@@ -105,6 +105,9 @@ class Simulation(_Strict):
     coupling: Literal["extrapolate", "hold"] = "extrapolate"
     max_substep: Positive = Field(0.01, description="longest RK4 substep inside an FMU, s")
     trace_every: int = Field(1, ge=1, description="record every K-th communication point (at most the step count)")
+    fmus: Literal["native", "python"] | None = Field(
+        None, description="FMUs to step: native (C, no Python on the host) or python (pythonfmu); "
+                          "default native where a C compiler can build them (orchestrator/fmu_kinds.py)")
 
 
 class PathConfig(_Strict):

@@ -18,7 +18,7 @@ import typer
 if TYPE_CHECKING:  # imported where used: registering these commands must not slow every `platoon` start
     from rich.table import Table
 
-Endpoints = Annotated[list[str], typer.Option(help="Zenoh endpoint, e.g. tcp/127.0.0.1:7447 (repeatable)")]
+Endpoints = Annotated[list[str], typer.Option(metavar="ENDPOINT", help="Zenoh endpoint, e.g. tcp/127.0.0.1:7447 (repeatable)")]
 
 
 def _stop_on_signals(stop: threading.Event) -> None:
@@ -105,8 +105,8 @@ def emulator_endpoints(config: Any) -> tuple[list[str], list[str]]:
 
 def m3pi_emulator(
     config: Annotated[Path, typer.Option("--config", help="scenario whose live vehicles (endpoint = \"zenoh\") to emulate")],
-    overrides: Annotated[list[str], typer.Option("--set", help="override a config key, as for platoon run")] = [],
-    ids: Annotated[list[int], typer.Option("--id", help="emulate only this robot id (repeatable; default: all)")] = [],
+    overrides: Annotated[list[str], typer.Option("--set", metavar="KEY=VALUE", help="override a config key, as for platoon run")] = [],
+    ids: Annotated[list[int], typer.Option("--id", metavar="K", help="emulate only this robot id (repeatable; default: all)")] = [],
     rate: Annotated[float, typer.Option(help="poses per second (motion capture rate)")] = 200.0,
     noise_position: Annotated[float, typer.Option(help="pose noise, m (standard deviation per axis; paper ~0.002)")] = 0.0,
     noise_heading: Annotated[float, typer.Option(help="heading noise, degrees (standard deviation; paper ~2)")] = 0.0,
@@ -151,9 +151,9 @@ def m3pi_emulator(
 
 
 def m3pi_serial(
-    port: Annotated[str, typer.Option("--port", help="serial device of the XBee, e.g. /dev/ttyUSB0")],
+    port: Annotated[str, typer.Option("--port", metavar="DEV", help="serial device of the XBee, e.g. /dev/ttyUSB0")],
     robot: Annotated[int, typer.Option("--id", help="robot id whose wheel commands to forward")],
-    prefix: Annotated[str, typer.Option(help="Zenoh key prefix")] = "platoon",
+    prefix: Annotated[str, typer.Option(metavar="PREFIX", help="Zenoh key prefix")] = "platoon",
     connect: Endpoints = [],
     listen: Endpoints = [],
     zenoh_config: Annotated[Optional[Path], typer.Option(help="Zenoh config file (JSON5)")] = None,

@@ -9,7 +9,7 @@ when there is none).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
@@ -151,5 +151,48 @@ def summarize(trace: Trace, config: Config) -> list[VehicleSummary]:
     return result
 
 
-def report_json(summaries: list[VehicleSummary]) -> dict:
-    return {"vehicles": [asdict(s) for s in summaries]}
+@dataclass(frozen=True)
+class SummaryColumn:
+    """One quantity of the summary table: its JSON key, its table header and its unit."""
+
+    key: str
+    label: str
+    unit: str
+
+
+# What the summary table shows, in its order; `platoon report --json` reports each under its key (with
+# the absolute gap and speed besides), so the table and the JSON cannot tell different stories.
+SUMMARY_COLUMNS = (
+    SummaryColumn("path_offset", "path offset", "m"),
+    SummaryColumn("gap_error", "gap - d*", "m"),
+    SummaryColumn("speed_error", "speed - V_c", "m/s"),
+    SummaryColumn("path_error_max", "max |path error|", "m"),
+)
+SUMMARY_UNITS = {"path_offset": "m", "gap": "m", "gap_error": "m", "speed": "m/s", "speed_error": "m/s",
+                 "path_error_max": "m"}
+
+
+def path_error_interval(config: Config) -> tuple[float | None, str]:
+    """Where path_error_max is taken: (start s, or None for the whole run) and how the table says it."""
+    start = first_disturbance(config)
+    return start, ("whole run" if start is None else f"t >= {start:g} s")
+
+
+def summary_rows(summaries: list[VehicleSummary], config: Config) -> list[dict[str, float | str]]:
+    """Per vehicle: the summary's values and the deviations the table shows (gap - d*, speed - V_c)."""
+    return [{"name": s.name, "path_offset": s.path_offset, "gap": s.gap, "gap_error": s.gap - config.platoon.d_star,
+             "speed": s.speed, "speed_error": s.speed - config.platoon.speed, "path_error_max": s.path_error_max}
+            for s in summaries]
+
+
+def report_json(summaries: list[VehicleSummary], config: Config) -> dict:
+    """The summary as ``platoon report --json`` prints it: the table's quantities, their units and intervals."""
+    start, interval = path_error_interval(config)
+    return {
+        "units": SUMMARY_UNITS,
+        "steady_window": {"last_fraction": STEADY_FRACTION,
+                          "quantities": ["path_offset", "gap", "gap_error", "speed", "speed_error"],
+                          "text": f"means over the last {STEADY_FRACTION:.0%} of the recorded time"},
+        "path_error_max_interval": {"from_s": start, "text": interval},
+        "vehicles": summary_rows(summaries, config),
+    }

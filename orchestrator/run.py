@@ -15,16 +15,17 @@ import threading
 import time as clock
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import fmus
-from fmus.build import DEFAULT_OUT, build_fmus
+from fmus.build import DEFAULT_OUT, FMU_NAMES
 from fmus.model.factory import target_stepper, vehicle_stepper
 from fmus.model.platoon import PlatoonSystem
 
 from . import __version__
 from .components import ComponentError, FmuComponent, UnpackedFmu
 from .config import Config
+from .fmu_kinds import resolve_fmu_kind
 from .live import LiveReporter, check_live_options, live_component, live_names
 from .master import Master
 from .metrics import RunningSummary, VehicleSummary, running_summary
@@ -36,6 +37,9 @@ from .trace.output import Claim, claim, claim_new
 from .trace.writer import NullTraceWriter, TraceWriteError, TraceWriter
 from .trace.format import BLOCK, FLUSH_INTERVAL
 from .trace.worker import WORKER_BLOCK, TraceProcess, TraceWorker, TraceWorkerError
+
+if TYPE_CHECKING:
+    from .live_view import LiveView
 
 # Where the trace is encoded: "inline" in the stepping process, "process" in a second process
 # (orchestrator/trace/worker.py), "auto": a second process when the machine has a spare core and the
@@ -85,6 +89,7 @@ class RunResult:
     # run_scenario(..., summarize=True) of a completed run: the summary of the recorded rows, as
     # `platoon report` computes it from the trace (None otherwise)
     summary: list[VehicleSummary] | None = None
+    fmus: str = ""  # the FMU kind stepped: "native" or "python" (orchestrator/fmu_kinds.py)
 
 
 def tool_versions() -> dict[str, str]:
@@ -106,8 +111,10 @@ def _descriptions(fmu: UnpackedFmu) -> dict[str, str]:
     }
 
 
-def _open_fmus(fmu_dir: Path) -> dict[str, UnpackedFmu]:
-    return {built.name: UnpackedFmu.open_cached(built.path) for built in build_fmus(fmu_dir)}
+def _open_fmus(fmu_dir: Path, kind: str) -> dict[str, UnpackedFmu]:
+    from .fmu_kinds import ensure_fmus
+
+    return {name: UnpackedFmu.open_cached(path) for name, path in ensure_fmus(fmu_dir, kind, FMU_NAMES).items()}
 
 
 def open_trace_writer(
@@ -185,6 +192,9 @@ class Interrupted(KeyboardInterrupt):
         self.signum = signum
 
 
+STALLED_WRITER_GRACE = 2.0  # s a trace writer process may take nothing after a second signal before it is stopped
+
+
 class _StopRequest:
     """Signal handlers for the length of a run.
 
@@ -248,6 +258,7 @@ def run_scenario(
     scene_rate: float = SCENE_RATE,
     trace_writer: str = "auto",
     summarize: bool = False,
+    live_view: "LiveView | None" = None,
 ) -> RunResult:
     """Run ``config`` with ``engine`` and write the trace to ``out`` (``None``: record nothing).
 
@@ -261,7 +272,8 @@ def run_scenario(
     "interrupted"; the trace is finalized with every point recorded up to there. ``trace_writer``:
     where the trace is encoded (``TRACE_WRITERS``); both give the same file. ``summarize``: accumulate
     the per-vehicle summary of the recorded rows while stepping (``RunResult.summary``), so printing it
-    needs no second read of the trace.
+    needs no second read of the trace. ``live_view``: a started ``LiveView`` (orchestrator/live_view.py)
+    that shows what the trace records, the run paced as it says; the caller closes it.
     """
     target = claim(out) if isinstance(out, (str, Path)) else out
     trace_process: TraceProcess | None = None
@@ -281,7 +293,8 @@ def run_scenario(
         opening = clock.perf_counter()
         if target is not None and writer_kind == "process":
             trace_process = TraceProcess(keep_fds=(target.fd,))
-        fmus_by_kind = _open_fmus(fmu_dir)
+        fmu_kind = resolve_fmu_kind(config.simulation.fmus, fmu_dir)
+        fmus_by_kind = _open_fmus(fmu_dir, fmu_kind)
     except BaseException:
         if trace_process is not None:
             trace_process.close()
@@ -304,22 +317,29 @@ def run_scenario(
             for spec in scenario.components
         }
         components = [(spec.name, outputs[spec.name]) for spec in scenario.components]
+        descriptions = {name: _descriptions(fmu) for name, fmu in kinds.items()}
         if target is None:
             writer = NullTraceWriter()
         else:
-            writer = open_trace_writer(writer_kind, target.aside, components,
-                                       {name: _descriptions(fmu) for name, fmu in kinds.items()}, config,
+            writer = open_trace_writer(writer_kind, target.aside, components, descriptions, config,
                                        every=sim.trace_every, scene_rate=scene_rate, foxglove=foxglove,
                                        process=trace_process, publish=target.final)
-        writer.metadata("platoon.config", {"toml": config_text, "resolved": config.model_dump_json()})
+        if live_view is not None:  # the view sees what the trace records; a live robot's run is paced already
+            live_view.open(config, components, descriptions, sim.trace_every, scene_rate, on_wall_clock=bool(live),
+                           check=stop.check)
+            writer = live_view.tee(writer)
+        # an optional key left absent (simulation.fmus) stays absent: a null in a stored config stands for a
+        # number that was not finite (orchestrator/stored_config.py)
+        writer.metadata("platoon.config", {"toml": config_text, "resolved": config.model_dump_json(exclude_none=True)})
         writer.metadata("platoon.fmus", {kind: fmu.guid for kind, fmu in fmus_by_kind.items()})
         writer.metadata("platoon.tool", tool_versions())
-        writer.metadata("platoon.start", {"engine": engine, "master": sim.master, "trace_every": str(sim.trace_every),
+        writer.metadata("platoon.start", {"engine": engine, "fmus": fmu_kind, "master": sim.master,
+                                          "trace_every": str(sim.trace_every),
                                           "trace_writer": writer_kind,
                                           "scene_rate": repr(float(scene_rate)) if foxglove else "",
                                           "started": clock.strftime("%Y-%m-%dT%H:%M:%S%z")})
         writer.log(0.0, "Info", f"run started: {config.name}, {config.platoon.count} vehicles, {config.platoon.law} law, "
-                                f"{engine} engine ({sim.master}), step {sim.step:g} s, stop {sim.stop_time:g} s")
+                                f"{engine} engine ({sim.master}), {fmu_kind} FMUs, step {sim.step:g} s, stop {sim.stop_time:g} s")
         record = writer.record
         feed = _SummaryFeed(config, components, steps, sim.trace_every) if summarize else None
         if feed is not None:
@@ -355,9 +375,12 @@ def run_scenario(
             sink = None if out is None else writer.write_block
             if feed is not None:
                 sink = feed.tee_blocks(sink)
+            delivery = {"tick": tick, "deliver_interval": FLUSH_INTERVAL / 2}
+            if live_view is not None:  # blocks at the view's frame rate, the run paced between them
+                delivery = live_view.block_options(sim.step, tick, FLUSH_INTERVAL / 2)
             master.run_blocks(sim.step, steps, sink, every=sim.trace_every,
-                              block=WORKER_BLOCK if writer_kind == "process" else BLOCK, tick=tick, check=stop.check,
-                              deliver_interval=FLUSH_INTERVAL / 2, initialize=False)
+                              block=WORKER_BLOCK if writer_kind == "process" else BLOCK, check=stop.check,
+                              initialize=False, **delivery)
         else:
             _run_monolithic(scenario, outputs, fmus_by_kind, observe, steps, tick)
     except ComponentError as failure:
@@ -388,8 +411,16 @@ def run_scenario(
             if reporter is not None:  # stamped at the last communication point the master reached
                 live_summary = reporter.finish(master.time if master is not None else 0.0)
             if writer is not None:
-                stop.finishing = isinstance(writer, TraceWorker)  # a signal may end the wait for the worker
+                # a signal may end the wait for the worker (behind a live view's tee: `traced`)
+                stop.finishing = isinstance(getattr(writer, "traced", writer), TraceWorker)
                 try:
+                    worker = getattr(writer, "traced", writer)
+                    if stop.forced and isinstance(worker, TraceWorker) and worker.stalled(STALLED_WRITER_GRACE):
+                        # The user insisted (a second signal, which may have been spent breaking a send into
+                        # the full pipe of a worker that takes nothing: the native FMUs fill it in a moment)
+                        # and the worker still takes nothing: finalizing would block on that pipe again.
+                        worker.abandon("stopped: it took no data after a second signal")
+                        raise KeyboardInterrupt
                     status, error = _finalize_trace(writer, status, error, failed_at, signum, engine, sim.master)
                 except KeyboardInterrupt as interruption:  # while the trace writer process finished the file
                     signum = signum or getattr(interruption, "signum", signal.SIGINT)
@@ -408,7 +439,7 @@ def run_scenario(
     marks["finish"] = clock.perf_counter()
     summary = feed.result() if feed is not None and status == "completed" else None
     return RunResult(target.where() if target is not None else None, steps, marks["finish"] - started, status, error,
-                     signum, {"open": opened, **_phase_durations(marks)}, live_summary, summary)
+                     signum, {"open": opened, **_phase_durations(marks)}, live_summary, summary, fmu_kind)
 
 
 class _SummaryFeed:

@@ -233,12 +233,11 @@ def export_components(config: Config, scenario: Scenario) -> list[ComponentSpec]
 
 def export_ssp(config: Config, out: Path, fmu_dir: Path, force: bool = False, worker_threads: int | None = 0) -> Path:
     """Build the FMUs the config needs (if stale) and write its SSP package to ``out``."""
-    from fmus.build import build_fmus
-
+    from .fmu_kinds import ensure_fmus, resolve_fmu_kind
     from .scenario import build_scenario
 
     scenario = build_scenario(config)
     components = export_components(config, scenario)
     kinds = tuple(sorted({spec.fmu for spec in components}))
-    fmu_paths = {built.name: built.path for built in build_fmus(fmu_dir, names=kinds)}
+    fmu_paths = ensure_fmus(fmu_dir, resolve_fmu_kind(config.simulation.fmus, fmu_dir), kinds)
     return write_ssp(out, scenario, fmu_paths, components, worker_threads=worker_threads, force=force)

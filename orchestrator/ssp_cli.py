@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -12,9 +13,10 @@ import typer
 def export_ssp(
     config: Annotated[Path, typer.Argument(help="scenario TOML file, e.g. configs/paper/platoon.toml")],
     out: Annotated[Optional[Path], typer.Option("--out", help="the package to write (default: <config name>.ssp here)")] = None,
-    overrides: Annotated[list[str], typer.Option("--set", help="override a key, as for platoon run")] = [],
+    overrides: Annotated[list[str], typer.Option("--set", metavar="KEY=VALUE", help="override a key, as for platoon run")] = [],
     force: Annotated[bool, typer.Option("--force", help="replace an existing --out file")] = False,
-    worker_threads: Annotated[int, typer.Option("--worker-threads", min=0, help="libcosim's numWorkerThreads; 0 steps every FMU on the calling thread (our FMUs share one Python interpreter, so more threads only add synchronization)")] = 0,
+    fmu_kind: Annotated[Optional[str], typer.Option("--fmus", metavar="<native|python>", help="native (C FMUs: no Python needed where the package runs; default where a C compiler can build them) or python (pythonfmu); overrides simulation.fmus")] = None,
+    worker_threads: Annotated[int, typer.Option("--worker-threads", min=0, help="libcosim's numWorkerThreads; 0 steps every FMU on the calling thread (pythonfmu FMUs share one Python interpreter, so more threads only add synchronization)")] = 0,
 ) -> None:
     """Write the platoon of CONFIG as an SSP 1.0 package: FMUs, parameters, Fig. 2 wiring, step."""
     from fmus.build import DEFAULT_OUT
@@ -22,6 +24,10 @@ def export_ssp(
     from .cli import _fail, _load, err, out as console
     from .ssp import SspError, export_ssp as write_package, ssp_notes
 
+    from .fmu_kinds import FmuKindError
+
+    if fmu_kind is not None:
+        overrides = [*overrides, f"simulation.fmus={json.dumps(fmu_kind)}"]
     parsed, _ = _load(config, overrides)
     target = out if out is not None else Path(f"{parsed.name}.ssp")
     if target.is_dir():
@@ -32,7 +38,7 @@ def export_ssp(
         written = write_package(parsed, target, DEFAULT_OUT, force=force, worker_threads=worker_threads)
     except FileExistsError:
         _fail(2, f"--out {target}: exists (add --force to replace it)")
-    except SspError as error:
+    except (SspError, FmuKindError) as error:
         _fail(2, f"config {config}: {error}")
     except OSError as error:
         _fail(2, f"--out {target}: cannot write the package there: {error.strerror or error}")

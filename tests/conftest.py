@@ -39,6 +39,19 @@ def fmu_dir() -> Path:
     return out
 
 
+@pytest.fixture(scope="session")
+def native_fmu_dir() -> Path:
+    """The native (C) FMUs, built (or found up to date) in build/fmus/native; skipped without a C compiler."""
+    from fmus.native_build import NATIVE_OUT, NoCompiler, build_native_fmus
+
+    out = REPO / NATIVE_OUT
+    try:
+        build_native_fmus(out)
+    except NoCompiler as error:
+        pytest.skip(str(error))
+    return out
+
+
 def make_config(**sections: Any) -> Config:
     raw: dict[str, Any] = {"name": "test"}
     raw.update(sections)

@@ -2,6 +2,7 @@
 
     python -m tests.hostile_fmus               # builds the FMUs in build/fmus if needed, runs every case
     python -m tests.hostile_fmus <FMU folder>  # the FMUs in that folder, as they are
+    python -m tests.hostile_fmus --native      # the native FMUs (build/fmus/native), held to fmi2Error
 
 prints one line per case and exits 1 if any case found a problem. tests/test_hostile_fmus.py runs
 the same cases one by one.
@@ -16,7 +17,9 @@ and what the case itself expects (a refusal with its reason logged, an instance 
 
 A refused call returns fmi2Error or fmi2Fatal. The FMI status it deserves is fmi2Error; pythonfmu
 0.7's binary can only report fmi2Fatal from a Python slave (fmus/slaves/refusal.py), so both count,
-and what matters is that the instance stays alive and answers every later call.
+and what matters is that the instance stays alive and answers every later call. The native FMUs
+(fmus/native) are held to the status itself: a refused call is fmi2Error, a refused step fmi2Error
+or fmi2Discard, never fmi2Fatal (``run_host(..., native=True)``, ``--native``).
 """
 
 from __future__ import annotations
@@ -33,6 +36,8 @@ from typing import Any, Callable
 DISCARD, ERROR, FATAL = 2, 3, 4
 REFUSED = (ERROR, FATAL)
 STEP_REFUSED = (DISCARD, ERROR, FATAL)
+NATIVE_REFUSED = (ERROR,)  # a native FMU answers the status FMI asks for
+NATIVE_STEP_REFUSED = (DISCARD, ERROR)
 TIMEOUT = 120.0  # s; a case takes about one second, a hang (fmi2DoStep(t, 1e9) before the fix) hits it
 HOST = Path(__file__).resolve().parent / "hostile_fmu_host.py"
 
@@ -46,6 +51,8 @@ class Outcome:
     ended: bool = False
     returncode: int | None = None
     stderr: str = ""
+    refused: tuple[int, ...] = REFUSED  # the statuses that count as a refused call, resp. step
+    step_refused: tuple[int, ...] = STEP_REFUSED
 
     def call(self, index: int) -> dict[str, Any]:
         """The ``index``-th call of the case (0 = the first of its ``calls``)."""
@@ -67,13 +74,15 @@ class Case:
     check: Check
 
 
-def run_host(unzipped: Path, case: Case) -> Outcome:
+def run_host(unzipped: Path, case: Case, native: bool = False) -> Outcome:
+    """Run ``case`` in a host process; ``native``: the FMU is a native one, held to fmi2Error."""
+    statuses = {"refused": NATIVE_REFUSED, "step_refused": NATIVE_STEP_REFUSED} if native else {}
     try:
         process = subprocess.run([sys.executable, str(HOST), str(unzipped), json.dumps(
             {"parameters": case.parameters, "calls": case.calls})], capture_output=True, text=True, timeout=TIMEOUT)
     except subprocess.TimeoutExpired:
-        return Outcome(returncode=None, stderr=f"no answer within {TIMEOUT:g} s")
-    outcome = Outcome(returncode=process.returncode, stderr=process.stderr[-2000:])
+        return Outcome(returncode=None, stderr=f"no answer within {TIMEOUT:g} s", **statuses)
+    outcome = Outcome(returncode=process.returncode, stderr=process.stderr[-2000:], **statuses)
     for line in process.stdout.splitlines():
         record = json.loads(line)
         if "log" in record:
@@ -111,12 +120,12 @@ def refused_for_good(reason: str) -> Check:
     def check(outcome: Outcome) -> list[str]:
         found = []
         exit_call = outcome.call(0)
-        if exit_call["status"] not in REFUSED:
+        if exit_call["status"] not in outcome.refused:
             found.append(f"exitInitializationMode returned {exit_call['status']}, expected fmi2Error/fmi2Fatal")
         if not outcome.logged(reason):
             found.append(f"no log line says {reason!r}: {outcome.logs}")
         for record in [c for c in outcome.calls if "args" in c][1:]:
-            expected = STEP_REFUSED if record["call"] == "step" else REFUSED
+            expected = outcome.step_refused if record["call"] == "step" else outcome.refused
             if record["status"] not in expected:
                 found.append(f"{record['call']} {record['args']} after the failed initialization returned "
                              f"{record['status']}, expected one of {expected}")
@@ -136,7 +145,7 @@ def step_refused_state_kept(reason: str, step_index: int = 2) -> Check:
     def check(outcome: Outcome) -> list[str]:
         found = []
         step, before, after = outcome.call(step_index), outcome.call(step_index - 1), outcome.call(step_index + 1)
-        if step["status"] not in STEP_REFUSED:
+        if step["status"] not in outcome.step_refused:
             found.append(f"doStep{tuple(step['args'])} returned {step['status']}, expected fmi2Discard/fmi2Error")
         if not outcome.logged(reason):
             found.append(f"no log line says {reason!r}: {outcome.logs}")
@@ -152,7 +161,7 @@ def set_refused_instance_alive(name: str) -> Check:
 
     def check(outcome: Outcome) -> list[str]:
         found = []
-        if outcome.call(1)["status"] not in REFUSED:
+        if outcome.call(1)["status"] not in outcome.refused:
             found.append(f"setting {name} to a non-finite value returned {outcome.call(1)['status']}")
         if not outcome.logged(f"{name} = "):
             found.append(f"no log line names {name}: {outcome.logs}")
@@ -175,7 +184,7 @@ def huge_input_never_ok_with_non_finite(outcome: Outcome) -> list[str]:
 
 def garbage_state_refused(outcome: Outcome) -> list[str]:
     found = []
-    if outcome.call(2)["status"] not in REFUSED:
+    if outcome.call(2)["status"] not in outcome.refused:
         found.append(f"an unreadable FMU state was accepted: {outcome.call(2)}")
     if not outcome.logged("cannot be read"):
         found.append(f"no log line says the state cannot be read: {outcome.logs}")
@@ -187,7 +196,7 @@ def garbage_state_refused(outcome: Outcome) -> list[str]:
 def init_read_refused(reason: str) -> Check:
     def check(outcome: Outcome) -> list[str]:
         first = outcome.call(0)
-        found = [] if first["status"] in REFUSED else [f"reading outputs with invalid parameters returned {first}"]
+        found = [] if first["status"] in outcome.refused else [f"reading outputs with invalid parameters returned {first}"]
         return found + ([] if outcome.logged(reason) else [f"no log line says {reason!r}: {outcome.logs}"])
 
     return check
@@ -258,7 +267,7 @@ def input_cases() -> list[Case]:
                               huge_input_never_ok_with_non_finite))
     cases.append(Case("Vehicle", "initial.x = nan", {"initial.x": math.nan}, [["exit"], ["get"], ["step", 0.0, 0.01],
                                                                             ["get"]],
-                      lambda o: [] if o.logged("initial.x = nan") and o.calls[1]["status"] in REFUSED
+                      lambda o: [] if o.logged("initial.x = nan") and o.calls[1]["status"] in o.refused
                       else [f"a NaN parameter was not refused by name: {o.calls[:2]} {o.logs}"]))
     return cases
 
@@ -291,19 +300,26 @@ def main(argv: list[str]) -> int:
 
     from fmus.build import DEFAULT_OUT, build_fmus
 
-    fmu_dir = Path(argv[0]) if argv else DEFAULT_OUT
-    if not argv:
-        build_fmus(fmu_dir)  # a folder given is taken as it is (e.g. FMUs built from older sources)
+    native = "--native" in argv
+    argv = [arg for arg in argv if arg != "--native"]
+    fmu_dir = Path(argv[0]) if argv else DEFAULT_OUT / "native" if native else DEFAULT_OUT
+    if not argv:  # a folder given is taken as it is (e.g. FMUs built from older sources)
+        if native:
+            from fmus.native_build import build_native_fmus
+
+            build_native_fmus(fmu_dir)
+        else:
+            build_fmus(fmu_dir)
     left = 0
     with tempfile.TemporaryDirectory(prefix="hostile-fmus-") as scratch:
         unzipped = {name: unzip(fmu_dir / f"{name}.fmu", Path(scratch) / name) for name in ("Vehicle", "VirtualTarget")}
         cases = all_cases()
         for case in cases:
-            found = problems(case, run_host(unzipped[case.fmu], case))
+            found = problems(case, run_host(unzipped[case.fmu], case, native))
             left += bool(found)
             print(f"{'ok  ' if not found else 'FAIL'} {case.fmu}: {case.title}" + "".join(f"\n     {p}" for p in found),
                   flush=True)
-    print(f"{len(cases)} hostile cases, {left} left")
+    print(f"{len(cases)} hostile cases{' (native FMUs)' if native else ''}, {left} left")
     return 1 if left else 0
 
 

@@ -47,11 +47,22 @@ def test_steps_writes_medians_and_ratios(tmp_path: Path, fmu_dir: Path) -> None:
     result = platoon("bench", "steps", "--engines", "native,python,slaves", "--n", "1,2", "--steps", "5",
                      "--rounds", "1", "--out-dir", tmp_path, cwd=REPO)
     data = written(result, tmp_path, "steps")
-    assert set(data["medians"]) == {"native", "python", "slaves"}
+    # both FMU kinds in the same rounds (the slave classes have no native twin)
+    assert set(data["medians"]) == {"native", "python", "slaves", "native + native FMUs", "python + native FMUs"}
     assert all(set(by_n) == {"1", "2"} and min(by_n.values()) > 0 for by_n in data["medians"].values())
-    assert len(data["samples"]) == 6 and {s["steps"] for s in data["samples"]} == {5}
-    assert data["disagreeing"] == {}  # every engine simulated the same system
+    assert len(data["samples"]) == 10 and {s["steps"] for s in data["samples"]} == {5}
+    assert data["disagreeing"] == {}  # every engine and FMU kind simulated the same system
     assert "native / slaves" in result.stdout and "| (a) native engine, tracing off |" in result.stdout
+    assert "native engine: native FMUs / pythonfmu FMUs" in result.stdout
+
+
+def test_steps_measures_one_fmu_kind_on_request(tmp_path: Path, fmu_dir: Path) -> None:
+    result = platoon("bench", "steps", "--engines", "native", "--fmus", "native", "--n", "1", "--steps", "5",
+                     "--rounds", "1", "--out-dir", tmp_path, "-q", cwd=REPO)
+    data = written(result, tmp_path, "steps")
+    assert set(data["medians"]) == {"native + native FMUs"} and data["fmu_kinds"] == ["native"]
+    bad = platoon("bench", "steps", "--fmus", "java", "--out-dir", tmp_path, cwd=REPO)
+    assert bad.returncode == 2 and "--fmus" in bad.stderr
 
 
 def test_coupling_measures_both_couplings(tmp_path: Path, fmu_dir: Path) -> None:
@@ -80,7 +91,7 @@ def test_scenarios_times_whole_processes(tmp_path: Path, fmu_dir: Path) -> None:
     by_variant = {s["variant"]: s for s in data["samples"]}
     assert set(by_variant) == {"cli-traced", "untraced"}
     assert by_variant["cli-traced"]["trace_bytes"] > 0 and by_variant["untraced"]["trace_bytes"] is None
-    assert all(s["steps"] == 5 and s["wall_s"] > s["run_wall_s"] > 0 for s in data["samples"])
+    assert all(s["steps"] == 5 and s["wall_s"] > s["run_wall_s"] >= 0 for s in data["samples"])  # a 5-step native run prints "in 0.00 s"
 
 
 def test_wholerun_times_our_runs_and_libcosim_on_the_same_system(tmp_path: Path, fmu_dir: Path) -> None:

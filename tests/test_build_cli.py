@@ -14,26 +14,44 @@ PLATOON = [sys.executable, "-c", "import sys; sys.argv[0] = 'platoon'; from orch
 
 
 def _build(out: Path) -> dict[str, str]:
+    """platoon build --out OUT; each printed line by its FMU's path under OUT without .fmu."""
     result = subprocess.run([*PLATOON, "build", "--out", str(out)], capture_output=True, text=True, cwd=REPO,
                             env={"COLUMNS": "200", "PATH": "/usr/bin:/bin"}, check=True)
-    return {Path(line.split()[0]).stem: line for line in result.stdout.splitlines() if line.strip()}
+    lines = [line for line in result.stdout.splitlines() if line.strip()]
+    return {Path(line.split()[0]).relative_to(out).with_suffix("").as_posix(): line for line in lines}
 
 
 def test_build_writes_every_fmu_then_reuses_them_and_repairs_a_damaged_one(tmp_path):
+    from fmus.native_build import expected_guid as native_guid
+    from fmus.native_build3 import expected_token
+
     first = _build(tmp_path)
-    assert set(first) == {"Vehicle", "VirtualTarget", "LiveVehicle"}
-    assert all(line.endswith("(built)") for line in first.values())
-    for name in first:
+    assert set(first) == {"Vehicle", "VirtualTarget", "LiveVehicle", "native/Vehicle", "native/VirtualTarget",
+                          "fmi3/Vehicle", "fmi3/VirtualTarget"}
+    assert all(line.endswith(("(built)", "(built, native)", "(built, native FMI 3.0)")) for line in first.values())
+    for name in ("Vehicle", "VirtualTarget", "LiveVehicle"):
         assert fmu_guid(tmp_path / f"{name}.fmu") == expected_guid(name)
         assert expected_guid(name) in first[name]
+    for name in ("Vehicle", "VirtualTarget"):
+        assert fmu_guid(tmp_path / "native" / f"{name}.fmu") == native_guid(name) != expected_guid(name)
+        assert native_guid(name) in first[f"native/{name}"]
+        assert fmu_guid(tmp_path / "fmi3" / f"{name}.fmu") == expected_token(name) != native_guid(name)
+        assert expected_token(name) in first[f"fmi3/{name}"]
     second = _build(tmp_path)
-    assert all(line.endswith("(up to date)") for line in second.values())
+    assert all(line.endswith(("(up to date)", "(up to date, native)", "(up to date, native FMI 3.0)"))
+               for line in second.values())
     (tmp_path / "Vehicle.fmu").write_bytes(b"not a zip")
+    (tmp_path / "native" / "VirtualTarget.fmu").write_bytes(b"not a zip")
+    (tmp_path / "fmi3" / "Vehicle.fmu").write_bytes(b"not a zip")
     third = _build(tmp_path)
     assert third["Vehicle"].endswith("(built)") and third["VirtualTarget"].endswith("(up to date)")
     assert third["LiveVehicle"].endswith("(up to date)")
+    assert third["native/VirtualTarget"].endswith("(built, native)")
+    assert third["native/Vehicle"].endswith("(up to date, native)")
+    assert third["fmi3/Vehicle"].endswith("(built, native FMI 3.0)")
+    assert third["fmi3/VirtualTarget"].endswith("(up to date, native FMI 3.0)")
     assert fmu_guid(tmp_path / "Vehicle.fmu") == expected_guid("Vehicle")
-    assert not list(tmp_path.glob("*.partial"))
+    assert not list(tmp_path.glob("**/*.partial"))
 
 
 _RUN_THEN_BUILD = """

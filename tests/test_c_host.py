@@ -179,3 +179,40 @@ def test_c_host_fails_with_a_venv_as_pythonhome(host, vehicle, libpython):
     result = run_host(host, vehicle, 1, env)
     assert result.returncode != 0
     assert "No module named 'encodings'" in result.stderr
+
+
+# --- the native (C) Vehicle FMU: no Python on the host at all -------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def native_vehicle(native_fmu_dir, tmp_path_factory):
+    """The native Vehicle.fmu (build/fmus/native), unzipped, with what its model description says."""
+    if sys.platform != "linux":
+        pytest.skip("the C host loads binaries/linux64; this test runs on Linux only")
+    fmu = native_fmu_dir / "Vehicle.fmu"
+    unzipped = tmp_path_factory.mktemp("c_host_native") / "Vehicle"
+    with zipfile.ZipFile(fmu) as archive:
+        archive.extractall(unzipped)
+    md = ElementTree.parse(unzipped / "modelDescription.xml").getroot()
+    refs = {v.get("name"): int(v.get("valueReference")) for v in md.iter("ScalarVariable")}
+    experiment = md.find("DefaultExperiment")
+    return {"fmu": fmu, "dir": unzipped, "guid": md.get("guid"), "vrs": [refs[name] for name in OUTPUTS],
+            "start": float(experiment.get("startTime")), "stop": float(experiment.get("stopTime")),
+            "step": float(experiment.get("stepSize"))}
+
+
+def test_c_host_runs_the_native_fmu_in_an_empty_environment(host, native_vehicle, fmu_dir):
+    """No LD_PRELOAD, no PYTHONHOME, no PATH: nothing at all in the environment. The C host's
+    trajectory equals FMPy's for the same native FMU, and the pythonfmu FMU's (to 1e-9)."""
+    steps = round((native_vehicle["stop"] - native_vehicle["start"]) / native_vehicle["step"])
+    result = run_host(host, native_vehicle, steps, {})
+    assert result.returncode == 0, f"C host failed ({result.returncode}):\n{result.stderr}"
+    assert result.stderr == ""
+    lines = result.stdout.splitlines()
+    assert lines[0] == "t,x,y,speed,gap"
+    c_rows = [[float(value) for value in line.split(",")] for line in lines[1:]]
+    for reference in (fmpy_trajectory(native_vehicle["fmu"], native_vehicle["step"], native_vehicle["stop"]),
+                      fmpy_trajectory(fmu_dir / "Vehicle.fmu", native_vehicle["step"], native_vehicle["stop"])):
+        assert len(c_rows) == len(reference) == steps + 1
+        worst = max(abs(a - b) for c_row, f_row in zip(c_rows, reference) for a, b in zip(c_row, f_row))
+        assert worst <= TOLERANCE, f"C host and FMPy differ by {worst:g}"

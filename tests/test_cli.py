@@ -26,7 +26,7 @@ PLATOON = Path(sys.executable).parent / "platoon"
 PAPER = REPO / "configs" / "paper" / "platoon.toml"
 SHORT = ("--set", "simulation.stop_time=2.0")
 VEHICLES = ["vehicle1", "vehicle2", "vehicle3", "vehicle4"]
-SUMMARY_KEYS = {"name", "path_offset", "gap", "speed", "path_error_max"}
+SUMMARY_KEYS = {"name", "path_offset", "gap", "gap_error", "speed", "speed_error", "path_error_max"}
 
 
 def platoon(*args: object, cwd: Path) -> subprocess.CompletedProcess[str]:
@@ -165,7 +165,7 @@ def test_report_json(completed_run, workdir: Path) -> None:
     result = platoon("report", trace, "--json", cwd=workdir)
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
-    assert list(report) == ["vehicles"]
+    assert list(report) == ["trace", "law", "status", "units", "steady_window", "path_error_max_interval", "vehicles"]
     assert [v["name"] for v in report["vehicles"]] == VEHICLES
     for vehicle in report["vehicles"]:
         assert set(vehicle) == SUMMARY_KEYS

@@ -174,13 +174,16 @@ def test_two_platoons_in_one_process_stay_independent(fmu_dir, run):
             assert [channel[k][-1] for k in keys] == values
 
 
+@pytest.mark.parametrize("kind", ["python", "native"])
 @pytest.mark.parametrize("name", ["Vehicle", "VirtualTarget"])
-def test_fmu_state_rolls_a_run_back_exactly(fmu_dir, name):
+def test_fmu_state_rolls_a_run_back_exactly(request, name, kind):
     """canGetAndSetFMUstate and canSerializeFMUstate are declared true: a saved state, restored
-    (directly or through its serialized bytes), replays the same steps to the same outputs."""
+    (directly or through its serialized bytes), replays the same steps to the same outputs; for the
+    pythonfmu FMUs and their native twins (fmus/native, whose serialized state starts with its tag)."""
     from orchestrator.components import FmuComponent, UnpackedFmu
 
-    fmu = UnpackedFmu.open(fmu_dir / f"{name}.fmu")
+    folder = request.getfixturevalue("fmu_dir" if kind == "python" else "native_fmu_dir")
+    fmu = UnpackedFmu.open(folder / f"{name}.fmu")
     component = FmuComponent("rollback", fmu, {})
     try:
         component.initialize(0.0)
@@ -191,6 +194,8 @@ def test_fmu_state_rolls_a_run_back_exactly(fmu_dir, name):
             component.step(k * 0.01, 0.01)
         saved = slave.getFMUstate()
         serialized = slave.serializeFMUstate(saved)
+        if kind == "native":
+            assert bytes(serialized).startswith(b"platoon-cosim native FMU state")
 
         def replay() -> list[float]:
             for k in range(50, 150):

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from fmpy import read_model_description, simulate_fmu
 
-from tests.hostile_fmus import DISCARD, FATAL, TIMEOUT, Case, all_cases, problems, run_host, unzip
+from tests.hostile_fmus import AFTER_FAILURE, DISCARD, FATAL, TIMEOUT, Case, all_cases, problems, run_host, unzip
 
 LIBCOSIM_HOST = Path(__file__).resolve().parent / "hostile_libcosim_host.py"
 
@@ -39,6 +39,49 @@ def test_fmpy_host_survives_and_every_refusal_is_clean(unzipped, case):
     and each refusal is logged with its reason."""
     outcome = run_host(unzipped[case.fmu], case)
     assert problems(case, outcome) == []
+
+
+@pytest.fixture(scope="module")
+def native_unzipped(native_fmu_dir, tmp_path_factory) -> dict[str, Path]:
+    scratch = tmp_path_factory.mktemp("hostile-native")
+    return {name: unzip(native_fmu_dir / f"{name}.fmu", scratch / name) for name in ("Vehicle", "VirtualTarget")}
+
+
+@pytest.fixture(params=["python", "native"])
+def folders(request) -> dict[str, Path]:
+    """The unzipped FMUs of each kind: the tests that take it hold both kinds to the same behaviour."""
+    return request.getfixturevalue("unzipped" if request.param == "python" else "native_unzipped")
+
+
+@pytest.mark.parametrize("case", all_cases(), ids=lambda case: f"{case.fmu}: {case.title}")
+def test_native_fmus_refuse_with_fmi2_error_and_keep_the_host_alive(native_unzipped, case):
+    """The same hostile cases on the native FMUs, held to the statuses FMI asks for: a refused call
+    answers fmi2Error (never fmi2Fatal), a refused step fmi2Error or fmi2Discard, reasons logged."""
+    outcome = run_host(native_unzipped[case.fmu], case, native=True)
+    assert problems(case, outcome) == []
+
+
+@pytest.mark.parametrize("fmu", ["Vehicle", "VirtualTarget"])
+def test_native_step_statuses_say_what_went_wrong(native_unzipped, fmu):
+    """An impossible call is fmi2Error (h <= 0, non-finite, too many substeps, a failed instance);
+    a step whose motion breaks down is fmi2Discard with the state kept (a -100 m/s speed push on a
+    vehicle; a 1e308 lead speed for the target)."""
+    breaking = ["set", "disturbance.speed", -100.0] if fmu == "Vehicle" else ["set", "lead.speed", 1e308]
+    case = Case(fmu, "statuses", {}, [["exit"], ["step", 0.0, -0.01], ["step", 0.0, math.inf], ["step", 0.0, 1e9],
+                                      ["get"], breaking, ["step", 0.0, 0.01], ["get"]], lambda outcome: [])
+    outcome = run_host(native_unzipped[fmu], case, native=True)
+    statuses = [call["status"] for call in outcome.calls if "args" in call]
+    assert statuses == [0, 3, 3, 3, 0, 0, DISCARD, 0 if fmu == "Vehicle" else 3], outcome.logs
+    assert outcome.ended and outcome.returncode == 0
+
+
+def test_native_failed_instance_refuses_everything_with_fmi2_error(native_unzipped):
+    case = Case("Vehicle", "failed", {"law": "bogus", "d_star": -1.0}, [["exit"], *AFTER_FAILURE], lambda o: [])
+    outcome = run_host(native_unzipped["Vehicle"], case, native=True)
+    assert [call["status"] for call in outcome.calls if "args" in call] == [3] * (1 + len(AFTER_FAILURE))
+    assert outcome.logged("invalid parameter(s): law = 'bogus': expected one of regular, sine; "
+                          "d_star = -1.0: must be a finite number > 0"), outcome.logs
+    assert outcome.ended and outcome.returncode == 0
 
 
 def test_fmusim_host():
@@ -61,10 +104,13 @@ def run_libcosim(fmu: Path, case: dict) -> tuple[int, list[dict], str]:
 @pytest.mark.parametrize("fmu, name", [("Vehicle", "target.x"), ("Vehicle", "follower.gap"),
                                        ("VirtualTarget", "lead.gap")])
 @pytest.mark.parametrize("value", [math.inf, math.nan])
-def test_libcosim_survives_a_non_finite_input(fmu_dir, fmu, name, value):
+@pytest.mark.parametrize("kind", ["python", "native"])
+def test_libcosim_survives_a_non_finite_input(request, kind, fmu, name, value):
     """libcosim sets the input through its override manipulator: every step then fails (our setReal
-    refuses the value, naming it), libcosim reports it, and the process goes on and ends normally."""
-    code, records, text = run_libcosim(fmu_dir / f"{fmu}.fmu", {"override": {name: value}, "steps": 3})
+    refuses the value, naming it), libcosim reports it, and the process goes on and ends normally.
+    The same for the pythonfmu FMUs and their native twins."""
+    folder = request.getfixturevalue("fmu_dir" if kind == "python" else "native_fmu_dir")
+    code, records, text = run_libcosim(folder / f"{fmu}.fmu", {"override": {name: value}, "steps": 3})
     assert code == 0 and records[-1] == {"end": True}, text[-2000:]
     assert [r["ok"] for r in records if "step" in r] == [False, False, False]
     assert f"refused {name} = {value}: values must be finite" in text
@@ -74,9 +120,12 @@ def test_libcosim_survives_a_non_finite_input(fmu_dir, fmu, name, value):
 
 @pytest.mark.xfail(strict=True, reason="libcosim (libcosimpy 0.0.6) aborts its own process when an FMU fails "
                    "to initialize: 'terminate called after throwing an instance of cosim::error' (seen for the "
-                   "fmi2Fatal our FMUs answer, and on main for the same case); only a false fmi2OK would avoid it")
-def test_libcosim_survives_an_invalid_parameter(fmu_dir):
-    code, records, text = run_libcosim(fmu_dir / "Vehicle.fmu", {"parameters": {"d_star": -1.0}, "steps": 2})
+                   "fmi2Fatal the pythonfmu FMUs answer, on main for the same case, and for the native FMUs' "
+                   "fmi2Error); only a false fmi2OK would avoid it")
+@pytest.mark.parametrize("kind", ["python", "native"])
+def test_libcosim_survives_an_invalid_parameter(request, kind):
+    folder = request.getfixturevalue("fmu_dir" if kind == "python" else "native_fmu_dir")
+    code, records, text = run_libcosim(folder / "Vehicle.fmu", {"parameters": {"d_star": -1.0}, "steps": 2})
     assert "d_star = -1.0: must be a finite number > 0" in text  # the reason reached libcosim's log
     assert code == 0, text[-1500:]
 
@@ -129,19 +178,19 @@ def _other_value(variable):
 
 @pytest.mark.parametrize("name", ["Vehicle", "VirtualTarget"])
 @pytest.mark.parametrize("base", [{}, {"dynamics": "m3pi", "law": "regular"}, {"path.kind": "line"}])
-def test_initial_unknowns_declare_every_parameter_and_input_they_follow(unzipped, name, base):
+def test_initial_unknowns_declare_every_parameter_and_input_they_follow(folders, name, base):
     """FMI 2.0, 2.2.8: an InitialUnknown's dependencies list every known (input, or parameter with
     initial = exact) its value in Initialization Mode is computed from; no attribute means all.
     Changing one known at a time in Initialization Mode and reading the outputs shows what each
     output follows; every such known must be declared."""
-    description = read_model_description(str(unzipped[name]))
+    description = read_model_description(str(folders[name]))
     variables = {v.name: v for v in description.modelVariables}
     base = {k: v for k, v in base.items() if k in variables}
     outputs = [v for v in description.modelVariables if v.causality == "output"]
     declared = {u.variable.name: None if u.dependencies is None else {d.name for d in u.dependencies}
                 for u in description.initialUnknowns}
     assert declared["x"] is not None and declared["x"] <= {"initial.x"} | {k for k in variables if k.startswith("path.")} | {"initial.arc_length"}
-    slave, _ = _slave(unzipped[name], "initial-unknowns")
+    slave, _ = _slave(folders[name], "initial-unknowns")
     try:
         slave.setupExperiment(startTime=0.0)
         for key, value in base.items():
@@ -186,17 +235,17 @@ def test_the_poses_name_their_initial_parameters(unzipped):
     ("Vehicle", {"law": "sine"}, {"law": "regular", "k_v": 2.0}, {}),
     ("VirtualTarget", {"path.radius": 50.0}, {"path.radius": 80.0, "d_star": 30.0}, {}),
 ])
-def test_a_state_replays_with_its_own_parameters(unzipped, name, parameters_a, parameters_b, inputs):
+def test_a_state_replays_with_its_own_parameters(folders, name, parameters_a, parameters_b, inputs):
     """Instance A and instance B differ in parameters; A's serialized state set into B makes B
     continue exactly as A does (the state carries A's parameters), not A's trajectory under B's
     parameters."""
-    description = read_model_description(str(unzipped[name]))
+    description = read_model_description(str(folders[name]))
     variables = {v.name: v for v in description.modelVariables}
     outputs = [v.valueReference for v in description.modelVariables if v.causality == "output"]
     slaves = []
     try:
         for instance, parameters in (("a", parameters_a), ("b", parameters_b)):
-            slave, _ = _slave(unzipped[name], instance)
+            slave, _ = _slave(folders[name], instance)
             slaves.append(slave)
             slave.setupExperiment(startTime=0.0)
             for key, value in parameters.items():

@@ -59,7 +59,8 @@ def report_of(out: Path, row: dict[str, str]) -> dict[str, float]:
     trace = load(out / row["trace"])
     from orchestrator.config import config_from_mapping
 
-    return flatten_report(report_json(summarize(trace, config_from_mapping(trace.config))))
+    config = config_from_mapping(trace.config)
+    return flatten_report(report_json(summarize(trace, config), config))
 
 
 def assert_row_is_its_report(out: Path, row: dict[str, str]) -> None:

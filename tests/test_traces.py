@@ -29,7 +29,7 @@ from orchestrator.components import ComponentError
 from orchestrator.metrics import path_errors
 from orchestrator.run import run_scenario
 from orchestrator.trace import Trace, TraceError, TraceWriter, export_csv, load, number_texts, recover
-from orchestrator.trace.writer import _template
+from orchestrator.trace.encoding import json_template
 from tests.conftest import SPEED_TO_ZERO
 
 REPO = Path(__file__).resolve().parents[1]
@@ -197,7 +197,7 @@ def test_json_encoding_is_exact_json() -> None:
     keys = ["t", "x", "wheel.right", 'odd"%name']
     for values in ([0.0, 1e-7, 1e22, -0.0], [5e-324, 1.7976931348623157e308, 0.1 + 0.2, -123.456],
                    [np.float64(1.25), 3, 2.5e-310, 1 / 3]):
-        text = _template(keys).encode() % tuple(number_texts(list(values)))
+        text = json_template(keys) % tuple(number_texts(list(values)))
         decoded = json.loads(text)
         assert list(decoded) == keys
         assert [float(decoded[k]).hex() for k in keys] == [float(v).hex() for v in values]  # bit for bit

@@ -76,7 +76,7 @@ def _outputs() -> tuple[VariableInfo, ...]:
         real("wheel.right", "output", "Right wheel speed (m3pi state; kinematic: eq. 10 equivalent)", "m/s"),
         real("wheel.left", "output", "Left wheel speed (m3pi state; kinematic: eq. 11 equivalent)", "m/s"),
         real("output_time", "output", "Time the outputs describe (the communication point they belong to); wire it to the receiver's *.time input", "s", depends_on=STATE_OUTPUT,
-             initial_depends_on=()),  # the start time, which is no variable
+             initial_depends_on=(), depends_on_time=True),  # the (start) time: FMI 3.0's `time`, no variable in FMI 2.0
     )
 
 

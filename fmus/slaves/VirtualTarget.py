@@ -22,7 +22,10 @@ _INPUT_ATTRIBUTES = {
 
 STATE_OUTPUT = ()
 # What the target's place on its path is computed from at the start.
-PLACE = ("path.kind", "path.radius", "path.x0", "path.y0", "path.heading", "path.direction", "initial.arc_length")
+PATH = ("path.kind", "path.radius", "path.x0", "path.y0", "path.heading", "path.direction")
+PLACE = PATH + ("initial.arc_length",)
+# What the curvature is computed from (and, with the arc length, the pose at a communication point).
+CURVATURE = ("path.kind", "path.radius", "path.direction")
 
 
 class VirtualTarget(PlatoonSlave):
@@ -45,19 +48,21 @@ class VirtualTarget(PlatoonSlave):
         real("lead.speed_rate", "input", "Lead vehicle speed rate (for extrapolation)", "m/s2", start=0.0),
         real("lead.gap_rate", "input", "Rate of the lead vehicle's gap (for extrapolation)", "m/s", start=0.0),
         real("lead.time", "input", "Time the lead values describe (the lead's output_time)", "s", start=0.0),
-        real("x", "output", "Target position x", "m", depends_on=STATE_OUTPUT, initial_depends_on=PLACE),
-        real("y", "output", "Target position y", "m", depends_on=STATE_OUTPUT, initial_depends_on=PLACE),
+        real("x", "output", "Target position x", "m", depends_on=STATE_OUTPUT, initial_depends_on=PLACE,
+             parameter_dependencies=PATH),
+        real("y", "output", "Target position y", "m", depends_on=STATE_OUTPUT, initial_depends_on=PLACE,
+             parameter_dependencies=PATH),
         real("heading", "output", "Path tangent heading at the target", "rad", depends_on=STATE_OUTPUT,
-             initial_depends_on=PLACE),
+             initial_depends_on=PLACE, parameter_dependencies=PATH),
         real("speed", "output", "Target speed V_0 = V_1 d*/d_1", "m/s"),
         real("speed_rate", "output", "Rate of the target speed", "m/s2"),
         real("turn_rate", "output", "Heading rate V_0 times curvature", "rad/s"),
         real("curvature", "output", "Signed path curvature at the target", "1/m", depends_on=STATE_OUTPUT,
-             initial_depends_on=("path.kind", "path.radius", "path.direction")),
+             initial_depends_on=CURVATURE, parameter_dependencies=CURVATURE),
         real("arc_length", "output", "Arc length s travelled along the path", "m", depends_on=STATE_OUTPUT,
              initial_depends_on=("initial.arc_length",)),
         real("output_time", "output", "Time the outputs describe (the communication point they belong to); wire it to the receiver's target.time input", "s", depends_on=STATE_OUTPUT,
-             initial_depends_on=()),  # the start time, which is no variable
+             initial_depends_on=(), depends_on_time=True),  # the (start) time: FMI 3.0's `time`, no variable in FMI 2.0
     )
     input_attributes = _INPUT_ATTRIBUTES
     default_experiment = DefaultExperiment(start_time=0.0, stop_time=d.STOP_TIME, step_size=d.STEP)

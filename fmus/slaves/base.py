@@ -43,6 +43,11 @@ class VariableInfo:
     # Outputs: the inputs and parameters their value in Initialization Mode is computed from
     # (ModelStructure/InitialUnknowns, see fmus.modeldescription); None: all of them.
     initial_depends_on: tuple[str, ...] | None = None
+    # Outputs with ``depends_on``: the parameters their value at a communication point is computed
+    # from besides the state (FMI 3.0 counts parameters and time among the knowns there, FMI 2.0 only
+    # inputs and states; see fmus.modeldescription3), and whether it is a function of time itself.
+    parameter_dependencies: tuple[str, ...] = ()
+    depends_on_time: bool = False
 
     @property
     def resolved_variability(self) -> str:

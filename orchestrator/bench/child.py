@@ -70,6 +70,9 @@ def perform(task: dict[str, Any]) -> dict[str, Any]:
 
 
 def main() -> None:
+    from orchestrator.internal_entry import check_arguments
+
+    check_arguments(sys.argv[1:], "python -m orchestrator.bench.child '<task as JSON>'", __doc__, count=1)
     code = 0
     try:
         result = perform(json.loads(sys.argv[1]))

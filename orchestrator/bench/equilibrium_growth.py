@@ -69,7 +69,11 @@ def main() -> int:
     parser = argparse.ArgumentParser(prog="python -m orchestrator.bench.equilibrium_growth", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("traces", type=Path, nargs="+", help="traces written by platoon run")
-    for path in parser.parse_args().traces:
+    paths = parser.parse_args().traces
+    missing = [str(path) for path in paths if not path.is_file()]
+    if missing:
+        parser.error(f"no such trace: {', '.join(missing)}")
+    for path in paths:
         print(growth_table(path))
         print()
     return 0

@@ -280,5 +280,10 @@ def bench_hil(
     _bench("hil", lambda progress: run(seconds, rounds, progress), render, out_dir, quiet)
 
 
-if __name__ == "__main__" and sys.argv[1:2] == ["echo"]:
+if __name__ == "__main__":  # the echo side of the ping-pong, started by `platoon bench hil`
+    from orchestrator.internal_entry import check_arguments
+
+    check_arguments(sys.argv[1:], "python -m orchestrator.bench.hil echo ENDPOINT (the benchmark: platoon bench hil)",
+                    "The echo process of `platoon bench hil`'s Zenoh ping-pong; the benchmark starts it.", count=2,
+                    fits=lambda args: args[0] == "echo")
     echo(sys.argv[2])

@@ -54,10 +54,15 @@ def main(ssd: str, steps: int, observer: str) -> dict:
 
 if __name__ == "__main__":
     arguments = sys.argv[1:]
+    usage = f"usage: libcosim_process.py SSD STEPS {'|'.join(OBSERVERS)}"
+    if arguments[:1] in (["-h"], ["--help"]):  # standard library only here (see above): no shared helper
+        print(f"{usage}\n\n{__doc__.strip()}")
+        raise SystemExit(0)
+    if len(arguments) != 3 or arguments[2] not in OBSERVERS:
+        print(f"error: {usage}", file=sys.stderr)
+        raise SystemExit(2)
     code = 0
     try:
-        if len(arguments) != 3 or arguments[2] not in OBSERVERS:
-            raise SystemExit(f"usage: libcosim_process.py SSD STEPS {'|'.join(OBSERVERS)}")
         result = main(arguments[0], int(arguments[1]), arguments[2])
         sys.stdout.write("RESULT " + json.dumps(result) + "\n")
     except BaseException:  # report, then leave without interpreter teardown all the same

@@ -38,7 +38,7 @@ def main() -> None:
             for law in ("sine", "regular"):
                 out = Path(scratch) / f"{path.stem}-{law}.mcap"
                 config, result = run_config(path, None, out, [f"platoon.law={law}"], DEFAULT_OUT)
-                summary = report_json(summarize(load(out), config))
+                summary = report_json(summarize(load(out), config), config)
                 record = {"scenario": path.stem, "law": law, "wall_time_s": round(result.wall_time, 3),
                           "steps": result.steps, "trace_bytes": out.stat().st_size, **summary}
                 results.append(record)

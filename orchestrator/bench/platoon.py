@@ -31,10 +31,11 @@ def scenario_for(n: int, steps: int, coupling: str = "extrapolate"):
 
 
 def fmu_files(fmu_dir: Path = DEFAULT_OUT) -> dict[str, Path]:
-    """Build the FMUs into ``fmu_dir`` when their sources changed (as ``platoon run`` does); their paths."""
-    from fmus.build import build_fmus
+    """Build the FMUs into ``fmu_dir`` when their sources changed (as ``platoon run`` does); their paths.
+    A folder named ``native`` holds the native FMUs (orchestrator/fmu_kinds.py)."""
+    from orchestrator.fmu_kinds import fmus_in_folder
 
-    return {built.name: built.path for built in build_fmus(fmu_dir)}
+    return fmus_in_folder(fmu_dir)
 
 
 def unpacked_fmus(fmu_dir: Path = DEFAULT_OUT) -> dict[str, Any]:

@@ -21,9 +21,12 @@ from .common import BenchUsageError, Progress, interleaved, markdown_table, run_
 from . import ENGINES
 from .engines import LABELS, LIBCOSIM_ENGINES
 from .platoon import STEP, fmu_files
+from ..fmu_kinds import FMU_KINDS, fmu_folder, native_buildable
 
 DEFAULT_ENGINES = ("native", "python", "fmpy-bare", "libcosim", "libcosim-0threads", "libcosim-0threads-lastvalue", "slaves")
 DEFAULT_N = (4, 16, 64, 256)
+NATIVE_FMUS = " + native FMUs"  # suffix of an engine's key when it steps the native FMUs (issue 21)
+FMU_LESS_ENGINES = ("slaves",)  # engines that call the pythonfmu slave classes directly: no native twin
 AGREEMENT = 1e-6  # m: libcosim's nanosecond grid differs from t_k = k h by ulps, nothing else may differ
 RATIOS = (  # (name, numerator, denominator)
     ("native / libcosim-0threads (floor <= 1.0)", "native", "libcosim-0threads"),
@@ -34,7 +37,37 @@ RATIOS = (  # (name, numerator, denominator)
     ("native-buffer / native", "native-buffer", "native"),
     ("libcosim-0threads-lastvalue / libcosim-0threads (the old baseline's observer)", "libcosim-0threads-lastvalue",
      "libcosim-0threads"),
+    ("native engine: native FMUs / pythonfmu FMUs (floor <= 1/30 = 0.033)", "native" + NATIVE_FMUS, "native"),
+    ("native FMUs: native engine / libcosim-0threads", "native" + NATIVE_FMUS, "libcosim-0threads" + NATIVE_FMUS),
+    ("native FMUs: python engine / fmpy-bare", "python" + NATIVE_FMUS, "fmpy-bare" + NATIVE_FMUS),
+    ("python engine: native FMUs / pythonfmu FMUs", "python" + NATIVE_FMUS, "python"),
+    ("libcosim-0threads: native FMUs / pythonfmu FMUs", "libcosim-0threads" + NATIVE_FMUS, "libcosim-0threads"),
 )
+
+
+def engine_key(engine: str, fmus: str) -> str:
+    """How results name an engine stepping FMUs of kind ``fmus`` (the pythonfmu runs keep the bare name)."""
+    return engine + NATIVE_FMUS if fmus == "native" else engine
+
+
+def base_engine(key: str) -> str:
+    return key.removesuffix(NATIVE_FMUS)
+
+
+def label(key: str) -> str:
+    return LABELS[base_engine(key)] + (NATIVE_FMUS if key.endswith(NATIVE_FMUS) else "")
+
+
+def fmu_kinds_to_measure(requested: Sequence[str] | None) -> tuple[str, ...]:
+    """The FMU kinds a suite measures: the requested ones, else pythonfmu and (where buildable) native."""
+    if requested is None:
+        return ("python", "native") if native_buildable() else ("python",)
+    unknown = [kind for kind in requested if kind not in FMU_KINDS]
+    if unknown:
+        raise BenchUsageError(f"unknown FMU kind(s) {', '.join(unknown)}; expected some of {', '.join(FMU_KINDS)}")
+    if "native" in requested and not native_buildable():
+        raise BenchUsageError("--fmus native: no C compiler here to build the native FMUs")
+    return tuple(requested)
 
 
 def check_engines(engines: Sequence[str]) -> None:
@@ -55,21 +88,25 @@ def check_engines(engines: Sequence[str]) -> None:
 
 
 def measure_all(engines: Sequence[str], ns: Sequence[int], steps: int, rounds: int, couplings: Sequence[str],
-                fmu_dir: Path, progress: Progress | None) -> list[dict[str, Any]]:
-    """Every (coupling, engine, N) once per round, in fresh interpreters, engine order rotated per round."""
-    fmu_files(fmu_dir)  # build once, before any child needs them
-    folder = str(Path(fmu_dir).resolve())
+                fmu_dir: Path, progress: Progress | None, fmu_kinds: Sequence[str] = ("python",)) -> list[dict[str, Any]]:
+    """Every (coupling, engine, FMU kind, N) once per round, in fresh interpreters, engine order rotated per
+    round. A sample of native FMUs is named ``engine_key(engine, "native")``."""
+    folders = {kind: str(fmu_folder(Path(fmu_dir), kind).resolve()) for kind in fmu_kinds}
+    for folder in folders.values():
+        fmu_files(Path(folder))  # build once, before any child needs them
 
-    def measure(n: int, variant: tuple[str, str]) -> dict[str, Any]:
-        coupling, engine = variant
-        return run_child({"kind": "step", "engine": engine, "n": n, "steps": steps, "coupling": coupling,
-                          "fmu_dir": folder})
+    def measure(n: int, variant: tuple[str, str, str]) -> dict[str, Any]:
+        coupling, engine, kind = variant
+        result = run_child({"kind": "step", "engine": engine, "n": n, "steps": steps, "coupling": coupling,
+                            "fmu_dir": folders[kind]})
+        return {**result, "engine": engine_key(engine, kind), "fmus": kind}
 
     def describe(result: dict[str, Any]) -> str:
         what = result["engine"] if len(couplings) == 1 else f"{result['engine']} ({result['coupling']})"
         return f"N={result['n']:<4} {what:<30} {result['us_per_fmu_step']:8.2f} µs/FMU-step"
 
-    variants = [(coupling, engine) for coupling in couplings for engine in engines]
+    variants = [(coupling, engine, kind) for coupling in couplings for kind in fmu_kinds for engine in engines
+                if not (kind == "native" and engine in FMU_LESS_ENGINES)]
     return interleaved(rounds, ns, variants, measure, describe, progress)
 
 
@@ -96,11 +133,18 @@ def agreement(samples: list[dict[str, Any]], engines: Sequence[str], ns: Sequenc
 
 
 def run(engines: Sequence[str] = DEFAULT_ENGINES, ns: Sequence[int] = DEFAULT_N, steps: int = 1000, rounds: int = 5,
-        fmu_dir: Path = DEFAULT_OUT, progress: Progress | None = None) -> dict[str, Any]:
-    """The per-FMU-step table: samples, medians (wall and CPU), ratios, flatness in N, agreement."""
+        fmu_dir: Path = DEFAULT_OUT, progress: Progress | None = None,
+        fmu_kinds: Sequence[str] | None = None) -> dict[str, Any]:
+    """The per-FMU-step table: samples, medians (wall and CPU), ratios, flatness in N, agreement.
+
+    Each engine runs the pythonfmu FMUs and, in the same rounds, the native ones (``fmu_kinds``; default:
+    both where a C compiler builds the native ones), named ``engine_key(engine, kind)``."""
     check_engines(engines)
+    kinds = fmu_kinds_to_measure(fmu_kinds)
     started = time.perf_counter()
-    samples = measure_all(engines, ns, steps, rounds, ["extrapolate"], fmu_dir, progress)
+    samples = measure_all(engines, ns, steps, rounds, ["extrapolate"], fmu_dir, progress, kinds)
+    measured = {s["engine"] for s in samples}
+    engines = [engine_key(e, kind) for kind in kinds for e in engines if engine_key(e, kind) in measured]
     medians = _medians(samples, "us_per_fmu_step", engines, ns, "extrapolate")
     cpu_medians = _medians(samples, "cpu_us_per_fmu_step", engines, ns, "extrapolate")
     ratios = {name: {n: medians[a][n] / medians[b][n] for n in ns}
@@ -117,6 +161,7 @@ def run(engines: Sequence[str] = DEFAULT_ENGINES, ns: Sequence[int] = DEFAULT_N,
     disagreeing = {e: v for e, by_n in agree.items() for v in by_n.values() if v > AGREEMENT}
     return {
         "steps": steps, "step": STEP, "rounds": rounds, "n": list(ns), "engines": list(engines), "master": "jacobi",
+        "fmu_kinds": list(kinds),
         "unit": "microseconds per FMU-step (wall time / (steps x (N + 1)))",
         "medians": medians, "cpu_medians": cpu_medians, "ratios": ratios,
         "flatness_max_over_min": flatness, "growth_largest_over_smallest_n": growth,
@@ -131,7 +176,7 @@ def markdown(result: dict[str, Any]) -> str:
     ns, engines = result["n"], result["engines"]
     medians, cpu = result["medians"], result["cpu_medians"]
     header = ["engine", *(f"N={n}" for n in ns), f"N={ns[-1]} / N={ns[0]}", *(f"CPU N={n}" for n in ns)]
-    rows = [[LABELS[e], *(f"{medians[e][n]:.1f}" for n in ns), f"{result['growth_largest_over_smallest_n'][e]:.2f}",
+    rows = [[label(e), *(f"{medians[e][n]:.1f}" for n in ns), f"{result['growth_largest_over_smallest_n'][e]:.2f}",
              *(f"{cpu[e][n]:.1f}" for n in ns)] for e in engines]
     parts = [f"µs per FMU-step, median of {result['rounds']} interleaved rounds, {result['steps']} steps of "
              f"{result['step']} s, Jacobi, 1 target + N vehicles", markdown_table(header, rows)]
@@ -142,7 +187,7 @@ def markdown(result: dict[str, Any]) -> str:
     spans = list(next(iter(marginal.values()), {}))
     if spans:
         parts.append(markdown_table(["µs per step added by one more vehicle, between", *(f"N={span}" for span in spans)],
-                                    [[LABELS[e], *(f"{marginal[e][span]:.1f}" for span in spans)] for e in engines]))
+                                    [[label(e), *(f"{marginal[e][span]:.1f}" for span in spans)] for e in engines]))
     agree = result["final_position_agreement_m"]
     if agree:
         parts.append("largest |final position - native| per engine: " + ", ".join(

@@ -88,7 +88,7 @@ def render(result: dict[str, Any]) -> str:
 
 
 def bench_sweep(
-    workers: Annotated[str, typer.Option(help="comma-separated local worker counts")] = "1,2",
+    workers: Annotated[str, typer.Option(metavar="N,...", help="comma-separated local worker counts")] = "1,2",
     runs: Annotated[int, typer.Option(min=1, help="runs in the sweep")] = 8,
     stop_time: Annotated[float, typer.Option(min=0.1, help="simulated seconds per run")] = 100.0,
     rounds: Annotated[int, typer.Option(min=1, help="interleaved repetitions; medians")] = 3,

@@ -188,7 +188,7 @@ class NativeMaster:
     def run_blocks(self, step: float, steps: int, sink: Sink | None, every: int = 1, block: int = TRACE_BLOCK,
                    start_time: float = 0.0, tick: Callable[[int], None] | None = None,
                    initialize: bool = True, check: Callable[[], object] | None = None,
-                   deliver_interval: float | None = None) -> None:
+                   deliver_interval: float | None = None, call_steps: int | None = None) -> None:
         """Initialize and run ``steps`` steps; ``sink(rows)`` gets each block of recorded rows.
 
         ``rows`` is a float64 array view of shape (n, width): ``[t, outputs of component 0, ...]``,
@@ -200,6 +200,8 @@ class NativeMaster:
         the rows recorded so far go to ``sink`` and the exception propagates.
         ``deliver_interval`` (s of wall time): a partial block goes to ``sink`` when this much time
         passed since the last one, so that a consumer writing to disk never lags far behind.
+        ``call_steps``: steps per call into C when delivering on an interval (default ``CALL_STEPS``;
+        fewer for a live view, which paces the run in ``tick`` and wants a block per frame).
         """
         if every < 1:
             raise ValueError("every must be >= 1")
@@ -224,7 +226,7 @@ class NativeMaster:
         buffer[0, 1:] = [value for values in initial for value in values]
         row, k = 1, 0
         capacity = buffer.shape[0]
-        call_steps = CALL_STEPS if deliver_interval is not None else steps
+        call_steps = (call_steps or CALL_STEPS) if deliver_interval is not None else steps
         delivered = clock.monotonic()
         while k < steps:
             # as many steps as fill the buffer: rows are recorded after steps k with (k + 1) % every == 0

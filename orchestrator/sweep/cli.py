@@ -80,12 +80,14 @@ def sweep(
     sweep_file: Annotated[Path, typer.Argument(help="sweep TOML: base, and set, grid and random tables (docs/sweeps.md)")],
     out_dir: Annotated[Path, typer.Option("--out", help="folder for the traces and results.csv (resumes what it holds)")],
     workers: Annotated[Optional[int], typer.Option("--workers", min=1, help="runs at a time on this machine (default: its cores)")] = None,
-    scheduler: Annotated[Optional[str], typer.Option("--scheduler", help="run on an existing Dask cluster, e.g. tcp://10.0.0.5:8786")] = None,
+    scheduler: Annotated[Optional[str], typer.Option("--scheduler", metavar="ADDRESS", help="run on an existing Dask cluster, e.g. tcp://10.0.0.5:8786")] = None,
     retry_failed: Annotated[bool, typer.Option("--retry-failed", help="run again the runs recorded as failed (or invalid)")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only failures and the final line")] = False,
 ) -> None:
     """Run a parameter sweep (a grid and/or random samples over a base config); stop and resume at will."""
-    from fmus.build import DEFAULT_OUT, build_fmus
+    from fmus.build import DEFAULT_OUT
+
+    from ..fmu_kinds import prepare_fmus
 
     from ..cli import _fail, out
     from .executors import DaskExecutor, Executor, LocalExecutor, SweepAborted
@@ -103,7 +105,7 @@ def sweep(
     except SweepError as error:
         _fail(2, str(error))
     fmu_dir = DEFAULT_OUT.resolve()
-    build_fmus(fmu_dir)  # once, before the workers start (each run only checks that they are up to date)
+    prepare_fmus(fmu_dir)  # once, before the workers start (each run only checks that they are up to date)
     display = _Display(quiet)
     try:
         executor: Executor = DaskExecutor(scheduler) if scheduler is not None else LocalExecutor(workers or _cores())
@@ -131,10 +133,10 @@ def sweep(
 
 def sweep_plot(
     out_dir: Annotated[Path, typer.Argument(help="a sweep's output folder (platoon sweep --out)")],
-    value: Annotated[str, typer.Option(help="results.csv column to map (its magnitude, log colour scale)")] = "last.path_offset",
-    x: Annotated[str, typer.Option("--x", help="horizontal axis: a config key, or d_star/R")] = "d_star/R",
-    y: Annotated[str, typer.Option("--y", help="vertical axis: a config key")] = "platoon.count",
-    panel: Annotated[str, typer.Option(help="one panel per value of this config key")] = "platoon.law",
+    value: Annotated[str, typer.Option(metavar="COLUMN", help="results.csv column to map (its magnitude, log colour scale)")] = "last.path_offset",
+    x: Annotated[str, typer.Option("--x", metavar="KEY", help="horizontal axis: a config key, or d_star/R")] = "d_star/R",
+    y: Annotated[str, typer.Option("--y", metavar="KEY", help="vertical axis: a config key")] = "platoon.count",
+    panel: Annotated[str, typer.Option(metavar="KEY", help="one panel per value of this config key")] = "platoon.law",
     png: Annotated[Optional[Path], typer.Option("--out", help="PNG file (default DIR/map.png)")] = None,
 ) -> None:
     """Draw a sweep's results as maps: |value| over two parameters, one panel per value of a third."""

@@ -74,12 +74,18 @@ def _run(request: dict[str, Any]) -> dict[str, Any]:
     outcome: dict[str, Any] = {"status": result.status, "error": result.error or "", "wall_time": result.wall_time}
     if result.status == "completed":
         summaries = result.summary if result.summary is not None else summarize(load(trace), config)
-        outcome["metrics"] = flatten_report(report_json(summaries))
+        outcome["metrics"] = flatten_report(report_json(summaries, config))
     return outcome
 
 
 def main() -> None:
-    request = json.loads(sys.stdin.read())
+    from ..internal_entry import check_arguments
+
+    check_arguments(sys.argv[1:], "python -m orchestrator.sweep.worker < REQUEST.json", __doc__, count=0)
+    try:
+        request = json.loads(sys.stdin.read())
+    except ValueError:
+        sys.exit("error: python -m orchestrator.sweep.worker reads a run request (JSON) on stdin; `platoon sweep` sends it")
     _die_with_parent(request["parent"])
     try:
         outcome = _run(request)
@@ -134,14 +140,14 @@ def terminate_children() -> None:
 def _fmus_here(fmu_dir: str) -> Path:
     """The FMUs on this (possibly remote) host: ``fmu_dir`` if the client's folder is here, else a
     per-user cache built once (a lock, since several worker processes may start together)."""
-    from fmus.build import build_fmus
+    from ..fmu_kinds import prepare_fmus
 
     wanted = Path(fmu_dir)
     folder = wanted if wanted.is_dir() else Path(tempfile.gettempdir()) / f"platoon-sweep-fmus-{os.getuid()}"
     folder.mkdir(parents=True, exist_ok=True)
     with open(folder / ".build.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        build_fmus(folder)
+        prepare_fmus(folder)
     return folder
 
 

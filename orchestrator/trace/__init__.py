@@ -3,6 +3,8 @@
 The format is in docs/trace-format.md. The package's modules, each with one job:
 
 * ``format``: topics, channel kinds, chunking constants, how numbers become JSON text;
+* ``encoding``: each channel as a ``ChannelSpec`` and the components' messages, made once for the
+  trace file and the live view (``platoon run --live``, orchestrator/live_view.py);
 * ``writer``: ``TraceWriter``, encoding in the stepping process;
 * ``worker`` + ``serve``: ``TraceWorker``, the same writer in a second process (``serve`` is its
   entry point, ``python -m orchestrator.trace.serve``);
@@ -11,8 +13,8 @@ The format is in docs/trace-format.md. The package's modules, each with one job:
   config, metadata, errors and log; ``export_csv`` writes one CSV per component;
 * ``recovery``: ``recover`` rewrites the complete chunks of an unfinished file.
 
-Imports go one way: ``format`` <- ``writer`` <- ``foxglove``/``worker``/``serve``; ``format`` <-
-``reader``, ``recovery``. The names below are loaded on first use, so that the writer process
+Imports go one way: ``format`` <- ``encoding`` <- ``writer``, ``foxglove``; ``writer`` <-
+``worker``/``serve``; ``format`` <- ``reader``, ``recovery``. The names below are loaded on first use, so that the writer process
 (``serve``), which imports this package on its way, does not pay for numpy and the reader.
 """
 

@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from foxglove import messages as fg
 
+from .encoding import ChannelSpec, register_mcap
 from .format import number_texts
 
 if TYPE_CHECKING:
@@ -208,6 +209,7 @@ class FoxgloveChannels:
         self.period = 1.0 / scene_rate if scene_rate > 0 else math.inf
         self._next_scene = 0.0
         scale = scene_scale(settings, len(self.vehicles), history)
+        self._trail_end: dict[str, tuple[float, float]] = {}  # the last point of each trail
         self._history = {name: deque(maxlen=max(2, int(round(scale.history * scene_rate)))) for name in self.vehicles}
         size = scale.size
         self._size = size
@@ -228,28 +230,63 @@ class FoxgloveChannels:
 
     # --- registration -------------------------------------------------------------------------
 
-    def register(self, writer: Any) -> None:
-        """Register schemas and channels on an ``mcap.writer.Writer`` (before any message)."""
-        errors = writer.register_schema(name="platoon.errors", encoding="jsonschema", data=errors_schema(self.vehicles))
-        self.channels["errors"] = writer.register_channel(
-            topic=ERRORS_TOPIC, message_encoding="json", schema_id=errors, metadata={"platoon.kind": "errors"})
+    def specs(self) -> dict[str, ChannelSpec]:
+        """The channels by key ("errors", "scene", "tf", "log"), in the order they are registered."""
+        specs = {"errors": ChannelSpec(ERRORS_TOPIC, "platoon.errors", "jsonschema", errors_schema(self.vehicles), "json",
+                                       {"platoon.kind": "errors"})}
         for key, topic, kind in (("scene", SCENE_TOPIC, fg.SceneUpdate), ("tf", TF_TOPIC, fg.FrameTransforms),
                                  ("log", LOG_TOPIC, fg.Log)):
             schema = kind.get_schema()
-            schema_id = writer.register_schema(name=schema.name, encoding=schema.encoding, data=bytes(schema.data))
-            self.channels[key] = writer.register_channel(
-                topic=topic, message_encoding="protobuf", schema_id=schema_id, metadata={"platoon.kind": "foxglove"})
+            specs[key] = ChannelSpec(topic, schema.name, schema.encoding, bytes(schema.data), "protobuf",
+                                     {"platoon.kind": "foxglove"})
+        return specs
+
+    def register(self, writer: Any) -> None:
+        """Register schemas and channels on an ``mcap.writer.Writer`` (before any message)."""
+        self.bind(lambda spec: register_mcap(writer, spec))
+
+    def bind(self, register: Callable[[ChannelSpec], int]) -> None:
+        """Declare the channels on a sink: ``register(spec)`` returns the id the sink's messages carry."""
+        for key, spec in self.specs().items():
+            self.channels[key] = register(spec)
 
     # --- per block ----------------------------------------------------------------------------
 
     def row(self, time: float, stamp: int, outputs: Sequence[Sequence[float]]) -> list[tuple[int, bytes]]:
         """(channel, data) at one recorded row: the errors; the scene and transforms when one is due."""
         messages = [(self.channels["errors"], self.errors_message(time, outputs))]
-        if time >= self._next_scene - 1e-9:
-            messages.extend(self._scene(stamp, outputs))
-            while self._next_scene <= time + 1e-9:
-                self._next_scene += self.period
+        if self.advance(time, outputs):
+            messages.extend(self._scene(stamp, self._poses(outputs), {name: list(h) for name, h in self._history.items()}))
         return messages
+
+    def advance(self, time: float, outputs: Sequence[Sequence[float]]) -> bool:
+        """Follow one recorded row: at a scene tick, add the vehicles' positions to their trails; True then."""
+        if time < self._next_scene - 1e-9:
+            return False
+        for name, (x, y, _) in zip(self.names, self._poses(outputs)):
+            if name in self._history:
+                self._history[name].append(fg.Point3(x=x, y=y, z=0.0))
+                self._trail_end[name] = (x, y)
+        while self._next_scene <= time + 1e-9:
+            self._next_scene += self.period
+        return True
+
+    def snapshot(self, time: float, stamp: int, outputs: Sequence[Sequence[float]]) -> list[tuple[int, bytes]]:
+        """(channel, data) of the errors, transforms and whole scene at any row, the trails so far ending at
+        the vehicles (the live view's frame between two scene ticks); changes no state."""
+        poses = self._poses(outputs)
+        trails = {}
+        for name, (x, y, _) in zip(self.names, poses):
+            if name in self._history:
+                trail = trails[name] = list(self._history[name])
+                if self._trail_end.get(name) != (x, y):  # at a scene tick the trail ends here already
+                    trail.append(fg.Point3(x=x, y=y, z=0.0))
+        return [(self.channels["errors"], self.errors_message(time, outputs)), *self._scene(stamp, poses, trails)]
+
+    @property
+    def next_scene(self) -> float:
+        """Simulated time of the next scene tick."""
+        return self._next_scene
 
     def errors_message(self, time: float, outputs: Sequence[Sequence[float]]) -> bytes:
         """The ``/platoon/errors`` JSON at one row; raises ValueError rather than write nan or inf."""
@@ -290,13 +327,18 @@ class FoxgloveChannels:
                 return dx / r, dy / r
         return -math.sin(heading), math.cos(heading)
 
-    def _scene(self, stamp: int, outputs: Sequence[Sequence[float]]) -> list[tuple[int, bytes]]:
-        when = _timestamp(stamp)
+    def _poses(self, outputs: Sequence[Sequence[float]]) -> list[tuple[float, float, float]]:
+        """(x, y, heading) of every component, in component order."""
         poses = []
         for name in self.names:
             values = outputs[self._index[name]]
             ix, iy, ih = self._pose[name]
             poses.append((values[ix], values[iy], values[ih]))
+        return poses
+
+    def _scene(self, stamp: int, poses: list[tuple[float, float, float]],
+               trails: dict[str, list[fg.Point3]]) -> list[tuple[int, bytes]]:
+        when = _timestamp(stamp)
         size = self._size
         points = self._path_points if self._path_points is not None else self._line_points(poses)
         entities = [
@@ -323,15 +365,13 @@ class FoxgloveChannels:
             front = fg.Point3(x=x + 0.5 * size * math.cos(heading), y=y + 0.5 * size * math.sin(heading), z=0.01 * size)
             if name in self._history:
                 color = self._solid[name]
-                history = self._history[name]
-                history.append(fg.Point3(x=x, y=y, z=0.0))
                 entities.append(fg.SceneEntity(
                     timestamp=when, frame_id=ROOT_FRAME, id=name,
                     cubes=[fg.CubePrimitive(pose=pose, size=self._box, color=color)],
                     arrows=[fg.ArrowPrimitive(pose=pose, shaft_length=0.9 * size, shaft_diameter=0.1 * size,
                                               head_length=0.4 * size, head_diameter=0.25 * size, color=color)],
                     lines=[fg.LinePrimitive(type=fg.LinePrimitiveLineType.LineStrip, thickness=TRAIL_PIXELS,
-                                            scale_invariant=True, points=list(history), color=self._faded[name]),
+                                            scale_invariant=True, points=trails[name], color=self._faded[name]),
                            fg.LinePrimitive(type=fg.LinePrimitiveLineType.LineList, thickness=MARKER_PIXELS,
                                             scale_invariant=True, points=[back, front], color=color)],
                     texts=[label],
@@ -504,4 +544,10 @@ def layout_json(vehicles: int = 6, settings: SceneSettings | None = None) -> str
 if __name__ == "__main__":  # python -m orchestrator.trace.foxglove [VEHICLES] > layouts/platoon.json
     import sys
 
+    from ..internal_entry import check_arguments
+
+    usage = "python -m orchestrator.trace.foxglove [VEHICLES] > layouts/platoon.json"
+    check_arguments(sys.argv[1:], usage, "Prints the static Foxglove layout for VEHICLES vehicles (default 6); "
+                    "`platoon layout TRACE.mcap` fits one to a run.", fits=lambda args: len(args) <= 1 and all(
+                        arg.isdigit() for arg in args))
     print(layout_json(int(sys.argv[1]) if len(sys.argv) > 1 else 6), end="")

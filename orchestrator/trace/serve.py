@@ -100,6 +100,10 @@ def abandon(writer: TraceWriter) -> None:
 
 
 def main(argv: list[str]) -> int:
+    from ..internal_entry import check_arguments
+
+    check_arguments(argv, "python -m orchestrator.trace.serve INBOX_FD STATUS_FD", __doc__, count=2,
+                    fits=lambda args: all(arg.isdigit() for arg in args))
     serve(Connection(int(argv[0]), writable=False), Connection(int(argv[1]), readable=False))
     return 0
 

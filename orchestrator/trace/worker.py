@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import fcntl
 import os
+import select
 import subprocess
 import sys
 import time as clock
@@ -287,6 +288,21 @@ class TraceWorker:
             self._process.kill()
             self._fail("interrupted while the trace writer process was finishing the file; it was stopped")
             raise
+
+    def stalled(self, grace: float) -> bool:
+        """True when the worker has taken no data for ``grace`` seconds while its pipe is full: it stopped
+        reading (stopped, stuck on its disk). A send would then block for as long as it stays stalled."""
+        if self._closed or self._failure is not None:
+            return False
+        _, writable, _ = select.select([], [self._outbox.fileno()], [], grace)
+        return not writable
+
+    def abandon(self, reason: str) -> None:
+        """Stop the worker now (the user insisted and it is stalled): its file keeps every complete chunk."""
+        if self._closed:
+            return
+        self._process.kill()
+        self._fail(reason)
 
     def _finish(self) -> None:
         self._send(("close", None))

@@ -27,41 +27,11 @@ from mcap.records import Message, MessageIndex, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
 from ..errors import ComponentError
-from .format import (
-    SCHEMA_ENCODING,
-    MESSAGE_ENCODING,
-    KIND_KEY,
-    CHUNK_SIZE,
-    FLUSH_INTERVAL,
-    BLOCK,
-    CHANNEL_PREFIX,
-    channel_name,
-    number_texts,
-)
+from .encoding import ComponentMessages, LiveStream, register_mcap
+from .format import CHUNK_SIZE, FLUSH_INTERVAL, BLOCK
 
 if TYPE_CHECKING:
     from .foxglove import FoxgloveChannels
-
-def _schema(component: str, outputs: Sequence[str], descriptions: dict[str, str]) -> bytes:
-    properties = {"t": {"type": "number", "description": "simulation time [s]"}}
-    for name in outputs:
-        properties[name] = {"type": "number", "description": descriptions.get(name, name)}
-    return json.dumps(
-        {
-            "$schema": "https://json-schema.org/draft/2020-12/schema",
-            "title": f"platoon.{component}",
-            "type": "object",
-            "properties": properties,
-            "required": ["t", *outputs],
-            "additionalProperties": False,
-        }
-    ).encode()
-
-
-def _template(keys: Sequence[str]) -> str:
-    """A %-format that, filled with the values' JSON texts, is the JSON object of ``keys`` to values."""
-    return "{" + ",".join(json.dumps(key).replace("%", "%%") + ":%s" for key in keys) + "}"
-
 
 class _MessageIndex(MessageIndex):
     """A MessageIndex that packs its entries in one call (the library writes them one by one)."""
@@ -147,26 +117,12 @@ class _Encoder:
         self._file = open(self.path, "wb")
         self._writer = Writer(self._file, compression=CompressionType.ZSTD, chunk_size=chunk_size)
         self._writer.start(profile="", library="platoon-cosim")
-        self.components = [(name, list(outputs)) for name, outputs in components]
-        self._channels = []
-        for name, outputs in self.components:
-            schema_id = self._writer.register_schema(
-                name=f"platoon.{name}",
-                encoding=SCHEMA_ENCODING,
-                data=_schema(name, outputs, (descriptions or {}).get(name, {})),
-            )
-            self._channels.append(
-                self._writer.register_channel(topic=channel_name(name), message_encoding=MESSAGE_ENCODING,
-                                              schema_id=schema_id, metadata={KIND_KEY: "component"})
-            )
+        self.messages = ComponentMessages(components, descriptions)
+        self.components = self.messages.components
+        self._channels = [register_mcap(self._writer, spec) for spec in self.messages.specs]
         self.foxglove = foxglove
         if foxglove is not None:
             foxglove.register(self._writer)
-        self._templates = [_template(["t", *outputs]).encode() for _, outputs in self.components]
-        self._spans, start = [], 1
-        for _, outputs in self.components:  # where each component's values sit in a row's flat list
-            self._spans.append((start, start + len(outputs)))
-            start += len(outputs)
         self._chunk_size = chunk_size
         self._fast = _fast_path(self._writer) if fast else None
         self._chunk_indexes = getattr(self._writer, "_Writer__chunk_indices", None)
@@ -221,17 +177,14 @@ class _Encoder:
 
     def rows(self, rows: Sequence[Sequence[float]]) -> None:
         """Write flat rows ``[t, outputs of component 0, ...]`` (all finite); close the chunk if due."""
-        channels, templates, foxglove = self._channels, self._templates, self.foxglove
-        spans = self._spans
+        channels, foxglove = self._channels, self.foxglove
+        encode, split = self.messages.encode, self.messages.outputs
         for row in rows:
             time = row[0]
             stamp = int(round(time * 1e9))
-            texts = number_texts(row)  # one conversion per row: the costly part of JSON
-            first = texts[0]
-            messages = [(channel, template % (first, *texts[start:end]))
-                        for channel, template, (start, end) in zip(channels, templates, spans)]
+            messages = list(zip(channels, encode(row)))
             if foxglove is not None:
-                messages.extend(foxglove.row(time, stamp, [row[start:end] for start, end in spans]))
+                messages.extend(foxglove.row(time, stamp, split(row)))
             self._add(stamp, self.recorded, messages)
             self.recorded += 1
             self.last_time = time
@@ -253,18 +206,12 @@ class _Encoder:
         if self.foxglove is not None:
             self.foxglove.log(self._write, time, level, message)
 
-    def live_channel(self, topic: str, keys: Sequence[str]) -> tuple[int, bytes]:
-        """A JSON channel of numbers (``t`` first, then ``keys``) for a live link's raw messages."""
-        name = topic[len(CHANNEL_PREFIX):]
-        schema_id = self._writer.register_schema(name=f"platoon.{name.replace('/', '.')}", encoding=SCHEMA_ENCODING,
-                                                 data=_schema(name, keys, {}))
-        channel = self._writer.register_channel(topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=schema_id,
-                                                metadata={KIND_KEY: "live"})
-        return channel, _template(["t", *keys]).encode()
+    def live_channel(self, stream: LiveStream) -> int:
+        """Register a live link's raw message channel (``LiveStream``); returns its channel id."""
+        return register_mcap(self._writer, stream.spec)
 
-    def live_message(self, channel: tuple[int, bytes], time: float, values: Sequence[float]) -> None:
-        texts = number_texts([time, *values])
-        self._write(channel[0], int(round(time * 1e9)), channel[1] % tuple(texts))
+    def live_message(self, channel: int, stream: LiveStream, time: float, values: Sequence[float]) -> None:
+        self._write(channel, int(round(time * 1e9)), stream.encode(time, values))
 
     def metadata(self, name: str, values: dict[str, str]) -> None:
         self._writer.add_metadata(name, values)
@@ -353,7 +300,7 @@ class TraceWriter:
         self.last_time: float | None = None  # simulation time of the last row handed over
         self._last_flush = clock.monotonic()
         self._closed = False
-        self._live: dict[str, tuple[list[str], tuple[int, bytes]]] = {}
+        self._live: dict[str, tuple[LiveStream, int]] = {}
 
     def record(self, time: float, outputs: Sequence[Sequence[float]]) -> None:
         """Keep the outputs at ``time`` (every ``every``-th call) for the next flush."""
@@ -423,11 +370,12 @@ class TraceWriter:
             return
         entry = self._live.get(stream)
         if entry is None:
-            entry = self._live[stream] = (list(fields), self._encoder.live_channel(channel_name(stream), list(fields)))
-        keys, channel = entry
-        values = [fields.get(key, math.nan) for key in keys]
+            link = LiveStream(stream, list(fields))
+            entry = self._live[stream] = (link, self._encoder.live_channel(link))
+        link, channel = entry
+        values = [fields.get(key, math.nan) for key in link.keys]
         if math.isfinite(sum(values)):
-            self._guarded(self._encoder.live_message, channel, time, values)
+            self._guarded(self._encoder.live_message, channel, link, time, values)
 
     def metadata(self, name: str, values: dict[str, Any]) -> None:
         self._guarded(self._encoder.metadata, name,

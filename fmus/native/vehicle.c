@@ -1,0 +1,304 @@
+/*
+ * vehicle.c - the Vehicle FMU's model: fmus/model/vehicle.py on fmus/model/dynamics.py, in C.
+ *
+ * Guidance (regular or sine law) on kinematic or m3pi dynamics, the speed chain, hold or
+ * extrapolate coupling of the inputs, RK4 with equal substeps: each function names the Python
+ * function it mirrors, and keeps its arithmetic in the same order (science.h, pymath.h).
+ * Variables and value references come from the generated "variables.h" (fmus/native_build.py).
+ */
+#include <math.h>
+#include <string.h>
+
+#include "framework.h"
+#include "science.h"
+#include "variables.h"
+
+typedef enum { DYNAMICS_KINEMATIC, DYNAMICS_M3PI } DynamicsKind; /* fmus.model.dynamics.DYNAMICS_KINDS */
+
+/* fmus.model.vehicle.VehicleModel with its dynamics (fmus.model.dynamics.*Dynamics), as
+ * fmus.model.factory.vehicle_stepper builds them from the parameters. */
+typedef struct {
+    Law law;
+    DynamicsKind dynamics;
+    Coupling coupling;
+    int is_last;
+    double d_star, k_v, v_c, max_substep;
+    double track, wheel_speed_max, motor_time_constant;
+    int state_size;
+} VehicleConfig;
+
+static const VehicleConfig *config_of(const Instance *instance) { return (const VehicleConfig *)instance->config; }
+
+/* --- fmus.model.factory.vehicle_parameter_errors ------------------------------------------------- */
+
+static const char *const LAWS[] = {"regular", "sine"};
+static const char *const DYNAMICS_KINDS[] = {"kinematic", "m3pi"};
+static const char *const COUPLING_MODES[] = {"hold", "extrapolate"};
+
+static int vehicle_parameter_errors(const Instance *instance, FwText *reasons)
+{
+    int errors = 0;
+    fw_choice(instance, VR_LAW, LAWS, 2, reasons, &errors);
+    fw_choice(instance, VR_DYNAMICS, DYNAMICS_KINDS, 2, reasons, &errors);
+    fw_choice(instance, VR_COUPLING, COUPLING_MODES, 2, reasons, &errors);
+    static const int POSITIVE[] = {VR_D_STAR, VR_K_V, VR_V_C, VR_MAX_SUBSTEP, VR_INITIAL_SPEED, VR_M3PI_TRACK,
+                                   VR_M3PI_WHEEL_SPEED_MAX, VR_M3PI_MOTOR_TIME_CONSTANT};
+    for (size_t i = 0; i < sizeof POSITIVE / sizeof POSITIVE[0]; ++i) fw_positive(instance, POSITIVE[i], reasons, &errors);
+    return errors;
+}
+
+/* fmus.model.factory.vehicle_stepper, with fmus.model.dynamics.*Dynamics.initial_state */
+static void vehicle_configure(Instance *instance)
+{
+    VehicleConfig *config = (VehicleConfig *)instance->config;
+    const double *r = instance->reals;
+    int unused = 0;
+    FwText ignored;
+    fw_text_clear(&ignored);
+    config->law = fw_choice(instance, VR_LAW, LAWS, 2, &ignored, &unused) == 1 ? LAW_SINE : LAW_REGULAR;
+    config->dynamics = fw_choice(instance, VR_DYNAMICS, DYNAMICS_KINDS, 2, &ignored, &unused) == 1 ? DYNAMICS_M3PI
+                                                                                               : DYNAMICS_KINEMATIC;
+    config->coupling = fw_choice(instance, VR_COUPLING, COUPLING_MODES, 2, &ignored, &unused) == 1 ? COUPLING_EXTRAPOLATE
+                                                                                                 : COUPLING_HOLD;
+    config->is_last = instance->integers[VR_IS_LAST] != 0;
+    config->d_star = r[VR_D_STAR];
+    config->k_v = r[VR_K_V];
+    config->v_c = r[VR_V_C];
+    config->max_substep = r[VR_MAX_SUBSTEP];
+    config->track = r[VR_M3PI_TRACK];
+    config->wheel_speed_max = r[VR_M3PI_WHEEL_SPEED_MAX];
+    config->motor_time_constant = r[VR_M3PI_MOTOR_TIME_CONSTANT];
+    double *state = instance->state;
+    state[0] = r[VR_INITIAL_X];
+    state[1] = r[VR_INITIAL_Y];
+    state[2] = r[VR_INITIAL_HEADING];
+    state[3] = r[VR_INITIAL_SPEED];
+    if (config->dynamics == DYNAMICS_M3PI) { /* M3piDynamics.initial_state: (x, y, heading, V, V, V) */
+        state[4] = r[VR_INITIAL_SPEED];
+        state[5] = r[VR_INITIAL_SPEED];
+        config->state_size = 6;
+    } else {
+        config->state_size = 4;
+    }
+}
+
+static double vehicle_max_substep(const Instance *instance) { return config_of(instance)->max_substep; }
+
+/* --- fmus.model.dynamics ----------------------------------------------------------------------------- */
+
+/* fmus.model.dynamics.differential_wheel_speeds */
+static void differential_wheel_speeds(double speed, double lateral_acceleration, double track, double *right,
+                                      double *left)
+{
+    double half_difference = 0.5 * track * lateral_acceleration / speed;
+    *right = speed + half_difference;
+    *left = speed - half_difference;
+}
+
+/* KinematicDynamics.speed / M3piDynamics.speed */
+static double dynamics_speed(const VehicleConfig *config, const double *state, double speed_offset)
+{
+    if (config->dynamics == DYNAMICS_M3PI) return 0.5 * (state[3] + state[4]) + speed_offset;
+    return state[3] + speed_offset;
+}
+
+/* KinematicDynamics.derivative / M3piDynamics.derivative (with wheel_commands, limit_wheels, drive) */
+static void dynamics_derivative(const VehicleConfig *config, const double *state, double lateral_acceleration,
+                                double commanded_speed, double speed_offset, double *derivative)
+{
+    if (config->dynamics == DYNAMICS_KINEMATIC) {
+        double heading = state[2];
+        double v = state[3] + speed_offset;
+        derivative[0] = v * cos(heading);
+        derivative[1] = v * sin(heading);
+        derivative[2] = lateral_acceleration / v;
+        derivative[3] = speed_loop(config->k_v, commanded_speed, state[3]);
+        return;
+    }
+    double setpoint = state[5];
+    double right_cmd, left_cmd; /* M3piDynamics.wheel_commands */
+    differential_wheel_speeds(setpoint, lateral_acceleration, config->track, &right_cmd, &left_cmd);
+    double limit = config->wheel_speed_max; /* M3piDynamics.limit_wheels */
+    right_cmd = py_min(py_max(right_cmd, -limit), limit);
+    left_cmd = py_min(py_max(left_cmd, -limit), limit);
+    double right = state[3], left = state[4]; /* M3piDynamics.drive */
+    double v = 0.5 * (right + left) + speed_offset;
+    double lag = 1.0 / config->motor_time_constant;
+    derivative[0] = v * cos(state[2]);
+    derivative[1] = v * sin(state[2]);
+    derivative[2] = (right - left) / config->track;
+    derivative[3] = (right_cmd - right) * lag;
+    derivative[4] = (left_cmd - left) * lag;
+    derivative[5] = speed_loop(config->k_v, commanded_speed, setpoint);
+}
+
+/* KinematicDynamics.speed_rate / M3piDynamics.speed_rate (heading_rate is derivative[2] for both) */
+static double dynamics_speed_rate(const VehicleConfig *config, const double *derivative)
+{
+    if (config->dynamics == DYNAMICS_M3PI) return 0.5 * (derivative[3] + derivative[4]);
+    return derivative[3];
+}
+
+/* KinematicDynamics.wheel_speeds / M3piDynamics.wheel_speeds */
+static void dynamics_wheel_speeds(const VehicleConfig *config, const double *state, double lateral_acceleration,
+                                  double speed_offset, double *right, double *left)
+{
+    if (config->dynamics == DYNAMICS_M3PI) {
+        *right = state[3] + speed_offset;
+        *left = state[4] + speed_offset;
+        return;
+    }
+    differential_wheel_speeds(state[3] + speed_offset, lateral_acceleration, config->track, right, left);
+}
+
+/* --- fmus.model.vehicle.VehicleStepper --------------------------------------------------------------- */
+
+/* VehicleStepper.target_at: the target's (x, y, heading, speed) at time t as this vehicle sees it */
+static void target_at(const Instance *instance, double t, double out[4])
+{
+    const double *r = instance->reals;
+    if (config_of(instance)->coupling != COUPLING_EXTRAPOLATE) {
+        out[0] = r[VR_TARGET_X];
+        out[1] = r[VR_TARGET_Y];
+        out[2] = r[VR_TARGET_HEADING];
+        out[3] = r[VR_TARGET_SPEED];
+        return;
+    }
+    arc_extrapolate(r[VR_TARGET_X], r[VR_TARGET_Y], r[VR_TARGET_HEADING], r[VR_TARGET_SPEED], r[VR_TARGET_SPEED_RATE],
+                    r[VR_TARGET_TURN_RATE], t - r[VR_TARGET_TIME], out);
+}
+
+/* VehicleStepper.follower_at */
+static void follower_at(const Instance *instance, double t, double *speed, double *gap)
+{
+    const double *r = instance->reals;
+    if (config_of(instance)->coupling != COUPLING_EXTRAPOLATE) {
+        *speed = r[VR_FOLLOWER_SPEED];
+        *gap = r[VR_FOLLOWER_GAP];
+        return;
+    }
+    double dt = t - r[VR_FOLLOWER_TIME];
+    *speed = linear_extrapolate(r[VR_FOLLOWER_SPEED], r[VR_FOLLOWER_SPEED_RATE], dt);
+    *gap = linear_extrapolate(r[VR_FOLLOWER_GAP], r[VR_FOLLOWER_GAP_RATE], dt);
+}
+
+/* The target as one step (or one outputs call) sees it: target_at is a pure function of t, and RK4's
+ * second and third stages ask for the same instant, the outputs for the instant evaluate just used,
+ * so each instant is extrapolated once (same numbers: the same function, called once instead of
+ * twice). Not in the Python model, where the saving would not be worth a cache: it only saves time. */
+typedef struct {
+    const Instance *instance;
+    int known;
+    double t;
+    double target[4];
+} TargetSight;
+
+static TargetSight target_sight(const Instance *instance)
+{
+    TargetSight sight = {instance, 0, 0.0, {0.0, 0.0, 0.0, 0.0}};
+    return sight;
+}
+
+static const double *target_seen(TargetSight *sight, double t)
+{
+    if (!sight->known || sight->t != t) {
+        target_at(sight->instance, t, sight->target);
+        sight->t = t;
+        sight->known = 1;
+    }
+    return sight->target;
+}
+
+/* VehicleStepper.evaluate with fmus.model.vehicle.VehicleModel.evaluate: the state derivative, the
+ * acting lateral acceleration and the distance to the target. */
+static void evaluate(TargetSight *sight, double t, const double *state, double *derivative,
+                     double *acceleration, double *distance)
+{
+    const Instance *instance = sight->instance;
+    const VehicleConfig *config = config_of(instance);
+    const double *r = instance->reals;
+    const double *target = target_seen(sight, t);
+    double follower_speed, follower_gap;
+    follower_at(instance, t, &follower_speed, &follower_gap);
+    double added_acceleration = r[VR_DISTURBANCE_LATERAL_ACCELERATION];
+    double added_speed = r[VR_DISTURBANCE_SPEED];
+    /* VehicleModel.evaluate */
+    double x = state[0], y = state[1], heading = state[2];
+    double speed = dynamics_speed(config, state, added_speed);
+    double los;
+    line_of_sight(x, y, target[0], target[1], distance, &los);
+    *acceleration =
+        lateral_acceleration(config->law, speed, *distance, los, heading, target[2]) + added_acceleration;
+    double commanded = config->is_last ? config->v_c : spacing_speed(follower_speed, follower_gap, config->d_star);
+    dynamics_derivative(config, state, *acceleration, commanded, added_speed, derivative);
+}
+
+/* VehicleStepper.derivative */
+static void derivative_of(void *context, double t, const double *state, double *derivative)
+{
+    double acceleration, distance;
+    evaluate((TargetSight *)context, t, state, derivative, &acceleration, &distance);
+}
+
+/* VehicleStepper.step with VehicleStepper.check */
+static int vehicle_step(Instance *instance, double t, double h, FwText *why)
+{
+    const VehicleConfig *config = config_of(instance);
+    double state[FW_MAX_STATE];
+    memcpy(state, instance->state, sizeof state);
+    TargetSight sight = target_sight(instance);
+    integrate(derivative_of, &sight, t, state, config->state_size, h, config->max_substep);
+    double time = t + h;
+    for (int i = 0; i < config->state_size; ++i) {
+        if (!isfinite(state[i])) {
+            fw_text_append(why, "the state became non-finite before t = %.6g s", time);
+            return 1;
+        }
+    }
+    double speed = dynamics_speed(config, state, instance->reals[VR_DISTURBANCE_SPEED]);
+    if (speed <= 0.0) {
+        fw_text_append(why, "speed fell to %.6g m/s at t = %.6g s; guidance needs V > 0", speed, time);
+        return 1;
+    }
+    memcpy(instance->state, state, sizeof state);
+    instance->time = time;
+    return 0;
+}
+
+/* VehicleStepper.outputs */
+static void vehicle_outputs(const Instance *instance, double *values)
+{
+    const VehicleConfig *config = config_of(instance);
+    double t = instance->time;
+    const double *state = instance->state;
+    double added_speed = instance->reals[VR_DISTURBANCE_SPEED];
+    double derivative[FW_MAX_STATE], acceleration, gap;
+    TargetSight sight = target_sight(instance);
+    evaluate(&sight, t, state, derivative, &acceleration, &gap);
+    double x = state[0], y = state[1], heading = state[2];
+    double speed = dynamics_speed(config, state, added_speed);
+    const double *target = target_seen(&sight, t);
+    double dx = target[0] - x, dy = target[1] - y;
+    double relative_vx = target[3] * cos(target[2]) - speed * cos(heading);
+    double relative_vy = target[3] * sin(target[2]) - speed * sin(heading);
+    double wheel_right, wheel_left;
+    dynamics_wheel_speeds(config, state, acceleration, added_speed, &wheel_right, &wheel_left);
+    values[VR_X] = x;
+    values[VR_Y] = y;
+    values[VR_HEADING] = heading;
+    values[VR_SPEED] = speed;
+    values[VR_SPEED_RATE] = dynamics_speed_rate(config, derivative);
+    values[VR_TURN_RATE] = derivative[2];
+    values[VR_LATERAL_ACCELERATION] = acceleration;
+    values[VR_GAP] = gap;
+    values[VR_GAP_RATE] = (dx * relative_vx + dy * relative_vy) / gap;
+    values[VR_WHEEL_RIGHT] = wheel_right;
+    values[VR_WHEEL_LEFT] = wheel_left;
+    values[VR_OUTPUT_TIME] = t;
+}
+
+const ModelDef MODEL = {
+    MODEL_IDENTIFIER,         MODEL_GUID,    VARIABLE_COUNT,      MODEL_VARIABLES,
+    sizeof(VehicleConfig),    vehicle_parameter_errors, vehicle_configure, vehicle_max_substep,
+    vehicle_outputs,          vehicle_step,
+};

@@ -1,0 +1,108 @@
+"""Which FMUs a run steps: the native C twins or the pythonfmu originals, and where each kind lives.
+
+Both kinds are the same model with the same variables (fmus/model is the science; the native C files
+mirror it and tests hold them to it), so a run, a trace and a summary mean the same with either.
+What differs is what the host needs and what a step costs: a native FMU needs nothing but the C
+library and costs about a microsecond per step; a pythonfmu FMU runs its model in Python (tens of
+microseconds per step) and needs a Python installation on the host. So a run takes the native ones
+wherever they can be built (a C compiler is present), and ``--fmus python`` (or ``simulation.fmus``)
+picks the pythonfmu ones, e.g. to compare or on a machine without a compiler.
+
+The pythonfmu FMUs live in ``build/fmus/``, the native ones in ``build/fmus/native/`` (the builders'
+defaults); a caller passes the first folder and this module finds the second below it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+FMU_KINDS = ("native", "python")
+NATIVE_SUBFOLDER = "native"
+
+
+class FmuKindError(ValueError):
+    """The requested FMU kind cannot be used here (the message says why and what to do)."""
+
+
+def native_buildable() -> bool:
+    """True when this machine can build the native FMUs (a C compiler is on PATH or in $CC)."""
+    from fmus.native_build import NoCompiler, compiler
+
+    try:
+        compiler()
+    except NoCompiler:
+        return False
+    return True
+
+
+def native_built(fmu_dir: Path) -> bool:
+    """True when current native FMUs are in place below ``fmu_dir`` (built here or copied from a machine
+    with a compiler): they run without one."""
+    from fmus.build import FMU_NAMES
+    from fmus.native_build import expected_guid, is_complete
+
+    folder = fmu_folder(fmu_dir, "native")
+    return all(is_complete(folder / f"{name}.fmu", name, expected_guid(name)) for name in FMU_NAMES)
+
+
+def resolve_fmu_kind(requested: str | None, fmu_dir: Path | None = None) -> str:
+    """The kind a run uses: the one requested (``--fmus`` over ``simulation.fmus``), else native where
+    it can be built or is built already (below ``fmu_dir``), else python."""
+    if requested is None:
+        buildable = native_buildable() or (fmu_dir is not None and native_built(fmu_dir))
+        return "native" if buildable else "python"
+    if requested not in FMU_KINDS:
+        raise FmuKindError(f"unknown FMU kind {requested!r}; expected one of {', '.join(FMU_KINDS)}")
+    return requested
+
+
+def fmu_folder(fmu_dir: Path, kind: str) -> Path:
+    """Where FMUs of ``kind`` are built, below the pythonfmu folder ``fmu_dir``."""
+    return Path(fmu_dir) / NATIVE_SUBFOLDER if kind == "native" else Path(fmu_dir)
+
+
+def ensure_fmus(fmu_dir: Path, kind: str, names: Sequence[str]) -> dict[str, Path]:
+    """Paths of FMUs ``names`` of ``kind``, built first where missing or out of date.
+
+    ``LiveVehicle`` (a live robot as an FMU) exists only as a pythonfmu FMU: it runs the bridge's
+    Python code, so it comes from the pythonfmu folder whatever ``kind`` says.
+    """
+    from fmus.build import LIVE_FMU, build_fmus
+
+    paths: dict[str, Path] = {}
+    native = [name for name in names if name != LIVE_FMU] if kind == "native" else []
+    python = [name for name in names if name not in native]
+    if native:
+        from fmus.native_build import NoCompiler, build_native_fmus
+
+        try:
+            built = build_native_fmus(fmu_folder(fmu_dir, "native"), names=tuple(native))
+        except NoCompiler as error:
+            raise FmuKindError(f"{error}; run with --fmus python (or simulation.fmus = \"python\")") from None
+        paths.update({fmu.name: fmu.path for fmu in built})
+    if python:
+        paths.update({fmu.name: fmu.path for fmu in build_fmus(Path(fmu_dir), names=tuple(python))})
+    return {name: paths[name] for name in names}
+
+
+def prepare_fmus(fmu_dir: Path) -> None:
+    """Build every kind a run may pick (pythonfmu always, native where a compiler is present), so that
+    parallel runs (a sweep's workers) only check that they are current."""
+    from fmus.build import FMU_NAMES
+
+    for kind in FMU_KINDS:
+        if kind == "python" or native_buildable():
+            ensure_fmus(fmu_dir, kind, FMU_NAMES)
+
+
+def fmus_in_folder(folder: Path) -> dict[str, Path]:
+    """The run's FMUs (Vehicle, VirtualTarget) in ``folder``, built there if stale: native ones when the
+    folder is a ``fmu_folder(..., "native")``, pythonfmu ones otherwise. For tools handed one folder
+    (the benchmarks' child processes)."""
+    from fmus.build import FMU_NAMES
+
+    folder = Path(folder)
+    if folder.name == NATIVE_SUBFOLDER:
+        return ensure_fmus(folder.parent, "native", FMU_NAMES)
+    return ensure_fmus(folder, "python", FMU_NAMES)

@@ -1,0 +1,334 @@
+"""Every command in README.md and docs/*.md runs, so a doc cannot drift from the tool again.
+
+Each fenced ``sh``/``shell``/``bash``/``console`` block is run as one bash script (its variables and
+background jobs, ``&`` and ``kill %1``, as a user pasting it would have them), in a copy of this
+working tree (the commands write runs/, traces, plots), with this tree's code (PYTHONPATH), the
+venv's ``platoon`` and ``python`` on PATH and ``.venv`` linked to the venv. Every command's exit status
+is checked (0 unless the table says otherwise) and nothing may print a traceback, nor a ``warning:``
+the docs do not announce. ``/tmp/`` in a command becomes the test's own temporary folder (two test
+runs at once must not share ``/tmp/Vehicle``).
+
+Commands that need hardware, the network beyond 127.0.0.1, or much more than ~30 s are run in a
+shortened but real form, each for the reason ``SPECIAL`` gives: the same command with a shorter
+``stop_time``, or ``--help`` of exactly that subcommand plus a parse of its options (``Parse``). A
+``SPECIAL`` entry whose command is no longer in the docs fails the test, so the table cannot go stale.
+The README's first block (install, run; tests) is special: the run part of its install line is run as
+written, pip is not.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+SHELLS = ("sh", "shell", "bash", "console")
+VENV_BIN = Path(sys.executable).parent
+SHORT = " --set simulation.stop_time=2"  # a live run paced to the wall clock: 2 s instead of 10 or 60
+
+
+@dataclass(frozen=True)
+class Shorten:
+    """Run ``command`` instead (a real, shorter form of the documented one), for ``why``."""
+    command: str
+    why: str
+
+
+@dataclass(frozen=True)
+class Parse:
+    """Not run: ``platoon SUBCOMMAND --help`` runs, and the documented arguments parse, for ``why``."""
+    why: str
+
+
+@dataclass(frozen=True)
+class Skip:
+    """Not run at all, for ``why`` (what it needs is no part of this tool)."""
+    why: str
+
+
+@dataclass(frozen=True)
+class Expect:
+    """Run as written; it exits ``status`` with ``text`` in its output, as the doc around it says."""
+    status: int
+    text: str
+    why: str
+
+
+INSTALL = ("python3 -m venv .venv && .venv/bin/pip install -e '.[test]' && .venv/bin/platoon run configs/paper/platoon.toml "
+           "--out runs/platoon.mcap && .venv/bin/platoon report runs/platoon.mcap --plots runs/platoon-plots")
+LIVE3_EMULATOR_4 = (".venv/bin/platoon m3pi-emulator --config configs/hil/m3pi_live3.toml --set vehicles.4.endpoint=zenoh "
+                    "--set 'vehicles.4.connect=[\"tcp/127.0.0.1:7447\"]' &")
+LIVE3_RUN_4 = (".venv/bin/platoon run configs/hil/m3pi_live3.toml --set vehicles.4.endpoint=zenoh "
+               "--set 'vehicles.4.connect=[\"tcp/127.0.0.1:7447\"]'")
+REAL_ROBOT_RUN = ".venv/bin/platoon run configs/hil/m3pi_live3.toml --set 'vehicles.3.connect=[\"tcp/127.0.0.1:7448\", \"tcp/127.0.0.1:7449\"]'"
+
+# (doc, command as written, without a trailing comment) -> how it is run instead, and why
+SPECIAL: dict[tuple[str, str], Shorten | Parse | Skip | Expect] = {
+    ("README.md", INSTALL): Shorten(
+        INSTALL.split(" && ", 2)[2],
+        "the venv and `pip install -e` are the environment this test runs in (pip would need the network); "
+        "the run and report of the install line run as written"),
+    ("README.md", ".venv/bin/python -m pytest -q"): Shorten(
+        ".venv/bin/python -m pytest -q --collect-only",
+        "the whole suite takes minutes (and includes this test); collecting it imports every test module"),
+    ("README.md", ".venv/bin/platoon run configs/hil/m3pi_live3.toml"): Shorten(
+        ".venv/bin/platoon run configs/hil/m3pi_live3.toml" + SHORT,
+        "a live run is paced to the wall clock: 60 s as written"),
+    ("README.md", ".venv/bin/platoon run configs/bench/platoon100-1h.toml --trace-every 10"): Shorten(
+        ".venv/bin/platoon run configs/bench/platoon100-1h.toml --trace-every 10 --set simulation.stop_time=60",
+        "one simulated hour of 100 vehicles takes 3-4 minutes; the first minute of it"),
+    ("docs/hil.md", ".venv/bin/platoon run configs/hil/m3pi_live3.toml --set simulation.stop_time=10 --out /tmp/hil-doc.mcap"):
+        Shorten(".venv/bin/platoon run configs/hil/m3pi_live3.toml --set simulation.stop_time=10 --out /tmp/hil-doc.mcap" + SHORT,
+                "a live run is paced to the wall clock: 10 s as written"),
+    ("docs/hil.md", LIVE3_RUN_4): Shorten(LIVE3_RUN_4 + SHORT, "a live run is paced to the wall clock: 60 s as written"),
+    ("docs/hil.md", ".venv/bin/platoon m3pi-serial --port /dev/ttyUSB0 --id 3 --listen tcp/127.0.0.1:7448 --max-speed 0.8 &"):
+        Parse("needs a real m3pi behind an XBee on /dev/ttyUSB0"),
+    ("docs/hil.md", "python mocap.py &"): Skip("a sketch to fill in with a real motion capture's reading (read_tracker)"),
+    ("docs/hil.md", REAL_ROBOT_RUN): Parse("needs the real robot and motion capture of the two lines above"),
+    ("docs/hil.md", ".venv/bin/platoon bench hil"): Shorten(
+        ".venv/bin/platoon bench hil --seconds 0.5", "about 40 s as written; the same measurements, 0.5 s each"),
+    ("docs/hil.md", ".venv/bin/platoon bench hil --rounds 5"): Parse(
+        "five rounds of the benchmark the line above runs (shortened) once: minutes"),
+    ("docs/fmus.md", "platoon export-ssp configs/hil/m3pi_live3.toml --set simulation.stop_time=20 --out m3pi_live3.ssp"):
+        Shorten("platoon export-ssp configs/hil/m3pi_live3.toml --set simulation.stop_time=20 --out m3pi_live3.ssp" + SHORT,
+                "run_live.py then runs the package, paced to the wall clock: 20 s as written"),
+    ("docs/model.md", "platoon run configs/paper/platoon.toml $EQ --set simulation.step=0.1 --set simulation.max_substep=0.1 "
+                      "--set simulation.stop_time=400 --trace-every 10 --out runs/long.mcap"):
+        Expect(1, "failed at t = 208.3 s", "the section's point: with the paper's k_v 100 vehicles break down "
+                                           "(its table: fails at t = 208.3 s); the trace keeps what was recorded"),
+    ("docs/foxglove.md", "platoon run configs/paper/platoon.toml --out runs/platoon.mcap --live --live-wait"):
+        Shorten("platoon run configs/paper/platoon.toml --out runs/platoon.mcap --live --live-port 8799 --live-speed 0"
+                + SHORT, "--live-wait waits for a viewer (none here) and the run is paced to the wall clock: the same "
+                         "live server, unpaced, 2 s, on a port no test uses; tests/test_live_view.py watches it"),
+    ("docs/sweeps.md", "pip install 'platoon-cosim[dask]'"): Skip("needs the network (the extra is checked below)"),
+    ("docs/sweeps.md", "dask scheduler &"): Skip("Dask's own command; tests/test_sweep.py runs a real Dask cluster"),
+    ("docs/sweeps.md", "dask worker tcp://127.0.0.1:8786 --nworkers 2 --nthreads 1 &"): Skip("as dask scheduler"),
+    ("docs/sweeps.md", "platoon sweep configs/sweeps/offset_map.toml --out runs/offset_map --scheduler tcp://127.0.0.1:8786"):
+        Parse("needs the Dask cluster of the two lines above"),
+}
+
+# Files a block needs beside the tree, made in its copy before it runs (each says why)
+def _sweep_cut_short(root: Path) -> None:
+    """The sweeps as written take 1.5 min (50 runs of 100 s): in the copy, the same file cut to 8 runs of 5 s."""
+    path = root / "configs" / "sweeps" / "offset_map.toml"
+    text = (REPO / path.relative_to(root)).read_text()  # the file as shipped (both sweep blocks call this)
+    text = text.replace('"simulation.trace_every" = 10', '"simulation.trace_every" = 10\n"simulation.stop_time" = 5.0')
+    text = text.replace('"platoon.count" = [1, 2, 4, 6, 8]', '"platoon.count" = [1, 2]')
+    text = text.replace('"platoon.d_star" = [12.5, 25.0, 50.0, 75.0, 95.0]', '"platoon.d_star" = [25.0, 75.0]')
+    assert text.count("5.0") >= 1 and '[1, 2]' in text and '[25.0, 75.0]' in text, "offset_map.toml changed: update this"
+    path.write_text(text)
+
+
+def _broken_traces(root: Path) -> None:
+    """What `platoon trace recover` is for: a killed run's file (a finished trace cut at 60 %: complete
+    chunks, no footer, as SIGKILL leaves it) and a damaged one (4 KiB zeroed in the middle)."""
+    runs = root / "runs"
+    runs.mkdir(exist_ok=True)
+    full = runs / "full.mcap"
+    made = subprocess.run(["platoon", "run", "configs/paper/platoon.toml", "--set", "simulation.stop_time=20", "-q",
+                           "--trace-writer", "inline", "--out", str(full)], cwd=root, env=_env(root),
+                          capture_output=True, text=True, timeout=120)
+    assert made.returncode == 0, made.stderr
+    data = full.read_bytes()
+    (runs / "killed.mcap.partial").write_bytes(data[: len(data) * 6 // 10])
+    damaged = bytearray(data)
+    middle = int(len(data) * 0.45)
+    damaged[middle:middle + 4096] = bytes(4096)
+    (runs / "damaged.mcap").write_bytes(bytes(damaged))
+
+
+SETUP = {("docs/reproduction.md", 54): _sweep_cut_short, ("docs/sweeps.md", 7): _sweep_cut_short,
+         ("docs/trace-format.md", 216): _broken_traces}
+
+
+@dataclass
+class Block:
+    doc: str  # relative to the repository
+    line: int  # of the opening fence
+    commands: list[str]  # continuation lines joined (backslash-newline kept), comment lines dropped
+    after: str | None  # the next fenced python block of the same doc (a script a command runs by name)
+
+
+def doc_blocks() -> list[Block]:
+    found = []
+    fence = re.compile(r"^```(\w*)[^\n]*\n(.*?)^```", re.MULTILINE | re.DOTALL)
+    for path in DOCS:
+        text = path.read_text()
+        matches = list(fence.finditer(text))
+        for index, match in enumerate(matches):
+            if match.group(1) not in SHELLS:
+                continue
+            after = next((m.group(2) for m in matches[index + 1:] if m.group(1) == "python"), None)
+            commands, pending = [], ""
+            for raw in match.group(2).splitlines():
+                if not pending and (not raw.strip() or raw.lstrip().startswith("#")):
+                    continue
+                pending += raw
+                if raw.endswith("\\"):
+                    pending += "\n"
+                    continue
+                commands.append(pending)
+                pending = ""
+            found.append(Block(str(path.relative_to(REPO)), text[:match.start()].count("\n") + 1, commands, after))
+    return found
+
+
+def bare(command: str) -> str:
+    """The command without a trailing comment, continuation lines joined by one space (the table's key)."""
+    text = re.sub(r"\s*\\\n\s*", " ", command)
+    return re.sub(r"\s+#[^'\"]*$", "", text).strip()
+
+
+BLOCKS = doc_blocks()
+
+
+def test_the_table_names_only_commands_the_docs_hold() -> None:
+    """A stale entry (the doc changed) must be noticed, not silently run nothing."""
+    written = {(block.doc, bare(command)) for block in BLOCKS for command in block.commands}
+    assert len(BLOCKS) >= 15
+    for key in SPECIAL:
+        assert key in written, f"SPECIAL names a command no longer in the docs: {key}"
+    for doc, line in SETUP:
+        assert any(block.doc == doc and block.line == line for block in BLOCKS), f"SETUP: no block at {doc}:{line}"
+
+
+def _env(root: Path) -> dict[str, str]:
+    env = {**os.environ, "PYTHONPATH": str(root), "PATH": f"{VENV_BIN}{os.pathsep}{os.environ.get('PATH', '')}",
+           "COLUMNS": "100", "NO_COLOR": "1", "TERM": "dumb"}
+    env.pop("FORCE_COLOR", None)
+    env.pop("VIRTUAL_ENV", None)
+    return env
+
+
+@pytest.fixture(scope="module")
+def tree(tmp_path_factory: pytest.TempPathFactory, fmu_dir: Path) -> Path:
+    """A copy of this working tree with the built FMUs (no .git, runs or caches) and ``.venv`` linked."""
+    root = tmp_path_factory.mktemp("docs") / "repo"
+    skip = shutil.ignore_patterns(".git", "runs", "build", "__pycache__", ".venv", "*.mcap", "*.mcap.partial",
+                                  ".pytest_cache", "node_modules")
+    shutil.copytree(REPO, root, ignore=skip, symlinks=True)
+    shutil.copytree(fmu_dir, root / "build" / "fmus")
+    (root / ".venv").symlink_to(VENV_BIN.parent)
+    return root
+
+
+def script_of(block: Block, scratch: Path) -> tuple[str, list[str]]:
+    """The block as a bash script (each command's status checked) and the commands only parsed."""
+    lines = ["trap 'kill $(jobs -p) 2>/dev/null; wait' EXIT"]  # no emulator outlives its block
+    parsed = []
+    for command in block.commands:
+        how = SPECIAL.get((block.doc, bare(command)))
+        if isinstance(how, Skip):
+            continue
+        if isinstance(how, Parse):
+            parsed.append(bare(command))
+            continue
+        text = how.command if isinstance(how, Shorten) else command
+        text = text.replace("/tmp/", f"{scratch}/")
+        lines.append(text)
+        if not bare(text).endswith("&"):
+            expected = how.status if isinstance(how, Expect) else 0
+            quoted = shlex.quote(bare(text))
+            lines.append(f'status=$?; [ "$status" -eq {expected} ] || {{ echo "doc command exited $status, '
+                         f'expected {expected}: "{quoted} >&2; exit 99; }}')
+    return "\n".join(lines) + "\n", parsed
+
+
+def parse_only(command: str, root: Path) -> None:
+    """``--help`` of exactly the documented subcommand runs, and its documented arguments parse."""
+    import typer
+
+    from orchestrator.cli import app
+
+    words = shlex.split(command)
+    if words[-1] == "&":
+        words = words[:-1]
+    assert Path(words[0]).name == "platoon", command
+    group, path, rest = typer.main.get_command(app), [], words[1:]
+    while rest and rest[0] in getattr(group, "commands", {}):
+        group = group.commands[rest[0]]
+        path.append(rest.pop(0))
+    helped = subprocess.run(["platoon", *path, "--help"], cwd=root, env=_env(root), capture_output=True, text=True,
+                            timeout=60)
+    assert helped.returncode == 0 and "Traceback" not in helped.stderr, helped.stderr
+    context = group.make_context(" ".join(["platoon", *path]), list(rest))  # raises on an unknown option or a bad value
+    assert context.params, command
+    if isinstance(context.params.get("config"), Path):  # and the config with its --set overrides validates
+        from orchestrator.config import load_config
+
+        load_config(root / context.params["config"], context.params.get("overrides") or [])
+
+
+@pytest.mark.parametrize("block", BLOCKS, ids=[f"{b.doc}:{b.line}" for b in BLOCKS])
+def test_doc_block_runs(block: Block, tree: Path, tmp_path: Path) -> None:
+    setup = SETUP.get((block.doc, block.line))
+    if setup is not None:
+        setup(tree)
+    if block.after is not None:
+        for name in re.findall(r"python (\w+\.py)", "\n".join(block.commands)):
+            (tree / name).write_text(block.after)  # the script the doc gives right after the commands
+    if any("unzip" in c or "cc " in c for c in block.commands) and not (shutil.which("cc") and shutil.which("unzip")):
+        pytest.skip("needs a C compiler and unzip (docs/fmus.md: a plain C host)")
+    script, parsed = script_of(block, tmp_path)
+    for command in parsed:
+        parse_only(command, tree)
+    started = subprocess.Popen(["bash", "-c", script], cwd=tree, env=_env(tree), stdout=subprocess.PIPE,
+                               stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        output, _ = started.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        os.killpg(started.pid, signal.SIGKILL)
+        output, _ = started.communicate()
+        pytest.fail(f"{block.doc}:{block.line} took more than 120 s:\n{output[-3000:]}")
+    assert started.returncode == 0, f"{block.doc}:{block.line}:\n{output[-4000:]}"
+    assert "Traceback" not in output, output[-4000:]
+    for command in block.commands:
+        how = SPECIAL.get((block.doc, bare(command)))
+        if isinstance(how, Expect):
+            assert how.text in output, output[-4000:]
+    unannounced = [line for line in output.splitlines() if line.startswith("warning:")]
+    assert not unannounced, f"{block.doc}:{block.line} warns where its doc does not say so: {unannounced}"
+
+
+def test_the_dask_extra_the_docs_install_exists() -> None:
+    """docs/sweeps.md installs ``platoon-cosim[dask]``: the extra must be declared."""
+    import tomllib
+
+    extras = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    assert "dask" in extras
+
+
+def test_ctrl_c_exit_status_is_what_the_docs_say(tmp_path: Path) -> None:
+    """A real Ctrl-C (SIGINT to the process) and SIGTERM: the exit status docs/config.md and
+    docs/trace-format.md both give, 128 + the signal number."""
+    config_md = (REPO / "docs" / "config.md").read_text()
+    trace_md = (REPO / "docs" / "trace-format.md").read_text()
+    config_row = next(line for line in config_md.splitlines() if line.startswith("|") and "SIGINT (Ctrl-C)" in line)
+    trace_row = next(line for line in trace_md.splitlines() if line.startswith("| SIGINT (Ctrl-C) or SIGTERM |"))
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        trace = tmp_path / f"{signum.name}.mcap"
+        run = subprocess.Popen(["platoon", "run", str(REPO / "configs/paper/platoon.toml"), "--allow-long", "-q",
+                                "--set", "simulation.stop_time=100000", "--out", str(trace)], cwd=tmp_path,
+                               env=_env(REPO), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        aside = trace.with_name(trace.name + ".partial")
+        deadline = time.monotonic() + 60
+        while not (aside.is_file() and aside.stat().st_size > 0) and run.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        run.send_signal(signum)
+        _, stderr = run.communicate(timeout=60)
+        assert run.returncode == 128 + signum, stderr
+        assert trace.is_file()  # finalized up to the stop
+        code = str(run.returncode)
+        assert code in config_row.split("|")[1], config_row
+        assert f"{code} ({signum.name})" in trace_row, trace_row
