@@ -669,13 +669,17 @@ def bench_wholerun(
     rounds: Rounds = 5,
     out_dir: OutDir = Path("runs/bench"),
     quiet: Quiet = False,
+    fmus: Annotated[str, typer.Option("--fmus", metavar="<python|native>", help="the FMUs every variant steps: python (pythonfmu, the system the floors were set on) or native (the C twins)")] = "python",
 ) -> None:
     """Whole `platoon run` processes against libcosim running the same system from an SSP (0 threads)."""
     from .bench import wholerun as suite
+    from .fmu_kinds import FMU_KINDS
 
+    if fmus not in FMU_KINDS:
+        _fail(2, f"--fmus {fmus!r}: expected one of {', '.join(FMU_KINDS)}")
     kinds, counts = _csv("--variants", variants, suite.VARIANTS), _counts(n)
-    _bench("wholerun", lambda progress: suite.run(counts, steps, rounds, kinds, progress=progress), suite.markdown,
-           out_dir, quiet)
+    _bench("wholerun", lambda progress: suite.run(counts, steps, rounds, kinds, progress=progress, fmus=fmus),
+           suite.markdown, out_dir, quiet)
 
 
 @bench_app.command("instances")

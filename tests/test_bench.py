@@ -104,6 +104,17 @@ def test_wholerun_times_our_runs_and_libcosim_on_the_same_system(tmp_path: Path,
     assert "platoon / libcosim" in result.stdout and "(floor 1.15)" in result.stdout
 
 
+def test_wholerun_compares_the_same_fmus_on_both_sides(tmp_path: Path, fmu_dir: Path) -> None:
+    """Our run and libcosim's step the same kind of FMU: a native-FMU run against libcosim stepping the
+    pythonfmu ones would be no comparison."""
+    result = platoon("bench", "wholerun", "--fmus", "native", "--variants", "platoon,libcosim", "--n", "2", "--steps",
+                     "20", "--rounds", "1", "--out-dir", tmp_path, cwd=REPO)
+    data = written(result, tmp_path, "wholerun")
+    assert data["fmus"] == "native" and "native FMUs in every variant" in result.stdout
+    ssp_side = platoon("bench", "wholerun", "--fmus", "java", "--out-dir", tmp_path, cwd=REPO)
+    assert ssp_side.returncode == 2 and "--fmus" in ssp_side.stderr
+
+
 def test_flatness_times_both_orders(tmp_path: Path, fmu_dir: Path) -> None:
     result = platoon("bench", "flatness", "--n", "1,5", "--steps", "3", "--rounds", "1", "--repeats", "1",
                      "--out-dir", tmp_path, cwd=REPO)

@@ -54,13 +54,14 @@ def _overrides(n: int, steps: int, step: float) -> list[str]:
     return [f"platoon.count={n}", f"simulation.stop_time={steps * step!r}"]
 
 
-def write_system(n: int, steps: int, step: float, folder: Path, fmu_dir: Path) -> Path:
+def write_system(n: int, steps: int, step: float, folder: Path, fmu_dir: Path, fmus: str = "python") -> Path:
     """The SSD of the config's system with ``n`` vehicles and ``steps`` steps (libcosim, 0 worker threads):
     the package of ``platoon export-ssp``, unpacked into ``folder`` (libcosim then loads the .ssd as it
     did before the exporter existed, with no unzipping in the timed process)."""
     import zipfile
 
     from orchestrator.config import load_config
+    from orchestrator.fmu_kinds import fmu_folder
     from orchestrator.scenario import build_scenario
     from orchestrator.ssp import write_ssp
 
@@ -69,18 +70,19 @@ def write_system(n: int, steps: int, step: float, folder: Path, fmu_dir: Path) -
     config, _ = load_config(CONFIG, _overrides(n, steps, step))
     if config.simulation.master != "jacobi":
         raise BenchError(f"{CONFIG}: master {config.simulation.master!r}; libcosim's fixed-step algorithm is Jacobi")
-    package = write_ssp(folder / "platoon.ssp", build_scenario(config), fmu_files(fmu_dir), worker_threads=0)
+    package = write_ssp(folder / "platoon.ssp", build_scenario(config), fmu_files(fmu_folder(fmu_dir, fmus)),
+                        worker_threads=0)
     with zipfile.ZipFile(package) as archive:
         archive.extractall(folder)
     return folder / "SystemStructure.ssd"
 
 
-def measure(variant: str, n: int, steps: int, step: float, ssd: Path, scratch: Path) -> dict[str, Any]:
+def measure(variant: str, n: int, steps: int, step: float, ssd: Path, scratch: Path, fmus: str = "python") -> dict[str, Any]:
     trace = scratch / "trace.mcap"
     trace.unlink(missing_ok=True)
     if variant.startswith("platoon"):
         sets = [arg for override in _overrides(n, steps, step) for arg in ("--set", override)]
-        command = [*platoon_command(), "run", str(CONFIG), "--out", str(trace), *sets]
+        command = [*platoon_command(), "run", str(CONFIG), "--out", str(trace), "--fmus", fmus, *sets]
         if variant == "platoon-q":
             command += ["-q", "--trace-every", str(min(SPARSE_TRACE, steps))]  # at most the run's steps
     else:
@@ -92,6 +94,8 @@ def measure(variant: str, n: int, steps: int, step: float, ssd: Path, scratch: P
     if variant.startswith("platoon"):
         if not trace.is_file() or (variant == "platoon") != ("max |path error|" in stdout):
             raise BenchError(f"{' '.join(command)}: no trace, or the summary table {'missing' if variant == 'platoon' else 'printed'}")
+        if variant == "platoon" and f"{fmus} FMUs" not in stdout:  # the summary's title names the FMUs stepped
+            raise BenchError(f"{' '.join(command)}: the run did not step the {fmus} FMUs:\n{stdout[-2000:]}")
     else:
         line = next((line for line in stdout.splitlines() if line.startswith(RESULT)), None)
         if line is None or json.loads(line[len(RESULT):])["time_ns"] != round(steps * step * 1e9):
@@ -100,7 +104,10 @@ def measure(variant: str, n: int, steps: int, step: float, ssd: Path, scratch: P
 
 
 def run(ns: Sequence[int] = (16,), steps: int = 10_000, rounds: int = 5, variants: Sequence[str] = VARIANTS,
-        fmu_dir: Path = DEFAULT_OUT, progress: Progress | None = None) -> dict[str, Any]:
+        fmu_dir: Path = DEFAULT_OUT, progress: Progress | None = None, fmus: str = "python") -> dict[str, Any]:
+    """Every variant steps the same FMUs, ``fmus`` ("python": the pythonfmu FMUs, the system the issue's
+    floors were set on; "native": the C twins), ours through ``platoon run --fmus`` and libcosim's
+    from an SSP of the same files."""
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         raise BenchUsageError(f"unknown variant(s) {', '.join(unknown)}; expected some of {', '.join(VARIANTS)}")
@@ -115,13 +122,13 @@ def run(ns: Sequence[int] = (16,), steps: int = 10_000, rounds: int = 5, variant
     step = load_config(CONFIG, [])[0].simulation.step
     started = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench-wholerun-") as scratch:
-        systems = {n: write_system(n, steps, step, Path(scratch) / f"ssp-{n}", fmu_dir) for n in ns}
+        systems = {n: write_system(n, steps, step, Path(scratch) / f"ssp-{n}", fmu_dir, fmus) for n in ns}
         # one untimed run of each kind first: FMUs built and extracted, files in the page cache
-        warm = write_system(ns[0], 10, step, Path(scratch) / "warm", fmu_dir)
+        warm = write_system(ns[0], 10, step, Path(scratch) / "warm", fmu_dir, fmus)
         for variant in ("platoon", "libcosim"):
-            measure(variant, ns[0], 10, step, warm, Path(scratch))
+            measure(variant, ns[0], 10, step, warm, Path(scratch), fmus)
         samples = interleaved(rounds, list(ns), list(variants),
-                              lambda n, variant: measure(variant, n, steps, step, systems[n], Path(scratch)),
+                              lambda n, variant: measure(variant, n, steps, step, systems[n], Path(scratch), fmus),
                               lambda s: f"N={s['n']:<4} {s['variant']:<20} {s['wall_s']:7.2f} s  {s['max_rss_kib'] / 1024:6.0f} MiB",
                               progress)
     medians = {n: {v: {key: statistics.median(s[key] for s in samples if s["n"] == n and s["variant"] == v)
@@ -134,6 +141,7 @@ def run(ns: Sequence[int] = (16,), steps: int = 10_000, rounds: int = 5, variant
             if top in variants and bottom in variants:
                 ratios.setdefault(n, {})[name] = statistics.median(by_round[r, top] / by_round[r, bottom] for r in range(rounds))
     return {"config": str(CONFIG), "ns": list(ns), "steps": steps, "rounds": rounds, "variants": list(variants),
+            "fmus": fmus,
             "cli": platoon_command(), "medians": medians, "ratios": ratios,
             "floors": {name: floor for name, _, _, floor in FLOORS}, "samples": samples,
             "seconds": time.perf_counter() - started}
@@ -147,6 +155,7 @@ def markdown(result: dict[str, Any]) -> str:
     floors = result["floors"]
     ratio_rows = [[n, *(f"{result['ratios'][n][k]:.2f}" + (" (floor %.2f)" % floors[k] if k in floors else "")
                         for k in names)] for n in result["ns"]]
-    return (f"whole-process wall time in s (peak RSS in MiB), median of {result['rounds']} interleaved rounds, "
+    return (f"{result.get('fmus', 'python')} FMUs in every variant; "
+            f"whole-process wall time in s (peak RSS in MiB), median of {result['rounds']} interleaved rounds, "
             f"{result['steps']} steps\n\n" + markdown_table(["N", *variants], rows)
             + "\n\nratios, median of the per-round ratios\n\n" + markdown_table(["N", *names], ratio_rows))
