@@ -166,7 +166,7 @@ def _time_split(entered: float | None, loaded: float | None, imported: float | N
         return None if start is None or end is None else end - start
 
     run_total = sum(timings.values())
-    rest = None if now is None or imported is None else now - imported - run_total
+    rest = None if now is None or imported is None else max(0.0, now - imported - run_total)  # clock reads a few µs apart: never "-0.00 s"
     phases = ", ".join(f"{name} {timings[name]:.2f} s" for name in ("setup", "initialize", "steps", "finish")
                        if name in timings)
     return "\n".join([
