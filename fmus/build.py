@@ -18,6 +18,7 @@ import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 from xml.etree import ElementTree
 
 # Imported here, first, on purpose: our FMUs run in the host's interpreter, and if one runs before
@@ -204,14 +205,23 @@ def write_fmu(target: Path, entries: dict[str, bytes]) -> Path:
     return target
 
 
-def build_fmus(out_dir: Path = DEFAULT_OUT, force: bool = False, names: tuple[str, ...] = FMU_NAMES) -> list[BuiltFmu]:
-    """Build FMUs ``names`` into ``out_dir`` unless an up-to-date one (same GUID) is already there."""
+def build_stale(out_dir: Path, force: bool, names: tuple[str, ...], guid_of: Callable[[str], str],
+                is_current: Callable[[Path, str, str], bool], build: Callable[[str, str, Path], Path]) -> list[BuiltFmu]:
+    """FMUs ``names`` in ``out_dir``, each built by ``build(name, guid, out_dir)`` unless a current one
+    (``is_current(path, name, guid)`` for ``guid_of(name)``) is there already, or always with ``force``.
+    The pythonfmu, native and FMI 3.0 builders differ only in these three functions."""
     built = []
     for name in names:
-        guid = expected_guid(name)
+        guid = guid_of(name)
         path = Path(out_dir) / f"{name}.fmu"
-        if not force and path.exists() and is_complete(path, name, guid):
+        if not force and path.exists() and is_current(path, name, guid):
             built.append(BuiltFmu(name, path, guid, rebuilt=False))
-            continue
-        built.append(BuiltFmu(name, _build_one(name, Path(out_dir), guid), guid, rebuilt=True))
+        else:
+            built.append(BuiltFmu(name, build(name, guid, Path(out_dir)), guid, rebuilt=True))
     return built
+
+
+def build_fmus(out_dir: Path = DEFAULT_OUT, force: bool = False, names: tuple[str, ...] = FMU_NAMES) -> list[BuiltFmu]:
+    """Build FMUs ``names`` into ``out_dir`` unless an up-to-date one (same GUID) is already there."""
+    return build_stale(out_dir, force, names, expected_guid, is_complete,
+                       lambda name, guid, folder: _build_one(name, folder, guid))

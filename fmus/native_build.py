@@ -30,13 +30,12 @@ import shutil
 import subprocess
 import tempfile
 import zipfile
-from dataclasses import dataclass
 from pathlib import Path
 from xml.etree import ElementTree
 
 import fmus
-from fmus.build import (DEFAULT_OUT, FMU_NAMES, PACKAGE_DIR, BuildError, _slave_instance, archive_is_whole,
-                        bundled_sources, fmi_platform, write_fmu)
+from fmus.build import (DEFAULT_OUT, FMU_NAMES, PACKAGE_DIR, BuildError, BuiltFmu, _slave_instance,
+                        archive_is_whole, build_stale, bundled_sources, fmi_platform, write_fmu)
 from fmus.modeldescription import CAPABILITIES, guid_for
 
 NATIVE_SOURCES = PACKAGE_DIR / "native"
@@ -62,14 +61,6 @@ host but the C library and its math library: no Python, no environment variables
 
 class NoCompiler(BuildError):
     """No C compiler on this machine: the native FMUs cannot be built (the pythonfmu ones still can)."""
-
-
-@dataclass(frozen=True)
-class BuiltNativeFmu:
-    name: str
-    path: Path
-    guid: str
-    rebuilt: bool
 
 
 def compiler() -> str:
@@ -208,21 +199,12 @@ def expected_guid(name: str) -> str:
 
 
 def build_native_fmus(out_dir: Path = NATIVE_OUT, force: bool = False,
-                      names: tuple[str, ...] = FMU_NAMES) -> list[BuiltNativeFmu]:
+                      names: tuple[str, ...] = FMU_NAMES) -> list[BuiltFmu]:
     """Build the native FMUs ``names`` into ``out_dir`` unless an up-to-date one is already there.
     Raises NoCompiler (one line) when one must be built and there is no C compiler, BuildError when
     compiling fails. Up-to-date FMUs need no compiler (nor pythonfmu: nothing is imported to check)."""
-    built = []
-    for name in names:
-        guid = expected_guid(name)
-        path = Path(out_dir) / f"{name}.fmu"
-        if not force and path.exists() and is_complete(path, name, guid):
-            built.append(BuiltNativeFmu(name, path, guid, rebuilt=False))
-            continue
-        cc = compiler()
-        built.append(BuiltNativeFmu(name, _build_one(name, _slave_instance(name), guid, cc, Path(out_dir)), guid,
-                                    rebuilt=True))
-    return built
+    return build_stale(out_dir, force, names, expected_guid, is_complete,
+                       lambda name, guid, folder: _build_one(name, _slave_instance(name), guid, compiler(), folder))
 
 
 def model_description_of(path: Path) -> ElementTree.Element:

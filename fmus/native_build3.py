@@ -27,10 +27,11 @@ from xml.dom.minidom import parseString
 from xml.etree.ElementTree import Element, SubElement, tostring
 
 import fmus
-from fmus.build import DEFAULT_OUT, FMU_NAMES, PACKAGE_DIR, _slave_instance, archive_is_whole, write_fmu
+from fmus.build import (DEFAULT_OUT, FMU_NAMES, PACKAGE_DIR, BuiltFmu, _slave_instance, archive_is_whole, build_stale,
+                        write_fmu)
 from fmus.documentation import documentation_html
 from fmus.modeldescription3 import TIME_VALUE_REFERENCE, instantiation_token_for, model_description3
-from fmus.native_build import (CFLAGS, GENERATED_HEADER, HEADERS, LIBS, MODEL_SOURCE, NATIVE_SOURCES, BuiltNativeFmu,
+from fmus.native_build import (CFLAGS, GENERATED_HEADER, HEADERS, LIBS, MODEL_SOURCE, NATIVE_SOURCES,
                                compile_binary, compiler, fmi_headers, variables_header)
 
 FMI3_OUT = DEFAULT_OUT / "fmi3"
@@ -135,19 +136,10 @@ def _build_one(name: str, slave, token: str, cc: str, out_dir: Path) -> Path:
 
 
 def build_fmi3_fmus(out_dir: Path = FMI3_OUT, force: bool = False,
-                    names: tuple[str, ...] = FMU_NAMES) -> list[BuiltNativeFmu]:
+                    names: tuple[str, ...] = FMU_NAMES) -> list[BuiltFmu]:
     """Build the FMI 3.0 FMUs ``names`` into ``out_dir`` unless an up-to-date one is already there (each
-    BuiltNativeFmu's ``guid`` is the FMU's instantiationToken).
+    BuiltFmu's ``guid`` is the FMU's instantiationToken).
     Raises NoCompiler (one line) when one must be built and there is no C compiler, BuildError when
     compiling fails."""
-    built = []
-    for name in names:
-        slave = _slave_instance(name)
-        token = instantiation_token_for(_digest(name, slave), f"native:{name}")
-        path = Path(out_dir) / f"{name}.fmu"
-        if not force and path.exists() and is_complete3(path, name, token):
-            built.append(BuiltNativeFmu(name, path, token, rebuilt=False))
-            continue
-        built.append(BuiltNativeFmu(name, _build_one(name, slave, token, compiler(), Path(out_dir)), token,
-                                    rebuilt=True))
-    return built
+    return build_stale(out_dir, force, names, expected_token, is_complete3,
+                       lambda name, token, folder: _build_one(name, _slave_instance(name), token, compiler(), folder))
