@@ -112,12 +112,20 @@ void fw_text_string_repr(FwText *out, const char *value)
 
 /* --- parameter checks ------------------------------------------------------------------------------ */
 
-int fw_choice(const Instance *instance, int vr, const char *const *allowed, int count, FwText *reasons, int *errors)
+int fw_chosen(const Instance *instance, int vr, const char *const *allowed, int count)
 {
     const char *value = instance->strings[vr] ? instance->strings[vr] : "";
     for (int i = 0; i < count; ++i) {
         if (strcmp(value, allowed[i]) == 0) return i;
     }
+    return -1;
+}
+
+int fw_choice(const Instance *instance, int vr, const char *const *allowed, int count, FwText *reasons, int *errors)
+{
+    int index = fw_chosen(instance, vr, allowed, count);
+    if (index >= 0) return index;
+    const char *value = instance->strings[vr] ? instance->strings[vr] : "";
     fw_text_append(reasons, "%s%s = ", (*errors)++ ? "; " : "", instance->model->variables[vr].name);
     fw_text_string_repr(reasons, value);
     fw_text_append(reasons, ": expected one of ");

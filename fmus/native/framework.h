@@ -162,6 +162,8 @@ FwStatus fw_deserialize(Instance *instance, const unsigned char *bytes, size_t s
 
 /* --- parameter checks (fmus.model.factory) --------------------------------------------------------- */
 
+/* The index of String variable vr's value among allowed, or -1 (the parameters are checked already). */
+int fw_chosen(const Instance *instance, int vr, const char *const *allowed, int count);
 /* fmus.model.factory._choice: the index of String variable vr's value among allowed, or -1 with
  * "name = 'value': expected one of a, b" added to reasons ("; "-separated, counted in *errors). */
 int fw_choice(const Instance *instance, int vr, const char *const *allowed, int count, FwText *reasons, int *errors);

@@ -110,7 +110,8 @@ static inline void integrate(Derivative f, void *context, double t, double *y, i
 
 /* --- fmus.model.coupling ------------------------------------------------------------------------ */
 
-typedef enum { COUPLING_HOLD, COUPLING_EXTRAPOLATE } Coupling; /* fmus.model.coupling.COUPLING_MODES */
+typedef enum { COUPLING_HOLD, COUPLING_EXTRAPOLATE } Coupling;
+static const char *const COUPLING_MODES[] = {"hold", "extrapolate"}; /* fmus.model.coupling.COUPLING_MODES */
 
 #define ARC_SERIES_LIMIT 1e-3 /* fmus.model.coupling._SERIES_LIMIT */
 

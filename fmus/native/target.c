@@ -29,7 +29,6 @@ static const TargetConfig *config_of(const Instance *instance) { return (const T
 /* --- fmus.model.factory.target_parameter_errors --------------------------------------------------- */
 
 static const char *const PATH_KINDS[] = {"circle", "line"};
-static const char *const COUPLING_MODES[] = {"hold", "extrapolate"};
 
 static int target_parameter_errors(const Instance *instance, FwText *reasons)
 {
@@ -62,11 +61,8 @@ static void target_configure(Instance *instance)
 {
     TargetConfig *config = (TargetConfig *)instance->config;
     const double *r = instance->reals;
-    int unused = 0;
-    FwText ignored;
-    fw_text_clear(&ignored);
-    config->kind = fw_choice(instance, VR_PATH_KIND, PATH_KINDS, 2, &ignored, &unused) == 1 ? PATH_LINE : PATH_CIRCLE;
-    config->coupling = fw_choice(instance, VR_COUPLING, COUPLING_MODES, 2, &ignored, &unused) == 1 ? COUPLING_EXTRAPOLATE
+    config->kind = fw_chosen(instance, VR_PATH_KIND, PATH_KINDS, 2) == 1 ? PATH_LINE : PATH_CIRCLE;
+    config->coupling = fw_chosen(instance, VR_COUPLING, COUPLING_MODES, 2) == 1 ? COUPLING_EXTRAPOLATE
                                                                                                  : COUPLING_HOLD;
     config->radius = r[VR_PATH_RADIUS];
     config->x0 = r[VR_PATH_X0];

@@ -33,7 +33,6 @@ static const VehicleConfig *config_of(const Instance *instance) { return (const 
 
 static const char *const LAWS[] = {"regular", "sine"};
 static const char *const DYNAMICS_KINDS[] = {"kinematic", "m3pi"};
-static const char *const COUPLING_MODES[] = {"hold", "extrapolate"};
 
 static int vehicle_parameter_errors(const Instance *instance, FwText *reasons)
 {
@@ -52,13 +51,10 @@ static void vehicle_configure(Instance *instance)
 {
     VehicleConfig *config = (VehicleConfig *)instance->config;
     const double *r = instance->reals;
-    int unused = 0;
-    FwText ignored;
-    fw_text_clear(&ignored);
-    config->law = fw_choice(instance, VR_LAW, LAWS, 2, &ignored, &unused) == 1 ? LAW_SINE : LAW_REGULAR;
-    config->dynamics = fw_choice(instance, VR_DYNAMICS, DYNAMICS_KINDS, 2, &ignored, &unused) == 1 ? DYNAMICS_M3PI
+    config->law = fw_chosen(instance, VR_LAW, LAWS, 2) == 1 ? LAW_SINE : LAW_REGULAR;
+    config->dynamics = fw_chosen(instance, VR_DYNAMICS, DYNAMICS_KINDS, 2) == 1 ? DYNAMICS_M3PI
                                                                                                : DYNAMICS_KINEMATIC;
-    config->coupling = fw_choice(instance, VR_COUPLING, COUPLING_MODES, 2, &ignored, &unused) == 1 ? COUPLING_EXTRAPOLATE
+    config->coupling = fw_chosen(instance, VR_COUPLING, COUPLING_MODES, 2) == 1 ? COUPLING_EXTRAPOLATE
                                                                                                  : COUPLING_HOLD;
     config->is_last = instance->integers[VR_IS_LAST] != 0;
     config->d_star = r[VR_D_STAR];
