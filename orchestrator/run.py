@@ -411,11 +411,10 @@ def run_scenario(
             if reporter is not None:  # stamped at the last communication point the master reached
                 live_summary = reporter.finish(master.time if master is not None else 0.0)
             if writer is not None:
-                # a signal may end the wait for the worker (behind a live view's tee: `traced`)
-                stop.finishing = isinstance(getattr(writer, "traced", writer), TraceWorker)
+                worker = getattr(writer, "traced", writer)  # behind a live view's tee
+                stop.finishing = isinstance(worker, TraceWorker)  # a signal may end the wait for the worker
                 try:
-                    worker = getattr(writer, "traced", writer)
-                    if stop.forced and isinstance(worker, TraceWorker) and worker.stalled(STALLED_WRITER_GRACE):
+                    if stop.finishing and stop.forced and worker.stalled(STALLED_WRITER_GRACE):
                         # The user insisted (a second signal, which may have been spent breaking a send into
                         # the full pipe of a worker that takes nothing: the native FMUs fill it in a moment)
                         # and the worker still takes nothing: finalizing would block on that pipe again.
