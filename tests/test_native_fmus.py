@@ -217,6 +217,10 @@ def test_platoon_through_our_master_equals_the_python_fmus(fmu_dir, native_fmu_d
     assert len(native) == len(python) == 2001
     worst = max(abs(a - b) for n, p in zip(native, python) for cn, cp in zip(n, p) for a, b in zip(cn, cp))
     assert worst <= TOLERANCE
+    # Stronger: the same doubles. In a platoon each step starts at its inputs' sample instant and the
+    # outputs follow a step, the two places where the C step takes exact shortcuts the Python model
+    # does not (science.h's arc_extrapolate at dt = 0, vehicle.c's step memo); this holds them exact.
+    assert worst == 0.0
     # the pulse reached vehicle 2: its lateral acceleration (output 6) jumps by about 0.5 m/s^2 at 5 s
     assert scenario.components[2].name == "vehicle2"
     assert abs(native[501][2][6] - native[500][2][6] - 0.5) < 0.1
@@ -268,7 +272,8 @@ def sys_executable() -> str:
 
 @pytest.fixture(scope="module")
 def c_helpers(tmp_path_factory):
-    """fmus/native/pymath.h's py_hypot and framework.c's fw_text_float, compiled as the FMUs are."""
+    """fmus/native/pymath.h's py_hypot, science.h's wrap_angle and arc_extrapolate, and framework.c's
+    fw_text_float, compiled as the FMUs are."""
     import ctypes
 
     from fmus.native_build import CFLAGS, NATIVE_SOURCES, NoCompiler, compiler
@@ -279,8 +284,11 @@ def c_helpers(tmp_path_factory):
         pytest.skip(str(error))
     folder = tmp_path_factory.mktemp("c_helpers")
     (folder / "probe.c").write_text(
-        '#include "pymath.h"\n#include "framework.h"\n#include <string.h>\n'
+        '#include "science.h"\n#include "framework.h"\n#include <string.h>\n'
         "double probe_hypot(double x, double y) { return py_hypot(x, y); }\n"
+        "double probe_wrap(double angle) { return wrap_angle(angle); }\n"
+        "void probe_arc(double x, double y, double heading, double speed, double speed_rate, double turn_rate,\n"
+        "               double dt, double *out) { arc_extrapolate(x, y, heading, speed, speed_rate, turn_rate, dt, out); }\n"
         "void probe_repr(double x, char *out) { FwText t; fw_text_clear(&t); fw_text_float(&t, x); strcpy(out, t.text); }\n")
     library = folder / "probe.so"
     subprocess.run([cc, *[flag for flag in CFLAGS if flag != "-fvisibility=hidden"], f"-I{NATIVE_SOURCES}",
@@ -290,6 +298,9 @@ def c_helpers(tmp_path_factory):
     probe.probe_hypot.restype = ctypes.c_double
     probe.probe_hypot.argtypes = [ctypes.c_double, ctypes.c_double]
     probe.probe_repr.argtypes = [ctypes.c_double, ctypes.c_char_p]
+    probe.probe_wrap.restype = ctypes.c_double
+    probe.probe_wrap.argtypes = [ctypes.c_double]
+    probe.probe_arc.argtypes = [ctypes.c_double] * 7 + [ctypes.POINTER(ctypes.c_double)]
     return probe
 
 
@@ -309,6 +320,63 @@ def test_py_hypot_is_pythons_math_hypot_to_the_last_bit(c_helpers):
     wrong = [(x, y) for x, y in pairs
              if not (c_helpers.probe_hypot(x, y) == math.hypot(x, y)
                      or math.isnan(c_helpers.probe_hypot(x, y)) and math.isnan(math.hypot(x, y)))]
+    assert wrong == []
+
+
+def _same_bits(a: float, b: float) -> bool:
+    """Equal as doubles, the sign of a zero included (NaNs equal each other)."""
+    import struct
+
+    return struct.pack("<d", a) == struct.pack("<d", b) or (a != a and b != b)
+
+
+def test_wrap_angle_skips_fmod_only_where_fmod_is_the_identity(c_helpers):
+    """The C wrap_angle calls fmod only for angles of a turn or more (fmod(x, 2 pi) is x itself below
+    that, exactly): the same doubles as fmus.model.angles.wrap_angle, signed zeros included, on both
+    sides of every boundary and over many turns."""
+    import math
+    import random
+
+    from fmus.model.angles import TWO_PI, wrap_angle
+
+    generator = random.Random(7)
+    angles = [generator.uniform(-1, 1) * 10.0 ** generator.uniform(-6, 4) for _ in range(50_000)]
+    for edge in (TWO_PI, math.pi, 0.0, 3 * math.pi, 1e300):
+        for value in (edge, math.nextafter(edge, 0.0), math.nextafter(edge, math.inf)):
+            angles += [value, -value]
+    wrong = [a for a in angles if not _same_bits(c_helpers.probe_wrap(a), wrap_angle(a))]
+    assert wrong == []
+
+
+def test_arc_extrapolate_at_the_sample_instant_is_pythons(c_helpers):
+    """At dt = 0 (each step starts where its inputs were sampled) the C arc_extrapolate returns the
+    sample without computing cos and sin: the same doubles as fmus.model.coupling.arc_extrapolate,
+    also for zero coordinates or headings of either sign, a standstill, a curvature that overflows,
+    and around dt = 0."""
+    import ctypes
+    import itertools
+    import random
+
+    from fmus.model.coupling import arc_extrapolate
+
+    generator = random.Random(11)
+    cases = [(x, y, heading, speed, rate, turn_rate, dt)
+             for x, y, heading in itertools.product((0.0, -0.0, 1.5, -2e-300), (0.0, -0.0, 7.0), (0.0, -0.0, 2.0, 40.0))
+             for speed, rate, turn_rate in ((20.0, 0.5, 0.3), (0.0, 1.0, 0.2), (1e-320, 0.0, 1.0), (-3.0, -1.0, -0.1))
+             for dt in (0.0, -0.0, 5e-324, -0.01, 0.005)]
+    cases += [tuple(generator.uniform(-100, 100) for _ in range(6)) + (generator.choice((0.0, 0.01)),)
+              for _ in range(20_000)]
+    out = (ctypes.c_double * 4)()
+    wrong = []
+    for case in cases:
+        try:
+            expected = arc_extrapolate(*case)
+        except ValueError:  # sin(inf) of an overflowed turn, away from dt = 0: refused by either FMU
+            assert case[-1] != 0.0 and case[3] == 1e-320
+            continue
+        c_helpers.probe_arc(*case, out)
+        if not all(_same_bits(a, b) for a, b in zip(out, expected)):
+            wrong.append(case)
     assert wrong == []
 
 

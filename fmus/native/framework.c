@@ -251,10 +251,14 @@ Instance *fw_instantiate(const ModelDef *model, const char *name, FwLogFunction 
     instance->strings = calloc((size_t)count, sizeof *instance->strings);
     instance->scratch = calloc((size_t)count, sizeof *instance->scratch);
     instance->config = calloc(1, model->config_size ? model->config_size : 1);
+    instance->output_refs = calloc((size_t)count, sizeof *instance->output_refs);
     if (!instance->name || !instance->reals || !instance->integers || !instance->strings || !instance->scratch ||
-        !instance->config || !set_start_values(instance)) {
+        !instance->config || !instance->output_refs || !set_start_values(instance)) {
         fw_free(instance);
         return NULL;
+    }
+    for (int vr = 0; vr < count; ++vr) {
+        if (model->variables[vr].causality == CAUSALITY_OUTPUT) instance->output_refs[instance->output_count++] = vr;
     }
     return instance;
 }
@@ -270,6 +274,7 @@ void fw_free(Instance *instance)
     free(instance->integers);
     free(instance->reals);
     free(instance->scratch);
+    free(instance->output_refs);
     free(instance->config);
     free(instance->failure);
     free(instance->name);
@@ -358,9 +363,10 @@ FwStatus fw_reset(Instance *instance)
 static int not_finite_outputs(const Instance *instance, const double *values, FwText *names)
 {
     int count = 0;
-    for (int vr = 0; vr < instance->model->variable_count; ++vr) {
+    for (int i = 0; i < instance->output_count; ++i) {
+        int vr = instance->output_refs[i];
         const VariableDef *variable = &instance->model->variables[vr];
-        if (variable->causality != CAUSALITY_OUTPUT || isfinite(values[vr])) continue;
+        if (isfinite(values[vr])) continue;
         if (!names) {
             ++count;
             continue;
@@ -374,8 +380,9 @@ static int not_finite_outputs(const Instance *instance, const double *values, Fw
 
 static void copy_outputs(Instance *instance, const double *values)
 {
-    for (int vr = 0; vr < instance->model->variable_count; ++vr) {
-        if (instance->model->variables[vr].causality == CAUSALITY_OUTPUT) instance->reals[vr] = values[vr];
+    for (int i = 0; i < instance->output_count; ++i) {
+        int vr = instance->output_refs[i];
+        instance->reals[vr] = values[vr];
     }
     instance->outputs_valid = 1;
 }
@@ -395,7 +402,7 @@ static FwStatus current_outputs(Instance *instance)
     }
     double *values = instance->scratch;
     memcpy(values, instance->reals, (size_t)instance->model->variable_count * sizeof *values);
-    instance->model->outputs(instance, values);
+    instance->model->outputs(instance, NULL, values);
     FwText names;
     fw_text_clear(&names);
     if (not_finite_outputs(instance, values, &names)) {
@@ -597,7 +604,9 @@ FwStatus fw_do_step(Instance *instance, double t, double h)
     memcpy(state, instance->state, sizeof state);
     double time = instance->time;
     fw_text_clear(&reason);
-    if (instance->model->step(instance, t, h, &reason) != 0) {
+    FwStepMemo memo;
+    memo.known = 0;
+    if (instance->model->step(instance, t, h, &memo, &reason) != 0) {
         memcpy(instance->state, state, sizeof state);
         instance->time = time;
         fw_log(instance, FW_DISCARD, "step from t = %.6g s by h = %.6g s refused: %s", t, h, reason.text);
@@ -606,7 +615,7 @@ FwStatus fw_do_step(Instance *instance, double t, double h)
     int count = instance->model->variable_count;
     double *values = instance->scratch;
     memcpy(values, instance->reals, (size_t)count * sizeof *values);
-    instance->model->outputs(instance, values);
+    instance->model->outputs(instance, &memo, values);
     if (not_finite_outputs(instance, values, NULL)) {
         FwText names;
         fw_text_clear(&names);

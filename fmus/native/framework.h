@@ -69,6 +69,14 @@ void fw_text_string_repr(FwText *out, const char *value);
 
 typedef struct Instance Instance;
 
+/* What a model's step leaves for the outputs computed right after it (fw_do_step), laid out as the
+ * model likes: the vehicle keeps the target pose it extrapolated for the step's end, which its
+ * outputs need again. The framework only carries it from the one call to the other. */
+typedef struct {
+    int known;
+    double values[7];
+} FwStepMemo;
+
 /* What a model file provides to the framework; one constant per model (MODEL in vehicle.c /
  * target.c). The model's own cached configuration lives in Instance.config (config_size bytes). */
 typedef struct {
@@ -85,11 +93,14 @@ typedef struct {
     void (*configure)(Instance *instance);
     /* The longest RK4 substep (the max_substep parameter). */
     double (*max_substep)(const Instance *instance);
-    /* Every output at instance->time from the state and the inputs, into values[vr]. */
-    void (*outputs)(const Instance *instance, double *values);
+    /* Every output at instance->time from the state and the inputs, into values[vr]. memo is what
+     * the step just taken left there (same inputs, same instance), or NULL when the outputs are
+     * asked for at any other moment: a pure speed-up, the outputs must be the same numbers. */
+    void (*outputs)(const Instance *instance, const FwStepMemo *memo, double *values);
     /* Advance the state from t by h; 0 when done, else nonzero with the reason in why (the state
-     * may then be anything: the framework restores it). */
-    int (*step)(Instance *instance, double t, double h, FwText *why);
+     * may then be anything: the framework restores it). It may leave in memo what its outputs can
+     * reuse. */
+    int (*step)(Instance *instance, double t, double h, FwStepMemo *memo, FwText *why);
 } ModelDef;
 
 /* The FMI layer's log function: forwards one finished message to the host. */
@@ -110,6 +121,8 @@ struct Instance {
     int *integers;    /* Integer and Boolean, by value reference */
     char **strings;   /* String, by value reference (owned copies) */
     int outputs_valid;
+    int *output_refs; /* the value references of the outputs, in order: the loops of every step */
+    int output_count;
     double *scratch;  /* variable_count doubles: outputs computed before they are accepted */
     char *failure;    /* why the instance failed (MODE_FAILED), owned */
     void *config;     /* the model's cached parameters */

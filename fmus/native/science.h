@@ -19,7 +19,9 @@
 /* fmus.model.angles.wrap_angle */
 static inline double wrap_angle(double angle)
 {
-    double wrapped = fmod(angle, SCIENCE_TWO_PI);
+    /* fmod(x, y) is x itself when |x| < |y| (fmod is exact), so the library call is needed only
+     * for angles of a turn or more: most guidance errors are small */
+    double wrapped = fabs(angle) < SCIENCE_TWO_PI ? angle : fmod(angle, SCIENCE_TWO_PI);
     if (wrapped > SCIENCE_PI) {
         wrapped -= SCIENCE_TWO_PI;
     } else if (wrapped <= -SCIENCE_PI) {
@@ -135,6 +137,16 @@ static inline void arc_extrapolate(double x, double y, double heading, double sp
     double arc_length = dt * (speed + 0.5 * speed_rate * dt);
     double curvature = speed != 0.0 ? turn_rate / speed : 0.0;
     double turn = curvature * arc_length;
+    if (arc_length == 0.0 && turn == 0.0 && isfinite(heading) && x != 0.0 && y != 0.0) {
+        /* No way travelled (the sample is for this very instant, as at each step's start): the
+         * factors are along = 1 and across = +-0, so both offsets are +-0 and x + +-0 is x for any
+         * x but a zero, whose sign the sum could change. The same numbers without the cos and sin. */
+        out[0] = x;
+        out[1] = y;
+        out[2] = heading + turn;
+        out[3] = speed + speed_rate * dt;
+        return;
+    }
     double along, across;
     arc_factors(turn, &along, &across);
     double c = cos(heading);

@@ -129,8 +129,9 @@ static void derivative_of(void *context, double t, const double *state, double *
 }
 
 /* VirtualTargetStepper.step */
-static int target_step(Instance *instance, double t, double h, FwText *why)
+static int target_step(Instance *instance, double t, double h, FwStepMemo *memo, FwText *why)
 {
+    (void)memo;
     double arc_length[1] = {instance->state[0]};
     integrate(derivative_of, instance, t, arc_length, 1, h, config_of(instance)->max_substep);
     if (!isfinite(arc_length[0])) {
@@ -143,8 +144,9 @@ static int target_step(Instance *instance, double t, double h, FwText *why)
 }
 
 /* VirtualTargetStepper.outputs */
-static void target_outputs(const Instance *instance, double *values)
+static void target_outputs(const Instance *instance, const FwStepMemo *memo, double *values)
 {
+    (void)memo;
     const TargetConfig *config = config_of(instance);
     double t = instance->time;
     double s = instance->state[0];

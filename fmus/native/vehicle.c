@@ -178,10 +178,11 @@ static void follower_at(const Instance *instance, double t, double *speed, doubl
     *gap = linear_extrapolate(r[VR_FOLLOWER_GAP], r[VR_FOLLOWER_GAP_RATE], dt);
 }
 
-/* The target as one step (or one outputs call) sees it: target_at is a pure function of t, and RK4's
- * second and third stages ask for the same instant, the outputs for the instant evaluate just used,
- * so each instant is extrapolated once (same numbers: the same function, called once instead of
- * twice). Not in the Python model, where the saving would not be worth a cache: it only saves time. */
+/* The target as one step and its outputs see it: target_at is a pure function of t (the inputs do
+ * not change between a step and its outputs), and RK4's second and third stages ask for the same
+ * instant, the outputs for the step's end, which its last stage used, so each instant is
+ * extrapolated once (same numbers: the same function, called once instead of twice). Not in the
+ * Python model, where the saving would not be worth a cache: it only saves time. */
 typedef struct {
     const Instance *instance;
     int known;
@@ -192,6 +193,26 @@ typedef struct {
 static TargetSight target_sight(const Instance *instance)
 {
     TargetSight sight = {instance, 0, 0.0, {0.0, 0.0, 0.0, 0.0}};
+    return sight;
+}
+
+/* The last instant a step saw, kept for its outputs: memo.values = (t, x, y, heading, speed). */
+static void remember_sight(const TargetSight *sight, FwStepMemo *memo)
+{
+    memo->known = sight->known;
+    memo->values[0] = sight->t;
+    memcpy(&memo->values[1], sight->target, sizeof sight->target);
+}
+
+/* The sight of the outputs: what the step just taken saw, if they follow one (memo not NULL). */
+static TargetSight recalled_sight(const Instance *instance, const FwStepMemo *memo)
+{
+    TargetSight sight = target_sight(instance);
+    if (memo && memo->known) {
+        sight.known = 1;
+        sight.t = memo->values[0];
+        memcpy(sight.target, &memo->values[1], sizeof sight.target);
+    }
     return sight;
 }
 
@@ -237,7 +258,7 @@ static void derivative_of(void *context, double t, const double *state, double *
 }
 
 /* VehicleStepper.step with VehicleStepper.check */
-static int vehicle_step(Instance *instance, double t, double h, FwText *why)
+static int vehicle_step(Instance *instance, double t, double h, FwStepMemo *memo, FwText *why)
 {
     const VehicleConfig *config = config_of(instance);
     double state[FW_MAX_STATE];
@@ -258,25 +279,28 @@ static int vehicle_step(Instance *instance, double t, double h, FwText *why)
     }
     memcpy(instance->state, state, sizeof state);
     instance->time = time;
+    remember_sight(&sight, memo);
     return 0;
 }
 
 /* VehicleStepper.outputs */
-static void vehicle_outputs(const Instance *instance, double *values)
+static void vehicle_outputs(const Instance *instance, const FwStepMemo *memo, double *values)
 {
     const VehicleConfig *config = config_of(instance);
     double t = instance->time;
     const double *state = instance->state;
     double added_speed = instance->reals[VR_DISTURBANCE_SPEED];
     double derivative[FW_MAX_STATE], acceleration, gap;
-    TargetSight sight = target_sight(instance);
+    TargetSight sight = recalled_sight(instance, memo);
     evaluate(&sight, t, state, derivative, &acceleration, &gap);
     double x = state[0], y = state[1], heading = state[2];
     double speed = dynamics_speed(config, state, added_speed);
     const double *target = target_seen(&sight, t);
     double dx = target[0] - x, dy = target[1] - y;
-    double relative_vx = target[3] * cos(target[2]) - speed * cos(heading);
-    double relative_vy = target[3] * sin(target[2]) - speed * sin(heading);
+    /* speed * cos(heading) and speed * sin(heading) are the position derivative evaluate just
+     * computed, as the same product of the same numbers (v = speed in both dynamics) */
+    double relative_vx = target[3] * cos(target[2]) - derivative[0];
+    double relative_vy = target[3] * sin(target[2]) - derivative[1];
     double wheel_right, wheel_left;
     dynamics_wheel_speeds(config, state, acceleration, added_speed, &wheel_right, &wheel_left);
     values[VR_X] = x;
