@@ -143,16 +143,14 @@ static inline void arc_extrapolate(double x, double y, double heading, double sp
          * x but a zero, whose sign the sum could change. The same numbers without the cos and sin. */
         out[0] = x;
         out[1] = y;
-        out[2] = heading + turn;
-        out[3] = speed + speed_rate * dt;
-        return;
+    } else {
+        double along, across;
+        arc_factors(turn, &along, &across);
+        double c = cos(heading);
+        double s = sin(heading);
+        out[0] = x + arc_length * (along * c - across * s);
+        out[1] = y + arc_length * (along * s + across * c);
     }
-    double along, across;
-    arc_factors(turn, &along, &across);
-    double c = cos(heading);
-    double s = sin(heading);
-    out[0] = x + arc_length * (along * c - across * s);
-    out[1] = y + arc_length * (along * s + across * c);
     out[2] = heading + turn;
     out[3] = speed + speed_rate * dt;
 }
