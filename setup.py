@@ -1,9 +1,9 @@
-"""Build configuration for the one compiled part: the native stepping core (orchestrator/native/_core.c).
+"""Build configuration for the one compiled part: the native stepping core (orchestrator/execution/native/_core.c).
 
 Everything else about the package is in pyproject.toml. The extension uses only the CPython C API and
 dlopen (no numpy headers, no build dependency beyond setuptools and a C compiler). It is optional: on
 a machine without a C compiler the install still succeeds and the Python engine is used
-(``orchestrator.native.available()`` says which).
+(``orchestrator.execution.native.available()`` says which).
 """
 
 import sys
@@ -21,8 +21,8 @@ compile_args = [] if sys.platform == "win32" else [
 setup(
     ext_modules=[
         Extension(
-            "orchestrator.native._core",
-            sources=["orchestrator/native/_core.c"],
+            "orchestrator.execution.native._core",
+            sources=["orchestrator/execution/native/_core.c"],
             libraries=["dl"] if sys.platform.startswith("linux") else [],
             extra_compile_args=compile_args,
             optional=True,

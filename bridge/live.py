@@ -33,7 +33,7 @@ from fmus.model.coupling import arc_extrapolate
 from fmus.model.dynamics import M3piDynamics
 from fmus.model.factory import vehicle_stepper
 from fmus.model.vehicle import VEHICLE_INPUTS
-from orchestrator.interface import ComponentError, LiveEvent, LiveRecord, percentile_summary
+from fmus.component import ComponentError, LiveEvent, LiveRecord, percentile_summary
 
 from .protocol import (
     LinkCounters,

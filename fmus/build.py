@@ -45,8 +45,8 @@ _ROOT = PACKAGE_DIR.parent  # the folder holding fmus/, bridge/ and orchestrator
 _ONLY_IN = {"LiveVehicle.py": LIVE_FMU}
 _EXTRA_SOURCES = {
     LIVE_FMU: ("bridge/__init__.py", "bridge/live.py", "bridge/protocol.py", "bridge/session.py", "bridge/states.py",
-               "orchestrator/__init__.py", "orchestrator/interface.py", "orchestrator/errors.py",
-               "orchestrator/realtime.py"),
+               "orchestrator/__init__.py", "fmus/component/py", "fmus/errors/py",
+               "fmus/realtime/py"),
 }
 
 

@@ -8,8 +8,8 @@ from typing import Any
 import pytest
 
 from fmus.build import DEFAULT_OUT, build_fmus
-from orchestrator.config import Config, config_from_mapping
-from orchestrator.run import run_scenario
+from orchestrator.scenario.config import Config, config_from_mapping
+from orchestrator.execution.run import run_scenario
 from orchestrator.trace import Trace, load
 
 REPO = Path(__file__).resolve().parents[1]

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from orchestrator.analysis import jacobian, multiplicity_test, our_families, paper_eigenvalues, speed_chain_gain
+from orchestrator.analysis.linear import jacobian, multiplicity_test, our_families, paper_eigenvalues, speed_chain_gain
 from tests.conftest import make_config
 
 
@@ -81,7 +81,7 @@ def test_the_verdict_of_a_long_platoon_comes_from_the_families_not_from_rounding
     """At 100 vehicles the computed eigenvalues' largest real part is positive (rounding around a
     100-fold eigenvalue), yet the platoon is stable: the verdict must say stable, with the families'
     -V_c alpha/d*, and name the computed value as unreliable."""
-    from orchestrator.analysis import eigen_report
+    from orchestrator.analysis.linear import eigen_report
 
     config = make_config(platoon={"count": count})
     verdict = next(line for line in eigen_report(config).splitlines() if line.startswith("verdict:"))
@@ -93,7 +93,7 @@ def test_the_verdict_of_a_long_platoon_comes_from_the_families_not_from_rounding
 
 
 def test_a_short_platoon_keeps_the_computed_verdict():
-    from orchestrator.analysis import eigen_report
+    from orchestrator.analysis.linear import eigen_report
 
     config = make_config(platoon={"count": 4})
     a, _ = jacobian(config)

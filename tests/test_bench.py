@@ -26,7 +26,7 @@ MODULES = ("coupling_accuracy", "equilibrium_growth", "fmu_step_cost", "paper_sc
 
 def installed_core() -> str:
     """The built native core, to stand for both sides of an A/B comparison of _core builds."""
-    from orchestrator.native import _core
+    from orchestrator.execution.native import _core
 
     return _core.__file__
 

@@ -38,7 +38,7 @@ def test_summary_table_shows_units_and_the_interval_of_the_max_path_error(tmp_pa
     disturbed = platoon("run", FRONT_LATERAL, "--set", "simulation.stop_time=36.0", "--out", tmp_path / "b.mcap",
                         cwd=tmp_path)
     assert disturbed.returncode == 0, disturbed.stderr
-    assert "t >= 35 s" in disturbed.stdout  # from the first disturbance on (orchestrator/metrics.py)
+    assert "t >= 35 s" in disturbed.stdout  # from the first disturbance on (orchestrator/analysis/metrics.py)
 
 
 # The table's headers, as a reader meets them, and the JSON key each one promises (docs/trace-format.md)
@@ -95,7 +95,7 @@ def every_command() -> list[list[str]]:
     """The argument lists that reach each command and group of `platoon` (walked from the click tree)."""
     import typer
 
-    from orchestrator.cli import app
+    from orchestrator.cli.app import app
 
     found: list[list[str]] = []
 
@@ -112,8 +112,8 @@ def test_every_help_names_what_its_options_take() -> None:
     """`--help` of every command shows the allowed values of an option with a fixed set (no bare <str>)."""
     from typer.testing import CliRunner
 
-    from orchestrator.cli import app
-    from orchestrator.run import ENGINES, TRACE_WRITERS
+    from orchestrator.cli.app import app
+    from orchestrator.execution.run import ENGINES, TRACE_WRITERS
 
     commands = every_command()
     assert ["run"] in commands and ["bench", "steps"] in commands and ["trace", "recover"] in commands
@@ -134,7 +134,7 @@ def test_every_help_names_what_its_options_take() -> None:
 
 
 def progress_lines(stderr: str, label: str, total: int) -> list[int]:
-    """The percentages of ``label``'s plain progress lines (orchestrator/progress.py) in ``stderr``."""
+    """The percentages of ``label``'s plain progress lines (orchestrator/observers/progress.py) in ``stderr``."""
     pattern = re.compile(rf"{re.escape(label)}: (\d+)% \((\d+)/{total} steps\), [\d.:]+ (s|min) elapsed(, about .+ left)?")
     found = []
     for line in stderr.splitlines():
@@ -152,7 +152,7 @@ def piped(*args: object, cwd: Path) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "PYTHONPATH": str(REPO), "PLATOON_PROGRESS_SECONDS": "0", "COLUMNS": "80"}
     for name in ("FORCE_COLOR", "TERM", "NO_COLOR"):
         env.pop(name, None)
-    return subprocess.run([sys.executable, "-c", "from orchestrator.cli import main; main()", *map(str, args)],
+    return subprocess.run([sys.executable, "-c", "from orchestrator.cli.app import main; main()", *map(str, args)],
                           cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, timeout=300)
 
 
@@ -195,8 +195,8 @@ def test_a_platoon_longer_than_its_circle_is_warned_about_and_still_runs(tmp_pat
 
 def test_no_shipped_scenario_is_warned_about() -> None:
     """The paper's configs (and every other shipped scenario) give no warning at all."""
-    from orchestrator.config import load_config
-    from orchestrator.config_warnings import config_warnings
+    from orchestrator.scenario.config import load_config
+    from orchestrator.scenario.config_warnings import config_warnings
 
     configs = sorted(PAPER.parents[1].glob("*/*.toml"))
     scenarios = [path for path in configs if path.parent.name != "sweeps"]

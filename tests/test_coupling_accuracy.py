@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import pytest
 
-from orchestrator.accuracy import coupling_error, run_both, with_settings
-from orchestrator.compare import deviations
-from orchestrator.config import load_config
-from orchestrator.metrics import summarize
+from orchestrator.analysis.accuracy import coupling_error, run_both, with_settings
+from orchestrator.analysis.compare import deviations
+from orchestrator.scenario.config import load_config
+from orchestrator.analysis.metrics import summarize
 from tests.conftest import REPO
 
 PAPER = REPO / "configs" / "paper"
@@ -70,7 +70,7 @@ def test_holding_inputs_moves_the_regular_laws_steady_offsets_by_an_amount_that_
 def test_a_sine_platoon_started_on_the_circle_stays_on_it_whatever_its_speeds(run, coupling, master):
     """The paper's lateral decoupling survives co-simulation: vehicles on the circle, tangent, at
     different speeds (the speed chain is far from equilibrium) never leave it."""
-    from orchestrator.metrics import path_errors
+    from orchestrator.analysis.metrics import path_errors
     from tests.conftest import make_config
 
     config = make_config(

@@ -249,7 +249,7 @@ def parse_only(command: str, root: Path) -> None:
     """``--help`` of exactly the documented subcommand runs, and its documented arguments parse."""
     import typer
 
-    from orchestrator.cli import app
+    from orchestrator.cli.app import app
 
     words = shlex.split(command)
     if words[-1] == "&":
@@ -265,7 +265,7 @@ def parse_only(command: str, root: Path) -> None:
     context = group.make_context(" ".join(["platoon", *path]), list(rest))  # raises on an unknown option or a bad value
     assert context.params, command
     if isinstance(context.params.get("config"), Path):  # and the config with its --set overrides validates
-        from orchestrator.config import load_config
+        from orchestrator.scenario.config import load_config
 
         load_config(root / context.params["config"], context.params.get("overrides") or [])
 

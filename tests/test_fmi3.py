@@ -282,7 +282,7 @@ class _Component:
 def _run_platoon(config, kinds: dict[str, str], fmus: dict, stop: float, schedules) -> np.ndarray:
     """Jacobi steps of the config's platoon up to ``stop``: every output of every component at every
     communication point, in one array. ``kinds`` says which FMU kind (fmi2/fmi3) each component is."""
-    from orchestrator.scenario import build_scenario
+    from orchestrator.scenario.scenario import build_scenario
 
     scenario = build_scenario(config)
     components = {spec.name: _Component(fmus[kinds[spec.name]][spec.fmu], spec.name) for spec in scenario.components}
@@ -326,8 +326,8 @@ PLATOON_CASES = {  # config, overrides, lateral kick on vehicle 1 (m/s^2, from 1
 def test_hand_stepped_platoon_is_the_same_with_fmi3_fmi2_and_both_mixed(built, case):
     """Both laws, both dynamics, both couplings, line and circle, with a disturbance: FMI 3.0 components,
     FMI 2.0 ones, and a platoon mixing both in one process give bit-identical trajectories."""
-    from orchestrator.config import load_config
-    from orchestrator.scenario import ScheduledInput
+    from orchestrator.scenario.config import load_config
+    from orchestrator.scenario.scenario import ScheduledInput
 
     file, overrides, kick = PLATOON_CASES[case]
     config, _ = load_config(REPO / "configs" / "paper" / file, overrides)

@@ -1,4 +1,4 @@
-"""The per-user cache of extracted FMUs (orchestrator/fmu_cache.py): reused, checked, shared, bounded.
+"""The per-user cache of extracted FMUs (orchestrator/components/cache.py): reused, checked, shared, bounded.
 
 Every test has a cache folder of its own (``root``) and the real FMUs of build/fmus; processes that
 hold an entry, race to make one or die while making one are real subprocesses.
@@ -17,9 +17,9 @@ from pathlib import Path
 import pytest
 
 from fmus.build import ALL_FMUS, build_fmus, fmi_platform
-from orchestrator import fmu_cache
-from orchestrator.components import UnpackedFmu
-from orchestrator.scratch import PREFIX
+from orchestrator.components import cache as fmu_cache
+from orchestrator.components.fmu import UnpackedFmu
+from orchestrator.support.scratch import PREFIX
 
 REPO = Path(__file__).resolve().parents[1]
 BINARY = "binaries/{}/Vehicle{}".format(*fmi_platform())
@@ -204,8 +204,8 @@ def test_an_unusable_cache_means_a_private_extraction(vehicle: Path, tmp_path: P
 
 
 def test_a_run_from_the_cache_records_what_a_private_one_does(tmp_path: Path, fmu_dir: Path, monkeypatch) -> None:
-    from orchestrator.config import config_from_mapping
-    from orchestrator.run import run_scenario
+    from orchestrator.scenario.config import config_from_mapping
+    from orchestrator.execution.run import run_scenario
     from orchestrator.trace import load
 
     from mcap.reader import make_reader
@@ -240,7 +240,7 @@ def test_a_run_from_the_cache_records_what_a_private_one_does(tmp_path: Path, fm
 def test_making_an_entry_sweeps_what_killed_private_runs_left(vehicle: Path, root: Path, tmp_path: Path,
                                                              monkeypatch) -> None:
     """Runs that find their FMUs cached make no temp folders, so the sweep of dead runs' temp folders
-    (orchestrator/scratch.py) also happens when an entry is made."""
+    (orchestrator/support/scratch.py) also happens when an entry is made."""
     import tempfile
 
     temp = tmp_path / "tmp"

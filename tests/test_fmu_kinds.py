@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from orchestrator.config import load_config
-from orchestrator.fmu_kinds import native_buildable
-from orchestrator.run import run_scenario
+from orchestrator.scenario.config import load_config
+from orchestrator.components.kinds import native_buildable
+from orchestrator.execution.run import run_scenario
 from orchestrator.trace import load
 
 REPO = Path(__file__).resolve().parent.parent

@@ -63,9 +63,9 @@ def test_default_experiment_runs_standalone(fmu_dir, name):
 
 def _single_vehicle(fmu_dir, law):
     """A vehicle FMU chasing a VirtualTarget FMU on the circle, wired by hand through FMPy."""
-    from orchestrator.components import FmuComponent, UnpackedFmu
-    from orchestrator.master import Master
-    from orchestrator.wiring import platoon_connections
+    from orchestrator.components.fmu import FmuComponent, UnpackedFmu
+    from orchestrator.execution.python_master import Master
+    from orchestrator.scenario.wiring import platoon_connections
 
     target_fmu = UnpackedFmu.open(fmu_dir / "VirtualTarget.fmu")
     vehicle_fmu = UnpackedFmu.open(fmu_dir / "Vehicle.fmu")
@@ -140,9 +140,9 @@ def test_d_star_beyond_the_diameter_is_rejected(fmu_dir):
 
 def test_two_platoons_in_one_process_stay_independent(fmu_dir, run):
     """Two interleaved platoons of the same FMUs give exactly what each gives alone."""
-    from orchestrator.components import FmuComponent, UnpackedFmu
-    from orchestrator.master import Master
-    from orchestrator.scenario import build_scenario
+    from orchestrator.components.fmu import FmuComponent, UnpackedFmu
+    from orchestrator.execution.python_master import Master
+    from orchestrator.scenario.scenario import build_scenario
     from tests.conftest import make_config
 
     configs = [make_config(name="a", platoon={"count": 2, "law": "sine"}, initial={"radial_offset": 5.0}),
@@ -180,7 +180,7 @@ def test_fmu_state_rolls_a_run_back_exactly(request, name, kind):
     """canGetAndSetFMUstate and canSerializeFMUstate are declared true: a saved state, restored
     (directly or through its serialized bytes), replays the same steps to the same outputs; for the
     pythonfmu FMUs and their native twins (fmus/native, whose serialized state starts with its tag)."""
-    from orchestrator.components import FmuComponent, UnpackedFmu
+    from orchestrator.components.fmu import FmuComponent, UnpackedFmu
 
     folder = request.getfixturevalue("fmu_dir" if kind == "python" else "native_fmu_dir")
     fmu = UnpackedFmu.open(folder / f"{name}.fmu")

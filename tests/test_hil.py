@@ -37,9 +37,9 @@ from bridge.protocol import (
     encode_wheels,
 )
 from orchestrator.bench.hil import free_port
-from orchestrator.config import config_from_mapping
-from orchestrator.metrics import path_errors
-from orchestrator.realtime import Pacer
+from orchestrator.scenario.config import config_from_mapping
+from orchestrator.analysis.metrics import path_errors
+from fmus.realtime import Pacer
 from orchestrator.trace import load
 
 REPO = Path(__file__).resolve().parents[1]

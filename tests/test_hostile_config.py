@@ -22,9 +22,9 @@ import pytest
 from pydantic import BaseModel
 
 from fmus.build import ALL_FMUS, FMU_NAMES, build_fmus
-from orchestrator.config import Config, ConfigError, config_from_mapping, load_config, parse_value
-from orchestrator.limits import MAX_FMU_SUBSTEPS, MAX_STEPS, MAX_SUBSTEPS_PER_STEP, check_run_size
-from orchestrator.scratch import ScratchDir, sweep
+from orchestrator.scenario.config import Config, ConfigError, config_from_mapping, load_config, parse_value
+from orchestrator.scenario.limits import MAX_FMU_SUBSTEPS, MAX_STEPS, MAX_SUBSTEPS_PER_STEP, check_run_size
+from orchestrator.support.scratch import ScratchDir, sweep
 from orchestrator.trace import load
 from tests.test_cli import error_line
 
@@ -380,7 +380,7 @@ def test_analyze_at_d_star_equal_to_the_diameter_exits_2_with_the_reason(extra: 
 ], ids=["slow", "fast", "tiny circle", "huge circle"])
 def test_analyze_reports_at_the_corners_of_the_ranges(corner: dict[str, Any]) -> None:
     """Whatever the config accepts, the linearization gives a verdict (no division by ~0)."""
-    from orchestrator.analysis import eigen_report
+    from orchestrator.analysis.linear import eigen_report
 
     report = eigen_report(config_from_mapping({"name": "corner", **corner}))
     assert "verdict: exponentially stable" in report, report
@@ -534,7 +534,7 @@ def test_a_sigkilled_run_leaves_the_fmu_cache_usable(workdir: Path, tmp_path: Pa
 def test_a_live_owners_scratch_folder_is_never_swept(tmp_path: Path) -> None:
     """Another process holds its folder: sweeping leaves it; once SIGKILLed, the sweep removes it."""
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time; from orchestrator.scratch import ScratchDir; "
+        [sys.executable, "-c", "import sys, time; from orchestrator.support.scratch import ScratchDir; "
                                "d = ScratchDir('holder'); print(d.path, flush=True); time.sleep(600)"],
         cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO), "TMPDIR": str(tmp_path)}, stdout=subprocess.PIPE, text=True)
     try:

@@ -312,8 +312,8 @@ def test_a_discarded_step_of_any_vehicle_is_reported_with_its_reason(fmu_dir):
     fmi2Discard with the reason logged, and the run's error names it. The Python engine used to
     lose it (FMPy's logger proxy handed every message to the component created last) and said only
     "fmi2DoStep failed with status 2 (discard)". (The native engine keeps its own log per instance.)"""
-    from orchestrator.config import config_from_mapping
-    from orchestrator.run import run_scenario
+    from orchestrator.scenario.config import config_from_mapping
+    from orchestrator.execution.run import run_scenario
 
     config = config_from_mapping({
         "name": "discard", "simulation": {"stop_time": 2.0, "step": 0.01}, "platoon": {"count": 4},

@@ -136,8 +136,8 @@ def test_a_second_run_on_a_trace_being_written_is_refused_and_the_first_finishes
 
 
 def test_default_paths_of_runs_started_in_the_same_second_differ(work: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from orchestrator.config import load_config
-    from orchestrator.run import default_trace_path
+    from orchestrator.scenario.config import load_config
+    from orchestrator.execution.run import default_trace_path
 
     monkeypatch.chdir(work)
     monkeypatch.setattr(time, "strftime", lambda *args: "20260101-120000")  # one second for both

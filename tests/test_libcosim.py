@@ -53,11 +53,11 @@ from libcosimpy.CosimObserver import CosimObserver  # noqa: E402
 from libcosimpy.CosimSlave import CosimLocalSlave  # noqa: E402
 
 from fmus.build import build_fmus  # noqa: E402
-from orchestrator.components import FmuComponent, UnpackedFmu  # noqa: E402
-from orchestrator.config import Config, config_from_mapping  # noqa: E402
-from orchestrator.master import Master  # noqa: E402
-from orchestrator.run import run_scenario  # noqa: E402
-from orchestrator.scenario import Scenario, build_scenario, step_count  # noqa: E402
+from orchestrator.components.fmu import FmuComponent, UnpackedFmu  # noqa: E402
+from orchestrator.scenario.config import Config, config_from_mapping  # noqa: E402
+from orchestrator.execution.python_master import Master  # noqa: E402
+from orchestrator.execution.run import run_scenario  # noqa: E402
+from orchestrator.scenario.scenario import Scenario, build_scenario, step_count  # noqa: E402
 from orchestrator.trace import load  # noqa: E402
 
 _LIBC = CDLL(None)

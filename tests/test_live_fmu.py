@@ -21,8 +21,8 @@ import pytest
 
 from bridge.protocol import decode_wheels
 from orchestrator.bench.hil import free_port
-from orchestrator.config import load_config
-from orchestrator.metrics import path_errors
+from orchestrator.scenario.config import load_config
+from orchestrator.analysis.metrics import path_errors
 from tests.test_hil import KEYS, LIVE3, emulator, endpoint
 from tests.test_ssp import platoon
 

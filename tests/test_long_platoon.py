@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from fmus.model.paths import CirclePath
-from orchestrator.analysis import speed_chain_gain
-from orchestrator.config import load_config
+from orchestrator.analysis.linear import speed_chain_gain
+from orchestrator.scenario.config import load_config
 from tests.conftest import REPO
 
 BENCH = REPO / "configs" / "bench" / "platoon100-1h.toml"

@@ -1,6 +1,6 @@
 """The native engine (C stepping core) gives exactly the Python engine's numbers, and its failures.
 
-``NativeMaster`` (orchestrator/native) and ``Master`` + ``FmuComponent`` (FMPy underneath) run the
+``NativeMaster`` (orchestrator/execution/native) and ``Master`` + ``FmuComponent`` (FMPy underneath) run the
 same scenario on the same FMU files; every output of every component must be equal (``==``, not
 close) at every communication point, t = 0 included: the native core makes the same FMI calls with
 the same arguments in the same order, so any difference is a bug. Covered: the paper platoon with
@@ -22,12 +22,12 @@ import numpy as np
 import pytest
 
 from fmus.build import build_fmus
-from orchestrator import components as components_module
-from orchestrator.components import ComponentError, FmuComponent, UnpackedFmu
-from orchestrator.config import Config, config_from_mapping
-from orchestrator.master import Master
-from orchestrator.native import IMPORT_ERROR, NativeComponent, NativeMaster, available
-from orchestrator.scenario import Scenario, build_scenario, step_count
+from orchestrator.components.fmu import fmu as components_module
+from orchestrator.components.fmu import ComponentError, FmuComponent, UnpackedFmu
+from orchestrator.scenario.config import Config, config_from_mapping
+from orchestrator.execution.python_master import Master
+from orchestrator.execution.native import IMPORT_ERROR, NativeComponent, NativeMaster, available
+from orchestrator.scenario.scenario import Scenario, build_scenario, step_count
 
 PAPER_START = {"radial_offset": 5.0, "heading_error": 0.1, "speed_factor": 0.8}
 DISTURBANCES = [
@@ -95,7 +95,7 @@ def run_engine(engine: str, config: Config, fmus: dict[str, UnpackedFmu]) -> tup
 
 
 def test_extension_is_built() -> None:
-    assert available(), f"orchestrator.native._core did not import: {IMPORT_ERROR}"
+    assert available(), f"orchestrator.execution.native._core did not import: {IMPORT_ERROR}"
 
 
 @pytest.mark.parametrize("law, master, python", [

@@ -24,10 +24,10 @@ from fmpy import read_model_description, simulate_fmu
 from fmpy.validation import validate_fmu
 
 from fmus.native_build import binary_entry, build_native_fmus, expected_guid
-from orchestrator.components import FmuComponent, UnpackedFmu
-from orchestrator.config import config_from_mapping
-from orchestrator.master import Master
-from orchestrator.scenario import build_scenario, step_count
+from orchestrator.components.fmu import FmuComponent, UnpackedFmu
+from orchestrator.scenario.config import config_from_mapping
+from orchestrator.execution.python_master import Master
+from orchestrator.scenario.scenario import build_scenario, step_count
 
 NAMES = ("Vehicle", "VirtualTarget")
 TOLERANCE = 1e-9  # what issue 21 asks; the trajectories are identical here (0.0)
@@ -201,7 +201,7 @@ def _run_platoon(scenario, folder) -> list[list[list[float]]]:
 
 @pytest.mark.parametrize("sections", PLATOONS, ids=["sine-extrapolate-jacobi", "m3pi-regular-hold-gs", "line"])
 def test_platoon_through_our_master_equals_the_python_fmus(fmu_dir, native_fmu_dir, sections):
-    """A virtual target and three vehicles, wired as Fig. 2 (orchestrator.wiring), a lateral pulse on
+    """A virtual target and three vehicles, wired as Fig. 2 (orchestrator.scenario.wiring), a lateral pulse on
     vehicle 2 and a speed pulse on vehicle 3, 20 s: every output of every component at every
     communication point agrees."""
     raw = {"name": "native", "simulation": {"stop_time": 20.0, "step": 0.01}, "initial": {
@@ -252,7 +252,7 @@ def test_build_without_a_compiler_says_so_in_one_line(tmp_path):
     """platoon build on a machine without cc: the pythonfmu FMUs are built, the native ones are
     skipped with one line saying why, exit status 0."""
     env = dict(os.environ, PATH=str(tmp_path), CC="")
-    script = "import sys; from orchestrator.cli import main; sys.argv = ['platoon', 'build', '--out', sys.argv[1]]; main()"
+    script = "import sys; from orchestrator.cli.app import main; sys.argv = ['platoon', 'build', '--out', sys.argv[1]]; main()"
     out = tmp_path / "fmus"
     result = subprocess.run([sys_executable(), "-c", script, str(out)], capture_output=True, text=True, env=env,
                             timeout=600, cwd=os.getcwd())

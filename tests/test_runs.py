@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from orchestrator.config import load_config
-from orchestrator.metrics import path_errors, summarize
+from orchestrator.scenario.config import load_config
+from orchestrator.analysis.metrics import path_errors, summarize
 from tests.conftest import PAPER_START, REPO, make_config
 
 PAPER = REPO / "configs" / "paper"
@@ -94,7 +94,7 @@ def test_jacobi_and_gauss_seidel_reach_the_same_steady_state(run, law):
 
 def test_halving_the_step_changes_the_run_by_a_small_stated_amount(run):
     """h = 0.01 s against h = 0.005 s over the transient of the paper platoon: under 1 mm."""
-    from orchestrator.compare import deviations
+    from orchestrator.analysis.compare import deviations
 
     coarse = make_config(platoon={"count": 4}, initial=PAPER_START, simulation={"stop_time": 30.0, "step": 0.01})
     fine = make_config(platoon={"count": 4}, initial=PAPER_START,

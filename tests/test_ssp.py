@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 from lxml import etree
 
-from orchestrator.config import load_config
-from orchestrator.scenario import build_scenario
+from orchestrator.scenario.config import load_config
+from orchestrator.scenario.scenario import build_scenario
 from orchestrator.trace import load
 
 REPO = Path(__file__).resolve().parents[1]

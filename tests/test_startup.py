@@ -24,7 +24,7 @@ REPO = Path(__file__).resolve().parents[1]
 # accumulates its summary while stepping; it reads its trace only when the run ended early), and FMPy
 # (the native engine steps the FMUs itself; their cached model description needs no FMPy)
 NOT_FOR_A_RUN = ("matplotlib.", "PIL.", "dask.", "distributed.", "pandas.", "scipy.", "zenoh.", "fmpy.", "lxml.",
-                 "orchestrator.analysis", "orchestrator.plots", "orchestrator.figure", "orchestrator.sweep.runner",
+                 "orchestrator.analysis.linear", "orchestrator.analysis.plots", "orchestrator.analysis.figure", "orchestrator.sweep.runner",
                  "orchestrator.sweep.executors", "orchestrator.trace.reader", "mcap.reader", "rich.progress",
                  "rich.table")
 
@@ -32,7 +32,7 @@ _PROBE = """
 import gc, json, sys
 full = []
 gc.callbacks.append(lambda phase, info: full.append(1) if phase == "stop" and info["generation"] == 2 else None)
-from orchestrator.cli import app
+from orchestrator.cli.app import app
 sys.argv = ["platoon", *sys.argv[1:]]
 try:
     app()
@@ -74,7 +74,7 @@ def test_a_quiet_run_of_a_large_platoon_imports_nothing_it_does_not_need(tmp_pat
     modules = imported_by("run", str(REPO / "configs" / "paper" / "platoon.toml"), "--set", "platoon.count=12",
                           "--set", "simulation.stop_time=0.2", "-q", "--trace-every", "10",
                           "--out", str(tmp_path / "t.mcap"), cwd=REPO)
-    assert "orchestrator.run" in modules and "orchestrator.native" in modules  # it did run
+    assert "orchestrator.execution.run" in modules and "orchestrator.execution.native" in modules  # it did run
     assert unwanted(modules) == []
 
 
@@ -91,7 +91,7 @@ def test_a_run_starts_no_blas_threads(tmp_path: Path, fmu_dir: Path) -> None:
 
 def test_a_run_makes_no_full_garbage_collection(tmp_path: Path, fmu_dir: Path) -> None:
     """Start-up objects live as long as the process: loading them must not cost full collections
-    (orchestrator/startup.py, loading_a_run)."""
+    (orchestrator/support/startup.py, loading_a_run)."""
     assert probe(*quiet_run(tmp_path), cwd=REPO)["full_collections"] == 0
 
 

@@ -14,10 +14,10 @@ import pytest
 from typer.testing import CliRunner
 
 import orchestrator.trace
-from orchestrator.cli import app
-from orchestrator.config import load_config
-from orchestrator.metrics import summarize
-from orchestrator.run import run_scenario
+from orchestrator.cli.app import app
+from orchestrator.scenario.config import load_config
+from orchestrator.analysis.metrics import summarize
+from orchestrator.execution.run import run_scenario
 from orchestrator.trace import load
 from tests.conftest import REPO, SPEED_TO_ZERO
 

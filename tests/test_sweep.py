@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from orchestrator.metrics import report_json, summarize
+from orchestrator.analysis.metrics import report_json, summarize
 from orchestrator.sweep.worker import flatten_report
 from orchestrator.trace import load
 from tests.conftest import SPEED_TO_ZERO
@@ -57,7 +57,7 @@ def rows(out: Path) -> list[dict[str, str]]:
 def report_of(out: Path, row: dict[str, str]) -> dict[str, float]:
     """What ``platoon report --json`` says of the row's trace, flattened as the row's columns."""
     trace = load(out / row["trace"])
-    from orchestrator.config import config_from_mapping
+    from orchestrator.scenario.config import config_from_mapping
 
     config = config_from_mapping(trace.config)
     return flatten_report(report_json(summarize(trace, config), config))

@@ -23,11 +23,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from orchestrator.config import load_config
+from orchestrator.scenario.config import load_config
 from orchestrator.trace.foxglove import ERRORS_TOPIC, LOG_TOPIC, SCENE_TOPIC, TF_TOPIC, layout_json
-from orchestrator.components import ComponentError
-from orchestrator.metrics import path_errors
-from orchestrator.run import run_scenario
+from orchestrator.components.fmu import ComponentError
+from orchestrator.analysis.metrics import path_errors
+from orchestrator.execution.run import run_scenario
 from orchestrator.trace import Trace, TraceError, TraceWriter, export_csv, load, number_texts, recover
 from orchestrator.trace.encoding import json_template
 from tests.conftest import SPEED_TO_ZERO
@@ -331,7 +331,7 @@ def test_process_writer_writes_the_inline_file(tmp_path: Path, fmu_dir: Path, en
 
 
 def test_auto_picks_a_second_process_for_long_runs_only() -> None:
-    from orchestrator.run import WORKER_MESSAGES, choose_trace_writer
+    from orchestrator.execution.run import WORKER_MESSAGES, choose_trace_writer
 
     spare = len(os.sched_getaffinity(0)) >= 2
     assert choose_trace_writer("auto", WORKER_MESSAGES // 5, 5) == ("process" if spare else "inline")

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from orchestrator.config import config_from_mapping
+from orchestrator.scenario.config import config_from_mapping
 from orchestrator.trace import load
 from orchestrator.trace.foxglove import SCENE_TOPIC
 
@@ -150,7 +150,7 @@ def test_message_path_quotes_dotted_field_names() -> None:
 
 
 def test_figure_draws_both_laws_side_by_side(runs: dict[str, Path]) -> None:
-    from orchestrator.figure import draw_pair
+    from orchestrator.analysis.figure import draw_pair
 
     pair = [(load(runs[name]), config_from_mapping(load(runs[name]).config)) for name in ("regular", "paper")]
     figure = draw_pair(pair)
@@ -171,7 +171,7 @@ def test_figure_draws_both_laws_side_by_side(runs: dict[str, Path]) -> None:
 
 
 def test_figure_of_a_large_platoon_has_a_colour_bar_and_a_line_shows_deviations(runs: dict[str, Path]) -> None:
-    from orchestrator.figure import draw_pair
+    from orchestrator.analysis.figure import draw_pair
 
     pair = [(load(runs[name]), config_from_mapping(load(runs[name]).config)) for name in ("many", "line")]
     figure = draw_pair(pair)

@@ -10,7 +10,7 @@ Inside, it is ``bridge.live.LiveVehicle``, the host side of the hardware-in-the-
   liveliness token and first valid pose (no robot: the reason is logged, and the first doStep fails
   with it);
 * each doStep(t, h) evaluates the guidance on the robot's measured pose, sends the wheel command with
-  its deadline, waits until wall-clock time has reached t + h (``orchestrator.realtime.Pacer``,
+  its deadline, waits until wall-clock time has reached t + h (``fmus.realtime.Pacer``,
   started at the first step), then takes the pose the outputs describe;
 * the robot lost (its token gone, or no valid pose for ``hil.pose_timeout``): a stop command is sent
   and doStep returns fmi2Error with the reason in the FMU's log; terminate stops the robot and leaves
@@ -34,8 +34,8 @@ from fmus.model.factory import vehicle_parameter_errors, vehicle_stepper
 from fmus.model.vehicle import VehicleStepper
 from fmus.slaves import Vehicle as vehicle_slave  # the module: pythonfmu wants one slave class here
 from fmus.slaves.base import PlatoonSlave, VariableInfo, real
-from orchestrator.interface import ComponentError
-from orchestrator.realtime import Pacer
+from fmus.component import ComponentError
+from fmus.realtime import Pacer
 
 _LEVELS = {"Info": Fmi2Status.ok, "Warning": Fmi2Status.warning, "Error": Fmi2Status.error}
 _DEFAULTS = LiveSettings(robot=3)

@@ -1,7 +1,7 @@
 """One measurement in a fresh interpreter: ``python -m orchestrator.bench.child '<task as JSON>'``.
 
 Prints one ``RESULT <json>`` line and leaves with ``os._exit`` (pythonfmu leaves objects in the
-interpreter whose teardown can corrupt the heap, see orchestrator/cli.py: main). Nothing is imported
+interpreter whose teardown can corrupt the heap, see orchestrator/cli/app.py: main). Nothing is imported
 at module level beyond the standard library, so that a whole-run measurement's start-up is the run's
 own (``wholerun`` is timed from outside, interpreter start included).
 """
@@ -17,12 +17,12 @@ from typing import Any
 
 
 def use_core(library: str) -> None:
-    """Make ``orchestrator.native._core`` the extension built at ``library`` (another build of
+    """Make ``orchestrator.execution.native._core`` the extension built at ``library`` (another build of
     _core.c), before anything imports the native engine: A/B measurements of two cores."""
     import importlib.machinery
     import importlib.util
 
-    name = "orchestrator.native._core"
+    name = "orchestrator.execution.native._core"
     spec = importlib.util.spec_from_file_location(name, library,
                                                   loader=importlib.machinery.ExtensionFileLoader(name, library))
     if spec is None or spec.loader is None:
@@ -41,7 +41,7 @@ def perform(task: dict[str, Any]) -> dict[str, Any]:
         # One OpenBLAS thread, as in `platoon run`: otherwise numpy's idle BLAS threads spin on the other
         # core and are counted in the process CPU time the step measurement reports beside wall time
         # (seen: 1.0 µs of CPU per 0.5 µs of wall for the native FMUs).
-        from orchestrator.startup import single_threaded_blas
+        from orchestrator.support.startup import single_threaded_blas
 
         single_threaded_blas()
         from .engines import measure_step
@@ -76,7 +76,7 @@ def perform(task: dict[str, Any]) -> dict[str, Any]:
 
 
 def main() -> None:
-    from orchestrator.internal_entry import check_arguments
+    from orchestrator.support.internal_entry import check_arguments
 
     check_arguments(sys.argv[1:], "python -m orchestrator.bench.child '<task as JSON>'", __doc__, count=1)
     code = 0

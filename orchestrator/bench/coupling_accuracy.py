@@ -17,8 +17,8 @@ from __future__ import annotations
 import argparse
 import time
 
-from orchestrator.accuracy import coupling_error
-from orchestrator.config import load_config
+from orchestrator.analysis.accuracy import coupling_error
+from orchestrator.scenario.config import load_config
 
 from .common import PAPER_CONFIGS
 

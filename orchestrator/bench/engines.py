@@ -31,7 +31,7 @@ from typing import Any, Callable
 
 from fmus.build import DEFAULT_OUT
 
-from ..components import parameters_by_type
+from orchestrator.components.fmu import parameters_by_type
 from .common import rss_kib
 from .platoon import STEP, causal_names, final_positions, routes_of, scenario_for, unpacked_fmus
 
@@ -61,8 +61,8 @@ def _note_collection(phase: str, info: dict[str, Any]) -> None:
 def run_native(n: int, steps: int, mode: str, coupling: str, fmu_dir: Path) -> dict[str, Any]:
     """The native engine; ``mode``: "" (no trace), "buffer", "traced" (in process) or "offload" (2nd process),
     with the blocks, block sizes and trace writers that ``run_scenario`` uses."""
-    from orchestrator.native import NativeComponent, NativeMaster
-    from orchestrator.run import open_trace_writer
+    from orchestrator.execution.native import NativeComponent, NativeMaster
+    from orchestrator.execution.run import open_trace_writer
     from orchestrator.trace.format import BLOCK
     from orchestrator.trace.worker import WORKER_BLOCK
 
@@ -109,8 +109,8 @@ def step_python_master(master: Any, first: int, stop: int,
 
 
 def run_python(n: int, steps: int, coupling: str, fmu_dir: Path) -> dict[str, Any]:
-    from orchestrator.components import FmuComponent
-    from orchestrator.master import Master
+    from orchestrator.components.fmu import FmuComponent
+    from orchestrator.execution.python_master import Master
 
     scenario = scenario_for(n, steps, coupling)
     fmus = unpacked_fmus(fmu_dir)

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from orchestrator.config import Config, config_from_mapping
-from orchestrator.metrics import path_errors
+from orchestrator.scenario.config import Config, config_from_mapping
+from orchestrator.analysis.metrics import path_errors
 from orchestrator.trace import Trace, load
 
 TIMES = (1, 10, 25, 50, 100, 150, 200, 300, 400, 600, 800, 1000, 1800, 2700, 3600)

@@ -19,8 +19,8 @@ Three experiments, each N in a fresh interpreter:
 instruction counts with growing misses point at memory, growing instruction counts at work. It also
 splits every count into inside the FMUs' fmi2 calls and the master's own.
 
-``cores`` times the native engine with two or more builds of orchestrator/native/_core.c (copy the
-built ``orchestrator/native/_core.*.so`` aside before rebuilding), interleaved in fresh interpreters;
+``cores`` times the native engine with two or more builds of orchestrator/execution/native/_core.c (copy the
+built ``orchestrator/execution/native/_core.*.so`` aside before rebuilding), interleaved in fresh interpreters;
 ``callgrind`` takes such builds too.
 
 Entry points: ``platoon bench flatness`` (orders, idle, objects; ``--callgrind`` adds the callgrind
@@ -195,7 +195,7 @@ def callgrind_target(n: int, steps: int, client: str, fmu_dir: Path, engine: str
         scenario = scenario_for(n, 2 * steps)
         fmus = unpacked_fmus(fmu_dir)
     if engine == "native":
-        from orchestrator.native import NativeComponent, NativeMaster
+        from orchestrator.execution.native import NativeComponent, NativeMaster
 
         master: Any = NativeMaster([NativeComponent(s.name, fmus[s.fmu], s.parameters) for s in scenario.components],
                                    scenario.connections)
@@ -205,8 +205,8 @@ def callgrind_target(n: int, steps: int, client: str, fmu_dir: Path, engine: str
             master._core.run(0.0, STEP, first, stop)
         finish = master.close
     elif engine == "python":
-        from orchestrator.components import FmuComponent
-        from orchestrator.master import Master
+        from orchestrator.components.fmu import FmuComponent
+        from orchestrator.execution.python_master import Master
 
         from .engines import step_python_master
 

@@ -14,7 +14,7 @@ from typing import Any, Callable, Sequence
 
 from fmus.build import DEFAULT_OUT
 
-from ..components import parameters_by_type
+from orchestrator.components.fmu import parameters_by_type
 from .platoon import STEP, causal_names, final_positions, routes_of, scenario_for, unpacked_fmus
 
 ORDERS = ("phases", "per-component")

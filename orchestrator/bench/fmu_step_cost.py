@@ -15,7 +15,7 @@ import statistics
 import time
 
 from fmus.model.factory import target_stepper, vehicle_stepper
-from orchestrator.components import FmuComponent, UnpackedFmu
+from orchestrator.components.fmu import FmuComponent, UnpackedFmu
 
 from .platoon import unpacked_fmus
 

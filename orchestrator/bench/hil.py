@@ -33,7 +33,7 @@ from typing import Annotated, Any
 
 import typer
 
-from orchestrator.hil_cli import ms_text
+from orchestrator.support.text import ms_text
 
 from .common import DEFAULT_OUT_DIR, BenchError, BenchUsageError, Progress, interleaved
 
@@ -121,7 +121,7 @@ def ping_pong(seconds: float, scratch: Path) -> dict[str, Any]:
     """Round trips of pings to an echo process, one every ``PING_INTERVAL`` for ``seconds`` s."""
     import zenoh
 
-    from orchestrator.interface import percentile_summary
+    from fmus.component import percentile_summary
     from bridge.protocol import WHEELS_SIZE
     from bridge.session import open_session, zenoh_config
 
@@ -169,8 +169,8 @@ def ping_pong(seconds: float, scratch: Path) -> dict[str, Any]:
 
 def live_run(step: float, rate: float, seconds: float, scratch: Path) -> dict[str, Any]:
     """One paced live run of ``CONFIG`` (step ``step``, ``seconds`` long) against a fresh emulator at ``rate``."""
-    from orchestrator.config import load_config
-    from orchestrator.run import run_scenario
+    from orchestrator.scenario.config import load_config
+    from orchestrator.execution.run import run_scenario
 
     from .scenarios import platoon_command
 
@@ -268,20 +268,9 @@ def render(result: dict[str, Any]) -> Any:
     return Group(trips, jitter)
 
 
-def bench_hil(
-    seconds: Annotated[float, typer.Option(min=0.5, help="seconds per live run (the ping-pong takes half)")] = 10.0,
-    rounds: Annotated[int, typer.Option(min=1, help="repetitions of every measurement (order rotated); medians")] = 1,
-    out_dir: Annotated[Path, typer.Option("--out-dir", help="folder for the JSON results")] = DEFAULT_OUT_DIR,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only the tables and the result file")] = False,
-) -> None:
-    """Hardware in the loop on loopback: Zenoh round trip (bare and in live runs) and step jitter at 100 and 200 Hz."""
-    from orchestrator.cli import _bench
-
-    _bench("hil", lambda progress: run(seconds, rounds, progress), render, out_dir, quiet)
-
 
 if __name__ == "__main__":  # the echo side of the ping-pong, started by `platoon bench hil`
-    from orchestrator.internal_entry import check_arguments
+    from orchestrator.support.internal_entry import check_arguments
 
     check_arguments(sys.argv[1:], "python -m orchestrator.bench.hil echo ENDPOINT (the benchmark: platoon bench hil)",
                     "The echo process of `platoon bench hil`'s Zenoh ping-pong; the benchmark starts it.", count=2,

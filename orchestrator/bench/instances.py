@@ -43,13 +43,13 @@ def measure_instances(engine: str, n: int, wired: bool, fmu_dir: Path) -> dict[s
     rss_before = rss_kib()
     started = time.perf_counter()
     if engine == "native":
-        from orchestrator.native import NativeComponent, NativeMaster
+        from orchestrator.execution.native import NativeComponent, NativeMaster
 
         master: Any = NativeMaster([NativeComponent(s.name, fmus[s.fmu], s.parameters) for s in scenario.components],
                                    connections, scenario.schedules, "jacobi")
     elif engine == "fmpy":
-        from orchestrator.components import FmuComponent
-        from orchestrator.master import Master
+        from orchestrator.components.fmu import FmuComponent
+        from orchestrator.execution.python_master import Master
 
         master = Master([FmuComponent(s.name, fmus[s.fmu], s.parameters) for s in scenario.components],
                         connections, scenario.schedules, "jacobi")
@@ -74,7 +74,7 @@ def run(engines: Sequence[str] = ENGINES, ns: Sequence[int] = DEFAULT_N, rounds:
     if unknown:
         raise BenchUsageError(f"unknown engine(s) {', '.join(unknown)} for instances; expected some of {', '.join(ENGINES)}")
     if "native" in engines:
-        from orchestrator.native import available
+        from orchestrator.execution.native import available
 
         if not available():
             raise BenchUsageError("the native engine needs the compiled core (reinstall with a C compiler: pip install -e .)")

@@ -1,7 +1,7 @@
 """libcosim (libcosimpy, the C++ Open Simulation Platform master) on our own FMUs and wiring.
 
 Two set-ups, as issue 10 asks: ``CosimExecution.from_step_size`` with libcosim's default worker
-threads, and an SSP package written at run time by ``orchestrator.ssp.write_ssp`` (the exporter of
+threads, and an SSP package written at run time by ``orchestrator.interop.ssp.write_ssp`` (the exporter of
 ``platoon export-ssp``) with ``<osp:FixedStepAlgorithm numWorkerThreads="0">`` (every FMU stepped on
 the calling thread, as ours).
 """
@@ -15,7 +15,7 @@ from typing import Any
 
 from fmus.build import DEFAULT_OUT
 
-from ..ssp import write_ssp
+from orchestrator.interop.ssp import write_ssp
 from .common import BenchError
 from .platoon import STEP, fmu_files, scenario_for
 

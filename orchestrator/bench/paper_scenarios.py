@@ -16,7 +16,7 @@ import tempfile
 from pathlib import Path
 
 from fmus.build import DEFAULT_OUT
-from orchestrator.metrics import report_json, summarize
+from orchestrator.analysis.metrics import report_json, summarize
 from orchestrator.trace import load
 
 from .common import DEFAULT_OUT_DIR, BenchError

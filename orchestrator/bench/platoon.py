@@ -17,9 +17,9 @@ COUPLINGS = ("extrapolate", "hold")
 
 
 def scenario_for(n: int, steps: int, coupling: str = "extrapolate"):
-    """The platoon of ``orchestrator.scenario.build_scenario`` with ``n`` vehicles, Jacobi, ``steps`` steps."""
-    from orchestrator.config import config_from_mapping
-    from orchestrator.scenario import build_scenario
+    """The platoon of ``orchestrator.scenario.scenario.build_scenario`` with ``n`` vehicles, Jacobi, ``steps`` steps."""
+    from orchestrator.scenario.config import config_from_mapping
+    from orchestrator.scenario.scenario import build_scenario
 
     config = config_from_mapping({
         "name": f"bench-{n}",
@@ -32,14 +32,14 @@ def scenario_for(n: int, steps: int, coupling: str = "extrapolate"):
 
 def fmu_files(fmu_dir: Path = DEFAULT_OUT) -> dict[str, Path]:
     """Build the FMUs into ``fmu_dir`` when their sources changed (as ``platoon run`` does); their paths.
-    A folder named ``native`` holds the native FMUs (orchestrator/fmu_kinds.py)."""
-    from orchestrator.fmu_kinds import fmus_in_folder
+    A folder named ``native`` holds the native FMUs (orchestrator/components/kinds.py)."""
+    from orchestrator.components.kinds import fmus_in_folder
 
     return fmus_in_folder(fmu_dir)
 
 
 def unpacked_fmus(fmu_dir: Path = DEFAULT_OUT) -> dict[str, Any]:
-    from orchestrator.components import UnpackedFmu
+    from orchestrator.components.fmu import UnpackedFmu
 
     return {name: UnpackedFmu.open(path) for name, path in fmu_files(fmu_dir).items()}
 

@@ -44,7 +44,7 @@ def _perf_report(data: Path, sort: str, limit: int) -> list[tuple[float, str]]:
 def profile(n: int, steps: int, rounds: int, fmu_dir: Path = DEFAULT_OUT) -> dict[str, Any]:
     """In one process: the native loop against the floor (interleaved), the floor's phases, and perf's
     split of the native loop by shared object and symbol (when perf is installed)."""
-    from orchestrator.native import NativeComponent, NativeMaster
+    from orchestrator.execution.native import NativeComponent, NativeMaster
 
     # Both platoons run rounds + 1 (floor) and rounds + 2 (native) samples one after the other: keep
     # that within 20 s of simulated time (a 64-vehicle platoon on the paper's circle loses string

@@ -32,8 +32,8 @@ from fmus.build import DEFAULT_OUT
 from .common import PAPER_CONFIGS, RESULT, BenchError, BenchUsageError, Progress, interleaved, markdown_table
 
 if TYPE_CHECKING:  # the child imports these only once it runs a scenario: its start-up is measured
-    from orchestrator.config import Config
-    from orchestrator.run import RunResult
+    from orchestrator.scenario.config import Config
+    from orchestrator.execution.run import RunResult
 
 ENGINES = ("native", "python")
 VARIANTS = ("cli-traced", "traced", "untraced")
@@ -47,8 +47,8 @@ def run_config(config: Path, engine: str | None, out: Path | None, overrides: Se
     The one way every whole-run benchmark (this suite, ``paper_scenarios``, ``trace_overhead``) runs a
     scenario, so that they all measure what a user runs. ``engine=None``: the default engine.
     """
-    from orchestrator.config import load_config
-    from orchestrator.run import run_scenario
+    from orchestrator.scenario.config import load_config
+    from orchestrator.execution.run import run_scenario
 
     parsed, _ = load_config(config, list(overrides))
     return parsed, run_scenario(parsed, config.read_text(), out, engine=engine, fmu_dir=fmu_dir,
@@ -137,8 +137,8 @@ def run(configs: Sequence[Path] | None = None, engines: Sequence[str] = ENGINES,
         raise BenchUsageError(f"unknown engine(s)/variant(s) {', '.join(unknown)}; engines: {', '.join(ENGINES)}, "
                          f"variants: {', '.join(VARIANTS)}")
     paths = find_configs(configs)
-    from orchestrator.config import ConfigError, load_config
-    from orchestrator.limits import check_run_size
+    from orchestrator.scenario.config import ConfigError, load_config
+    from orchestrator.scenario.limits import check_run_size
 
     for path in paths:  # a bad config or override, or an absurdly long run, is a usage error before anything runs
         try:

@@ -21,7 +21,7 @@ from .common import BenchUsageError, Progress, interleaved, markdown_table, run_
 from . import ENGINES
 from .engines import LABELS, LIBCOSIM_ENGINES
 from .platoon import STEP, fmu_files
-from ..fmu_kinds import FMU_KINDS, fmu_folder, native_buildable
+from orchestrator.components.kinds import FMU_KINDS, fmu_folder, native_buildable
 
 DEFAULT_ENGINES = ("native", "python", "fmpy-bare", "libcosim", "libcosim-0threads", "libcosim-0threads-lastvalue", "slaves")
 DEFAULT_N = (4, 16, 64, 256)
@@ -81,7 +81,7 @@ def check_engines(engines: Sequence[str]) -> None:
         if importlib.util.find_spec("libcosimpy") is None:
             raise BenchUsageError("the libcosim engines need libcosimpy (pip install -e '.[test]'), or leave them out")
     if any(e.startswith("native") for e in engines):
-        from orchestrator.native import available
+        from orchestrator.execution.native import available
 
         if not available():
             raise BenchUsageError("the native engines need the compiled core (reinstall with a C compiler: pip install -e .)")

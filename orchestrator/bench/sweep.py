@@ -85,24 +85,3 @@ def render(result: dict[str, Any]) -> str:
             for variant, wall in result["medians"].items()]
     title = f"sweep of {result['runs']} runs ({result['stop_time']:g} s simulated each), medians of {result['rounds']} rounds"
     return title + "\n" + markdown_table(("variant", "wall s", "s per run", "speed-up vs local-1"), rows)
-
-
-def bench_sweep(
-    workers: Annotated[str, typer.Option(metavar="N,...", help="comma-separated local worker counts")] = "1,2",
-    runs: Annotated[int, typer.Option(min=1, help="runs in the sweep")] = 8,
-    stop_time: Annotated[float, typer.Option(min=0.1, help="simulated seconds per run")] = 100.0,
-    rounds: Annotated[int, typer.Option(min=1, help="interleaved repetitions; medians")] = 3,
-    dask: Annotated[bool, typer.Option("--dask/--no-dask", help="also on a Dask LocalCluster")] = True,
-    out_dir: Annotated[Path, typer.Option("--out-dir", help="folder for the JSON results")] = DEFAULT_OUT_DIR,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only the table and the result file")] = False,
-) -> None:
-    """Speed-up of a sweep with more local workers (and on Dask): wall time of real platoon sweep runs."""
-    from orchestrator.cli import _bench, _fail
-
-    try:
-        counts = sorted({int(part) for part in workers.split(",") if part.strip()})
-    except ValueError:
-        counts = []
-    if not counts or counts[0] < 1:
-        _fail(2, f"--workers {workers!r}: expected comma-separated worker counts of at least 1, e.g. 1,2")
-    _bench("sweep", lambda progress: run(counts, runs, stop_time, rounds, dask, progress), render, out_dir, quiet)

@@ -10,7 +10,7 @@ configs/bench/platoon100-1h.toml (100 vehicles, 3600 s at 0.1 s, 1 Hz recording,
 components, errors, Foxglove scene); docs/model.md ("Long platoons") says why that config and not
 the paper's k_v = 0.5, under which a 100-vehicle platoon breaks down within minutes.
 
-The run goes through ``orchestrator.run.run_scenario``, as ``platoon run`` does, so what is measured
+The run goes through ``orchestrator.execution.run.run_scenario``, as ``platoon run`` does, so what is measured
 is what a user gets. Every ``--sample`` steps its progress callback reads VmRSS from
 /proc/self/status (the callback runs in the stepping process), and the RSS of its children: the trace
 writer process, which encodes and writes the trace when ``--trace-writer`` is ``process`` (what
@@ -34,9 +34,9 @@ from pathlib import Path
 import numpy as np
 
 from fmus.build import DEFAULT_OUT, build_fmus
-from orchestrator.config import Config, load_config
-from orchestrator.run import default_engine, run_scenario
-from orchestrator.scenario import step_count
+from orchestrator.scenario.config import Config, load_config
+from orchestrator.execution.run import default_engine, run_scenario
+from orchestrator.scenario.scenario import step_count
 
 from .common import DEFAULT_OUT_DIR, rss_kib, slope, write_result
 
@@ -234,4 +234,4 @@ def main() -> int:
 if __name__ == "__main__":
     code = main()
     sys.stdout.flush()
-    os._exit(code)  # pythonfmu FMUs ran in this interpreter: skip its teardown (see orchestrator/cli.py)
+    os._exit(code)  # pythonfmu FMUs ran in this interpreter: skip its teardown (see orchestrator/cli/app.py)

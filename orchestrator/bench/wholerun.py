@@ -60,10 +60,10 @@ def write_system(n: int, steps: int, step: float, folder: Path, fmu_dir: Path, f
     did before the exporter existed, with no unzipping in the timed process)."""
     import zipfile
 
-    from orchestrator.config import load_config
-    from orchestrator.fmu_kinds import fmu_folder
-    from orchestrator.scenario import build_scenario
-    from orchestrator.ssp import write_ssp
+    from orchestrator.scenario.config import load_config
+    from orchestrator.components.kinds import fmu_folder
+    from orchestrator.scenario.scenario import build_scenario
+    from orchestrator.interop.ssp import write_ssp
 
     from .platoon import fmu_files
 
@@ -117,7 +117,7 @@ def run(ns: Sequence[int] = (16,), steps: int = 10_000, rounds: int = 5, variant
         import libcosimpy  # noqa: F401
     except ImportError:
         raise BenchUsageError("libcosimpy is not installed (pip install -e '.[test]')") from None
-    from orchestrator.config import load_config
+    from orchestrator.scenario.config import load_config
 
     step = load_config(CONFIG, [])[0].simulation.step
     started = time.perf_counter()

@@ -19,8 +19,8 @@ import random
 from dataclasses import dataclass
 from typing import Any
 
-from ..config import Config, ConfigError, load_config, read_config_text
-from ..limits import check_run_size
+from orchestrator.scenario.config import Config, ConfigError, load_config, read_config_text
+from orchestrator.scenario.limits import check_run_size
 from .spec import RandomRange, Scalar, SweepError, SweepSpec
 
 ID_LENGTH = 12  # hex digits of the run id: collisions are out of reach for any sweep a person runs

@@ -1,12 +1,12 @@
 """One run of a sweep, in a fresh process: ``python -m orchestrator.sweep.worker`` (request on stdin).
 
 Why a process per run: pythonfmu FMUs embed themselves in the host interpreter, so a crash inside one
-(or the heap damage its teardown can cause, orchestrator/cli.py: main) takes its process down. In a
+(or the heap damage its teardown can cause, orchestrator/cli/app.py: main) takes its process down. In a
 process of its own, such a run is recorded as failed, with the reason, and the sweep goes on; the
 process leaves with ``os._exit``. Its start-up (about 0.4 s of imports) is small against a run.
 
-The child runs ``run_scenario`` (orchestrator/run.py) with the summary ``platoon report --json`` gives
-(orchestrator/metrics.py), accumulated as the rows are recorded, and prints one ``RESULT {json}`` line. It dies
+The child runs ``run_scenario`` (orchestrator/execution/run.py) with the summary ``platoon report --json`` gives
+(orchestrator/analysis/metrics.py), accumulated as the rows are recorded, and prints one ``RESULT {json}`` line. It dies
 with the process that started it (Linux: PR_SET_PDEATHSIG), so a sweep killed with SIGKILL leaves no
 run behind that could still write into its folder.
 
@@ -60,9 +60,9 @@ def _die_with_parent(parent: int) -> None:
 
 
 def _run(request: dict[str, Any]) -> dict[str, Any]:
-    from ..config import config_from_mapping
-    from ..metrics import report_json, summarize
-    from ..run import run_scenario
+    from orchestrator.scenario.config import config_from_mapping
+    from orchestrator.analysis.metrics import report_json, summarize
+    from orchestrator.execution.run import run_scenario
     from ..trace import load
 
     config = config_from_mapping(request["raw"])
@@ -79,7 +79,7 @@ def _run(request: dict[str, Any]) -> dict[str, Any]:
 
 
 def main() -> None:
-    from ..internal_entry import check_arguments
+    from orchestrator.support.internal_entry import check_arguments
 
     check_arguments(sys.argv[1:], "python -m orchestrator.sweep.worker < REQUEST.json", __doc__, count=0)
     try:
@@ -140,7 +140,7 @@ def terminate_children() -> None:
 def _fmus_here(fmu_dir: str) -> Path:
     """The FMUs on this (possibly remote) host: ``fmu_dir`` if the client's folder is here, else a
     per-user cache built once (a lock, since several worker processes may start together)."""
-    from ..fmu_kinds import prepare_fmus
+    from orchestrator.components.kinds import prepare_fmus
 
     wanted = Path(fmu_dir)
     folder = wanted if wanted.is_dir() else Path(tempfile.gettempdir()) / f"platoon-sweep-fmus-{os.getuid()}"

@@ -4,7 +4,7 @@ The format is in docs/trace-format.md. The package's modules, each with one job:
 
 * ``format``: topics, channel kinds, chunking constants, how numbers become JSON text;
 * ``encoding``: each channel as a ``ChannelSpec`` and the components' messages, made once for the
-  trace file and the live view (``platoon run --live``, orchestrator/live_view.py);
+  trace file and the live view (``platoon run --live``, orchestrator/observers/foxglove_view.py);
 * ``writer``: ``TraceWriter``, encoding in the stepping process;
 * ``worker`` + ``serve``: ``TraceWorker``, the same writer in a second process (``serve`` is its
   entry point, ``python -m orchestrator.trace.serve``);

@@ -1,7 +1,7 @@
 """The trace's channels and messages, once, for every sink: the MCAP file and the live view.
 
 A channel is a ``ChannelSpec`` (topic, schema, encodings, metadata); the MCAP writer registers it
-with ``register_mcap`` and the live view (orchestrator/live_view.py) advertises the very same spec on
+with ``register_mcap`` and the live view (orchestrator/observers/foxglove_view.py) advertises the very same spec on
 its Foxglove WebSocket server. A message is bytes made here (the components' JSON rows:
 ``ComponentMessages``; a live link's raw messages: ``LiveStream``) or in ``foxglove.FoxgloveChannels``
 (errors, scene, transforms, log): both sinks send the same bytes, so a live viewer and a trace show

@@ -32,7 +32,7 @@ from .encoding import ChannelSpec, register_mcap
 from .format import number_texts
 
 if TYPE_CHECKING:
-    from ..config import Config
+    from orchestrator.scenario.config import Config
 
 ERRORS_TOPIC = "/platoon/errors"
 SCENE_TOPIC = "/platoon/scene"
@@ -177,7 +177,7 @@ class SceneSettings:
 
     @classmethod
     def of(cls, config: "Config") -> "SceneSettings":
-        from ..scenario import path_of
+        from orchestrator.scenario.scenario import path_of
 
         p = config.path
         return cls(path_of(config), p.kind, (float(p.center[0]), float(p.center[1])), float(p.radius),
@@ -544,7 +544,7 @@ def layout_json(vehicles: int = 6, settings: SceneSettings | None = None) -> str
 if __name__ == "__main__":  # python -m orchestrator.trace.foxglove [VEHICLES] > layouts/platoon.json
     import sys
 
-    from ..internal_entry import check_arguments
+    from orchestrator.support.internal_entry import check_arguments
 
     usage = "python -m orchestrator.trace.foxglove [VEHICLES] > layouts/platoon.json"
     check_arguments(sys.argv[1:], usage, "Prints the static Foxglove layout for VEHICLES vehicles (default 6); "

@@ -100,7 +100,7 @@ def abandon(writer: TraceWriter) -> None:
 
 
 def main(argv: list[str]) -> int:
-    from ..internal_entry import check_arguments
+    from orchestrator.support.internal_entry import check_arguments
 
     check_arguments(argv, "python -m orchestrator.trace.serve INBOX_FD STATUS_FD", __doc__, count=2,
                     fits=lambda args: all(arg.isdigit() for arg in args))

@@ -26,7 +26,7 @@ from mcap.data_stream import RecordBuilder
 from mcap.records import Message, MessageIndex, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
-from ..errors import ComponentError
+from fmus.errors import ComponentError
 from .encoding import ComponentMessages, LiveStream, register_mcap
 from .format import CHUNK_SIZE, FLUSH_INTERVAL, BLOCK
 

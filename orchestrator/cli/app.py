@@ -1,0 +1,120 @@
+"""The ``platoon`` command: the Typer app that gathers the command groups, and the console entry point.
+
+Exit codes: 0 success; 1 a run failed (the trace up to the failure is kept), or a trace held nothing
+recoverable; 2 bad input (config, option or file), with one line naming what is wrong and no
+traceback; 130 a run stopped by SIGINT (Ctrl-C) and 143 by SIGTERM (128 + the signal number, as a
+shell reports a process killed by it), its trace finalized up to the stop.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from typing import Annotated
+
+import typer
+
+from orchestrator.cli import bench, hil, run, ssp, sweep, trace, viewer
+from orchestrator.cli.common import out
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="Platoon co-simulation: trajectory-shaping guidance FMUs, config-driven runs, MCAP traces.",
+)
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        from orchestrator.execution.run import tool_versions
+
+        versions = tool_versions()
+        out.print(f"platoon {versions.pop('platoon-cosim')} ("
+                  + ", ".join(f"{name} {version}" for name, version in versions.items()) + ")", highlight=False)
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(
+    version: Annotated[bool, typer.Option("--version", callback=_print_version, is_eager=True,
+                                          help="print the version (and of the FMUs, FMPy, pythonfmu, Python) and exit")] = False,
+) -> None:
+    """Platoon co-simulation: trajectory-shaping guidance FMUs, config-driven runs, MCAP traces."""
+
+
+# the order `platoon --help` lists them in: a run's life first, then the robot, campaigns, other tools, views
+for command in (run.build, run.run, trace.report, trace.export, run.analyze):
+    app.command()(command)
+hil.register(app)  # m3pi-emulator, m3pi-serial
+sweep.register(app)  # sweep, sweep-plot
+ssp.register(app)  # export-ssp: the platoon for other tools
+viewer.register(app)  # layout, figure: what users look at
+trace.register_group(app)  # trace recover
+bench.register(app)  # bench ...
+
+
+def main() -> None:
+    """Console entry point: run the command, then leave without interpreter teardown.
+
+    pythonfmu FMUs embed themselves in the host's interpreter, and its teardown after they ran
+    intermittently corrupts the heap (glibc aborts with "corrupted double-linked list", seen in
+    roughly one run in five when started through the console script). Every file is closed and every
+    line printed by the time a command returns, so we flush and exit with the command's code directly.
+    """
+    code = 0
+    try:
+        app()
+    except SystemExit as done:
+        code = done.code if isinstance(done.code, int) else (0 if done.code is None else 1)
+        if isinstance(done.code, str):
+            print(done.code, file=sys.stderr)
+    except BaseException:  # an unexpected error: show it, as Python would, then exit 1
+        import traceback
+
+        traceback.print_exc()
+        code = 1
+    finally:
+        sys.stdout.flush()
+        sys.stderr.flush()
+    os._exit(code)
+
+
+class _PlainFlags:
+    """``--help`` without a ``<bool>`` after each flag: a flag takes no value, and a newcomer reading
+    ``--quiet <bool>`` would type ``--quiet true``."""
+
+    def get_params(self, ctx):  # type: ignore[no-untyped-def]
+        params = super().get_params(ctx)  # type: ignore[misc]
+        for param in params:
+            if getattr(param, "is_flag", False) and param.metavar is None:
+                param.metavar = " "  # shown instead of the type: nothing
+        return params
+
+
+class _PlainFlagsCommand(_PlainFlags, typer.core.TyperCommand):
+    pass
+
+
+class _PlainFlagsGroup(_PlainFlags, typer.core.TyperGroup):
+    pass
+
+
+def _plain_flags(typer_app: typer.Typer) -> None:
+    """Every command and group of ``typer_app`` (and its sub-apps) shows its flags plainly."""
+    def default(cls: object, base: type) -> bool:  # not chosen by whoever declared it: typer's default
+        return cls is None or cls is base or isinstance(cls, typer.models.DefaultPlaceholder)
+
+    if default(typer_app.info.cls, typer.core.TyperGroup):
+        typer_app.info.cls = _PlainFlagsGroup
+    for command in typer_app.registered_commands:
+        if default(command.cls, typer.core.TyperCommand):
+            command.cls = _PlainFlagsCommand
+    for group in typer_app.registered_groups:
+        if default(group.cls, typer.core.TyperGroup):
+            group.cls = _PlainFlagsGroup
+        if group.typer_instance is not None:
+            _plain_flags(group.typer_instance)
+
+
+_plain_flags(app)
+

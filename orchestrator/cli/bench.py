@@ -1,0 +1,314 @@
+"""`platoon bench ...`: the benchmarks' command line (options, progress, tables, the JSON result). The
+measurements themselves live in orchestrator/bench/, which knows nothing of the CLI."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Optional
+
+import typer
+
+
+if TYPE_CHECKING:  # rich's table is imported where used: `platoon run -q` needs none
+    pass
+
+from orchestrator.bench import ENGINES as BENCH_ENGINES
+from orchestrator.bench.common import DEFAULT_OUT_DIR
+from orchestrator.cli.common import (SET_METAVAR, err, fail,
+                                     out)
+
+bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks of issue 10 (JSON under runs/bench/; not pass/fail tests).")
+
+
+ROUNDS_HELP = "interleaved repetitions (each variant once per round, order rotated); medians over rounds"
+
+
+OutDir = Annotated[Path, typer.Option("--out-dir", help="folder for the JSON results")]
+
+
+Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only the tables and the result file")]
+
+
+Engines = Annotated[str, typer.Option(metavar="ENGINE,...", help=f"comma-separated, of: {', '.join(BENCH_ENGINES)}")]
+
+
+Counts = Annotated[str, typer.Option("--n", metavar="N,...", help="comma-separated vehicle counts")]
+
+
+Steps = Annotated[int, typer.Option(min=1, help="communication steps of 0.01 s per measurement")]
+
+
+Rounds = Annotated[int, typer.Option(min=1, help=ROUNDS_HELP)]
+
+
+def _csv(option: str, text: str, choices: tuple[str, ...]) -> list[str]:
+    """A comma-separated list of names out of ``choices``; anything else is a usage error (exit 2)."""
+    names = [name.strip() for name in text.split(",") if name.strip()]
+    unknown = [name for name in names if name not in choices]
+    if not names or unknown:
+        fail(2, f"{option} {text!r}: expected a comma-separated list of {', '.join(choices)}")
+    return list(dict.fromkeys(names))
+
+
+def _counts(text: str) -> list[int]:
+    """``--n``: comma-separated vehicle counts, each at least 1."""
+    try:
+        counts = [int(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        counts = []
+    if not counts or min(counts) < 1:
+        fail(2, f"--n {text!r}: expected comma-separated vehicle counts of at least 1, e.g. 4,16,64,256")
+    return list(dict.fromkeys(counts))
+
+
+class _BenchProgress:
+    """One line per measurement; on a terminal also a bar (stderr) counting the measurements done."""
+
+    def __init__(self, quiet: bool) -> None:
+        self.quiet = quiet
+        self.bar: Progress | None = None
+        self.task = None
+        if not quiet and err.is_terminal:
+            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+            self.bar = Progress(TextColumn("[bold]measuring"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                                TimeElapsedColumn(), TimeRemainingColumn(), console=err, transient=True)
+
+    def __enter__(self) -> "_BenchProgress":
+        if self.bar is not None:
+            self.bar.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+
+    def __call__(self, done: int, total: int, line: str) -> None:
+        if self.quiet:
+            return
+        if self.bar is not None:
+            if self.task is None:
+                self.task = self.bar.add_task("measuring", total=total)
+            self.bar.update(self.task, completed=done, total=total)
+        err.print(line, highlight=False, soft_wrap=True)
+
+
+def run_bench(suite: str, measure, render, out_dir: Path, quiet: bool) -> None:
+    """Run one suite with progress, print its tables, write its JSON; bad options exit 2, failures 1."""
+    from orchestrator.bench.common import BenchError, BenchUsageError, write_result
+
+    try:
+        with _BenchProgress(quiet) as progress:
+            result = measure(progress)
+    except BenchUsageError as error:
+        fail(2, str(error))
+    except BenchError as error:
+        fail(1, f"bench {suite}: {error}")
+    result["command"] = " ".join(["platoon", *sys.argv[1:]])
+    out.print(render(result), highlight=False, soft_wrap=True)
+    out.print(f"results: {write_result(out_dir, suite, result)}", highlight=False, soft_wrap=True)
+
+
+def _per_fmu_step(suite_name: str, engines: str, n: str, steps: int, rounds: int, out_dir: Path, quiet: bool,
+                  **options) -> None:
+    """The two suites of FMU-step costs (``steps``, ``coupling``): same options, same checks."""
+    from importlib import import_module
+
+    suite = import_module(f"orchestrator.bench.{suite_name}")
+    chosen, counts = _csv("--engines", engines, BENCH_ENGINES), _counts(n)
+    run_bench(suite_name, lambda progress: suite.run(chosen, counts, steps, rounds, progress=progress, **options),
+           suite.markdown, out_dir, quiet)
+
+
+def bench_steps(engines: Engines = "native,python,fmpy-bare,libcosim,libcosim-0threads,libcosim-0threads-lastvalue,slaves",
+                n: Counts = "4,16,64,256", steps: Steps = 1000, rounds: Rounds = 5,
+                out_dir: OutDir = Path("runs/bench"), quiet: Quiet = False,
+                fmus: Annotated[Optional[str], typer.Option("--fmus", metavar="KIND,...", help="comma-separated FMU kinds: python, native (default: both where a C compiler builds the native ones)")] = None) -> None:
+    """Microseconds per FMU-step of our engines, the bare FMPy loop, libcosim and the floor, by N, for the
+    pythonfmu FMUs and the native ones."""
+    from orchestrator.components.kinds import FMU_KINDS
+
+    kinds = None if fmus is None else _csv("--fmus", fmus, FMU_KINDS)
+    _per_fmu_step("steps", engines, n, steps, rounds, out_dir, quiet, fmu_kinds=kinds)
+
+
+def bench_coupling(engines: Engines = "native,slaves", n: Counts = "4,16,64", steps: Steps = 1000, rounds: Rounds = 5,
+                   out_dir: OutDir = Path("runs/bench"), quiet: Quiet = False) -> None:
+    """Cost per FMU-step with coupling "hold" against "extrapolate" (same rounds, same engines)."""
+    _per_fmu_step("coupling", engines, n, steps, rounds, out_dir, quiet)
+
+
+def bench_scenarios(
+    configs: Annotated[list[Path], typer.Option("--config", metavar="CONFIG", help="scenario TOML (repeatable; default configs/paper/*.toml)")] = [],
+    engines: Annotated[str, typer.Option(metavar="ENGINE,...", help="comma-separated: native, python")] = "native,python",
+    variants: Annotated[str, typer.Option(metavar="VARIANT,...", help="comma-separated: cli-traced (platoon run --out X -q), traced, untraced")] = "cli-traced,traced,untraced",
+    rounds: Rounds = 3,
+    overrides: Annotated[list[str], typer.Option("--set", metavar=SET_METAVAR, help="override a key in every scenario")] = [],
+    out_dir: OutDir = Path("runs/bench"),
+    quiet: Quiet = False,
+) -> None:
+    """Whole-run wall times of the paper's scenarios, start-up included, traced and untraced."""
+    from orchestrator.bench import scenarios as suite
+
+    chosen = _csv("--engines", engines, suite.ENGINES)
+    kinds = _csv("--variants", variants, suite.VARIANTS)
+    run_bench("scenarios", lambda progress: suite.run(configs or None, chosen, kinds, rounds, overrides, progress=progress),
+           suite.markdown, out_dir, quiet)
+
+
+def bench_wholerun(
+    n: Counts = "16",
+    steps: Steps = 10_000,
+    variants: Annotated[str, typer.Option(metavar="VARIANT,...", help="comma-separated: platoon (default run, traced, table), platoon-q (-q --trace-every 100), libcosim (no observer), libcosim-outputs (time series of every output), libcosim-last-value")] = "platoon,platoon-q,libcosim,libcosim-outputs,libcosim-last-value",
+    rounds: Rounds = 5,
+    out_dir: OutDir = Path("runs/bench"),
+    quiet: Quiet = False,
+    fmus: Annotated[str, typer.Option("--fmus", metavar="<python|native>", help="the FMUs every variant steps: python (pythonfmu, the system the floors were set on) or native (the C twins)")] = "python",
+) -> None:
+    """Whole `platoon run` processes against libcosim running the same system from an SSP (0 threads)."""
+    from orchestrator.bench import wholerun as suite
+    from orchestrator.components.kinds import FMU_KINDS
+
+    if fmus not in FMU_KINDS:
+        fail(2, f"--fmus {fmus!r}: expected one of {', '.join(FMU_KINDS)}")
+    kinds, counts = _csv("--variants", variants, suite.VARIANTS), _counts(n)
+    run_bench("wholerun", lambda progress: suite.run(counts, steps, rounds, kinds, progress=progress, fmus=fmus),
+           suite.markdown, out_dir, quiet)
+
+
+def bench_instances(
+    engines: Annotated[str, typer.Option(metavar="ENGINE,...", help="comma-separated: native, fmpy")] = "native,fmpy",
+    n: Counts = "4,16,64,256",
+    wirings: Annotated[str, typer.Option(metavar="WIRING,...", help="comma-separated: instances (unconnected), platoon (wired, settle sweeps)")] = "instances,platoon",
+    rounds: Rounds = 3,
+    out_dir: OutDir = Path("runs/bench"),
+    quiet: Quiet = False,
+) -> None:
+    """Instantiation time and RSS per vehicle instance (slope over N), native engine and FMPy."""
+    from orchestrator.bench import instances as suite
+
+    chosen, counts = _csv("--engines", engines, suite.ENGINES), _counts(n)
+    kinds = _csv("--wirings", wirings, suite.WIRINGS)
+    run_bench("instances", lambda progress: suite.run(chosen, counts, rounds, kinds, progress=progress), suite.markdown,
+           out_dir, quiet)
+
+
+def bench_profile(
+    n: Counts = "4,16,64",
+    steps: Annotated[int, typer.Option(min=1, help="steps per sample (capped to 20 s simulated in all)")] = 1000,
+    rounds: Rounds = 3,
+    out_dir: OutDir = Path("runs/bench"),
+    quiet: Quiet = False,
+) -> None:
+    """Where the native engine's time goes: native loop against the floor in one process, perf split."""
+    from orchestrator.bench import profile as suite
+
+    counts = _counts(n)
+    run_bench("profile", lambda progress: suite.run(counts, steps, rounds, progress=progress), suite.markdown, out_dir, quiet)
+
+
+def bench_flatness(
+    n: Counts = "4,16,64,256",
+    steps: Annotated[int, typer.Option(min=1, help="steps per sample")] = 150,
+    rounds: Annotated[int, typer.Option(min=1, help="interleaved samples per process")] = 5,
+    repeats: Annotated[int, typer.Option(min=1, help="processes per N and experiment")] = 3,
+    callgrind: Annotated[bool, typer.Option("--callgrind", help="also count instructions and simulated cache misses (valgrind; slow)")] = False,
+    out_dir: OutDir = Path("runs/bench"),
+    quiet: Quiet = False,
+) -> None:
+    """Why the cost per FMU-step grows with N: stepping order, idle instances, object sizes, cache misses."""
+    from orchestrator.bench import flatness as suite
+
+    counts = _counts(n)
+    run_bench("flatness", lambda progress: suite.run_suite(counts, steps, rounds, repeats, callgrind, progress=progress),
+           suite.suite_markdown, out_dir, quiet)
+
+
+CORE_BUILD_HELP = "LABEL=PATH of a built orchestrator/execution/native/_core .so (copy it aside before rebuilding _core.c)"
+
+
+def bench_callgrind(
+    n: Counts = "4,16,64,256",
+    engines: Annotated[str, typer.Option(metavar="ENGINE,...", help="comma-separated: native, python, fmpy-bare")] = "native",
+    fmu_steps: Annotated[int, typer.Option(min=1, help="FMU-steps per measurement (steps = this / (N + 1))")] = 2500,
+    ll: Annotated[str, typer.Option("--ll", metavar="CACHE,...", help="comma-separated last-level caches to simulate: l2 (this machine's "
+                                               "512 KiB L2), detected (valgrind's choice, the L3)")] = "l2",
+    cores: Annotated[list[str], typer.Option("--core", metavar="LABEL=PATH", help=f"{CORE_BUILD_HELP}; repeatable (native engine; default: the installed core)")] = [],
+    out_dir: OutDir = Path("runs/bench"),
+    quiet: Quiet = False,
+) -> None:
+    """Instructions and cache misses per FMU-step of an engine's stepping (valgrind), the master's own apart."""
+    from orchestrator.bench import flatness as suite
+
+    counts, chosen = _counts(n), _csv("--engines", engines, suite.CALLGRIND_ENGINES)
+    levels = [suite.LAST_LEVELS[name] for name in _csv("--ll", ll, tuple(suite.LAST_LEVELS))]
+    run_bench("callgrind", lambda progress: suite.callgrind_series(counts, fmu_steps, levels, suite.core_builds(cores) or None,
+                                                                progress=progress, engines=chosen),
+           suite.callgrind_markdown, out_dir, quiet)
+
+
+def bench_cores(
+    builds: Annotated[list[str], typer.Argument(metavar="LABEL=PATH", help=f"{CORE_BUILD_HELP}; at least two", show_default=False)],
+    n: Counts = "4,16,64,256",
+    steps: Steps = 1000,
+    rounds: Rounds = 5,
+    out_dir: OutDir = Path("runs/bench"),
+    quiet: Quiet = False,
+) -> None:
+    """The native engine with two or more builds of _core.c: µs per FMU-step, interleaved in fresh interpreters."""
+    from orchestrator.bench import flatness as suite
+
+    counts = _counts(n)
+    run_bench("cores", lambda progress: suite.compare_cores(suite.core_builds(builds), counts, steps, rounds, progress=progress),
+           suite.cores_markdown, out_dir, quiet)
+
+
+
+def bench_hil(
+    seconds: Annotated[float, typer.Option(min=0.5, help="seconds per live run (the ping-pong takes half)")] = 10.0,
+    rounds: Annotated[int, typer.Option(min=1, help="repetitions of every measurement (order rotated); medians")] = 1,
+    out_dir: Annotated[Path, typer.Option("--out-dir", help="folder for the JSON results")] = DEFAULT_OUT_DIR,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only the tables and the result file")] = False,
+) -> None:
+    """Hardware in the loop on loopback: Zenoh round trip (bare and in live runs) and step jitter at 100 and 200 Hz."""
+    from orchestrator.bench import hil as suite
+
+    run_bench("hil", lambda progress: suite.run(seconds, rounds, progress), suite.render, out_dir, quiet)
+
+
+def bench_sweep(
+    workers: Annotated[str, typer.Option(metavar="N,...", help="comma-separated local worker counts")] = "1,2",
+    runs: Annotated[int, typer.Option(min=1, help="runs in the sweep")] = 8,
+    stop_time: Annotated[float, typer.Option(min=0.1, help="simulated seconds per run")] = 100.0,
+    rounds: Annotated[int, typer.Option(min=1, help="interleaved repetitions; medians")] = 3,
+    dask: Annotated[bool, typer.Option("--dask/--no-dask", help="also on a Dask LocalCluster")] = True,
+    out_dir: Annotated[Path, typer.Option("--out-dir", help="folder for the JSON results")] = DEFAULT_OUT_DIR,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only the table and the result file")] = False,
+) -> None:
+    """Speed-up of a sweep with more local workers (and on Dask): wall time of real platoon sweep runs."""
+    from orchestrator.bench import sweep as suite
+
+    try:
+        counts = sorted({int(part) for part in workers.split(",") if part.strip()})
+    except ValueError:
+        counts = []
+    if not counts or counts[0] < 1:
+        fail(2, f"--workers {workers!r}: expected comma-separated worker counts of at least 1, e.g. 1,2")
+    run_bench("sweep", lambda progress: suite.run(counts, runs, stop_time, rounds, dask, progress), suite.render, out_dir, quiet)
+
+
+def register(app: typer.Typer) -> None:
+    """``platoon bench`` and its suites."""
+    bench_app.command("steps")(bench_steps)
+    bench_app.command("coupling")(bench_coupling)
+    bench_app.command("scenarios")(bench_scenarios)
+    bench_app.command("wholerun")(bench_wholerun)
+    bench_app.command("instances")(bench_instances)
+    bench_app.command("profile")(bench_profile)
+    bench_app.command("flatness")(bench_flatness)
+    bench_app.command("callgrind")(bench_callgrind)
+    bench_app.command("cores")(bench_cores)
+    bench_app.command("hil")(bench_hil)
+    bench_app.command("sweep")(bench_sweep)
+    app.add_typer(bench_app, name="bench")

@@ -1,0 +1,163 @@
+"""What every `platoon` command shares: the two consoles, the one-line failure (exit code and message), a
+config or a trace loaded with its errors turned into that line, the output checks, the summary table.
+
+No rich markup in what we print: names, paths and config text are the user's ("[[disturbance]]",
+"runs/[a]/x.mcap") and must appear as written. The one styled line (``fail``) asks for markup itself.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from contextlib import contextmanager
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Iterator, Optional
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+
+from orchestrator.scenario.config import Config, ConfigError, parse_config, read_config_text
+
+if TYPE_CHECKING:  # rich's table is imported where used: `platoon run -q` needs none
+    from rich.table import Table
+
+
+# No rich markup in what we print: names, paths and config text are the user's ("[[disturbance]]",
+# "runs/[a]/x.mcap") and must appear as written. The one styled line (fail) asks for markup itself.
+out = Console(markup=False)
+
+
+err = Console(stderr=True, markup=False)
+
+
+# Metavars that show what an option takes (typer would print <str> or <list[str]>)
+SET_METAVAR = "KEY=VALUE"
+
+
+def choices_metavar(choices: tuple[str, ...]) -> str:
+    """``<a|b|c>``: the allowed values of an option, as typer shows a choice type, for an option we check
+    ourselves (so a wrong value is our one-line error, not typer's framed box)."""
+    return "<" + "|".join(choices) + ">"
+
+
+AllowLong = Annotated[bool, typer.Option("--allow-long", help="run even above the size limits (docs/config.md: more than "
+                                         "1e6 steps, 1000 substeps per step or 1e8 FMU-substeps)")]
+
+
+def fail(code: int, message: str) -> None:
+    err.print(f"[bold red]error:[/] {escape(message)}", markup=True, highlight=False, soft_wrap=True)
+    raise typer.Exit(code)
+
+
+def load_config(config: Path, overrides: list[str], allow_long: bool = True) -> tuple[Config, str]:
+    """The validated config and its text as read (stored in the trace); exit 2 naming the problem.
+    ``allow_long=False`` also refuses a run above the size limits (orchestrator/scenario/limits.py)."""
+    from orchestrator.scenario.limits import check_run_size
+
+    try:
+        text = read_config_text(config)
+        parsed, _ = parse_config(text, config.stem, overrides)
+        if not allow_long:
+            check_run_size(parsed)
+    except ConfigError as error:
+        fail(2, f"config {config}: {error}")
+    from orchestrator.scenario.config_warnings import config_warnings
+
+    for warning in config_warnings(parsed):  # valid, but probably not what was meant: the run still goes
+        err.print(f"warning: config {config}: {warning}", highlight=False, soft_wrap=True)
+    return parsed, text
+
+
+def summary_table(summaries, config: Config, title: str) -> Table:
+    """The per-vehicle summary (the consoles print text literally: the units "[m]" are not markup); the same
+    quantities, keys and units as `platoon report --json` (metrics.SUMMARY_COLUMNS, summary_rows)."""
+    from rich.table import Table
+
+    from orchestrator.analysis.metrics import STEADY_FRACTION, SUMMARY_COLUMNS, path_error_interval, summary_rows
+
+    _, interval = path_error_interval(config)  # max |path error| is taken from the first disturbance on (metrics.py)
+    table = Table(title=title, title_justify="left", caption_justify="left",
+                  caption=f"path offset, gap, speed: means over the last {STEADY_FRACTION:.0%} of the recorded time")
+    table.add_column("vehicle", justify="left")
+    for column in SUMMARY_COLUMNS:
+        header = f"{column.label} [{column.unit}]" + (f", {interval}" if column.key == "path_error_max" else "")
+        table.add_column(header, justify="right",
+                         min_width=len(column.label) if column.key == "path_error_max" else None,  # unbroken
+                         max_width=len("path offset") if column.key == "path_offset" else None)  # fits 80 columns
+    for row in summary_rows(summaries, config):  # deviations signed; the largest |error| is a magnitude
+        table.add_row(str(row["name"]), *(f"{row[c.key]:.3e}" if c.key == "path_error_max" else f"{row[c.key]:+.3e}"
+                                           for c in SUMMARY_COLUMNS))
+    return table
+
+
+OVERWRITE_HELP = "replace an existing --out even if it is not an MCAP trace (never the command's own input)"
+
+
+def check_output(path: Path, overwrite: bool, protect: list[Path], what: str = "--out") -> None:
+    """Exit 2 with one line if ``path`` must not be replaced (trace/output.py: check_replaceable)."""
+    from orchestrator.trace.output import OutputError, check_replaceable
+
+    try:
+        check_replaceable(path, overwrite, protect, what)
+    except OutputError as error:
+        fail(2, str(error))
+
+
+def claim_trace(trace: Optional[Path], overwrite: bool, protect: list[Path], default):
+    """Claim the trace path before any work (orchestrator/trace/output.py): exit 2 with one line if it is
+    in use by another run, is a file that is not a trace (without --overwrite), is the config, or cannot
+    be written."""
+    from orchestrator.trace.output import OutputError, claim
+
+    try:
+        return claim(trace, overwrite, protect) if trace is not None else default()
+    except OutputError as error:
+        fail(2, str(error))
+
+
+@contextmanager
+def quiet_nan(quiet: bool) -> Iterator[None]:
+    """Silence numpy's invalid-value warnings when a config's non-finite values make figures nan on purpose."""
+    if not quiet:
+        yield
+        return
+    import numpy as np
+
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        yield
+
+
+def note_recovery(loaded, note) -> None:
+    """A trace written by `platoon trace recover` with damaged stretches skipped: say which time is missing."""
+    record = loaded.metadata.get("platoon.recovery")
+    if not record or record.get("damaged", "0") == "0":
+        return
+    from orchestrator.trace.recovery import describe_lost
+
+    lost = [tuple(pair) for pair in json.loads(record.get("lost", "[]"))]
+    note(f"warning: recovered from a damaged trace; data is missing between {describe_lost(lost)}",
+         highlight=False, soft_wrap=True)
+
+
+def load_trace(trace: Path):
+    from orchestrator.trace import TraceError, load
+
+    if not trace.is_file():
+        fail(2, f"trace {trace}: no such file")
+    try:
+        return load(trace)
+    except TraceError as error:  # says what is wrong and what to do (e.g. `platoon trace recover`)
+        fail(2, f"trace {trace}: not a readable MCAP trace: {error}")
+    except Exception as error:  # any other reader failure means the file is not a usable trace
+        fail(2, f"trace {trace}: not a readable MCAP trace ({error}); try `platoon trace recover {trace}`")
+
+
+def same_file(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+

@@ -1,0 +1,191 @@
+"""The hardware-in-the-loop commands of ``platoon``: ``m3pi-emulator``, ``m3pi-serial``, and the live
+summary table a run prints. Kept apart from cli.py so that the bridge's programs sit together.
+
+Both commands are long-running processes that stop on Ctrl-C or SIGTERM; the robot side always stops
+its wheels before it exits.
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import threading
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any, Optional
+
+import typer
+
+from orchestrator.cli.common import fail, load_config
+from orchestrator.support.text import ms_text
+
+if TYPE_CHECKING:  # imported where used: registering these commands must not slow every `platoon` start
+    from rich.table import Table
+
+Endpoints = Annotated[list[str], typer.Option(metavar="ENDPOINT", help="Zenoh endpoint, e.g. tcp/127.0.0.1:7447 (repeatable)")]
+
+
+def _stop_on_signals(stop: threading.Event) -> None:
+    """SIGINT and SIGTERM set ``stop``: the program's loop ends, stops the wheels, releases Zenoh."""
+    def handler(signum: int, frame: object) -> None:
+        stop.set()
+
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, handler)
+
+
+
+def live_table(summary: dict[str, dict[str, Any]]) -> Table:
+    """Pacing and link statistics of a live run, one row per live vehicle (fits 80 columns)."""
+    pacing = summary.get("pacing", {})
+    title = (f"live: step jitter median {ms_text(pacing.get('jitter.median'))} ms, p99 {ms_text(pacing.get('jitter.p99'))} ms, "
+             f"max {ms_text(pacing.get('jitter.max'))} ms; overruns {pacing.get('overruns', 0)} of {pacing.get('points', 0)}")
+    notes = ["trip: command sent -> first pose taken after the robot applied it (median/p99); "
+             "age: of the pose each step used (median/max)"]
+    headers = ("vehicle", "robot", "state", "cmds", "poses", "dropped", "trip ms", "age ms")
+    rows = []
+    for name, stats in summary.items():
+        if name == "pacing":
+            continue
+        dropped = {k.split(".")[-1]: v for k, v in stats.items() if k.startswith("pose.dropped.") and v}
+        if dropped:
+            notes.append(f"{name} dropped: " + ", ".join(f"{reason} {count}" for reason, count in dropped.items()))
+        rows.append((
+            name, str(stats.get("robot", "")), str(stats.get("state", "")), str(stats.get("command.sent", 0)),
+            str(stats.get("pose.accepted", 0)), str(sum(dropped.values())),
+            f"{ms_text(stats.get('round_trip.median'))}/{ms_text(stats.get('round_trip.p99'))}",
+            f"{ms_text(stats.get('pose_age.median'))}/{ms_text(stats.get('pose_age.max'))}",
+        ))
+    from rich import box
+    from rich.table import Table
+
+    table = Table(title=title, title_justify="left", caption_justify="left", box=box.SIMPLE_HEAD, pad_edge=False,
+                  collapse_padding=True)
+    for index, header in enumerate(headers):  # every cell whole: the widths a row needs, no ellipsis
+        width = max([len(header), *(len(row[index]) for row in rows)])
+        table.add_column(header, justify="left" if header in ("vehicle", "state") else "right", min_width=width)
+    for row in rows:
+        table.add_row(*row)
+    table.caption = "\n".join(notes)
+    return table
+
+
+def emulated_robots(config: Any, ids: list[int]) -> list[Any]:
+    """One ``RobotSpec`` per live vehicle of ``config`` (only robots ``ids`` if given), placed as the run starts it."""
+    from bridge.emulator import RobotSpec
+    from bridge.protocol import RobotKeys
+    from fmus.model.dynamics import M3piDynamics
+
+    from orchestrator.scenario.scenario import initial_states
+
+    states = initial_states(config)
+    m3pi = config.m3pi
+    robots = []
+    for vehicle in config.live_vehicles():
+        robot = config.robot_id(vehicle)
+        if ids and robot not in ids:
+            continue
+        override = config.override(vehicle)
+        x, y, heading, speed = states[vehicle - 1]
+        dynamics = M3piDynamics(override.k_v or config.platoon.k_v, m3pi.track, m3pi.wheel_speed_max,
+                                m3pi.motor_time_constant)
+        robots.append(RobotSpec(RobotKeys(override.prefix or config.hil.prefix, robot), x, y, heading, speed, dynamics))
+    return robots
+
+
+def emulator_endpoints(config: Any) -> tuple[list[str], list[str]]:
+    """(listen, connect) that meet the live vehicles: listen where the run connects, connect where it listens."""
+    listen, connect = [], []
+    for vehicle in config.live_vehicles():
+        override = config.override(vehicle)
+        listen += [e for e in override.connect or () if e not in listen]
+        connect += [e for e in override.listen or () if e not in connect]
+    return listen, connect
+
+
+def m3pi_emulator(
+    config: Annotated[Path, typer.Option("--config", help="scenario whose live vehicles (endpoint = \"zenoh\") to emulate")],
+    overrides: Annotated[list[str], typer.Option("--set", metavar="KEY=VALUE", help="override a config key, as for platoon run")] = [],
+    ids: Annotated[list[int], typer.Option("--id", metavar="K", help="emulate only this robot id (repeatable; default: all)")] = [],
+    rate: Annotated[float, typer.Option(help="poses per second (motion capture rate)")] = 200.0,
+    noise_position: Annotated[float, typer.Option(help="pose noise, m (standard deviation per axis; paper ~0.002)")] = 0.0,
+    noise_heading: Annotated[float, typer.Option(help="heading noise, degrees (standard deviation; paper ~2)")] = 0.0,
+    latency: Annotated[float, typer.Option(help="s from taking a pose to publishing it")] = 0.0,
+    command_latency: Annotated[float, typer.Option(help="s from receiving a command to applying it (the radio)")] = 0.0,
+    command_timeout: Annotated[float, typer.Option(help="s without a valid command before the wheels stop")] = 0.25,
+    standing_start: Annotated[bool, typer.Option(help="start from rest, not at the config's initial speed")] = False,
+    seed: Annotated[Optional[int], typer.Option(help="noise seed (default: different every run)")] = None,
+    listen: Endpoints = [],
+    connect: Endpoints = [],
+    zenoh_config: Annotated[Optional[Path], typer.Option(help="Zenoh config file (JSON5)")] = None,
+    duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds (default: until Ctrl-C)")] = None,
+) -> None:
+    """Emulate the live robots of a config and their motion capture on Zenoh (stands in for the m3pi)."""
+    from bridge.emulator import EmulatorSettings, run_emulator
+    from bridge.session import SessionError
+
+    parsed, _ = load_config(config, overrides)
+    robots = emulated_robots(parsed, ids)
+    if not robots:
+        wanted = f" with robot id {', '.join(map(str, ids))}" if ids else ""
+        fail(2, f"config {config}: no live vehicle{wanted} (set endpoint = \"zenoh\" on a [vehicles.K] table)")
+    for name, value, low in (("--rate", rate, 0.0), ("--command-timeout", command_timeout, 0.0)):
+        if not (math.isfinite(value) and value > low):
+            fail(2, f"{name} {value}: expected a finite number > {low:g}")
+    for name, value in (("--noise-position", noise_position), ("--noise-heading", noise_heading),
+                        ("--latency", latency), ("--command-latency", command_latency)):
+        if not (math.isfinite(value) and value >= 0.0):
+            fail(2, f"{name} {value}: expected a finite number >= 0")
+    default_listen, default_connect = emulator_endpoints(parsed)
+    settings = EmulatorSettings(rate, noise_position, math.radians(noise_heading), latency, command_latency,
+                                command_timeout, not standing_start, seed)
+    stop = threading.Event()
+    _stop_on_signals(stop)
+    try:
+        run_emulator(robots, settings, connect or default_connect, listen or default_listen,
+                     str(zenoh_config) if zenoh_config else None, duration, stop)
+    except SessionError as error:
+        fail(2, str(error))
+
+
+def m3pi_serial(
+    port: Annotated[str, typer.Option("--port", metavar="DEV", help="serial device of the XBee, e.g. /dev/ttyUSB0")],
+    robot: Annotated[int, typer.Option("--id", help="robot id whose wheel commands to forward")],
+    prefix: Annotated[str, typer.Option(metavar="PREFIX", help="Zenoh key prefix")] = "platoon",
+    connect: Endpoints = [],
+    listen: Endpoints = [],
+    zenoh_config: Annotated[Optional[Path], typer.Option(help="Zenoh config file (JSON5)")] = None,
+    max_speed: Annotated[float, typer.Option(help="wheel speed (m/s) that speed byte 127 drives: measure it")] = 1.0,
+    swap_motors: Annotated[bool, typer.Option(help="M1 is the right motor (default: M1 left, M2 right)")] = False,
+    invert_left: Annotated[bool, typer.Option(help="the left motor is wired backwards")] = False,
+    invert_right: Annotated[bool, typer.Option(help="the right motor is wired backwards")] = False,
+    baud: Annotated[int, typer.Option(min=1200, help="serial speed of the XBee link")] = 115200,
+    command_timeout: Annotated[float, typer.Option(help="s without a valid command before the motors stop")] = 0.25,
+) -> None:
+    """Forward one robot's wheel commands from Zenoh to a Pololu 3pi serial slave over an XBee."""
+    from bridge.protocol import check_prefix
+    from bridge.serial_endpoint import SerialEndpointError, SpeedScale, run_serial_endpoint
+    from bridge.session import SessionError
+
+    problems = check_prefix(prefix)
+    if problems:
+        fail(2, f"--prefix: {problems[0]}")
+    if not (math.isfinite(max_speed) and max_speed > 0.0):
+        fail(2, f"--max-speed {max_speed}: expected a finite speed > 0 (m/s at speed byte 127)")
+    if not (math.isfinite(command_timeout) and command_timeout > 0.0):
+        fail(2, f"--command-timeout {command_timeout}: expected a finite number of seconds > 0")
+    scale = SpeedScale.from_options(max_speed=max_speed, swap_motors=swap_motors, invert_left=invert_left,
+                                    invert_right=invert_right)
+    stop = threading.Event()
+    _stop_on_signals(stop)
+    try:
+        run_serial_endpoint(port, robot, prefix=prefix, connect=connect, listen=listen,
+                            zenoh_config_file=str(zenoh_config) if zenoh_config else None, scale=scale,
+                            command_timeout=command_timeout, baud=baud, stop_event=stop)
+    except (SerialEndpointError, SessionError, OSError, ValueError) as error:
+        fail(2, str(error))
+
+
+def register(app: typer.Typer) -> None:
+    """Add the hardware-in-the-loop commands to ``platoon``."""
+    app.command("m3pi-emulator")(m3pi_emulator)
+    app.command("m3pi-serial")(m3pi_serial)

@@ -1,0 +1,246 @@
+"""`platoon build`, `platoon run` and `platoon analyze`: build the FMUs, run a scenario (with its progress,
+summary, layout and optional monolithic comparison), linearize a config."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Optional
+
+import typer
+
+from orchestrator.scenario.config import Config, ConfigError
+
+if TYPE_CHECKING:  # rich's table is imported where used: `platoon run -q` needs none
+    pass
+
+from orchestrator.cli.common import (AllowLong, OVERWRITE_HELP, SET_METAVAR, check_output, choices_metavar, claim_trace, err, fail,
+                                     load_config, out, summary_table)
+
+RUN_ENGINES = ("native", "python")  # --engine; --monolithic picks the third engine (run.ENGINES)
+
+
+def build(
+    out_dir: Annotated[Path, typer.Option("--out", help="folder for Vehicle.fmu, VirtualTarget.fmu and LiveVehicle.fmu")] = Path("build/fmus"),
+    force: Annotated[bool, typer.Option(help="rebuild even if up to date")] = False,
+) -> None:
+    """Build the Vehicle, VirtualTarget and LiveVehicle FMUs, and the native Vehicle and VirtualTarget into OUT/native (FMI 2.0) and OUT/fmi3 (FMI 3.0) (only when their sources changed)."""
+    from fmus.build import ALL_FMUS, build_fmus
+
+    try:
+        built_fmus = build_fmus(out_dir, force=force, names=ALL_FMUS)
+    except OSError as error:  # a full disk, a read-only folder ...: the FMUs already in place are untouched
+        where = f" {error.filename}" if error.filename else ""
+        fail(2, f"build --out {out_dir}: cannot write the FMUs{where}: {error.strerror or error}")
+    for built in built_fmus:
+        state = "built" if built.rebuilt else "up to date"
+        out.print(f"{built.path}  {built.guid}  ({state})", soft_wrap=True)
+    _build_native(out_dir, force)
+
+
+def _build_native(out_dir: Path, force: bool) -> None:
+    """The native twins into OUT/native (fmus/native_build.py) and, as FMI 3.0 FMUs, into OUT/fmi3
+    (fmus/native_build3.py); no compiler is one line, not a failure."""
+    from fmus.build import BuildError
+    from fmus.native_build import NoCompiler, build_native_fmus
+    from fmus.native_build3 import build_fmi3_fmus
+
+    try:
+        built_fmus = build_native_fmus(out_dir / "native", force=force)
+        built_fmus += build_fmi3_fmus(out_dir / "fmi3", force=force)
+    except NoCompiler as error:
+        err.print(f"note: {error}", soft_wrap=True)
+        return
+    except BuildError as error:
+        fail(2, f"build: {error}")
+    except OSError as error:
+        where = f" {error.filename}" if error.filename else ""
+        fail(2, f"build --out {out_dir}: cannot write the native FMUs{where}: {error.strerror or error}")
+    for built in built_fmus:
+        state = "built" if built.rebuilt else "up to date"
+        out.print(f"{built.path}  {built.guid}  ({state}, native{' FMI 3.0' if built.path.parent.name == 'fmi3' else ''})", soft_wrap=True)
+
+
+def _time_split(entered: float | None, loaded: float | None, imported: float | None, timings: dict[str, float],
+                now: float | None) -> str:
+    """``-v``: where this process's wall time went, from the interpreter's start to now (a few lines)."""
+    def seconds(value: float | None) -> str:
+        return "?" if value is None else f"{value:.2f} s"
+
+    def between(start: float | None, end: float | None) -> float | None:
+        return None if start is None or end is None else end - start
+
+    run_total = sum(timings.values())
+    rest = None if now is None or imported is None else max(0.0, now - imported - run_total)  # clock reads a few µs apart: never "-0.00 s"
+    phases = ", ".join(f"{name} {timings[name]:.2f} s" for name in ("setup", "initialize", "steps", "finish")
+                       if name in timings)
+    return "\n".join([
+        f"wall time since the process started: {seconds(now)}",
+        f"  start-up: interpreter and imports {seconds(entered)}, config {seconds(between(entered, loaded))},",
+        f"            run modules imported {seconds(between(loaded, imported))}, "
+        f"FMUs checked and unpacked {seconds(timings.get('open'))}",
+        f"  run: {phases}",
+        f"  after the run (summary, output): {seconds(rest)}",
+    ])
+
+
+def _execute(config: Config, text: str, trace, engine: str, quiet: bool, trace_writer: str = "auto", live_view=None):
+    from orchestrator.observers.progress import progress
+    from orchestrator.execution.run import run_scenario
+    from orchestrator.scenario.scenario import step_count
+
+    steps = step_count(config.simulation.stop_time, config.simulation.step)
+    with progress(steps, "simulating", err, quiet) as tick:  # a bar on a terminal, plain lines in a pipe or a log
+        return run_scenario(config, text, trace, engine=engine, tick=tick, trace_writer=trace_writer, summarize=not quiet,
+                            live_view=live_view)
+
+
+def run(
+    config: Annotated[Path, typer.Argument(help="scenario TOML file, e.g. configs/paper/platoon.toml")],
+    trace: Annotated[Optional[Path], typer.Option("--out", help="trace file (default runs/<name>-<time>.mcap)")] = None,
+    overrides: Annotated[list[str], typer.Option("--set", metavar=SET_METAVAR, help="override a key, e.g. --set platoon.law=regular")] = [],
+    monolithic: Annotated[bool, typer.Option("--monolithic", help="integrate the whole platoon as one system (reference)")] = False,
+    compare: Annotated[bool, typer.Option("--compare-monolithic", help="also run the monolithic reference and print the largest deviations")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar and no table")] = False,
+    trace_every: Annotated[Optional[int], typer.Option("--trace-every", min=1, help="record every K-th communication point (overrides simulation.trace_every)")] = None,
+    engine_name: Annotated[Optional[str], typer.Option("--engine", metavar=choices_metavar(RUN_ENGINES), help="native (compiled stepping core; default when built) or python (FMPy); same results")] = None,
+    fmu_kind: Annotated[Optional[str], typer.Option("--fmus", metavar=choices_metavar(("native", "python")), help="native (C FMUs, default where a C compiler can build them) or python (pythonfmu FMUs); same results (overrides simulation.fmus)")] = None,
+    trace_writer: Annotated[str, typer.Option("--trace-writer", metavar=choices_metavar(("auto", "inline", "process")), help="where the trace is encoded: process (a second process), inline, or auto (a second process for long runs on a multi-core machine); same file")] = "auto",
+    overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="also print where the wall time went: start-up (imports, config, FMUs), the run's phases, the summary")] = False,
+    allow_long: AllowLong = False,
+    live: Annotated[bool, typer.Option("--live", help="serve the run on a Foxglove WebSocket while it runs (open it in Foxglove or Lichtblick; docs/foxglove.md), paced to real time")] = False,
+    live_port: Annotated[int, typer.Option("--live-port", min=0, max=65535, help="port of the --live server")] = 8765,
+    live_host: Annotated[str, typer.Option("--live-host", metavar="ADDRESS", help="address the --live server binds; anything but 127.0.0.1 lets other machines watch (no authentication)")] = "127.0.0.1",
+    live_speed: Annotated[float, typer.Option("--live-speed", min=0.0, help="with --live: simulated seconds per wall second (1: real time; 0: as fast as it runs)")] = 1.0,
+    live_wait: Annotated[bool, typer.Option("--live-wait", help="with --live: start stepping once a viewer shows the scene, so it sees the whole run")] = False,
+) -> None:
+    """Run a scenario: wire the FMUs as the paper's Fig. 2, step them, write an MCAP trace."""
+    from orchestrator.support.startup import loading_a_run, seconds_since_process_start
+
+    entered = seconds_since_process_start()  # the interpreter and the imports so far
+    if trace_every is not None:
+        overrides = [*overrides, f"simulation.trace_every={trace_every}"]
+    if fmu_kind is not None:
+        overrides = [*overrides, f"simulation.fmus={json.dumps(fmu_kind)}"]
+    parsed, text = load_config(config, overrides, allow_long)
+    loaded = seconds_since_process_start()
+    with loading_a_run():  # one BLAS thread, no garbage collection while the run's modules load
+        from orchestrator.execution.run import default_engine, default_trace_path
+
+    imported = seconds_since_process_start()  # the engines, numpy, the trace writer
+    if engine_name is not None and engine_name not in RUN_ENGINES:
+        fail(2, f"--engine {engine_name!r}: expected native or python")
+    if engine_name == "native" and default_engine() != "native":
+        fail(2, "--engine native: the compiled core is not built here (reinstall with a C compiler: pip install -e .)")
+    from orchestrator.components.live import LiveRunError, check_live_options
+    from orchestrator.execution.run import TRACE_WRITERS
+
+    if trace_writer not in TRACE_WRITERS:
+        fail(2, f"--trace-writer {trace_writer!r}: expected one of {', '.join(TRACE_WRITERS)}")
+    engine = "monolithic" if monolithic else (engine_name or default_engine(parsed))
+    try:
+        check_live_options(parsed, engine, trace_writer)
+    except LiveRunError as error:
+        fail(2, f"config {config}: {error}")
+    view = None
+    if not live and (live_port, live_host, live_speed, live_wait) != (8765, "127.0.0.1", 1.0, False):
+        fail(2, "--live-port, --live-host, --live-speed and --live-wait go with --live (add it to watch the run)")
+    if live:  # before the trace is claimed: a port in use stops the run with nothing written
+        from orchestrator.observers.foxglove_view import LiveViewError, start_live_view
+
+        try:
+            view = start_live_view(parsed, live_host, live_port, live_speed, err, live_wait)
+        except LiveViewError as error:
+            fail(2, str(error))
+    target = claim_trace(trace, overwrite, [config], lambda: default_trace_path(parsed, engine))
+    trace = target.final
+    reference_path = trace.with_name(trace.stem + "-monolithic.mcap")
+    if compare:  # checked now, claimed when its turn comes (no empty aside file if the run fails)
+        check_output(reference_path, overwrite, [config])
+    from fmus.build import BuildError
+
+    from orchestrator.components.kinds import FmuKindError
+
+    if view is not None:
+        from orchestrator.observers.foxglove_view import announce
+
+        announce(view, trace, parsed, out)
+    try:
+        result = _execute(parsed, text, target, engine, quiet, trace_writer, view)
+    except (FmuKindError, BuildError) as error:  # nothing was run, the trace path is released
+        fail(2, f"config {config}: {error}")
+    finally:
+        if view is not None:
+            view.close()
+            if (lag := view.lag_note()) is not None:
+                err.print(lag, highlight=False, soft_wrap=True)
+    from orchestrator.trace.layout import write_run_layout
+
+    written = write_run_layout(trace, parsed)  # beside the trace; a failed or stopped run says only that
+    layout = written.path
+    if written.warning is not None and result.status == "completed":
+        err.print(written.warning, highlight=False, soft_wrap=True)
+    if result.live:
+        from orchestrator.cli.hil import live_table
+
+        out.print(live_table(result.live))
+    if result.status == "interrupted":
+        fail(128 + (result.signal or 2), f"run {result.status}: {result.error} (trace up to that point: {result.trace})")
+    if result.status != "completed":
+        fail(1, f"run {result.status}: {result.error} (trace up to that point: {result.trace})")
+    if not quiet:
+        from orchestrator.analysis.metrics import summarize
+        from orchestrator.trace import load
+
+        # accumulated while stepping; the trace is read again only if the run's end was not the planned one
+        summaries = result.summary if result.summary is not None else summarize(load(result.trace), parsed)
+        out.print(summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine} engine, {result.fmus} FMUs, {parsed.simulation.stop_time:g} s"))
+    out.print(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)", highlight=False, soft_wrap=True)
+    if layout is not None:
+        out.print(f"layout: {layout}  (open both in Foxglove: docs/foxglove.md)", highlight=False, soft_wrap=True)  # one line in a log
+    if verbose:
+        err.print(_time_split(entered, loaded, imported, result.timings, seconds_since_process_start()), highlight=False)
+    if compare:
+        from orchestrator.analysis.compare import deviations
+        from orchestrator.trace import load
+
+        reference = _execute(parsed, text, claim_trace(reference_path, overwrite, [config], None), "monolithic", quiet)
+        if reference.status != "completed":
+            fail(1, f"monolithic reference {reference.status}: {reference.error}")
+        worst = deviations(load(result.trace), load(reference.trace))
+        out.print(
+            f"largest deviation from the monolithic run ({reference.trace}): "
+            f"position {worst.position:.3e} m ({worst.position_where}), gap {worst.gap:.3e} m, speed {worst.speed:.3e} m/s"
+        )
+
+
+def analyze(
+    config: Annotated[Path, typer.Argument(help="scenario TOML file")],
+    overrides: Annotated[list[str], typer.Option("--set", metavar=SET_METAVAR, help="override a key, as for platoon run")] = [],
+    string_stability: Annotated[bool, typer.Option(help="also run the scenario and report peak-error ratios")] = True,
+    allow_long: AllowLong = False,
+) -> None:
+    """Linearize about the circular equilibrium; eigenvalues next to the paper's eq. 9; string stability."""
+    from orchestrator.analysis.linear import eigen_report, string_stability_report
+    from orchestrator.scenario.limits import check_analyze_size, check_run_size
+
+    parsed, text = load_config(config, overrides)
+    if not allow_long:
+        try:
+            check_analyze_size(parsed)
+            if string_stability and parsed.disturbance:  # only then is the scenario run (twice)
+                check_run_size(parsed)
+        except ConfigError as error:
+            fail(2, f"config {config}: {error}")
+    try:
+        report_text = eigen_report(parsed)
+    except ValueError as error:
+        fail(2, f"config {config}: {error}")
+    out.print(report_text, highlight=False, soft_wrap=True)
+    if string_stability:
+        from orchestrator.observers.progress import progress
+
+        shown = lambda label, total: progress(total, label, err)  # noqa: E731  (the runs: bar or plain lines)
+        out.print(string_stability_report(parsed, text, shown), highlight=False, soft_wrap=True)
+

@@ -1,0 +1,55 @@
+"""``platoon export-ssp``: a config's whole platoon as an SSP 1.0 package for other tools (docs/fmus.md,
+"Run the whole platoon in another tool"). Kept apart from cli.py, registered by ``register``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+
+def export_ssp(
+    config: Annotated[Path, typer.Argument(help="scenario TOML file, e.g. configs/paper/platoon.toml")],
+    out: Annotated[Optional[Path], typer.Option("--out", help="the package to write (default: <config name>.ssp here)")] = None,
+    overrides: Annotated[list[str], typer.Option("--set", metavar="KEY=VALUE", help="override a key, as for platoon run")] = [],
+    force: Annotated[bool, typer.Option("--force", help="replace an existing --out file")] = False,
+    fmu_kind: Annotated[Optional[str], typer.Option("--fmus", metavar="<native|python>", help="native (C FMUs: no Python needed where the package runs; default where a C compiler can build them) or python (pythonfmu); overrides simulation.fmus")] = None,
+    worker_threads: Annotated[int, typer.Option("--worker-threads", min=0, help="libcosim's numWorkerThreads; 0 steps every FMU on the calling thread (pythonfmu FMUs share one Python interpreter, so more threads only add synchronization)")] = 0,
+) -> None:
+    """Write the platoon of CONFIG as an SSP 1.0 package: FMUs, parameters, Fig. 2 wiring, step."""
+    from fmus.build import DEFAULT_OUT
+
+    from orchestrator.cli.common import fail, load_config, err, out as console
+    from orchestrator.interop.ssp import SspError, export_ssp as write_package, ssp_notes
+
+    from orchestrator.components.kinds import FmuKindError
+
+    if fmu_kind is not None:
+        overrides = [*overrides, f"simulation.fmus={json.dumps(fmu_kind)}"]
+    parsed, _ = load_config(config, overrides)
+    target = out if out is not None else Path(f"{parsed.name}.ssp")
+    if target.is_dir():
+        fail(2, f"--out {target}: is a folder; name the .ssp file to write")
+    if target.exists() and not force:
+        fail(2, f"--out {target}: exists (add --force to replace it)")
+    try:
+        written = write_package(parsed, target, DEFAULT_OUT, force=force, worker_threads=worker_threads)
+    except FileExistsError:
+        fail(2, f"--out {target}: exists (add --force to replace it)")
+    except (SspError, FmuKindError) as error:
+        fail(2, f"config {config}: {error}")
+    except OSError as error:
+        fail(2, f"--out {target}: cannot write the package there: {error.strerror or error}")
+    for note in ssp_notes(parsed):
+        err.print(f"note: {note}", highlight=False, soft_wrap=True, markup=False)
+    live = ", ".join(f"vehicle{k}" for k in parsed.live_vehicles())
+    console.print(f"{written}: {parsed.platoon.count + 1} components, step {parsed.simulation.step:g} s, stop "
+                  f"{parsed.simulation.stop_time:g} s" + (f"; live robot: {live} (LiveVehicle.fmu)" if live else ""),
+                  highlight=False, soft_wrap=True, markup=False)
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``export-ssp`` to ``platoon``."""
+    app.command("export-ssp")(export_ssp)

@@ -1,0 +1,142 @@
+"""`platoon report`, `platoon export` and `platoon trace recover`: read a trace back, summarize it, turn it into
+CSV, rescue what a killed run or a damaged file holds."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Optional
+
+import typer
+
+from orchestrator.scenario.config import ConfigError
+
+if TYPE_CHECKING:  # rich's table is imported where used: `platoon run -q` needs none
+    pass
+
+from orchestrator.cli.common import (err, fail,
+                                     load_trace, note_recovery, out, quiet_nan, same_file, summary_table)
+
+def report(
+    trace: Annotated[Path, typer.Argument(help="trace written by `platoon run`")],
+    as_json: Annotated[bool, typer.Option("--json", help="print the summary as JSON")] = False,
+    plots: Annotated[Optional[Path], typer.Option("--plots", help="write the paper's figure panels as PNG here")] = None,
+) -> None:
+    """Summarize a trace (path offset, gap, speed, max path error) and draw the paper's panels."""
+    from orchestrator.analysis.metrics import report_json, summarize
+    from orchestrator.scenario.stored_config import stored_config
+
+    if plots is not None and plots.exists() and not plots.is_dir():
+        fail(2, f"--plots {plots}: is a file; give a folder for the PNG files")
+    loaded = load_trace(trace)
+    if loaded.config is None:
+        fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
+    try:
+        config, non_finite = stored_config(loaded.config)
+    except ConfigError as error:
+        fail(2, f"trace {trace}: its stored config is not valid: {error}")
+    note = (err.print if as_json else out.print)
+    if non_finite:
+        note(f"warning: the run's config held values that were not finite (stored as null): {', '.join(non_finite)}; "
+             f"figures that depend on them are nan", highlight=False, soft_wrap=True)
+    note_recovery(loaded, note)
+    run_record = loaded.run
+    status = run_record.get("status", "?")
+    empty = not loaded.vehicles() or any(len(loaded.component(v)["t"]) == 0 for v in loaded.vehicles())
+    if empty:  # e.g. a run that failed before its first communication point: nothing to summarize or plot
+        reason = f": {run_record['error']}" if run_record.get("error") else ""
+        message = f"trace {trace}: no recorded communication point, nothing to summarize (run {status}{reason})"
+        if as_json:
+            out.print_json(json.dumps({"status": status, "error": run_record.get("error", ""), "vehicles": []}))
+            err.print(message, highlight=False, soft_wrap=True)
+        else:
+            out.print(message, highlight=False, soft_wrap=True)
+        return
+    with quiet_nan(bool(non_finite)):  # nan figures were announced above
+        summaries = summarize(loaded, config)
+        if as_json:
+            out.print_json(json.dumps({"trace": str(trace), "law": config.platoon.law, "status": status,
+                                        **report_json(summaries, config)}))
+        else:
+            out.print(summary_table(summaries, config, f"{trace.name}: {config.platoon.law} law ({status})"))
+        if plots is not None:
+            from orchestrator.analysis.plots import write_plots
+
+            try:
+                written = write_plots(loaded, config, plots)
+            except OSError as error:
+                fail(2, f"--plots {plots}: cannot write the plots there: {error.strerror or error}")
+            for path in written:
+                note(f"wrote {path}")
+
+
+def export(
+    trace: Annotated[Path, typer.Argument(help="trace written by `platoon run`")],
+    csv_dir: Annotated[Path, typer.Option("--csv", help="folder for one CSV per component (header: t, then the outputs)")],
+) -> None:
+    """Export a trace: one CSV per component (t, then its outputs) and errors.csv (path, gap, speed errors)."""
+    from orchestrator.trace import export_csv
+
+    if csv_dir.exists() and not csv_dir.is_dir():
+        fail(2, f"--csv {csv_dir}: is a file; give a folder for the CSV files")
+    loaded = load_trace(trace)
+    note_recovery(loaded, err.print)
+    try:
+        written = export_csv(loaded, csv_dir)
+    except OSError as error:
+        fail(2, f"--csv {csv_dir}: cannot write the CSV files there: {error.strerror or error}")
+    for path in written:
+        out.print(f"wrote {path}", highlight=False, soft_wrap=True)
+
+
+trace_app = typer.Typer(no_args_is_help=True, help="Work on trace files.")
+
+
+def trace_recover(
+    broken: Annotated[Path, typer.Argument(help="an unfinished or damaged trace (e.g. the run was killed)")],
+    fixed: Annotated[Optional[Path], typer.Option("--out", help="recovered trace (default BROKEN-recovered.mcap)")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing --out (never BROKEN itself)")] = False,
+) -> None:
+    """Rewrite the intact chunks of an unfinished or damaged trace into a valid one; say what was lost."""
+    from orchestrator.trace import TraceError, recover
+    from orchestrator.trace.output import OutputError, check_in_use, claim, publish
+    from orchestrator.trace.recovery import describe_lost
+
+    if not broken.is_file():
+        fail(2, f"trace {broken}: no such file")
+    if fixed is None:
+        name = broken.name[:-len(".partial")] if broken.name.endswith(".mcap.partial") else broken.name
+        fixed = broken.with_name(Path(name).stem + "-recovered.mcap")
+    try:
+        check_in_use(broken)
+        if fixed.exists() and not overwrite and not same_file(fixed, broken):
+            raise OutputError(f"--out {fixed}: exists; pass --overwrite to replace it")
+        target = claim(fixed, overwrite=True, protect=[broken], suffix=".recovering")
+    except OutputError as error:
+        fail(2, str(error))
+    try:
+        result = recover(broken, target.aside)
+        publish(target.aside, target.final)
+    except (TraceError, OSError) as error:
+        target.aside.unlink(missing_ok=True)  # no half-written file left behind
+        target.release()
+        if isinstance(error, TraceError):
+            fail(2, str(error))
+        fail(2, f"--out {fixed}: cannot write the recovered trace: {error.strerror or error} (nothing written)")
+    target.release()
+    stretches = "stretch" if result.damaged == 1 else "stretches"
+    damage = f"; {result.damaged} damaged {stretches} skipped, data lost between {describe_lost(result.lost)}" if result.damaged else ""
+    if result.steps == 0:
+        fail(1, f"trace {broken}: no complete communication point to recover ({result.chunks} intact chunks{damage}); "
+                 f"wrote {fixed} with its metadata only")
+    span = f"t = 0 .. {result.last_time:.6g} s" if result.last_time is not None else "no time"
+    state = "a complete file" if result.finished else f"{result.chunks} intact chunks"
+    out.print(f"recovered {result.steps} communication points ({span}, {result.messages} messages) from {state}: {fixed}"
+              f"{damage}", highlight=False, soft_wrap=True)
+
+
+
+def register_group(app: typer.Typer) -> None:
+    """``platoon trace ...``: the commands that work on trace files."""
+    trace_app.command("recover")(trace_recover)
+    app.add_typer(trace_app, name="trace")

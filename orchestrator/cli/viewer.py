@@ -1,0 +1,79 @@
+"""What users look at: ``platoon layout`` (a Foxglove layout fitted to one run) and ``platoon figure``
+(the paper's figure pair from two traces). The layout itself is made in orchestrator/trace/layout.py.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Optional
+
+import typer
+
+if TYPE_CHECKING:
+    pass
+
+from orchestrator.trace.layout import layout_path, read_run_view, recorded_config, run_layout
+
+FIGURE_SUFFIXES = (".pdf", ".svg", ".png")
+
+
+def layout_command(
+    trace: Annotated[Path, typer.Argument(metavar="TRACE.mcap", help="trace written by `platoon run`")],
+    out: Annotated[Optional[Path], typer.Option("--out", help="layout file (default: beside the trace, <stem>.layout.json)")] = None,
+) -> None:
+    """Write a Foxglove/Lichtblick layout fitted to a trace: its path in view, one plot series per vehicle."""
+    from orchestrator.cli.common import fail, out as console
+
+    try:
+        view = read_run_view(trace)
+    except ValueError as error:
+        fail(2, f"trace {trace}: {error}")
+    if not view.vehicles:
+        fail(2, f"trace {trace}: records no vehicle")
+    path = out or layout_path(trace)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(run_layout(view.config, len(view.vehicles)), indent=2) + "\n")
+    except OSError as error:
+        fail(2, f"--out {path}: cannot write the layout there: {error.strerror or error}")
+    console.print(f"wrote {path}", highlight=False, soft_wrap=True)
+
+
+def figure_command(
+    first: Annotated[Path, typer.Argument(metavar="A.mcap", help="trace of the left column (the paper: regular law)")],
+    second: Annotated[Path, typer.Argument(metavar="B.mcap", help="trace of the right column (the paper: sine law)")],
+    out: Annotated[Path, typer.Option("--out", help="figure file: .pdf, .svg (vector) or .png")],
+    dpi: Annotated[int, typer.Option(min=30, max=1200, help="dots per inch of a PNG (the figure is 12.4 x 15 in)")] = 150,
+) -> None:
+    """Draw the paper's figure pair from two traces: velocity, distance and path errors, and X-Y, side by side."""
+    from orchestrator.cli.common import fail, load_trace, out as console
+
+    if out.suffix.lower() not in FIGURE_SUFFIXES:
+        fail(2, f"--out {out}: expected a file ending in {', '.join(FIGURE_SUFFIXES)}")
+    from orchestrator.analysis.figure import draw_pair, save
+
+    runs = []
+    for trace in (first, second):
+        loaded = load_trace(trace)
+        if loaded.config is None:
+            fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
+        if not loaded.vehicles() or any(len(loaded.component(v)["t"]) == 0 for v in loaded.vehicles()):
+            fail(2, f"trace {trace}: no recorded communication point, nothing to draw "
+                     f"(run {loaded.run.get('status', '?')})")
+        try:
+            runs.append((loaded, recorded_config(loaded.config)))
+        except ValueError as error:
+            fail(2, f"trace {trace}: {error}")
+    figure = draw_pair(runs)
+    try:
+        save(figure, out, dpi)
+    except OSError as error:
+        fail(2, f"--out {out}: cannot write the figure there: {error.strerror or error}")
+    console.print(f"wrote {out}", highlight=False, soft_wrap=True)
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``layout`` and ``figure`` to ``platoon``."""
+    app.command("layout")(layout_command)
+    app.command("figure")(figure_command)

@@ -1,0 +1,476 @@
+"""Scenario configuration: TOML files, ``--set KEY=VALUE`` overrides, validation with clear errors.
+
+Every key is documented in docs/config.md. Validation is pydantic in strict mode (a count must be an
+integer, a law one of the known names), plus the cross-field rules a platoon needs (d* fits the
+circle, disturbances name existing vehicles). A bad config raises ``ConfigError`` whose message is one
+line naming the key, the value and what was expected.
+
+Every number has a declared range, in one place: the annotated types below (``Positive``, ``Angle``,
+...), which pydantic enforces and ``_explain`` quotes back (``platoon.k_v = inf: must be a finite
+number >= 0.001 and <= 1000``). No float key accepts inf or NaN (``allow_inf_nan=False`` for all).
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union, get_args, get_origin
+
+import annotated_types
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from bridge.protocol import DEFAULT_PREFIX, check_prefix
+from fmus.model.dynamics import M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEEL_SPEED_MAX
+from fmus.model.integrate import substep_count
+
+
+class ConfigError(ValueError):
+    """A configuration problem, phrased for the person who wrote the config."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
+
+
+class _Expected(ValueError):
+    """A field validator's complaint: what the value must be (``_explain`` adds the key and the value)."""
+
+
+# Ranges. A platoon lives on a ground plane: 1000 km is far beyond any scenario and keeps doubles at
+# sub-micrometre resolution (ulp(1e6) = 1.2e-10 m), so lengths and coordinates stay within it.
+LENGTH_MAX = 1e6  # m
+# The smallest length, speed, gain or time constant: a millimetre, a millimetre per second, a speed
+# loop of 1000 s. Below, nothing physical is left and the analysis and the models divide by ~0.
+SMALL = 1e-3
+SPEED_MAX = 1000.0  # m/s: three times the speed of sound, far above any vehicle
+GAIN_MAX = 1000.0  # 1/s: a speed loop faster than 1 ms is not a vehicle (and needs substeps below 1 ms)
+ANGLE_MAX = 2.0 * math.pi  # rad: one turn either way states every direction
+PULSE_MAX = 1e6  # m/s² or m/s: a disturbance beyond this only produces overflow
+
+# Every float is finite (allow_inf_nan=False above); these add the range.
+Positive = Annotated[float, Field(gt=0.0)]
+Length = Annotated[float, Field(ge=-LENGTH_MAX, le=LENGTH_MAX)]
+PositiveLength = Annotated[float, Field(ge=SMALL, le=LENGTH_MAX)]
+Speed = Annotated[float, Field(ge=SMALL, le=SPEED_MAX)]
+Gain = Annotated[float, Field(ge=SMALL, le=GAIN_MAX)]
+Angle = Annotated[float, Field(ge=-ANGLE_MAX, le=ANGLE_MAX)]
+Pulse = Annotated[float, Field(ge=-PULSE_MAX, le=PULSE_MAX)]
+
+# The run's name becomes a file name (runs/<name>-<time>.mcap): letters, digits (any script), and a
+# few punctuation marks, starting with a letter or digit, so it can hold no path separator, no "..",
+# no control character and no shell-unfriendly leading "-".
+# The length is a separate constraint: "[...]{0,99}" in the pattern made pydantic-core's regex engine
+# build 99 copies of the Unicode class \w, ~30 ms of every run's start-up (docs/performance.md).
+NAME_PATTERN = r"^\w[\w .,+=@#()-]*$"
+NAME_LENGTH_MAX = 100
+NAME_RULE = "letters, digits, spaces and . , + = @ # ( ) - _, starting with a letter or digit, at most 100 characters"
+
+
+def _clean_text(text: str) -> str:
+    """Free text may span lines and hold tabs, but no NUL or other control character (they break file
+    names, Zenoh endpoints, terminals and C strings further on), and must be encodable as UTF-8 (a
+    command-line argument that was not UTF-8 arrives with lone surrogates, which no file can hold)."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise _Expected("must be valid UTF-8 text") from None
+    bad = [c for c in text if (ord(c) < 0x20 and c not in "\t\n\r") or ord(c) == 0x7F]
+    if bad:
+        raise _Expected(f"must be text without control characters (found {bad[0]!r})")
+    return text
+
+
+Text = Annotated[str, AfterValidator(_clean_text)]
+Name = Annotated[str, Field(pattern=NAME_PATTERN, max_length=NAME_LENGTH_MAX)]
+
+# RK4 alone is stable on dx/dt = -x/T for substeps h < 2.785 T (its real stability interval); coupled
+# to the guidance through the speed chain it needs a margin: the paper's platoon at k_v = 1000 1/s
+# diverged at h = 2.5 T and ran at h = 2 T (measured, docs/config.md).
+RK4_STABILITY = 2.0
+
+# Steps and substeps are counted in integers from float ratios: exact only up to 2**53.
+COUNT_LIMIT = 2**53
+
+
+def step_count(stop_time: float, step: float) -> int:
+    """Number of communication steps; the last one ends at stop_time (to rounding)."""
+    return max(1, int(math.floor(stop_time / step + 1e-9)))
+
+
+class Simulation(_Strict):
+    stop_time: Positive = Field(100.0, description="simulated time, s")
+    step: Positive = Field(0.01, description="communication step, s (at most stop_time)")
+    master: Literal["jacobi", "gauss-seidel"] = "jacobi"
+    coupling: Literal["extrapolate", "hold"] = "extrapolate"
+    max_substep: Positive = Field(0.01, description="longest RK4 substep inside an FMU, s")
+    trace_every: int = Field(1, ge=1, description="record every K-th communication point (at most the step count)")
+    fmus: Literal["native", "python"] | None = Field(
+        None, description="FMUs to step: native (C, no Python on the host) or python (pythonfmu); "
+                          "default native where a C compiler can build them (orchestrator/components/kinds.py)")
+
+
+class PathConfig(_Strict):
+    kind: Literal["circle", "line"] = "circle"
+    radius: PositiveLength = 50.0
+    center: list[Length] = Field(default_factory=lambda: [0.0, 0.0], min_length=2, max_length=2)
+    heading: Angle = 0.0
+    direction: Literal["ccw", "cw"] = "ccw"
+
+
+class M3pi(_Strict):
+    track: Annotated[float, Field(ge=SMALL, le=10.0)] = Field(M3PI_TRACK, description="m")
+    wheel_speed_max: Annotated[float, Field(ge=SMALL, le=100.0)] = Field(M3PI_WHEEL_SPEED_MAX, description="m/s")
+    motor_time_constant: Annotated[float, Field(ge=SMALL, le=100.0)] = Field(M3PI_MOTOR_TIME_CONSTANT, description="s")
+
+
+Law = Literal["sine", "regular"]
+DynamicsKind = Literal["kinematic", "m3pi"]
+
+
+class Platoon(_Strict):
+    count: int = Field(4, ge=1, le=10000)
+    law: Law = "sine"
+    d_star: PositiveLength = Field(75.0, description="m; on a circle less than 2 path.radius")
+    k_v: Gain = 0.5
+    speed: Speed = Field(25.0, description="V_c, the last vehicle's commanded speed")
+    dynamics: DynamicsKind = "kinematic"
+
+
+class Initial(_Strict):
+    """Default placement: on the path behind the target, spaced by the chord d*, then perturbed."""
+
+    radial_offset: Length = Field(0.0, description="vehicle 1 moved this far off the path (outward), m")
+    heading_error: Angle = Field(0.0, description="added to vehicle 1's heading, rad")
+    speed_factor: Annotated[float, Field(ge=SMALL, le=10.0)] = Field(1.0, description="every vehicle starts at this fraction of V_c")
+
+
+class VehicleState(_Strict):
+    x: Length
+    y: Length
+    heading: Angle
+    speed: Speed
+
+
+class VehicleOverride(_Strict):
+    law: Law | None = None
+    k_v: Gain | None = None
+    dynamics: DynamicsKind | None = None
+    initial: VehicleState | None = None
+    # Hardware in the loop (docs/hil.md): "zenoh" makes this vehicle a live m3pi robot on Zenoh; the keys
+    # after it say where the robot is, and are ignored with "fmu".
+    endpoint: Literal["fmu", "zenoh"] = "fmu"
+    robot: int | None = Field(None, ge=0, le=2**31 - 1, description="robot id on Zenoh (default: the vehicle number)")
+    prefix: str | None = Field(None, description="key prefix (default hil.prefix)")
+    connect: list[Text] | None = Field(None, description="Zenoh endpoints to connect to, e.g. tcp/127.0.0.1:7447")
+    listen: list[Text] | None = Field(None, description="Zenoh endpoints to listen on")
+    zenoh_config: Text | None = Field(None, description="Zenoh config file (JSON5): TLS, access control, ...")
+
+    @model_validator(mode="after")
+    def _prefix_is_a_key(self) -> "VehicleOverride":
+        # robot, prefix, connect, listen and zenoh_config only act with endpoint = "zenoh"; they may stay
+        # when a run sets endpoint = "fmu" (the same platoon all simulated, for comparison)
+        if self.prefix is not None:
+            problems = check_prefix(self.prefix)
+            if problems:
+                raise _rule("prefix", self.prefix, problems[0])
+        return self
+
+
+class Hil(_Strict):
+    """Hardware in the loop: shared by every live vehicle of the run (docs/hil.md)."""
+
+    prefix: str = Field(DEFAULT_PREFIX, description="Zenoh key prefix: <prefix>/m3pi/<id>/...")
+    pose_timeout: float = Field(0.5, gt=0.0, le=5.0, description="s without a valid pose: the robot is lost")
+    connect_timeout: float = Field(10.0, gt=0.0, le=600.0, description="s to wait for each robot at the start")
+    command_validity: float = Field(0.1, gt=0.0, le=5.0, description="s: a command's deadline after it is sent")
+    max_pose_age: float = Field(0.25, gt=0.0, le=5.0, description="s: an older pose is dropped as late")
+
+    @model_validator(mode="after")
+    def _prefix_is_a_key(self) -> "Hil":
+        problems = check_prefix(self.prefix)
+        if problems:
+            raise _rule("prefix", self.prefix, problems[0])
+        return self
+
+
+class Disturbance(_Strict):
+    vehicle: int = Field(ge=1)
+    kind: Literal["lateral_acceleration", "speed"]
+    start: Annotated[float, Field(ge=0.0)]
+    duration: Positive
+    value: Pulse
+
+
+class Config(_Strict):
+    name: Name = "scenario"
+    description: Text = ""
+    simulation: Simulation = Simulation()
+    path: PathConfig = PathConfig()
+    platoon: Platoon = Platoon()
+    initial: Initial = Initial()
+    m3pi: M3pi = M3pi()
+    disturbance: list[Disturbance] = Field(default_factory=list)
+    vehicles: dict[str, VehicleOverride] = Field(default_factory=dict)
+    hil: Hil = Hil()
+
+    @model_validator(mode="after")
+    def _platoon_rules(self) -> "Config":
+        count = self.platoon.count
+        if self.path.kind == "circle" and self.platoon.d_star >= 2.0 * self.path.radius:
+            # d* = 2R puts each vehicle diametrically opposite its target: alpha = sqrt(1 - (d*/2R)^2) = 0,
+            # the gap no longer responds to a speed difference and the equilibrium is degenerate (the
+            # analysis divides by alpha; the paper's eigenvalue -V_c alpha/d* is 0)
+            raise _rule("platoon.d_star", self.platoon.d_star, f"less than 2 * path.radius = {2.0 * self.path.radius} "
+                        "(a chord of the circle shorter than its diameter: at d* = 2R the equilibrium is degenerate)")
+        for index, item in enumerate(self.disturbance):
+            if item.vehicle > count:
+                raise _rule(f"disturbance[{index}].vehicle", item.vehicle, f"a vehicle number from 1 to platoon.count = {count}")
+        for key, vehicle in self.vehicles.items():
+            if not key.isdigit() or key != str(int(key)) or not 1 <= int(key) <= count:
+                raise _rule(f"vehicles.{key}", key, f"a vehicle number from 1 to platoon.count = {count}")
+            if vehicle.endpoint == "zenoh" and (vehicle.dynamics or self.platoon.dynamics) != "m3pi":
+                raise _rule(f"vehicles.{key}.endpoint", "zenoh", 'm3pi dynamics, since a live robot is an m3pi: set '
+                            f'platoon.dynamics = "m3pi" (or vehicles.{key}.dynamics)')
+        robots = [(v.prefix or self.hil.prefix, self.robot_id(int(k))) for k, v in self.vehicles.items()
+                  if v.endpoint == "zenoh"]
+        if len(set(robots)) != len(robots):
+            raise _rule("vehicles", [f"{p}/m3pi/{r}" for p, r in robots], "one live vehicle per robot (prefix and id)")
+        sim = self.simulation
+        if sim.step > sim.stop_time:
+            raise _rule("simulation.step", sim.step, f"at most simulation.stop_time = {sim.stop_time}")
+        steps, substeps = sim.stop_time / sim.step, max(1.0, sim.step / sim.max_substep)  # floats: may be inf
+        if steps * substeps > COUNT_LIMIT:  # no option lifts this one (orchestrator/scenario/limits.py: the adjustable ones)
+            raise _RuleError("simulation", None, "", message=(
+                f"simulation: {steps:.3g} steps (stop_time / step) x {substeps:.3g} RK4 substeps each (step / "
+                f"max_substep) = {steps * substeps:.3g} substeps per FMU: expected at most 2**53 = {COUNT_LIMIT:.3g} "
+                "(beyond it step counts are not exact in double precision; no option lifts this)"))
+        self._check_stiffness()
+        if sim.trace_every > self.steps:
+            raise _rule("simulation.trace_every", sim.trace_every, f"at most the run's {self.steps} steps "
+                        "(stop_time / step), so that a point after t = 0 is recorded")
+        return self
+
+    def _check_stiffness(self) -> None:
+        """Every first-order lag must be resolved by the RK4 substep, or the integration blows up.
+
+        RK4 on dx/dt = -x/T needs h/T below RK4_STABILITY; beyond it the speed loop (T = 1/k_v) or an
+        m3pi motor (T = motor_time_constant) diverges within a few steps, and the run then fails with a
+        NaN in whichever component reads it first, often not the one at fault. ``h`` is the substep the
+        FMUs take: step / ceil(step / max_substep).
+        """
+        sim = self.simulation
+        h = sim.step / substep_count(sim.step, sim.max_substep)
+        lags = [(f"vehicles.{key}.k_v" if v.k_v is not None else "platoon.k_v", 1.0 / (v.k_v or self.platoon.k_v))
+                for key, v in self.vehicles.items()] + [("platoon.k_v", 1.0 / self.platoon.k_v)]
+        overridden_away = sum(1 for v in self.vehicles.values() if v.dynamics not in (None, "m3pi"))
+        if any(v.dynamics == "m3pi" for v in self.vehicles.values()) or (
+                self.platoon.dynamics == "m3pi" and overridden_away < self.platoon.count):  # some vehicle is an m3pi
+            lags.append(("m3pi.motor_time_constant", self.m3pi.motor_time_constant))
+        key, lag = min(lags, key=lambda item: item[1])
+        if h > RK4_STABILITY * lag:
+            raise _rule("simulation.max_substep", sim.max_substep,
+                        f"RK4 substeps of at most {RK4_STABILITY:g} x the fastest lag, here {key} (time constant "
+                        f"{lag:g} s): max_substep <= {RK4_STABILITY * lag:.3g} s (the substep is now {h:.3g} s; "
+                        "beyond it the integration diverges)")
+
+    @property
+    def steps(self) -> int:
+        """Number of communication steps of this run."""
+        return step_count(self.simulation.stop_time, self.simulation.step)
+
+    def override(self, vehicle: int) -> VehicleOverride:
+        return self.vehicles.get(str(vehicle), VehicleOverride())
+
+    def live_vehicles(self) -> list[int]:
+        """Numbers of the vehicles that are live robots, front to back."""
+        return sorted(int(k) for k, v in self.vehicles.items() if v.endpoint == "zenoh")
+
+    def robot_id(self, vehicle: int) -> int:
+        robot = self.override(vehicle).robot
+        return vehicle if robot is None else robot
+
+
+class _RuleError(ValueError):
+    def __init__(self, key: str, value: Any, expected: str, message: str | None = None) -> None:
+        super().__init__(message or f"{key} = {value!r}: expected {expected}")
+        self.key, self.value, self.expected = key, value, expected
+
+
+def _rule(key: str, value: Any, expected: str) -> _RuleError:
+    return _RuleError(key, value, expected)
+
+
+def _key_of(loc: tuple[Any, ...]) -> str:
+    key = ""
+    for part in loc:
+        if isinstance(part, int):
+            key += f"[{part}]"
+        else:
+            key += ("." if key else "") + str(part)
+    return key
+
+
+_RANGE_ERRORS = {"finite_number", "greater_than", "greater_than_equal", "less_than", "less_than_equal"}
+_BOUND_WORDS = (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<="))
+
+
+def _field_at(loc: tuple[Any, ...]) -> tuple[Any, list[Any]]:
+    """(type, constraint objects) of the key at pydantic location ``loc``, from the models' declarations."""
+    annotation: Any = Config
+    metadata: list[Any] = []
+    for part in loc:
+        annotation, metadata = _unwrap(annotation)
+        origin = get_origin(annotation)
+        if isinstance(annotation, type) and issubclass(annotation, BaseModel) and part in annotation.model_fields:
+            info = annotation.model_fields[part]
+            annotation, metadata = info.annotation, list(info.metadata)
+        elif origin in (list, dict):
+            annotation, metadata = get_args(annotation)[-1], []
+        else:
+            break
+    annotation, more = _unwrap(annotation)
+    return annotation, metadata + more
+
+
+def _unwrap(annotation: Any) -> tuple[Any, list[Any]]:
+    """Strip ``X | None`` and ``Annotated[X, ...]``, collecting the annotated constraints."""
+    metadata: list[Any] = []
+    while True:
+        if get_origin(annotation) is Union or type(annotation).__name__ == "UnionType":
+            annotation = next(a for a in get_args(annotation) if a is not type(None))
+        elif get_origin(annotation) is Annotated:
+            annotation, *extra = get_args(annotation)
+            for item in extra:  # a Field(...) in Annotated carries its constraints as metadata
+                metadata += list(getattr(item, "metadata", [item]))
+        else:
+            return annotation, metadata
+
+
+def _range_text(field: tuple[Any, list[Any]]) -> str:
+    """"a finite number >= 0.001 and <= 1000", "an integer >= 1": the declared range of a numeric key."""
+    annotation, metadata = field
+    bounds = [f"{word} {_number(getattr(item, name))}" for item in metadata for name, word in _BOUND_WORDS
+              if isinstance(item, getattr(annotated_types, name.capitalize())) and hasattr(item, name)]
+    kind = "an integer" if annotation is int else "a finite number"
+    return " and ".join([f"{kind} {bounds[0]}" if bounds else kind, *bounds[1:]])
+
+
+def _number(value: float | int) -> str:
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def _explain(error: ValidationError) -> str:
+    """One line for the first problem pydantic found: key, value, expectation."""
+    first = error.errors(include_url=False)[0]
+    ctx = first.get("ctx") or {}
+    loc = tuple(part for part in first["loc"] if not (isinstance(part, str) and part.startswith("function-")))
+    key = _key_of(loc)
+    if "error" in ctx and isinstance(ctx["error"], _RuleError):  # a rule of a nested table names its own key
+        return f"{key}.{ctx['error']}" if key else str(ctx["error"])
+    key = key or "a key"  # the key itself is what is wrong (not UTF-8)
+    if first["type"] == "extra_forbidden":
+        return f"{key}: unknown key"
+    if first["type"] == "missing":
+        return f"{key}: missing (required)"
+    if "error" in ctx and isinstance(ctx["error"], _Expected):
+        return f"{key} = {first['input']!r}: {ctx['error']}"
+    if first["type"] in ("string_pattern_mismatch", "string_too_long") and loc == ("name",):
+        return (f"name = {first['input']!r}: must be {NAME_RULE} (it names the trace file runs/<name>-<time>.mcap; "
+                "without a name key it is the config's file name)")
+    if first["type"] == "string_unicode":
+        return f"{key} = {first['input']!r}: must be valid UTF-8 text"
+    if first["type"] in _RANGE_ERRORS:
+        return f"{key} = {first['input']!r}: must be {_range_text(_field_at(loc))}"
+    message = first["msg"]
+    message = message[0].lower() + message[1:] if message else message
+    return f"{key} = {first['input']!r}: {message}"
+
+
+# A --set value that starts like one of these is TOML and must parse as exactly one value; anything
+# else (a bare word such as regular) is taken as a string.
+_TOML_START = tuple("\"'[{+-0123456789")
+_TOML_WORDS = ("true", "false", "inf", "nan")
+
+
+def parse_value(text: str) -> Any:
+    """A ``--set`` value: one TOML value (7, 0.5, true, "x", [1, 2]); a bare word is a string.
+
+    The value is parsed inside an inline table, where TOML allows neither a comment nor a second
+    statement, so ``3 x=1``, ``3 # note`` or ``3`` followed by a newline and more TOML is an error
+    instead of a 3 with the rest silently dropped.
+    """
+    stripped = text.strip()
+    word = stripped.split(None, 1)[0].rstrip(",]}") if stripped else ""
+    looks_like_toml = stripped.startswith(_TOML_START) or word in _TOML_WORDS
+    if not stripped:
+        return ""
+    try:
+        parsed = tomllib.loads(f"value = {{v = {stripped}}}")
+    except tomllib.TOMLDecodeError:
+        if looks_like_toml or "\n" in stripped:
+            raise ConfigError(f"{stripped!r} is not one TOML value (more after the value, a comment, or a typo?); "
+                              "a string with spaces or quotes needs TOML quotes: 'KEY=\"...\"'") from None
+        return stripped
+    if list(parsed) != ["value"] or list(parsed["value"]) != ["v"]:
+        raise ConfigError(f"{stripped!r} is not one TOML value: more TOML after it")
+    return parsed["value"]["v"]
+
+
+def apply_override(raw: dict[str, Any], assignment: str) -> None:
+    """Apply ``KEY=VALUE`` (dotted key) to the raw config mapping."""
+    if "=" not in assignment:
+        raise ConfigError(f"--set {assignment!r}: expected KEY=VALUE, e.g. platoon.count=7")
+    key, text = assignment.split("=", 1)
+    parts = key.strip().split(".")
+    if not all(parts):
+        raise ConfigError(f"--set {assignment!r}: {key!r} is not a dotted key like platoon.count")
+    node = raw
+    for index, part in enumerate(parts[:-1]):
+        child = node.setdefault(part, {})
+        if not isinstance(child, dict):
+            raise ConfigError(f"--set {assignment!r}: {'.'.join(parts[: index + 1])} is not a table")
+        node = child
+    try:
+        node[parts[-1]] = parse_value(text)
+    except ConfigError as error:
+        raise ConfigError(f"--set {assignment!r}: {error}") from None
+
+
+def config_from_mapping(raw: dict[str, Any]) -> Config:
+    try:
+        return Config.model_validate(raw)
+    except ValidationError as error:
+        raise ConfigError(_explain(error)) from None
+
+
+def read_config_text(path: str | Path) -> str:
+    """The config file's text: UTF-8, with a byte-order mark accepted and dropped (Windows editors write
+    one; it is not part of the TOML)."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as error:
+        raise ConfigError(f"cannot read the file: {error.strerror or error}") from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as error:
+        line = data[: error.start].count(b"\n") + 1
+        raise ConfigError(f"not UTF-8 text: byte 0x{data[error.start]:02x} at line {line} (TOML files are UTF-8; "
+                          "save it as UTF-8)") from None
+
+
+def parse_config(text: str, default_name: str, overrides: list[str] | tuple[str, ...] = ()) -> tuple[Config, dict[str, Any]]:
+    """Parse, override and validate a config's text; returns the config and the raw mapping."""
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(f"not valid TOML: {error}") from None
+    raw.setdefault("name", default_name)
+    for assignment in overrides:
+        apply_override(raw, assignment)
+    return config_from_mapping(raw), raw
+
+
+def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> tuple[Config, dict[str, Any]]:
+    """Read, override and validate a scenario; returns the config and the raw mapping it came from."""
+    return parse_config(read_config_text(path), Path(path).stem, overrides)

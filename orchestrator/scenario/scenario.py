@@ -1,0 +1,142 @@
+"""From a validated config to what the master runs: components, parameters, wiring, disturbances.
+
+Nothing here steps anything; it only decides who exists, with which FMU parameters, where each
+vehicle starts, how they are connected and which inputs follow a schedule.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from fmus.model.paths import make_path
+
+from orchestrator.scenario.config import Config, step_count  # noqa: F401  (step_count re-exported: the engines import it from here)
+from orchestrator.scenario.wiring import TARGET, Connection, platoon_connections, vehicle_name
+
+DISTURBANCE_INPUTS = {
+    "lateral_acceleration": "disturbance.lateral_acceleration",
+    "speed": "disturbance.speed",
+}
+
+# A communication point t is inside [start, start + duration) up to this much rounding.
+_TIME_TOLERANCE = 1e-9
+
+
+@dataclass(frozen=True)
+class ScheduledInput:
+    """A rectangular pulse on one input: ``value`` on [start, start + duration), zero elsewhere.
+
+    Sampled at communication points and held over the step, in the co-simulation and in the
+    monolithic reference alike.
+    """
+
+    component: str
+    input: str
+    start: float
+    duration: float
+    value: float
+
+    def value_at(self, t: float) -> float:
+        if self.start - _TIME_TOLERANCE <= t < self.start + self.duration - _TIME_TOLERANCE:
+            return self.value
+        return 0.0
+
+
+@dataclass(frozen=True)
+class ComponentSpec:
+    name: str
+    fmu: str  # "VirtualTarget" | "Vehicle"
+    parameters: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class Scenario:
+    config: Config
+    components: list[ComponentSpec]
+    connections: list[Connection]
+    schedules: list[ScheduledInput] = field(default_factory=list)
+
+    @property
+    def vehicle_count(self) -> int:
+        return self.config.platoon.count
+
+    def path(self):
+        return path_of(self.config)
+
+
+def path_of(config: Config):
+    p = config.path
+    direction = 1 if p.direction == "ccw" else -1
+    return make_path(p.kind, p.radius, p.center[0], p.center[1], p.heading, direction)
+
+
+def initial_states(config: Config) -> list[tuple[float, float, float, float]]:
+    """(x, y, heading, speed) of each vehicle: on the path, one chord d* apart, then perturbed."""
+    path = path_of(config)
+    spacing = path.arc_for_chord(config.platoon.d_star)
+    speed = config.initial.speed_factor * config.platoon.speed
+    states = []
+    for index in range(1, config.platoon.count + 1):
+        x, y, heading = path.pose_at(-index * spacing)
+        if index == 1:
+            nx, ny = path.outward_normal(x, y)
+            x += config.initial.radial_offset * nx
+            y += config.initial.radial_offset * ny
+            heading += config.initial.heading_error
+        explicit = config.override(index).initial
+        if explicit is not None:
+            x, y, heading, speed_i = explicit.x, explicit.y, explicit.heading, explicit.speed
+        else:
+            speed_i = speed
+        states.append((x, y, heading, speed_i))
+    return states
+
+
+def build_scenario(config: Config) -> Scenario:
+    sim, platoon, path = config.simulation, config.platoon, config.path
+    common = {"d_star": platoon.d_star, "coupling": sim.coupling, "max_substep": sim.max_substep}
+    target = ComponentSpec(
+        TARGET,
+        "VirtualTarget",
+        {
+            "path.kind": path.kind,
+            "path.radius": path.radius,
+            "path.x0": path.center[0],
+            "path.y0": path.center[1],
+            "path.heading": path.heading,
+            "path.direction": 1 if path.direction == "ccw" else -1,
+            "initial.arc_length": 0.0,
+            **common,
+        },
+    )
+    components = [target]
+    for index, (x, y, heading, speed) in enumerate(initial_states(config), start=1):
+        override = config.override(index)
+        components.append(
+            ComponentSpec(
+                vehicle_name(index),
+                "Vehicle",
+                {
+                    "law": override.law or platoon.law,
+                    "k_v": override.k_v or platoon.k_v,
+                    "v_c": platoon.speed,
+                    "is_last": index == platoon.count,
+                    "dynamics": override.dynamics or platoon.dynamics,
+                    "initial.x": x,
+                    "initial.y": y,
+                    "initial.heading": heading,
+                    "initial.speed": speed,
+                    "m3pi.track": config.m3pi.track,
+                    "m3pi.wheel_speed_max": config.m3pi.wheel_speed_max,
+                    "m3pi.motor_time_constant": config.m3pi.motor_time_constant,
+                    **common,
+                },
+            )
+        )
+    schedules = [
+        ScheduledInput(vehicle_name(d.vehicle), DISTURBANCE_INPUTS[d.kind], d.start, d.duration, d.value)
+        for d in config.disturbance
+    ]
+    return Scenario(config, components, platoon_connections(platoon.count), schedules)
+
