@@ -41,12 +41,11 @@ _ZIP_TIME = (2020, 1, 1, 0, 0, 0)
 _BUNDLED_SUBPACKAGES = ("model", "slaves")
 _ROOT = PACKAGE_DIR.parent  # the folder holding fmus/, bridge/ and orchestrator/ (repository or site-packages)
 # What an FMU carries beyond fmus/model and fmus/slaves: the LiveVehicle FMU runs the bridge's host side
-# (bridge.live and what it imports) and the orchestrator's pacer, so it needs nothing but zenoh installed.
+# (bridge.live and what it imports), the component interface and the pacer, so it needs nothing but zenoh installed.
 _ONLY_IN = {"LiveVehicle.py": LIVE_FMU}
 _EXTRA_SOURCES = {
     LIVE_FMU: ("bridge/__init__.py", "bridge/live.py", "bridge/protocol.py", "bridge/session.py", "bridge/states.py",
-               "orchestrator/__init__.py", "fmus/component/py", "fmus/errors/py",
-               "fmus/realtime/py"),
+               "fmus/component.py", "fmus/errors.py", "fmus/realtime.py"),
 }
 
 

@@ -74,7 +74,7 @@ def run(tmp_path: Path, fmu_dir: Path):
 
 # pythonfmu FMUs run inside this interpreter, and its teardown after they ran intermittently
 # corrupts the heap (glibc: "corrupted double-linked list"), turning a green run into exit 134. The
-# CLI leaves with os._exit for the same reason (orchestrator/cli.py: main); here, once pytest has
+# CLI leaves with os._exit for the same reason (orchestrator/cli/app.py: main); here, once pytest has
 # reported everything, we do the same with pytest's own exit status.
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     session.config.stash[_EXIT_STATUS] = int(exitstatus)

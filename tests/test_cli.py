@@ -1,6 +1,6 @@
 """The ``platoon`` command end to end: the installed console script, run in real subprocesses.
 
-Covers the promises of orchestrator/cli.py and docs/config.md: a bad config or bad input exits 2
+Covers the promises of orchestrator/cli/ and docs/config.md: a bad config or bad input exits 2
 with one ``error:`` line naming the key and value and no traceback; a run exits 0, writes its trace
 and prints the summary; ``report`` prints JSON and draws the panels; a run that fails exits 1 and
 keeps a readable trace up to the failure.

@@ -110,7 +110,7 @@ SPECIAL: dict[tuple[str, str], Shorten | Parse | Skip | Expect] = {
     ("docs/foxglove.md", "platoon run configs/paper/platoon.toml --out runs/platoon.mcap --live --live-wait"):
         Shorten("platoon run configs/paper/platoon.toml --out runs/platoon.mcap --live --live-port 8799 --live-speed 0"
                 + SHORT, "--live-wait waits for a viewer (none here) and the run is paced to the wall clock: the same "
-                         "live server, unpaced, 2 s, on a port no test uses; tests/test_live_view.py watches it"),
+                         "live server, unpaced, 2 s, on a port no test uses; tests/test_foxglove_view.py watches it"),
     ("docs/sweeps.md", "pip install 'platoon-cosim[dask]'"): Skip("needs the network (the extra is checked below)"),
     ("docs/sweeps.md", "dask scheduler &"): Skip("Dask's own command; tests/test_sweep.py runs a real Dask cluster"),
     ("docs/sweeps.md", "dask worker tcp://127.0.0.1:8786 --nworkers 2 --nthreads 1 &"): Skip("as dask scheduler"),

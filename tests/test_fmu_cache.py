@@ -51,7 +51,7 @@ def zipped(fmu: Path, name: str) -> bytes:
 def start_holder(fmu: Path, root: Path, before: str = "") -> subprocess.Popen[str]:
     """A process that holds ``fmu``'s entry and sleeps; prints the folder (or None) once it holds it.
     ``before``: Python run first (e.g. to slow extraction down)."""
-    code = (f"import sys, time\n{before}\nfrom pathlib import Path\nfrom orchestrator import fmu_cache\n"
+    code = (f"import sys, time\n{before}\nfrom pathlib import Path\nfrom orchestrator.components import cache as fmu_cache\n"
             f"held = fmu_cache.hold(Path({str(fmu)!r}), Path({str(root)!r}))\n"
             "print(held.directory if held else None, flush=True)\ntime.sleep(600)\n")
     return subprocess.Popen([sys.executable, "-c", code], cwd=REPO, stdout=subprocess.PIPE, text=True,

@@ -89,3 +89,95 @@ def test_every_fmu_carries_the_project_modules_its_slave_imports() -> None:
                     parts = name.split(".")
                     pending += [found for found in (module_file(".".join(parts[:k])) for k in range(1, len(parts) + 1))
                                 if found is not None]
+
+
+# --- the house (docs/architecture.md): layers without circles, the CLI on top, short functions ---------
+
+PACKAGES = ("fmus", "orchestrator", "bridge")
+LONGEST_FUNCTION = 80  # lines, in orchestrator/ and bridge/
+
+
+def project_modules() -> dict[str, Path]:
+    """Every module of the three packages by dotted name (a package by its ``__init__``)."""
+    modules = {}
+    for package in PACKAGES:
+        for path in (REPO / package).rglob("*.py"):
+            parts = list(path.relative_to(REPO).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            modules[".".join(parts)] = path
+    return modules
+
+
+def import_graph() -> dict[str, set[str]]:
+    """Module -> the project modules it imports, deferred imports (inside functions) included; a module
+    importing from its own package's ``__init__`` is not an edge (Python runs that ``__init__`` first anyway)."""
+    modules = project_modules()
+
+    def owner(name: str) -> str | None:
+        while name and name not in modules:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    graph: dict[str, set[str]] = {}
+    for module, path in modules.items():
+        package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+        targets = {owner(name) for name in imported_modules(path, package)}
+        graph[module] = {t for t in targets if t and t != module
+                         and not (modules[t].name == "__init__.py" and module.startswith(t + "."))}
+    return graph
+
+
+def test_no_import_circle_anywhere_in_the_packages() -> None:
+    graph = import_graph()
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+
+    def visit(module: str, path: tuple[str, ...]) -> None:
+        assert state.get(module) != 1, "import circle: " + " -> ".join((*path[path.index(module):], module))
+        if state.get(module) == 2:
+            return
+        state[module] = 1
+        for imported in sorted(graph[module]):
+            visit(imported, (*path, module))
+        state[module] = 2
+
+    for module in sorted(graph):
+        visit(module, ())
+
+
+def test_only_the_command_line_imports_the_command_line() -> None:
+    offenders = [(module, imported) for module, imports in import_graph().items() for imported in imports
+                 if imported.startswith("orchestrator.cli") and not module.startswith("orchestrator.cli")
+                 and module != "orchestrator.__main__"]
+    assert offenders == []
+
+
+def test_the_fmus_never_import_the_orchestrator() -> None:
+    """The science and the component interface are the bottom layer (the LiveVehicle FMU carries them)."""
+    offenders = [(module, imported) for module, imports in import_graph().items() if module.startswith("fmus")
+                 for imported in imports if imported.startswith("orchestrator")]
+    assert offenders == []
+
+
+def test_no_function_in_the_orchestrator_or_the_bridge_is_longer_than_80_lines() -> None:
+    long = []
+    for package in ("orchestrator", "bridge"):
+        for path in (REPO / package).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text(), str(path))):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    lines = node.end_lineno - node.lineno + 1
+                    if lines > LONGEST_FUNCTION:
+                        long.append(f"{path.relative_to(REPO)}:{node.lineno} {node.name} ({lines} lines)")
+    assert long == []
+
+
+def test_every_engine_is_one_module_behind_the_engine_protocol() -> None:
+    """Adding an engine is adding one file to orchestrator/execution/engines (orchestrator/execution/engine.py)."""
+    from orchestrator.execution.engine import engine_class, engine_names
+
+    assert set(engine_names()) == {"monolithic", "native", "python"}
+    for name in engine_names():
+        engine = engine_class(name)
+        assert engine.name == name
+        for method in ("start", "advance", "close"):
+            assert callable(getattr(engine, method)), f"{name} engine has no {method}"

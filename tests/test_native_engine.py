@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from fmus.build import build_fmus
-from orchestrator.components.fmu import fmu as components_module
+from orchestrator.components import fmu as components_module
 from orchestrator.components.fmu import ComponentError, FmuComponent, UnpackedFmu
 from orchestrator.scenario.config import Config, config_from_mapping
 from orchestrator.execution.python_master import Master

@@ -2,7 +2,7 @@
 ``platoon bench`` is an installed command. Run them from the repository: configs, the FMUs
 (``build/fmus``) and the results (``runs/bench/``) are found relative to the current folder.
 
-``platoon bench <suite>`` (orchestrator/cli.py; JSON under ``runs/bench/<suite>-<time>.json``):
+``platoon bench <suite>`` (orchestrator/cli/bench.py; JSON under ``runs/bench/<suite>-<time>.json``):
 
 * ``steps``: µs per FMU-step of our engines against the bare FMPy loop, libcosim and the floor, by N (``steps.py``);
 * ``coupling``: the same cost with coupling "hold" against "extrapolate" (``coupling.py``);

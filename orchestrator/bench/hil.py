@@ -29,13 +29,12 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Any
 
-import typer
 
 from orchestrator.support.text import ms_text
 
-from .common import DEFAULT_OUT_DIR, BenchError, BenchUsageError, Progress, interleaved
+from .common import BenchError, BenchUsageError, Progress, interleaved
 
 CONFIG = Path("configs") / "hil" / "m3pi_live3.toml"
 POSE_RATE = 200.0  # Hz, the paper's motion capture

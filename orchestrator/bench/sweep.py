@@ -18,11 +18,10 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Any
 
-import typer
 
-from .common import DEFAULT_OUT_DIR, PAPER_CONFIGS, BenchError, BenchUsageError, Progress, interleaved, markdown_table
+from .common import PAPER_CONFIGS, BenchError, BenchUsageError, Progress, interleaved, markdown_table
 
 BASE = PAPER_CONFIGS / "platoon.toml"
 

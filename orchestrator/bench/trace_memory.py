@@ -101,7 +101,7 @@ def equilibrium_deviation(path: Path, config: Config) -> dict[str, object]:
     return {"speed_m_s": speed, "speed_worst_vehicle": worst, "gap_m": gap, "path_m": offset}
 
 
-def main() -> int:
+def _arguments() -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m orchestrator.bench.trace_memory", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="scenario TOML (default: %(default)s)")
@@ -113,8 +113,82 @@ def main() -> int:
                         help="where the trace is encoded (as platoon run's option; default %(default)s)")
     parser.add_argument("--out", type=Path, default=None, help="keep the trace here (default: a temporary file, deleted)")
     parser.add_argument("--json", type=Path, default=None, help="result file (default: runs/bench/trace-memory-<time>.json)")
-    args = parser.parse_args()
+    return parser.parse_args()
 
+
+def _report(args: argparse.Namespace, config, overrides: list[str], engine: str, steps: int, result, samples: list[dict[str, float]],
+            rss_before: float, load_before, load_after, trace_bytes: int, chunks: int, rows: int, trace_writer: str,
+            deviation: dict) -> dict:
+    """The JSON result: the run, RSS (this process and the writer's) over time and its growth, the trace."""
+    sim = config.simulation
+    rss = np.array([s["rss_mb"] for s in samples])
+    half = next((i for i, s in enumerate(samples) if s["t"] >= sim.stop_time / 2.0), len(samples) - 1)
+    per_sim_hour, per_wall_hour = second_half_slopes(samples, sim.stop_time)
+    writer_rss = np.array([s["writer_rss_mb"] for s in samples])
+    writer_per_sim_hour, _ = second_half_slopes(samples, sim.stop_time, "writer_rss_mb")
+    return {
+        "config": str(args.config),
+        "overrides": overrides,
+        "vehicles": config.platoon.count,
+        "stop_time_s": sim.stop_time,
+        "step_s": sim.step,
+        "max_substep_s": sim.max_substep,
+        "steps": steps,
+        "trace_every": sim.trace_every,
+        "engine": engine,
+        "status": result.status,
+        "error": result.error,
+        "wall_time_s": result.wall_time,
+        "rss_before_run_mb": rss_before,
+        "rss_first_sample_mb": float(rss[0]),
+        "rss_at_half_time_mb": float(rss[half]),
+        "rss_last_mb": float(rss[-1]),
+        "rss_max_mb": float(rss.max()),
+        "rss_growth_second_half_mb_per_sim_hour": per_sim_hour,
+        "rss_growth_second_half_mb_per_wall_hour": per_wall_hour,
+        "trace_writer": trace_writer,
+        "writer_rss_first_sample_mb": float(writer_rss[0]),
+        "writer_rss_last_mb": float(writer_rss[-1]),
+        "writer_rss_max_mb": float(writer_rss.max()),
+        "writer_rss_growth_second_half_mb_per_sim_hour": writer_per_sim_hour,
+        "trace_bytes": trace_bytes,
+        "chunks": chunks,
+        "rows_per_component_channel": rows,
+        "max_deviation_from_equilibrium": deviation,
+        "load_average_before_after": [load_before, load_after],
+        "sample_every_steps": args.sample,
+        "samples": samples,
+    }
+
+
+def _print_report(report: dict, samples: list[dict[str, float]], destination: Path) -> None:
+    r = report
+    deviation = r["max_deviation_from_equilibrium"]
+    print()
+    print("RSS samples (every 10th):")
+    print(f"{'step':>8}{'sim [s]':>10}{'wall [s]':>10}{'RSS [MB]':>10}{'writer [MB]':>13}")
+    shown = list(range(0, len(samples), 10)) + ([len(samples) - 1] if (len(samples) - 1) % 10 else [])
+    for i in shown:
+        s = samples[i]
+        print(f"{s['step']:>8}{s['t']:>10.0f}{s['wall']:>10.0f}{s['rss_mb']:>10.1f}{s['writer_rss_mb']:>13.1f}")
+    print()
+    print(f"RSS: before the run {r['rss_before_run_mb']:.1f} MB, first sample {r['rss_first_sample_mb']:.1f} MB, "
+          f"at half time {r['rss_at_half_time_mb']:.1f} MB, last {r['rss_last_mb']:.1f} MB, max {r['rss_max_mb']:.1f} MB")
+    print(f"growth over the second half: {r['rss_growth_second_half_mb_per_sim_hour']:+.2f} MB per simulated hour, "
+          f"{r['rss_growth_second_half_mb_per_wall_hour']:+.2f} MB per wall hour")
+    if r["trace_writer"] == "process":
+        print(f"trace writer process: first sample {r['writer_rss_first_sample_mb']:.1f} MB, last {r['writer_rss_last_mb']:.1f} MB, "
+              f"max {r['writer_rss_max_mb']:.1f} MB, growth over the second half "
+              f"{r['writer_rss_growth_second_half_mb_per_sim_hour']:+.2f} MB per simulated hour")
+    print(f"trace: {r['trace_bytes'] / 1e6:.1f} MB, {r['chunks']} chunks, {r['rows_per_component_channel']} rows on each component channel")
+    print(f"largest deviation from the equilibrium: speed {deviation['speed_m_s']:.3g} m/s ({deviation['speed_worst_vehicle']}), "
+          f"gap {deviation['gap_m']:.3g} m, path {deviation['path_m']:.3g} m")
+    print(f"wall time {r['wall_time_s']:.0f} s; load average before {r['load_average_before_after'][0][0]:.2f}, "
+          f"after {r['load_average_before_after'][1][0]:.2f}")
+    print(f"wrote {destination}")
+
+def main() -> int:
+    args = _arguments()
     overrides = list(args.overrides)
     if args.trace_every is not None:
         overrides.append(f"simulation.trace_every={args.trace_every}")
@@ -167,65 +241,10 @@ def main() -> int:
     deviation = equilibrium_deviation(out, config)
     if scratch is not None:
         scratch.cleanup()
-    rss = np.array([s["rss_mb"] for s in samples])
-    half = next((i for i, s in enumerate(samples) if s["t"] >= sim.stop_time / 2.0), len(samples) - 1)
-    per_sim_hour, per_wall_hour = second_half_slopes(samples, sim.stop_time)
-    writer_rss = np.array([s["writer_rss_mb"] for s in samples])
-    writer_per_sim_hour, _ = second_half_slopes(samples, sim.stop_time, "writer_rss_mb")
-    report = {
-        "config": str(args.config),
-        "overrides": overrides,
-        "vehicles": config.platoon.count,
-        "stop_time_s": sim.stop_time,
-        "step_s": sim.step,
-        "max_substep_s": sim.max_substep,
-        "steps": steps,
-        "trace_every": sim.trace_every,
-        "engine": engine,
-        "status": result.status,
-        "error": result.error,
-        "wall_time_s": result.wall_time,
-        "rss_before_run_mb": rss_before,
-        "rss_first_sample_mb": float(rss[0]),
-        "rss_at_half_time_mb": float(rss[half]),
-        "rss_last_mb": float(rss[-1]),
-        "rss_max_mb": float(rss.max()),
-        "rss_growth_second_half_mb_per_sim_hour": per_sim_hour,
-        "rss_growth_second_half_mb_per_wall_hour": per_wall_hour,
-        "trace_writer": trace_writer,
-        "writer_rss_first_sample_mb": float(writer_rss[0]),
-        "writer_rss_last_mb": float(writer_rss[-1]),
-        "writer_rss_max_mb": float(writer_rss.max()),
-        "writer_rss_growth_second_half_mb_per_sim_hour": writer_per_sim_hour,
-        "trace_bytes": trace_bytes,
-        "chunks": chunks,
-        "rows_per_component_channel": rows,
-        "max_deviation_from_equilibrium": deviation,
-        "load_average_before_after": [load_before, load_after],
-        "sample_every_steps": args.sample,
-        "samples": samples,
-    }
+    report = _report(args, config, overrides, engine, steps, result, samples, rss_before, load_before, load_after,
+                     trace_bytes, chunks, rows, trace_writer, deviation)
     destination = write_result(DEFAULT_OUT_DIR, "trace-memory", report, args.json)  # + versions, machine, commit, time
-
-    print()
-    print("RSS samples (every 10th):")
-    print(f"{'step':>8}{'sim [s]':>10}{'wall [s]':>10}{'RSS [MB]':>10}{'writer [MB]':>13}")
-    shown = list(range(0, len(samples), 10)) + ([len(samples) - 1] if (len(samples) - 1) % 10 else [])
-    for i in shown:
-        s = samples[i]
-        print(f"{s['step']:>8}{s['t']:>10.0f}{s['wall']:>10.0f}{s['rss_mb']:>10.1f}{s['writer_rss_mb']:>13.1f}")
-    print()
-    print(f"RSS: before the run {rss_before:.1f} MB, first sample {rss[0]:.1f} MB, at half time {rss[half]:.1f} MB, "
-          f"last {rss[-1]:.1f} MB, max {rss.max():.1f} MB")
-    print(f"growth over the second half: {per_sim_hour:+.2f} MB per simulated hour, {per_wall_hour:+.2f} MB per wall hour")
-    if trace_writer == "process":
-        print(f"trace writer process: first sample {writer_rss[0]:.1f} MB, last {writer_rss[-1]:.1f} MB, "
-              f"max {writer_rss.max():.1f} MB, growth over the second half {writer_per_sim_hour:+.2f} MB per simulated hour")
-    print(f"trace: {trace_bytes / 1e6:.1f} MB, {chunks} chunks, {rows} rows on each component channel")
-    print(f"largest deviation from the equilibrium: speed {deviation['speed_m_s']:.3g} m/s ({deviation['speed_worst_vehicle']}), "
-          f"gap {deviation['gap_m']:.3g} m, path {deviation['path_m']:.3g} m")
-    print(f"wall time {result.wall_time:.0f} s; load average before {load_before[0]:.2f}, after {load_after[0]:.2f}")
-    print(f"wrote {destination}")
+    _print_report(report, samples, destination)
     if result.status != "completed":
         print(f"run {result.status}: {result.error}")
     return 0 if result.status == "completed" else 1

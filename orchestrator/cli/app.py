@@ -26,7 +26,7 @@ app = typer.Typer(
 
 def _print_version(value: bool) -> None:
     if value:
-        from orchestrator.execution.run import tool_versions
+        from orchestrator.support.versions import tool_versions
 
         versions = tool_versions()
         out.print(f"platoon {versions.pop('platoon-cosim')} ("

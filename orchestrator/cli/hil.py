@@ -1,5 +1,5 @@
 """The hardware-in-the-loop commands of ``platoon``: ``m3pi-emulator``, ``m3pi-serial``, and the live
-summary table a run prints. Kept apart from cli.py so that the bridge's programs sit together.
+summary table a run prints. One module of the command line (orchestrator/cli/).
 
 Both commands are long-running processes that stop on Ctrl-C or SIGTERM; the robot side always stops
 its wheels before it exits.

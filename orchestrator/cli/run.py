@@ -9,13 +9,13 @@ from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
-from orchestrator.scenario.config import Config, ConfigError
-
-if TYPE_CHECKING:  # rich's table is imported where used: `platoon run -q` needs none
-    pass
-
 from orchestrator.cli.common import (AllowLong, OVERWRITE_HELP, SET_METAVAR, check_output, choices_metavar, claim_trace, err, fail,
                                      load_config, out, summary_table)
+from orchestrator.scenario.config import Config, ConfigError
+
+if TYPE_CHECKING:
+    from orchestrator.execution.run import RunResult
+    from orchestrator.observers.foxglove_view import FoxgloveView
 
 RUN_ENGINES = ("native", "python")  # --engine; --monolithic picks the third engine (run.ENGINES)
 
@@ -126,16 +126,33 @@ def run(
     parsed, text = load_config(config, overrides, allow_long)
     loaded = seconds_since_process_start()
     with loading_a_run():  # one BLAS thread, no garbage collection while the run's modules load
-        from orchestrator.execution.run import default_engine, default_trace_path
+        from orchestrator.execution.run import default_trace_path
 
     imported = seconds_since_process_start()  # the engines, numpy, the trace writer
+    engine = _chosen_engine(config, parsed, engine_name, monolithic, trace_writer)
+    view = _live_view(parsed, live, live_port, live_host, live_speed, live_wait)
+    target = claim_trace(trace, overwrite, [config], lambda: default_trace_path(parsed, engine))
+    trace = target.final
+    reference_path = trace.with_name(trace.stem + "-monolithic.mcap")
+    if compare:  # checked now, claimed when its turn comes (no empty aside file if the run fails)
+        check_output(reference_path, overwrite, [config])
+    result = _run_with_view(config, parsed, text, target, engine, quiet, trace_writer, view)
+    _report_run(result, trace, parsed, engine, quiet)
+    if verbose:
+        err.print(_time_split(entered, loaded, imported, result.timings, seconds_since_process_start()), highlight=False)
+    if compare:
+        _compare_monolithic(config, parsed, text, result, reference_path, overwrite, quiet)
+
+
+def _chosen_engine(config: Path, parsed: Config, engine_name: str | None, monolithic: bool, trace_writer: str) -> str:
+    """The engine `platoon run` uses, after checking the options that choose it; exit 2 naming a bad one."""
+    from orchestrator.components.live import LiveRunError, check_live_options
+    from orchestrator.execution.run import TRACE_WRITERS, default_engine
+
     if engine_name is not None and engine_name not in RUN_ENGINES:
         fail(2, f"--engine {engine_name!r}: expected native or python")
     if engine_name == "native" and default_engine() != "native":
         fail(2, "--engine native: the compiled core is not built here (reinstall with a C compiler: pip install -e .)")
-    from orchestrator.components.live import LiveRunError, check_live_options
-    from orchestrator.execution.run import TRACE_WRITERS
-
     if trace_writer not in TRACE_WRITERS:
         fail(2, f"--trace-writer {trace_writer!r}: expected one of {', '.join(TRACE_WRITERS)}")
     engine = "monolithic" if monolithic else (engine_name or default_engine(parsed))
@@ -143,21 +160,27 @@ def run(
         check_live_options(parsed, engine, trace_writer)
     except LiveRunError as error:
         fail(2, f"config {config}: {error}")
-    view = None
-    if not live and (live_port, live_host, live_speed, live_wait) != (8765, "127.0.0.1", 1.0, False):
-        fail(2, "--live-port, --live-host, --live-speed and --live-wait go with --live (add it to watch the run)")
-    if live:  # before the trace is claimed: a port in use stops the run with nothing written
-        from orchestrator.observers.foxglove_view import LiveViewError, start_live_view
+    return engine
 
-        try:
-            view = start_live_view(parsed, live_host, live_port, live_speed, err, live_wait)
-        except LiveViewError as error:
-            fail(2, str(error))
-    target = claim_trace(trace, overwrite, [config], lambda: default_trace_path(parsed, engine))
-    trace = target.final
-    reference_path = trace.with_name(trace.stem + "-monolithic.mcap")
-    if compare:  # checked now, claimed when its turn comes (no empty aside file if the run fails)
-        check_output(reference_path, overwrite, [config])
+
+def _live_view(parsed: Config, live: bool, port: int, host: str, speed: float, wait: bool) -> "FoxgloveView | None":
+    """The --live view, started before the trace is claimed: a port in use stops the run with nothing written."""
+    if not live and (port, host, speed, wait) != (8765, "127.0.0.1", 1.0, False):
+        fail(2, "--live-port, --live-host, --live-speed and --live-wait go with --live (add it to watch the run)")
+    if not live:
+        return None
+    from orchestrator.observers.foxglove_view import FoxgloveViewError, start_foxglove_view
+
+    try:
+        return start_foxglove_view(parsed, host, port, speed, err, wait)
+    except FoxgloveViewError as error:
+        fail(2, str(error))
+    return None  # not reached: fail exits
+
+
+def _run_with_view(config: Path, parsed: Config, text: str, target, engine: str, quiet: bool, trace_writer: str,
+                   view: "FoxgloveView | None") -> "RunResult":
+    """The run itself (with its view, announced first and closed after); exit 2 if its FMUs cannot be had."""
     from fmus.build import BuildError
 
     from orchestrator.components.kinds import FmuKindError
@@ -165,9 +188,9 @@ def run(
     if view is not None:
         from orchestrator.observers.foxglove_view import announce
 
-        announce(view, trace, parsed, out)
+        announce(view, target.final, parsed, out)
     try:
-        result = _execute(parsed, text, target, engine, quiet, trace_writer, view)
+        return _execute(parsed, text, target, engine, quiet, trace_writer, view)
     except (FmuKindError, BuildError) as error:  # nothing was run, the trace path is released
         fail(2, f"config {config}: {error}")
     finally:
@@ -175,10 +198,15 @@ def run(
             view.close()
             if (lag := view.lag_note()) is not None:
                 err.print(lag, highlight=False, soft_wrap=True)
+    raise AssertionError("not reached: fail exits")
+
+
+def _report_run(result: "RunResult", trace: Path, parsed: Config, engine: str, quiet: bool) -> None:
+    """The layout beside the trace, the live link table, the summary and where the trace is; a run that did
+    not complete exits 1 (130/143 when stopped by a signal) naming why."""
     from orchestrator.trace.layout import write_run_layout
 
     written = write_run_layout(trace, parsed)  # beside the trace; a failed or stopped run says only that
-    layout = written.path
     if written.warning is not None and result.status == "completed":
         err.print(written.warning, highlight=False, soft_wrap=True)
     if result.live:
@@ -197,22 +225,24 @@ def run(
         summaries = result.summary if result.summary is not None else summarize(load(result.trace), parsed)
         out.print(summary_table(summaries, parsed, f"{parsed.name}: {parsed.platoon.law} law, {engine} engine, {result.fmus} FMUs, {parsed.simulation.stop_time:g} s"))
     out.print(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)", highlight=False, soft_wrap=True)
-    if layout is not None:
-        out.print(f"layout: {layout}  (open both in Foxglove: docs/foxglove.md)", highlight=False, soft_wrap=True)  # one line in a log
-    if verbose:
-        err.print(_time_split(entered, loaded, imported, result.timings, seconds_since_process_start()), highlight=False)
-    if compare:
-        from orchestrator.analysis.compare import deviations
-        from orchestrator.trace import load
+    if written.path is not None:
+        out.print(f"layout: {written.path}  (open both in Foxglove: docs/foxglove.md)", highlight=False, soft_wrap=True)  # one line in a log
 
-        reference = _execute(parsed, text, claim_trace(reference_path, overwrite, [config], None), "monolithic", quiet)
-        if reference.status != "completed":
-            fail(1, f"monolithic reference {reference.status}: {reference.error}")
-        worst = deviations(load(result.trace), load(reference.trace))
-        out.print(
-            f"largest deviation from the monolithic run ({reference.trace}): "
-            f"position {worst.position:.3e} m ({worst.position_where}), gap {worst.gap:.3e} m, speed {worst.speed:.3e} m/s"
-        )
+
+def _compare_monolithic(config: Path, parsed: Config, text: str, result: "RunResult", reference_path: Path,
+                        overwrite: bool, quiet: bool) -> None:
+    """--compare-monolithic: run the reference and print the largest deviations from it."""
+    from orchestrator.analysis.compare import deviations
+    from orchestrator.trace import load
+
+    reference = _execute(parsed, text, claim_trace(reference_path, overwrite, [config], None), "monolithic", quiet)
+    if reference.status != "completed":
+        fail(1, f"monolithic reference {reference.status}: {reference.error}")
+    worst = deviations(load(result.trace), load(reference.trace))
+    out.print(
+        f"largest deviation from the monolithic run ({reference.trace}): "
+        f"position {worst.position:.3e} m ({worst.position_where}), gap {worst.gap:.3e} m, speed {worst.speed:.3e} m/s"
+    )
 
 
 def analyze(

@@ -1,5 +1,5 @@
 """``platoon export-ssp``: a config's whole platoon as an SSP 1.0 package for other tools (docs/fmus.md,
-"Run the whole platoon in another tool"). Kept apart from cli.py, registered by ``register``."""
+"Run the whole platoon in another tool"). Registered by ``register``."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
-"""``platoon sweep`` and ``platoon sweep-plot`` (and ``platoon bench sweep``), registered on the main
-app by ``register`` so that orchestrator/cli.py only needs one line for them.
+"""``platoon sweep`` and ``platoon sweep-plot``, registered on the main
+app by ``register`` (orchestrator/cli/app.py).
 
 Exit codes as for ``platoon run``: 0 every run done and completed; 1 every run done, some failed or
 invalid (their errors are in results.csv), or a Dask cluster that cannot run the tasks; 2 bad input (sweep file, base config, options, a folder in use); 130 and

@@ -3,24 +3,19 @@
 A config marks vehicle K live with ``[vehicles.K] endpoint = "zenoh"``; here that becomes a
 ``bridge.live.LiveVehicle`` with the very parameter values the Vehicle FMU would have received (its
 declared defaults, then the scenario's), its inputs and outputs named as the FMU's. During the run,
-``LiveReporter`` moves what the live components saw (state changes, dropped messages, raw poses and
-commands, link statistics) into the trace, and sums it up at the end. The bridge knows Zenoh, not
-the trace; this module knows the trace's writer, not Zenoh.
+orchestrator/observers/hil_link.py moves what the live components saw into the trace. The bridge
+knows Zenoh, not the trace.
 """
 
 from __future__ import annotations
 
-import json
-from typing import Any, Sequence
 
 from orchestrator.components.fmu import UnpackedFmu
 from orchestrator.scenario.config import Config
-from fmus.component import Component, LiveComponent
-from fmus.realtime import Pacer
+from fmus.component import Component
 from orchestrator.scenario.scenario import ComponentSpec
 from orchestrator.scenario.wiring import vehicle_name
 
-LINK_STATS_INTERVAL = 1.0  # s of simulated (= wall) time between two link statistics messages
 
 
 class LiveRunError(ValueError):
@@ -72,35 +67,3 @@ def live_component(spec: ComponentSpec, fmu: UnpackedFmu, config: Config, vehicl
     starts = fmu.start_values()
     return LiveVehicle(spec.name, {**starts, **spec.parameters}, inputs, outputs, [float(starts[n]) for n in inputs],
                        settings)
-
-
-class LiveReporter:
-    """Copies the live components' events and raw messages into the trace after each recorded point."""
-
-    def __init__(self, components: Sequence[Component], writer: Any, pacer: Pacer) -> None:
-        self.live = [c for c in components if isinstance(c, LiveComponent)]
-        self.writer, self.pacer = writer, pacer
-        self._next_stats = 0.0
-
-    def __call__(self, t: float, final: bool = False) -> None:
-        writer = self.writer
-        for component in self.live:
-            for event in component.drain_events():
-                writer.log(t, event.level, event.message)
-            for record in component.drain_records():
-                writer.live(f"{component.name}/{record.stream}", t, record.fields)
-        if t >= self._next_stats or final:
-            self._next_stats = t + LINK_STATS_INTERVAL
-            for component in self.live:
-                numbers = {k: float(v) for k, v in component.link_statistics().items() if isinstance(v, (int, float))}
-                writer.live(f"{component.name}/link", t, numbers)
-
-    def finish(self, t: float) -> dict[str, dict[str, Any]]:
-        """Drain what is left, record the links' final statistics (the last ``/link`` message always
-        holds the final counts, however close to the previous one the run ended) and the summary as
-        ``platoon.hil`` metadata, and return it."""
-        self(t, final=True)
-        summary = {"pacing": self.pacer.summary()}
-        summary.update({c.name: c.link_statistics() for c in self.live})
-        self.writer.metadata("platoon.hil", {name: json.dumps(values) for name, values in summary.items()})
-        return summary

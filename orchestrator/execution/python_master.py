@@ -232,6 +232,12 @@ class Master:
             tick: Callable[[int], None] | None = None) -> None:
         """Initialize and run ``steps`` steps of size ``step``, calling ``observer`` at every point."""
         observer(start_time, self.initialize(start_time))
+        self.advance(step, observer, steps, start_time, tick)
+
+    def advance(self, step: float, observer: Observer, steps: int, start_time: float = 0.0,
+                tick: Callable[[int], None] | None = None) -> None:
+        """Run ``steps`` steps of size ``step`` from the initialized state at ``start_time``, calling
+        ``observer`` at every point reached and ``tick(k)`` after step k."""
         if self.pacer is not None:
             self.pacer.start(start_time)
         for k in range(steps):

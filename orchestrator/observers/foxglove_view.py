@@ -34,6 +34,7 @@ import threading
 import time as clock
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
+from orchestrator.observers.base import Observer
 from orchestrator.observers.subprotocol_relay import SubprotocolRelay
 from fmus.realtime import Pacer
 from orchestrator.trace.encoding import ChannelSpec, ComponentMessages, LiveStream
@@ -50,7 +51,7 @@ LAG_NOTE = 1.0  # wall seconds behind the pace from which the run says it could 
 SETTLE = 0.5  # s without a new subscription after which --live-wait takes a viewer's subscriptions as complete
 
 
-class LiveViewError(ValueError):
+class FoxgloveViewError(ValueError):
     """The live view cannot start (port in use, bad host): one line for the user."""
 
 
@@ -59,8 +60,11 @@ def app_url(url: str) -> str:
     return f"https://app.foxglove.dev/?ds=foxglove-websocket&ds.url={url}"
 
 
-class LiveView:
-    """A Foxglove WebSocket server for one run; ``open`` declares the run's channels, ``tee`` feeds them."""
+class FoxgloveView(Observer):
+    """A Foxglove WebSocket server for one run; ``open`` declares the run's channels, and as an observer of
+    the run it is fed what the trace records."""
+
+    wants_rows = True
 
     def __init__(self, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, speed: float = 1.0, rate: float = RATE,
                  wait: bool = False) -> None:
@@ -85,7 +89,7 @@ class LiveView:
             self.relay = SubprotocolRelay(host, port)
         except OSError as error:
             hint = "; another run or program uses it: pick another with --live-port PORT" if error.errno == errno.EADDRINUSE else ""
-            raise LiveViewError(f"--live: cannot serve on {host}:{port}: {error.strerror or error}{hint}") from None
+            raise FoxgloveViewError(f"--live: cannot serve on {host}:{port}: {error.strerror or error}{hint}") from None
         try:  # the SDK's server, reached through the relay only
             # Time: the server says what time it is, the simulated time of the frames (stamped as in the
             # trace), so a viewer's clock and plot axes run in simulated seconds, as with the trace file
@@ -93,7 +97,7 @@ class LiveView:
                                                 capabilities=[foxglove.Capability.Time], server_listener=Watchers())
         except RuntimeError as error:
             self.relay.close()
-            raise LiveViewError(f"--live: the Foxglove server did not start: {error}") from None
+            raise FoxgloveViewError(f"--live: the Foxglove server did not start: {error}") from None
         self.host, self.port = host, self.relay.port
         self.speed, self.interval = speed, 1.0 / rate
         self.paced = speed > 0
@@ -122,6 +126,8 @@ class LiveView:
             speed = self.speed
             self._pacer = Pacer(clock=lambda: clock.perf_counter() * speed, sleep=lambda s: clock.sleep(s / speed))
         self._pacing = False
+        self._frame_step: float | None = None  # set by ``delivery``: pace after each block-filling call
+        self._count = 0  # points seen (``point``), for the trace's decimation
         self._latest: list[float] | None = None
         self._sent_at = -float("inf")
         # viewers reach the server only now (until then they wait in the port's backlog): the SDK's server
@@ -145,6 +151,17 @@ class LiveView:
             self._channels[channel].log(data, log_time=stamp)
 
     # --- what the run hands over -------------------------------------------------------------
+
+    def point(self, t: float, outputs: Sequence[Sequence[float]]) -> None:
+        """A communication point of an engine stepping in Python: the recorded ones (the trace's
+        decimation) are shown, each paced."""
+        if self._count % self.every == 0:
+            row = [t]
+            for values in outputs:
+                row.extend(values)
+            self.row(row)
+            self.pace(t)
+        self._count += 1
 
     def row(self, row: list[float]) -> None:
         """One recorded row ``[t, outputs...]`` (every one the trace records, in order)."""
@@ -208,22 +225,18 @@ class LiveView:
             self._pacing = True
         pacer.wait_until(time)
 
-    def block_options(self, step: float, tick: Callable[[int], None] | None, deliver_interval: float) -> dict[str, Any]:
-        """``NativeMaster.run_blocks`` options: blocks handed over at the frame rate, paced after each call into C."""
-        options: dict[str, Any] = {"tick": tick, "deliver_interval": min(deliver_interval, self.interval)}
+    def delivery(self, step: float, interval: float, call_steps: int | None) -> tuple[float, int | None]:
+        """Blocks at the frame rate at least; paced, one call into C per frame, its rows going to the trace
+        and the view at once, then the pacer waits (in ``advanced``)."""
+        interval = min(interval, self.interval)
         if self._pacer is None:
-            return options
-        # one call into C per frame: its rows go to the trace and the view at once, then the pacer waits
-        options["call_steps"] = max(1, math.ceil(self.speed * self.interval / step - 1e-9))
-        options["deliver_interval"] = 0.0
+            return interval, call_steps
+        self._frame_step = step
+        return 0.0, max(1, math.ceil(self.speed * self.interval / step - 1e-9))
 
-        def paced(k: int) -> None:
-            if tick is not None:
-                tick(k)
-            self.pace(k * step)
-
-        options["tick"] = paced
-        return options
+    def advanced(self, steps_done: int) -> None:
+        if self._frame_step is not None:  # a block-filling engine: paced after each frame's call into C
+            self.pace(steps_done * self._frame_step)
 
     def lag_note(self) -> str | None:
         """One line if the run could not keep the pace it was asked for (it steps slower), else None."""
@@ -235,9 +248,6 @@ class LiveView:
         return (f"live: the run fell behind {pace} by up to {late:.1f} s (it steps slower than that here; "
                 f"a smaller --live-speed keeps the view even)")
 
-    def tee(self, writer: Any) -> "LiveTee":
-        return LiveTee(writer, self)
-
     def close(self) -> None:
         """Send the last point, then stop the server (viewers see the connection close)."""
         if getattr(self, "_latest", None) is not None:
@@ -248,60 +258,21 @@ class LiveView:
         self.relay.close()
 
 
-class LiveTee:
-    """A trace writer that also feeds a ``LiveView``: what the trace records, the view shows.
-
-    Every call goes to the trace writer first, unchanged (the file is the same with or without
-    ``--live``); the rows it records (same decimation) then go to the view. Anything else is the writer's.
-    """
-
-    def __init__(self, writer: Any, view: LiveView) -> None:
-        self.traced = writer
-        self.view = view
-        self._count = 0
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.traced, name)
-
-    def record(self, time: float, outputs: Sequence[Sequence[float]]) -> None:
-        self.traced.record(time, outputs)
-        view = self.view
-        if self._count % view.every == 0:
-            row = [time]
-            for values in outputs:
-                row.extend(values)
-            view.row(row)
-            view.pace(time)
-        self._count += 1
-
-    def write_block(self, rows: Any) -> None:
-        self.traced.write_block(rows)
-        self.view.block(rows)
-
-    def log(self, time: float, level: str, message: str) -> None:
-        self.traced.log(time, level, message)
-        self.view.log(time, level, message)
-
-    def live(self, stream: str, time: float, fields: dict[str, float]) -> None:
-        self.traced.live(stream, time, fields)
-        self.view.link(stream, time, fields)
-
-
-def start_live_view(config: "Config", host: str, port: int, speed: float, warn: Any, wait: bool = False) -> LiveView:
-    """The CLI's ``--live``: check the options against the config, start the server (``LiveViewError``:
+def start_foxglove_view(config: "Config", host: str, port: int, speed: float, warn: Any, wait: bool = False) -> FoxgloveView:
+    """The CLI's ``--live``: check the options against the config, start the server (``FoxgloveViewError``:
     one line, nothing started); ``warn`` (a rich Console) gets the warning for a host other machines reach."""
     live = config.live_vehicles()
     if live and speed != 1.0:
-        raise LiveViewError(f"--live-speed {speed:g}: this config has a live robot (vehicle {', '.join(map(str, live))}), "
+        raise FoxgloveViewError(f"--live-speed {speed:g}: this config has a live robot (vehicle {', '.join(map(str, live))}), "
                             f"which runs in real time; leave --live-speed at 1")
-    view = LiveView(host, port, speed, wait=wait)
+    view = FoxgloveView(host, port, speed, wait=wait)
     if host not in LOOPBACK:
         warn.print(f"warning: --live-host {host}: the live view is open to every machine that reaches this one "
                    f"on port {view.port} (no authentication; anyone there sees the run)", highlight=False, soft_wrap=True)
     return view
 
 
-def announce(view: LiveView, trace: Any, config: "Config", out: Any) -> None:
+def announce(view: FoxgloveView, trace: Any, config: "Config", out: Any) -> None:
     """Write the run's layout now (a viewer needs it before the run ends) and print where to look."""
     from orchestrator.trace.layout import write_run_layout
 

@@ -14,6 +14,8 @@ import time
 from contextlib import contextmanager
 from typing import Callable, Iterator, TextIO
 
+from orchestrator.observers.base import Observer
+
 Tick = Callable[[int], None]  # called with the units done so far (steps), 1 .. total
 
 PROGRESS_SECONDS_VARIABLE = "PLATOON_PROGRESS_SECONDS"
@@ -96,3 +98,13 @@ def progress(total: int, label: str, console, quiet: bool = False, unit: str = "
         yield tick
     finally:
         bar.stop()
+
+
+class ProgressObserver(Observer):
+    """A run's progress as one of its observers: ``tick(k)`` as steps complete."""
+
+    def __init__(self, tick: Tick) -> None:
+        self.tick = tick
+
+    def advanced(self, steps_done: int) -> None:
+        self.tick(steps_done)

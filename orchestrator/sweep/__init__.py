@@ -12,5 +12,5 @@ combination) and random samples (``[random]``). The pieces, one job each:
 * ``store.py``: the output folder: one result file per finished run (written atomically), traces,
   ``results.csv`` (and ``results.parquet``) rebuilt from them, and the lock against a second sweep;
 * ``runner.py``: the loop that submits what is not done yet and records each run as it finishes;
-* ``cli.py`` and ``plot.py``: ``platoon sweep`` and ``platoon sweep-plot``.
+* ``plot.py``: the maps of ``platoon sweep-plot`` (the commands themselves: orchestrator/cli/sweep.py).
 """

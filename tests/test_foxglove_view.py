@@ -146,7 +146,7 @@ def protobuf_class(channel: dict):
     return message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"]))
 
 
-def test_live_view_serves_the_traces_channels_and_data(tmp_path: Path) -> None:
+def test_foxglove_view_serves_the_traces_channels_and_data(tmp_path: Path) -> None:
     out, port = tmp_path / "live.mcap", free_port()
     run = start_run(out, port, "--set", "simulation.stop_time=4", "--live-wait")
     seen = watch(port, run)

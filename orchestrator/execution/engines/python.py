@@ -1,0 +1,50 @@
+"""The python engine: the master loop in Python (orchestrator/execution/python_master.py) over FMUs
+opened with FMPy's bindings, or live robots on Zenoh; the only engine that steps live robots, paced
+to the wall clock when one is in the run."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+from fmus.component import Component
+from fmus.realtime import Pacer
+from orchestrator.components.fmu import FmuComponent
+from orchestrator.components.live import live_component
+from orchestrator.execution.engine import Check, EngineSetup
+from orchestrator.execution.python_master import Master
+from orchestrator.observers.base import Observers
+
+
+class Engine:
+    name: ClassVar[str] = "python"
+
+    def __init__(self, setup: EngineSetup) -> None:
+        sim = setup.config.simulation
+        self.step = sim.step
+        self.components: list[Component] = [
+            live_component(spec, setup.fmus[spec.fmu], setup.config, index) if spec.name in setup.live
+            else FmuComponent(spec.name, setup.fmus[spec.fmu], spec.parameters)
+            for index, spec in enumerate(setup.scenario.components)
+        ]
+        # with a live robot the run is paced to the wall clock (the robot cannot run faster)
+        self.pacer = Pacer() if setup.live else None
+        self.master = Master(self.components, setup.scenario.connections, setup.scenario.schedules, sim.master,
+                             pacer=self.pacer)
+
+    @property
+    def time(self) -> float:
+        return self.master.time
+
+    def start(self, observers: Observers, check: Check) -> None:
+        observers.point(0.0, self.master.initialize(0.0))
+        check()
+
+    def advance(self, steps: int, observers: Observers, check: Check) -> None:
+        def observe(t: float, outputs: list[list[float]]) -> None:
+            observers.point(t, outputs)
+            check()
+
+        self.master.advance(self.step, observe, steps, tick=observers.advanced)
+
+    def close(self) -> None:
+        self.master.close()
