@@ -98,10 +98,10 @@ def build(
     force: Annotated[bool, typer.Option(help="rebuild even if up to date")] = False,
 ) -> None:
     """Build the Vehicle, VirtualTarget and LiveVehicle FMUs, and the native Vehicle and VirtualTarget into OUT/native (FMI 2.0) and OUT/fmi3 (FMI 3.0) (only when their sources changed)."""
-    from fmus.build import ALL_FMUS, build_fmus
+    from fmus.builders import ALL_FMUS, PYTHONFMU
 
     try:
-        built_fmus = build_fmus(out_dir, force=force, names=ALL_FMUS)
+        built_fmus = PYTHONFMU.build(out_dir, force=force, names=ALL_FMUS)
     except OSError as error:  # a full disk, a read-only folder ...: the FMUs already in place are untouched
         where = f" {error.filename}" if error.filename else ""
         _fail(2, f"build --out {out_dir}: cannot write the FMUs{where}: {error.strerror or error}")
@@ -112,15 +112,13 @@ def build(
 
 
 def _build_native(out_dir: Path, force: bool) -> None:
-    """The native twins into OUT/native (fmus/native_build.py) and, as FMI 3.0 FMUs, into OUT/fmi3
-    (fmus/native_build3.py); no compiler is one line, not a failure."""
-    from fmus.build import BuildError
-    from fmus.native_build import NoCompiler, build_native_fmus
-    from fmus.native_build3 import build_fmi3_fmus
+    """The native twins into OUT/native (FMI 2.0) and OUT/fmi3 (FMI 3.0), both by fmus/builders/native.py;
+    no compiler is one line, not a failure."""
+    from fmus.builders import NATIVE_FMI2, NATIVE_FMI3, BuildError, NoCompiler
 
     try:
-        built_fmus = build_native_fmus(out_dir / "native", force=force)
-        built_fmus += build_fmi3_fmus(out_dir / "fmi3", force=force)
+        built_fmus = NATIVE_FMI2.build(out_dir / "native", force=force)
+        built_fmus += NATIVE_FMI3.build(out_dir / "fmi3", force=force)
     except NoCompiler as error:
         err.print(f"note: {error}", soft_wrap=True)
         return
@@ -279,7 +277,7 @@ def run(
     reference_path = trace.with_name(trace.stem + "-monolithic.mcap")
     if compare:  # checked now, claimed when its turn comes (no empty aside file if the run fails)
         _check_output(reference_path, overwrite, [config])
-    from fmus.build import BuildError
+    from fmus.builders import BuildError
 
     from .fmu_kinds import FmuKindError
 

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
 import fmus
-from fmus.build import DEFAULT_OUT, FMU_NAMES
+from fmus.builders import DEFAULT_OUT, FMU_NAMES
 from fmus.model.factory import target_stepper, vehicle_stepper
 from fmus.model.platoon import PlatoonSystem
 
