@@ -44,6 +44,27 @@ class Platform:
         return _FMI2_SYSTEM.get(self.system, self.system) + ("32" if self.architecture == "x86" else "64")
 
 
+# What `platoon build --all-platforms` builds for: where importers (Simulink, Dymola, OMSimulator, FMPy,
+# libcosim) run, and robot computers (aarch64 Linux).
+RELEASE_PLATFORMS = (Platform("x86_64", "linux"), Platform("aarch64", "linux"), Platform("x86_64", "windows"),
+                     Platform("x86_64", "darwin"), Platform("aarch64", "darwin"))
+
+
+def release_layout(fmi_version: int) -> dict[str, tuple[Platform, ...]]:
+    """The binaries/ folders of a release FMU of FMI ``fmi_version``, each with the platforms its binary
+    is built for. FMI 3.0: one folder per platform tuple. FMI 2.0: linux64, win64, and darwin64 with one
+    universal binary for both Mac architectures (FMPy and other FMI 2.0 importers load darwin64 on either);
+    FMI 2.0 has no folder for aarch64 Linux (FMPy would look for it in linux64, the x86_64 binary's), so
+    there the FMI 3.0 FMU or the sources serve."""
+    if fmi_version == 3:
+        return {platform.tuple: (platform,) for platform in RELEASE_PLATFORMS}
+    layout: dict[str, tuple[Platform, ...]] = {}
+    for platform in RELEASE_PLATFORMS:
+        if platform != Platform("aarch64", "linux"):
+            layout[platform.directory(2)] = layout.get(platform.directory(2), ()) + (platform,)
+    return layout
+
+
 def host_platform() -> Platform:
     """This machine, named as FMPy names it."""
     system = next((name for prefix, name in (("win", "windows"), ("linux", "linux"), ("darwin", "darwin"))

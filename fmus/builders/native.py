@@ -37,11 +37,11 @@ from xml.etree.ElementTree import Element, SubElement
 import fmus
 from fmus.builders.base import DEFAULT_OUT, PACKAGE_DIR, Builder, BuildError, slave_instance, write_fmu
 from fmus.builders.pythonfmu import bundled_sources
-from fmus.builders.toolchain import (CFLAGS, FMI_HEADERS, HEADERS, LIBS, NATIVE_SOURCES, compile_binary, compiler,
-                                     fmi_headers)
+from fmus.builders.toolchain import (CFLAGS, FMI_HEADERS, HEADERS, LIBS, NATIVE_SOURCES, compile_binary, fmi_headers,
+                                     universal_binary)
 from fmus.modeldescription import fmi2, fmi3
 from fmus.modeldescription.core import instantiation_token, serialize
-from fmus.platforms import Platform, binary_entry
+from fmus.platforms import RELEASE_PLATFORMS, Platform, binary_entry, host_platform, release_layout
 
 NATIVE_OUT = DEFAULT_OUT / "native"
 FMI3_OUT = DEFAULT_OUT / "fmi3"
@@ -134,18 +134,23 @@ def build_description(name: str) -> bytes:
 
 
 class NativeBuilder(Builder):
-    """The native FMUs of one FMI version (2 or 3)."""
+    """The native FMUs of one FMI version (2 or 3): with the binary for this machine, or with
+    ``all_platforms`` the binaries for every platform of ``fmus.platforms.RELEASE_PLATFORMS``,
+    cross-compiled with Zig (``fmus.builders.toolchain``). Both have the same GUID: it names the model,
+    and the binaries compute the same numbers (tests/test_platforms.py). A release FMU serves as a
+    current host build too; a host build is rebuilt when all platforms are asked for."""
 
     kind = "native"
 
-    def __init__(self, fmi_version: int) -> None:
+    def __init__(self, fmi_version: int, all_platforms: bool = False) -> None:
         if fmi_version not in (2, 3):
             raise ValueError(f"FMI version {fmi_version!r}: the native FMUs are built as FMI 2 or 3")
         self.fmi_version = fmi_version
+        self.all_platforms = all_platforms
         self.default_out = NATIVE_OUT if fmi_version == 2 else FMI3_OUT
 
     def __repr__(self) -> str:
-        return f"NativeBuilder(fmi_version={self.fmi_version})"
+        return f"NativeBuilder(fmi_version={self.fmi_version}, all_platforms={self.all_platforms})"
 
     def _digest(self, name: str) -> str:
         """Digest of everything that shapes FMU ``name`` but its GUID (which is made from it), read from files
@@ -182,11 +187,20 @@ class NativeBuilder(Builder):
             headers[CONFIG_HEADER] = config_header()
         return headers
 
+    def binary_entries(self, name: str) -> dict[str, tuple[Platform, ...]]:
+        """The binaries of FMU ``name`` (archive entry: the platforms it is built for; two are one
+        universal binary)."""
+        if not self.all_platforms:
+            return {self.binary_entry(name): (host_platform(),)}
+        return {f"binaries/{folder}/{name}{platforms[0].suffix}": platforms
+                for folder, platforms in release_layout(self.fmi_version).items()}
+
     def required_entries(self, name: str) -> set[str]:
-        """The binary for this platform and every source (an importer may compile them)."""
+        """The binaries (this machine's, or every release platform's) and every source (an importer may
+        compile them)."""
         generated = (GENERATED_HEADER,) if self.fmi_version == 2 else (GENERATED_HEADER, CONFIG_HEADER)
         files = sources_of(name, self.fmi_version) + HEADERS + generated
-        required = {self.binary_entry(name)} | {f"sources/{file}" for file in files}
+        required = set(self.binary_entries(name)) | {f"sources/{file}" for file in files}
         return required | ({BUILD_DESCRIPTION} if self.fmi_version == 3 else set())
 
     def model_description(self, name: str, slave, guid: str) -> bytes:
@@ -214,8 +228,14 @@ class NativeBuilder(Builder):
 
     def build_one(self, name: str, guid: str, out_dir: Path) -> Path:
         slave = slave_instance(name)
-        cc = compiler()
+        files, headers = sources_of(name, self.fmi_version), self.generated_headers(slave, guid)
         with tempfile.TemporaryDirectory(prefix=f"platoon-native{self.fmi_version}-") as scratch:
-            binary = compile_binary(name, sources_of(name, self.fmi_version), self.generated_headers(slave, guid),
-                                    cc, Path(scratch))
-        return write_fmu(out_dir / f"{name}.fmu", self.entries(name, slave, guid, {self.binary_entry(name): binary}))
+            if not self.all_platforms:
+                binaries = {self.binary_entry(name): compile_binary(name, files, headers, Path(scratch))}
+            else:
+                thin = {platform: compile_binary(name, files, headers, Path(scratch) / platform.tuple, platform)
+                        for platform in RELEASE_PLATFORMS}
+                binaries = {entry: thin[platforms[0]] if len(platforms) == 1
+                            else universal_binary([thin[platform] for platform in platforms])
+                            for entry, platforms in self.binary_entries(name).items()}
+        return write_fmu(out_dir / f"{name}.fmu", self.entries(name, slave, guid, binaries))
