@@ -7,7 +7,7 @@ from typing import Any
 
 import pytest
 
-from fmus.build import DEFAULT_OUT, build_fmus
+from fmus.builders import DEFAULT_OUT, PYTHONFMU
 from orchestrator.scenario.config import Config, config_from_mapping
 from orchestrator.execution.run import run_scenario
 from orchestrator.trace import Trace, load
@@ -35,18 +35,18 @@ value = -100.0
 def fmu_dir() -> Path:
     """The FMUs, built (or found up to date) in the repository's build folder, as users get them."""
     out = REPO / DEFAULT_OUT
-    build_fmus(out)
+    PYTHONFMU.build(out)
     return out
 
 
 @pytest.fixture(scope="session")
 def native_fmu_dir() -> Path:
     """The native (C) FMUs, built (or found up to date) in build/fmus/native; skipped without a C compiler."""
-    from fmus.native_build import NATIVE_OUT, NoCompiler, build_native_fmus
+    from fmus.builders import NATIVE_FMI2, NATIVE_OUT, NoCompiler
 
     out = REPO / NATIVE_OUT
     try:
-        build_native_fmus(out)
+        NATIVE_FMI2.build(out)
     except NoCompiler as error:
         pytest.skip(str(error))
     return out

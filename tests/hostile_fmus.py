@@ -298,18 +298,18 @@ def unzip(fmu: Path, into: Path) -> Path:
 def main(argv: list[str]) -> int:
     import tempfile
 
-    from fmus.build import DEFAULT_OUT, build_fmus
+    from fmus.builders import DEFAULT_OUT, PYTHONFMU
 
     native = "--native" in argv
     argv = [arg for arg in argv if arg != "--native"]
     fmu_dir = Path(argv[0]) if argv else DEFAULT_OUT / "native" if native else DEFAULT_OUT
     if not argv:  # a folder given is taken as it is (e.g. FMUs built from older sources)
         if native:
-            from fmus.native_build import build_native_fmus
+            from fmus.builders import NATIVE_FMI2
 
-            build_native_fmus(fmu_dir)
+            NATIVE_FMI2.build(fmu_dir)
         else:
-            build_fmus(fmu_dir)
+            PYTHONFMU.build(fmu_dir)
     left = 0
     with tempfile.TemporaryDirectory(prefix="hostile-fmus-") as scratch:
         unzipped = {name: unzip(fmu_dir / f"{name}.fmu", Path(scratch) / name) for name in ("Vehicle", "VirtualTarget")}

@@ -6,7 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from fmus.build import expected_guid, fmu_guid
+from fmus.builders import PYTHONFMU, fmu_guid
 
 REPO = Path(__file__).resolve().parents[1]
 # `platoon` from this checkout (the console script may belong to another install of the package)
@@ -22,21 +22,20 @@ def _build(out: Path) -> dict[str, str]:
 
 
 def test_build_writes_every_fmu_then_reuses_them_and_repairs_a_damaged_one(tmp_path):
-    from fmus.native_build import expected_guid as native_guid
-    from fmus.native_build3 import expected_token
+    from fmus.builders import NATIVE_FMI2, NATIVE_FMI3
 
     first = _build(tmp_path)
     assert set(first) == {"Vehicle", "VirtualTarget", "LiveVehicle", "native/Vehicle", "native/VirtualTarget",
                           "fmi3/Vehicle", "fmi3/VirtualTarget"}
     assert all(line.endswith(("(built)", "(built, native)", "(built, native FMI 3.0)")) for line in first.values())
     for name in ("Vehicle", "VirtualTarget", "LiveVehicle"):
-        assert fmu_guid(tmp_path / f"{name}.fmu") == expected_guid(name)
-        assert expected_guid(name) in first[name]
+        assert fmu_guid(tmp_path / f"{name}.fmu") == PYTHONFMU.expected_guid(name)
+        assert PYTHONFMU.expected_guid(name) in first[name]
     for name in ("Vehicle", "VirtualTarget"):
-        assert fmu_guid(tmp_path / "native" / f"{name}.fmu") == native_guid(name) != expected_guid(name)
-        assert native_guid(name) in first[f"native/{name}"]
-        assert fmu_guid(tmp_path / "fmi3" / f"{name}.fmu") == expected_token(name) != native_guid(name)
-        assert expected_token(name) in first[f"fmi3/{name}"]
+        assert fmu_guid(tmp_path / "native" / f"{name}.fmu") == NATIVE_FMI2.expected_guid(name) != PYTHONFMU.expected_guid(name)
+        assert NATIVE_FMI2.expected_guid(name) in first[f"native/{name}"]
+        assert fmu_guid(tmp_path / "fmi3" / f"{name}.fmu") == NATIVE_FMI3.expected_guid(name) != NATIVE_FMI2.expected_guid(name)
+        assert NATIVE_FMI3.expected_guid(name) in first[f"fmi3/{name}"]
     second = _build(tmp_path)
     assert all(line.endswith(("(up to date)", "(up to date, native)", "(up to date, native FMI 3.0)"))
                for line in second.values())
@@ -50,7 +49,7 @@ def test_build_writes_every_fmu_then_reuses_them_and_repairs_a_damaged_one(tmp_p
     assert third["native/Vehicle"].endswith("(up to date, native)")
     assert third["fmi3/Vehicle"].endswith("(built, native FMI 3.0)")
     assert third["fmi3/VirtualTarget"].endswith("(up to date, native FMI 3.0)")
-    assert fmu_guid(tmp_path / "Vehicle.fmu") == expected_guid("Vehicle")
+    assert fmu_guid(tmp_path / "Vehicle.fmu") == PYTHONFMU.expected_guid("Vehicle")
     assert not list(tmp_path.glob("**/*.partial"))
 
 
@@ -60,10 +59,10 @@ from pathlib import Path
 {first}
 import fmpy
 fmpy.simulate_fmu(sys.argv[1], stop_time=0.05)  # our FMU runs in this interpreter
-from fmus.build import BuildError, build_fmus
+from fmus.builders import PYTHONFMU, BuildError
 out = Path(sys.argv[2])
 try:
-    built = build_fmus(out, force=True)
+    built = PYTHONFMU.build(out, force=True)
 except BuildError as error:
     print("refused:", error)
 for fmu in sorted(out.glob("*.fmu")):
@@ -82,7 +81,7 @@ def _run_then_build(fmu_dir: Path, out: Path, first: str) -> list[str]:
 
 def test_a_build_after_an_fmu_ran_in_process_writes_fmus_with_their_binaries(fmu_dir, tmp_path):
     """The usual order (the build module imported first, as `platoon` and the tests do)."""
-    lines = _run_then_build(fmu_dir, tmp_path / "out", "import fmus.build")
+    lines = _run_then_build(fmu_dir, tmp_path / "out", "import fmus.builders")
     assert sorted(lines) == ["Vehicle.fmu True", "VirtualTarget.fmu True"], lines
 
 

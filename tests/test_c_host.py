@@ -31,7 +31,7 @@ from xml.etree import ElementTree
 
 import pytest
 
-from fmus.build import build_fmus
+from fmus.builders import PYTHONFMU
 
 HOST_SOURCE = Path(__file__).resolve().parent / "c_host" / "minimal_host.c"
 OUTPUTS = ("x", "y", "speed", "gap")
@@ -72,7 +72,7 @@ def vehicle(tmp_path_factory):
     if sys.platform != "linux":
         pytest.skip("the C host loads binaries/linux64; this test runs on Linux only")
     root = tmp_path_factory.mktemp("c_host")
-    built = {fmu.name: fmu for fmu in build_fmus(out_dir=root / "fmus", force=True)}
+    built = {fmu.name: fmu for fmu in PYTHONFMU.build(out_dir=root / "fmus", force=True)}
     fmu = built["Vehicle"].path
     unzipped = root / "Vehicle"
     with zipfile.ZipFile(fmu) as archive:

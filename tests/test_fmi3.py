@@ -1,6 +1,6 @@
 """The FMI 3.0 co-simulation FMUs: the native C Vehicle and VirtualTarget behind the FMI 3.0 API.
 
-Their model description (``fmus.modeldescription3``) is checked against the FMI 3.0 schema that FMPy
+Their model description (``fmus.modeldescription.fmi3``) is checked against the FMI 3.0 schema that FMPy
 ships and against the FMI 2.0 description of the same model: same names, value references, types,
 start values, units. The FMUs themselves (``fmus/native/fmi3.c``) are checked against the FMI 2.0
 native FMUs, which run the same C model: bit-equal trajectories in FMPy, in a hand-stepped platoon
@@ -24,9 +24,10 @@ import pytest
 from fmpy.validation import validate_fmu
 from lxml import etree
 
-from fmus.build import _slave_instance
-from fmus.modeldescription import guid_for, model_description
-from fmus.modeldescription3 import TIME_VALUE_REFERENCE, instantiation_token_for, model_description3
+from fmus.builders.base import slave_instance
+from fmus.modeldescription.fmi2 import guid_for, model_description
+from fmus.modeldescription.fmi3 import TIME_VALUE_REFERENCE, instantiation_token_for
+from fmus.modeldescription.fmi3 import model_description as model_description3
 from fmus.slaves.Vehicle import Vehicle
 from fmus.slaves.VirtualTarget import VirtualTarget
 
@@ -48,7 +49,7 @@ def _read_description2(name: str, tmp_path: Path):
     """The FMI 2.0 description of the same model (as the pythonfmu FMU carries it), read by FMPy."""
     folder = tmp_path / "fmi2"
     folder.mkdir()
-    (folder / "modelDescription.xml").write_bytes(model_description(_slave_instance(name), guid_for("0" * 64, name), "test"))
+    (folder / "modelDescription.xml").write_bytes(model_description(slave_instance(name), guid_for("0" * 64, name), "test"))
     return fmpy.read_model_description(str(folder))
 
 
@@ -135,15 +136,14 @@ TIMEOUT = 300
 @pytest.fixture(scope="module")
 def built():
     """The native FMUs, FMI 2.0 and FMI 3.0, built (or found up to date) where `platoon build` puts them."""
-    from fmus.build import DEFAULT_OUT
-    from fmus.native_build import NoCompiler, build_native_fmus
-    from fmus.native_build3 import build_fmi3_fmus
+    from fmus.builders import DEFAULT_OUT
+    from fmus.builders import NATIVE_FMI2, NATIVE_FMI3, NoCompiler
 
     if sys.platform != "linux":
         pytest.skip("the native FMUs are built and tested on Linux here")
     try:
-        fmi2 = {fmu.name: fmu.path for fmu in build_native_fmus(REPO / DEFAULT_OUT / "native")}
-        fmi3 = {fmu.name: fmu.path for fmu in build_fmi3_fmus(REPO / DEFAULT_OUT / "fmi3")}
+        fmi2 = {fmu.name: fmu.path for fmu in NATIVE_FMI2.build(REPO / DEFAULT_OUT / "native")}
+        fmi3 = {fmu.name: fmu.path for fmu in NATIVE_FMI3.build(REPO / DEFAULT_OUT / "fmi3")}
     except NoCompiler as error:
         pytest.skip(str(error))
     return {"fmi2": fmi2, "fmi3": fmi3}
@@ -356,7 +356,7 @@ C_HOST_OUTPUTS = {"Vehicle": ("x", "y", "speed", "gap"), "VirtualTarget": ("x", 
 def hosts(tmp_path_factory):
     """minimal_host (FMI 2.0) and minimal_host3 (FMI 3.0), compiled; the FMI 3.0 one against the
     standard's headers that FMPy ships."""
-    from fmus.native_build import NoCompiler, compiler, fmi_headers
+    from fmus.builders.toolchain import NoCompiler, compiler, fmi_headers
 
     try:
         cc = compiler()

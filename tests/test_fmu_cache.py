@@ -16,7 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from fmus.build import ALL_FMUS, build_fmus, fmi_platform
+from fmus.builders import ALL_FMUS, PYTHONFMU
+from fmus.platforms import fmi_platform
 from orchestrator.components import cache as fmu_cache
 from orchestrator.components.fmu import UnpackedFmu
 from orchestrator.support.scratch import PREFIX
@@ -260,7 +261,7 @@ def test_the_cached_description_is_fmpys(fmu_dir: Path, root: Path, name: str) -
     what FMPy reads from the FMU."""
     from fmpy import read_model_description
 
-    fmu = next(built.path for built in build_fmus(fmu_dir, names=ALL_FMUS) if built.name == name)
+    fmu = next(built.path for built in PYTHONFMU.build(fmu_dir, names=ALL_FMUS) if built.name == name)
     held = fmu_cache.hold(fmu, root)
     expected, got = read_model_description(str(fmu)), held.description
     held.release()

@@ -100,10 +100,10 @@ def test_native_fmus_built_elsewhere_run_without_a_compiler(tmp_path: Path) -> N
     default, and checking them needs no compiler."""
     import shutil
 
-    from fmus.native_build import build_native_fmus
+    from fmus.builders import NATIVE_FMI2
 
     folder = tmp_path / "build" / "fmus" / "native"
-    for built in build_native_fmus():
+    for built in NATIVE_FMI2.build():
         folder.mkdir(parents=True, exist_ok=True)
         shutil.copy(built.path, folder / built.path.name)
     env = {**os.environ, "PATH": str(tmp_path / "no-tools"), "CC": ""}

@@ -10,7 +10,7 @@ import pytest
 from fmpy import read_model_description, simulate_fmu
 from fmpy.validation import validate_fmu
 
-from fmus.build import build_fmus, expected_guid, fmu_guid
+from fmus.builders import PYTHONFMU, fmu_guid
 
 
 @pytest.mark.parametrize("name", ["Vehicle", "VirtualTarget"])
@@ -45,10 +45,10 @@ def test_model_description_is_complete(fmu_dir, name):
 
 
 def test_build_is_cached_and_guid_tracks_sources(fmu_dir):
-    again = build_fmus(fmu_dir)
+    again = PYTHONFMU.build(fmu_dir)
     assert not any(b.rebuilt for b in again)
     for built in again:
-        assert fmu_guid(built.path) == expected_guid(built.name) == built.guid
+        assert fmu_guid(built.path) == PYTHONFMU.expected_guid(built.name) == built.guid
 
 
 @pytest.mark.parametrize("name", ["Vehicle", "VirtualTarget"])

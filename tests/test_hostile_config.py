@@ -21,7 +21,7 @@ from typing import Any
 import pytest
 from pydantic import BaseModel
 
-from fmus.build import ALL_FMUS, FMU_NAMES, build_fmus
+from fmus.builders import ALL_FMUS, FMU_NAMES, PYTHONFMU
 from orchestrator.scenario.config import Config, ConfigError, config_from_mapping, load_config, parse_value
 from orchestrator.scenario.limits import MAX_FMU_SUBSTEPS, MAX_STEPS, MAX_SUBSTEPS_PER_STEP, check_run_size
 from orchestrator.support.scratch import ScratchDir, sweep
@@ -48,7 +48,7 @@ def platoon(*args: object, cwd: Path, timeout: float = 120, env: dict[str, str] 
 def workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Current folder of every call; its build/fmus is built once here, from this repository."""
     folder = tmp_path_factory.mktemp("hostile")
-    build_fmus(folder / "build" / "fmus")
+    PYTHONFMU.build(folder / "build" / "fmus")
     return folder
 
 
@@ -458,7 +458,7 @@ def test_an_fmu_with_the_right_guid_but_damaged_is_rebuilt(damage: str, workdir:
     from fmpy import platform, sharedLibraryExtension
 
     out = tmp_path / "fmus"
-    build_fmus(out, names=ALL_FMUS)
+    PYTHONFMU.build(out, names=ALL_FMUS)
     fmu = out / "Vehicle.fmu"
     binary = f"binaries/{platform}/Vehicle{sharedLibraryExtension}"
     if damage == "no binary":
@@ -474,7 +474,7 @@ def test_an_fmu_with_the_right_guid_but_damaged_is_rebuilt(damage: str, workdir:
     assert states == {"Vehicle.fmu": "built)", "VirtualTarget.fmu": "up to date)", "LiveVehicle.fmu": "up to date)"}
     with zipfile.ZipFile(fmu) as archive:
         assert archive.testzip() is None and archive.getinfo(binary).file_size > 0
-    assert all(b.rebuilt is False for b in build_fmus(out, names=ALL_FMUS)), "a repaired build is up to date"
+    assert all(b.rebuilt is False for b in PYTHONFMU.build(out, names=ALL_FMUS)), "a repaired build is up to date"
 
 
 def extraction_folders(temp: Path) -> list[Path]:

@@ -293,9 +293,9 @@ def test_a_live_vehicle_refuses_state_calls_and_keeps_the_host_alive(fmu_dir, tm
     pythonfmu free the instance and the next call crash the host; every PlatoonSlave subclass's FMI
     methods are now guarded like the base's. No robot is needed: initialization ends without one
     (LiveVehicle reports it at the first step)."""
-    from fmus.build import LIVE_FMU, build_fmus
+    from fmus.builders import LIVE_FMU, PYTHONFMU
 
-    build_fmus(fmu_dir, names=(LIVE_FMU,))
+    PYTHONFMU.build(fmu_dir, names=(LIVE_FMU,))
     unzipped = unzip(fmu_dir / f"{LIVE_FMU}.fmu", tmp_path / LIVE_FMU)
     case = Case(LIVE_FMU, "fmi2GetFMUstate twice", {"hil.connect_timeout": 0.3},
                 [["exit"], ["get_state"], ["get"], ["step", 0.0, 0.01], ["get_state"]],

@@ -530,7 +530,7 @@ def test_a_stalled_trace_writer_process_does_not_hold_the_run(work: Path) -> Non
 
 def test_two_builds_into_one_folder_at_once_both_succeed(tmp_path: Path) -> None:
     """A sibling of case 1: two runs that find the FMUs out of date build them side by side."""
-    from fmus.build import ALL_FMUS, expected_guid, fmu_guid
+    from fmus.builders import ALL_FMUS, PYTHONFMU, fmu_guid
 
     builds = [subprocess.Popen([*CLI, "build", "--out", "fmus", "--force"], cwd=tmp_path, env=env(),
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
@@ -541,4 +541,4 @@ def test_two_builds_into_one_folder_at_once_both_succeed(tmp_path: Path) -> None
     for kind in ("native", "fmi3"):  # the native twins, FMI 2.0 and 3.0: whole, no .partial left
         assert sorted(p.name for p in (tmp_path / "fmus" / kind).iterdir()) == ["Vehicle.fmu", "VirtualTarget.fmu"]
     for name in ALL_FMUS:
-        assert fmu_guid(tmp_path / "fmus" / f"{name}.fmu") == expected_guid(name)
+        assert fmu_guid(tmp_path / "fmus" / f"{name}.fmu") == PYTHONFMU.expected_guid(name)

@@ -66,7 +66,7 @@ def test_the_trace_package_has_no_import_circle() -> None:
 def test_every_fmu_carries_the_project_modules_its_slave_imports() -> None:
     """An FMU runs on the code in its resources (a host need not have this project installed): every
     project module its slave imports, directly or through other project modules, is bundled."""
-    from fmus.build import ALL_FMUS, bundled_sources
+    from fmus.builders import ALL_FMUS, bundled_sources
 
     def module_file(name: str) -> Path | None:
         for candidate in (REPO / Path(*name.split(".")).with_suffix(".py"), REPO / Path(*name.split(".")) / "__init__.py"):

@@ -52,7 +52,7 @@ from libcosimpy.CosimManipulator import CosimManipulator  # noqa: E402
 from libcosimpy.CosimObserver import CosimObserver  # noqa: E402
 from libcosimpy.CosimSlave import CosimLocalSlave  # noqa: E402
 
-from fmus.build import build_fmus  # noqa: E402
+from fmus.builders import PYTHONFMU  # noqa: E402
 from orchestrator.components.fmu import FmuComponent, UnpackedFmu  # noqa: E402
 from orchestrator.scenario.config import Config, config_from_mapping  # noqa: E402
 from orchestrator.execution.python_master import Master  # noqa: E402
@@ -292,7 +292,7 @@ def run_master_on_libcosim_grid(scenario: Scenario, fmu_paths: dict[str, Path]) 
 def fmus(tmp_path_factory) -> tuple[Path, dict[str, Path]]:
     """FMUs built once into a private folder; both importers load exactly these files."""
     folder = tmp_path_factory.mktemp("libcosim") / "fmus"
-    built = build_fmus(folder)
+    built = PYTHONFMU.build(folder)
     return folder, {fmu.name: fmu.path for fmu in built}
 
 

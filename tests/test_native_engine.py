@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from fmus.build import build_fmus
+from fmus.builders import PYTHONFMU
 from orchestrator.components import fmu as components_module
 from orchestrator.components.fmu import ComponentError, FmuComponent, UnpackedFmu
 from orchestrator.scenario.config import Config, config_from_mapping
@@ -56,7 +56,7 @@ def paper_config(law: str = "sine", master: str = "jacobi", stop_time: float = 6
 
 @pytest.fixture(scope="module")
 def fmus(fmu_dir: Path):
-    unpacked = {built.name: UnpackedFmu.open(built.path) for built in build_fmus(fmu_dir)}
+    unpacked = {built.name: UnpackedFmu.open(built.path) for built in PYTHONFMU.build(fmu_dir)}
     yield unpacked
     for fmu in unpacked.values():
         fmu.cleanup()

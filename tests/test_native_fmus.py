@@ -23,7 +23,7 @@ import pytest
 from fmpy import read_model_description, simulate_fmu
 from fmpy.validation import validate_fmu
 
-from fmus.native_build import binary_entry, build_native_fmus, expected_guid
+from fmus.builders import NATIVE_FMI2
 from orchestrator.components.fmu import FmuComponent, UnpackedFmu
 from orchestrator.scenario.config import config_from_mapping
 from orchestrator.execution.python_master import Master
@@ -72,15 +72,15 @@ def test_native_fmu_has_the_python_fmus_variables_and_honest_flags(fmu_dir, nati
 def test_native_build_is_cached_reproducible_and_complete(native_fmu_dir, tmp_path):
     """Up to date: nothing rebuilt, the GUID is the sources' digest. A fresh build elsewhere writes
     the same bytes (no timestamps, no paths). The archive carries the binary and its sources."""
-    again = build_native_fmus(native_fmu_dir)
+    again = NATIVE_FMI2.build(native_fmu_dir)
     assert not any(built.rebuilt for built in again)
-    assert all(built.guid == expected_guid(built.name) for built in again)
-    fresh = build_native_fmus(tmp_path, force=True)
+    assert all(built.guid == NATIVE_FMI2.expected_guid(built.name) for built in again)
+    fresh = NATIVE_FMI2.build(tmp_path, force=True)
     for built in fresh:
         assert built.path.read_bytes() == (native_fmu_dir / f"{built.name}.fmu").read_bytes()
         with zipfile.ZipFile(built.path) as archive:
             names = set(archive.namelist())
-        assert binary_entry(built.name) in names
+        assert NATIVE_FMI2.binary_entry(built.name) in names
         assert {"sources/framework.c", "sources/fmi2.c", "sources/variables.h"} <= names
     assert not list(tmp_path.glob("*.partial"))
 
@@ -90,7 +90,7 @@ def test_the_binary_needs_only_the_c_library(native_fmu_dir, tmp_path):
         pytest.skip("readelf is not installed")
     with zipfile.ZipFile(native_fmu_dir / "Vehicle.fmu") as archive:
         binary = tmp_path / "Vehicle.so"
-        binary.write_bytes(archive.read(binary_entry("Vehicle")))
+        binary.write_bytes(archive.read(NATIVE_FMI2.binary_entry("Vehicle")))
     dynamic = subprocess.run(["readelf", "-d", str(binary)], capture_output=True, text=True, check=True).stdout
     needed = sorted(line.split("[")[1].rstrip("]") for line in dynamic.splitlines() if "(NEEDED)" in line)
     assert all(name.startswith(("libm.so", "libc.so")) for name in needed), needed
@@ -276,7 +276,7 @@ def c_helpers(tmp_path_factory):
     fw_text_float, compiled as the FMUs are."""
     import ctypes
 
-    from fmus.native_build import CFLAGS, NATIVE_SOURCES, NoCompiler, compiler
+    from fmus.builders.toolchain import CFLAGS, NATIVE_SOURCES, NoCompiler, compiler
 
     try:
         cc = compiler()
@@ -462,7 +462,7 @@ def test_careless_calls_are_refused_and_never_crash(native_fmu_dir, tmp_path):
 
     with zipfile.ZipFile(native_fmu_dir / "Vehicle.fmu") as archive:
         binary = tmp_path / "Vehicle.so"
-        binary.write_bytes(archive.read(binary_entry("Vehicle")))
+        binary.write_bytes(archive.read(NATIVE_FMI2.binary_entry("Vehicle")))
     guid = read_model_description(str(native_fmu_dir / "Vehicle.fmu")).guid
     result = subprocess.run([sys.executable, "-c", _CARELESS_HOST, str(binary), guid], capture_output=True, text=True,
                             timeout=120)

@@ -119,9 +119,11 @@ def test_small_platoons_keep_the_palette() -> None:
 
 
 def test_the_fmi_platform_is_fmpys() -> None:
-    """fmus.build names this machine's binaries folder without importing FMPy; FMPy's names rule."""
+    """fmus.platforms names this machine's binaries folders (FMI 2.0 and 3.0) without importing FMPy;
+    FMPy's names rule."""
     import fmpy
 
-    from fmus.build import fmi_platform
+    from fmus.platforms import fmi_platform, host_platform
 
     assert fmi_platform() == (fmpy.platform, fmpy.sharedLibraryExtension)
+    assert host_platform().directory(3) == fmpy.platform_tuple

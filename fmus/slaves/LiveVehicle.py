@@ -16,7 +16,7 @@ Inside, it is ``bridge.live.LiveVehicle``, the host side of the hardware-in-the-
   and doStep returns fmi2Error with the reason in the FMU's log; terminate stops the robot and leaves
   Zenoh.
 
-The FMU's resources carry the bridge code it needs (``fmus.build``); it needs the ``eclipse-zenoh``
+The FMU's resources carry the bridge code it needs (``fmus.builders.pythonfmu``); it needs the ``eclipse-zenoh``
 package in the Python environment that runs it.
 """
 

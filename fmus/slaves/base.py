@@ -2,7 +2,7 @@
 
 pythonfmu registers variables but records no units, ranges or output dependencies. Here every
 variable is declared once with all of that (``VariableInfo``); the builder turns the declarations
-into a complete model description (``fmus.modeldescription``), and the slave uses them to store
+into a complete model description (``fmus.modeldescription.fmi2``), and the slave uses them to store
 values. Outputs are computed lazily from state and current inputs, and cached until an input or the
 state changes, so a master may read them in any order, any number of times.
 """
@@ -41,11 +41,11 @@ class VariableInfo:
     variability: str | None = None  # default: parameters fixed, inputs/outputs continuous (Real)
     depends_on: tuple[str, ...] | None = None  # outputs: inputs they depend on directly (None: all)
     # Outputs: the inputs and parameters their value in Initialization Mode is computed from
-    # (ModelStructure/InitialUnknowns, see fmus.modeldescription); None: all of them.
+    # (ModelStructure/InitialUnknowns, see fmus.modeldescription.fmi2); None: all of them.
     initial_depends_on: tuple[str, ...] | None = None
     # Outputs with ``depends_on``: the parameters their value at a communication point is computed
     # from besides the state (FMI 3.0 counts parameters and time among the knowns there, FMI 2.0 only
-    # inputs and states; see fmus.modeldescription3), and whether it is a function of time itself.
+    # inputs and states; see fmus.modeldescription.fmi3), and whether it is a function of time itself.
     parameter_dependencies: tuple[str, ...] = ()
     depends_on_time: bool = False
 

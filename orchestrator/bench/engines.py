@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from fmus.build import DEFAULT_OUT
+from fmus.builders import DEFAULT_OUT
 
 from orchestrator.components.fmu import parameters_by_type
 from .common import rss_kib

@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-from fmus.build import DEFAULT_OUT
+from fmus.builders import DEFAULT_OUT
 
 from orchestrator.components.fmu import parameters_by_type
 from .platoon import STEP, causal_names, final_positions, routes_of, scenario_for, unpacked_fmus

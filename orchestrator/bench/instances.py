@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
-from fmus.build import DEFAULT_OUT
+from fmus.builders import DEFAULT_OUT
 
 from .common import BenchUsageError, Progress, interleaved, markdown_table, rss_kib, run_child, slope
 from .platoon import fmu_files, scenario_for, unpacked_fmus

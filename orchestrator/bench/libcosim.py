@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from fmus.build import DEFAULT_OUT
+from fmus.builders import DEFAULT_OUT
 
 from orchestrator.interop.ssp import write_ssp
 from .common import BenchError

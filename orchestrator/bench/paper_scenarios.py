@@ -15,7 +15,7 @@ import json
 import tempfile
 from pathlib import Path
 
-from fmus.build import DEFAULT_OUT
+from fmus.builders import DEFAULT_OUT
 from orchestrator.analysis.metrics import report_json, summarize
 from orchestrator.trace import load
 

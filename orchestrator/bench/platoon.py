@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from fmus.build import DEFAULT_OUT
+from fmus.builders import DEFAULT_OUT
 
 STEP = 0.01  # s, the paper's communication step
 PAPER_START = {"radial_offset": 5.0, "heading_error": 0.1, "speed_factor": 0.8}

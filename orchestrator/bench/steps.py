@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
-from fmus.build import DEFAULT_OUT
+from fmus.builders import DEFAULT_OUT
 
 from .common import BenchUsageError, Progress, interleaved, markdown_table, run_child
 from . import ENGINES

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fmus.build import DEFAULT_OUT, build_fmus
+from fmus.builders import DEFAULT_OUT, PYTHONFMU
 from orchestrator.scenario.config import Config, load_config
 from orchestrator.execution.run import default_engine, run_scenario
 from orchestrator.scenario.scenario import step_count
@@ -197,7 +197,7 @@ def main() -> int:
     engine = args.engine or default_engine()
     steps = step_count(sim.stop_time, sim.step)
     fmu_dir = DEFAULT_OUT
-    build_fmus(fmu_dir)
+    PYTHONFMU.build(fmu_dir)
 
     scratch = None
     if args.out is None:

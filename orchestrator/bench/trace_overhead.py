@@ -32,7 +32,7 @@ import tempfile
 from pathlib import Path
 from typing import Any, Sequence
 
-from fmus.build import DEFAULT_OUT
+from fmus.builders import DEFAULT_OUT
 
 from .common import DEFAULT_OUT_DIR, PAPER_CONFIGS, BenchError, Progress, interleaved, run_child, write_result
 from .platoon import fmu_files

@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
-from fmus.build import DEFAULT_OUT
+from fmus.builders import DEFAULT_OUT
 
 from .common import PAPER_CONFIGS, RESULT, BenchError, BenchUsageError, Progress, interleaved, markdown_table
 from .scenarios import platoon_command, timed_process

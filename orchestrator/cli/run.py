@@ -23,31 +23,30 @@ RUN_ENGINES = ("native", "python")  # --engine; --monolithic picks the third eng
 def build(
     out_dir: Annotated[Path, typer.Option("--out", help="folder for Vehicle.fmu, VirtualTarget.fmu and LiveVehicle.fmu")] = Path("build/fmus"),
     force: Annotated[bool, typer.Option(help="rebuild even if up to date")] = False,
+    all_platforms: Annotated[bool, typer.Option("--all-platforms", help="native FMUs with binaries for x86_64 and aarch64 Linux, x86_64 Windows, x86_64 and aarch64 macOS, cross-compiled with Zig (pip install 'platoon-cosim[release]')")] = False,
 ) -> None:
     """Build the Vehicle, VirtualTarget and LiveVehicle FMUs, and the native Vehicle and VirtualTarget into OUT/native (FMI 2.0) and OUT/fmi3 (FMI 3.0) (only when their sources changed)."""
-    from fmus.build import ALL_FMUS, build_fmus
+    from fmus.builders import ALL_FMUS, PYTHONFMU
 
     try:
-        built_fmus = build_fmus(out_dir, force=force, names=ALL_FMUS)
+        built_fmus = PYTHONFMU.build(out_dir, force=force, names=ALL_FMUS)
     except OSError as error:  # a full disk, a read-only folder ...: the FMUs already in place are untouched
         where = f" {error.filename}" if error.filename else ""
         fail(2, f"build --out {out_dir}: cannot write the FMUs{where}: {error.strerror or error}")
     for built in built_fmus:
         state = "built" if built.rebuilt else "up to date"
         out.print(f"{built.path}  {built.guid}  ({state})", soft_wrap=True)
-    _build_native(out_dir, force)
+    _build_native(out_dir, force, all_platforms)
 
 
-def _build_native(out_dir: Path, force: bool) -> None:
-    """The native twins into OUT/native (fmus/native_build.py) and, as FMI 3.0 FMUs, into OUT/fmi3
-    (fmus/native_build3.py); no compiler is one line, not a failure."""
-    from fmus.build import BuildError
-    from fmus.native_build import NoCompiler, build_native_fmus
-    from fmus.native_build3 import build_fmi3_fmus
+def _build_native(out_dir: Path, force: bool, all_platforms: bool = False) -> None:
+    """The native twins into OUT/native (FMI 2.0) and OUT/fmi3 (FMI 3.0), both by fmus/builders/native.py,
+    with this machine's binary or every platform's; no compiler is one line, not a failure."""
+    from fmus.builders import BuildError, NativeBuilder, NoCompiler
 
     try:
-        built_fmus = build_native_fmus(out_dir / "native", force=force)
-        built_fmus += build_fmi3_fmus(out_dir / "fmi3", force=force)
+        built_fmus = NativeBuilder(2, all_platforms).build(out_dir / "native", force=force)
+        built_fmus += NativeBuilder(3, all_platforms).build(out_dir / "fmi3", force=force)
     except NoCompiler as error:
         err.print(f"note: {error}", soft_wrap=True)
         return
@@ -181,7 +180,7 @@ def _live_view(parsed: Config, live: bool, port: int, host: str, speed: float, w
 def _run_with_view(config: Path, parsed: Config, text: str, target, engine: str, quiet: bool, trace_writer: str,
                    view: "FoxgloveView | None") -> "RunResult":
     """The run itself (with its view, announced first and closed after); exit 2 if its FMUs cannot be had."""
-    from fmus.build import BuildError
+    from fmus.builders import BuildError
 
     from orchestrator.components.kinds import FmuKindError
 

@@ -19,7 +19,7 @@ def export_ssp(
     worker_threads: Annotated[int, typer.Option("--worker-threads", min=0, help="libcosim's numWorkerThreads; 0 steps every FMU on the calling thread (pythonfmu FMUs share one Python interpreter, so more threads only add synchronization)")] = 0,
 ) -> None:
     """Write the platoon of CONFIG as an SSP 1.0 package: FMUs, parameters, Fig. 2 wiring, step."""
-    from fmus.build import DEFAULT_OUT
+    from fmus.builders import DEFAULT_OUT
 
     from orchestrator.cli.common import fail, load_config, err, out as console
     from orchestrator.interop.ssp import SspError, export_ssp as write_package, ssp_notes

@@ -85,7 +85,7 @@ def sweep(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only failures and the final line")] = False,
 ) -> None:
     """Run a parameter sweep (a grid and/or random samples over a base config); stop and resume at will."""
-    from fmus.build import DEFAULT_OUT
+    from fmus.builders import DEFAULT_OUT
 
     from orchestrator.components.kinds import prepare_fmus
 

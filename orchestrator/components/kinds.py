@@ -27,7 +27,7 @@ class FmuKindError(ValueError):
 
 def native_buildable() -> bool:
     """True when this machine can build the native FMUs (a C compiler is on PATH or in $CC)."""
-    from fmus.native_build import NoCompiler, compiler
+    from fmus.builders import NoCompiler, compiler
 
     try:
         compiler()
@@ -39,11 +39,11 @@ def native_buildable() -> bool:
 def native_built(fmu_dir: Path) -> bool:
     """True when current native FMUs are in place below ``fmu_dir`` (built here or copied from a machine
     with a compiler): they run without one."""
-    from fmus.build import FMU_NAMES
-    from fmus.native_build import expected_guid, is_complete
+    from fmus.builders import FMU_NAMES, NATIVE_FMI2
 
     folder = fmu_folder(fmu_dir, "native")
-    return all(is_complete(folder / f"{name}.fmu", name, expected_guid(name)) for name in FMU_NAMES)
+    return all(NATIVE_FMI2.is_complete(folder / f"{name}.fmu", name, NATIVE_FMI2.expected_guid(name))
+               for name in FMU_NAMES)
 
 
 def resolve_fmu_kind(requested: str | None, fmu_dir: Path | None = None) -> str:
@@ -68,28 +68,28 @@ def ensure_fmus(fmu_dir: Path, kind: str, names: Sequence[str]) -> dict[str, Pat
     ``LiveVehicle`` (a live robot as an FMU) exists only as a pythonfmu FMU: it runs the bridge's
     Python code, so it comes from the pythonfmu folder whatever ``kind`` says.
     """
-    from fmus.build import LIVE_FMU, build_fmus
+    from fmus.builders import LIVE_FMU, PYTHONFMU
 
     paths: dict[str, Path] = {}
     native = [name for name in names if name != LIVE_FMU] if kind == "native" else []
     python = [name for name in names if name not in native]
     if native:
-        from fmus.native_build import NoCompiler, build_native_fmus
+        from fmus.builders import NATIVE_FMI2, NoCompiler
 
         try:
-            built = build_native_fmus(fmu_folder(fmu_dir, "native"), names=tuple(native))
+            built = NATIVE_FMI2.build(fmu_folder(fmu_dir, "native"), names=tuple(native))
         except NoCompiler as error:
             raise FmuKindError(f"{error}; run with --fmus python (or simulation.fmus = \"python\")") from None
         paths.update({fmu.name: fmu.path for fmu in built})
     if python:
-        paths.update({fmu.name: fmu.path for fmu in build_fmus(Path(fmu_dir), names=tuple(python))})
+        paths.update({fmu.name: fmu.path for fmu in PYTHONFMU.build(Path(fmu_dir), names=tuple(python))})
     return {name: paths[name] for name in names}
 
 
 def prepare_fmus(fmu_dir: Path) -> None:
     """Build every kind a run may pick (pythonfmu always, native where a compiler is present), so that
     parallel runs (a sweep's workers) only check that they are current."""
-    from fmus.build import FMU_NAMES
+    from fmus.builders import FMU_NAMES
 
     for kind in FMU_KINDS:
         if kind == "python" or native_buildable():
@@ -100,7 +100,7 @@ def fmus_in_folder(folder: Path) -> dict[str, Path]:
     """The run's FMUs (Vehicle, VirtualTarget) in ``folder``, built there if stale: native ones when the
     folder is a ``fmu_folder(..., "native")``, pythonfmu ones otherwise. For tools handed one folder
     (the benchmarks' child processes)."""
-    from fmus.build import FMU_NAMES
+    from fmus.builders import FMU_NAMES
 
     folder = Path(folder)
     if folder.name == NATIVE_SUBFOLDER:

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
-from fmus.build import DEFAULT_OUT, FMU_NAMES
+from fmus.builders import DEFAULT_OUT, FMU_NAMES
 from fmus.errors import ComponentError
 from orchestrator.components.fmu import UnpackedFmu
 from orchestrator.components.kinds import ensure_fmus, resolve_fmu_kind

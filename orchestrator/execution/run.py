@@ -12,7 +12,7 @@ import time as clock
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from fmus.build import DEFAULT_OUT
+from fmus.builders import DEFAULT_OUT
 from orchestrator.execution.engine import default_engine, engine_names
 from orchestrator.execution.execution import Execution, RunResult, Tick
 from orchestrator.observers.trace import TRACE_WRITERS, WORKER_MESSAGES, choose_trace_writer, open_trace_writer

@@ -214,7 +214,7 @@ def export_components(config: Config, scenario: Scenario) -> list[ComponentSpec]
     live = set(config.live_vehicles())
     if not live:
         return list(scenario.components)
-    from fmus.build import LIVE_FMU
+    from fmus.builders import LIVE_FMU
     from fmus.slaves.LiveVehicle import hil_parameters
 
     from orchestrator.components.live import live_settings

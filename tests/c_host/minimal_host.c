@@ -8,7 +8,8 @@
  *   minimal_host <unzipped_fmu_dir> <guid> <steps> <step_size> <vr_x> <vr_y> <vr_speed> <vr_gap>
  *                [<model_identifier>]
  *
- * Loads <dir>/binaries/linux64/<model_identifier>.so (default model identifier: Vehicle),
+ * Loads <dir>/binaries/<platform>/<model_identifier>.<so|dll|dylib> (default model identifier:
+ * Vehicle; <platform> the folder of the platform it was compiled for, tests/c_host/loader.h),
  * instantiates it as a co-simulation slave with the resource location file://<dir>/resources,
  * initialises it at t = 0 and takes <steps> communication steps of <step_size>. The
  * communication points are t_n = n * step_size (no accumulated rounding; the step passed to
@@ -25,12 +26,13 @@
 
 #define _POSIX_C_SOURCE 200809L
 
-#include <dlfcn.h>
 #include <limits.h>
 #include <stdarg.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+
+#include "loader.h"
 
 /* --- The parts of fmi2FunctionTypes.h / fmi2TypesPlatform.h this host needs. --- */
 
@@ -102,11 +104,11 @@ static void logger(fmi2ComponentEnvironment env, fmi2String instance, fmi2Status
     fputc('\n', stderr);
 }
 
-static void *resolve(void *lib, const char *name)
+static void *resolve(library_t lib, const char *name)
 {
-    void *f = dlsym(lib, name);
+    void *f = library_symbol(lib, name);
     if (!f) {
-        fprintf(stderr, "minimal_host: the FMU binary does not export %s: %s\n", name, dlerror());
+        fprintf(stderr, "minimal_host: the FMU binary does not export %s: %s\n", name, library_error());
         exit(4);
     }
     return f;
@@ -160,7 +162,7 @@ int main(int argc, char **argv)
     }
     for (int i = 0; i < 4; ++i) {
         long vr;
-        if (!parse_long(argv[5 + i], &vr) || vr < 0 || vr > (long)UINT_MAX) {
+        if (!parse_long(argv[5 + i], &vr) || vr < 0 || (unsigned long)vr > UINT_MAX) {
             fprintf(stderr, "minimal_host: value reference '%s' is not valid\n", argv[5 + i]);
             return 2;
         }
@@ -169,7 +171,7 @@ int main(int argc, char **argv)
 
     char library[PATH_MAX];
     char resources[PATH_MAX + 16];
-    if (snprintf(library, sizeof library, "%s/binaries/linux64/%s.so", dir, model_identifier) >=
+    if (snprintf(library, sizeof library, "%s/binaries/" FMI2_PLATFORM "/%s" FMU_SUFFIX, dir, model_identifier) >=
             (int)sizeof library ||
         snprintf(resources, sizeof resources, "file://%s/resources", dir) >=
             (int)sizeof resources) {
@@ -177,9 +179,9 @@ int main(int argc, char **argv)
         return 2;
     }
 
-    void *lib = dlopen(library, RTLD_NOW | RTLD_LOCAL);
+    library_t lib = library_open(library);
     if (!lib) {
-        fprintf(stderr, "minimal_host: cannot load %s: %s\n", library, dlerror());
+        fprintf(stderr, "minimal_host: cannot load %s: %s\n", library, library_error());
         return 3;
     }
 

@@ -9,7 +9,8 @@
  *   minimal_host3 <unzipped_fmu_dir> <instantiation_token> <steps> <step_size>
  *                 <vr_1> <vr_2> <vr_3> <vr_4> [<model_identifier>]
  *
- * Loads <dir>/binaries/x86_64-linux/<model_identifier>.so (default model identifier: Vehicle),
+ * Loads <dir>/binaries/<platform>/<model_identifier>.<so|dll|dylib> (default model identifier:
+ * Vehicle; <platform> the folder of the platform it was compiled for, tests/c_host/loader.h),
  * checks that fmi3GetVersion says "3.0", instantiates it for co-simulation with the resource
  * path <dir>/resources/ (FMI 3.0: a native path ending in a separator, no URI), initialises it
  * at t = 0 and takes <steps> communication steps of <step_size>. The communication points are
@@ -28,11 +29,12 @@
 
 #define _POSIX_C_SOURCE 200809L
 
-#include <dlfcn.h>
 #include <limits.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+
+#include "loader.h"
 
 #include "fmi3FunctionTypes.h"
 
@@ -56,11 +58,11 @@ static void log_message(fmi3InstanceEnvironment env, fmi3Status status, fmi3Stri
             message ? message : "");
 }
 
-static void *resolve(void *lib, const char *name)
+static void *resolve(library_t lib, const char *name)
 {
-    void *f = dlsym(lib, name);
+    void *f = library_symbol(lib, name);
     if (!f) {
-        fprintf(stderr, "minimal_host3: the FMU binary does not export %s: %s\n", name, dlerror());
+        fprintf(stderr, "minimal_host3: the FMU binary does not export %s: %s\n", name, library_error());
         exit(4);
     }
     return f;
@@ -114,7 +116,7 @@ int main(int argc, char **argv)
     }
     for (int i = 0; i < 4; ++i) {
         long vr;
-        if (!parse_long(argv[5 + i], &vr) || vr < 0 || vr > (long)UINT_MAX) {
+        if (!parse_long(argv[5 + i], &vr) || vr < 0 || (unsigned long)vr > UINT_MAX) {
             fprintf(stderr, "minimal_host3: value reference '%s' is not valid\n", argv[5 + i]);
             return 2;
         }
@@ -123,16 +125,16 @@ int main(int argc, char **argv)
 
     char library[PATH_MAX];
     char resources[PATH_MAX];
-    if (snprintf(library, sizeof library, "%s/binaries/x86_64-linux/%s.so", dir,
+    if (snprintf(library, sizeof library, "%s/binaries/" FMI3_PLATFORM "/%s" FMU_SUFFIX, dir,
                  model_identifier) >= (int)sizeof library ||
         snprintf(resources, sizeof resources, "%s/resources/", dir) >= (int)sizeof resources) {
         fprintf(stderr, "minimal_host3: path too long\n");
         return 2;
     }
 
-    void *lib = dlopen(library, RTLD_NOW | RTLD_LOCAL);
+    library_t lib = library_open(library);
     if (!lib) {
-        fprintf(stderr, "minimal_host3: cannot load %s: %s\n", library, dlerror());
+        fprintf(stderr, "minimal_host3: cannot load %s: %s\n", library, library_error());
         return 3;
     }
 
@@ -197,6 +199,6 @@ int main(int argc, char **argv)
         perror("minimal_host3: stdout");
         return 6;
     }
-    dlclose(lib);
+    library_close(lib);
     return 0;
 }

@@ -1,6 +1,6 @@
 """The FMI 3.0 model description of a native FMU, from the same ``VariableInfo`` declarations.
 
-The FMI 2.0 description (``fmus.modeldescription``) and this one describe the same variables with
+The FMI 2.0 description (``fmus.modeldescription.fmi2``) and this one describe the same variables with
 the same value references: the i-th declared variable has value reference i, 0..n-1, in both
 versions, so a host's wiring and the C variable tables serve both. What FMI 3.0 changes:
 
@@ -31,17 +31,14 @@ Capability flags of the native C FMUs, each set on purpose:
 
 from __future__ import annotations
 
-import uuid
 from typing import TYPE_CHECKING, Mapping
-from xml.dom.minidom import parseString
-from xml.etree.ElementTree import Element, SubElement, tostring
+from xml.etree.ElementTree import Element, SubElement
 
-from fmus.modeldescription import GUID_NAMESPACE, UNITS, _format
+from fmus.modeldescription.core import (add_units_categories_experiment, format_value, instantiation_token,
+                                        root_element, serialize)
 
 if TYPE_CHECKING:  # annotations only: writing a description must not need pythonfmu's runtime
     from fmus.slaves.base import VariableInfo
-
-FMI_VERSION = "3.0"
 
 # The independent variable's value reference. Not n (one past the last variable): that would move
 # whenever a model gains a variable, and differ between Vehicle and VirtualTarget. A fixed number far
@@ -84,8 +81,8 @@ LOG_CATEGORIES = {
 
 def instantiation_token_for(source_digest: str, model_name: str) -> str:
     """The FMI 3.0 instantiationToken: changes exactly when the sources change, like the FMI 2.0 GUID
-    (``fmus.modeldescription.guid_for``), and differs from it for the same sources."""
-    return "{" + str(uuid.uuid5(GUID_NAMESPACE, f"{model_name}:fmi{FMI_VERSION}:{source_digest}")) + "}"
+    (``fmus.modeldescription.fmi2.guid_for``), and differs from it for the same sources."""
+    return instantiation_token(source_digest, model_name, fmi_version=3)
 
 
 def value_references(variables: tuple[VariableInfo, ...]) -> dict[str, int]:
@@ -106,12 +103,12 @@ def _variable(parent: Element, info: VariableInfo, reference: int) -> None:
     if info.unit:
         attributes["unit"] = info.unit
     if info.min is not None:
-        attributes["min"] = _format(info.min)
+        attributes["min"] = format_value(info.min)
     if info.max is not None:
-        attributes["max"] = _format(info.max)
+        attributes["max"] = format_value(info.max)
     has_start = info.causality != "output"
     if has_start and info.type != "String":
-        attributes["start"] = _format(info.start)
+        attributes["start"] = format_value(info.start)
     node = SubElement(parent, TYPE_NAMES[info.type], attributes)
     if has_start and info.type == "String":
         SubElement(node, "Start", {"value": info.start})
@@ -124,42 +121,17 @@ def _dependencies(names: tuple[str, ...], with_time: bool, reference_of: Mapping
     return " ".join(map(str, references))
 
 
-def model_description3(model: type, instantiation_token: str, version: str,
+def model_description(model: type, instantiation_token: str, version: str,
                        log_categories: Mapping[str, str] = LOG_CATEGORIES) -> bytes:
     """The FMI 3.0 modelDescription.xml of ``model`` (a slave class: ``variables``, ``description``,
     ``author``, ``license``, ``default_experiment``), for a co-simulation FMU of the same name."""
     variables: tuple[VariableInfo, ...] = model.variables
-    model_name = model.__name__
     reference_of = value_references(variables)
     assert TIME_VALUE_REFERENCE not in reference_of.values() and TIME_NAME not in reference_of
-    root = Element("fmiModelDescription", {
-        "fmiVersion": FMI_VERSION,
-        "modelName": model_name,
-        "instantiationToken": instantiation_token,
-        "description": model.description,
-        "author": model.author,
-        "version": version,
-        "license": model.license,
-        "generationTool": f"platoon-cosim {version} (native C)",
-        "variableNamingConvention": "structured",
-    })
-    SubElement(root, "CoSimulation", {"modelIdentifier": model_name, **CAPABILITIES})
-
-    unit_definitions = SubElement(root, "UnitDefinitions")
-    for unit in sorted({info.unit for info in variables if info.unit} | {"s"}):
-        SubElement(SubElement(unit_definitions, "Unit", {"name": unit}), "BaseUnit",
-                   {k: str(v) for k, v in UNITS[unit].items()})
-
-    categories = SubElement(root, "LogCategories")
-    for name, text in log_categories.items():
-        SubElement(categories, "Category", {"name": name, "description": text})
-
-    experiment = model.default_experiment
-    SubElement(root, "DefaultExperiment", {
-        "startTime": _format(float(experiment.start_time)),
-        "stopTime": _format(float(experiment.stop_time)),
-        "stepSize": _format(float(experiment.step_size)),
-    })
+    root = root_element(model, 3, instantiation_token, version, "native C")
+    SubElement(root, "CoSimulation", {"modelIdentifier": model.__name__, **CAPABILITIES})
+    add_units_categories_experiment(root, model, {info.unit for info in variables if info.unit} | {"s"},
+                                    log_categories)
 
     variables_node = SubElement(root, "ModelVariables")
     # FMI 3.0: no start value and no initial for the independent variable; its value is the startTime
@@ -175,7 +147,7 @@ def model_description3(model: type, instantiation_token: str, version: str,
     # Output: knowns at communication points are the inputs, the (hidden) states, the parameters and
     # time. An output that is a function of the state alone lists none of them ("").
     # InitialUnknown: knowns in Initialization Mode are the inputs, the variables with initial="exact"
-    # (all our parameters) and time (the start time); see fmus.modeldescription for the FMI 2.0 twin.
+    # (all our parameters) and time (the start time); see fmus.modeldescription.fmi2 for the FMI 2.0 twin.
     # No attribute at all means "depends on every known".
     structure = SubElement(root, "ModelStructure")
     outputs = [info for info in variables if info.causality == "output"]
@@ -191,4 +163,4 @@ def model_description3(model: type, instantiation_token: str, version: str,
             attributes["dependencies"] = _dependencies(info.initial_depends_on, info.depends_on_time, reference_of)
         SubElement(structure, "InitialUnknown", attributes)
 
-    return parseString(tostring(root, "UTF-8")).toprettyxml(indent="  ", encoding="UTF-8")
+    return serialize(root)

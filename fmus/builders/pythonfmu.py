@@ -1,0 +1,118 @@
+"""The pythonfmu builder: the slaves (fmus/slaves) as FMI 2.0 co-simulation FMUs, packaged by pythonfmu.
+
+pythonfmu lays out the archive (its runtime binary, its Python glue, the slave script). We then
+replace its model description with a complete one, add documentation/index.html and the model
+package as resources, and write the archive reproducibly (sorted entries, fixed timestamps). The
+GUID is derived from a digest of every bundled source, so an FMU is rebuilt exactly when a source
+changes and a trace can name the model version it ran.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.metadata
+import sys
+import tempfile
+import zipfile
+from pathlib import Path
+
+# Imported here, first, on purpose: our FMUs run in the host's interpreter, and if one runs before
+# anything imported pythonfmu, it imports pythonfmu from the FMU's resources folder, a copy without
+# the runtime binaries that the builder copies into every FMU (see _builder). It costs nothing extra:
+# the FMUs' slaves import pythonfmu in every run anyway.
+import pythonfmu  # noqa: F401
+
+import fmus
+from fmus.builders.base import DEFAULT_OUT, LIVE_FMU, PACKAGE_DIR, ROOT, Builder, BuildError, slave_instance, write_fmu
+from fmus.modeldescription.fmi2 import guid_for, model_description
+from fmus.platforms import binary_entry
+
+_BUNDLED_SUBPACKAGES = ("model", "slaves")
+# the modules (below fmus/) that shape what this builder writes: a change to one rebuilds the FMUs
+BUILDER_MODULES = ("builders/base.py", "builders/pythonfmu.py", "modeldescription/core.py", "modeldescription/fmi2.py",
+                   "documentation.py")
+# What an FMU carries beyond fmus/model and fmus/slaves: the LiveVehicle FMU runs the bridge's host side
+# (bridge.live and what it imports), the component interface and the pacer, so it needs nothing but zenoh installed.
+_ONLY_IN = {"LiveVehicle.py": LIVE_FMU}
+_EXTRA_SOURCES = {
+    LIVE_FMU: ("bridge/__init__.py", "bridge/live.py", "bridge/protocol.py", "bridge/session.py", "bridge/states.py",
+               "fmus/component.py", "fmus/errors.py", "fmus/realtime.py"),
+}
+
+
+def bundled_sources(name: str = "Vehicle") -> list[Path]:
+    """The package files FMU ``name`` carries as resources (its code must need nothing else)."""
+    files = [PACKAGE_DIR / "__init__.py"]
+    for sub in _BUNDLED_SUBPACKAGES:
+        files += sorted(path for path in (PACKAGE_DIR / sub).glob("*.py") if _ONLY_IN.get(path.name, name) == name)
+    return files + [ROOT / extra for extra in _EXTRA_SOURCES.get(name, ())]
+
+
+def source_digest(name: str = "Vehicle") -> str:
+    """Digest of everything that shapes FMU ``name``: bundled sources, builder modules, pythonfmu version."""
+    digest = hashlib.sha256(importlib.metadata.version("pythonfmu").encode())
+    for path in bundled_sources(name) + [PACKAGE_DIR / module for module in BUILDER_MODULES]:
+        digest.update(str(path.relative_to(PACKAGE_DIR) if path.is_relative_to(PACKAGE_DIR)
+                          else path.relative_to(ROOT)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def _builder() -> type:
+    """pythonfmu's FmuBuilder, from a pythonfmu that carries its runtime binaries.
+
+    An FMU run in this process before (FMPy loading one of ours) imports ``pythonfmu`` from the FMU's
+    resources folder when nothing imported it earlier; that copy has no binaries, and its builder
+    would write FMUs without any. Refuse instead of writing a broken FMU.
+    """
+    from pythonfmu import builder
+
+    binaries = Path(builder.__file__).resolve().parent / "resources" / "binaries"
+    if not any(binaries.rglob("*.so")) and not any(binaries.rglob("*.dll")) and not any(binaries.rglob("*.dylib")):
+        raise BuildError(f"pythonfmu was imported from {Path(builder.__file__).parent}, which has no runtime "
+                         f"binaries (an FMU's resources folder?); build the FMUs in a fresh process: platoon build")
+    return builder.FmuBuilder
+
+
+class PythonFmuBuilder(Builder):
+    """FMI 2.0 FMUs whose binary is pythonfmu's runtime, running the model's Python in the host's libpython."""
+
+    kind = "python"
+    fmi_version = 2
+    default_out = DEFAULT_OUT
+
+    def expected_guid(self, name: str) -> str:
+        return guid_for(source_digest(name), name)
+
+    def required_entries(self, name: str) -> set[str]:
+        """The binary for this platform, the slave script and every bundled source."""
+        required = {binary_entry(name, 2), f"resources/{name}.py"}
+        return required | {f"resources/{source.relative_to(ROOT).as_posix()}" for source in bundled_sources(name)}
+
+    def build_one(self, name: str, guid: str, out_dir: Path) -> Path:
+        from fmus.documentation import documentation_html  # only to build (html.entities: start-up time of every run)
+
+        version = fmus.__version__
+        FmuBuilder = _builder()  # only to build: checking that FMUs are current needs none of pythonfmu
+
+        with tempfile.TemporaryDirectory(prefix="platoon-build-") as scratch:
+            # pythonfmu imports the script by its stem from the script's folder.
+            sys.path.insert(0, str(PACKAGE_DIR / "slaves"))
+            try:
+                raw = FmuBuilder.build_FMU(PACKAGE_DIR / "slaves" / f"{name}.py", dest=scratch)
+            finally:
+                sys.path.remove(str(PACKAGE_DIR / "slaves"))
+                sys.modules.pop(name, None)
+            slave = slave_instance(name)
+            entries: dict[str, bytes] = {}
+            with zipfile.ZipFile(raw) as archive:
+                for item in archive.infolist():
+                    if item.filename != "modelDescription.xml" and not item.is_dir():
+                        entries[item.filename] = archive.read(item)
+        if not any(entry.startswith("binaries/") for entry in entries):
+            raise BuildError(f"{name}.fmu: pythonfmu's builder produced no binaries; the FMU was not written")
+        for path in bundled_sources(name):
+            entries[f"resources/{path.relative_to(ROOT).as_posix()}"] = path.read_bytes()
+        entries["modelDescription.xml"] = model_description(slave, guid, version)
+        entries["documentation/index.html"] = documentation_html(slave, version).encode()
+        return write_fmu(out_dir / f"{name}.fmu", entries)
