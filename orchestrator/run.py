@@ -128,16 +128,19 @@ def open_trace_writer(
     foxglove: bool = True,
     process: TraceProcess | None = None,
     publish: Path | None = None,
+    native: bool = False,
 ) -> "TraceWriter | TraceWorker":
     """A run's trace writer, encoding in this process ("inline") or in a worker ("process"): same file.
 
     ``foxglove`` adds the Foxglove channels at ``scene_rate``; ``process`` is a worker started earlier;
-    ``publish``: the final path, ``path`` being the aside file renamed onto it once finalized.
+    ``publish``: the final path, ``path`` being the aside file renamed onto it once finalized;
+    ``native``: float64 blocks (the native engine's) are encoded in C (orchestrator/trace/native_rows.py).
     """
     if kind == "process":
         return TraceWorker(path, components, descriptions, every=every, process=process, publish=publish,
-                           foxglove=(SceneSettings.of(config), components, scene_rate) if foxglove else None)
-    return TraceWriter(path, components, descriptions, every=every, publish=publish,
+                           foxglove=(SceneSettings.of(config), components, scene_rate) if foxglove else None,
+                           native=native)
+    return TraceWriter(path, components, descriptions, every=every, publish=publish, native=native,
                        foxglove=FoxgloveChannels(config, components, scene_rate) if foxglove else None)
 
 
@@ -323,7 +326,7 @@ def run_scenario(
         else:
             writer = open_trace_writer(writer_kind, target.aside, components, descriptions, config,
                                        every=sim.trace_every, scene_rate=scene_rate, foxglove=foxglove,
-                                       process=trace_process, publish=target.final)
+                                       process=trace_process, publish=target.final, native=engine == "native")
         if live_view is not None:  # the view sees what the trace records; a live robot's run is paced already
             live_view.open(config, components, descriptions, sim.trace_every, scene_rate, on_wall_clock=bool(live),
                            check=stop.check)
