@@ -962,7 +962,7 @@ PyDoc_STRVAR(encode_doc,
 "at a row that cannot be written (``refused``: 1 a value is not finite, 2 an errors value is not;\n"
 "``next`` is that row). ``records``: the Message records of ``written`` rows; ``indexes``: (channel,\n"
 "packed little-endian (log time, offset) pairs, count) of each channel written; ``first_stamp``,\n"
-"``last_stamp``, ``last_time``: log times of the first and last row written, time of the last.");
+"``last_stamp``: the least and greatest log time written; ``last_time``: the time of the last row.");
 
 static PyObject *Encoder_encode(Encoder *self, PyObject *args)
 {
@@ -1002,8 +1002,8 @@ static PyObject *Encoder_encode(Encoder *self, PyObject *args)
         if (result < 0) { failed = 1; break; }
         if (result > 0) { refused = result; break; }
         int64_t stamp = (int64_t)nearbyint(values[0] * 1e9);
-        if (written == 0) first_stamp = stamp;
-        last_stamp = stamp;
+        if (written == 0 || stamp < first_stamp) first_stamp = stamp;
+        if (written == 0 || stamp > last_stamp) last_stamp = stamp;
         last_time = values[0];
         written++;
         row++;

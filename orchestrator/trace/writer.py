@@ -213,17 +213,17 @@ class _Encoder:
         row, written_here, last_time = 0, 0, None
         while row < total:
             buffer = builder.record_writer._buffer  # a new one after every chunk
-            row, records, first, last, time, written, indexes, refused = encode(
+            row, records, least, greatest, time, written, indexes, refused = encode(
                 data, row, buffer.tell(), self._chunk_size, self.recorded)
             if written:
                 buffer.write(records)
                 self._indexed(indexes, builder.message_indices, statistics.channel_message_counts)
                 count = sum(entries for _, _, entries in indexes)
-                _cover(builder, first, builder.num_messages == 0)
-                _cover(builder, last, False)
+                _cover(builder, least, builder.num_messages == 0)
+                _cover(builder, greatest, False)
                 builder.num_messages += count
-                _cover(statistics, first, statistics.message_count == 0)
-                _cover(statistics, last, False)
+                _cover(statistics, least, statistics.message_count == 0)
+                _cover(statistics, greatest, False)
                 statistics.message_count += count
                 self.recorded += written
                 self.last_time = last_time = time
