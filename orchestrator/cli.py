@@ -665,7 +665,7 @@ def bench_scenarios(
 def bench_wholerun(
     n: Counts = "16",
     steps: Steps = 10_000,
-    variants: Annotated[str, typer.Option(metavar="VARIANT,...", help="comma-separated: platoon (default run, traced, table), platoon-q (-q --trace-every 100), libcosim (no observer), libcosim-outputs (time series of every output), libcosim-last-value")] = "platoon,platoon-q,libcosim,libcosim-outputs,libcosim-last-value",
+    variants: Annotated[str, typer.Option(metavar="VARIANT,...", help="comma-separated: platoon (default run, traced, table), platoon-q (-q --trace-every 100), libcosim (no observer), libcosim-outputs (time series of every output), libcosim-last-value, libcosim-file (CSV of every variable, every step)")] = "platoon,platoon-q,libcosim,libcosim-outputs,libcosim-last-value,libcosim-file",
     rounds: Rounds = 5,
     out_dir: OutDir = Path("runs/bench"),
     quiet: Quiet = False,
