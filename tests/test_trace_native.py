@@ -157,42 +157,41 @@ def test_native_and_python_encoders_write_the_same_file(tmp_path: Path, override
     assert messages == count * (len(components) + 1) + 2 + 2 * scenes  # + the errors; two log lines
 
 
-def test_a_non_finite_row_ends_the_native_trace_before_it(tmp_path: Path) -> None:
+def _refusals(tmp_path: Path, components, rows: np.ndarray, error: type[Exception]) -> dict[bool, tuple]:
+    """Each encoder's (writer, error message, file bytes) after writing ``rows``, which must raise ``error``."""
     config = paper()
-    components = [("target", COMPONENTS["target"])] + [(f"vehicle{k}", COMPONENTS["vehicle"]) for k in range(1, 5)]
-    rows = _rows(config, components, 50, seed=1)
-    rows[37, 9] = math.nan
     outcomes = {}
     for native in (False, True):
         path = tmp_path / f"{native}.mcap"
         writer = TraceWriter(path, components, native=native, flush_interval=1e9,
                              foxglove=FoxgloveChannels(config, components))
-        with pytest.raises(ComponentError) as failure:
+        with pytest.raises(error) as failure:
             writer.write_block(rows)
-        assert writer.recorded == 37 and writer.last_time == rows[36, 0]
         writer.close()
-        outcomes[native] = (str(failure.value), path.read_bytes())
-    assert "vehicle1 failed" in outcomes[True][0] and "output speed = nan is not finite" in outcomes[True][0]
-    assert outcomes[True] == outcomes[False]
+        outcomes[native] = (writer, str(failure.value), path.read_bytes())
+    return outcomes
+
+
+def test_a_non_finite_row_ends_the_native_trace_before_it(tmp_path: Path) -> None:
+    components = [("target", COMPONENTS["target"])] + [(f"vehicle{k}", COMPONENTS["vehicle"]) for k in range(1, 5)]
+    rows = _rows(paper(), components, 50, seed=1)
+    rows[37, 9] = math.nan
+    outcomes = _refusals(tmp_path, components, rows, ComponentError)
+    for writer, _, _ in outcomes.values():
+        assert writer.recorded == 37 and writer.last_time == rows[36, 0]
+    assert "vehicle1 failed" in outcomes[True][1] and "output speed = nan is not finite" in outcomes[True][1]
+    assert outcomes[True][1:] == outcomes[False][1:]
 
 
 def test_a_non_finite_error_value_is_refused_like_the_python_encoder(tmp_path: Path) -> None:
     """Finite outputs whose path error overflows: both encoders stop before that row with the same ValueError."""
-    config = paper()
     components = [("target", COMPONENTS["target"]), ("vehicle1", COMPONENTS["vehicle"])]
-    rows = _rows(config, components, 20, seed=2)
+    rows = _rows(paper(), components, 20, seed=2)
     rows[12, 6:8] = 1.7e308, -1.7e308  # vehicle1 far off the path: the row sums to a finite number, hypot overflows
-    outcomes = {}
-    for native in (False, True):
-        path = tmp_path / f"{native}.mcap"
-        writer = TraceWriter(path, components, native=native, flush_interval=1e9,
-                             foxglove=FoxgloveChannels(config, components))
-        with pytest.raises(ValueError) as failure:
-            writer.write_block(rows)
-        writer.close()
-        outcomes[native] = (str(failure.value), path.read_bytes())
-    assert outcomes[True][0] == f"an error at t = {rows[12, 0]:g} s is not finite"
-    assert outcomes[True] == outcomes[False]
+    outcomes = _refusals(tmp_path, components, rows, ValueError)
+    assert outcomes[True][1] == f"an error at t = {rows[12, 0]:g} s is not finite"
+    assert outcomes[True][0].recorded == 12
+    assert outcomes[True][1:] == outcomes[False][1:]
 
 
 # --- whole runs: the native engine (C encoder) against the Python engine (Python encoder) ---------
