@@ -67,7 +67,9 @@ def time_variant(variant: str, config: Any, components: list, rows: np.ndarray, 
         foxglove.channels = {"errors": 1000, "tf": 1001, "scene": 1002, "log": 1003}
         encoder = native_encoder(ComponentMessages(components), list(range(1, len(components) + 1)), foxglove)
         for start in range(0, len(rows), 500):
-            encoder.encode(rows[start:start + 500], 0, 0, 1 << 20, start)
+            block, row = rows[start:start + 500], 0
+            while row < len(block):  # a call stops at the chunk size: the writer would close the chunk there
+                row = encoder.encode(block, row, 0, 1 << 20, start + row)[0]
     else:
         writer = TraceWriter(path, components, foxglove=foxglove, native=variant == "native")
         for start in range(0, len(rows), 500):
