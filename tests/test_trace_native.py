@@ -83,7 +83,7 @@ def assert_same_messages(reference: Path, native: Path) -> int:
 
 def test_numbers_are_written_as_orjson_writes_them() -> None:
     """format_double against orjson (the Python encoder's number texts): the exact-integer path
-    (1e-5 <= |x| < 2^53), the repr path elsewhere, the notation switches at 1e-5 and 1e16."""
+    (1e-22 <= |x| < 2^53), the repr path elsewhere, the notation switches at 1e-5 and 1e16."""
     from orchestrator.trace import _native
 
     rng = random.Random(31)
@@ -95,8 +95,9 @@ def test_numbers_are_written_as_orjson_writes_them() -> None:
             values.append(bits)  # every exponent
         values.append(rng.uniform(-200.0, 200.0))  # this project's magnitudes
         values.append(rng.uniform(-1.0, 1.0) * 10.0 ** rng.randint(-8, 17))
+        values.append(rng.uniform(-1.0, 1.0) * 10.0 ** rng.randint(-25, -4))  # small: the 192-bit products
         values.append(round(rng.uniform(-100.0, 100.0), rng.randint(0, 6)))  # short decimals
-        values.append(math.nextafter(10.0 ** rng.randint(-6, 17), rng.choice((0.0, math.inf))))  # around powers of ten
+        values.append(math.nextafter(10.0 ** rng.randint(-24, 17), rng.choice((0.0, math.inf))))  # around powers of ten
     mismatches = [v for v in values if _native.format_double(v) != orjson.dumps(v)]
     assert mismatches == []
 

@@ -14,7 +14,7 @@
  * Numbers are written as orjson writes them (orchestrator/trace/format.py: number_texts): the
  * shortest text that reads back as the same double, the closest such text when several, fixed
  * notation for decimal exponents -5 ... 15 (".0" for an integer), else d.ddde+E / d.ddde-E. The
- * shortest digits come from exact integer arithmetic (below: shortest_digits) for 1e-5 <= |x| < 2^53,
+ * shortest digits come from exact integer arithmetic (below: shortest_digits) for 1e-22 <= |x| < 2^53,
  * and from CPython's own repr (David Gay's dtoa) outside that range.
  *
  * Rows arrive as one buffer of float64 (the native engine's block, or the bytes the trace worker
@@ -68,19 +68,39 @@ static inline void put_u64(char *p, uint64_t v) { for (int i = 0; i < 8; i++) p[
 
 typedef unsigned __int128 u128;
 
-static u128 POW10[23];
+#define MAX_K 38 /* 10^38 < 2^127 */
+
+static u128 POW10[MAX_K + 1];
 
 static void init_pow10(void)
 {
     POW10[0] = 1;
-    for (int i = 1; i < 23; i++) POW10[i] = POW10[i - 1] * 10;
+    for (int i = 1; i <= MAX_K; i++) POW10[i] = POW10[i - 1] * 10;
+}
+
+/* floor(a b / 2^shift) for 1 <= shift < 192, the quotient known to fit 64 bits (a b has at most 192);
+ * *inexact: whether the division leaves a remainder. */
+static inline uint64_t mul_shift(uint64_t a, u128 b, int shift, int *inexact)
+{
+    u128 low = (u128)a * (uint64_t)b, high = (u128)a * (uint64_t)(b >> 64);
+    u128 middle = (low >> 64) + (uint64_t)high;
+    uint64_t p0 = (uint64_t)low, p1 = (uint64_t)middle, p2 = (uint64_t)(high >> 64) + (uint64_t)(middle >> 64);
+    u128 top = (u128)p2 << 64 | p1; /* a b = top 2^64 + p0 */
+    if (shift >= 64) {
+        int t = shift - 64;
+        *inexact = p0 != 0 || (top & (((u128)1 << t) - 1)) != 0;
+        return (uint64_t)(top >> t);
+    }
+    u128 bottom = (u128)p1 << 64 | p0; /* p2 is 0: the quotient fits 64 bits */
+    *inexact = (bottom & (((u128)1 << shift) - 1)) != 0;
+    return (uint64_t)(bottom >> shift);
 }
 
 /* The shortest decimal digits of x > 0 (closest to x among the shortest) by exact integer
  * arithmetic: x = m 2^e is scaled by 10^k to 17 integer digits, and the rounding interval of x
  * (ties to even: an even m keeps its bounds) is searched for the multiple of the largest power of
- * ten it holds. Returns 0 outside 1e-5 <= x < 2^53 (the scaled products would not fit 128 bits);
- * else the digits (no trailing zeros) in *digits, x being about *digits 10^*scale. */
+ * ten it holds. Returns 0 outside 1e-22 <= x < 2^53 (10^k or the shift out of range); else the
+ * digits (no trailing zeros) in *digits, x being about *digits 10^*scale. */
 static int shortest_digits(double x, uint64_t *digits, int *scale)
 {
     uint64_t bits;
@@ -90,28 +110,24 @@ static int shortest_digits(double x, uint64_t *digits, int *scale)
     if (biased == 0) return 0; /* subnormal */
     uint64_t m = fraction | (1ULL << 52);
     int e = biased - 1075; /* x = m 2^e */
-    if (e > -1 || x < 1e-5) return 0;
+    if (e > -1 || x < 1e-22) return 0;
     int estimate = ((biased - 1023) * 78913) >> 18; /* floor(log10(2) (biased - 1023)): log10(x) or one below */
+    int s = -e, rest; /* s: 1 ... 126 */
     for (int attempt = 0; attempt < 3; attempt++) {
         int k = 16 - estimate;
-        if (k < 0 || k > 21) return 0; /* 4 m 10^k must fit 128 bits */
-        int s = -e; /* 1 ... 72 */
-        u128 scaled = (u128)m * POW10[k];
-        u128 whole = scaled >> s;
-        if (whole < POW10[16]) { estimate--; continue; }
-        if (whole >= POW10[16] * 10) { estimate++; continue; }
+        if (k < 0 || k > MAX_K) return 0;
+        uint64_t center = mul_shift(m, POW10[k], s, &rest); /* x 10^k, rounded down */
+        if (center < (uint64_t)POW10[16]) { estimate--; continue; }
+        if (center >= (uint64_t)POW10[17]) { estimate++; continue; }
         /* the interval [x - low gap, x + ulp/2] scaled: numerators over 2^(s + 2); its integer bounds,
-         * the scaled x and all candidates below are under 2 10^17: 64 bits from here on */
-        int q = s + 2;
-        u128 mask = ((u128)1 << q) - 1;
-        u128 low = (fraction == 0 && biased > 1 ? 4 * (u128)m - 1 : 4 * (u128)m - 2) * POW10[k];
-        u128 high = (4 * (u128)m + 2) * POW10[k];
+         * the scaled x and all candidates below are under 2 10^17 */
+        int low_rest, high_rest, twice_rest;
+        uint64_t low = mul_shift(fraction == 0 && biased > 1 ? 4 * m - 1 : 4 * m - 2, POW10[k], s + 2, &low_rest);
+        uint64_t high = mul_shift(4 * m + 2, POW10[k], s + 2, &high_rest);
         int inclusive = (m & 1) == 0;
-        uint64_t lo = (uint64_t)(low >> q) + (inclusive ? ((low & mask) != 0) : 1);
-        uint64_t hi = (uint64_t)(high >> q) - (inclusive ? 0 : ((high & mask) == 0));
-        u128 twice = scaled << 1; /* 2 x 10^k over 2^s */
-        uint64_t twice_whole = (uint64_t)(twice >> s), center = (uint64_t)whole;
-        int twice_rest = (twice & (((u128)1 << s) - 1)) != 0;
+        uint64_t lo = low + (inclusive ? low_rest != 0 : 1);
+        uint64_t hi = high - (inclusive ? 0 : high_rest == 0);
+        uint64_t twice_whole = mul_shift(2 * m, POW10[k], s, &twice_rest); /* 2 x 10^k, rounded down */
         /* the largest power of ten with a multiple in [lo, hi] (one at 10^0: the interval is wider than 1) */
         uint64_t p = 1, lo_j = lo, hi_j = hi;
         int power = 0;
