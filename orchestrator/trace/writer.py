@@ -68,7 +68,7 @@ _MESSAGE_HEADER_START = struct.Struct("<BQH")
 _MESSAGE_HEADER_TAIL = struct.Struct("<IQQ")
 _MESSAGE_HEADER_SIZE = _MESSAGE_HEADER_START.size + _MESSAGE_HEADER_TAIL.size
 _INDEX_ENTRY = struct.Struct("<QQ")
-ZSTD_LEVEL = 1  # zstd's fastest regular level: 3x faster than the default 3 on traces, and smaller (docs/performance.md)
+ZSTD_LEVEL = 1  # zstd's fastest regular level: 2-3x faster than the default 3 on traces, and smaller (docs/performance.md)
 
 
 def _fast_compression() -> None:
