@@ -15,7 +15,7 @@ import threading
 import time as clock
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import fmus
 from fmus.build import DEFAULT_OUT, FMU_NAMES
@@ -142,6 +142,11 @@ def open_trace_writer(
                            native=native)
     return TraceWriter(path, components, descriptions, every=every, publish=publish, native=native,
                        foxglove=FoxgloveChannels(config, components, scene_rate) if foxglove else None)
+
+
+def _trace_encoder(writer: Any) -> str:
+    """"native" when the trace's rows are encoded in C (orchestrator/trace/native_rows.py), else "python"."""
+    return "native" if getattr(getattr(writer, "traced", writer), "native", False) else "python"  # behind a live view's tee
 
 
 def _finalize_trace(writer: "TraceWriter | TraceWorker | NullTraceWriter", status: str, error: str | None,
@@ -339,6 +344,7 @@ def run_scenario(
         writer.metadata("platoon.start", {"engine": engine, "fmus": fmu_kind, "master": sim.master,
                                           "trace_every": str(sim.trace_every),
                                           "trace_writer": writer_kind,
+                                          "trace_encoder": _trace_encoder(writer),
                                           "scene_rate": repr(float(scene_rate)) if foxglove else "",
                                           "started": clock.strftime("%Y-%m-%dT%H:%M:%S%z")})
         writer.log(0.0, "Info", f"run started: {config.name}, {config.platoon.count} vehicles, {config.platoon.law} law, "

@@ -203,6 +203,8 @@ def _same_run_messages(tmp_path: Path, fmu_dir: Path, config, text: str, writer:
         files[engine] = tmp_path / f"{engine}.mcap"
         result = run_scenario(config, text, files[engine], engine=engine, fmu_dir=fmu_dir, trace_writer=writer)
         assert result.status == ("failed" if "disturbance" in text else "completed"), result.error
+    assert load(files["native"]).metadata["platoon.start"]["trace_encoder"] == "native"
+    assert load(files["python"]).metadata["platoon.start"]["trace_encoder"] == "python"
     expected, got = decoded(files["python"]), decoded(files["native"])
     assert len(expected) == len(got) > 0
     # the log's first line names the engine; everything else is the same message

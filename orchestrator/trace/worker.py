@@ -47,6 +47,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from .format import CHUNK_SIZE, FLUSH_INTERVAL
+from .native_rows import available as native_available
 from .writer import non_finite_error
 
 WORKER_BLOCK = 64  # rows per hand-over: small, so the worker's backlog when the run ends stays short
@@ -148,6 +149,7 @@ class TraceWorker:
     ) -> None:
         self.path = Path(path)
         self.components = [(name, list(outputs)) for name, outputs in components]
+        self.native = native and native_available()  # the worker runs this install: the same extension
         self.every = every
         self.flush_interval = flush_interval
         self.path.parent.mkdir(parents=True, exist_ok=True)
