@@ -602,7 +602,8 @@ def test_a_stalled_trace_writer_process_does_not_hold_the_run(work: Path) -> Non
     os.kill(workers[0], signal.SIGSTOP)  # the trace writer hangs (a stuck disk, a debugger ...)
     try:
         os.kill(run.pid, signal.SIGINT)
-        time.sleep(2.0)
+        signal_delivered(run.pid, signal.SIGINT)  # taken, so the second below is a second, not merged into it
+        time.sleep(2.0)  # a window to see the run not end: it cannot while its writer takes nothing
         assert run.poll() is None  # waiting for the writer to finish the file, as it should
         os.kill(run.pid, signal.SIGINT)  # the user insists
         _, stderr = run.communicate(timeout=60)  # far below the writer's 600 s close timeout
