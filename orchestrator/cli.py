@@ -531,7 +531,7 @@ def analyze(
         out.print(string_stability_report(parsed, text, shown), highlight=False, soft_wrap=True)
 
 
-bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks of issue 10 (JSON under runs/bench/; not pass/fail tests).")
+bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks: what steps and whole runs cost against FMPy and libcosim, memory per vehicle, HIL latency (JSON under runs/bench/; not pass/fail tests; docs/performance.md).")
 app.add_typer(bench_app, name="bench")
 
 ROUNDS_HELP = "interleaved repetitions (each variant once per round, order rotated); medians over rounds"
