@@ -196,11 +196,14 @@ def emulator(port: int, tmp_path: Path, *options: str) -> Iterator[tuple[subproc
 
 
 def start_run(port: int, trace: Path, stop_time: float, *sets: str) -> subprocess.Popen:
+    """``platoon run`` of LIVE3 with robot 3 at ``port``; SIGINT at its default, as a user's shell gives it
+    (a test run started in the background hands down SIGINT ignored, and the run keeps what it is given)."""
     arguments = [str(PLATOON), "run", str(LIVE3), "--out", str(trace), "--set", f"simulation.stop_time={stop_time}",
                  "--set", f'vehicles.3.connect=["{endpoint(port)}"]']
     for assignment in sets:
         arguments += ["--set", assignment]
-    return subprocess.Popen(arguments, cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(arguments, cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def finish(process: subprocess.Popen, timeout: float = 120) -> tuple[int, str, str]:
@@ -375,7 +378,8 @@ def test_garbage_on_the_pose_key_is_counted_and_ignored_and_ctrl_c_stops_the_rob
             wait_for(all_counted, lambda: f"the run's trace counts every drop (so far {counters})", run)
         run.send_signal(signal.SIGINT)
         code, _, err = finish(run, timeout=60)
-        wait_for(lambda: "robot 3: running -> stopped (stop command)" in log.read_text(), "the robot stopped")
+        wait_for(lambda: "robot 3: running -> stopped (stop command)" in log.read_text(),
+                 lambda: f"the robot stopped: {log.read_text()}")
     assert code == 130, err
     loaded = load(trace)
     stats = json.loads(loaded.metadata["platoon.hil"]["vehicle3"])

@@ -59,7 +59,8 @@ def test_libcosim_runs_the_exported_live_platoon_and_the_live_vehicle_converges(
         run = libcosim(package, tmp_path, "--tail", "100")
         out, _ = run.communicate(timeout=120)
         elapsed = time.monotonic() - started
-        wait_for(lambda: "running -> stopped (stop command)" in log.read_text(), "the robot takes the stop command")
+        wait_for(lambda: "running -> stopped (stop command)" in log.read_text(),
+                 lambda: f"the robot takes the stop command: {log.read_text()}\nlibcosim: {out}")
         robot_side = log.read_text()
     assert run.returncode == 0, out
     assert "steps completed" in out and "end 20.0" in out, out
