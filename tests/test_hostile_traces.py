@@ -480,25 +480,6 @@ def run_record(path: Path) -> dict[str, str]:
         return {m.name: m.metadata for m in make_reader(stream).iter_metadata()}["platoon.run"]
 
 
-def signal_delivered(pid: int, signum: int, timeout: float = 60) -> None:
-    """Until the kernel no longer holds ``signum`` pending for process ``pid``: its handler ran.
-
-    Two signals of one kind pending at once merge into one, so a test that sends a second must first
-    see the first taken (a loaded machine may not schedule the process for a while)."""
-    bit = 1 << (signum - 1)
-    deadline = time.monotonic() + timeout
-    while True:
-        status = Path(f"/proc/{pid}/status").read_text()
-        pending = 0
-        for line in status.splitlines():
-            if line.startswith(("SigPnd:", "ShdPnd:")):
-                pending |= int(line.split()[1], 16)
-        if not pending & bit:
-            return
-        assert time.monotonic() < deadline, f"signal {signum} still pending for process {pid} after {timeout} s"
-        time.sleep(0.01)
-
-
 class StderrLines:
     """A process's stderr read line by line in a thread, so a test can wait for a line, then for the end."""
 
