@@ -332,6 +332,10 @@ def test_garbage_on_the_pose_key_is_counted_and_ignored_and_ctrl_c_stops_the_rob
     Every wait is for an event: the attacker's publisher matched by the run's subscriber, real poses
     from the emulator, the counters in the run's trace. Poses may arrive up to 2 s old (``hil.max_pose_age``,
     0.25 s by default) so that a loaded machine's delays make no real pose late: the counts are exact.
+    Commands, the stop included, are valid for 2 s (``hil.command_validity``, 0.1 s by default): on a
+    loaded machine a stop can take longer than 0.1 s to reach the robot, which then drops it as late
+    and stops only when the run's liveliness token goes (seen: "running -> stopped (host's liveliness
+    token dropped)").
     """
     import json
 
@@ -340,7 +344,8 @@ def test_garbage_on_the_pose_key_is_counted_and_ignored_and_ctrl_c_stops_the_rob
     port, host_port = free_port(), free_port()
     trace = tmp_path / "garbage.mcap"
     with emulator(port, tmp_path) as (_, log):
-        run = start_run(port, trace, 60.0, f'vehicles.3.listen=["{endpoint(host_port)}"]', "hil.max_pose_age=2.0")
+        run = start_run(port, trace, 60.0, f'vehicles.3.listen=["{endpoint(host_port)}"]', "hil.max_pose_age=2.0",
+                        "hil.command_validity=2.0")
         wait_for_running(log, run)
         # the attacker's session meets the run (its listen port) and the emulator, to replay real poses
         with open_session(zenoh_config(connect=[endpoint(host_port), endpoint(port)]), "test") as session:
