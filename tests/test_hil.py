@@ -17,10 +17,11 @@ import sys
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 import pytest
+import zenoh
 
 from bridge.protocol import (
     MAX_PAYLOAD,
@@ -195,11 +196,14 @@ def emulator(port: int, tmp_path: Path, *options: str) -> Iterator[tuple[subproc
 
 
 def start_run(port: int, trace: Path, stop_time: float, *sets: str) -> subprocess.Popen:
+    """``platoon run`` of LIVE3 with robot 3 at ``port``; SIGINT at its default, as a user's shell gives it
+    (a test run started in the background hands down SIGINT ignored, and the run keeps what it is given)."""
     arguments = [str(PLATOON), "run", str(LIVE3), "--out", str(trace), "--set", f"simulation.stop_time={stop_time}",
                  "--set", f'vehicles.3.connect=["{endpoint(port)}"]']
     for assignment in sets:
         arguments += ["--set", assignment]
-    return subprocess.Popen(arguments, cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(arguments, cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def finish(process: subprocess.Popen, timeout: float = 120) -> tuple[int, str, str]:
@@ -207,15 +211,33 @@ def finish(process: subprocess.Popen, timeout: float = 120) -> tuple[int, str, s
     return process.returncode, out, err
 
 
-def wait_for_running(trace: Path, process: subprocess.Popen, seconds: float = 30) -> None:
-    """Until the run is stepping (its trace file has grown past the header), then a little longer."""
+def wait_for(condition: Callable[[], object], what: str | Callable[[], str], process: subprocess.Popen | None = None,
+             seconds: float = 60) -> None:
+    """Until ``condition()`` holds (an event, never a guess at how long it takes): fails naming ``what``
+    (a text, or a function giving it then) after ``seconds``, or at once if ``process`` (the run) ended meanwhile."""
     deadline = time.monotonic() + seconds
-    aside = trace.with_name(trace.name + ".partial")  # written there until finalized (docs/trace-format.md)
-    while not (aside.exists() and aside.stat().st_size > 2000):
-        assert process.poll() is None, process.communicate()
-        assert time.monotonic() < deadline, "the run did not start"
-        time.sleep(0.05)
-    time.sleep(1.0)
+    while not condition():
+        said = what() if callable(what) else what
+        if process is not None and process.poll() is not None:
+            raise AssertionError(f"the run ended while waiting until {said}: {process.communicate()}")
+        assert time.monotonic() < deadline, f"not within {seconds:g} s: {said}"
+        time.sleep(0.02)
+
+
+def wait_for_running(log: Path, process: subprocess.Popen) -> None:
+    """Until the run steps the robot: the emulator took its first wheel command."""
+    wait_for(lambda: "-> running (command" in log.read_text(), "the emulator runs on the run's commands", process)
+
+
+def link_counters(trace: Path, scratch: Path) -> dict[str, float]:
+    """Robot 3's newest link counters in what the running run's trace holds so far (its complete chunks,
+    read as ``platoon trace recover`` reads a killed run's file)."""
+    from orchestrator.trace import recover
+
+    so_far = scratch / "so-far.mcap"
+    recover(trace.with_name(trace.name + ".partial"), so_far)
+    link = load(so_far).live.get("vehicle3/link", {})
+    return {key: values[-1] for key, values in link.items() if key.startswith("pose.") and len(values)}
 
 
 def test_live_robot_tracks_the_all_fmu_run(tmp_path: Path) -> None:
@@ -230,7 +252,7 @@ def test_live_robot_tracks_the_all_fmu_run(tmp_path: Path) -> None:
     live, simulated = tmp_path / "live.mcap", tmp_path / "fmu.mcap"
     with emulator(port, tmp_path) as (_, log):
         first = start_run(port, live, 10.0)
-        wait_for_running(live, first)
+        wait_for_running(log, first)
         second, _, refused = finish(start_run(port, tmp_path / "second.mcap", 2.0))  # one run per robot
         assert second == 1 and "robot 3 (platoon/m3pi/3) is already driven by another run" in refused, refused
         code, out, err = finish(first)
@@ -286,9 +308,9 @@ def test_lost_robot_ends_the_run_within_5_s_with_a_stop_and_a_finalized_trace(
         tmp_path: Path, fault: signal.Signals, reason: str) -> None:
     port = free_port()
     trace = tmp_path / "lost.mcap"
-    with emulator(port, tmp_path) as (robot, _):
+    with emulator(port, tmp_path) as (robot, log):
         run = start_run(port, trace, 60.0)
-        wait_for_running(trace, run)
+        wait_for_running(log, run)
         os.kill(robot.pid, fault)
         struck = time.monotonic()
         code, _, err = finish(run, timeout=30)
@@ -305,19 +327,33 @@ def test_lost_robot_ends_the_run_within_5_s_with_a_stop_and_a_finalized_trace(
 
 def test_garbage_on_the_pose_key_is_counted_and_ignored_and_ctrl_c_stops_the_robot(tmp_path: Path) -> None:
     """A third session publishes every kind of bad pose to the run; the run drops and counts each,
-    the robot keeps its path; SIGINT ends the run with exit 130 after a stop command reached the robot."""
+    the robot keeps its path; SIGINT ends the run with exit 130 after a stop command reached the robot.
+
+    Every wait is for an event: the attacker's publisher matched by the run's subscriber, real poses
+    from the emulator, the counters in the run's trace. Poses may arrive up to 2 s old (``hil.max_pose_age``,
+    0.25 s by default) so that a loaded machine's delays make no real pose late: the counts are exact.
+    Commands, the stop included, are valid for 2 s (``hil.command_validity``, 0.1 s by default): on a
+    loaded machine a stop can take longer than 0.1 s to reach the robot, which then drops it as late
+    and stops only when the run's liveliness token goes (seen: "running -> stopped (host's liveliness
+    token dropped)").
+    """
+    import json
+
     from bridge.session import open_session, zenoh_config
 
     port, host_port = free_port(), free_port()
     trace = tmp_path / "garbage.mcap"
     with emulator(port, tmp_path) as (_, log):
-        run = start_run(port, trace, 60.0, f'vehicles.3.listen=["{endpoint(host_port)}"]')
-        wait_for_running(trace, run)
+        run = start_run(port, trace, 60.0, f'vehicles.3.listen=["{endpoint(host_port)}"]', "hil.max_pose_age=2.0",
+                        "hil.command_validity=2.0")
+        wait_for_running(log, run)
         # the attacker's session meets the run (its listen port) and the emulator, to replay real poses
         with open_session(zenoh_config(connect=[endpoint(host_port), endpoint(port)]), "test") as session:
-            time.sleep(0.5)
-            replayed: list[bytes] = []
-            subscriber = session.declare_subscriber(KEYS.pose, lambda sample: replayed.append(sample.payload.to_bytes()))
+            attacker = session.declare_publisher(KEYS.pose, allowed_destination=zenoh.Locality.REMOTE)
+            wait_for(lambda: attacker.matching_status.matching, "the run subscribes to what the attacker publishes", run)
+            real: list[bytes] = []  # the emulator's poses, as the attacker hears them
+            subscriber = session.declare_subscriber(KEYS.pose, lambda sample: real.append(sample.payload.to_bytes()))
+            wait_for(lambda: real, "the emulator's poses reach the attacker", run)
             good = encode_pose(Pose(1, 0, time.time(), 0.0, 0.0, 0.0))
             garbage = {
                 "oversized": [bytes(1000)] * 3,
@@ -329,24 +365,32 @@ def test_garbage_on_the_pose_key_is_counted_and_ignored_and_ctrl_c_stops_the_rob
             }
             for payloads in garbage.values():
                 for payload in payloads:
-                    session.put(KEYS.pose, payload)
-            time.sleep(0.3)
-            for payload in list(replayed[-5:]):  # real poses again: duplicates (or out of order)
-                session.put(KEYS.pose, payload)
-            time.sleep(0.5)
+                    attacker.put(payload)
+            heard = len(real)
+            wait_for(lambda: len(real) >= heard + 5, "five more real poses", run)
+            replayed = real[heard:heard + 5]  # the run took each already (or takes it next): duplicates or out of order
+            for payload in replayed:
+                attacker.put(payload)
             subscriber.undeclare()
+            expected = {f"pose.dropped.{reason}": len(payloads) for reason, payloads in garbage.items()}
+            counters: dict[str, float] = {}
+
+            def all_counted() -> bool:
+                counters.update(link_counters(trace, tmp_path))
+                replays = counters.get("pose.dropped.duplicate", 0) + counters.get("pose.dropped.out_of_order", 0)
+                return replays >= len(replayed) and all(counters.get(k, 0) >= n for k, n in expected.items())
+
+            wait_for(all_counted, lambda: f"the run's trace counts every drop (so far {counters})", run)
         run.send_signal(signal.SIGINT)
-        code, _, err = finish(run, timeout=30)
-        time.sleep(0.3)
-        emulator_log = log.read_text()
+        code, _, err = finish(run, timeout=60)
+        wait_for(lambda: "robot 3: running -> stopped (stop command)" in log.read_text(),
+                 lambda: f"the robot stopped: {log.read_text()}")
     assert code == 130, err
-    assert "robot 3: running -> stopped (stop command)" in emulator_log, emulator_log
     loaded = load(trace)
-    import json
     stats = json.loads(loaded.metadata["platoon.hil"]["vehicle3"])
     for reason, payloads in garbage.items():
         assert stats[f"pose.dropped.{reason}"] == len(payloads), (reason, stats)
-    assert stats["pose.dropped.duplicate"] + stats["pose.dropped.out_of_order"] >= 4
+    assert stats["pose.dropped.duplicate"] + stats["pose.dropped.out_of_order"] == len(replayed), stats
     assert loaded.live["vehicle3/link"]["pose.dropped.oversized"][-1] == 3
     assert any("dropped a message" in line.message for line in loaded.log)
     config = config_from_mapping(loaded.config)

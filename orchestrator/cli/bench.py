@@ -18,7 +18,7 @@ from orchestrator.bench.common import DEFAULT_OUT_DIR
 from orchestrator.cli.common import (SET_METAVAR, err, fail,
                                      out)
 
-bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks of issue 10 (JSON under runs/bench/; not pass/fail tests).")
+bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks: what steps and whole runs cost against FMPy and libcosim, memory per vehicle, HIL latency (JSON under runs/bench/; not pass/fail tests; docs/performance.md).")
 
 
 ROUNDS_HELP = "interleaved repetitions (each variant once per round, order rotated); medians over rounds"
