@@ -44,7 +44,7 @@ _ROOT = PACKAGE_DIR.parent  # the folder holding fmus/, bridge/ and orchestrator
 # (bridge.live and what it imports) and the orchestrator's pacer, so it needs nothing but zenoh installed.
 _ONLY_IN = {"LiveVehicle.py": LIVE_FMU}
 _EXTRA_SOURCES = {
-    LIVE_FMU: ("bridge/__init__.py", "bridge/live.py", "bridge/protocol.py", "bridge/session.py", "bridge/states.py",
+    LIVE_FMU: ("bridge/__init__.py", "bridge/claim.py", "bridge/live.py", "bridge/protocol.py", "bridge/session.py", "bridge/states.py",
                "orchestrator/__init__.py", "orchestrator/interface.py", "orchestrator/errors.py",
                "orchestrator/realtime.py"),
 }

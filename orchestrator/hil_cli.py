@@ -19,6 +19,8 @@ if TYPE_CHECKING:  # imported where used: registering these commands must not sl
     from rich.table import Table
 
 Endpoints = Annotated[list[str], typer.Option(metavar="ENDPOINT", help="Zenoh endpoint, e.g. tcp/127.0.0.1:7447 (repeatable)")]
+AllowInsecure = Annotated[bool, typer.Option("--allow-insecure", help="allow endpoints off this machine without TLS "
+                                                                      "(docs/hil.md, \"A secure lab\")")]
 
 
 def _stop_on_signals(stop: threading.Event) -> None:
@@ -119,6 +121,7 @@ def m3pi_emulator(
     connect: Endpoints = [],
     zenoh_config: Annotated[Optional[Path], typer.Option(help="Zenoh config file (JSON5)")] = None,
     duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds (default: until Ctrl-C)")] = None,
+    allow_insecure: AllowInsecure = False,
 ) -> None:
     """Emulate the live robots of a config and their motion capture on Zenoh (stands in for the m3pi)."""
     from bridge.emulator import EmulatorSettings, run_emulator
@@ -145,7 +148,8 @@ def m3pi_emulator(
     _stop_on_signals(stop)
     try:
         run_emulator(robots, settings, connect or default_connect, listen or default_listen,
-                     str(zenoh_config) if zenoh_config else None, duration, stop)
+                     str(zenoh_config) if zenoh_config else None, duration, stop,
+                     allow_insecure=allow_insecure or parsed.hil.allow_insecure)
     except SessionError as error:
         _fail(2, str(error))
 
@@ -163,6 +167,7 @@ def m3pi_serial(
     invert_right: Annotated[bool, typer.Option(help="the right motor is wired backwards")] = False,
     baud: Annotated[int, typer.Option(min=1200, help="serial speed of the XBee link")] = 115200,
     command_timeout: Annotated[float, typer.Option(help="s without a valid command before the motors stop")] = 0.25,
+    allow_insecure: AllowInsecure = False,
 ) -> None:
     """Forward one robot's wheel commands from Zenoh to a Pololu 3pi serial slave over an XBee."""
     from bridge.protocol import check_prefix
@@ -185,7 +190,8 @@ def m3pi_serial(
     try:
         run_serial_endpoint(port, robot, prefix=prefix, connect=connect, listen=listen,
                             zenoh_config_file=str(zenoh_config) if zenoh_config else None, scale=scale,
-                            command_timeout=command_timeout, baud=baud, stop_event=stop)
+                            command_timeout=command_timeout, baud=baud, stop_event=stop,
+                            allow_insecure=allow_insecure)
     except (SerialEndpointError, SessionError, OSError, ValueError) as error:
         _fail(2, str(error))
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import os
+import random
 import signal
 import subprocess
 import sys
@@ -24,16 +25,20 @@ import pytest
 
 from bridge.protocol import (
     MAX_PAYLOAD,
+    STATUS_POSES,
     Drop,
     MessageError,
     Pose,
     RobotKeys,
     SequenceCheck,
+    Status,
     WheelCommand,
     check_pose_time,
     decode_pose,
+    decode_status,
     decode_wheels,
     encode_pose,
+    encode_status,
     encode_wheels,
 )
 from orchestrator.bench.hil import free_port
@@ -50,19 +55,34 @@ KEYS = RobotKeys("platoon", 3)
 
 # -- protocol, no network ------------------------------------------------------------------------
 
-def test_pose_and_wheel_messages_round_trip_exactly() -> None:
-    pose = Pose(7, 5, 1.7e9 + 0.125, -0.25, 1.0 / 3.0, -3.1)
+def test_pose_wheel_and_status_messages_round_trip_exactly() -> None:
+    pose = Pose(7, 5, 1.7e9 + 0.125, -0.25, 1.0 / 3.0, -3.1, claim=2**64 - 1)
     assert decode_pose(encode_pose(pose)) == pose
-    command = WheelCommand(9, 1.7e9 + 0.1, -0.2, 0.35)
+    command = WheelCommand(9, 1.7e9 + 0.1, -0.2, 0.35, claim=0x0123456789ABCDEF)
     assert decode_wheels(encode_wheels(command)) == command
-    assert len(encode_pose(pose)) == 44 and len(encode_wheels(command)) == 32
+    status = Status(3, 2**63, 9, 8, 1, 4, 2, 77, 1.7e9, STATUS_POSES)
+    assert decode_status(encode_status(status)) == status
+    assert (len(encode_pose(pose)), len(encode_wheels(command)), len(encode_status(status))) == (52, 40, 52)
+
+
+def test_a_version_1_peer_is_named_not_misread() -> None:
+    """The messages of the release before claims (version 1: 44-byte pose, 32-byte command) are dropped
+    as another version, with a text that says so."""
+    import struct
+
+    old_pose = struct.pack("<BBHIIdddd", 1, 1, 0, 5, 4, 1.7e9, 0.5, 0.5, 0.0)
+    old_command = struct.pack("<BBHIddd", 1, 2, 0, 5, 1.7e9, 0.3, 0.3)
+    for decode, payload in ((decode_pose, old_pose), (decode_wheels, old_command)):
+        with pytest.raises(MessageError, match="protocol version 1, expected 2") as refused:
+            decode(payload)
+        assert refused.value.reason is Drop.VERSION
 
 
 @pytest.mark.parametrize("payload, reason, text", [
     (bytes(MAX_PAYLOAD + 1), Drop.OVERSIZED, "257 bytes, more than 256"),
-    (b"", Drop.MALFORMED, "0 bytes, expected 44"),
-    (encode_pose(Pose(1, 0, 1.0, 0.0, 0.0, 0.0))[:-1], Drop.MALFORMED, "43 bytes, expected 44"),
-    (b"\x02" + encode_pose(Pose(1, 0, 1.0, 0.0, 0.0, 0.0))[1:], Drop.VERSION, "protocol version 2, expected 1"),
+    (b"", Drop.MALFORMED, "0 bytes, expected 52"),
+    (encode_pose(Pose(1, 0, 1.0, 0.0, 0.0, 0.0))[:-1], Drop.MALFORMED, "51 bytes, expected 52"),
+    (b"\x03" + encode_pose(Pose(1, 0, 1.0, 0.0, 0.0, 0.0))[1:], Drop.VERSION, "protocol version 3, expected 2"),
     (encode_wheels(WheelCommand(1, 1.0, 0.0, 0.0)) + bytes(12), Drop.MALFORMED, "message kind 2, expected 1"),
     (encode_pose(Pose(1, 0, 1.0, math.nan, 0.0, math.inf)), Drop.NON_FINITE, "x = nan, heading = inf (not finite)"),
 ])
@@ -104,14 +124,22 @@ def _robot(command_latency: float = 0.0, flying_start: bool = True):
     settings = EmulatorSettings(command_latency=command_latency, command_timeout=0.25, flying_start=flying_start)
     robot = EmulatedRobot(spec, settings, said.append)
     robot.time = 100.0
+    robot.host_arrived(CLAIM, 100.0)
     return robot, said
+
+
+CLAIM, OTHER = 0x1234_5678_9ABC_DEF0, 0x0FED_CBA9_8765_4321
+
+
+def wheels(seq: int, deadline: float, left: float, right: float, claim: int = CLAIM) -> bytes:
+    return encode_wheels(WheelCommand(seq, deadline, left, right, claim))
 
 
 def test_emulated_robot_stands_until_commanded_then_drives_and_stops_at_the_deadline() -> None:
     robot, said = _robot()
     robot.advance(101.0)
     assert robot.state[:3] == [0.0, 0.0, 0.0]  # no command yet: it stands on its mark
-    robot.receive(encode_wheels(WheelCommand(1, 101.1, 0.3, 0.3)), 101.0)
+    robot.receive(wheels(1, 101.1, 0.3, 0.3), 101.0)
     assert robot.state[3:] == [0.3, 0.3]  # flying start: rolling at the config's initial speed
     robot.advance(101.1)
     assert robot.state[0] == pytest.approx(0.03, abs=1e-12)  # 0.1 s at 0.3 m/s, straight ahead
@@ -123,16 +151,45 @@ def test_emulated_robot_stands_until_commanded_then_drives_and_stops_at_the_dead
 
 def test_emulated_robot_applies_a_command_after_the_radio_latency_and_refuses_late_ones() -> None:
     robot, said = _robot(command_latency=0.02, flying_start=False)
-    robot.receive(encode_wheels(WheelCommand(1, 100.5, 0.2, 0.4)), 100.0)
+    robot.receive(wheels(1, 100.5, 0.2, 0.4), 100.0)
     robot.advance(100.019)
     assert robot.command == (0.0, 0.0)
     robot.advance(100.021)
     assert robot.command == (0.2, 0.4) and robot.command_seq == 1
-    robot.receive(encode_wheels(WheelCommand(2, 100.0, 0.1, 0.1)), 100.03)  # deadline already passed
-    robot.receive(encode_wheels(WheelCommand(2, 100.9, 0.1, 0.1)), 100.03)  # its sequence number again
+    robot.receive(wheels(2, 100.0, 0.1, 0.1), 100.03)  # deadline already passed
+    robot.receive(wheels(2, 100.9, 0.1, 0.1), 100.03)  # its sequence number again
+    robot.receive(wheels(3, 120.0, 0.1, 0.1), 100.03)  # a deadline 20 s ahead: would outlive any run's claim
     robot.receive(b"garbage", 100.03)
     assert robot.counters.dropped["late"] == 1 and robot.counters.dropped["duplicate"] == 1
+    assert robot.counters.dropped["future"] == 1
     assert robot.counters.dropped["malformed"] == 1 and robot.command == (0.2, 0.4)
+
+
+def test_only_the_claim_holding_the_robot_moves_it_and_nothing_sent_before_a_claim_counts() -> None:
+    """The issue's lock: a stop with sequence number 2^32 - 1 sent to an idle robot, then commands of
+    another claim (any number) during a run: refused and counted; the next claim drives from 1."""
+    from bridge.claim import claim_text
+
+    robot, said = _robot()
+    robot.claim.host_left(CLAIM)  # idle: nobody holds it
+    robot.receive(wheels(2**32 - 1, 100.05, 0.0, 0.0, claim=OTHER), 100.0)
+    robot.host_arrived(OTHER + 1, 100.0)  # a run claims it
+    robot.host_arrived(OTHER, 100.0)  # a second one (or a stranger's token) while it is held: not the owner
+    assert robot.claim.owner == OTHER + 1
+    robot.receive(wheels(1, 100.1, 0.3, 0.3, claim=OTHER + 1), 100.01)
+    robot.receive(wheels(2**32 - 1, 100.1, 0.9, -0.9, claim=OTHER), 100.02)  # the stranger, during the run
+    robot.receive(wheels(2, 100.1, 0.3, 0.3, claim=OTHER + 1), 100.03)
+    assert robot.command == (0.3, 0.3) and robot.command_seq == 2
+    status = decode_status(robot.status(100.04))
+    assert (status.owner, status.applied, status.accepted, status.dropped) == (OTHER + 1, 2, 2, 0)
+    assert (status.foreign, status.foreign_claim, status.flags) == (1, OTHER, STATUS_POSES)
+    assert any(f"of claim {claim_text(OTHER)}" in line and "refused" in line for line in said)
+    robot.host_gone(OTHER + 1, 100.05)  # the run released it: the wheels stop at once
+    assert robot.command == (0.0, 0.0) and robot.claim.owner == 0
+    robot.host_arrived(CLAIM, 100.1)  # the next run numbers from 1 again
+    robot.receive(wheels(1, 100.2, 0.2, 0.2), 100.11)
+    assert robot.command == (0.2, 0.2) and robot.command_seq == 1
+    assert robot.sample(100.12, random.Random(0)).claim == CLAIM
 
 
 def test_pacer_waits_for_each_point_and_counts_overruns() -> None:
@@ -303,37 +360,61 @@ def test_lost_robot_ends_the_run_within_5_s_with_a_stop_and_a_finalized_trace(
     assert any("-> error" in line.message for line in loaded.log)
 
 
-def test_garbage_on_the_pose_key_is_counted_and_ignored_and_ctrl_c_stops_the_robot(tmp_path: Path) -> None:
-    """A third session publishes every kind of bad pose to the run; the run drops and counts each,
-    the robot keeps its path; SIGINT ends the run with exit 130 after a stop command reached the robot."""
+def _claim_of(payload: bytes) -> int | None:
+    try:
+        return decode_pose(payload).claim
+    except MessageError:
+        return None
+
+
+def test_garbage_and_foreign_poses_and_commands_are_counted_and_ignored_and_ctrl_c_stops_the_robot(
+        tmp_path: Path) -> None:
+    """A stranger's session publishes every kind of bad pose to the run, a flood of well-formed poses
+    that are not the robot's (sequence numbers up to 2^32 - 1, far off the path), and wheel commands of
+    its own claims; the run drops and counts each, the robot keeps its path and obeys the run only, the
+    run names the stranger's claim; SIGINT ends it with exit 130 after a stop command reached the robot."""
+    from bridge.claim import claim_text
     from bridge.session import open_session, zenoh_config
 
     port, host_port = free_port(), free_port()
     trace = tmp_path / "garbage.mcap"
+    stranger_claim = 0x5757_5757_5757_5757
     with emulator(port, tmp_path) as (_, log):
         run = start_run(port, trace, 60.0, f'vehicles.3.listen=["{endpoint(host_port)}"]')
         wait_for_running(trace, run)
-        # the attacker's session meets the run (its listen port) and the emulator, to replay real poses
+        # the stranger's session meets the run (its listen port) and the emulator, to replay real poses
         with open_session(zenoh_config(connect=[endpoint(host_port), endpoint(port)]), "test") as session:
-            time.sleep(0.5)
             replayed: list[bytes] = []
             subscriber = session.declare_subscriber(KEYS.pose, lambda sample: replayed.append(sample.payload.to_bytes()))
-            good = encode_pose(Pose(1, 0, time.time(), 0.0, 0.0, 0.0))
+            deadline = time.monotonic() + 10
+            while len(replayed) < 10:
+                assert time.monotonic() < deadline, "no pose reached the stranger"
+                time.sleep(0.01)
+            claim = decode_pose(replayed[-1]).claim  # the run's claim, read off the wire
+            good = encode_pose(Pose(1, 0, time.time(), 0.0, 0.0, 0.0, claim))
             garbage = {
                 "oversized": [bytes(1000)] * 3,
                 "malformed": [good[:-4], good + b"\0"],
                 "version": [b"\x07" + good[1:]],
-                "non_finite": [encode_pose(Pose(2**31, 0, time.time(), math.nan, 0.0, 0.0)),
-                               encode_pose(Pose(2**31, 0, time.time(), 0.0, 0.0, math.inf))],
-                "late": [encode_pose(Pose(2**31, 0, time.time() - 5.0, 9.0, 9.0, 0.0))],
+                "non_finite": [encode_pose(Pose(2**31, 0, time.time(), math.nan, 0.0, 0.0, claim)),
+                               encode_pose(Pose(2**31, 0, time.time(), 0.0, 0.0, math.inf, claim))],
+                "late": [encode_pose(Pose(2**31, 0, time.time() - 5.0, 9.0, 9.0, 0.0, claim))],
             }
             for payloads in garbage.values():
                 for payload in payloads:
                     session.put(KEYS.pose, payload)
-            time.sleep(0.3)
-            for payload in list(replayed[-5:]):  # real poses again: duplicates (or out of order)
+            foreign = 0
+            for seq in range(200):  # 1 s at 200 Hz: poses 3 m off, of no claim or another one, numbered to 2^32 - 1
+                for other in (0, stranger_claim):
+                    session.put(KEYS.pose, encode_pose(Pose(2**32 - 200 + seq, 0, time.time(), 3.0, 3.0, 0.0, other)))
+                    foreign += 1
+                session.put(KEYS.wheels, encode_wheels(WheelCommand(2**32 - 200 + seq, time.time() + 0.1, 0.9, -0.9,
+                                                                    stranger_claim)))
+                time.sleep(0.005)
+            real = [payload for payload in replayed if _claim_of(payload) == claim]  # not its own
+            for payload in real[-5:]:  # the robot's poses again: duplicates (or out of order)
                 session.put(KEYS.pose, payload)
-            time.sleep(0.5)
+            time.sleep(1.0)
             subscriber.undeclare()
         run.send_signal(signal.SIGINT)
         code, _, err = finish(run, timeout=30)
@@ -341,14 +422,20 @@ def test_garbage_on_the_pose_key_is_counted_and_ignored_and_ctrl_c_stops_the_rob
         emulator_log = log.read_text()
     assert code == 130, err
     assert "robot 3: running -> stopped (stop command)" in emulator_log, emulator_log
+    assert f"of claim {claim_text(stranger_claim)}" in emulator_log and "refused" in emulator_log
     loaded = load(trace)
     import json
     stats = json.loads(loaded.metadata["platoon.hil"]["vehicle3"])
     for reason, payloads in garbage.items():
         assert stats[f"pose.dropped.{reason}"] == len(payloads), (reason, stats)
+    assert stats["pose.dropped.foreign"] == foreign, stats
     assert stats["pose.dropped.duplicate"] + stats["pose.dropped.out_of_order"] >= 4
+    assert stats["command.foreign"] == 200 and stats["command.foreign_claim"] == claim_text(stranger_claim), stats
+    assert stats["command.dropped"] == 0 and stats["command.accepted"] >= stats["command.sent"] - 5, stats
     assert loaded.live["vehicle3/link"]["pose.dropped.oversized"][-1] == 3
     assert any("dropped a message" in line.message for line in loaded.log)
+    assert any(f"refused 200 commands of other claims (the last of claim {claim_text(stranger_claim)})" in line.message
+               for line in loaded.log), [line.message for line in loaded.log]
     config = config_from_mapping(loaded.config)
     robot = loaded.component("vehicle3")
     assert np.abs(path_errors(config, robot["x"], robot["y"])).max() < 0.035  # never steered off (0.029 at start)
