@@ -176,12 +176,16 @@ class HostClaim:
     def interference(self) -> str:
         """Who else tried to drive the robot, as the robot side reported it ("" if nobody)."""
         status = self.status
-        if status is None or not (status.foreign or status.invalid):
+        if status is None:
             return ""
-        parts = []
-        if status.foreign:
-            parts.append(f"{status.foreign} commands of other claims (the last of claim "
-                         f"{claim_text(status.foreign_claim)})")
-        if status.invalid:
-            parts.append(f"{status.invalid} invalid commands")
-        return "the robot side refused " + " and ".join(parts)
+        return describe_interference(status.foreign, status.invalid, claim_text(status.foreign_claim))
+
+
+def describe_interference(foreign: int, invalid: int, foreign_claim: str) -> str:
+    """The robot side's refusals in words (also for the run's summary table, from the link statistics)."""
+    parts = []
+    if foreign:
+        parts.append(f"{foreign} commands of other claims (the last of claim {foreign_claim})")
+    if invalid:
+        parts.append(f"{invalid} invalid commands")
+    return "the robot side refused " + " and ".join(parts) if parts else ""

@@ -39,6 +39,8 @@ def ms_text(value: Any) -> str:
 
 def live_table(summary: dict[str, dict[str, Any]]) -> Table:
     """Pacing and link statistics of a live run, one row per live vehicle (fits 80 columns)."""
+    from bridge.claim import describe_interference
+
     pacing = summary.get("pacing", {})
     title = (f"live: step jitter median {ms_text(pacing.get('jitter.median'))} ms, p99 {ms_text(pacing.get('jitter.p99'))} ms, "
              f"max {ms_text(pacing.get('jitter.max'))} ms; overruns {pacing.get('overruns', 0)} of {pacing.get('points', 0)}")
@@ -52,6 +54,10 @@ def live_table(summary: dict[str, dict[str, Any]]) -> Table:
         dropped = {k.split(".")[-1]: v for k, v in stats.items() if k.startswith("pose.dropped.") and v}
         if dropped:
             notes.append(f"{name} dropped: " + ", ".join(f"{reason} {count}" for reason, count in dropped.items()))
+        refused = describe_interference(int(stats.get("command.foreign", 0)), int(stats.get("command.invalid", 0)),
+                                        str(stats.get("command.foreign_claim", "")))
+        if refused:
+            notes.append(f"{name}: {refused}")
         rows.append((
             name, str(stats.get("robot", "")), str(stats.get("state", "")), str(stats.get("command.sent", 0)),
             str(stats.get("pose.accepted", 0)), str(sum(dropped.values())),

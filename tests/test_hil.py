@@ -13,6 +13,7 @@ import math
 import os
 import random
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -264,15 +265,15 @@ def finish(process: subprocess.Popen, timeout: float = 120) -> tuple[int, str, s
     return process.returncode, out, err
 
 
-def wait_for_running(trace: Path, process: subprocess.Popen, seconds: float = 30) -> None:
-    """Until the run is stepping (its trace file has grown past the header), then a little longer."""
+def wait_for_running(trace: Path, process: subprocess.Popen, seconds: float = 30, settle: float = 1.0) -> None:
+    """Until the run is stepping (its trace file has grown past the header), then ``settle`` s longer."""
     deadline = time.monotonic() + seconds
     aside = trace.with_name(trace.name + ".partial")  # written there until finalized (docs/trace-format.md)
     while not (aside.exists() and aside.stat().st_size > 2000):
         assert process.poll() is None, process.communicate()
         assert time.monotonic() < deadline, "the run did not start"
         time.sleep(0.05)
-    time.sleep(1.0)
+    time.sleep(settle)
 
 
 def test_live_robot_tracks_the_all_fmu_run(tmp_path: Path) -> None:
@@ -458,3 +459,124 @@ def test_live_run_options_that_cannot_work_are_usage_errors(tmp_path: Path) -> N
     result = subprocess.run([str(PLATOON), "m3pi-emulator", "--config", str(REPO / "configs/paper/m3pi.toml")],
                             cwd=REPO, env=_env(), capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and "no live vehicle" in result.stderr
+
+
+# -- a shared network: strangers, sockets --------------------------------------------------------------
+
+# These tests are about who drives the robot, not timing: a loaded machine (2 cores, other test runs) may
+# stall the emulator for a few hundred ms, which the defaults (0.5 s, 0.25 s) would take for a lost robot.
+PATIENT = ("hil.pose_timeout=3.0", "hil.max_pose_age=2.0")
+
+
+def wait_for_driving(log: Path, runs: int, process: subprocess.Popen, seconds: float = 30) -> None:
+    """Until the emulator applied the first command of its ``runs``-th run (the run is stepping)."""
+    deadline = time.monotonic() + seconds
+    while log.read_text().count("-> running (command 1)") < runs:
+        assert process.poll() is None, process.communicate()
+        assert time.monotonic() < deadline, "the run did not start driving"
+        time.sleep(0.02)
+
+
+def listening_sockets(pid: int) -> set[str]:
+    """Every socket process ``pid`` (and its children) listens on: TCP in LISTEN, UDP bound without a peer."""
+    psutil = pytest.importorskip("psutil")
+    process = psutil.Process(pid)
+    found = set()
+    for member in (process, *process.children(recursive=True)):
+        for connection in member.net_connections(kind="inet"):
+            listening = connection.status == psutil.CONN_LISTEN if connection.type == socket.SOCK_STREAM \
+                else not connection.raddr
+            if listening:
+                kind = "tcp" if connection.type == socket.SOCK_STREAM else "udp"
+                found.add(f"{kind}/{connection.laddr.ip}:{connection.laddr.port}")
+    return found
+
+
+def stranger_commands(session, claim: int) -> None:
+    """What a stranger can send without reading the traffic: stop and full-speed commands numbered up to
+    2^32 - 1, of no claim and of a claim of its own, and one in the old version-1 layout."""
+    import struct
+
+    now = time.time()
+    for seq in (1, 2**31, 2**32 - 1):
+        for other in (0, claim):
+            session.put(KEYS.wheels, encode_wheels(WheelCommand(seq, now + 2.0, 0.0, 0.0, other)))
+            session.put(KEYS.wheels, encode_wheels(WheelCommand(seq, now + 2.0, 1.0, -1.0, other)))
+    session.put(KEYS.wheels, struct.pack("<BBHIddd", 1, 2, 0, 2**32 - 1, now + 2.0, 1.0, 1.0))
+
+
+def drove(trace: Path, seconds: float) -> float:
+    """How far the live robot went in ``trace`` (m), after checking that it applied the run's commands."""
+    loaded = load(trace)
+    assert loaded.run["status"] == "completed"
+    poses = loaded.live["vehicle3/pose"]
+    assert poses["command_seq"].max() >= 0.9 * seconds / 0.01  # it applied (nearly) every command of the run
+    x, y = loaded.component("vehicle3")["x"], loaded.component("vehicle3")["y"]
+    return float(np.hypot(np.diff(x), np.diff(y)).sum())
+
+
+def test_strangers_commands_never_move_the_robot_and_runs_back_to_back_drive_listening_only_where_named(
+        tmp_path: Path) -> None:
+    """A stranger sends commands to the idle emulator (a stop numbered 2^32 - 1 included), then two runs
+    drive it back to back, with more of the stranger's commands between and during them. Both runs
+    drive the whole way (0.35 m/s: about 1 m in 3 s); the robot side refuses the stranger's commands
+    and the run names its claim. During each run the run and the emulator listen only on the endpoints
+    they were given: the emulator on its port, the first run on its listen port, the second (which
+    only connects) nowhere."""
+    from bridge.claim import claim_text
+    from bridge.session import open_session, zenoh_config
+
+    port, host_port = free_port(), free_port()
+    stranger_claim = 0x5757_5757_5757_5757
+    with emulator(port, tmp_path) as (robot, log), \
+            open_session(zenoh_config(connect=[endpoint(port)]), "stranger") as stranger:
+        time.sleep(0.5)
+        stranger_commands(stranger, stranger_claim)
+        for runs, listen in enumerate(([endpoint(host_port)], []), start=1):
+            trace = tmp_path / f"run{runs}.mcap"
+            run = start_run(port, trace, 3.0, f"vehicles.3.listen={listen!r}".replace("'", '"'), *PATIENT)
+            wait_for_driving(log, runs, run)
+            sockets = {"run": listening_sockets(run.pid), "emulator": listening_sockets(robot.pid)}
+            stranger_commands(stranger, stranger_claim)
+            code, out, err = finish(run)
+            assert code == 0, err
+            assert sockets == {"run": {f"tcp/127.0.0.1:{host_port}"} if listen else set(),
+                               "emulator": {f"tcp/127.0.0.1:{port}"}}, (runs, sockets)
+            assert drove(trace, 3.0) > 0.8, runs
+            said = " ".join((out + err).split())  # the table's notes wrap
+            assert f"refused 12 commands of other claims (the last of claim {claim_text(stranger_claim)}) and 1 " \
+                   "invalid" in said, said
+            stranger_commands(stranger, stranger_claim)
+    assert "protocol version 1, expected 2" in log.read_text()
+
+
+def test_a_robot_that_obeys_someone_else_ends_the_run_non_zero_and_stops(tmp_path: Path) -> None:
+    """A stranger who reads the run's claim off the wire and commands the robot with it: the robot's pose
+    echoes a command the run never sent, the run ends with exit 1 saying so, keeps the trace, stops."""
+    from bridge.session import open_session, zenoh_config
+
+    port, host_port = free_port(), free_port()
+    trace = tmp_path / "hijacked.mcap"
+    with emulator(port, tmp_path) as (_, log):
+        run = start_run(port, trace, 30.0, f'vehicles.3.listen=["{endpoint(host_port)}"]', *PATIENT)
+        wait_for_driving(log, 1, run)
+        # a peer does not forward between two others: the stranger meets the run to hear its commands
+        with open_session(zenoh_config(connect=[endpoint(port), endpoint(host_port)]), "stranger") as session:
+            commands: list[bytes] = []
+            subscriber = session.declare_subscriber(KEYS.wheels, lambda sample: commands.append(sample.payload.to_bytes()))
+            deadline = time.monotonic() + 10
+            while not commands:
+                assert time.monotonic() < deadline, "no command reached the stranger"
+                time.sleep(0.01)
+            claim = decode_wheels(commands[-1]).claim
+            session.put(KEYS.wheels, encode_wheels(WheelCommand(2**31, time.time() + 1.0, 0.5, -0.5, claim)))
+            code, _, err = finish(run, timeout=30)
+            subscriber.undeclare()
+        time.sleep(0.3)
+    assert code == 1, err
+    assert "robot 3 (platoon/m3pi/3) does not obey this run: the robot applied command 2147483648 of this run's claim" \
+           in err and "someone else drives it with this run's claim" in err, err
+    loaded = load(trace)
+    assert loaded.run["status"] == "failed" and "does not obey this run" in loaded.run["error"]
+    emulator_log = log.read_text()
+    assert "released" in emulator_log and "-> stopped" in emulator_log.split("released")[-1] + emulator_log
