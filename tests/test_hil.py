@@ -432,7 +432,8 @@ def test_garbage_and_foreign_poses_and_commands_are_counted_and_ignored_and_ctrl
     assert stats["pose.dropped.foreign"] == foreign, stats
     assert stats["pose.dropped.duplicate"] + stats["pose.dropped.out_of_order"] >= 4
     assert stats["command.foreign"] == 200 and stats["command.foreign_claim"] == claim_text(stranger_claim), stats
-    assert stats["command.dropped"] == 0 and stats["command.accepted"] >= stats["command.sent"] - 5, stats
+    # the last status may be up to 50 ms old: 5 steps' commands and the 3 stops can be missing from it
+    assert stats["command.dropped"] == 0 and stats["command.accepted"] >= stats["command.sent"] - 10, stats
     assert loaded.live["vehicle3/link"]["pose.dropped.oversized"][-1] == 3
     assert any("dropped a message" in line.message for line in loaded.log)
     assert any(f"refused 200 commands of other claims (the last of claim {claim_text(stranger_claim)})" in line.message
