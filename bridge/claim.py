@@ -74,6 +74,7 @@ class RobotClaim:
     foreign: int = 0
     invalid: int = 0
     foreign_claim: int = 0
+    released: int = 0  # the claim that ended last: its stragglers are late, not foreign
 
     def host_appeared(self, claim: int) -> bool:
         """A host's token appeared; True if that claim is now the owner (the robot was free)."""
@@ -90,7 +91,7 @@ class RobotClaim:
         self.hosts.discard(claim)
         if claim != self.owner:
             return False
-        self.owner = 0
+        self.owner, self.released = 0, claim
         return True
 
     def check(self, payload: bytes, now: float, what: str) -> WheelCommand:
@@ -101,6 +102,9 @@ class RobotClaim:
         except MessageError:
             self.invalid += 1
             raise
+        if command.claim == self.released and not self.owner:  # its last stop, overtaken by the token's going
+            raise MessageError(Drop.LATE, f"wheel command {command.seq} of claim {claim_text(command.claim)}: "
+                                          "arrived after its claim ended")
         if not self.owner or command.claim != self.owner:
             self.foreign += 1
             self.foreign_claim = command.claim

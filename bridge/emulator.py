@@ -186,6 +186,7 @@ class EmulatedRobot:
                      "holds the robot; its commands are refused")
             return
         self.claim_changed = True
+        self._warned.clear()  # each run's log names the first drop of each kind during its claim
         self.say(f"{name}: claimed by {claim_text(claim)}")
         self.pending.clear()
         self.command_seq = 0

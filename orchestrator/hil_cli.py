@@ -202,10 +202,50 @@ def m3pi_serial(
         _fail(2, str(error))
 
 
+def hil_certs(
+    folder: Annotated[Path, typer.Argument(metavar="DIR", help="where the lab CA and the hosts' Zenoh configs go")],
+    run_hosts: Annotated[list[str], typer.Option("--run-host", metavar="HOST=ROBOTS",
+                                                 help="a host that runs `platoon run` and may drive these robots, "
+                                                      "e.g. laptop=3,4 (repeatable)")] = [],
+    robot_sides: Annotated[list[str], typer.Option("--robot-side", metavar="HOST=ROBOTS",
+                                                   help="a host with the emulator, m3pi-serial or motion capture of "
+                                                        "these robots, e.g. xbee-pc=3,4 (repeatable)")] = [],
+    addresses: Annotated[list[str], typer.Option("--address", metavar="HOST=ADDRESS",
+                                                 help="a DNS name or IP peers reach HOST at (repeatable; localhost "
+                                                      "and 127.0.0.1 are always in)")] = [],
+    prefix: Annotated[str, typer.Option(metavar="PREFIX", help="the lab's Zenoh key prefix (hil.prefix)")] = "platoon",
+    days: Annotated[int, typer.Option(min=1, help="validity of new certificates")] = 365,
+) -> None:
+    """Create a lab CA, a certificate per host and each host's Zenoh config (mutual TLS, access control)."""
+    from bridge.lab import Lab, LabError, parse_assignment, write_lab
+
+    from .cli import _fail
+
+    try:
+        lab = Lab(prefix=prefix)
+        for option, texts, table in (("--run-host", run_hosts, lab.run_hosts), ("--robot-side", robot_sides, lab.robot_sides)):
+            for text in texts:
+                name, robots = parse_assignment(text, option)
+                table.setdefault(name, set()).update(robots)
+        for text in addresses:
+            name, _, address = text.partition("=")
+            if not name or not address:
+                raise LabError(f"--address {text!r}: expected HOST=ADDRESS, e.g. xbee-pc=192.168.1.20")
+            lab.addresses.setdefault(name, []).append(address)
+        written, new_ca = write_lab(lab, folder, days)
+    except (LabError, OSError) as error:
+        _fail(2, str(error))
+    ca = "new lab CA" if new_ca else "the lab CA already there"
+    print(f"{ca}: {folder / 'ca.pem'} (its key {folder / 'ca.key'} signs hosts: keep it off the lab's machines)")
+    for path in written:
+        print(f"{path.stem}: {path}")
+
+
 def register(app: typer.Typer, bench_app: typer.Typer) -> None:
     """Add the hardware-in-the-loop commands to ``platoon`` (and their benchmark to ``platoon bench``)."""
     app.command("m3pi-emulator")(m3pi_emulator)
     app.command("m3pi-serial")(m3pi_serial)
+    app.command("hil-certs")(hil_certs)
     from .bench.hil import bench_hil
 
     bench_app.command("hil")(bench_hil)
