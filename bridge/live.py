@@ -58,6 +58,9 @@ from .session import SessionError, open_session, zenoh_config
 from .states import LinkState, StateMachine
 
 STOP_REPEATS = 3  # a stop command is sent this many times: one lost message must not keep a robot going
+# s between the last stop command and the claim's release: Zenoh may deliver the token's removal ahead of
+# the data sent just before it, and the robot side then counts the last stop as arriving after its claim
+RELEASE_DELAY = 0.02
 
 
 @dataclass(frozen=True)
@@ -382,6 +385,7 @@ class LiveVehicle:
             self._events.append(LiveEvent("Warning", f"{self.what}: {interference}"))
         if self.state.state != LinkState.STOPPED:
             self.state.go(LinkState.STOPPED, "run ended; stop command sent")
+        time.sleep(RELEASE_DELAY)
         self._released = True  # what arrives from now on is not counted: the claim is being released
         for resource in reversed(self._resources):
             try:
