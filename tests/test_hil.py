@@ -19,7 +19,7 @@ import sys
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 import numpy as np
 import pytest
@@ -276,6 +276,23 @@ def wait_for_running(trace: Path, process: subprocess.Popen, seconds: float = 30
     time.sleep(settle)
 
 
+def assert_tracks_the_all_fmu_run(live: Path, simulated: Path) -> Any:
+    """Run the 10 s all-FMU reference into ``simulated``; every vehicle of the live trace within 3 mm of it
+    (why 3 mm: test_live_robot_tracks_the_all_fmu_run). Returns the live trace, loaded."""
+    reference = subprocess.run([str(PLATOON), "run", str(LIVE3), "-q", "--engine", "python", "--out", str(simulated),
+                                "--set", "simulation.stop_time=10.0", "--set", "vehicles.3.endpoint=fmu"],
+                               cwd=REPO, env=_env(), capture_output=True, text=True, timeout=120)
+    assert reference.returncode == 0, reference.stderr
+    a, b = load(live), load(simulated)
+    for vehicle in a.vehicles():
+        x, y = a.component(vehicle)["x"], a.component(vehicle)["y"]
+        assert len(x) == len(b.component(vehicle)["x"]) == 1001
+        distance = np.hypot(x - b.component(vehicle)["x"], y - b.component(vehicle)["y"])
+        assert distance.max() < 3e-3, (f"{vehicle}: {distance.max():.2e} m at t = {np.argmax(distance) * 0.01:.2f} s",
+                                       a.metadata["platoon.hil"]["pacing"])
+    return a
+
+
 def test_live_robot_tracks_the_all_fmu_run(tmp_path: Path) -> None:
     """At zero noise and latency the live robot's platoon matches the all-FMU run to a few mm.
 
@@ -297,16 +314,7 @@ def test_live_robot_tracks_the_all_fmu_run(tmp_path: Path) -> None:
         assert again == 0, err_again
         assert "back on the initial pose" in log.read_text()
     assert "running -> stopped (stop command)" in log.read_text() or "host's liveliness token dropped" in log.read_text()
-    reference = subprocess.run([str(PLATOON), "run", str(LIVE3), "-q", "--engine", "python", "--out", str(simulated),
-                                "--set", "simulation.stop_time=10.0", "--set", "vehicles.3.endpoint=fmu"],
-                               cwd=REPO, env=_env(), capture_output=True, text=True, timeout=120)
-    assert reference.returncode == 0, reference.stderr
-    a, b = load(live), load(simulated)
-    for vehicle in a.vehicles():
-        x, y = a.component(vehicle)["x"], a.component(vehicle)["y"]
-        assert len(x) == len(b.component(vehicle)["x"]) == 1001
-        distance = np.hypot(x - b.component(vehicle)["x"], y - b.component(vehicle)["y"])
-        assert distance.max() < 3e-3, f"{vehicle}: {distance.max():.2e} m"
+    a = assert_tracks_the_all_fmu_run(live, simulated)
     # the live vehicle's raw link, its statistics and its states are in the same trace
     assert {"vehicle3/pose", "vehicle3/command", "vehicle3/link"} <= set(a.live)
     assert len(a.live["vehicle3/command"]["seq"]) >= 1000

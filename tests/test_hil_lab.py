@@ -13,7 +13,6 @@ import subprocess
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 import zenoh
 from cryptography import x509
@@ -22,7 +21,8 @@ from bridge.lab import Lab, make_ca, make_host_certificate, write_lab, zenoh_lab
 from bridge.session import SessionError, open_session, zenoh_config
 from orchestrator.bench.hil import free_port
 from orchestrator.trace import load
-from tests.test_hil import KEYS, LIVE3, PATIENT, PLATOON, REPO, _env, finish, start_run, stranger_commands
+from tests.test_hil import (KEYS, LIVE3, PATIENT, PLATOON, REPO, _env, assert_tracks_the_all_fmu_run, finish,
+                            start_run, stranger_commands)
 
 LAB = Lab(run_hosts={"laptop": {3}, "desk": {5}}, robot_sides={"xbee-pc": {3, 5}},
           addresses={"xbee-pc": ["192.168.1.20", "xbee-pc.lab"]})
@@ -173,14 +173,4 @@ def test_with_tls_and_acl_strangers_cannot_connect_or_drive_and_the_platoon_trac
     assert "commands received" in emulator_log and "foreign=" not in emulator_log, emulator_log
     stats = json.loads(load(trace).metadata["platoon.hil"]["vehicle3"])
     assert stats["command.foreign"] == 0 and stats["command.invalid"] == 0 and stats["pose.dropped.foreign"] == 0
-    reference = tmp_path / "fmu.mcap"
-    simulated = subprocess.run([str(PLATOON), "run", str(LIVE3), "-q", "--engine", "python", "--out", str(reference),
-                                "--set", "simulation.stop_time=10.0", "--set", "vehicles.3.endpoint=fmu"],
-                               cwd=REPO, env=_env(), capture_output=True, text=True, timeout=120)
-    assert simulated.returncode == 0, simulated.stderr
-    a, b = load(trace), load(reference)
-    for vehicle in a.vehicles():
-        distance = np.hypot(a.component(vehicle)["x"] - b.component(vehicle)["x"],
-                            a.component(vehicle)["y"] - b.component(vehicle)["y"])
-        assert distance.max() < 3e-3, (f"{vehicle}: {distance.max():.2e} m at t = {np.argmax(distance) * 0.01:.2f} s",
-                                       a.metadata["platoon.hil"]["pacing"])
+    assert_tracks_the_all_fmu_run(trace, tmp_path / "fmu.mcap")
