@@ -163,12 +163,12 @@ class HostClaim:
 
     def robot_status(self, status: Status, sent: int) -> None:
         """Take a robot side's status: ``NotDriving`` if it obeyed or refused what it must not."""
-        if status.flags & STATUS_POSES:
-            self.echoes = True
         if status.owner != self.claim:
             self.other_owner = status.owner
             return
         self.granted, self.status, self.other_owner = True, status, 0
+        if status.flags & STATUS_POSES:  # only the claimed robot side says how to tell its poses
+            self.echoes = True
         if status.applied > sent:
             raise NotDriving(f"the robot side applied command {status.applied} of this run's claim, but the run sent "
                              f"only {sent}: someone else drives it with this run's claim")
