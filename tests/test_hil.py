@@ -193,6 +193,30 @@ def test_only_the_claim_holding_the_robot_moves_it_and_nothing_sent_before_a_cla
     assert robot.sample(100.12, random.Random(0)).claim == CLAIM
 
 
+def test_the_run_tells_its_robots_poses_from_foreign_ones_and_notices_when_the_robot_obeys_someone_else() -> None:
+    from bridge.claim import HostClaim, NotDriving
+
+    host = HostClaim(claim=CLAIM)
+    host.accept(Pose(5, 0, 1.0, 0.0, 0.0, 0.0, claim=0), sent=0)  # before the grant: a pose of no claim is fine
+    host.robot_status(Status(1, OTHER, 0, 0, 0, 0, 0, 0, 1.0, STATUS_POSES), sent=0)  # someone else's: ignored
+    assert not host.echoes and not host.granted and host.other_owner == OTHER
+    host.robot_status(Status(2, CLAIM, 0, 0, 0, 0, 0, 0, 1.0, STATUS_POSES), sent=0)
+    assert host.granted and host.echoes
+    for pose in (Pose(2**32 - 1, 0, 1.0, 3.0, 3.0, 0.0, claim=0), Pose(2**32 - 1, 0, 1.0, 3.0, 3.0, 0.0, claim=OTHER)):
+        with pytest.raises(MessageError, match="another publisher on the pose key") as foreign:
+            host.source(pose)
+        assert foreign.value.reason is Drop.FOREIGN
+    host.source(Pose(1, 0, 1.0, 0.0, 0.0, 0.0, claim=CLAIM))
+    host.accept(Pose(1, 0, 1.0, 0.0, 0.0, 0.0, claim=CLAIM), sent=3)  # its own numbering, not locked by pose 5
+    with pytest.raises(NotDriving, match="applied command 9 of this run's claim .* but the run sent only 3"):
+        host.accept(Pose(2, 9, 1.0, 0.0, 0.0, 0.0, claim=CLAIM), sent=3)
+    with pytest.raises(NotDriving, match="refused most of this run's commands: accepted 20, dropped 30 of 50"):
+        host.robot_status(Status(3, CLAIM, 20, 20, 30, 0, 0, 0, 1.0, STATUS_POSES), sent=50)
+    host.robot_status(Status(4, CLAIM, 48, 48, 2, 7, 1, OTHER, 1.0, STATUS_POSES), sent=50)
+    assert host.interference() == (f"the robot side refused 7 commands of other claims (the last of claim {OTHER:016x})"
+                                   " and 1 invalid commands")
+
+
 def test_pacer_waits_for_each_point_and_counts_overruns() -> None:
     now = [10.0]
 
