@@ -23,7 +23,7 @@ from bridge.protocol import decode_wheels
 from orchestrator.bench.hil import free_port
 from orchestrator.config import load_config
 from orchestrator.metrics import path_errors
-from tests.test_hil import KEYS, LIVE3, emulator, endpoint
+from tests.test_hil import KEYS, LIVE3, emulator, endpoint, listening_sockets
 from tests.test_ssp import platoon
 
 pytest.importorskip("libcosimpy")
@@ -101,6 +101,9 @@ def test_a_lost_robot_fails_the_step_with_its_reason_after_a_stop_command(tmp_pa
                 assert run.poll() is None, run.communicate()[0]
                 assert time.monotonic() < deadline, "the live FMU never commanded the robot"
                 time.sleep(0.05)
+            # the FMU's session listens where hil.listen says, nowhere else (the emulator: its port)
+            assert listening_sockets(run.pid) == {f"tcp/127.0.0.1:{host_port}"}
+            assert listening_sockets(robot.pid) == {f"tcp/127.0.0.1:{port}"}
             with open_session(zenoh_config(connect=[endpoint(host_port)]), "test") as session:
                 subscriber = session.declare_subscriber(
                     KEYS.wheels, lambda sample: commands.append(decode_wheels(sample.payload.to_bytes())))
