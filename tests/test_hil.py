@@ -602,7 +602,8 @@ def test_a_robot_that_obeys_someone_else_ends_the_run_non_zero_and_stops(tmp_pat
                 assert time.monotonic() < deadline, "no command reached the stranger"
                 time.sleep(0.01)
             claim = decode_wheels(commands[-1]).claim
-            session.put(KEYS.wheels, encode_wheels(WheelCommand(2**31, time.time() + 1.0, 0.5, -0.5, claim)))
+            hijacked = time.time()
+            session.put(KEYS.wheels, encode_wheels(WheelCommand(2**31, hijacked + 1.0, 0.5, -0.5, claim)))
             code, _, err = finish(run, timeout=30)
             subscriber.undeclare()
         time.sleep(0.3)
@@ -611,5 +612,8 @@ def test_a_robot_that_obeys_someone_else_ends_the_run_non_zero_and_stops(tmp_pat
            in err and "someone else drives it with this run's claim" in err, err
     loaded = load(trace)
     assert loaded.run["status"] == "failed" and "does not obey this run" in loaded.run["error"]
+    stopped = loaded.live["vehicle3/command"]["sent"].max() - hijacked  # the stops are the run's last commands
+    print(f"\n[hijacked claim] the run sent its stop commands {stopped * 1e3:.1f} ms after the hijacking command")
+    assert stopped > 0
     emulator_log = log.read_text()
     assert "released" in emulator_log and "-> stopped" in emulator_log.split("released")[-1] + emulator_log
