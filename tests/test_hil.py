@@ -621,3 +621,15 @@ def test_a_robot_that_obeys_someone_else_ends_the_run_non_zero_and_stops(tmp_pat
     assert stopped > 0
     emulator_log = log.read_text()
     assert "released" in emulator_log and "-> stopped" in emulator_log.split("released")[-1] + emulator_log
+
+
+def test_a_run_whose_commands_the_robot_side_mostly_refuses_ends_non_zero(tmp_path: Path) -> None:
+    """Commands valid for 1 us reach the emulator after their deadline (encoding and the transport alone
+    take tens of us): it drops them as late and says so on its status; after 50 the run ends with exit 1."""
+    port = free_port()
+    trace = tmp_path / "refused.mcap"
+    with emulator(port, tmp_path):
+        code, _, err = finish(start_run(port, trace, 10.0, "hil.command_validity=0.000001", *PATIENT), timeout=60)
+    assert code == 1, err
+    assert "robot 3 (platoon/m3pi/3) does not obey this run: the robot side refused most of this run's commands" in err
+    assert load(trace).run["status"] == "failed"
