@@ -71,6 +71,8 @@ LIVE3_EMULATOR_4 = (".venv/bin/platoon m3pi-emulator --config configs/hil/m3pi_l
                     "--set 'vehicles.4.connect=[\"tcp/127.0.0.1:7447\"]' &")
 LIVE3_RUN_4 = (".venv/bin/platoon run configs/hil/m3pi_live3.toml --set vehicles.4.endpoint=zenoh "
                "--set 'vehicles.4.connect=[\"tcp/127.0.0.1:7447\"]'")
+LAB_RUN = (".venv/bin/platoon run configs/hil/m3pi_live3.toml --set simulation.stop_time=10 --set "
+           "'vehicles.3.connect=[\"tls/127.0.0.1:7450\"]' --set 'vehicles.3.zenoh_config=\"/tmp/lab/laptop.json5\"'")
 REAL_ROBOT_RUN = ".venv/bin/platoon run configs/hil/m3pi_live3.toml --set 'vehicles.3.connect=[\"tcp/127.0.0.1:7448\", \"tcp/127.0.0.1:7449\"]'"
 
 # (doc, command as written, without a trailing comment) -> how it is run instead, and why
@@ -92,6 +94,7 @@ SPECIAL: dict[tuple[str, str], Shorten | Parse | Skip | Expect] = {
         Shorten(".venv/bin/platoon run configs/hil/m3pi_live3.toml --set simulation.stop_time=10 --out /tmp/hil-doc.mcap" + SHORT,
                 "a live run is paced to the wall clock: 10 s as written"),
     ("docs/hil.md", LIVE3_RUN_4): Shorten(LIVE3_RUN_4 + SHORT, "a live run is paced to the wall clock: 60 s as written"),
+    ("docs/hil.md", LAB_RUN): Shorten(LAB_RUN + SHORT, "a live run is paced to the wall clock: 10 s as written"),
     ("docs/hil.md", ".venv/bin/platoon m3pi-serial --port /dev/ttyUSB0 --id 3 --listen tcp/127.0.0.1:7448 --max-speed 0.8 &"):
         Parse("needs a real m3pi behind an XBee on /dev/ttyUSB0"),
     ("docs/hil.md", "python mocap.py &"): Skip("a sketch to fill in with a real motion capture's reading (read_tracker)"),

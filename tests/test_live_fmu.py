@@ -23,7 +23,7 @@ from bridge.protocol import decode_wheels
 from orchestrator.bench.hil import free_port
 from orchestrator.scenario.config import load_config
 from orchestrator.analysis.metrics import path_errors
-from tests.test_hil import KEYS, LIVE3, emulator, endpoint, wait_for
+from tests.test_hil import KEYS, LIVE3, emulator, endpoint, listening_sockets, wait_for
 from tests.test_ssp import platoon
 
 pytest.importorskip("libcosimpy")
@@ -100,6 +100,9 @@ def test_a_lost_robot_fails_the_step_with_its_reason_after_a_stop_command(tmp_pa
         run = libcosim(package, tmp_path)
         try:
             wait_for(lambda: "configured -> running" in log.read_text(), "the live FMU commands the robot", run)
+            # the FMU's session listens where hil.listen says, nowhere else (the emulator: its port)
+            assert listening_sockets(run.pid) == {f"tcp/127.0.0.1:{host_port}"}
+            assert listening_sockets(robot.pid) == {f"tcp/127.0.0.1:{port}"}
             with open_session(zenoh_config(connect=[endpoint(host_port)]), "test") as session:
                 subscriber = session.declare_subscriber(
                     KEYS.wheels, lambda sample: commands.append(decode_wheels(sample.payload.to_bytes())))

@@ -18,7 +18,7 @@ from typing import Iterator
 import pytest
 import zenoh
 
-from bridge.protocol import LinkCounters, RobotKeys, WheelCommand, encode_wheels
+from bridge.protocol import LinkCounters, RobotKeys, WheelCommand, decode_status, encode_wheels
 from bridge.serial_endpoint import (
     SEND_SIGNATURE,
     STOP_FRAME,
@@ -231,6 +231,9 @@ class StderrLog:
         return self.text
 
 
+CLAIM = 0x00C0_FFEE_0000_0003
+
+
 def test_serial_endpoint_end_to_end(pty: Pty, capsys: pytest.CaptureFixture[str]) -> None:
     scale = SpeedScale(max_speed=0.8)
     # The endpoint's command timeout, far from the deadlines below: each stop's cause is the one its log
@@ -249,7 +252,9 @@ def test_serial_endpoint_end_to_end(pty: Pty, capsys: pytest.CaptureFixture[str]
 
         with host_session(port) as session:
             wait_for_token(session, keys.alive)
-            host_token = session.liveliness().declare_token(keys.host)
+            host_token = session.liveliness().declare_token(keys.host(CLAIM))
+            statuses: queue.Queue[bytes] = queue.Queue()
+            status_subscriber = session.declare_subscriber(keys.status, lambda s: statuses.put(s.payload.to_bytes()))
             log.wait_for("configured -> synchronized (host present)")
             publisher = session.declare_publisher(keys.wheels, congestion_control=zenoh.CongestionControl.BLOCK)
             seq = 0
@@ -258,7 +263,7 @@ def test_serial_endpoint_end_to_end(pty: Pty, capsys: pytest.CaptureFixture[str]
                 nonlocal seq
                 seq += 1
                 sent = time.time()
-                publisher.put(encode_wheels(WheelCommand(seq, sent + deadline_in, left, right)))
+                publisher.put(encode_wheels(WheelCommand(seq, sent + deadline_in, left, right, CLAIM)))
                 return sent
 
             def expect(left: float, right: float) -> float:
@@ -274,11 +279,15 @@ def test_serial_endpoint_end_to_end(pty: Pty, capsys: pytest.CaptureFixture[str]
                 command(left, right)
                 expect(left, right)
             assert "synchronized -> running (valid command 1)" in log.read()
-            wait_for_token(session, keys.busy)  # driven now: a second run would refuse to start
+            status = decode_status(statuses.get(timeout=WAIT))  # the claim, reported 20 times a second
+            while status.accepted < 5:
+                status = decode_status(statuses.get(timeout=WAIT))
+            assert (status.owner, status.applied, status.accepted, status.foreign) == (CLAIM, 5, 5, 0)
 
-            # Malformed, duplicate and late commands are dropped: the next frame is the next valid command.
+            # Malformed, duplicate, late and foreign commands are dropped: the next frame is the next valid command.
             publisher.put(b"\x01\x02garbage")
-            publisher.put(encode_wheels(WheelCommand(seq, time.time() + 2.0, -0.8, -0.8)))  # seq again
+            publisher.put(encode_wheels(WheelCommand(seq, time.time() + 2.0, -0.8, -0.8, CLAIM)))  # seq again
+            publisher.put(encode_wheels(WheelCommand(2**32 - 1, time.time() + 2.0, 0.8, 0.8, CLAIM + 1)))  # a stranger
             command(0.7, 0.7, deadline_in=-1.0)  # deadline already passed
             command(-0.2, 0.2)
             expect(-0.2, 0.2)  # the next frame, so the three before it wrote none
@@ -309,6 +318,7 @@ def test_serial_endpoint_end_to_end(pty: Pty, capsys: pytest.CaptureFixture[str]
             assert time.time() - sent < timeout, "the stop came from the watchdog, not from the host's token"
             log.wait_for("running -> stopped (host gone)")
             publisher.undeclare()
+            status_subscriber.undeclare()
 
         counters = endpoint.stop()
     finally:
@@ -321,10 +331,11 @@ def test_serial_endpoint_end_to_end(pty: Pty, capsys: pytest.CaptureFixture[str]
     assert counters.dropped["malformed"] == 1
     assert counters.dropped["duplicate"] == 1
     assert counters.dropped["late"] == 1
-    assert counters.received == counters.accepted + 3
+    assert counters.dropped["foreign"] == 1
+    assert counters.received == counters.accepted + 4
     text = log.read()
     assert "no answer to the signature query (0x81)" in text
-    assert "wheel commands received" in text and "dropped 3 (malformed 1, duplicate 1, late 1)" in text
+    assert "wheel commands received" in text and "dropped 4 (malformed 1, duplicate 1, late 1, foreign 1)" in text
 
 
 def test_motors_zeroed_when_zenoh_fails(pty: Pty) -> None:
