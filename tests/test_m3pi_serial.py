@@ -310,8 +310,8 @@ def test_serial_endpoint_end_to_end(pty: Pty, capsys: pytest.CaptureFixture[str]
             log.wait_for(f"running -> stopped (command deadline passed, seq {seq})")
             assert f"stopped -> running (valid command {seq})" in log.read()
 
-            # The host goes away: stopped at once, before the command's deadline (10 s) or the timeout.
-            sent = command(0.6, 0.6, deadline_in=10.0)
+            # The host goes away: stopped at once, before the command's deadline (5 s: at most MAX_COMMAND_AHEAD) or the timeout.
+            sent = command(0.6, 0.6, deadline_in=5.0)
             expect(0.6, 0.6)
             host_token.undeclare()
             assert pty.read(4, timeout=WAIT) == STOP_FRAME
