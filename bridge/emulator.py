@@ -30,7 +30,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import zenoh
 
@@ -158,21 +158,27 @@ class EmulatedRobot:
     def receive(self, payload: bytes, now: float) -> None:
         """A wheel command arrived: check it, then queue it for its application time."""
         try:
-            command = decode_wheels(payload)
-            self.sequence.check(command.seq, f"wheel command {command.seq}")
-            check_command_deadline(command, now)
+            self.accept(decode_wheels(payload), now)
         except MessageError as error:
-            self.counters.drop(error)
-            if error.reason.value not in self._warned:
-                self._warned.add(error.reason.value)
-                self.say(f"m3pi-emulator robot {self.spec.keys.robot}: dropped: {error} (further drops of this kind "
-                         "are only counted)")
-            return
+            self.refuse(error)
+
+    def accept(self, command: WheelCommand, now: float) -> None:
+        """A decoded command: check its number and deadline (``MessageError``), then queue it."""
+        self.sequence.check(command.seq, f"wheel command {command.seq}")  # a refused one changes nothing
+        check_command_deadline(command, now)
         self.counters.accept()
         self.last_valid = now
         self.advance(now)
         self.pending.append((now + self.settings.command_latency, command))
         self.advance(now)
+
+    def refuse(self, error: MessageError) -> None:
+        """Count a dropped command; the first of each kind is said."""
+        self.counters.drop(error)
+        if error.reason.value not in self._warned:
+            self._warned.add(error.reason.value)
+            self.say(f"m3pi-emulator robot {self.spec.keys.robot}: dropped: {error} (further drops of this kind "
+                     "are only counted)")
 
     def host_arrived(self, now: float) -> None:
         """A (new) host appeared: back on the mark, at rest, numbering afresh, as before a first run."""
@@ -249,12 +255,8 @@ class Emulator:
             resources, publishers = [], []
             for index, robot in enumerate(self.robots):
                 keys = robot.spec.keys
-                publishers.append(session.declare_publisher(keys.pose, express=True))
-                resources.append(session.declare_subscriber(keys.wheels, self._on_command(index)))
+                publishers.append(self._declare_robot(session, index, resources))
                 resources.append(session.liveliness().declare_subscriber(keys.host, self._on_host(index), history=True))
-                resources.append(session.liveliness().declare_token(keys.alive))
-                self.say(f"m3pi-emulator robot {keys.robot}: configured, pose on {keys.pose} at "
-                         f"{self.settings.rate:g} Hz, commands on {keys.wheels}")
             resources += publishers
             busy: dict[int, zenoh.LivelinessToken] = {}
             if ready is not None:
@@ -273,7 +275,7 @@ class Emulator:
                         if now >= next_sample:
                             for index, robot in enumerate(self.robots):
                                 pose = robot.sample(now, self._noise)
-                                self._outbox.append((now + self.settings.latency, index, encode_pose(pose)))
+                                self._outbox.append((now + self.settings.latency, index, self._encode_pose(index, pose)))
                             next_sample += period
                             if next_sample < now:  # fell behind (a stalled machine): no burst of catch-up samples
                                 next_sample = now + period
@@ -303,6 +305,20 @@ class Emulator:
                              + " ".join(f"{k}={v}" for k, v in c.dropped.items() if v))
 
 
+    # -- the robot side's seam: our protocol here, ROS 2 topics in bridge.ros2.emulator.RosEmulator ----------
+
+    def _declare_robot(self, session: zenoh.Session, index: int, resources: list) -> Any:
+        """Declare robot ``index``'s command subscriber and liveliness token; return its pose publisher."""
+        keys = self.robots[index].spec.keys
+        resources.append(session.declare_subscriber(keys.wheels, self._on_command(index)))
+        resources.append(session.liveliness().declare_token(keys.alive))
+        self.say(f"m3pi-emulator robot {keys.robot}: configured, pose on {keys.pose} at "
+                 f"{self.settings.rate:g} Hz, commands on {keys.wheels}")
+        return session.declare_publisher(keys.pose, express=True)
+
+    def _encode_pose(self, index: int, pose: Pose) -> bytes:
+        return encode_pose(pose)
+
     def _update_busy_tokens(self, session: zenoh.Session, busy: dict[int, zenoh.LivelinessToken]) -> None:
         """Hold ``<prefix>/m3pi/<id>/busy`` exactly while a host drives the robot (one run per robot)."""
         for index, robot in enumerate(self.robots):
@@ -314,9 +330,11 @@ class Emulator:
 
 def run_emulator(robots: Sequence[RobotSpec], settings: EmulatorSettings, connect: Sequence[str] = (),
                  listen: Sequence[str] = (), zenoh_config_file: str | None = None, duration: float | None = None,
-                 stop_event: threading.Event | None = None, ready: Callable[[], None] | None = None) -> Emulator:
-    """Build and run an emulator until stopped (``stop_event``, ``duration``, or KeyboardInterrupt)."""
-    emulator = Emulator(robots, settings, zenoh_config(connect, listen, zenoh_config_file))
+                 stop_event: threading.Event | None = None, ready: Callable[[], None] | None = None,
+                 make: Callable[..., Emulator] | None = None) -> Emulator:
+    """Build (``make(robots, settings, zenoh config)``, default ``Emulator``) and run an emulator until stopped
+    (``stop_event``, ``duration``, or KeyboardInterrupt)."""
+    emulator = (make or Emulator)(robots, settings, zenoh_config(connect, listen, zenoh_config_file))
     if stop_event is not None:
         emulator.stop_event = stop_event
     emulator.run(duration, ready)

@@ -46,7 +46,7 @@ from .protocol import (
     decode_pose,
     encode_wheels,
 )
-from .session import SessionError, open_session, zenoh_config
+from .session import SessionError, open_session, undeclare_all, zenoh_config
 from .states import LinkState, StateMachine
 
 BUSY_QUERY_TIMEOUT = 0.5  # s at most to ask the robot side whether another run drives it
@@ -102,6 +102,7 @@ class LiveVehicle:
         self.keys = settings.keys
         self.clock = clock
         self.what = f"robot {settings.robot} ({self.keys.prefix}/m3pi/{settings.robot})"
+        self.pose_key = self.keys.pose  # where poses come from (a ROS 2 topic's key in bridge.ros2.link)
         self._lock = threading.Lock()
         self._events: deque[LiveEvent] = deque()
         self._records: deque[LiveRecord] = deque()
@@ -150,7 +151,7 @@ class LiveVehicle:
     def _on_pose(self, sample: zenoh.Sample) -> None:
         received = self.clock()
         try:
-            pose = decode_pose(sample.payload.to_bytes())
+            pose = self._decode_pose(sample, received)
             with self._lock:
                 check_pose_time(pose, received, self.settings.max_pose_age)
                 self._sequence.check(pose.seq, f"pose {pose.seq}")
@@ -169,7 +170,7 @@ class LiveVehicle:
                 self.pose_counters.drop(error)
             if error.reason.value not in self._warned:  # the first of each kind in the log; all in the counters
                 self._warned.add(error.reason.value)
-                self._events.append(LiveEvent("Warning", f"{self.what}: dropped a message on {self.keys.pose}: "
+                self._events.append(LiveEvent("Warning", f"{self.what}: dropped a message on {self.pose_key}: "
                                                          f"{error} (further drops of this kind are only counted)"))
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
@@ -193,24 +194,45 @@ class LiveVehicle:
             raise ComponentError(self.name, start_time, str(error)) from None
         session = self._session
         self._resources.append(session.liveliness().declare_token(self.keys.host))
-        self._publisher = session.declare_publisher(self.keys.wheels, congestion_control=zenoh.CongestionControl.BLOCK,
-                                                    express=True)
-        self._resources.append(self._publisher)
-        self._resources.append(session.declare_subscriber(self.keys.pose, self._on_pose))
-        self._resources.append(session.liveliness().declare_subscriber(self.keys.alive, self._on_liveliness,
-                                                                        history=True))
+        self._open_commands(session)
+        self._open_poses(session)
         deadline = time.monotonic() + settings.connect_timeout
         while not (self._alive and self._latest is not None):
             if time.monotonic() > deadline:
                 raise self._fail(start_time, self._not_found())
             time.sleep(0.005)
-        busy = [reply for reply in session.liveliness().get(self.keys.busy, timeout=BUSY_QUERY_TIMEOUT) if reply.ok]
-        if busy:
-            self._stop_sent = True  # not ours to stop: the other run drives it
-            raise self._fail(start_time, f"{self.what} is already driven by another run (its robot side holds "
-                                         f"{self.keys.busy}): one run per robot")
+        refusal = self._refusal(session)
+        if refusal is not None:
+            self._stop_sent = True  # not ours to stop (another run drives it), or it cannot hear us
+            raise self._fail(start_time, refusal)
         self.state.go(LinkState.SYNCHRONIZED, f"liveliness token and a valid pose received (pose {self._latest.seq})")
         self._measure()
+
+    # -- the link's seam: our wheel protocol here, ROS 2 topics in bridge.ros2.link.RosLiveVehicle ----------
+
+    def _open_commands(self, session: zenoh.Session) -> None:
+        """Declare the command publisher, and watch the robot side's liveliness token."""
+        self._publisher = session.declare_publisher(self.keys.wheels, congestion_control=zenoh.CongestionControl.BLOCK,
+                                                    express=True)
+        self._resources.append(self._publisher)
+        self._resources.append(session.liveliness().declare_subscriber(self.keys.alive, self._on_liveliness,
+                                                                        history=True))
+
+    def _open_poses(self, session: zenoh.Session) -> None:
+        self._resources.append(session.declare_subscriber(self.keys.pose, self._on_pose))
+
+    def _decode_pose(self, sample: zenoh.Sample, received: float) -> Pose:
+        return decode_pose(sample.payload.to_bytes())
+
+    def _publish_command(self, command: WheelCommand) -> None:
+        self._publisher.put(encode_wheels(command))
+
+    def _refusal(self, session: zenoh.Session) -> str | None:
+        """Why this run must not drive the robot it found (None: it may): another run drives it (its robot
+        side holds the busy token)."""
+        if any(reply.ok for reply in session.liveliness().get(self.keys.busy, timeout=BUSY_QUERY_TIMEOUT)):
+            return f"{self.what} is already driven by another run (its robot side holds {self.keys.busy}): one run per robot"
+        return None
 
     def _not_found(self) -> str:
         where = f"connect={list(self.settings.connect)} listen={list(self.settings.listen)}"
@@ -284,7 +306,7 @@ class LiveVehicle:
         self._command_seq += 1
         now = self.clock()
         command = WheelCommand(self._command_seq, now + validity, left, right)
-        self._publisher.put(encode_wheels(command))
+        self._publish_command(command)
         with self._lock:
             self._sent[command.seq] = now
             if len(self._sent) > 1000:  # a motion capture that does not echo command numbers: keep the newest
@@ -318,12 +340,7 @@ class LiveVehicle:
         self._stop()
         if self.state.state != LinkState.STOPPED:
             self.state.go(LinkState.STOPPED, "run ended; stop command sent")
-        for resource in reversed(self._resources):
-            try:
-                resource.undeclare()
-            except zenoh.ZError:
-                pass
-        self._resources.clear()
+        undeclare_all(self._resources)
         self._publisher = None
         session, self._session = self._session, None
         session.close()
