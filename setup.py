@@ -1,4 +1,5 @@
-"""Build configuration for the one compiled part: the native stepping core (orchestrator/execution/native/_core.c).
+"""Build configuration for the compiled parts: the native stepping core (orchestrator/execution/native/_core.c) and
+the trace encoder (orchestrator/trace/native_encoder.c).
 
 Everything else about the package is in pyproject.toml. The extension uses only the CPython C API and
 dlopen (no numpy headers, no build dependency beyond setuptools and a C compiler). It is optional: on
@@ -26,6 +27,16 @@ setup(
             libraries=["dl"] if sys.platform.startswith("linux") else [],
             extra_compile_args=compile_args,
             optional=True,
-        )
+        ),
+        # the trace's per-row messages (orchestrator/trace/native_encoder.c; orchestrator/trace/native_rows.py):
+        # a module of its own, so that a trace can be encoded in C by a process that steps nothing (the trace
+        # worker) and the stepping core stays one job
+        Extension(
+            "orchestrator.trace._native",
+            sources=["orchestrator/trace/native_encoder.c"],
+            include_dirs=["fmus/native"],  # pymath.h: math.hypot to the last bit
+            extra_compile_args=compile_args,
+            optional=True,
+        ),
     ]
 )

@@ -5,16 +5,19 @@ physics the Vehicle FMU integrates): two wheels following their speed commands w
 motor lag, clipped to the wheel speed limit, and a unicycle body. It runs in wall-clock time:
 
 * wheel commands arrive on ``<prefix>/m3pi/<id>/cmd/wheels``, are checked (size, version, finite,
-  sequence, deadline) and applied after ``command_latency`` (the radio); they hold until the next one;
+  claim, sequence, deadline: ``bridge.claim.RobotClaim``) and applied after ``command_latency`` (the
+  radio); they hold until the next one. Only the claim that holds the robot is obeyed; the others'
+  commands are refused and counted on ``<prefix>/m3pi/<id>/status`` (20 times a second);
 * the pose is sampled ``rate`` times a second, gets Gaussian noise (``position_noise`` per axis,
   ``heading_noise``), is stamped with the time it was taken and published ``latency`` later on
-  ``<prefix>/m3pi/<id>/pose``, with the number of the last command applied;
+  ``<prefix>/m3pi/<id>/pose``, with the number and claim of the last command applied;
 * a watchdog stops the wheels (commands of zero; the motors run down with their lag) when the current
   command's deadline passes, when no valid command came for ``command_timeout``, or when the host's
   liveliness token disappears: a robot never keeps driving on a stale command;
 * a liveliness token on ``<prefix>/m3pi/<id>/alive`` says the robot is there;
-* a new host (its token on ``<prefix>/m3pi/<id>/host`` appears) puts the robot back on its mark, at
-  rest and waiting, so one emulator serves any number of runs one after the other.
+* a new claim (a host's token on ``<prefix>/m3pi/<id>/host/<claim>`` appears while the robot is free)
+  puts the robot back on its mark, at rest and waiting, so one emulator serves any number of runs one
+  after the other; the claim ends when that token goes.
 
 Before its first command a robot stands at its config's initial pose. With ``flying_start`` (the
 default) its wheels are set to the config's initial speed at the first command, as the simulated
@@ -37,21 +40,22 @@ import zenoh
 from fmus.model.dynamics import M3piDynamics
 from fmus.model.integrate import integrate
 
+from .claim import RobotClaim, claim_from_key, claim_text
 from .protocol import (
+    STATUS_POSES,
     LinkCounters,
     MessageError,
     Pose,
     RobotKeys,
-    SequenceCheck,
     WheelCommand,
-    check_command_deadline,
-    decode_wheels,
     encode_pose,
+    encode_status,
 )
-from .session import open_session, zenoh_config
+from .session import open_session, undeclare_all, zenoh_config
 from .states import LinkState, StateMachine
 
 PHYSICS_SUBSTEP = 0.001  # s, the longest RK4 substep of the emulated physics
+STATUS_PERIOD = 0.05  # s between two status messages of a robot (and one at once when its claim changes)
 
 
 @dataclass(frozen=True)
@@ -94,12 +98,16 @@ class EmulatedRobot:
     pending: deque = field(default_factory=deque)  # (apply at, command) in arrival order
     counters: LinkCounters = field(default_factory=LinkCounters)
     pose_seq: int = 0
-    driven: bool = False  # a host drives it (from its first command until that host leaves)
+    claim: RobotClaim = field(default_factory=RobotClaim)
+    status_seq: int = 0
+    claim_status_time: float = 0.0  # when the last status was made
+    claim_changed: bool = False  # a status is due at once
+    unclaimed_seq: int = 0  # commands of a source without claims (a ROS 2 topic) numbered here, afresh per claim
+    echoes_poses: bool = True  # its poses go out in our protocol, echoing the claim (not on a ROS 2 topic)
 
     def __post_init__(self) -> None:
         spec = self.spec
         self.state = [spec.x, spec.y, spec.heading, 0.0, 0.0]
-        self.sequence = SequenceCheck()
         self.link = StateMachine(f"m3pi-emulator robot {spec.keys.robot}", self._announce)
         self._warned: set[str] = set()
 
@@ -145,32 +153,32 @@ class EmulatedRobot:
             return
         if self.link.state == LinkState.CONFIGURED and self.settings.flying_start:
             self.state[3] = self.state[4] = self.spec.speed
-        self.driven = True
         if command.left == 0.0 and command.right == 0.0 and self.link.state == LinkState.RUNNING:
             self.link.go(LinkState.STOPPED, "stop command")
         elif self.link.state != LinkState.RUNNING and (command.left != 0.0 or command.right != 0.0):
             self.link.go(LinkState.RUNNING, f"command {command.seq}")
         right, left = self.spec.dynamics.limit_wheels(command.right, command.left)
         self.command = (left, right)
-        self.command_seq = command.seq
+        self.command_seq = self.claim.applied = command.seq
         self.deadline = command.deadline
 
     def receive(self, payload: bytes, now: float) -> None:
         """A wheel command arrived: check it, then queue it for its application time."""
         try:
-            self.accept(decode_wheels(payload), now)
+            command = self.claim.check(payload, now, f"robot {self.spec.keys.robot}")
         except MessageError as error:
             self.refuse(error)
+            return
+        self.queue(command, now)
 
-    def accept(self, command: WheelCommand, now: float) -> None:
-        """A decoded command: check its number and deadline (``MessageError``), then queue it."""
-        self.sequence.check(command.seq, f"wheel command {command.seq}")  # a refused one changes nothing
-        check_command_deadline(command, now)
-        self.counters.accept()
-        self.last_valid = now
-        self.advance(now)
-        self.pending.append((now + self.settings.command_latency, command))
-        self.advance(now)
+    def accept_unclaimed(self, left: float, right: float, now: float) -> None:
+        """A command from a source that carries no claim (a ROS 2 topic: what guards it is Zenoh access control
+        on its key, docs/hil.md). Numbered here in arrival order, afresh per claim, so that the poses echo
+        it as they would a command of ours; held until ``command_timeout`` after it arrived, as a ROS
+        robot's own command timeout does."""
+        self.unclaimed_seq += 1
+        self.queue(WheelCommand(self.unclaimed_seq, now + self.settings.command_timeout, left, right, self.claim.owner),
+                   now)
 
     def refuse(self, error: MessageError) -> None:
         """Count a dropped command; the first of each kind is said."""
@@ -180,27 +188,41 @@ class EmulatedRobot:
             self.say(f"m3pi-emulator robot {self.spec.keys.robot}: dropped: {error} (further drops of this kind "
                      "are only counted)")
 
-    def host_arrived(self, now: float) -> None:
-        """A (new) host appeared: back on the mark, at rest, numbering afresh, as before a first run."""
+    def queue(self, command: WheelCommand, now: float) -> None:
+        """An accepted command: apply it ``command_latency`` from now (the radio)."""
+        self.counters.accept()
+        self.last_valid = now
+        self.advance(now)
+        self.pending.append((now + self.settings.command_latency, command))
+        self.advance(now)
+
+    def host_arrived(self, claim: int, now: float) -> None:
+        """A host's token appeared: if the robot was free, that claim now owns it, and the robot goes back on
+        its mark, at rest, as before a first run."""
+        name = f"m3pi-emulator robot {self.spec.keys.robot}"
+        if not self.claim.host_appeared(claim):
+            self.say(f"{name}: host of claim {claim_text(claim)} appeared while claim {claim_text(self.claim.owner)} "
+                     "holds the robot; its commands are refused")
+            return
+        self.claim_changed = True
+        self._warned.clear()  # each run's log names the first drop of each kind during its claim
+        self.say(f"{name}: claimed by {claim_text(claim)}")
+        self.pending.clear()
+        self.command_seq = self.unclaimed_seq = 0
         if self.link.state == LinkState.CONFIGURED:
             return
-        if self.link.state == LinkState.RUNNING:  # one run per robot: the one driving it keeps it
-            self.say(f"m3pi-emulator robot {self.spec.keys.robot}: another host appeared while running; ignored "
-                     "(its commands are dropped as out of order)")
-            return
-        self.pending.clear()
-        self._stop_wheels(now, "new host")
+        self._stop_wheels(now, "new claim")
         spec = self.spec
         self.state = [spec.x, spec.y, spec.heading, 0.0, 0.0]
-        self.sequence = SequenceCheck()
-        self.command_seq = 0
-        self.driven = False
         self.link.go(LinkState.CONFIGURED, "a new host appeared: back on the initial pose, waiting for commands")
 
-    def host_gone(self, now: float) -> None:
+    def host_gone(self, claim: int, now: float) -> None:
+        if not self.claim.host_left(claim):
+            return
+        self.claim_changed = True
         self.advance(now)
         self.pending.clear()
-        self.driven = False
+        self.say(f"m3pi-emulator robot {self.spec.keys.robot}: claim {claim_text(claim)} released")
         self._stop_wheels(now, "host's liveliness token dropped")
 
     def sample(self, now: float, noise: random.Random) -> Pose:
@@ -214,7 +236,15 @@ class EmulatedRobot:
             y += noise.gauss(0.0, s.position_noise)
         if s.heading_noise > 0.0:
             heading += noise.gauss(0.0, s.heading_noise)
-        return Pose(self.pose_seq, self.command_seq, now, x, y, heading)
+        return Pose(self.pose_seq, self.command_seq, now, x, y, heading, self.claim.owner)
+
+    def status(self, now: float) -> bytes | None:
+        """The status message if one is due (every ``STATUS_PERIOD``, or at once after a claim change)."""
+        if not self.claim_changed and now - self.claim_status_time < STATUS_PERIOD:
+            return None
+        self.claim_changed, self.claim_status_time = False, now
+        self.status_seq += 1
+        return encode_status(self.claim.status(self.status_seq, now, STATUS_POSES if self.echoes_poses else 0))
 
 
 class Emulator:
@@ -241,24 +271,28 @@ class Emulator:
 
     def _on_host(self, index: int) -> Callable[[zenoh.Sample], None]:
         def changed(sample: zenoh.Sample) -> None:
+            claim = claim_from_key(str(sample.key_expr))
+            if claim is None:
+                return
             with self._lock:
                 if sample.kind == zenoh.SampleKind.DELETE:
-                    self.robots[index].host_gone(self.clock())
+                    self.robots[index].host_gone(claim, self.clock())
                 else:
-                    self.robots[index].host_arrived(self.clock())
+                    self.robots[index].host_arrived(claim, self.clock())
         return changed
 
     def run(self, duration: float | None = None, ready: Callable[[], None] | None = None) -> None:
         """Emulate until ``stop_event`` is set (or ``duration`` s passed); tokens and session are released."""
         period = 1.0 / self.settings.rate
         with open_session(self.config, "m3pi-emulator") as session:
-            resources, publishers = [], []
+            resources, publishers, statuses = [], [], []
             for index, robot in enumerate(self.robots):
-                keys = robot.spec.keys
-                publishers.append(self._declare_robot(session, index, resources))
-                resources.append(session.liveliness().declare_subscriber(keys.host, self._on_host(index), history=True))
-            resources += publishers
-            busy: dict[int, zenoh.LivelinessToken] = {}
+                pose, status = self._declare_robot(session, index, resources)
+                publishers.append(pose)
+                statuses.append(status)
+                resources.append(session.liveliness().declare_subscriber(robot.spec.keys.hosts, self._on_host(index),
+                                                                          history=True))
+            resources += publishers + [status for status in statuses if status is not None]
             if ready is not None:
                 ready()
             start = self.clock()
@@ -285,56 +319,47 @@ class Emulator:
                         due = []
                         while self._outbox and self._outbox[0][0] <= now:
                             due.append(self._outbox.popleft())
+                        reports = [(index, robot.status(now)) for index, robot in enumerate(self.robots)]
                     for _, index, payload in due:
                         publishers[index].put(payload)
-                    self._update_busy_tokens(session, busy)
+                    for index, report in reports:
+                        if report is not None and statuses[index] is not None:
+                            statuses[index].put(report)
                     wake = min(next_sample, self._outbox[0][0] if self._outbox else next_sample)
                     self.stop_event.wait(max(0.0, min(wake - self.clock(), 0.01)))
             finally:
-                for token in busy.values():
-                    token.undeclare()
-                for resource in reversed(resources):
-                    try:
-                        resource.undeclare()
-                    except zenoh.ZError:
-                        pass
+                undeclare_all(resources)
                 for robot in self.robots:
                     c = robot.counters
                     self.say(f"m3pi-emulator robot {robot.spec.keys.robot}: commands received {c.received}, accepted "
                              f"{c.accepted}, dropped {c.dropped_total} "
                              + " ".join(f"{k}={v}" for k, v in c.dropped.items() if v))
 
-
     # -- the robot side's seam: our protocol here, ROS 2 topics in bridge.ros2.emulator.RosEmulator ----------
 
-    def _declare_robot(self, session: zenoh.Session, index: int, resources: list) -> Any:
-        """Declare robot ``index``'s command subscriber and liveliness token; return its pose publisher."""
+    def _declare_robot(self, session: zenoh.Session, index: int, resources: list) -> tuple[Any, Any]:
+        """Declare robot ``index``'s command subscriber and liveliness token; return its pose publisher and
+        its status publisher (None: a robot side without claims, whose status would say nothing)."""
         keys = self.robots[index].spec.keys
+        status = session.declare_publisher(keys.status, express=True)
         resources.append(session.declare_subscriber(keys.wheels, self._on_command(index)))
         resources.append(session.liveliness().declare_token(keys.alive))
         self.say(f"m3pi-emulator robot {keys.robot}: configured, pose on {keys.pose} at "
                  f"{self.settings.rate:g} Hz, commands on {keys.wheels}")
-        return session.declare_publisher(keys.pose, express=True)
+        return session.declare_publisher(keys.pose, express=True), status
 
     def _encode_pose(self, index: int, pose: Pose) -> bytes:
         return encode_pose(pose)
-
-    def _update_busy_tokens(self, session: zenoh.Session, busy: dict[int, zenoh.LivelinessToken]) -> None:
-        """Hold ``<prefix>/m3pi/<id>/busy`` exactly while a host drives the robot (one run per robot)."""
-        for index, robot in enumerate(self.robots):
-            if robot.driven and index not in busy:
-                busy[index] = session.liveliness().declare_token(robot.spec.keys.busy)
-            elif not robot.driven and index in busy:
-                busy.pop(index).undeclare()
 
 
 def run_emulator(robots: Sequence[RobotSpec], settings: EmulatorSettings, connect: Sequence[str] = (),
                  listen: Sequence[str] = (), zenoh_config_file: str | None = None, duration: float | None = None,
                  stop_event: threading.Event | None = None, ready: Callable[[], None] | None = None,
-                 make: Callable[..., Emulator] | None = None) -> Emulator:
+                 make: Callable[..., Emulator] | None = None, allow_insecure: bool = False) -> Emulator:
     """Build (``make(robots, settings, zenoh config)``, default ``Emulator``) and run an emulator until stopped
     (``stop_event``, ``duration``, or KeyboardInterrupt)."""
-    emulator = (make or Emulator)(robots, settings, zenoh_config(connect, listen, zenoh_config_file))
+    emulator = (make or Emulator)(robots, settings, zenoh_config(connect, listen, zenoh_config_file,
+                                                                 allow_insecure=allow_insecure))
     if stop_event is not None:
         emulator.stop_event = stop_event
     emulator.run(duration, ready)

@@ -13,9 +13,15 @@ m3pi dynamics), with the pose replaced by the robot's measured one:
 * its outputs (pose, speed, rates, gap, wheels) come from that state at the end of the step, after
   the master has paced itself to wall-clock time, so they describe the robot at the step's end.
 
+The run claims its robot (``bridge.claim``): a random claim id in its liveliness token and in every
+command. Poses of other publishers are dropped as ``foreign``; a robot that applies commands the run
+never sent, or refuses most of its commands, ends the run (``NotDriving``), as does another claim
+holding the robot at the start.
+
 Faults end the run through ``ComponentError`` naming the robot: its liveliness token gone, or no
-valid pose for ``pose_timeout``. Malformed, oversized, non-finite, duplicated, out-of-order and late
-messages are dropped and counted, never used. ``close`` always sends a stop command first.
+valid pose for ``pose_timeout``. Malformed, oversized, non-finite, duplicated, out-of-order, late and
+foreign messages are dropped and counted, never used. ``close`` always sends a stop command first,
+then releases the claim.
 """
 
 from __future__ import annotations
@@ -35,22 +41,26 @@ from fmus.model.factory import vehicle_stepper
 from fmus.model.vehicle import VEHICLE_INPUTS
 from fmus.component import ComponentError, LiveEvent, LiveRecord, percentile_summary
 
+from .claim import GRANT_GRACE, HostClaim, NotDriving, claim_text
 from .protocol import (
+    Drop,
     LinkCounters,
     MessageError,
     Pose,
     RobotKeys,
-    SequenceCheck,
     WheelCommand,
     check_pose_time,
     decode_pose,
+    decode_status,
     encode_wheels,
 )
 from .session import SessionError, open_session, undeclare_all, zenoh_config
 from .states import LinkState, StateMachine
 
-BUSY_QUERY_TIMEOUT = 0.5  # s at most to ask the robot side whether another run drives it
 STOP_REPEATS = 3  # a stop command is sent this many times: one lost message must not keep a robot going
+# s between the last stop command and the claim's release: Zenoh may deliver the token's removal ahead of
+# the data sent just before it, and the robot side then counts the last stop as arriving after its claim
+RELEASE_DELAY = 0.02
 
 
 @dataclass(frozen=True)
@@ -66,6 +76,7 @@ class LiveSettings:
     connect_timeout: float = 10.0  # s to wait at start for the robot's token and first pose
     command_validity: float = 0.1  # s: each command's deadline is its send time plus this
     max_pose_age: float = 0.25  # s: an older pose is dropped as late
+    allow_insecure: bool = False  # endpoints off this machine without TLS are allowed (bridge.session)
 
     @property
     def keys(self) -> RobotKeys:
@@ -108,7 +119,9 @@ class LiveVehicle:
         self._records: deque[LiveRecord] = deque()
         self.state = StateMachine(self.what, self._announce)
         self.pose_counters = LinkCounters()
-        self._sequence = SequenceCheck()
+        self.status_counters = LinkCounters()
+        self.claim = HostClaim()
+        self._not_driving: str | None = None  # why the robot does not do what this run commands
         self._latest: Pose | None = None
         self._latest_received = 0.0
         self._alive = False
@@ -124,6 +137,7 @@ class LiveVehicle:
         self._resources: list[Any] = []
         self._publisher: Any = None
         self._stop_sent = False
+        self._released = False
 
     # -- events and records for the run (LiveComponent) -----------------------------------------
 
@@ -139,8 +153,9 @@ class LiveVehicle:
 
     def link_statistics(self) -> dict[str, Any]:
         values: dict[str, Any] = {"robot": self.settings.robot, "state": self.state.state.value,
-                                  "command.sent": self._command_seq}
+                                  "claim": claim_text(self.claim.claim), "command.sent": self._command_seq}
         values.update(self.pose_counters.as_dict("pose"))
+        values.update(robot_side_counts(self.claim))
         # every key from the first call on (0 with count 0 until measured): the trace's link stream keeps its fields
         values.update(percentile_summary("round_trip", self.round_trips, empty=0.0))
         values.update(percentile_summary("pose_age", self.pose_ages, empty=0.0))
@@ -149,12 +164,19 @@ class LiveVehicle:
     # -- Zenoh callbacks (Zenoh's threads) -------------------------------------------------------
 
     def _on_pose(self, sample: zenoh.Sample) -> None:
+        if self._released:
+            return
         received = self.clock()
         try:
             pose = self._decode_pose(sample, received)
             with self._lock:
+                self.claim.source(pose)
                 check_pose_time(pose, received, self.settings.max_pose_age)
-                self._sequence.check(pose.seq, f"pose {pose.seq}")
+                try:
+                    self.claim.accept(pose, self._command_seq)
+                except NotDriving as error:
+                    self._not_driving = self._not_driving or str(error)
+                    return
                 self._latest, self._latest_received = pose, received
                 self.pose_counters.accept()
                 sent = [seq for seq in self._sent if seq <= pose.command_seq]
@@ -173,6 +195,22 @@ class LiveVehicle:
                 self._events.append(LiveEvent("Warning", f"{self.what}: dropped a message on {self.pose_key}: "
                                                          f"{error} (further drops of this kind are only counted)"))
 
+    def _on_status(self, sample: zenoh.Sample) -> None:
+        if self._released:
+            return
+        try:
+            status = decode_status(sample.payload.to_bytes())
+        except MessageError as error:
+            with self._lock:
+                self.status_counters.drop(error)
+            return
+        with self._lock:
+            self.status_counters.accept()
+            try:
+                self.claim.robot_status(status, self._command_seq)
+            except NotDriving as error:
+                self._not_driving = self._not_driving or str(error)
+
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         if str(sample.key_expr) != self.keys.alive:
             return
@@ -184,37 +222,62 @@ class LiveVehicle:
     # -- Component --------------------------------------------------------------------------------
 
     def initialize(self, start_time: float) -> None:
-        """Open the session, announce the host, wait for the robot's token and first valid pose."""
+        """Open the session, claim the robot, wait for its token, the claim's grant and a first valid pose."""
         self._time = start_time
         settings = self.settings
         try:
-            config = zenoh_config(settings.connect, settings.listen, settings.zenoh_config)
+            config = zenoh_config(settings.connect, settings.listen, settings.zenoh_config,
+                                  allow_insecure=settings.allow_insecure)
             self._session = open_session(config, f"{self.name} ({self.what})")
         except SessionError as error:
             raise ComponentError(self.name, start_time, str(error)) from None
         session = self._session
-        self._resources.append(session.liveliness().declare_token(self.keys.host))
         self._open_commands(session)
         self._open_poses(session)
-        deadline = time.monotonic() + settings.connect_timeout
-        while not (self._alive and self._latest is not None):
-            if time.monotonic() > deadline:
-                raise self._fail(start_time, self._not_found())
+        self._resources.append(session.liveliness().declare_token(self.keys.host(self.claim.claim)))  # the claim
+        claimed = time.monotonic()
+        deadline = claimed + settings.connect_timeout
+        while not self._ready():
+            problem = self._start_problem(time.monotonic() - claimed)
+            if problem is None and time.monotonic() > deadline:
+                problem = self._not_found()
+            if problem is not None:
+                self._stop_sent = True  # nothing of ours to stop: the robot does not obey this run
+                raise self._fail(start_time, problem)
             time.sleep(0.005)
         refusal = self._refusal(session)
         if refusal is not None:
-            self._stop_sent = True  # not ours to stop (another run drives it), or it cannot hear us
+            self._stop_sent = True  # it cannot hear this run's commands
             raise self._fail(start_time, refusal)
-        self.state.go(LinkState.SYNCHRONIZED, f"liveliness token and a valid pose received (pose {self._latest.seq})")
+        self.state.go(LinkState.SYNCHRONIZED, f"{self._holding()}, liveliness token and a valid pose received "
+                                              f"(pose {self._latest.seq})")
         self._measure()
+
+    def _ready(self) -> bool:
+        """The robot is there, obeys this claim, and a pose of it arrived (echoing the claim if its source does)."""
+        latest = self._latest
+        return (self._alive and self.claim.granted and latest is not None
+                and (latest.claim == self.claim.claim or not self.claim.echoes))
+
+    def _start_problem(self, waited: float) -> str | None:
+        """Why waiting longer is useless: another claim holds the robot, or the robot side speaks another version."""
+        if self.claim.other_owner and not self.claim.granted and waited > GRANT_GRACE:
+            return (f"{self.what} is already driven by another run (its robot side obeys claim "
+                    f"{claim_text(self.claim.other_owner)}, not this run's {claim_text(self.claim.claim)}): one run "
+                    "per robot")
+        for counters, key in ((self.pose_counters, self.keys.pose), (self.status_counters, self.keys.status)):
+            if counters.dropped[Drop.VERSION.value] and not counters.accepted:
+                return f"{self.what}: the messages on {key} are of another protocol version ({counters.last_problem})"
+        return None
 
     # -- the link's seam: our wheel protocol here, ROS 2 topics in bridge.ros2.link.RosLiveVehicle ----------
 
     def _open_commands(self, session: zenoh.Session) -> None:
-        """Declare the command publisher, and watch the robot side's liveliness token."""
+        """Declare the command publisher, and watch the robot side's status and liveliness token."""
         self._publisher = session.declare_publisher(self.keys.wheels, congestion_control=zenoh.CongestionControl.BLOCK,
                                                     express=True)
         self._resources.append(self._publisher)
+        self._resources.append(session.declare_subscriber(self.keys.status, self._on_status))
         self._resources.append(session.liveliness().declare_subscriber(self.keys.alive, self._on_liveliness,
                                                                         history=True))
 
@@ -227,11 +290,13 @@ class LiveVehicle:
     def _publish_command(self, command: WheelCommand) -> None:
         self._publisher.put(encode_wheels(command))
 
+    def _holding(self) -> str:
+        """How this run holds the robot, for the log."""
+        return f"claim {claim_text(self.claim.claim)} granted"
+
     def _refusal(self, session: zenoh.Session) -> str | None:
-        """Why this run must not drive the robot it found (None: it may): another run drives it (its robot
-        side holds the busy token)."""
-        if any(reply.ok for reply in session.liveliness().get(self.keys.busy, timeout=BUSY_QUERY_TIMEOUT)):
-            return f"{self.what} is already driven by another run (its robot side holds {self.keys.busy}): one run per robot"
+        """Why this run must not drive the robot it found although it is ready (None: it may). Our protocol
+        has said all in ``_start_problem``; a ROS 2 topic may be subscribed with another type."""
         return None
 
     def _not_found(self) -> str:
@@ -239,6 +304,10 @@ class LiveVehicle:
         if not self._alive:
             return (f"{self.what} did not appear within {self.settings.connect_timeout:g} s: no liveliness token on "
                     f"{self.keys.alive} ({where}; is `platoon m3pi-emulator` or `platoon m3pi-serial` running?)")
+        if not self.claim.granted:
+            return (f"{self.what} is there but its robot side did not grant this run's claim "
+                    f"{claim_text(self.claim.claim)} within {self.settings.connect_timeout:g} s: no status naming it on "
+                    f"{self.keys.status} (a robot side of protocol version 1 sends none: update it)")
         counters = self.pose_counters
         return (f"{self.what} is there but sent no valid pose on {self.keys.pose} within "
                 f"{self.settings.connect_timeout:g} s ({counters.received} received, {counters.dropped_total} dropped"
@@ -255,6 +324,8 @@ class LiveVehicle:
     def _check_link(self, t: float) -> None:
         if self._lost is not None:
             raise self._fail(t, f"{self.what} lost: {self._lost}")
+        if self._not_driving is not None:
+            raise self._fail(t, f"{self.what} does not obey this run: {self._not_driving}")
         silent = self.clock() - self._latest_received
         if silent > self.settings.pose_timeout:
             raise self._fail(t, f"{self.what} lost: no valid pose for {silent:.2f} s (pose_timeout "
@@ -305,7 +376,7 @@ class LiveVehicle:
     def _send(self, left: float, right: float, validity: float) -> None:
         self._command_seq += 1
         now = self.clock()
-        command = WheelCommand(self._command_seq, now + validity, left, right)
+        command = WheelCommand(self._command_seq, now + validity, left, right, self.claim.claim)
         self._publish_command(command)
         with self._lock:
             self._sent[command.seq] = now
@@ -334,16 +405,31 @@ class LiveVehicle:
             pass
 
     def close(self) -> None:
-        """Stop the robot, then leave Zenoh. Safe to call in any state, any number of times."""
+        """Stop the robot, then release the claim and leave Zenoh. Safe to call in any state, any number of times."""
         if self._session is None:
             return
         self._stop()
+        interference = self.claim.interference()
+        if interference:
+            self._events.append(LiveEvent("Warning", f"{self.what}: {interference}"))
         if self.state.state != LinkState.STOPPED:
             self.state.go(LinkState.STOPPED, "run ended; stop command sent")
+        time.sleep(RELEASE_DELAY)
+        self._released = True  # what arrives from now on is not counted: the claim is being released
         undeclare_all(self._resources)
         self._publisher = None
         session, self._session = self._session, None
         session.close()
+
+
+def robot_side_counts(claim: HostClaim) -> dict[str, Any]:
+    """What the robot side reported about this run's commands and others' (all 0 until its first status)."""
+    status = claim.status
+    values: dict[str, Any] = {f"command.{name}": getattr(status, name, 0) if status else 0
+                              for name in ("accepted", "dropped", "foreign", "invalid")}
+    if status is not None and status.foreign_claim:
+        values["command.foreign_claim"] = claim_text(status.foreign_claim)
+    return values
 
 
 def _drain(queue: deque) -> list:

@@ -3,20 +3,28 @@
 Keys (one namespace per run and robot, slash-separated so that zenoh-bridge-ros2dds maps key
 ``a/b/c`` to the ROS 2 topic ``/a/b/c``):
 
-* ``<prefix>/m3pi/<id>/pose``        pose of robot ``id``, from the motion capture (or the emulator)
-* ``<prefix>/m3pi/<id>/cmd/wheels``  wheel speed command to robot ``id``, from the host
-* ``<prefix>/m3pi/<id>/alive``       liveliness token of the robot side (emulator, serial endpoint)
-* ``<prefix>/m3pi/<id>/host``        liveliness token of the host (the run that steers the robot)
-* ``<prefix>/m3pi/<id>/busy``        liveliness token of the robot side while a host drives it: a
-                                     second run finds it and refuses to start (one run per robot)
+* ``<prefix>/m3pi/<id>/pose``          pose of robot ``id``, from the motion capture (or the emulator)
+* ``<prefix>/m3pi/<id>/cmd/wheels``    wheel speed command to robot ``id``, from the host
+* ``<prefix>/m3pi/<id>/status``        the robot side's claim and command counts, 20 times a second
+* ``<prefix>/m3pi/<id>/alive``         liveliness token of the robot side (emulator, serial endpoint)
+* ``<prefix>/m3pi/<id>/host/<claim>``  liveliness token of a host that claims the robot: ``claim`` is
+                                       the run's random 64-bit claim id, 16 hex digits (``bridge.claim``)
 
-Payloads are fixed-size little-endian structs, version byte first (docs/hil.md has the tables):
+Payloads are fixed-size little-endian structs, version byte first (docs/hil.md has the tables).
+Version 2 added the claim id to every pose and command and the status message; a version-1 peer's
+messages are dropped as ``version`` and named as such, never misread:
 
-* pose, 44 bytes: version u8, kind u8 = 1, flags u16 = 0, seq u32, command_seq u32 (the last wheel
-  command the robot had applied when the pose was taken; 0 = none), stamp f64 (s, the pose's own
-  Unix time), x f64 (m), y f64 (m), heading f64 (rad, counter-clockwise from x)
-* wheels, 32 bytes: version u8, kind u8 = 2, flags u16 = 0, seq u32, deadline f64 (Unix time after
-  which the robot stops by itself), left f64 (m/s), right f64 (m/s)
+* pose, 52 bytes: version u8, kind u8 = 1, flags u16 = 0, seq u32, command_seq u32 (the last wheel
+  command the robot had applied when the pose was taken; 0 = none), claim u64 (the claim that command
+  belonged to; 0 = unknown, e.g. a motion capture), stamp f64 (s, the pose's own Unix time), x f64
+  (m), y f64 (m), heading f64 (rad, counter-clockwise from x)
+* wheels, 40 bytes: version u8, kind u8 = 2, flags u16 = 0, seq u32 (from 1 per claim), claim u64,
+  deadline f64 (Unix time after which the robot stops by itself), left f64 (m/s), right f64 (m/s)
+* status, 52 bytes: version u8, kind u8 = 3, flags u16 (bit 0: this robot side publishes the poses,
+  so they echo the claim), seq u32, owner u64 (the claim it obeys; 0 = none), applied u32, accepted
+  u32, dropped u32 (the owner's commands: last applied, accepted, dropped as late, duplicate ...),
+  foreign u32 (well-formed commands of another claim, refused), invalid u32 (undecodable commands),
+  foreign_claim u64 (the claim of the last refused one), stamp f64
 
 A receiver checks size, version, kind, flags, finite numbers, then the sequence number (a duplicate or
 an older number is dropped; a sender numbers its messages from 1) and the time stamp (a pose too old,
@@ -33,14 +41,18 @@ from dataclasses import dataclass, field
 from enum import Enum
 from struct import Struct
 
-VERSION = 1
+VERSION = 2
 DEFAULT_PREFIX = "platoon"
 MAX_PAYLOAD = 256  # bytes: anything larger is "oversized" and not even looked at
 
-_POSE = Struct("<BBHIIdddd")
-_WHEELS = Struct("<BBHIddd")
-POSE_KIND, WHEELS_KIND = 1, 2
-POSE_SIZE, WHEELS_SIZE = _POSE.size, _WHEELS.size
+_POSE = Struct("<BBHIIQdddd")
+_WHEELS = Struct("<BBHIQddd")
+_STATUS = Struct("<BBHIQIIIIIQd")
+POSE_KIND, WHEELS_KIND, STATUS_KIND = 1, 2, 3
+POSE_SIZE, WHEELS_SIZE, STATUS_SIZE = _POSE.size, _WHEELS.size, _STATUS.size
+_LAYOUTS = {POSE_KIND: _POSE, WHEELS_KIND: _WHEELS, STATUS_KIND: _STATUS}
+STATUS_POSES = 0x1  # status flag: this robot side publishes the robot's poses (they echo the claim)
+MAX_COMMAND_AHEAD = 6.0  # s: a command whose deadline is further ahead is refused (config: validity <= 5 s)
 
 _PREFIX_SEGMENT = re.compile(r"^[A-Za-z0-9_.-]+$")
 
@@ -55,7 +67,8 @@ class Drop(Enum):
     DUPLICATE = "duplicate"  # the sequence number seen last, again
     OUT_OF_ORDER = "out_of_order"  # older than the newest seen
     LATE = "late"  # pose too old, or a command whose deadline has passed
-    FUTURE = "future"  # stamped ahead of the receiver's clock: clocks not synchronized?
+    FUTURE = "future"  # stamped ahead of the receiver's clock (clocks not synchronized?), or a deadline too far
+    FOREIGN = "foreign"  # not of this claim: another run's or a stranger's
 
 
 class MessageError(ValueError):
@@ -74,6 +87,7 @@ class Pose:
     x: float
     y: float
     heading: float
+    claim: int = 0  # the claim of command ``command_seq``; 0 = unknown (a motion capture knows no claims)
 
 
 @dataclass(frozen=True)
@@ -82,6 +96,23 @@ class WheelCommand:
     deadline: float
     left: float
     right: float
+    claim: int = 0
+
+
+@dataclass(frozen=True)
+class Status:
+    """What a robot side reports about its claim and the commands it received (``bridge.claim``)."""
+
+    seq: int
+    owner: int  # the claim it obeys, 0 = none
+    applied: int  # the owner's last applied command
+    accepted: int  # the owner's commands accepted
+    dropped: int  # the owner's commands dropped (late, duplicate, out of order, deadline too far)
+    foreign: int  # well-formed commands of another claim, refused
+    invalid: int  # commands that did not decode (malformed, another version ...)
+    foreign_claim: int  # the claim of the last foreign command, 0 = none
+    stamp: float
+    flags: int = 0
 
 
 def check_prefix(prefix: str) -> list[str]:
@@ -118,38 +149,51 @@ class RobotKeys:
         return self._key("alive")
 
     @property
-    def host(self) -> str:
-        return self._key("host")
+    def status(self) -> str:
+        return self._key("status")
 
     @property
-    def busy(self) -> str:
-        return self._key("busy")
+    def hosts(self) -> str:
+        """Every host's claim token (a liveliness key expression)."""
+        return self._key("host/*")
+
+    def host(self, claim: int) -> str:
+        """The liveliness token of the host holding claim ``claim``."""
+        return self._key(f"host/{claim:016x}")
 
 
 def encode_pose(pose: Pose) -> bytes:
-    return _POSE.pack(VERSION, POSE_KIND, 0, pose.seq, pose.command_seq, pose.stamp, pose.x, pose.y, pose.heading)
+    return _POSE.pack(VERSION, POSE_KIND, 0, pose.seq, pose.command_seq, pose.claim, pose.stamp, pose.x, pose.y,
+                      pose.heading)
 
 
 def encode_wheels(command: WheelCommand) -> bytes:
-    return _WHEELS.pack(VERSION, WHEELS_KIND, 0, command.seq, command.deadline, command.left, command.right)
+    return _WHEELS.pack(VERSION, WHEELS_KIND, 0, command.seq, command.claim, command.deadline, command.left,
+                        command.right)
 
 
-def _header(payload: bytes, kind: int, size: int, what: str) -> tuple:
+def encode_status(status: Status) -> bytes:
+    return _STATUS.pack(VERSION, STATUS_KIND, status.flags, status.seq, status.owner, status.applied, status.accepted,
+                        status.dropped, status.foreign, status.invalid, status.foreign_claim, status.stamp)
+
+
+def _header(payload: bytes, kind: int, size: int, what: str, flags: int = 0) -> tuple:
     if len(payload) > MAX_PAYLOAD:
         raise MessageError(Drop.OVERSIZED, f"{what}: {len(payload)} bytes, more than {MAX_PAYLOAD}")
     # another version only if the rest of the header looks like ours (a known kind, no flags); any other
     # first byte is plain garbage
-    if len(payload) >= 4 and payload[0] != VERSION and payload[1] in (POSE_KIND, WHEELS_KIND) and payload[2:4] == b"\0\0":
-        raise MessageError(Drop.VERSION, f"{what}: protocol version {payload[0]}, expected {VERSION}")
+    if len(payload) >= 4 and payload[0] != VERSION and payload[1] in _LAYOUTS and payload[2:4] == b"\0\0":
+        raise MessageError(Drop.VERSION, f"{what}: protocol version {payload[0]}, expected {VERSION} (the peer runs "
+                                         "another release of platoon-cosim: update both sides)")
     if len(payload) >= 1 and payload[0] != VERSION:
         raise MessageError(Drop.MALFORMED, f"{what}: not a version-{VERSION} message (first byte {payload[0]:#04x})")
     if len(payload) != size:
         raise MessageError(Drop.MALFORMED, f"{what}: {len(payload)} bytes, expected {size}")
-    fields = (_POSE if kind == POSE_KIND else _WHEELS).unpack(payload)
+    fields = _LAYOUTS[kind].unpack(payload)
     if fields[1] != kind:
         raise MessageError(Drop.MALFORMED, f"{what}: message kind {fields[1]}, expected {kind}")
-    if fields[2] != 0:
-        raise MessageError(Drop.MALFORMED, f"{what}: flags {fields[2]:#x}, expected 0")
+    if fields[2] & ~flags:
+        raise MessageError(Drop.MALFORMED, f"{what}: flags {fields[2]:#x}, expected {flags:#x} at most")
     return fields
 
 
@@ -161,16 +205,23 @@ def _finite(what: str, names: tuple[str, ...], values: tuple[float, ...]) -> Non
 
 def decode_pose(payload: bytes) -> Pose:
     """A pose from its bytes, or ``MessageError`` saying why not (size, version, kind, finite)."""
-    _, _, _, seq, command_seq, stamp, x, y, heading = _header(bytes(payload), POSE_KIND, POSE_SIZE, "pose")
+    _, _, _, seq, command_seq, claim, stamp, x, y, heading = _header(bytes(payload), POSE_KIND, POSE_SIZE, "pose")
     _finite("pose", ("stamp", "x", "y", "heading"), (stamp, x, y, heading))
-    return Pose(seq, command_seq, stamp, x, y, heading)
+    return Pose(seq, command_seq, stamp, x, y, heading, claim)
 
 
 def decode_wheels(payload: bytes) -> WheelCommand:
     """A wheel command from its bytes, or ``MessageError`` saying why not."""
-    _, _, _, seq, deadline, left, right = _header(bytes(payload), WHEELS_KIND, WHEELS_SIZE, "wheel command")
+    _, _, _, seq, claim, deadline, left, right = _header(bytes(payload), WHEELS_KIND, WHEELS_SIZE, "wheel command")
     _finite("wheel command", ("deadline", "left", "right"), (deadline, left, right))
-    return WheelCommand(seq, deadline, left, right)
+    return WheelCommand(seq, deadline, left, right, claim)
+
+
+def decode_status(payload: bytes) -> Status:
+    """A robot side's status from its bytes, or ``MessageError`` saying why not."""
+    _, _, flags, *numbers, stamp = _header(bytes(payload), STATUS_KIND, STATUS_SIZE, "status", STATUS_POSES)
+    _finite("status", ("stamp",), (stamp,))
+    return Status(*numbers, stamp=stamp, flags=flags)
 
 
 class SequenceCheck:
@@ -198,10 +249,14 @@ def check_pose_time(pose: Pose, now: float, max_age: float, max_ahead: float = 0
 
 
 def check_command_deadline(command: WheelCommand, now: float) -> None:
-    """A command whose deadline has passed on arrival is never applied."""
+    """A command whose deadline has passed on arrival is never applied, nor one that would hold the wheels
+    for longer than any run asks (``MAX_COMMAND_AHEAD``: a forged one must not outlive its sender's claim)."""
     if command.deadline <= now:
         raise MessageError(Drop.LATE, f"wheel command {command.seq}: deadline passed "
                                       f"{(now - command.deadline) * 1e3:.1f} ms before it arrived")
+    if command.deadline > now + MAX_COMMAND_AHEAD:
+        raise MessageError(Drop.FUTURE, f"wheel command {command.seq}: deadline {command.deadline - now:.1f} s ahead, "
+                                        f"more than {MAX_COMMAND_AHEAD:g} s (are the clocks synchronized?)")
 
 
 @dataclass

@@ -3,8 +3,9 @@
 The m3pi is a 3pi base running Pololu's 3pi serial slave program, reached through an XBee in
 transparent mode: whatever bytes this program writes to the XBee's serial port come out of the
 robot's XBee into the 3pi's UART (115200 baud, 8N1). This endpoint stands for the robot on Zenoh: it
-declares the robot's liveliness token, receives the host's wheel commands, checks every one
-(``bridge.protocol``: decode, sequence, deadline) and writes the valid ones as motor bytes at once.
+declares the robot's liveliness token, obeys the first run that claims it (``bridge.claim``) until that
+run's token goes, checks every wheel command (decode, claim, sequence, deadline) and writes the
+owner's valid ones as motor bytes at once; it reports its claim and counts on the status key.
 
 Byte format (3pi serial slave, a TReX-like command set: an opcode 0x80..0xFF, then data bytes
 0x00..0x7F):
@@ -50,17 +51,16 @@ from typing import Literal, Sequence
 import serial
 import zenoh
 
+from bridge.claim import RobotClaim, claim_from_key, claim_text
 from bridge.protocol import (
     DEFAULT_PREFIX,
     Drop,
     LinkCounters,
     MessageError,
     RobotKeys,
-    SequenceCheck,
     WheelCommand,
-    check_command_deadline,
     check_prefix,
-    decode_wheels,
+    encode_status,
 )
 from bridge.session import open_session, zenoh_config
 from bridge.states import LinkState, StateMachine
@@ -80,6 +80,7 @@ STOP_FRAME = bytes((M1_FORWARD, 0, M2_FORWARD, 0))
 DEFAULT_BAUD = 115200
 DEFAULT_COMMAND_TIMEOUT = 0.25  # s
 WATCHDOG_PERIOD = 0.02  # s
+STATUS_PERIOD = 0.05  # s between two status messages (and one at once when the claim changes)
 # A 4-byte frame takes 0.35 ms at 115200 baud; a write still blocked after this long means the port
 # is gone or stuck, and the endpoint stops rather than hold the lock the watchdog needs.
 WRITE_TIMEOUT = 0.1  # s
@@ -233,7 +234,8 @@ class SerialEndpoint:
 
     def __init__(self, port: str, robot: int, prefix: str = DEFAULT_PREFIX, connect: Sequence[str] = (),
                  listen: Sequence[str] = (), zenoh_config_file: str | None = None, scale: SpeedScale = SpeedScale(),
-                 command_timeout: float = DEFAULT_COMMAND_TIMEOUT, baud: int = DEFAULT_BAUD) -> None:
+                 command_timeout: float = DEFAULT_COMMAND_TIMEOUT, baud: int = DEFAULT_BAUD,
+                 allow_insecure: bool = False) -> None:
         self.who = f"m3pi-serial robot {robot}"
         problems = check_prefix(prefix)
         if robot < 0:
@@ -248,6 +250,7 @@ class SerialEndpoint:
         self.connect = list(connect)
         self.listen = list(listen)
         self.zenoh_config_file = zenoh_config_file
+        self.allow_insecure = allow_insecure
         self.scale = scale
         self.command_timeout = command_timeout
         self.baud = baud
@@ -255,13 +258,13 @@ class SerialEndpoint:
         self.watchdog_stops = 0
         self._lock = threading.Lock()
         self._machine = StateMachine(self.who, self._announce)
-        self._sequence = SequenceCheck()
+        self._claim = RobotClaim()
+        self._claim_changed = False  # a status is due at once
         self._link: serial.Serial | None = None
         self._command: WheelCommand | None = None  # the command the motors are running now
         self._last_valid = 0.0  # time.monotonic() of the last valid command
         self._fault: SerialEndpointError | None = None
         self._closing = False
-        self._driven = False  # a host drives the robot: from its first valid command until its token goes
         self._reported: set[Drop] = set()
 
     @property
@@ -307,9 +310,7 @@ class SerialEndpoint:
             if self._closing or self._fault is not None:
                 return
             try:
-                command = decode_wheels(payload)
-                self._sequence.check(command.seq, "wheel command")
-                check_command_deadline(command, arrival)
+                command = self._claim.check(payload, arrival, f"robot {self.robot}")
             except MessageError as error:
                 self._drop(error)
                 return
@@ -319,24 +320,31 @@ class SerialEndpoint:
             except SerialEndpointError:
                 return  # run() raises the fault in its thread
             self._command = command
+            self._claim.applied = command.seq
             self._last_valid = time.monotonic()
             self._machine.go(LinkState.RUNNING, f"valid command {command.seq}")
-            self._driven = True
 
     def _on_host(self, sample: zenoh.Sample) -> None:
-        """Zenoh callback on the host's liveliness token: gone means stop now, not at the deadline."""
+        """Zenoh callback on the hosts' claim tokens: the first one claims the robot; the owner's going means
+        stop now, not at the deadline."""
+        claim = claim_from_key(str(sample.key_expr))
+        if claim is None:
+            return
         with self._lock:
             if self._closing or self._fault is not None:
                 return
             if sample.kind == zenoh.SampleKind.PUT:
-                # A (re)started host numbers its commands from the start again.
-                self._sequence = SequenceCheck()
-                self._say(f"host token present ({sample.key_expr})")
+                if not self._claim.host_appeared(claim):
+                    self._say(f"host of claim {claim_text(claim)} appeared while claim "
+                              f"{claim_text(self._claim.owner)} holds the robot; its commands are refused")
+                    return
+                self._claim_changed = True
+                self._say(f"claimed by {claim_text(claim)} ({sample.key_expr})")
                 if self._machine.state is LinkState.CONFIGURED:
                     self._machine.go(LinkState.SYNCHRONIZED, "host present")
-            else:
-                self._driven = False
-                self._say(f"host token gone ({sample.key_expr})")
+            elif self._claim.host_left(claim):
+                self._claim_changed = True
+                self._say(f"claim {claim_text(claim)} released ({sample.key_expr})")
                 try:
                     self._stop_motors("host gone")
                 except SerialEndpointError:
@@ -356,23 +364,23 @@ class SerialEndpoint:
         self._stop_motors(reason)
 
     def _watch(self, stop_event: threading.Event, session: zenoh.Session) -> None:
-        busy = None  # the robot's busy token, held while a host drives it: a second run refuses to start
-        try:
+        """The watchdog, and the status (claim and counts) every ``STATUS_PERIOD`` or at once after a claim change."""
+        status_seq, reported = 0, 0.0
+        with session.declare_publisher(self.keys.status, express=True) as publisher:
             while not stop_event.is_set():
+                now = time.time()
                 with self._lock:
                     if self._fault is not None:
                         raise self._fault
                     self._watch_once()
-                    driven = self._driven
-                if driven and busy is None:
-                    busy = session.liveliness().declare_token(self.keys.busy)
-                elif not driven and busy is not None:
-                    busy.undeclare()
-                    busy = None
+                    due = self._claim_changed or now - reported >= STATUS_PERIOD
+                    if due:
+                        status_seq += 1
+                        status = encode_status(self._claim.status(status_seq, now))
+                        self._claim_changed, reported = False, now
+                if due:
+                    publisher.put(status)
                 stop_event.wait(WATCHDOG_PERIOD)
-        finally:
-            if busy is not None:
-                busy.undeclare()
 
     def _shutdown(self, reason: str, failed: bool) -> SerialEndpointError | None:
         """Zero the motors (always, whatever the state) before the port closes; print the counters."""
@@ -416,11 +424,12 @@ class SerialEndpoint:
                 self._say(describe_signature(read_signature(link), self.port))
                 with self._lock:
                     self._write(STOP_FRAME)
-                config = zenoh_config(self.connect, self.listen, self.zenoh_config_file)
+                config = zenoh_config(self.connect, self.listen, self.zenoh_config_file,
+                                      allow_insecure=self.allow_insecure)
                 # Subscribers before the token: a host that sees the token may command at once.
                 with (open_session(config, self.who) as session,
                       session.declare_subscriber(self.keys.wheels, self._on_wheels),
-                      session.liveliness().declare_subscriber(self.keys.host, self._on_host, history=True),
+                      session.liveliness().declare_subscriber(self.keys.hosts, self._on_host, history=True),
                       session.liveliness().declare_token(self.keys.alive)):
                     self._say(f"serving {self.keys.wheels} on {self.port} at {self.baud} baud "
                               f"(max speed {self.scale.max_speed:g} m/s = byte {SPEED_BYTE_MAX}, "
@@ -443,7 +452,8 @@ class SerialEndpoint:
 def run_serial_endpoint(port: str, robot: int, prefix: str = DEFAULT_PREFIX, connect: Sequence[str] = (),
                         listen: Sequence[str] = (), zenoh_config_file: str | None = None,
                         scale: SpeedScale = SpeedScale(), command_timeout: float = DEFAULT_COMMAND_TIMEOUT,
-                        baud: int = DEFAULT_BAUD, stop_event: threading.Event | None = None) -> LinkCounters:
+                        baud: int = DEFAULT_BAUD, stop_event: threading.Event | None = None,
+                        allow_insecure: bool = False) -> LinkCounters:
     """Stand for robot ``robot`` on Zenoh and drive it through serial ``port`` (``platoon m3pi-serial``).
 
     Blocks until ``stop_event`` is set or ``KeyboardInterrupt`` (the CLI turns SIGINT/SIGTERM into
@@ -452,5 +462,5 @@ def run_serial_endpoint(port: str, robot: int, prefix: str = DEFAULT_PREFIX, con
     """
     endpoint = SerialEndpoint(port, robot, prefix=prefix, connect=connect, listen=listen,
                               zenoh_config_file=zenoh_config_file, scale=scale, command_timeout=command_timeout,
-                              baud=baud)
+                              baud=baud, allow_insecure=allow_insecure)
     return endpoint.run(stop_event)

@@ -1,14 +1,23 @@
 """Zenoh sessions for every program of the bridge: one config builder, one way to open.
 
-The host (``bridge.live``), the m3pi emulator and the serial endpoint all build their Zenoh config
-here from the same three things a config or command line gives: endpoints to ``connect`` to,
-endpoints to ``listen`` on, and optionally a Zenoh config file (JSON5, for TLS certificates, access
-control, a router mode ...). Without a file, multicast scouting is off, so a run talks only to the
-endpoints it names (tests and the shipped configs use tcp/127.0.0.1 only).
+The host (``bridge.live``), the m3pi emulator, the serial endpoint and the benchmarks all build their
+Zenoh config here from the same three things a config or command line gives: endpoints to
+``connect`` to, endpoints to ``listen`` on, and optionally a Zenoh config file (JSON5, for TLS
+certificates, access control, a router mode ...). This is the one place that decides which sockets
+a program of ours opens, so its rules hold for all of them:
+
+* a session listens only on the endpoints its caller or its config file names. Zenoh's own default
+  (a peer listens on ``tcp/[::]:0``: every interface, a random port) never applies, so a session that
+  only connects listens nowhere;
+* multicast and gossip scouting are off unless the config file turns them on;
+* an endpoint that leaves the machine (not loopback, not a Unix socket) must be TLS (``tls/`` or
+  ``quic/``): anyone on a shared network could otherwise publish on the robot's keys. The refusal
+  names the recipe (``platoon hil-certs``, docs/hil.md "A secure lab"); ``allow_insecure`` lifts it.
 """
 
 from __future__ import annotations
 
+import ipaddress
 import json
 from pathlib import Path
 from typing import Any, Sequence
@@ -16,31 +25,84 @@ from typing import Any, Sequence
 import zenoh
 
 _LOG_STARTED = False
+SECURE_PROTOCOLS = ("tls", "quic")  # link protocols that authenticate and encrypt (docs/hil.md)
+LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe", "vsock")  # never leave the machine
+RECIPE = "run `platoon hil-certs` and use tls/ endpoints with its Zenoh configs (docs/hil.md, \"A secure lab\")"
 
 
 class SessionError(RuntimeError):
     """Zenoh refused the config or could not open a session; the text says which endpoint or file."""
 
 
-def zenoh_config(connect: Sequence[str] = (), listen: Sequence[str] = (), config_file: str | None = None,
-                 mode: str = "peer") -> zenoh.Config:
-    """A Zenoh config: ``config_file`` if given (its settings win, except the endpoints named here),
-    else peer mode with multicast scouting off."""
+def _host(address: str) -> str:
+    """The host part of ``host:port`` (IPv6 in brackets), without the port and the ``#`` / ``?`` options."""
+    address = address.split("#", 1)[0].split("?", 1)[0]
+    if address.startswith("["):
+        return address[1:address.find("]")] if "]" in address else address
+    return address.rsplit(":", 1)[0] if ":" in address else address
+
+
+def is_loopback(host: str) -> bool:
+    """``localhost``, 127.0.0.0/8 or ::1: traffic that never leaves this machine."""
+    if host.lower() == "localhost":
+        return True
     try:
-        if config_file:
-            config = zenoh.Config.from_file(str(Path(config_file)))
-        else:
-            config = zenoh.Config()
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def insecure_endpoints(endpoints: Sequence[str]) -> list[str]:
+    """The endpoints that leave the machine without TLS (a wildcard such as ``tcp/[::]:0`` leaves it too)."""
+    bad = []
+    for endpoint in endpoints:
+        protocol, _, address = endpoint.partition("/")
+        if protocol in SECURE_PROTOCOLS or protocol in LOCAL_PROTOCOLS:
+            continue
+        if not is_loopback(_host(address)):
+            bad.append(endpoint)
+    return bad
+
+
+def _named_endpoints(config: zenoh.Config, section: str) -> list[str]:
+    """The endpoints a config file names under ``section`` (``connect``/``listen``); [] if it names none.
+
+    Zenoh's own default (a map by mode, e.g. ``{"peer": ["tcp/[::]:0"], ...}``) counts as none: that
+    is the socket nobody asked for."""
+    value: Any = json.loads(config.get_json(f"{section}/endpoints"))
+    default: Any = json.loads(zenoh.Config().get_json(f"{section}/endpoints"))
+    if value == default or value is None:
+        return []
+    if isinstance(value, dict):  # per-mode lists: the one for this session's mode
+        mode = json.loads(config.get_json("mode")) or "peer"
+        value = value.get(mode) or []
+    return [str(endpoint) for endpoint in value]
+
+
+def zenoh_config(connect: Sequence[str] = (), listen: Sequence[str] = (), config_file: str | None = None,
+                 mode: str = "peer", allow_insecure: bool = False) -> zenoh.Config:
+    """A Zenoh config that opens only the sockets named here or in ``config_file`` (module docstring).
+
+    ``config_file``'s settings win, except the endpoints named here; without a file: peer mode."""
+    try:
+        config = zenoh.Config.from_file(str(Path(config_file))) if config_file else zenoh.Config()
+        if not config_file:
             config.insert_json5("mode", json.dumps(mode))
-            config.insert_json5("scouting/multicast/enabled", "false")
-            config.insert_json5("scouting/gossip/enabled", "false")
-        if connect:
-            config.insert_json5("connect/endpoints", json.dumps(list(connect)))
-        if listen:
-            config.insert_json5("listen/endpoints", json.dumps(list(listen)))
+        connect = list(connect) or _named_endpoints(config, "connect")
+        listen = list(listen) or _named_endpoints(config, "listen")
+        config.insert_json5("connect/endpoints", json.dumps(connect))
+        config.insert_json5("listen/endpoints", json.dumps(listen))  # [] = listen nowhere
+        for scouting in ("multicast", "gossip"):  # null: the file did not say; Zenoh's default would be on
+            if json.loads(config.get_json(f"scouting/{scouting}/enabled")) is None:
+                config.insert_json5(f"scouting/{scouting}/enabled", "false")
     except (zenoh.ZError, OSError, ValueError) as error:
         where = f"zenoh config file {config_file}" if config_file else f"endpoints connect={list(connect)} listen={list(listen)}"
         raise SessionError(f"{where}: {error}") from None
+    bad = insecure_endpoints([*connect, *listen])
+    if bad and not allow_insecure:
+        raise SessionError(f"endpoint {bad[0]} leaves this machine without TLS: anyone on that network could "
+                           f"drive or fake the robot; {RECIPE}, or set allow_insecure = true ([hil] in the config, "
+                           "--allow-insecure on the robot side) on a network you trust")
     return config
 
 

@@ -20,8 +20,8 @@ from tests.test_cli import REPO, error_line, platoon
 
 SINGLE = REPO / "configs" / "paper" / "single.toml"
 # the benchmarks with a command line of their own (the others are ``platoon bench`` suites)
-MODULES = ("coupling_accuracy", "equilibrium_growth", "fmu_step_cost", "paper_scenarios", "trace_memory",
-           "trace_overhead")
+MODULES = ("coupling_accuracy", "equilibrium_growth", "fmu_step_cost", "paper_scenarios", "trace_encoder",
+           "trace_memory", "trace_overhead")
 
 
 def installed_core() -> str:
@@ -98,10 +98,26 @@ def test_wholerun_times_our_runs_and_libcosim_on_the_same_system(tmp_path: Path,
     result = platoon("bench", "wholerun", "--n", "2", "--steps", "20", "--rounds", "1", "--out-dir", tmp_path, cwd=REPO)
     data = written(result, tmp_path, "wholerun")
     assert {s["variant"] for s in data["samples"]} == set(data["variants"]) == {
-        "platoon", "platoon-q", "libcosim", "libcosim-outputs", "libcosim-last-value"}
+        "platoon", "platoon-q", "platoon-start", "libcosim", "libcosim-outputs", "libcosim-last-value", "libcosim-file"}
     assert all(s["wall_s"] > 0 and s["exit"] == 0 for s in data["samples"])
-    assert set(data["ratios"]["2"]) >= {"platoon / libcosim", "platoon-q / libcosim", "libcosim-last-value / libcosim"}
-    assert "platoon / libcosim" in result.stdout and "(floor 1.15)" in result.stdout
+    assert set(data["ratios"]["2"]) >= {"platoon / libcosim", "platoon / libcosim-file", "platoon-q / libcosim",
+                                        "libcosim-last-value / libcosim", "libcosim-file / libcosim"}
+    assert "platoon / libcosim" in result.stdout and "(target ≤ 1.50)" in result.stdout
+
+
+def test_wholerun_measures_another_build_in_the_same_sitting(tmp_path: Path, fmu_dir: Path) -> None:
+    """``--before PLATOON``: the before* variants run that script (here: this very build, so both sides agree)."""
+    script = Path(sys.executable).parent / "platoon"
+    result = platoon("bench", "wholerun", "--fmus", "native", "--variants", "platoon-start,before-start,before-q",
+                     "--before", script, "--n", "2", "--steps", "20", "--rounds", "1", "--out-dir", tmp_path, cwd=REPO)
+    data = written(result, tmp_path, "wholerun")
+    assert data["before"] == str(script) and {s["variant"] for s in data["samples"]} == {
+        "platoon-start", "before-start", "before-q"}
+    assert "platoon-start / before-start" in data["ratios"]["2"]
+    missing = platoon("bench", "wholerun", "--variants", "before", "--out-dir", tmp_path, cwd=REPO)
+    assert missing.returncode == 2 and "--before" in missing.stderr
+    absent = platoon("bench", "wholerun", "--before", tmp_path / "none", "--out-dir", tmp_path, cwd=REPO)
+    assert absent.returncode == 2 and "no such file" in absent.stderr
 
 
 def test_wholerun_compares_the_same_fmus_on_both_sides(tmp_path: Path, fmu_dir: Path) -> None:

@@ -16,6 +16,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from orchestrator.trace import load
@@ -183,9 +184,55 @@ def test_report_plots(completed_run, workdir: Path, tmp_path: Path) -> None:
     assert "vehicle4" in result.stdout  # the table, then the files
     for name in ["speed_errors.png", "gap_errors.png", "path_errors.png", "xy.png"]:
         png = plots / name
-        assert png.is_file() and png.stat().st_size > 1000, png
-        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", png
+        assert png.is_file() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", png
         assert str(png) in result.stdout
+    assert_plots_show_the_trace(load(trace), plots, tmp_path / "again")
+
+
+def panel_series(trace, config) -> dict:
+    """What each time panel draws for a vehicle, from the trace (by file stem): the paper's errors."""
+    from orchestrator.analysis.metrics import path_errors
+
+    return {
+        "speed_errors": lambda v: trace.component(v)["speed"] - config.platoon.speed,
+        "gap_errors": lambda v: trace.component(v)["gap"] - config.platoon.d_star,
+        "path_errors": lambda v: path_errors(config, trace.component(v)["x"], trace.component(v)["y"]),
+    }
+
+
+def assert_plots_show_the_trace(trace, written: Path, scratch: Path) -> None:
+    """What the panels draw is the trace's data (each vehicle's speed - V_c, gap - d*, signed path
+    error over time; its x, y), and the PNGs in ``written`` show exactly those figures: the same
+    drawing, made here with its figures kept, gives the same pixels."""
+    import matplotlib.image
+
+    from orchestrator.analysis import plots as plots_module
+    from orchestrator.scenario.config import config_from_mapping
+
+    config = config_from_mapping(trace.config)
+    kept = []
+    close = plots_module.plt.close
+    plots_module.plt.close = kept.append  # write_plots closes each figure once saved: keep them instead
+    try:
+        again = plots_module.write_plots(trace, config, scratch)
+    finally:
+        plots_module.plt.close = close
+    expected = panel_series(trace, config)
+    for figure, png in zip(kept, again):
+        (axes,) = [a for a in figure.axes if a.get_label() != "<colorbar>"]
+        lines = axes.get_lines()
+        for k, vehicle in enumerate(VEHICLES):
+            channel = trace.component(vehicle)
+            if png.stem in expected:  # a line per vehicle, in order
+                assert np.array_equal(lines[k].get_xdata(), channel["t"]), (png.name, vehicle)
+                assert np.array_equal(lines[k].get_ydata(), expected[png.stem](vehicle)), (png.name, vehicle)
+            else:  # the path first, then each vehicle's track and its end
+                track = lines[1 + 2 * k]
+                assert np.array_equal(track.get_xdata(), channel["x"]) and np.array_equal(track.get_ydata(), channel["y"])
+        shown = matplotlib.image.imread(written / png.name)
+        assert np.array_equal(shown, matplotlib.image.imread(png)), f"{png.name}: the command's PNG shows another figure"
+        close(figure)
+    assert [p.name for p in again] == ["speed_errors.png", "gap_errors.png", "path_errors.png", "xy.png"]
 
 
 # --- report on bad input: exit 2 ------------------------------------------------------------------

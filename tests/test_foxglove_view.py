@@ -48,7 +48,8 @@ def start_run(out: Path, port: int, *args: str, config: Path = PAPER) -> subproc
     return subprocess.Popen(
         [str(PLATOON), "run", str(config), "--out", str(out), "--live", "--live-port", str(port), *args],
         cwd=out.parent, env=env, stdout=open(out.with_suffix(".stdout"), "w"), stderr=open(out.with_suffix(".stderr"), "w"),
-        text=True)
+        text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # as a shell gives it, even
+        # when the suite runs in the background (SIGINT handed down ignored, and the run keeps what it is given)
 
 
 @dataclass

@@ -11,29 +11,35 @@ from __future__ import annotations
 
 import math
 import os
+import random
 import signal
+import socket
 import subprocess
 import sys
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import pytest
 
 from bridge.protocol import (
     MAX_PAYLOAD,
+    STATUS_POSES,
     Drop,
     MessageError,
     Pose,
     RobotKeys,
     SequenceCheck,
+    Status,
     WheelCommand,
     check_pose_time,
     decode_pose,
+    decode_status,
     decode_wheels,
     encode_pose,
+    encode_status,
     encode_wheels,
 )
 from orchestrator.bench.hil import free_port
@@ -50,19 +56,34 @@ KEYS = RobotKeys("platoon", 3)
 
 # -- protocol, no network ------------------------------------------------------------------------
 
-def test_pose_and_wheel_messages_round_trip_exactly() -> None:
-    pose = Pose(7, 5, 1.7e9 + 0.125, -0.25, 1.0 / 3.0, -3.1)
+def test_pose_wheel_and_status_messages_round_trip_exactly() -> None:
+    pose = Pose(7, 5, 1.7e9 + 0.125, -0.25, 1.0 / 3.0, -3.1, claim=2**64 - 1)
     assert decode_pose(encode_pose(pose)) == pose
-    command = WheelCommand(9, 1.7e9 + 0.1, -0.2, 0.35)
+    command = WheelCommand(9, 1.7e9 + 0.1, -0.2, 0.35, claim=0x0123456789ABCDEF)
     assert decode_wheels(encode_wheels(command)) == command
-    assert len(encode_pose(pose)) == 44 and len(encode_wheels(command)) == 32
+    status = Status(3, 2**63, 9, 8, 1, 4, 2, 77, 1.7e9, STATUS_POSES)
+    assert decode_status(encode_status(status)) == status
+    assert (len(encode_pose(pose)), len(encode_wheels(command)), len(encode_status(status))) == (52, 40, 52)
+
+
+def test_a_version_1_peer_is_named_not_misread() -> None:
+    """The messages of the release before claims (version 1: 44-byte pose, 32-byte command) are dropped
+    as another version, with a text that says so."""
+    import struct
+
+    old_pose = struct.pack("<BBHIIdddd", 1, 1, 0, 5, 4, 1.7e9, 0.5, 0.5, 0.0)
+    old_command = struct.pack("<BBHIddd", 1, 2, 0, 5, 1.7e9, 0.3, 0.3)
+    for decode, payload in ((decode_pose, old_pose), (decode_wheels, old_command)):
+        with pytest.raises(MessageError, match="protocol version 1, expected 2") as refused:
+            decode(payload)
+        assert refused.value.reason is Drop.VERSION
 
 
 @pytest.mark.parametrize("payload, reason, text", [
     (bytes(MAX_PAYLOAD + 1), Drop.OVERSIZED, "257 bytes, more than 256"),
-    (b"", Drop.MALFORMED, "0 bytes, expected 44"),
-    (encode_pose(Pose(1, 0, 1.0, 0.0, 0.0, 0.0))[:-1], Drop.MALFORMED, "43 bytes, expected 44"),
-    (b"\x02" + encode_pose(Pose(1, 0, 1.0, 0.0, 0.0, 0.0))[1:], Drop.VERSION, "protocol version 2, expected 1"),
+    (b"", Drop.MALFORMED, "0 bytes, expected 52"),
+    (encode_pose(Pose(1, 0, 1.0, 0.0, 0.0, 0.0))[:-1], Drop.MALFORMED, "51 bytes, expected 52"),
+    (b"\x03" + encode_pose(Pose(1, 0, 1.0, 0.0, 0.0, 0.0))[1:], Drop.VERSION, "protocol version 3, expected 2"),
     (encode_wheels(WheelCommand(1, 1.0, 0.0, 0.0)) + bytes(12), Drop.MALFORMED, "message kind 2, expected 1"),
     (encode_pose(Pose(1, 0, 1.0, math.nan, 0.0, math.inf)), Drop.NON_FINITE, "x = nan, heading = inf (not finite)"),
 ])
@@ -104,14 +125,22 @@ def _robot(command_latency: float = 0.0, flying_start: bool = True):
     settings = EmulatorSettings(command_latency=command_latency, command_timeout=0.25, flying_start=flying_start)
     robot = EmulatedRobot(spec, settings, said.append)
     robot.time = 100.0
+    robot.host_arrived(CLAIM, 100.0)
     return robot, said
+
+
+CLAIM, OTHER = 0x1234_5678_9ABC_DEF0, 0x0FED_CBA9_8765_4321
+
+
+def wheels(seq: int, deadline: float, left: float, right: float, claim: int = CLAIM) -> bytes:
+    return encode_wheels(WheelCommand(seq, deadline, left, right, claim))
 
 
 def test_emulated_robot_stands_until_commanded_then_drives_and_stops_at_the_deadline() -> None:
     robot, said = _robot()
     robot.advance(101.0)
     assert robot.state[:3] == [0.0, 0.0, 0.0]  # no command yet: it stands on its mark
-    robot.receive(encode_wheels(WheelCommand(1, 101.1, 0.3, 0.3)), 101.0)
+    robot.receive(wheels(1, 101.1, 0.3, 0.3), 101.0)
     assert robot.state[3:] == [0.3, 0.3]  # flying start: rolling at the config's initial speed
     robot.advance(101.1)
     assert robot.state[0] == pytest.approx(0.03, abs=1e-12)  # 0.1 s at 0.3 m/s, straight ahead
@@ -123,16 +152,69 @@ def test_emulated_robot_stands_until_commanded_then_drives_and_stops_at_the_dead
 
 def test_emulated_robot_applies_a_command_after_the_radio_latency_and_refuses_late_ones() -> None:
     robot, said = _robot(command_latency=0.02, flying_start=False)
-    robot.receive(encode_wheels(WheelCommand(1, 100.5, 0.2, 0.4)), 100.0)
+    robot.receive(wheels(1, 100.5, 0.2, 0.4), 100.0)
     robot.advance(100.019)
     assert robot.command == (0.0, 0.0)
     robot.advance(100.021)
     assert robot.command == (0.2, 0.4) and robot.command_seq == 1
-    robot.receive(encode_wheels(WheelCommand(2, 100.0, 0.1, 0.1)), 100.03)  # deadline already passed
-    robot.receive(encode_wheels(WheelCommand(2, 100.9, 0.1, 0.1)), 100.03)  # its sequence number again
+    robot.receive(wheels(2, 100.0, 0.1, 0.1), 100.03)  # deadline already passed
+    robot.receive(wheels(2, 100.9, 0.1, 0.1), 100.03)  # its sequence number again
+    robot.receive(wheels(3, 120.0, 0.1, 0.1), 100.03)  # a deadline 20 s ahead: would outlive any run's claim
     robot.receive(b"garbage", 100.03)
     assert robot.counters.dropped["late"] == 1 and robot.counters.dropped["duplicate"] == 1
+    assert robot.counters.dropped["future"] == 1
     assert robot.counters.dropped["malformed"] == 1 and robot.command == (0.2, 0.4)
+
+
+def test_only_the_claim_holding_the_robot_moves_it_and_nothing_sent_before_a_claim_counts() -> None:
+    """The issue's lock: a stop with sequence number 2^32 - 1 sent to an idle robot, then commands of
+    another claim (any number) during a run: refused and counted; the next claim drives from 1."""
+    from bridge.claim import claim_text
+
+    robot, said = _robot()
+    robot.claim.host_left(CLAIM)  # idle: nobody holds it
+    robot.receive(wheels(2**32 - 1, 100.05, 0.0, 0.0, claim=OTHER), 100.0)
+    robot.host_arrived(OTHER + 1, 100.0)  # a run claims it
+    robot.host_arrived(OTHER, 100.0)  # a second one (or a stranger's token) while it is held: not the owner
+    assert robot.claim.owner == OTHER + 1
+    robot.receive(wheels(1, 100.1, 0.3, 0.3, claim=OTHER + 1), 100.01)
+    robot.receive(wheels(2**32 - 1, 100.1, 0.9, -0.9, claim=OTHER), 100.02)  # the stranger, during the run
+    robot.receive(wheels(2, 100.1, 0.3, 0.3, claim=OTHER + 1), 100.03)
+    assert robot.command == (0.3, 0.3) and robot.command_seq == 2
+    status = decode_status(robot.status(100.04))
+    assert (status.owner, status.applied, status.accepted, status.dropped) == (OTHER + 1, 2, 2, 0)
+    assert (status.foreign, status.foreign_claim, status.flags) == (1, OTHER, STATUS_POSES)
+    assert any(f"of claim {claim_text(OTHER)}" in line and "refused" in line for line in said)
+    robot.host_gone(OTHER + 1, 100.05)  # the run released it: the wheels stop at once
+    assert robot.command == (0.0, 0.0) and robot.claim.owner == 0
+    robot.host_arrived(CLAIM, 100.1)  # the next run numbers from 1 again
+    robot.receive(wheels(1, 100.2, 0.2, 0.2), 100.11)
+    assert robot.command == (0.2, 0.2) and robot.command_seq == 1
+    assert robot.sample(100.12, random.Random(0)).claim == CLAIM
+
+
+def test_the_run_tells_its_robots_poses_from_foreign_ones_and_notices_when_the_robot_obeys_someone_else() -> None:
+    from bridge.claim import HostClaim, NotDriving
+
+    host = HostClaim(claim=CLAIM)
+    host.accept(Pose(5, 0, 1.0, 0.0, 0.0, 0.0, claim=0), sent=0)  # before the grant: a pose of no claim is fine
+    host.robot_status(Status(1, OTHER, 0, 0, 0, 0, 0, 0, 1.0, STATUS_POSES), sent=0)  # someone else's: ignored
+    assert not host.echoes and not host.granted and host.other_owner == OTHER
+    host.robot_status(Status(2, CLAIM, 0, 0, 0, 0, 0, 0, 1.0, STATUS_POSES), sent=0)
+    assert host.granted and host.echoes
+    for pose in (Pose(2**32 - 1, 0, 1.0, 3.0, 3.0, 0.0, claim=0), Pose(2**32 - 1, 0, 1.0, 3.0, 3.0, 0.0, claim=OTHER)):
+        with pytest.raises(MessageError, match="another publisher on the pose key") as foreign:
+            host.source(pose)
+        assert foreign.value.reason is Drop.FOREIGN
+    host.source(Pose(1, 0, 1.0, 0.0, 0.0, 0.0, claim=CLAIM))
+    host.accept(Pose(1, 0, 1.0, 0.0, 0.0, 0.0, claim=CLAIM), sent=3)  # its own numbering, not locked by pose 5
+    with pytest.raises(NotDriving, match="applied command 9 of this run's claim .* but the run sent only 3"):
+        host.accept(Pose(2, 9, 1.0, 0.0, 0.0, 0.0, claim=CLAIM), sent=3)
+    with pytest.raises(NotDriving, match="refused most of this run's commands: accepted 20, dropped 30 of 50"):
+        host.robot_status(Status(3, CLAIM, 20, 20, 30, 0, 0, 0, 1.0, STATUS_POSES), sent=50)
+    host.robot_status(Status(4, CLAIM, 48, 48, 2, 7, 1, OTHER, 1.0, STATUS_POSES), sent=50)
+    assert host.interference() == (f"the robot side refused 7 commands of other claims (the last of claim {OTHER:016x})"
+                                   " and 1 invalid commands")
 
 
 def test_pacer_waits_for_each_point_and_counts_overruns() -> None:
@@ -195,11 +277,27 @@ def emulator(port: int, tmp_path: Path, *options: str) -> Iterator[tuple[subproc
 
 
 def start_run(port: int, trace: Path, stop_time: float, *sets: str) -> subprocess.Popen:
+    """``platoon run`` of LIVE3 with robot 3 at ``port``; SIGINT at its default, as a user's shell gives it
+    (a test run started in the background hands down SIGINT ignored, and the run keeps what it is given)."""
     arguments = [str(PLATOON), "run", str(LIVE3), "--out", str(trace), "--set", f"simulation.stop_time={stop_time}",
                  "--set", f'vehicles.3.connect=["{endpoint(port)}"]']
     for assignment in sets:
         arguments += ["--set", assignment]
-    return subprocess.Popen(arguments, cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(arguments, cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+
+def wait_for(condition: Callable[[], object], what: str | Callable[[], str], process: subprocess.Popen | None = None,
+             seconds: float = 60) -> None:
+    """Until ``condition()`` holds (an event, never a guess at how long it takes): fails naming ``what``
+    (a text, or a function giving it then) after ``seconds``, or at once if ``process`` (the run) ended meanwhile."""
+    deadline = time.monotonic() + seconds
+    while not condition():
+        said = what() if callable(what) else what
+        if process is not None and process.poll() is not None:
+            raise AssertionError(f"the run ended while waiting until {said}: {process.communicate()}")
+        assert time.monotonic() < deadline, f"not within {seconds:g} s: {said}"
+        time.sleep(0.02)
 
 
 def finish(process: subprocess.Popen, timeout: float = 120) -> tuple[int, str, str]:
@@ -207,15 +305,36 @@ def finish(process: subprocess.Popen, timeout: float = 120) -> tuple[int, str, s
     return process.returncode, out, err
 
 
-def wait_for_running(trace: Path, process: subprocess.Popen, seconds: float = 30) -> None:
-    """Until the run is stepping (its trace file has grown past the header), then a little longer."""
+def wait_for_running(trace: Path, process: subprocess.Popen, seconds: float = 30, settle: float = 1.0) -> None:
+    """Until the run is stepping (its trace file has grown past the header), then ``settle`` s longer."""
     deadline = time.monotonic() + seconds
     aside = trace.with_name(trace.name + ".partial")  # written there until finalized (docs/trace-format.md)
     while not (aside.exists() and aside.stat().st_size > 2000):
         assert process.poll() is None, process.communicate()
         assert time.monotonic() < deadline, "the run did not start"
         time.sleep(0.05)
-    time.sleep(1.0)
+    time.sleep(settle)
+
+
+def assert_tracks_the_all_fmu_run(live: Path, simulated: Path) -> Any:
+    """Run the 10 s all-FMU reference into ``simulated``; every vehicle of the live trace within 3 mm of it
+    (why 3 mm: test_live_robot_tracks_the_all_fmu_run). Returns the live trace, loaded."""
+    reference = subprocess.run([str(PLATOON), "run", str(LIVE3), "-q", "--engine", "python", "--out", str(simulated),
+                                "--set", "simulation.stop_time=10.0", "--set", "vehicles.3.endpoint=fmu"],
+                               cwd=REPO, env=_env(), capture_output=True, text=True, timeout=120)
+    assert reference.returncode == 0, reference.stderr
+    a, b = load(live), load(simulated)
+    distances = {}
+    for vehicle in a.vehicles():
+        x, y = a.component(vehicle)["x"], a.component(vehicle)["y"]
+        assert len(x) == len(b.component(vehicle)["x"]) == 1001
+        distance = np.hypot(x - b.component(vehicle)["x"], y - b.component(vehicle)["y"])
+        distances[vehicle] = distance.max()
+        assert distance.max() < 3e-3, (f"{vehicle}: {distance.max():.2e} m at t = {np.argmax(distance) * 0.01:.2f} s",
+                                       a.metadata["platoon.hil"]["pacing"])
+    print(f"\n[{live.name} vs all-FMU] largest distance: "
+          + ", ".join(f"{name} {value * 1e3:.2f} mm" for name, value in distances.items()))
+    return a
 
 
 def test_live_robot_tracks_the_all_fmu_run(tmp_path: Path) -> None:
@@ -239,16 +358,7 @@ def test_live_robot_tracks_the_all_fmu_run(tmp_path: Path) -> None:
         assert again == 0, err_again
         assert "back on the initial pose" in log.read_text()
     assert "running -> stopped (stop command)" in log.read_text() or "host's liveliness token dropped" in log.read_text()
-    reference = subprocess.run([str(PLATOON), "run", str(LIVE3), "-q", "--engine", "python", "--out", str(simulated),
-                                "--set", "simulation.stop_time=10.0", "--set", "vehicles.3.endpoint=fmu"],
-                               cwd=REPO, env=_env(), capture_output=True, text=True, timeout=120)
-    assert reference.returncode == 0, reference.stderr
-    a, b = load(live), load(simulated)
-    for vehicle in a.vehicles():
-        x, y = a.component(vehicle)["x"], a.component(vehicle)["y"]
-        assert len(x) == len(b.component(vehicle)["x"]) == 1001
-        distance = np.hypot(x - b.component(vehicle)["x"], y - b.component(vehicle)["y"])
-        assert distance.max() < 3e-3, f"{vehicle}: {distance.max():.2e} m"
+    a = assert_tracks_the_all_fmu_run(live, simulated)
     # the live vehicle's raw link, its statistics and its states are in the same trace
     assert {"vehicle3/pose", "vehicle3/command", "vehicle3/link"} <= set(a.live)
     assert len(a.live["vehicle3/command"]["seq"]) >= 1000
@@ -303,37 +413,61 @@ def test_lost_robot_ends_the_run_within_5_s_with_a_stop_and_a_finalized_trace(
     assert any("-> error" in line.message for line in loaded.log)
 
 
-def test_garbage_on_the_pose_key_is_counted_and_ignored_and_ctrl_c_stops_the_robot(tmp_path: Path) -> None:
-    """A third session publishes every kind of bad pose to the run; the run drops and counts each,
-    the robot keeps its path; SIGINT ends the run with exit 130 after a stop command reached the robot."""
+def _claim_of(payload: bytes) -> int | None:
+    try:
+        return decode_pose(payload).claim
+    except MessageError:
+        return None
+
+
+def test_garbage_and_foreign_poses_and_commands_are_counted_and_ignored_and_ctrl_c_stops_the_robot(
+        tmp_path: Path) -> None:
+    """A stranger's session publishes every kind of bad pose to the run, a flood of well-formed poses
+    that are not the robot's (sequence numbers up to 2^32 - 1, far off the path), and wheel commands of
+    its own claims; the run drops and counts each, the robot keeps its path and obeys the run only, the
+    run names the stranger's claim; SIGINT ends it with exit 130 after a stop command reached the robot."""
+    from bridge.claim import claim_text
     from bridge.session import open_session, zenoh_config
 
     port, host_port = free_port(), free_port()
     trace = tmp_path / "garbage.mcap"
+    stranger_claim = 0x5757_5757_5757_5757
     with emulator(port, tmp_path) as (_, log):
         run = start_run(port, trace, 60.0, f'vehicles.3.listen=["{endpoint(host_port)}"]')
         wait_for_running(trace, run)
-        # the attacker's session meets the run (its listen port) and the emulator, to replay real poses
+        # the stranger's session meets the run (its listen port) and the emulator, to replay real poses
         with open_session(zenoh_config(connect=[endpoint(host_port), endpoint(port)]), "test") as session:
-            time.sleep(0.5)
             replayed: list[bytes] = []
             subscriber = session.declare_subscriber(KEYS.pose, lambda sample: replayed.append(sample.payload.to_bytes()))
-            good = encode_pose(Pose(1, 0, time.time(), 0.0, 0.0, 0.0))
+            deadline = time.monotonic() + 10
+            while len(replayed) < 10:
+                assert time.monotonic() < deadline, "no pose reached the stranger"
+                time.sleep(0.01)
+            claim = decode_pose(replayed[-1]).claim  # the run's claim, read off the wire
+            good = encode_pose(Pose(1, 0, time.time(), 0.0, 0.0, 0.0, claim))
             garbage = {
                 "oversized": [bytes(1000)] * 3,
                 "malformed": [good[:-4], good + b"\0"],
                 "version": [b"\x07" + good[1:]],
-                "non_finite": [encode_pose(Pose(2**31, 0, time.time(), math.nan, 0.0, 0.0)),
-                               encode_pose(Pose(2**31, 0, time.time(), 0.0, 0.0, math.inf))],
-                "late": [encode_pose(Pose(2**31, 0, time.time() - 5.0, 9.0, 9.0, 0.0))],
+                "non_finite": [encode_pose(Pose(2**31, 0, time.time(), math.nan, 0.0, 0.0, claim)),
+                               encode_pose(Pose(2**31, 0, time.time(), 0.0, 0.0, math.inf, claim))],
+                "late": [encode_pose(Pose(2**31, 0, time.time() - 5.0, 9.0, 9.0, 0.0, claim))],
             }
             for payloads in garbage.values():
                 for payload in payloads:
                     session.put(KEYS.pose, payload)
-            time.sleep(0.3)
-            for payload in list(replayed[-5:]):  # real poses again: duplicates (or out of order)
+            foreign = 0
+            for seq in range(200):  # 1 s at 200 Hz: poses 3 m off, of no claim or another one, numbered to 2^32 - 1
+                for other in (0, stranger_claim):
+                    session.put(KEYS.pose, encode_pose(Pose(2**32 - 200 + seq, 0, time.time(), 3.0, 3.0, 0.0, other)))
+                    foreign += 1
+                session.put(KEYS.wheels, encode_wheels(WheelCommand(2**32 - 200 + seq, time.time() + 0.1, 0.9, -0.9,
+                                                                    stranger_claim)))
+                time.sleep(0.005)
+            real = [payload for payload in replayed if _claim_of(payload) == claim]  # not its own
+            for payload in real[-5:]:  # the robot's poses again: duplicates (or out of order)
                 session.put(KEYS.pose, payload)
-            time.sleep(0.5)
+            time.sleep(1.0)
             subscriber.undeclare()
         run.send_signal(signal.SIGINT)
         code, _, err = finish(run, timeout=30)
@@ -341,14 +475,21 @@ def test_garbage_on_the_pose_key_is_counted_and_ignored_and_ctrl_c_stops_the_rob
         emulator_log = log.read_text()
     assert code == 130, err
     assert "robot 3: running -> stopped (stop command)" in emulator_log, emulator_log
+    assert f"of claim {claim_text(stranger_claim)}" in emulator_log and "refused" in emulator_log
     loaded = load(trace)
     import json
     stats = json.loads(loaded.metadata["platoon.hil"]["vehicle3"])
     for reason, payloads in garbage.items():
         assert stats[f"pose.dropped.{reason}"] == len(payloads), (reason, stats)
+    assert stats["pose.dropped.foreign"] == foreign, stats
     assert stats["pose.dropped.duplicate"] + stats["pose.dropped.out_of_order"] >= 4
+    assert stats["command.foreign"] == 200 and stats["command.foreign_claim"] == claim_text(stranger_claim), stats
+    # the last status may be up to 50 ms old: 5 steps' commands and the 3 stops can be missing from it
+    assert stats["command.dropped"] == 0 and stats["command.accepted"] >= stats["command.sent"] - 10, stats
     assert loaded.live["vehicle3/link"]["pose.dropped.oversized"][-1] == 3
     assert any("dropped a message" in line.message for line in loaded.log)
+    assert any(f"refused 200 commands of other claims (the last of claim {claim_text(stranger_claim)})" in line.message
+               for line in loaded.log), [line.message for line in loaded.log]
     config = config_from_mapping(loaded.config)
     robot = loaded.component("vehicle3")
     assert np.abs(path_errors(config, robot["x"], robot["y"])).max() < 0.035  # never steered off (0.029 at start)
@@ -371,3 +512,140 @@ def test_live_run_options_that_cannot_work_are_usage_errors(tmp_path: Path) -> N
     result = subprocess.run([str(PLATOON), "m3pi-emulator", "--config", str(REPO / "configs/paper/m3pi.toml")],
                             cwd=REPO, env=_env(), capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and "no live vehicle" in result.stderr
+
+
+# -- a shared network: strangers, sockets --------------------------------------------------------------
+
+# These tests are about who drives the robot, not timing: a loaded machine (2 cores, other test runs) may
+# stall the emulator for a few hundred ms, which the defaults (0.5 s, 0.25 s) would take for a lost robot.
+PATIENT = ("hil.pose_timeout=3.0", "hil.max_pose_age=2.0")
+
+
+def wait_for_driving(log: Path, runs: int, process: subprocess.Popen, seconds: float = 30) -> None:
+    """Until the emulator applied the first command of its ``runs``-th run (the run is stepping)."""
+    deadline = time.monotonic() + seconds
+    while log.read_text().count("-> running (command 1)") < runs:
+        assert process.poll() is None, process.communicate()
+        assert time.monotonic() < deadline, "the run did not start driving"
+        time.sleep(0.02)
+
+
+def listening_sockets(pid: int) -> set[str]:
+    """Every socket process ``pid`` (and its children) listens on: TCP in LISTEN, UDP bound without a peer."""
+    psutil = pytest.importorskip("psutil")
+    process = psutil.Process(pid)
+    found = set()
+    for member in (process, *process.children(recursive=True)):
+        for connection in member.net_connections(kind="inet"):
+            listening = connection.status == psutil.CONN_LISTEN if connection.type == socket.SOCK_STREAM \
+                else not connection.raddr
+            if listening:
+                kind = "tcp" if connection.type == socket.SOCK_STREAM else "udp"
+                found.add(f"{kind}/{connection.laddr.ip}:{connection.laddr.port}")
+    return found
+
+
+def stranger_commands(session, claim: int) -> None:
+    """What a stranger can send without reading the traffic: stop and full-speed commands numbered up to
+    2^32 - 1, of no claim and of a claim of its own, and one in the old version-1 layout."""
+    import struct
+
+    now = time.time()
+    for seq in (1, 2**31, 2**32 - 1):
+        for other in (0, claim):
+            session.put(KEYS.wheels, encode_wheels(WheelCommand(seq, now + 2.0, 0.0, 0.0, other)))
+            session.put(KEYS.wheels, encode_wheels(WheelCommand(seq, now + 2.0, 1.0, -1.0, other)))
+    session.put(KEYS.wheels, struct.pack("<BBHIddd", 1, 2, 0, 2**32 - 1, now + 2.0, 1.0, 1.0))
+
+
+def drove(trace: Path, seconds: float) -> float:
+    """How far the live robot went in ``trace`` (m), after checking that it applied the run's commands."""
+    loaded = load(trace)
+    assert loaded.run["status"] == "completed"
+    poses = loaded.live["vehicle3/pose"]
+    assert poses["command_seq"].max() >= 0.9 * seconds / 0.01  # it applied (nearly) every command of the run
+    x, y = loaded.component("vehicle3")["x"], loaded.component("vehicle3")["y"]
+    return float(np.hypot(np.diff(x), np.diff(y)).sum())
+
+
+def test_strangers_commands_never_move_the_robot_and_runs_back_to_back_drive_listening_only_where_named(
+        tmp_path: Path) -> None:
+    """A stranger sends commands to the idle emulator (a stop numbered 2^32 - 1 included), then two runs
+    drive it back to back, with more of the stranger's commands between and during them. Both runs
+    drive the whole way (0.35 m/s: about 1 m in 3 s); the robot side refuses the stranger's commands
+    and the run names its claim. During each run the run and the emulator listen only on the endpoints
+    they were given: the emulator on its port, the first run on its listen port, the second (which
+    only connects) nowhere."""
+    from bridge.claim import claim_text
+    from bridge.session import open_session, zenoh_config
+
+    port, host_port = free_port(), free_port()
+    stranger_claim = 0x5757_5757_5757_5757
+    with emulator(port, tmp_path) as (robot, log), \
+            open_session(zenoh_config(connect=[endpoint(port)]), "stranger") as stranger:
+        time.sleep(0.5)
+        stranger_commands(stranger, stranger_claim)
+        for runs, listen in enumerate(([endpoint(host_port)], []), start=1):
+            trace = tmp_path / f"run{runs}.mcap"
+            run = start_run(port, trace, 3.0, f"vehicles.3.listen={listen!r}".replace("'", '"'), *PATIENT)
+            wait_for_driving(log, runs, run)
+            sockets = {"run": listening_sockets(run.pid), "emulator": listening_sockets(robot.pid)}
+            stranger_commands(stranger, stranger_claim)
+            code, out, err = finish(run)
+            assert code == 0, err
+            assert sockets == {"run": {f"tcp/127.0.0.1:{host_port}"} if listen else set(),
+                               "emulator": {f"tcp/127.0.0.1:{port}"}}, (runs, sockets)
+            assert drove(trace, 3.0) > 0.8, runs
+            said = " ".join((out + err).split())  # the table's notes wrap
+            assert f"refused 12 commands of other claims (the last of claim {claim_text(stranger_claim)}) and 1 " \
+                   "invalid" in said, said
+            stranger_commands(stranger, stranger_claim)
+    assert "protocol version 1, expected 2" in log.read_text()
+
+
+def test_a_robot_that_obeys_someone_else_ends_the_run_non_zero_and_stops(tmp_path: Path) -> None:
+    """A stranger who reads the run's claim off the wire and commands the robot with it: the robot's pose
+    echoes a command the run never sent, the run ends with exit 1 saying so, keeps the trace, stops."""
+    from bridge.session import open_session, zenoh_config
+
+    port, host_port = free_port(), free_port()
+    trace = tmp_path / "hijacked.mcap"
+    with emulator(port, tmp_path) as (_, log):
+        run = start_run(port, trace, 30.0, f'vehicles.3.listen=["{endpoint(host_port)}"]', *PATIENT)
+        wait_for_driving(log, 1, run)
+        # a peer does not forward between two others: the stranger meets the run to hear its commands
+        with open_session(zenoh_config(connect=[endpoint(port), endpoint(host_port)]), "stranger") as session:
+            commands: list[bytes] = []
+            subscriber = session.declare_subscriber(KEYS.wheels, lambda sample: commands.append(sample.payload.to_bytes()))
+            deadline = time.monotonic() + 10
+            while not commands:
+                assert time.monotonic() < deadline, "no command reached the stranger"
+                time.sleep(0.01)
+            claim = decode_wheels(commands[-1]).claim
+            hijacked = time.time()
+            session.put(KEYS.wheels, encode_wheels(WheelCommand(2**31, hijacked + 1.0, 0.5, -0.5, claim)))
+            code, _, err = finish(run, timeout=30)
+            subscriber.undeclare()
+        time.sleep(0.3)
+    assert code == 1, err
+    assert "robot 3 (platoon/m3pi/3) does not obey this run: the robot applied command 2147483648 of this run's claim" \
+           in err and "someone else drives it with this run's claim" in err, err
+    loaded = load(trace)
+    assert loaded.run["status"] == "failed" and "does not obey this run" in loaded.run["error"]
+    stopped = loaded.live["vehicle3/command"]["sent"].max() - hijacked  # the stops are the run's last commands
+    print(f"\n[hijacked claim] the run sent its stop commands {stopped * 1e3:.1f} ms after the hijacking command")
+    assert stopped > 0
+    emulator_log = log.read_text()
+    assert "released" in emulator_log and "-> stopped" in emulator_log.split("released")[-1] + emulator_log
+
+
+def test_a_run_whose_commands_the_robot_side_mostly_refuses_ends_non_zero(tmp_path: Path) -> None:
+    """Commands valid for 1 us reach the emulator after their deadline (encoding and the transport alone
+    take tens of us): it drops them as late and says so on its status; after 50 the run ends with exit 1."""
+    port = free_port()
+    trace = tmp_path / "refused.mcap"
+    with emulator(port, tmp_path):
+        code, _, err = finish(start_run(port, trace, 10.0, "hil.command_validity=0.000001", *PATIENT), timeout=60)
+    assert code == 1, err
+    assert "robot 3 (platoon/m3pi/3) does not obey this run: the robot side refused most of this run's commands" in err
+    assert load(trace).run["status"] == "failed"

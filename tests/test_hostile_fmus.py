@@ -1,8 +1,8 @@
 """The FMUs keep any host alive (issue 18, items 12 to 16).
 
 Hosts: FMPy's FMU2Slave, in a process per case (tests/hostile_fmu_host.py), so that a segfault is a
-failed case, not a dead test run; libcosim through libcosimpy, also in a process per case; fmusim
-when it is installed. The hostile cases themselves are listed in tests/hostile_fmus.py, which also
+failed case, not a dead test run; libcosim through libcosimpy, also in a process per case (fmusim
+is not tested: docs/fmus.md, "Non-Python hosts"; tests/test_c_host.py is the non-Python host). The hostile cases themselves are listed in tests/hostile_fmus.py, which also
 runs them all as a script.
 """
 
@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
@@ -82,12 +81,6 @@ def test_native_failed_instance_refuses_everything_with_fmi2_error(native_unzipp
     assert outcome.logged("invalid parameter(s): law = 'bogus': expected one of regular, sine; "
                           "d_star = -1.0: must be a finite number > 0"), outcome.logs
     assert outcome.ended and outcome.returncode == 0
-
-
-def test_fmusim_host():
-    if shutil.which("fmusim") is None:
-        pytest.skip("fmusim is not installed (FMPy does not ship it; the Reference FMUs' fmusim is a separate "
-                    "build); the C host of tests/test_c_host.py is the non-Python host tested here")
 
 
 # --- libcosim --------------------------------------------------------------------------------------

@@ -23,7 +23,7 @@ from bridge.protocol import decode_wheels
 from orchestrator.bench.hil import free_port
 from orchestrator.scenario.config import load_config
 from orchestrator.analysis.metrics import path_errors
-from tests.test_hil import KEYS, LIVE3, emulator, endpoint
+from tests.test_hil import KEYS, LIVE3, emulator, endpoint, listening_sockets, wait_for
 from tests.test_ssp import platoon
 
 pytest.importorskip("libcosimpy")
@@ -53,13 +53,16 @@ def test_libcosim_runs_the_exported_live_platoon_and_the_live_vehicle_converges(
     """Every vehicle, the live one included, ends within 20 mm of the path over its last second (the
     criterion of tests/test_hil.py; the all-FMU run converges by about 15 s)."""
     port = free_port()
-    package = export_live(tmp_path, port, 20.0)
+    # commands valid for 2 s (0.1 s by default): on a loaded machine the final stop can take longer to
+    # reach the robot, which then drops it as late and stops only when the FMU's liveliness token goes
+    package = export_live(tmp_path, port, 20.0, "hil.command_validity=2.0")
     with emulator(port, tmp_path) as (_, log):
         started = time.monotonic()
         run = libcosim(package, tmp_path, "--tail", "100")
         out, _ = run.communicate(timeout=120)
         elapsed = time.monotonic() - started
-        time.sleep(0.3)
+        wait_for(lambda: "running -> stopped (stop command)" in log.read_text(),
+                 lambda: f"the robot takes the stop command: {log.read_text()}\nlibcosim: {out}")
         robot_side = log.read_text()
     assert run.returncode == 0, out
     assert "steps completed" in out and "end 20.0" in out, out
@@ -96,18 +99,19 @@ def test_a_lost_robot_fails_the_step_with_its_reason_after_a_stop_command(tmp_pa
     with emulator(port, tmp_path) as (robot, log):
         run = libcosim(package, tmp_path)
         try:
-            deadline = time.monotonic() + 60
-            while "configured -> running" not in log.read_text():
-                assert run.poll() is None, run.communicate()[0]
-                assert time.monotonic() < deadline, "the live FMU never commanded the robot"
-                time.sleep(0.05)
+            wait_for(lambda: "configured -> running" in log.read_text(), "the live FMU commands the robot", run)
+            # the FMU's session listens where hil.listen says, nowhere else (the emulator: its port)
+            assert listening_sockets(run.pid) == {f"tcp/127.0.0.1:{host_port}"}
+            assert listening_sockets(robot.pid) == {f"tcp/127.0.0.1:{port}"}
             with open_session(zenoh_config(connect=[endpoint(host_port)]), "test") as session:
                 subscriber = session.declare_subscriber(
                     KEYS.wheels, lambda sample: commands.append(decode_wheels(sample.payload.to_bytes())))
-                time.sleep(1.0)
+                wait_for(lambda: len(commands) > 50, "the run's commands reach a third session", run)
                 os.kill(robot.pid, signal.SIGSTOP)
                 out, _ = run.communicate(timeout=30)
-                time.sleep(0.2)
+                # the FMU sends its stop three times before its process ends; they may still be on their way
+                wait_for(lambda: sum(1 for c in commands if (c.left, c.right) == (0.0, 0.0)) >= 3,
+                         lambda: f"three stop commands reach the third session (last: {commands[-3:]})")
                 subscriber.undeclare()
         finally:
             if run.poll() is None:

@@ -718,8 +718,33 @@ def test_an_odometry_pose_in_a_rotated_frame_with_our_wheel_protocol(tmp_path: P
         log = robot.stop()
     assert run.returncode == 0, err
     assert "pose on /odom at 200 Hz, commands on platoon/m3pi/3/cmd/wheels" in log, log
+    assert "m3pi-emulator robot 3: claimed by " in log, log  # our commands: the claim holds as without ROS
     assert "running -> stopped (stop command)" in log
     loaded = load(tmp_path / "mixed.mcap")
     assert len(loaded.live["vehicle3/pose"]["seq"]) > 300
     vehicle = loaded.component("vehicle3")
     assert np.abs(path_errors(config_from_mapping(loaded.config), vehicle["x"], vehicle["y"])).max() < 0.035
+
+
+def test_ros_commands_are_numbered_afresh_for_each_claim() -> None:
+    """A Twist carries no claim or number: the emulator numbers ROS commands itself, from 1 for each claim,
+    so that its poses in our format echo the new claim with numbers its run has sent (a count carried over
+    from the run before would read as commands the run never sent, and end that run)."""
+    import random
+
+    from bridge.emulator import EmulatedRobot, EmulatorSettings, RobotSpec
+    from bridge.protocol import RobotKeys
+    from fmus.model.dynamics import M3piDynamics
+
+    spec = RobotSpec(RobotKeys("platoon", 3), 0.0, 0.0, 0.0, 0.2, M3piDynamics(k_v=1.0))
+    robot = EmulatedRobot(spec, EmulatorSettings(), lambda text: None)
+    noise = random.Random(0)
+    robot.host_arrived(0x11, 0.0)
+    for step in range(3):
+        robot.accept_unclaimed(0.2, 0.2, 0.01 * step)
+    assert (robot.sample(0.05, noise).command_seq, robot.sample(0.06, noise).claim) == (3, 0x11)
+    robot.host_gone(0x11, 0.07)
+    robot.host_arrived(0x22, 0.08)
+    robot.accept_unclaimed(0.2, 0.2, 0.09)
+    pose = robot.sample(0.1, noise)
+    assert (pose.command_seq, pose.claim) == (1, 0x22)

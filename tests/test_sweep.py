@@ -9,6 +9,7 @@ is recorded with its error while the others go on; the row's per-vehicle columns
 from __future__ import annotations
 
 import csv
+import itertools
 import math
 import os
 import signal
@@ -17,6 +18,7 @@ import sys
 import time
 from pathlib import Path
 
+import matplotlib.image
 import pytest
 
 from orchestrator.analysis.metrics import report_json, summarize
@@ -299,6 +301,56 @@ def test_parquet_holds_the_rows_of_the_csv(tmp_path: Path, fmu_dir: Path) -> Non
 
 # --- the map ----------------------------------------------------------------------------------------
 
+def drawn_figure(out: Path, value: str, png: Path):
+    """The figure ``platoon sweep-plot OUT --value VALUE`` draws, kept open to read what it holds."""
+    from orchestrator.sweep import plot
+
+    kept = []
+    close = plot.plt.close
+    plot.plt.close = kept.append  # draw_map closes its figure after saving it: keep it instead
+    try:
+        plot.draw_map(out, value, "d_star/R", "platoon.count", "platoon.law", png)
+    finally:
+        plot.plt.close = close
+    (figure,) = kept
+    return figure
+
+
+def assert_map_shows(figure, pixels, expected: dict[tuple[str, int, float], float]) -> None:
+    """Each cell (law panel, count row, d*/R column) says its run's signed value and is painted the
+    colour of its magnitude on the one logarithmic scale of the colour bar, which covers the values:
+    in the figure's objects and in ``pixels`` (the PNG the command wrote)."""
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
+
+    axes = [axis for axis in figure.axes if axis.get_title().startswith("platoon.law = ")]
+    assert [axis.get_title() for axis in axes] == ["platoon.law = regular", "platoon.law = sine"]
+    magnitudes = [abs(v) for v in expected.values()]
+    norms = {id(axis.get_images()[0].norm) for axis in axes}
+    norm = axes[0].get_images()[0].norm
+    assert len(norms) == 1 and isinstance(norm, LogNorm), "one logarithmic colour scale for every panel"
+    assert norm.vmin == min(magnitudes) and norm.vmax >= max(magnitudes)  # at least a decade wide
+    height = pixels.shape[0]
+    counts = [int(label.get_text()) for label in axes[0].get_yticklabels()]  # the panels share the y axis
+    for axis in axes:
+        law = axis.get_title().removeprefix("platoon.law = ")
+        ratios = [float(label.get_text()) for label in axis.get_xticklabels()]
+        assert counts == [1, 2] and ratios == [0.5, 1.5], (counts, ratios)
+        (image,) = axis.get_images()
+        shown, cmap = image.get_array(), image.get_cmap()
+        texts = {(round(t.get_position()[1]), round(t.get_position()[0])): t.get_text() for t in axis.texts}
+        for (row, count), (column, ratio) in itertools.product(enumerate(counts), enumerate(ratios)):
+            value = expected[(law, count, ratio)]
+            assert shown[row, column] == pytest.approx(abs(value), rel=1e-12), (law, count, ratio)
+            assert texts[(row, column)] == f"{value:.2g}", (law, count, ratio)
+            # a point inside the cell away from its centred text: the cell's colour in the written PNG
+            x, y = axis.transData.transform((column - 0.3, row - 0.3))
+            colour = pixels[height - 1 - int(round(y)), int(round(x)), :3]
+            wanted = cmap(norm(abs(value)))[:3]
+            assert colour == pytest.approx(wanted, abs=2 / 255), (law, count, ratio, colour, wanted)
+    plt.close(figure)
+
+
 def test_sweep_plot_draws_the_map_and_names_a_bad_column(tmp_path: Path, fmu_dir: Path) -> None:
     path = sweep_file(tmp_path, '[set]\n"simulation.stop_time" = 2.0\n[grid]\n"platoon.law" = ["regular", "sine"]\n'
                                 '"platoon.count" = [1, 2]\n"platoon.d_star" = [25.0, 75.0]\n')
@@ -308,10 +360,17 @@ def test_sweep_plot_draws_the_map_and_names_a_bad_column(tmp_path: Path, fmu_dir
     assert result.returncode == 0, result.stderr
     png = out / "map.png"
     assert f"wrote {png}" in result.stdout.replace("\n", "")
-    import matplotlib.image
-
-    image = matplotlib.image.imread(png)
-    assert image.shape[0] > 200 and image.shape[1] > 400  # two panels side by side
+    # what each cell must show: the run's signed value, its magnitude as the colour; the path offsets
+    # are all positive here, the gap errors of both signs
+    radius = 50.0  # path.radius of configs/paper/platoon.toml: the x axis is d*/R
+    gap_png = tmp_path / "gap.png"
+    assert platoon("sweep-plot", out, "--value", "last.gap_error", "--out", gap_png).returncode == 0
+    for column, written in (("last.path_offset", png), ("last.gap_error", gap_png)):
+        expected = {(row["platoon.law"], int(row["platoon.count"]), float(row["platoon.d_star"]) / radius):
+                    float(row[column]) for row in rows(out)}
+        assert len(expected) == 8 and all(math.isfinite(v) and v != 0.0 for v in expected.values())
+        figure = drawn_figure(out, column, tmp_path / "again.png")
+        assert_map_shows(figure, matplotlib.image.imread(written), expected)
     bad = platoon("sweep-plot", out, "--value", "last.colour")
     assert bad.returncode == 2 and "--value last.colour" in error_line(bad)
     ambiguous = platoon("sweep-plot", out, "--panel", "platoon.k_v")  # law and k_v: two runs per cell

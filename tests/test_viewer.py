@@ -16,6 +16,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from orchestrator.scenario.config import config_from_mapping
@@ -164,10 +165,18 @@ def test_figure_draws_both_laws_side_by_side(runs: dict[str, Path]) -> None:
         labels = [text.get_text() for text in column[3].get_legend().get_texts()]
         assert labels == ["vehicle 1", "vehicle 2", "vehicle 3", "vehicle 4", "path", "vehicle at the end",
                           "virtual target at the end"]
-    # the regular law settles inside the circle, the sine law on it: the columns differ where the paper says
-    regular_end = axes[4].get_lines()[3].get_ydata()[-1]
-    sine_end = axes[5].get_lines()[3].get_ydata()[-1]
-    assert regular_end != sine_end
+    # each column draws its own run: the errors over time and the tracks are that trace's data
+    from tests.test_cli import panel_series
+
+    for column, (trace, config) in zip((axes[0::2], axes[1::2]), pair):
+        series = panel_series(trace, config)
+        for time_axes, stem in zip(column[:3], ("speed_errors", "gap_errors", "path_errors")):
+            for line, vehicle in zip(time_axes.get_lines(), trace.vehicles()):
+                assert np.array_equal(line.get_ydata(), series[stem](vehicle)), (config.platoon.law, stem, vehicle)
+        for k, vehicle in enumerate(trace.vehicles()):  # the path first, then each vehicle's track and its end
+            track = column[3].get_lines()[1 + 2 * k]
+            assert np.array_equal(track.get_xdata(), trace.component(vehicle)["x"]), (config.platoon.law, vehicle)
+            assert np.array_equal(track.get_ydata(), trace.component(vehicle)["y"]), (config.platoon.law, vehicle)
 
 
 def test_figure_of_a_large_platoon_has_a_colour_bar_and_a_line_shows_deviations(runs: dict[str, Path]) -> None:

@@ -18,8 +18,13 @@ for that direction, and the graph (rmw_zenoh or zenoh-bridge-ros2dds, ``node.Ros
   timeout (diff_drive_controller's ``cmd_vel_timeout``, 0.5 s by default) stops it if commands cease.
   A TwistStamped is stamped zero (the controller stamps it on arrival) or with the host's clock
   (``command_stamp = "now"``, for robots whose clocks are synchronized with the host's).
-* with ROS commands there is no robot-side liveliness token of ours to wait for, and no busy token:
-  the first valid pose is what the host waits for, the pose timeout what declares the robot lost.
+* with ROS commands there is no robot-side liveliness token or status of ours to wait for, and no
+  claim: the first valid pose is what the host waits for, the pose timeout what declares the robot
+  lost. The run still declares its claim token (an emulator in ``--ros2`` mode takes it as our
+  robots do), but a ROS topic carries no claim id, so the robot obeys whoever may put on the command
+  topic's key, and a pose topic's poses cannot be told from another publisher's: Zenoh access
+  control on those keys is what guards them (docs/hil.md, "Your lab"). A direction left on our
+  protocol keeps every check of ``bridge.claim``.
 """
 
 from __future__ import annotations
@@ -126,6 +131,16 @@ class RosLiveVehicle(LiveVehicle):
         linear, angular = messages.wheels_to_twist(command.left, command.right, self.dynamics.track)
         stamp = self.clock() if self.ros.command_stamp == "now" else 0.0
         self._ros_publisher.put(messages.encode_twist(self.ros.command_type, linear, angular, stamp, self.ros.frame_id))
+
+    def _ready(self) -> bool:
+        if not self.ros.command_topic:
+            return super()._ready()
+        return self._alive and self._latest is not None  # no claim on a ROS topic: nothing grants one
+
+    def _holding(self) -> str:
+        if not self.ros.command_topic:
+            return super()._holding()
+        return f"commands on {self.ros.command_topic} (a ROS topic: no claim)"
 
     def _refusal(self, session: zenoh.Session) -> str | None:
         """Under rmw_zenoh, the robot's subscription to the command topic must take our type: a different

@@ -60,6 +60,8 @@ def _hil_parameters() -> tuple[VariableInfo, ...]:
              start=d.command_validity, min=0.0),
         real("hil.max_pose_age", "parameter", "An older pose (receive time minus stamp) is dropped as late", "s",
              start=d.max_pose_age, min=0.0),
+        VariableInfo("hil.allow_insecure", "Boolean", "parameter", "Allow Zenoh endpoints off this machine without "
+                     "TLS (docs/hil.md, \"A secure lab\")", start=d.allow_insecure),
     )
 
 
@@ -83,6 +85,7 @@ def live_settings(values: dict[str, Any]) -> LiveSettings:
     fields["listen"] = _endpoints(values["hil.listen"])
     fields["zenoh_config"] = values["hil.zenoh_config"] or None
     fields["robot"] = int(values["hil.robot"])
+    fields["allow_insecure"] = bool(values["hil.allow_insecure"])
     return LiveSettings(**fields)
 
 

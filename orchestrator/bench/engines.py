@@ -73,7 +73,8 @@ def run_native(n: int, steps: int, mode: str, coupling: str, fmu_dir: Path) -> d
     trace = Path(tempfile.mkdtemp(prefix="bench-trace-")) / "trace.mcap"
     writer: Any = None
     if mode in ("traced", "offload"):  # created before the FMUs are instantiated, as run_scenario does
-        writer = open_trace_writer("process" if mode == "offload" else "inline", trace, outputs, None, scenario.config)
+        writer = open_trace_writer("process" if mode == "offload" else "inline", trace, outputs, None, scenario.config,
+                                   native=True)  # the C encoder, as run_scenario's native engine
     master = NativeMaster(components, scenario.connections, scenario.schedules, "jacobi")
     master.initialize(0.0)
     sink: Callable | None = None

@@ -3,15 +3,21 @@
 Everything runs on 127.0.0.1, each peer a separate process on a free port:
 
 * ``transport``: a bare Zenoh ping-pong between this process and a tiny echo process
-  (``python -m orchestrator.bench.hil echo ENDPOINT``): a wheel-command-sized ping out, a pose-sized
-  pong back, one every 5 ms, with the publishers the bridge uses (express, BLOCK). This is the
-  transport's share of a round trip;
+  (``python -m orchestrator.bench.hil echo ENDPOINT [ZENOH_CONFIG]``): a wheel-command-sized ping out
+  on a robot's command key, a pose-sized pong back on its pose key, one every 5 ms, with the
+  publishers the bridge uses (express, BLOCK). This is the transport's share of a round trip; once
+  over TCP, once over mutual TLS with the access control of ``platoon hil-certs`` (``transport
+  TLS+ACL``: the cost of the secure lab, docs/hil.md);
 * ``live``: real live runs of ``configs/hil/m3pi_live3.toml`` (vehicle 3 a live robot; ``run_scenario``
   in this process, paced to wall time) against ``platoon m3pi-emulator`` in a subprocess, at step
   0.01 s (100 Hz) and 0.005 s (200 Hz) with the emulator's pose rate 200 Hz (the paper's motion
   capture), and at 100 Hz with poses at 1000 Hz. Each run reports the link's round trip (wheel command
   sent -> first pose whose ``command_seq`` says the robot had applied it, ``LiveVehicle``) and the
-  pacer's step jitter (lateness of each communication point after its wall-clock deadline) and overruns.
+  pacer's step jitter (lateness of each communication point after its wall-clock deadline) and overruns;
+  the 100 Hz one once more over TLS+ACL;
+* ``checks``: what the checks of every message cost, in this process: a pose through the host's
+  checks (decode, claim, age, sequence: ``bridge.claim.HostClaim``) and a command through the robot
+  side's (``RobotClaim.check``), each against decoding alone.
 
 A pose is taken every 1/rate s, so a command waits up to one pose period for the next pose: the live
 round trip is the transport's plus that wait. Each emulator serves one run (its command numbers start
@@ -38,11 +44,13 @@ from .common import BenchError, BenchUsageError, Progress, interleaved
 
 CONFIG = Path("configs") / "hil" / "m3pi_live3.toml"
 POSE_RATE = 200.0  # Hz, the paper's motion capture
-# (step s, emulator pose rate Hz) of the live runs, each once per round
-LIVE_RUNS = ((0.01, POSE_RATE), (0.005, POSE_RATE), (0.01, 1000.0))
+# (step s, emulator pose rate Hz, over TLS+ACL) of the live runs, each once per round
+LIVE_RUNS = ((0.01, POSE_RATE, False), (0.005, POSE_RATE, False), (0.01, 1000.0, False), (0.01, POSE_RATE, True))
 PING_INTERVAL = 0.005  # s between two pings (200 Hz)
 PING_WARMUP = 10  # first pings not counted (connection set-up)
-PING_KEY, PONG_KEY, ECHO_ALIVE = "bench/hil/ping", "bench/hil/pong", "bench/hil/echo"
+BENCH_ROBOT = 1  # the ping-pong's keys are robot 1's: a command out, a pose back, as the lab's ACL allows them
+LAB_HOST, LAB_ROBOT_SIDE = "bench-host", "bench-robot"  # the secure lab's two hosts (robots 1 and 3)
+CHECKED_MESSAGES = 20000  # messages per timing of the checks
 START_TIMEOUT = 30.0  # s for a helper process to be ready
 _SEQ = struct.Struct("<I")
 STATS = ("median", "p99", "max")
@@ -100,31 +108,52 @@ class Helper:
 # -- transport: Zenoh ping-pong ----------------------------------------------------------------------
 
 
-def echo(endpoint: str) -> None:
+def _keys() -> Any:
+    from bridge.protocol import DEFAULT_PREFIX, RobotKeys
+
+    return RobotKeys(DEFAULT_PREFIX, BENCH_ROBOT)
+
+
+def make_lab(scratch: Path) -> Path:
+    """A secure lab (``platoon hil-certs``) of a run host and a robot side for robots 1 and 3; its folder."""
+    from bridge.lab import Lab, write_lab
+
+    folder = scratch / "lab"
+    if not (folder / f"{LAB_HOST}.json5").exists():
+        write_lab(Lab(run_hosts={LAB_HOST: {BENCH_ROBOT, 3}}, robot_sides={LAB_ROBOT_SIDE: {BENCH_ROBOT, 3}}), folder, 1)
+    return folder
+
+
+def echo(endpoint: str, config_file: str | None = None) -> None:
     """Echo side: listen on ``endpoint``, answer every ping with a pose-sized pong, until stdin ends."""
     import zenoh
 
     from bridge.protocol import POSE_SIZE
     from bridge.session import open_session, zenoh_config
 
-    with open_session(zenoh_config(listen=[endpoint]), "bench echo") as session:
-        pong = session.declare_publisher(PONG_KEY, congestion_control=zenoh.CongestionControl.BLOCK, express=True)
+    keys = _keys()
+    with open_session(zenoh_config(listen=[endpoint], config_file=config_file), "bench echo") as session:
+        pong = session.declare_publisher(keys.pose, congestion_control=zenoh.CongestionControl.BLOCK, express=True)
         answer = session.declare_subscriber(  # noqa: F841  (kept: a subscriber lives as long as its handle)
-            PING_KEY, lambda sample: pong.put(sample.payload.to_bytes()[:_SEQ.size].ljust(POSE_SIZE, b"\0")))
-        token = session.liveliness().declare_token(ECHO_ALIVE)  # noqa: F841
+            keys.wheels, lambda sample: pong.put(sample.payload.to_bytes()[:_SEQ.size].ljust(POSE_SIZE, b"\0")))
+        token = session.liveliness().declare_token(keys.alive)  # noqa: F841
         print(f"echo ready on {endpoint}", file=sys.stderr, flush=True)
         sys.stdin.read()
 
 
-def ping_pong(seconds: float, scratch: Path) -> dict[str, Any]:
-    """Round trips of pings to an echo process, one every ``PING_INTERVAL`` for ``seconds`` s."""
+def ping_pong(seconds: float, scratch: Path, secure: bool = False) -> dict[str, Any]:
+    """Round trips of pings to an echo process, one every ``PING_INTERVAL`` for ``seconds`` s (over mutual
+    TLS with the lab's access control if ``secure``)."""
     import zenoh
 
     from fmus.component import percentile_summary
     from bridge.protocol import WHEELS_SIZE
     from bridge.session import open_session, zenoh_config
 
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoint = f"{'tls' if secure else 'tcp'}/127.0.0.1:{free_port()}"
+    lab = make_lab(scratch) if secure else None
+    echo_config = [str(lab / f"{LAB_ROBOT_SIDE}.json5")] if lab else []
+    keys = _keys()
     sent: dict[int, float] = {}
     trips: list[tuple[int, float]] = []  # (ping number, round trip s)
     answered = threading.Event()
@@ -137,12 +166,13 @@ def ping_pong(seconds: float, scratch: Path) -> dict[str, Any]:
             answered.set()
 
     count = PING_WARMUP + max(1, round(seconds / PING_INTERVAL))
-    with Helper([sys.executable, "-m", "orchestrator.bench.hil", "echo", endpoint], "echo ready", scratch, "echo") as helper, \
-            open_session(zenoh_config(connect=[endpoint]), "bench ping") as session:
-        answers = session.declare_subscriber(PONG_KEY, on_pong)  # noqa: F841
-        ping = session.declare_publisher(PING_KEY, congestion_control=zenoh.CongestionControl.BLOCK, express=True)
+    config = zenoh_config(connect=[endpoint], config_file=str(lab / f"{LAB_HOST}.json5") if lab else None)
+    with Helper([sys.executable, "-m", "orchestrator.bench.hil", "echo", endpoint, *echo_config], "echo ready", scratch,
+                "echo") as helper, open_session(config, "bench ping") as session:
+        answers = session.declare_subscriber(keys.pose, on_pong)  # noqa: F841
+        ping = session.declare_publisher(keys.wheels, congestion_control=zenoh.CongestionControl.BLOCK, express=True)
         deadline = time.monotonic() + START_TIMEOUT
-        while not any(reply.ok is not None for reply in session.liveliness().get(ECHO_ALIVE, timeout=1.0)):
+        while not any(reply.ok is not None for reply in session.liveliness().get(keys.alive, timeout=1.0)):
             if time.monotonic() > deadline:
                 raise BenchError(f"the echo process on {endpoint} did not appear:\n{helper.stderr()}")
             time.sleep(0.05)
@@ -159,41 +189,99 @@ def ping_pong(seconds: float, scratch: Path) -> dict[str, Any]:
     counted = [trip for seq, trip in trips if seq > PING_WARMUP]
     if not counted:
         raise BenchError(f"no pong came back from the echo process on {endpoint}:\n{helper.stderr()}")
-    return {"kind": "transport", "pings": count - PING_WARMUP, "lost": count - len(trips),
+    return {"kind": "transport", "secure": secure, "pings": count - PING_WARMUP, "lost": count - len(trips),
             "link": percentile_summary("round_trip", counted)}
 
 
 # -- live runs against the emulator -------------------------------------------------------------------
 
 
-def live_run(step: float, rate: float, seconds: float, scratch: Path) -> dict[str, Any]:
-    """One paced live run of ``CONFIG`` (step ``step``, ``seconds`` long) against a fresh emulator at ``rate``."""
+def live_run(step: float, rate: float, seconds: float, scratch: Path, secure: bool = False) -> dict[str, Any]:
+    """One paced live run of ``CONFIG`` (step ``step``, ``seconds`` long) against a fresh emulator at ``rate``
+    (over mutual TLS with the lab's access control if ``secure``)."""
     from orchestrator.scenario.config import load_config
     from orchestrator.execution.run import run_scenario
 
     from .scenarios import platoon_command
 
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoint = f"{'tls' if secure else 'tcp'}/127.0.0.1:{free_port()}"
     connect = f'vehicles.3.connect=["{endpoint}"]'
-    overrides = [f"simulation.step={step!r}", f"simulation.stop_time={seconds!r}", connect]
-    parsed, _ = load_config(CONFIG, overrides)
+    # a measurement, not a safety test: a busy machine's stall of a few hundred ms must not end the run
+    overrides = [f"simulation.step={step!r}", f"simulation.stop_time={seconds!r}", connect, "hil.pose_timeout=5.0"]
     emulator = [*platoon_command(), "m3pi-emulator", "--config", str(CONFIG), "--set", connect, "--rate", f"{rate:g}",
                 "--duration", f"{seconds + 120:g}"]  # --duration: never outlives a bench that was killed
+    if secure:
+        lab = make_lab(scratch)
+        overrides.append(f'vehicles.3.zenoh_config="{lab / f"{LAB_HOST}.json5"}"')
+        emulator += ["--zenoh-config", str(lab / f"{LAB_ROBOT_SIDE}.json5")]
+    parsed, _ = load_config(CONFIG, overrides)
     with Helper(emulator, "configured", scratch, "m3pi-emulator") as helper:
         result = run_scenario(parsed, CONFIG.read_text(), None, engine="python")
         if result.status != "completed":
             raise BenchError(f"live run (step {step:g} s, poses at {rate:g} Hz) {result.status}: {result.error}\n"
                              f"emulator: {helper.stderr()}")
     links = {name: stats for name, stats in result.live.items() if name != "pacing"}
-    return {"kind": "live", "step": step, "pose_rate": rate, "seconds": seconds, "pacing": result.live["pacing"],
+    return {"kind": "live", "step": step, "pose_rate": rate, "secure": secure, "seconds": seconds,
+            "pacing": result.live["pacing"],
             "link": next(iter(links.values())), "vehicles": sorted(links), "wall_s": result.wall_time}
 
 
 def label(sample: dict[str, Any]) -> str:
-    """``transport``, or ``step 100 Hz, poses 200 Hz`` for a live run."""
+    """``transport``, or ``step 100 Hz, poses 200 Hz`` for a live run; `` TLS+ACL`` added over the secure lab."""
+    secure = ", TLS+ACL" if sample.get("secure") else ""
     if sample["kind"] == "transport":
-        return "transport"
-    return f"step {1 / sample['step']:g} Hz, poses {sample['pose_rate']:g} Hz"
+        return "transport" + secure
+    return f"step {1 / sample['step']:g} Hz, poses {sample['pose_rate']:g} Hz" + secure
+
+
+def _seconds_per_call(timings: dict[str, tuple[Any, list[Any], Any]], repeats: int = 5) -> dict[str, float]:
+    """Best of ``repeats`` timings, per item (s), of each ``name: (function, items, reset)``, taken in turn
+    (so that a busy moment of the machine hits all of them alike); ``reset`` runs before each timing."""
+    best = {name: float("inf") for name in timings}
+    for _ in range(repeats):
+        for name, (function, items, reset) in timings.items():
+            reset()
+            started = time.perf_counter()
+            for item in items:
+                function(item)
+            best[name] = min(best[name], (time.perf_counter() - started) / len(items))
+    return best
+
+
+def check_costs(count: int = CHECKED_MESSAGES) -> dict[str, float]:
+    """Seconds per message: a pose through the host's checks and a command through the robot side's, each
+    beside decoding alone (the reference, timed in the same run)."""
+    from bridge.claim import HostClaim, RobotClaim
+    from bridge.protocol import Pose, WheelCommand, check_pose_time, decode_pose, decode_wheels, encode_pose, \
+        encode_wheels
+
+    now = time.time()
+    host = HostClaim()
+    robot = RobotClaim()
+    poses = [encode_pose(Pose(seq, seq, now, 0.5, 0.5, 1.0, host.claim)) for seq in range(1, count + 1)]
+    commands = [encode_wheels(WheelCommand(seq, now + 3.0, 0.3, 0.3, host.claim)) for seq in range(1, count + 1)]
+
+    def host_checks(payload: bytes) -> None:  # as LiveVehicle._on_pose
+        pose = decode_pose(payload)
+        host.source(pose)
+        check_pose_time(pose, now, 1.0)
+        host.accept(pose, count)
+
+    def new_host() -> None:
+        host.__init__(claim=host.claim)  # type: ignore[misc]  (a fresh claim state: sequences from 1)
+
+    def new_claim() -> None:
+        robot.host_left(host.claim)
+        robot.host_appeared(host.claim)
+
+    def nothing() -> None:
+        pass
+
+    return _seconds_per_call({"pose.decode": (decode_pose, poses, nothing),
+                              "pose.checks": (host_checks, poses, new_host),
+                              "command.decode": (decode_wheels, commands, nothing),
+                              "command.checks": (lambda payload: robot.check(payload, now, "robot"), commands,
+                                                 new_claim)})
 
 
 # -- the suite -----------------------------------------------------------------------------------------
@@ -206,7 +294,8 @@ def run(seconds: float = 10.0, rounds: int = 1, progress: Progress | None = None
 
     fmu_files()  # build once, as the first `platoon run` would
     started = time.perf_counter()
-    variants = [("transport", None, None), *(("live", step, rate) for step, rate in LIVE_RUNS)]
+    variants = [("transport", None, None, False), ("transport", None, None, True),
+                *(("live", step, rate, secure) for step, rate, secure in LIVE_RUNS)]
 
     def describe(sample: dict[str, Any]) -> str:
         line = f"{label(sample):<34} round trip median {ms_text(sample['link'].get('round_trip.median'))} ms"
@@ -217,10 +306,10 @@ def run(seconds: float = 10.0, rounds: int = 1, progress: Progress | None = None
 
     with tempfile.TemporaryDirectory(prefix="bench-hil-") as scratch:
         def measure(_: Any, variant: tuple) -> dict[str, Any]:
-            kind, step, rate = variant
+            kind, step, rate, secure = variant
             if kind == "transport":
-                return ping_pong(seconds / 2, Path(scratch))
-            return live_run(step, rate, seconds, Path(scratch))
+                return ping_pong(seconds / 2, Path(scratch), secure)
+            return live_run(step, rate, seconds, Path(scratch), secure)
 
         samples = interleaved(rounds, [None], variants, measure, describe, progress)
     medians: dict[str, dict[str, Any]] = {}
@@ -229,12 +318,17 @@ def run(seconds: float = 10.0, rounds: int = 1, progress: Progress | None = None
         numbers = [{**{k: v for k, v in s["link"].items() if k.startswith("round_trip.")}, **s.get("pacing", {})}
                    for s in mine]
         medians[name] = {"step": mine[0].get("step"), "pose_rate": mine[0].get("pose_rate"),
+                         "secure": mine[0]["secure"],
                          **{key: statistics.median(n[key] for n in numbers) for key in numbers[0]}}
     transport = medians["transport"]["round_trip.median"]
     ratios = {name: values["round_trip.median"] / transport for name, values in medians.items() if name != "transport"}
+    checks = check_costs()
     return {"config": str(CONFIG), "seconds": seconds, "rounds": rounds, "ping_interval": PING_INTERVAL,
-            "live_runs": [{"step": step, "pose_rate": rate} for step, rate in LIVE_RUNS], "medians": medians,
-            "round_trip_over_transport": ratios, "samples": samples, "wall_s": time.perf_counter() - started}
+            "live_runs": [{"step": step, "pose_rate": rate, "secure": secure} for step, rate, secure in LIVE_RUNS],
+            "medians": medians, "round_trip_over_transport": ratios, "checks": checks,
+            "checks_over_decode": {"pose": checks["pose.checks"] / checks["pose.decode"],
+                                   "command": checks["command.checks"] / checks["command.decode"]},
+            "samples": samples, "wall_s": time.perf_counter() - started}
 
 
 def render(result: dict[str, Any]) -> Any:
@@ -264,14 +358,24 @@ def render(result: dict[str, Any]) -> Any:
         if "jitter.median" in values:
             jitter.add_row(name, *(ms_text(values[f"jitter.{s}"]) for s in STATS),
                            f"{values['overruns']:g} of {values['points']:g}")
-    return Group(trips, jitter)
+    checks = Table(title="checks per message, us (this process; best of 5 over "
+                         f"{CHECKED_MESSAGES} messages)", title_justify="left",
+                   caption="checks: decode, claim, age or deadline, sequence (bridge.claim); the reference is "
+                           "decoding alone", caption_justify="left")
+    for column in ("message", "decode", "all checks", "x decode"):
+        checks.add_column(column, justify="left" if column == "message" else "right")
+    for kind, where in (("pose", "pose at the host"), ("command", "command at the robot side")):
+        values = result["checks"]
+        checks.add_row(where, f"{values[f'{kind}.decode'] * 1e6:.2f}", f"{values[f'{kind}.checks'] * 1e6:.2f}",
+                       f"{result['checks_over_decode'][kind]:.1f}")
+    return Group(trips, jitter, checks)
 
 
 
 if __name__ == "__main__":  # the echo side of the ping-pong, started by `platoon bench hil`
     from orchestrator.support.internal_entry import check_arguments
 
-    check_arguments(sys.argv[1:], "python -m orchestrator.bench.hil echo ENDPOINT (the benchmark: platoon bench hil)",
-                    "The echo process of `platoon bench hil`'s Zenoh ping-pong; the benchmark starts it.", count=2,
-                    fits=lambda args: args[0] == "echo")
-    echo(sys.argv[2])
+    check_arguments(sys.argv[1:], "python -m orchestrator.bench.hil echo ENDPOINT [ZENOH_CONFIG] (the benchmark: "
+                    "platoon bench hil)", "The echo process of `platoon bench hil`'s Zenoh ping-pong; the benchmark "
+                    "starts it.", fits=lambda args: len(args) in (2, 3) and args[0] == "echo")
+    echo(sys.argv[2], sys.argv[3] if len(sys.argv) > 3 else None)

@@ -10,7 +10,10 @@ run it is compared with:
 * ``outputs``: a time-series observer on every output of every component, every step (the values a
   traced ``platoon run`` records);
 * ``last-value``: libcosim's last-value observer, which reads every variable of every component
-  after each step (what the earlier benchmark attached, more work than an untraced run).
+  after each step (what the earlier benchmark attached, more work than an untraced run);
+* ``file``: libcosim's file observer, which writes every variable of every component, every step, to
+  one CSV file per component in a fresh folder next to the SSD (libcosim's way of keeping a run on
+  disk: the baseline of a traced run that writes its file; the folder is removed after the run).
 
 Prints one ``RESULT {json}`` line (the time reached, which the benchmark checks) and leaves with ``os._exit``
 (pythonfmu FMUs live in this interpreter; see orchestrator/bench/child.py).
@@ -22,7 +25,7 @@ import json
 import os
 import sys
 
-OBSERVERS = ("none", "outputs", "last-value")
+OBSERVERS = ("none", "outputs", "last-value", "file")
 
 
 def main(ssd: str, steps: int, observer: str) -> dict:
@@ -47,9 +50,22 @@ def main(ssd: str, steps: int, observer: str) -> dict:
             for variable in variables[name]:
                 if CosimVariableCausality(variable.causality) == CosimVariableCausality.OUTPUT:
                     series.start_time_series(index, variable.reference, CosimVariableType(variable.type))
+    elif observer == "file":
+        import tempfile
+
+        folder = tempfile.mkdtemp(prefix="libcosim-files-", dir=os.path.dirname(os.path.abspath(ssd)))
+        if not execution.add_observer(CosimObserver.create_to_dir(folder)):
+            raise RuntimeError("libcosim: adding the file observer failed")
     if not execution.step(steps):
         raise RuntimeError("libcosim: stepping failed")
-    return {"time_ns": execution.status().current_time}
+    result = {"time_ns": execution.status().current_time}
+    if observer == "file":
+        del execution  # the observer closes its files with the execution
+        import shutil
+
+        result["bytes"] = sum(os.path.getsize(os.path.join(folder, name)) for name in os.listdir(folder))
+        shutil.rmtree(folder)
+    return result
 
 
 if __name__ == "__main__":

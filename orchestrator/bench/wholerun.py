@@ -6,13 +6,19 @@ finalization, exit), on the paper platoon (configs/paper/platoon.toml, Jacobi) w
 * ``platoon``: ``platoon run CONFIG --set platoon.count=N --out TRACE``, the default a user runs:
   progress bar off (not a terminal), every step traced, the summary table printed;
 * ``platoon-q``: ``platoon run ... -q --trace-every 100``;
+* ``platoon-start``: ``platoon run ... -q`` for 10 steps: start-up, what a short run (a sweep's) costs;
+* ``before``, ``before-q``, ``before-start``: the same three with another build's ``platoon`` script
+  (``before=PATH``: e.g. a checkout of the previous commit installed in its own venv), so that a
+  change is measured against what it replaces in the same sitting;
 * ``libcosim``: libcosim (libcosimpy) from an SSP of the same system with ``numWorkerThreads=0``, no
   observer: nothing recorded;
 * ``libcosim-outputs``: the same with a time-series observer on every output, every step: the values
   a traced run records (the baseline that does the work of ``platoon``);
 * ``libcosim-last-value``: the same with libcosim's last-value observer, which reads every variable of
   every component after each step; the baseline the earlier per-step benchmark used (docs/performance.md
-  says why that was not a fair reference).
+  says why that was not a fair reference);
+* ``libcosim-file``: the same with libcosim's file observer (a CSV of every variable, every step): what
+  libcosim does to keep a run on disk, the second baseline of a traced run (issue 31).
 
 The SSP is written once, before timing (orchestrator/bench/libcosim.py). Variants run interleaved and
 rotated, ``rounds`` times; ratios are taken within a round (paired) and their median is reported.
@@ -34,17 +40,27 @@ from fmus.builders import DEFAULT_OUT
 from .common import PAPER_CONFIGS, RESULT, BenchError, BenchUsageError, Progress, interleaved, markdown_table
 from .scenarios import platoon_command, timed_process
 
-VARIANTS = ("platoon", "platoon-q", "libcosim", "libcosim-outputs", "libcosim-last-value")
-OBSERVER = {"libcosim": "none", "libcosim-outputs": "outputs", "libcosim-last-value": "last-value"}
+VARIANTS = ("platoon", "platoon-q", "platoon-start", "libcosim", "libcosim-outputs", "libcosim-last-value",
+            "libcosim-file", "before", "before-q", "before-start")
+START_STEPS = 10  # the start-up variants' run
+OBSERVER = {"libcosim": "none", "libcosim-outputs": "outputs", "libcosim-last-value": "last-value",
+            "libcosim-file": "file"}
 CONFIG = PAPER_CONFIGS / "platoon.toml"
 SPARSE_TRACE = 100  # platoon-q records every 100th communication point
-# the ratios the issue sets floors on: (name, numerator, denominator, floor)
+# the ratios issue 31 bounds: (name, numerator, denominator, upper bound)
 FLOORS = (
-    ("platoon / libcosim", "platoon", "libcosim", 1.15),
-    ("platoon-q / libcosim", "platoon-q", "libcosim", 1.05),
+    ("platoon / libcosim", "platoon", "libcosim", 1.5),
+    ("platoon / libcosim-file", "platoon", "libcosim-file", 0.3),
+    ("platoon-q / libcosim", "platoon-q", "libcosim", 1.15),
 )
 OTHER_RATIOS = (
+    ("before / libcosim", "before", "libcosim"),
+    ("before-q / libcosim", "before-q", "libcosim"),
+    ("platoon / before", "platoon", "before"),
+    ("platoon-q / before-q", "platoon-q", "before-q"),
+    ("platoon-start / before-start", "platoon-start", "before-start"),
     ("platoon / libcosim-outputs", "platoon", "libcosim-outputs"),
+    ("libcosim-file / libcosim", "libcosim-file", "libcosim"),
     ("libcosim-outputs / libcosim", "libcosim-outputs", "libcosim"),
     ("libcosim-last-value / libcosim", "libcosim-last-value", "libcosim"),
 )
@@ -77,24 +93,33 @@ def write_system(n: int, steps: int, step: float, folder: Path, fmu_dir: Path, f
     return folder / "SystemStructure.ssd"
 
 
-def measure(variant: str, n: int, steps: int, step: float, ssd: Path, scratch: Path, fmus: str = "python") -> dict[str, Any]:
+def measure(variant: str, n: int, steps: int, step: float, ssd: Path, scratch: Path, fmus: str = "python",
+            before: Path | None = None) -> dict[str, Any]:
     trace = scratch / "trace.mcap"
     trace.unlink(missing_ok=True)
-    if variant.startswith("platoon"):
+    ours = variant.startswith(("platoon", "before"))
+    kind = variant.split("-", 1)[1] if "-" in variant and ours else ""  # "", "q" or "start"
+    if ours:
+        if variant.startswith("before") and before is None:
+            raise BenchUsageError(f"variant {variant} needs before=PATH (another build's platoon script)")
+        steps = START_STEPS if kind == "start" else steps
         sets = [arg for override in _overrides(n, steps, step) for arg in ("--set", override)]
-        command = [*platoon_command(), "run", str(CONFIG), "--out", str(trace), "--fmus", fmus, *sets]
-        if variant == "platoon-q":
+        cli = [str(before)] if variant.startswith("before") else platoon_command()
+        command = [*cli, "run", str(CONFIG), "--out", str(trace), "--fmus", fmus, *sets]
+        if kind == "q":
             command += ["-q", "--trace-every", str(min(SPARSE_TRACE, steps))]  # at most the run's steps
+        elif kind == "start":
+            command += ["-q"]
     else:
         command = [sys.executable, str(Path(__file__).with_name("libcosim_process.py")), str(ssd), str(steps),
                    OBSERVER[variant]]
     wall, usage, stdout, stderr = timed_process(command, scratch)
     if usage["exit"] != 0:
         raise BenchError(f"{' '.join(command)} exited {usage['exit']}:\n{stdout[-2000:]}\n{stderr[-2000:]}")
-    if variant.startswith("platoon"):
-        if not trace.is_file() or (variant == "platoon") != ("max |path error|" in stdout):
-            raise BenchError(f"{' '.join(command)}: no trace, or the summary table {'missing' if variant == 'platoon' else 'printed'}")
-        if variant == "platoon" and f"{fmus} FMUs" not in stdout:  # the summary's title names the FMUs stepped
+    if ours:
+        if not trace.is_file() or (kind == "") != ("max |path error|" in stdout):
+            raise BenchError(f"{' '.join(command)}: no trace, or the summary table {'missing' if kind == '' else 'printed'}")
+        if kind == "" and f"{fmus} FMUs" not in stdout:  # the summary's title names the FMUs stepped
             raise BenchError(f"{' '.join(command)}: the run did not step the {fmus} FMUs:\n{stdout[-2000:]}")
     else:
         line = next((line for line in stdout.splitlines() if line.startswith(RESULT)), None)
@@ -103,11 +128,14 @@ def measure(variant: str, n: int, steps: int, step: float, ssd: Path, scratch: P
     return {"variant": variant, "n": n, "wall_s": wall, **usage}
 
 
-def run(ns: Sequence[int] = (16,), steps: int = 10_000, rounds: int = 5, variants: Sequence[str] = VARIANTS,
-        fmu_dir: Path = DEFAULT_OUT, progress: Progress | None = None, fmus: str = "python") -> dict[str, Any]:
+def run(ns: Sequence[int] = (16,), steps: int = 10_000, rounds: int = 5, variants: Sequence[str] = VARIANTS[:7],
+        fmu_dir: Path = DEFAULT_OUT, progress: Progress | None = None, fmus: str = "python",
+        before: Path | None = None) -> dict[str, Any]:
     """Every variant steps the same FMUs, ``fmus`` ("python": the pythonfmu FMUs, the system the issue's
     floors were set on; "native": the C twins), ours through ``platoon run --fmus`` and libcosim's
     from an SSP of the same files."""
+    if before is None and any(v.startswith("before") for v in variants):
+        raise BenchUsageError("the before* variants need --before PLATOON (another build's platoon script)")
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         raise BenchUsageError(f"unknown variant(s) {', '.join(unknown)}; expected some of {', '.join(VARIANTS)}")
@@ -128,7 +156,8 @@ def run(ns: Sequence[int] = (16,), steps: int = 10_000, rounds: int = 5, variant
         for variant in ("platoon", "libcosim"):
             measure(variant, ns[0], 10, step, warm, Path(scratch), fmus)
         samples = interleaved(rounds, list(ns), list(variants),
-                              lambda n, variant: measure(variant, n, steps, step, systems[n], Path(scratch), fmus),
+                              lambda n, variant: measure(variant, n, steps, step, systems[n], Path(scratch), fmus,
+                                                         before),
                               lambda s: f"N={s['n']:<4} {s['variant']:<20} {s['wall_s']:7.2f} s  {s['max_rss_kib'] / 1024:6.0f} MiB",
                               progress)
     medians = {n: {v: {key: statistics.median(s[key] for s in samples if s["n"] == n and s["variant"] == v)
@@ -141,7 +170,7 @@ def run(ns: Sequence[int] = (16,), steps: int = 10_000, rounds: int = 5, variant
             if top in variants and bottom in variants:
                 ratios.setdefault(n, {})[name] = statistics.median(by_round[r, top] / by_round[r, bottom] for r in range(rounds))
     return {"config": str(CONFIG), "ns": list(ns), "steps": steps, "rounds": rounds, "variants": list(variants),
-            "fmus": fmus,
+            "fmus": fmus, "before": None if before is None else str(before),
             "cli": platoon_command(), "medians": medians, "ratios": ratios,
             "floors": {name: floor for name, _, _, floor in FLOORS}, "samples": samples,
             "seconds": time.perf_counter() - started}
@@ -153,7 +182,7 @@ def markdown(result: dict[str, Any]) -> str:
                   for v in variants)] for n in result["ns"]]
     names = list(dict.fromkeys(k for r in result["ratios"].values() for k in r))
     floors = result["floors"]
-    ratio_rows = [[n, *(f"{result['ratios'][n][k]:.2f}" + (" (floor %.2f)" % floors[k] if k in floors else "")
+    ratio_rows = [[n, *(f"{result['ratios'][n][k]:.2f}" + (" (target ≤ %.2f)" % floors[k] if k in floors else "")
                         for k in names)] for n in result["ns"]]
     return (f"{result.get('fmus', 'python')} FMUs in every variant; "
             f"whole-process wall time in s (peak RSS in MiB), median of {result['rounds']} interleaved rounds, "

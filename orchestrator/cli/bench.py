@@ -18,7 +18,7 @@ from orchestrator.bench.common import DEFAULT_OUT_DIR
 from orchestrator.cli.common import (SET_METAVAR, err, fail,
                                      out)
 
-bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks of issue 10 (JSON under runs/bench/; not pass/fail tests).")
+bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks: what steps and whole runs cost against FMPy and libcosim, memory per vehicle, HIL latency (JSON under runs/bench/; not pass/fail tests; docs/performance.md).")
 
 
 ROUNDS_HELP = "interleaved repetitions (each variant once per round, order rotated); medians over rounds"
@@ -160,11 +160,12 @@ def bench_scenarios(
 def bench_wholerun(
     n: Counts = "16",
     steps: Steps = 10_000,
-    variants: Annotated[str, typer.Option(metavar="VARIANT,...", help="comma-separated: platoon (default run, traced, table), platoon-q (-q --trace-every 100), libcosim (no observer), libcosim-outputs (time series of every output), libcosim-last-value")] = "platoon,platoon-q,libcosim,libcosim-outputs,libcosim-last-value",
+    variants: Annotated[str, typer.Option(metavar="VARIANT,...", help="comma-separated: platoon (default run, traced, table), platoon-q (-q --trace-every 100), platoon-start (10 steps), libcosim (no observer), libcosim-outputs (time series of every output), libcosim-last-value, libcosim-file (CSV of every variable, every step); before, before-q, before-start: the same with --before's script")] = "platoon,platoon-q,platoon-start,libcosim,libcosim-outputs,libcosim-last-value,libcosim-file",
     rounds: Rounds = 5,
     out_dir: OutDir = Path("runs/bench"),
     quiet: Quiet = False,
     fmus: Annotated[str, typer.Option("--fmus", metavar="<python|native>", help="the FMUs every variant steps: python (pythonfmu, the system the floors were set on) or native (the C twins)")] = "python",
+    before: Annotated[Optional[Path], typer.Option("--before", metavar="PLATOON", help="another build's platoon script, for the before* variants (a change against what it replaces, in one sitting)")] = None,
 ) -> None:
     """Whole `platoon run` processes against libcosim running the same system from an SSP (0 threads)."""
     from orchestrator.bench import wholerun as suite
@@ -173,7 +174,10 @@ def bench_wholerun(
     if fmus not in FMU_KINDS:
         fail(2, f"--fmus {fmus!r}: expected one of {', '.join(FMU_KINDS)}")
     kinds, counts = _csv("--variants", variants, suite.VARIANTS), _counts(n)
-    run_bench("wholerun", lambda progress: suite.run(counts, steps, rounds, kinds, progress=progress, fmus=fmus),
+    if before is not None and not before.is_file():
+        fail(2, f"--before {before}: no such file")
+    run_bench("wholerun", lambda progress: suite.run(counts, steps, rounds, kinds, progress=progress, fmus=fmus,
+                                                  before=before),
            suite.markdown, out_dir, quiet)
 
 

@@ -22,6 +22,8 @@ if TYPE_CHECKING:  # imported where used: registering these commands must not sl
     from rich.table import Table
 
 Endpoints = Annotated[list[str], typer.Option(metavar="ENDPOINT", help="Zenoh endpoint, e.g. tcp/127.0.0.1:7447 (repeatable)")]
+AllowInsecure = Annotated[bool, typer.Option("--allow-insecure", help="allow endpoints off this machine without TLS "
+                                                                      "(docs/hil.md, \"A secure lab\")")]
 
 
 def _stop_on_signals(stop: threading.Event) -> None:
@@ -36,6 +38,8 @@ def _stop_on_signals(stop: threading.Event) -> None:
 
 def live_table(summary: dict[str, dict[str, Any]]) -> Table:
     """Pacing and link statistics of a live run, one row per live vehicle (fits 80 columns)."""
+    from bridge.claim import describe_interference
+
     pacing = summary.get("pacing", {})
     title = (f"live: step jitter median {ms_text(pacing.get('jitter.median'))} ms, p99 {ms_text(pacing.get('jitter.p99'))} ms, "
              f"max {ms_text(pacing.get('jitter.max'))} ms; overruns {pacing.get('overruns', 0)} of {pacing.get('points', 0)}")
@@ -49,6 +53,10 @@ def live_table(summary: dict[str, dict[str, Any]]) -> Table:
         dropped = {k.split(".")[-1]: v for k, v in stats.items() if k.startswith("pose.dropped.") and v}
         if dropped:
             notes.append(f"{name} dropped: " + ", ".join(f"{reason} {count}" for reason, count in dropped.items()))
+        refused = describe_interference(int(stats.get("command.foreign", 0)), int(stats.get("command.invalid", 0)),
+                                        str(stats.get("command.foreign_claim", "")))
+        if refused:
+            notes.append(f"{name}: {refused}")
         trip = "-/-"  # a pose source that does not echo command numbers (a motion capture, ROS) measures none
         if stats.get("round_trip.count", 0):
             trip = f"{ms_text(stats.get('round_trip.median'))}/{ms_text(stats.get('round_trip.p99'))}"
@@ -141,6 +149,7 @@ def m3pi_emulator(
     duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds (default: until Ctrl-C)")] = None,
     ros2: Annotated[Optional[str], typer.Option("--ros2", metavar="CONVENTION", help="speak ROS 2 on the topics of "
                     "each [vehicles.K.ros2] table through rmw_zenoh or bridge_dds (default: the tables' convention)")] = None,
+    allow_insecure: AllowInsecure = False,
 ) -> None:
     """Emulate the live robots of a config and their motion capture on Zenoh (stands in for the m3pi)."""
     from bridge.emulator import EmulatorSettings, run_emulator
@@ -176,7 +185,8 @@ def m3pi_emulator(
     _stop_on_signals(stop)
     try:
         run_emulator(robots, settings, connect or default_connect, listen or default_listen,
-                     str(zenoh_config) if zenoh_config else None, duration, stop, make=make)
+                     str(zenoh_config) if zenoh_config else None, duration, stop, make=make,
+                     allow_insecure=allow_insecure or parsed.hil.allow_insecure)
     except SessionError as error:
         fail(2, str(error))
 
@@ -194,6 +204,7 @@ def m3pi_serial(
     invert_right: Annotated[bool, typer.Option(help="the right motor is wired backwards")] = False,
     baud: Annotated[int, typer.Option(min=1200, help="serial speed of the XBee link")] = 115200,
     command_timeout: Annotated[float, typer.Option(help="s without a valid command before the motors stop")] = 0.25,
+    allow_insecure: AllowInsecure = False,
 ) -> None:
     """Forward one robot's wheel commands from Zenoh to a Pololu 3pi serial slave over an XBee."""
     from bridge.protocol import check_prefix
@@ -214,12 +225,51 @@ def m3pi_serial(
     try:
         run_serial_endpoint(port, robot, prefix=prefix, connect=connect, listen=listen,
                             zenoh_config_file=str(zenoh_config) if zenoh_config else None, scale=scale,
-                            command_timeout=command_timeout, baud=baud, stop_event=stop)
+                            command_timeout=command_timeout, baud=baud, stop_event=stop,
+                            allow_insecure=allow_insecure)
     except (SerialEndpointError, SessionError, OSError, ValueError) as error:
         fail(2, str(error))
+
+
+def hil_certs(
+    folder: Annotated[Path, typer.Argument(metavar="DIR", help="where the lab CA and the hosts' Zenoh configs go")],
+    run_hosts: Annotated[list[str], typer.Option("--run-host", metavar="HOST=ROBOTS",
+                                                 help="a host that runs `platoon run` and may drive these robots, "
+                                                      "e.g. laptop=3,4 (repeatable)")] = [],
+    robot_sides: Annotated[list[str], typer.Option("--robot-side", metavar="HOST=ROBOTS",
+                                                   help="a host with the emulator, m3pi-serial or motion capture of "
+                                                        "these robots, e.g. xbee-pc=3,4 (repeatable)")] = [],
+    addresses: Annotated[list[str], typer.Option("--address", metavar="HOST=ADDRESS",
+                                                 help="a DNS name or IP peers reach HOST at (repeatable; localhost "
+                                                      "and 127.0.0.1 are always in)")] = [],
+    prefix: Annotated[str, typer.Option(metavar="PREFIX", help="the lab's Zenoh key prefix (hil.prefix)")] = "platoon",
+    days: Annotated[int, typer.Option(min=1, help="validity of new certificates")] = 365,
+) -> None:
+    """Create a lab CA, a certificate per host and each host's Zenoh config (mutual TLS, access control)."""
+    from bridge.lab import Lab, LabError, parse_assignment, write_lab
+
+    try:
+        lab = Lab(prefix=prefix)
+        for option, texts, table in (("--run-host", run_hosts, lab.run_hosts), ("--robot-side", robot_sides, lab.robot_sides)):
+            for text in texts:
+                name, robots = parse_assignment(text, option)
+                table.setdefault(name, set()).update(robots)
+        for text in addresses:
+            name, _, address = text.partition("=")
+            if not name or not address:
+                raise LabError(f"--address {text!r}: expected HOST=ADDRESS, e.g. xbee-pc=192.168.1.20")
+            lab.addresses.setdefault(name, []).append(address)
+        written, new_ca = write_lab(lab, folder, days)
+    except (LabError, OSError) as error:
+        fail(2, str(error))
+    ca = "new lab CA" if new_ca else "the lab CA already there"
+    print(f"{ca}: {folder / 'ca.pem'} (its key {folder / 'ca.key'} signs hosts: keep it off the lab's machines)")
+    for path in written:
+        print(f"{path.stem}: {path}")
 
 
 def register(app: typer.Typer) -> None:
     """Add the hardware-in-the-loop commands to ``platoon``."""
     app.command("m3pi-emulator")(m3pi_emulator)
     app.command("m3pi-serial")(m3pi_serial)
+    app.command("hil-certs")(hil_certs)

@@ -11,7 +11,7 @@ from typing import Annotated, Optional
 import typer
 
 from orchestrator.cli.common import fail
-from orchestrator.cli.hil import Endpoints, _stop_on_signals
+from orchestrator.cli.hil import AllowInsecure, Endpoints, _stop_on_signals
 
 
 def _pairs(values: list[str], flag: str) -> list[tuple[str, str]]:
@@ -51,6 +51,7 @@ def mocap(
     listen: Endpoints = [],
     zenoh_config: Annotated[Optional[Path], typer.Option(help="Zenoh config file (JSON5)")] = None,
     duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds (default: until Ctrl-C)")] = None,
+    allow_insecure: AllowInsecure = False,
 ) -> None:
     """Publish a motion capture's rigid bodies as robot poses on Zenoh (our format or ROS 2 PoseStamped)."""
     from bridge.mocap import SYSTEMS, BodyMap, MocapError, MocapPublisher, read_frames, run_mocap
@@ -77,7 +78,8 @@ def mocap(
     stop = threading.Event()
     _stop_on_signals(stop)
     try:
-        config = make_config(connect, listen, str(zenoh_config) if zenoh_config else None)
+        config = make_config(connect, listen, str(zenoh_config) if zenoh_config else None,
+                             allow_insecure=allow_insecure)
         with open_session(config, "platoon mocap") as session:
             publisher = MocapPublisher(session, mapped, prefix, graph, _frame(frame))
             for body in mapped:

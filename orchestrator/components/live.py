@@ -54,6 +54,7 @@ def live_settings(config: Config, vehicle: int):
         connect_timeout=hil.connect_timeout,
         command_validity=hil.command_validity,
         max_pose_age=hil.max_pose_age,
+        allow_insecure=hil.allow_insecure,
     )
 
 

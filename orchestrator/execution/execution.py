@@ -210,7 +210,8 @@ class Execution:
         else:
             writer = open_trace_writer(self.writer_kind, self.target.aside, components, descriptions, config,
                                        every=sim.trace_every, scene_rate=self.scene_rate, foxglove=self.foxglove,
-                                       process=self.trace_process, publish=self.target.final)
+                                       process=self.trace_process, publish=self.target.final,
+                                       native=self.engine_name == "native")
         self.trace = trace = TraceObserver(writer)
         observers.add(trace)  # first: every other observer sees a point once the trace holds it
         if self.live_view is not None:  # the view sees what the trace records; a live robot's run is paced already
@@ -244,6 +245,7 @@ class Execution:
         trace.metadata("platoon.start", {"engine": self.engine_name, "fmus": self.fmu_kind, "master": sim.master,
                                          "trace_every": str(sim.trace_every),
                                          "trace_writer": self.writer_kind,
+                                         "trace_encoder": trace.encoder,
                                          "scene_rate": repr(float(self.scene_rate)) if self.foxglove else "",
                                          "started": clock.strftime("%Y-%m-%dT%H:%M:%S%z")})
         observers.log(0.0, "Info", f"run started: {config.name}, {config.platoon.count} vehicles, {config.platoon.law} law, "

@@ -34,6 +34,7 @@ class Ros2RunPublisher(Observer):
     def __init__(self, config: Config, components: Sequence[tuple[str, Sequence[str]]],
                  clock: Callable[[], float] = time.time) -> None:
         self.table, self.clock = config.ros2, clock
+        self.allow_insecure = config.hil.allow_insecure  # endpoints off this machine: TLS unless the lab says not
         self.columns: list[tuple[str, int, int, int]] = []  # (vehicle, column of x, of y, of heading) in a flat row
         column = 1
         vehicles = {vehicle_name(k) for k in range(1, config.platoon.count + 1)}
@@ -57,7 +58,8 @@ class Ros2RunPublisher(Observer):
         from bridge.session import open_session, zenoh_config
 
         table = self.table
-        self._session = open_session(zenoh_config(table.connect, table.listen, table.zenoh_config), "[ros2] publish")
+        self._session = open_session(zenoh_config(table.connect, table.listen, table.zenoh_config,
+                                                  allow_insecure=self.allow_insecure), "[ros2] publish")
         graph = RosGraph(table.convention, table.domain, table.namespace, table.node or "platoon")
         self._node = RosNode(self._session, graph)
         for name, *_ in self.columns:

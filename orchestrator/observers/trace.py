@@ -52,16 +52,19 @@ def open_trace_writer(
     foxglove: bool = True,
     process: TraceProcess | None = None,
     publish: Path | None = None,
+    native: bool = False,
 ) -> "TraceWriter | TraceWorker":
     """A run's trace writer, encoding in this process ("inline") or in a worker ("process"): same file.
 
     ``foxglove`` adds the Foxglove channels at ``scene_rate``; ``process`` is a worker started earlier;
-    ``publish``: the final path, ``path`` being the aside file renamed onto it once finalized.
+    ``publish``: the final path, ``path`` being the aside file renamed onto it once finalized;
+    ``native``: float64 blocks (the native engine's) are encoded in C (orchestrator/trace/native_rows.py).
     """
     if kind == "process":
         return TraceWorker(path, components, descriptions, every=every, process=process, publish=publish,
-                           foxglove=(SceneSettings.of(config), components, scene_rate) if foxglove else None)
-    return TraceWriter(path, components, descriptions, every=every, publish=publish,
+                           foxglove=(SceneSettings.of(config), components, scene_rate) if foxglove else None,
+                           native=native)
+    return TraceWriter(path, components, descriptions, every=every, publish=publish, native=native,
                        foxglove=FoxgloveChannels(config, components, scene_rate) if foxglove else None)
 
 
@@ -90,6 +93,11 @@ class TraceObserver(Observer):
 
     def metadata(self, name: str, values: dict[str, Any]) -> None:
         self.writer.metadata(name, values)
+
+    @property
+    def encoder(self) -> str:
+        """"native" when the trace's rows are encoded in C (orchestrator/trace/native_rows.py), else "python"."""
+        return "native" if getattr(self.writer, "native", False) else "python"
 
     @property
     def in_a_process(self) -> bool:

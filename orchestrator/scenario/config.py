@@ -189,6 +189,8 @@ class Hil(_Strict):
     connect_timeout: float = Field(10.0, gt=0.0, le=600.0, description="s to wait for each robot at the start")
     command_validity: float = Field(0.1, gt=0.0, le=5.0, description="s: a command's deadline after it is sent")
     max_pose_age: float = Field(0.25, gt=0.0, le=5.0, description="s: an older pose is dropped as late")
+    allow_insecure: bool = Field(False, description="allow Zenoh endpoints off this machine without TLS "
+                                                    "(docs/hil.md, \"A secure lab\")")
 
     @model_validator(mode="after")
     def _prefix_is_a_key(self) -> "Hil":

@@ -55,9 +55,19 @@ def numbers_schema(title: str, keys: Sequence[str], descriptions: dict[str, str]
     ).encode()
 
 
+def json_pieces(keys: Sequence[str]) -> list[bytes]:
+    """The JSON object of ``keys`` to numbers, cut where the numbers go: ``{"k0":``, ``,"k1":``, ..., ``}``."""
+    return [("{" if i == 0 else ",").encode() + json.dumps(key).encode() + b":" for i, key in enumerate(keys)] + [b"}"]
+
+
+def template_of(pieces: Sequence[bytes]) -> bytes:
+    """The %-format of ``pieces`` (as ``json_pieces`` cuts them): filled with the numbers' texts, the JSON."""
+    return b"%s".join(piece.replace(b"%", b"%%") for piece in pieces)
+
+
 def json_template(keys: Sequence[str]) -> bytes:
     """A %-format that, filled with the values' JSON texts, is the JSON object of ``keys`` to values."""
-    return ("{" + ",".join(json.dumps(key).replace("%", "%%") + ":%s" for key in keys) + "}").encode()
+    return template_of(json_pieces(keys))
 
 
 def component_spec(name: str, outputs: Sequence[str], descriptions: dict[str, str]) -> ChannelSpec:
@@ -74,7 +84,9 @@ class ComponentMessages:
                  descriptions: dict[str, dict[str, str]] | None = None) -> None:
         self.components = [(name, list(outputs)) for name, outputs in components]
         self.specs = [component_spec(name, outputs, (descriptions or {}).get(name, {})) for name, outputs in self.components]
-        self.templates = [json_template(["t", *outputs]) for _, outputs in self.components]
+        # the same JSON cut where the numbers go (orchestrator/trace/native_encoder.c fills the pieces)
+        self.pieces = [json_pieces(["t", *outputs]) for _, outputs in self.components]
+        self.templates = [template_of(pieces) for pieces in self.pieces]
         self.spans: list[tuple[int, int]] = []
         start = 1
         for _, outputs in self.components:  # where each component's values sit in a row's flat list

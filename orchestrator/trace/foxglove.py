@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from foxglove import messages as fg
 
-from .encoding import ChannelSpec, register_mcap
+from .encoding import ChannelSpec, register_mcap, template_of
 from .format import number_texts
 
 if TYPE_CHECKING:
@@ -218,8 +218,13 @@ class FoxgloveChannels:
         self._labels = {name: vehicle_label(name, len(self.vehicles)) for name in self.names}
         self._colors = dict(zip(self.vehicles, vehicle_colors(len(self.vehicles))))
         self._path_points = self._circle_points() if settings.path_kind == "circle" else None
-        self._errors_template = ('{"t":%s' + "".join(
-            f',"{name}":{{"path_error":%s,"gap_error":%s,"speed_error":%s}}' for name in self.vehicles) + "}").encode()
+        # the errors JSON cut where the numbers go (orchestrator/trace/native_encoder.c fills the pieces)
+        self.errors_pieces = [b'{"t":']
+        for i, name in enumerate(self.vehicles):
+            self.errors_pieces += [(b"}," if i else b",") + json.dumps(name).encode() + b':{"path_error":',
+                                   b',"gap_error":', b',"speed_error":']
+        self.errors_pieces.append(b"}}" if self.vehicles else b"}")
+        self._errors_template = template_of(self.errors_pieces)
         self._white = _color((1.0, 1.0, 1.0))
         self._grey = _color((0.6, 0.6, 0.6))
         self._solid = {name: _color(rgb) for name, rgb in self._colors.items()}
@@ -249,6 +254,31 @@ class FoxgloveChannels:
         """Declare the channels on a sink: ``register(spec)`` returns the id the sink's messages carry."""
         for key, spec in self.specs().items():
             self.channels[key] = register(spec)
+
+    def native_arguments(self, starts: Sequence[int]) -> tuple[Any, ...] | None:
+        """What the C encoder (orchestrator/trace/native_encoder.c) needs to write these channels, from the
+        row positions of each component's first output; None for a path it cannot measure."""
+        from fmus.model.paths import CirclePath, LinePath
+
+        if isinstance(self.path, CirclePath):
+            distance = (True, self.path.center_x, self.path.center_y, self.path.radius)
+        elif isinstance(self.path, LinePath):
+            distance = (False, self.path.origin_x, self.path.origin_y, self.path.heading)
+        else:
+            return None
+        bodies = []
+        for name, start in zip(self.names, starts):
+            ix, iy, ih = (start + i for i in self._pose[name])
+            ig, iv = (start + i for i in self._gap_speed[name]) if name in self._history else (0, 0)
+            rgb = self._colors.get(name, (1.0, 1.0, 1.0))
+            bodies.append((ix, iy, ih, ig, iv, name in self._history, name.encode(), self._labels[name].encode(),
+                           (*rgb, 1.0), (*rgb, 0.6)))
+        history = next(iter(self._history.values())).maxlen if self._history else 2
+        points = [v for xy in self._circle_xy() for v in xy] if self._path_points is not None else []
+        s = self.settings
+        return ((self.channels["errors"], self.channels["tf"], self.channels["scene"]), self.errors_pieces, bodies,
+                distance, (self.period, self._next_scene, self._size, self._label_offset, self.d_star, self.v_c),
+                history, (self._path_points is not None, s.center[0], s.center[1], s.heading), points)
 
     # --- per block ----------------------------------------------------------------------------
 
@@ -303,12 +333,13 @@ class FoxgloveChannels:
             raise ValueError(f"an error at t = {time:g} s is not finite")
         return self._errors_template % tuple(number_texts(values))
 
-    def _circle_points(self) -> list[fg.Point3]:
+    def _circle_xy(self) -> list[tuple[float, float]]:
         p = self.settings
-        return [
-            fg.Point3(x=p.center[0] + p.radius * math.cos(a), y=p.center[1] + p.radius * math.sin(a), z=0.0)
-            for a in (2.0 * math.pi * k / PATH_POINTS for k in range(PATH_POINTS))
-        ]
+        return [(p.center[0] + p.radius * math.cos(a), p.center[1] + p.radius * math.sin(a))
+                for a in (2.0 * math.pi * k / PATH_POINTS for k in range(PATH_POINTS))]
+
+    def _circle_points(self) -> list[fg.Point3]:
+        return [fg.Point3(x=x, y=y, z=0.0) for x, y in self._circle_xy()]
 
     def _line_points(self, poses: list[tuple[float, float, float]]) -> list[fg.Point3]:
         p = self.settings

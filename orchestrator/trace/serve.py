@@ -31,12 +31,6 @@ from .writer import TraceWriteError, TraceWriter  # noqa: E402
 ABORTED = "the stepping process ended without closing the trace (killed?); every point it handed over is kept"
 
 
-def rows_of(width: int, data: bytes) -> list[list[float]]:
-    """Rows of ``width`` values from raw native-endian float64 bytes."""
-    flat = memoryview(data).cast("d").tolist()
-    return [flat[start:start + width] for start in range(0, len(flat), width)]
-
-
 def serve(inbox: Connection, outbox: Connection) -> None:
     """Build the writer, then apply what arrives in order until told to close (or orphaned)."""
     try:
@@ -66,7 +60,7 @@ def serve(inbox: Connection, outbox: Connection) -> None:
                 abandon(writer)
                 return
             if kind == "rows":
-                writer.write_rows(rows_of(*payload))
+                writer.write_floats(payload[1])  # float64 bytes: encoded in C when the writer is native
             elif kind == "call":
                 name, args = payload
                 getattr(writer, name)(*args)

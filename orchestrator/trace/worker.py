@@ -47,6 +47,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from .format import CHUNK_SIZE, FLUSH_INTERVAL
+from .native_rows import available as native_available
 from .writer import non_finite_error
 
 WORKER_BLOCK = 64  # rows per hand-over: small, so the worker's backlog when the run ends stays short
@@ -127,7 +128,7 @@ class TraceWorker:
     """A ``TraceWriter`` running in a worker process; same interface, same file.
 
     ``foxglove`` is ``(SceneSettings, components, scene_rate)``: the worker builds the
-    ``FoxgloveChannels``. The constructor creates the file (so a path that cannot be written fails
+    ``FoxgloveChannels``. ``native``: the worker encodes the rows in C (``TraceWriter``'s). The constructor creates the file (so a path that cannot be written fails
     here) and hands the worker its arguments without waiting for it. ``process``: a worker started
     earlier (default: start one now).
     """
@@ -144,9 +145,11 @@ class TraceWorker:
         chunk_size: int = CHUNK_SIZE,
         process: TraceProcess | None = None,
         publish: Path | None = None,
+        native: bool = False,
     ) -> None:
         self.path = Path(path)
         self.components = [(name, list(outputs)) for name, outputs in components]
+        self.native = native and native_available()  # the worker runs this install: the same extension
         self.every = every
         self.flush_interval = flush_interval
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -167,7 +170,7 @@ class TraceWorker:
         self._process, self._outbox, self._status = process.process, process.outbox, process.status
         self._send(("arguments", {"path": self.path, "components": self.components, "descriptions": descriptions,
                                   "foxglove": foxglove, "flush_interval": flush_interval, "chunk_size": chunk_size,
-                                  "publish": publish}))
+                                  "publish": publish, "native": native}))
 
     # --- what the worker says -------------------------------------------------------------------
 

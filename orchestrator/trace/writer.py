@@ -18,7 +18,6 @@ import math
 import os
 import struct
 import time as clock
-from itertools import chain
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
@@ -29,18 +28,21 @@ from mcap.writer import CompressionType, Writer
 from fmus.errors import ComponentError
 from .encoding import ComponentMessages, LiveStream, register_mcap
 from .format import CHUNK_SIZE, FLUSH_INTERVAL, BLOCK
+from .native_rows import REFUSED_ROW, native_encoder, row_values, rows_of
 
 if TYPE_CHECKING:
     from .foxglove import FoxgloveChannels
 
 class _MessageIndex(MessageIndex):
-    """A MessageIndex that packs its entries in one call (the library writes them one by one)."""
+    """A MessageIndex whose ``records`` are its entries already packed (16 bytes each: log time, offset),
+    as the C encoder returns them by the block (the library keeps a tuple per entry and writes them one by one)."""
 
     def write(self, stream) -> None:
+        entries = b"".join(self.records)
         stream.start_record(_MESSAGE_INDEX_OPCODE)
         stream.write2(self.channel_id)
-        stream.write4(len(self.records) * 16)
-        stream.write(struct.pack(f"<{2 * len(self.records)}Q", *chain.from_iterable(self.records)))
+        stream.write4(len(entries))
+        stream.write(entries)
         stream.finish_record()
 
 
@@ -65,6 +67,33 @@ _MESSAGE_OPCODE = 0x05
 _MESSAGE_HEADER_START = struct.Struct("<BQH")
 _MESSAGE_HEADER_TAIL = struct.Struct("<IQQ")
 _MESSAGE_HEADER_SIZE = _MESSAGE_HEADER_START.size + _MESSAGE_HEADER_TAIL.size
+_INDEX_ENTRY = struct.Struct("<QQ")
+ZSTD_LEVEL = 1  # zstd's fastest regular level: 2-3x faster than the default 3 on traces, and smaller (docs/performance.md)
+
+
+def _fast_compression() -> None:
+    """Make the ``mcap`` writer compress chunks at ``ZSTD_LEVEL`` (it calls ``zstandard.compress``, level 3).
+
+    Compressing took half of the encoding time of a trace at level 3; any zstd reader reads either.
+    If a future ``mcap`` release no longer compresses through a module-level ``zstandard``, its default stays.
+    """
+    import mcap.writer
+
+    library = getattr(mcap.writer, "zstandard", None)
+    if library is None or isinstance(library, _LeveledZstd):
+        return
+    mcap.writer.zstandard = _LeveledZstd(library)
+
+
+class _LeveledZstd:
+    """The ``zstandard`` module as ``mcap.writer`` uses it, with ``compress`` at ``ZSTD_LEVEL``."""
+
+    def __init__(self, library: Any) -> None:
+        self._library = library
+        self.compress = library.ZstdCompressor(level=ZSTD_LEVEL).compress
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._library, name)
 
 
 def _cover(holder: Any, stamp: int, first: bool) -> None:
@@ -111,7 +140,9 @@ class _Encoder:
         flush_interval: float,
         chunk_size: int,
         fast: bool = True,
+        native: bool = False,
     ) -> None:
+        _fast_compression()
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(self.path, "wb")
@@ -125,6 +156,9 @@ class _Encoder:
             foxglove.register(self._writer)
         self._chunk_size = chunk_size
         self._fast = _fast_path(self._writer) if fast else None
+        # the C encoder for rows given as float64 values (orchestrator/trace/native_rows.py), on the fast path only
+        self.native = native_encoder(self.messages, self._channels, foxglove) if native and self._fast else None
+        self.width = 1 + sum(len(outputs) for _, outputs in self.components)
         self._chunk_indexes = getattr(self._writer, "_Writer__chunk_indices", None)
         self._packed = 0
         self.flush_interval = flush_interval
@@ -151,11 +185,12 @@ class _Encoder:
         tail = _MESSAGE_HEADER_TAIL.pack(sequence, stamp, stamp)  # shared by the row's messages
         position = buffer.tell()
         parts = []
+        entry = _INDEX_ENTRY.pack
         for channel, data in messages:
             index = indexes.get(channel)
             if index is None:
                 index = indexes[channel] = _MessageIndex(channel_id=channel, records=[])
-            index.records.append((stamp, position))
+            index.records.append(entry(stamp, position))
             parts += (pack(_MESSAGE_OPCODE, 22 + len(data), channel), tail, data)
             position += _MESSAGE_HEADER_SIZE + len(data)
             counts[channel] += 1
@@ -167,6 +202,48 @@ class _Encoder:
         if buffer.tell() > self._chunk_size:
             finalize()
             self._pack_indexes()
+
+    def float_rows(self, data: Any) -> tuple[int, float | None, int | None, int]:
+        """Write rows of float64 values (``data``: a C-contiguous array or raw bytes, ``width`` per row) with
+        the C encoder; close chunks as they fill. Returns (rows written, time of the last, the row it
+        refused or None, why: ``native_rows.REFUSED_ROW`` or ``REFUSED_ERRORS``)."""
+        builder, statistics, finalize = self._fast
+        encode = self.native.encode
+        total = memoryview(data).nbytes // (8 * self.width)
+        row, written_here, last_time = 0, 0, None
+        while row < total:
+            buffer = builder.record_writer._buffer  # a new one after every chunk
+            row, records, least, greatest, time, written, indexes, refused = encode(
+                data, row, buffer.tell(), self._chunk_size, self.recorded)
+            if written:
+                buffer.write(records)
+                self._indexed(indexes, builder.message_indices, statistics.channel_message_counts)
+                count = sum(entries for _, _, entries in indexes)
+                _cover(builder, least, builder.num_messages == 0)
+                _cover(builder, greatest, False)
+                builder.num_messages += count
+                _cover(statistics, least, statistics.message_count == 0)
+                _cover(statistics, greatest, False)
+                statistics.message_count += count
+                self.recorded += written
+                self.last_time = last_time = time
+                written_here += written
+            if buffer.tell() > self._chunk_size:
+                finalize()
+                self._pack_indexes()
+            if refused:
+                return written_here, last_time, row, refused
+        self.tick()
+        return written_here, last_time, None, 0
+
+    @staticmethod
+    def _indexed(indexes: Sequence[tuple[int, bytes, int]], chunk: dict[int, Any], counts: dict[int, int]) -> None:
+        for channel, entries, count in indexes:
+            index = chunk.get(channel)
+            if index is None:
+                index = chunk[channel] = _MessageIndex(channel_id=channel, records=[])
+            index.records.append(entries)
+            counts[channel] += count
 
     def _pack_indexes(self) -> None:
         indexes = self._chunk_indexes
@@ -281,13 +358,15 @@ class TraceWriter:
         flush_interval: float = FLUSH_INTERVAL,
         chunk_size: int = CHUNK_SIZE,
         publish: Path | None = None,
+        native: bool = False,
     ) -> None:
         self.path = Path(path)
         self.publish = None if publish is None else Path(publish)
         self.components = [(name, list(outputs)) for name, outputs in components]
         self._broken = False
         try:
-            self._encoder = _Encoder(self.path, self.components, descriptions, foxglove, flush_interval, chunk_size)
+            self._encoder = _Encoder(self.path, self.components, descriptions, foxglove, flush_interval, chunk_size,
+                                     native=native)
         except OSError as error:
             raise _write_error(self.path, error) from None
         self.foxglove = foxglove
@@ -314,9 +393,40 @@ class TraceWriter:
                 self.flush()
         self._count += 1
 
+    @property
+    def native(self) -> bool:
+        """True when float64 rows are encoded in C (``native=True`` and the extension built)."""
+        return self._encoder.native is not None
+
     def write_block(self, rows: Any) -> None:
         """Write a float64 block (a numpy array) of flat rows ``[t, outputs...]``, already decimated."""
-        self.write_rows(rows.tolist())
+        if self.native:
+            self.write_floats(rows)
+        else:
+            self.write_rows(rows.tolist())
+
+    def write_floats(self, data: Any) -> None:
+        """Write flat rows ``[t, outputs...]`` given as float64 values (a C-contiguous array or raw bytes),
+        encoded in C (``native``) or, without the extension, in Python; after any buffered rows."""
+        self.flush()
+        if not self.native:
+            self.write_rows(rows_of(data, self._encoder.width))
+            return
+        if self._broken:
+            return
+        try:
+            written, last_time, refused, why = self._encoder.float_rows(data)
+        except OSError as error:
+            self._broken = True
+            raise _write_error(self.path, error) from None
+        if written:
+            self.recorded += written
+            self.last_time = last_time
+        if refused is not None:
+            row = row_values(data, self._encoder.width, refused)
+            if why == REFUSED_ROW:
+                raise non_finite_error(self.components, row)
+            raise ValueError(f"an error at t = {row[0]:g} s is not finite")  # FoxgloveChannels.errors_message's
 
     def write_rows(self, rows: list[list[float]]) -> None:
         """Write flat rows ``[t, outputs...]`` (already decimated) after any buffered ones."""

@@ -1,0 +1,176 @@
+"""A secure lab: ``platoon hil-certs``, mutual TLS and Zenoh's access control, on 127.0.0.1 with real processes.
+
+The lab of these tests: run host ``laptop`` drives robot 3, run host ``desk`` robot 5, and ``xbee-pc``
+is the robot side of both (the emulator). ``desk`` is the insider: a valid certificate of the lab,
+but not robot 3's role. The outsiders have no certificate of the lab at all.
+"""
+
+from __future__ import annotations
+
+import json
+import stat
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+import zenoh
+from cryptography import x509
+
+from bridge.lab import Lab, make_ca, make_host_certificate, write_lab, zenoh_lab_config, _pem
+from bridge.session import SessionError, open_session, zenoh_config
+from orchestrator.bench.hil import free_port
+from orchestrator.trace import load
+from tests.test_hil import (KEYS, LIVE3, PATIENT, PLATOON, REPO, _env, assert_tracks_the_all_fmu_run, finish,
+                            start_run, stranger_commands)
+
+LAB = Lab(run_hosts={"laptop": {3}, "desk": {5}}, robot_sides={"xbee-pc": {3, 5}},
+          addresses={"xbee-pc": ["192.168.1.20", "xbee-pc.lab"]})
+
+
+def test_hil_certs_writes_a_ca_and_host_configs_that_zenoh_takes_and_keeps_the_ca_when_hosts_are_added(
+        tmp_path: Path) -> None:
+    folder = tmp_path / "lab"
+    made = subprocess.run([str(PLATOON), "hil-certs", str(folder), "--run-host", "laptop=3", "--robot-side",
+                           "xbee-pc=3", "--address", "xbee-pc=192.168.1.20"], cwd=REPO, env=_env(),
+                          capture_output=True, text=True, timeout=60)
+    assert made.returncode == 0, made.stderr
+    assert "new lab CA" in made.stdout and "keep it off the lab's machines" in made.stdout
+    ca = x509.load_pem_x509_certificate((folder / "ca.pem").read_bytes())
+    for host in ("laptop", "xbee-pc"):
+        path = folder / f"{host}.json5"
+        assert stat.S_IMODE(path.stat().st_mode) == 0o600  # it holds the host's private key
+        zenoh_config(connect=["tls/127.0.0.1:7447"], config_file=str(path))  # Zenoh parses it
+    assert stat.S_IMODE((folder / "ca.key").stat().st_mode) == 0o600
+    added = subprocess.run([str(PLATOON), "hil-certs", str(folder), "--run-host", "laptop=3", "--run-host", "desk=5",
+                            "--robot-side", "xbee-pc=3,5"], cwd=REPO, env=_env(), capture_output=True, text=True,
+                           timeout=60)
+    assert added.returncode == 0 and "the lab CA already there" in added.stdout, added.stderr
+    assert (folder / "ca.pem").read_bytes() == ca.public_bytes(__import__("cryptography").hazmat.primitives
+                                                               .serialization.Encoding.PEM)
+    bad = subprocess.run([str(PLATOON), "hil-certs", str(folder), "--run-host", "laptop", "--robot-side", "x=3"],
+                         cwd=REPO, env=_env(), capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "--run-host 'laptop': expected HOST=ROBOT[,ROBOT...]" in bad.stderr
+
+
+def test_host_certificates_chain_to_the_lab_ca_and_name_the_host_and_its_addresses() -> None:
+    ca_key, ca = make_ca(30)
+    _, certificate = make_host_certificate(ca_key, ca, "xbee-pc", ["192.168.1.20", "xbee-pc.lab"], 30)
+    certificate.verify_directly_issued_by(ca)
+    assert certificate.subject.rfc4514_string() == "CN=xbee-pc"
+    names = certificate.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert {str(ip) for ip in names.get_values_for_type(x509.IPAddress)} == {"192.168.1.20", "127.0.0.1", "::1"}
+    assert set(names.get_values_for_type(x509.DNSName)) == {"xbee-pc", "xbee-pc.lab", "localhost"}
+
+
+def test_the_acl_lets_only_robot_3s_run_host_command_it_and_only_its_robot_side_report_it() -> None:
+    acl = zenoh_lab_config(LAB, "xbee-pc", b"ca", b"cert", b"key")["access_control"]
+    assert acl["default_permission"] == "deny"
+    subjects = {subject["id"]: subject["cert_common_names"] for subject in acl["subjects"]}
+    rules = {rule["id"]: rule for rule in acl["rules"]}
+    assert subjects["commands in 3"] == ["laptop"] and subjects["commands in 5"] == ["desk"]
+    assert rules["commands in 3"]["key_exprs"] == ["platoon/m3pi/3/cmd/wheels", "platoon/m3pi/3/host/*"]
+    assert rules["commands in 3"]["flows"] == ["ingress"]
+    laptop = zenoh_lab_config(LAB, "laptop", b"ca", b"cert", b"key")["access_control"]
+    assert {subject["id"]: subject["cert_common_names"] for subject in laptop["subjects"]}["observations in 3"] \
+        == ["xbee-pc"]
+    assert not any(rule["id"].endswith(" 5") for rule in laptop["rules"])  # laptop has no business with robot 5
+
+
+@pytest.mark.parametrize("endpoint, allowed", [
+    ("tcp/192.168.1.20:7447", False), ("udp/10.0.0.7:7447", False), ("tcp/[::]:0", False), ("tcp/0.0.0.0:7447", False),
+    ("tcp/lab-pc.local:7447", False), ("tcp/127.0.0.1:7447", True), ("tcp/localhost:7447", True),
+    ("tcp/[::1]:7447", True), ("tls/192.168.1.20:7447", True), ("quic/192.168.1.20:7447", True),
+])
+def test_an_endpoint_off_this_machine_without_tls_is_refused_naming_the_recipe(endpoint: str, allowed: bool) -> None:
+    if allowed:
+        zenoh_config(connect=[endpoint])
+    else:
+        with pytest.raises(SessionError, match=f"endpoint {endpoint.replace('[', '.').replace(']', '.')} leaves this "
+                                               "machine without TLS.*platoon hil-certs.*allow_insecure = true"):
+            zenoh_config(listen=[endpoint])
+        zenoh_config(connect=[endpoint], allow_insecure=True)
+
+
+def test_a_run_refuses_an_insecure_endpoint_unless_the_config_allows_it(tmp_path: Path) -> None:
+    refused = start_run(free_port(), tmp_path / "refused.mcap", 1.0, 'vehicles.3.connect=["tcp/192.0.2.1:7447"]')
+    code, _, err = finish(refused, timeout=60)
+    assert code == 1 and "endpoint tcp/192.0.2.1:7447 leaves this machine without TLS" in err, err
+    allowed = start_run(free_port(), tmp_path / "allowed.mcap", 1.0, 'vehicles.3.connect=["tcp/192.0.2.1:7447"]',
+                        "hil.allow_insecure=true", "hil.connect_timeout=0.5")  # TEST-NET: nobody answers
+    code, _, err = finish(allowed, timeout=60)
+    assert code == 1 and "did not appear within 0.5 s" in err, err
+
+
+def _peers(session) -> list:
+    return list(session.info.peers_zid())
+
+
+def _outsiders(folder: Path, tls: str) -> list[tuple[str, object]]:
+    """Sessions that try to reach the robot side: plain, TLS without a certificate, and a certificate named
+    like the lab's run host but from another CA."""
+    foreign_key, foreign_ca = make_ca(1, "not the lab")
+    key, certificate = make_host_certificate(foreign_key, foreign_ca, "laptop", [], 1)
+    impostor = folder / "impostor.json5"
+    impostor.write_text(json.dumps(zenoh_lab_config(LAB, "laptop", _pem(foreign_ca), _pem(certificate), _pem(key))))
+    port = tls.rsplit(":", 1)[1]
+    return [("plain tcp", zenoh_config(connect=[f"tcp/127.0.0.1:{port}"])),
+            ("tls without a certificate", zenoh_config(connect=[tls])),
+            ("a certificate of another CA", zenoh_config(connect=[tls], config_file=str(impostor)))]
+
+
+def test_with_tls_and_acl_strangers_cannot_connect_or_drive_and_the_platoon_tracks_as_without(tmp_path: Path) -> None:
+    """The emulator as lab host xbee-pc on tls/127.0.0.1, the run as laptop. Outsiders never get a
+    session; desk (a valid certificate, not robot 3's run host) connects but its claim token and
+    commands never reach the robot side, and it hears none of robot 3's messages. The 10 s live run matches the all-FMU run to 3 mm, as
+    over plain TCP (test_hil.py::test_live_robot_tracks_the_all_fmu_run)."""
+    folder = tmp_path / "lab"
+    write_lab(LAB, folder, days=1)
+    tls = f"tls/127.0.0.1:{free_port()}"
+    log = tmp_path / "emulator.log"
+    with open(log, "w") as stream:
+        robot = subprocess.Popen([str(PLATOON), "m3pi-emulator", "--config", str(LIVE3), "--set",
+                                  f'vehicles.3.connect=["{tls}"]', "--zenoh-config", str(folder / "xbee-pc.json5")],
+                                 cwd=REPO, env=_env(), stdout=stream, stderr=subprocess.STDOUT)
+    sessions = []
+    try:
+        deadline = time.monotonic() + 30
+        while "configured, pose on" not in log.read_text():
+            assert robot.poll() is None and time.monotonic() < deadline, log.read_text()
+            time.sleep(0.05)
+        desk = open_session(zenoh_config(connect=[tls], config_file=str(folder / "desk.json5")), "desk")
+        sessions.append(desk)
+        outsiders = [(what, open_session(config, what)) for what, config in _outsiders(folder, tls)]
+        sessions += [session for _, session in outsiders]
+        deadline = time.monotonic() + 10
+        while not _peers(desk):  # the insider gets a session: TLS itself works
+            assert time.monotonic() < deadline, "desk, a lab host, could not connect"
+            time.sleep(0.05)
+        token = desk.liveliness().declare_token(KEYS.host(0x5757_5757_5757_5757))  # noqa: F841 (held)
+        overheard: list[str] = []  # robot 3's keys are sent to robot 3's hosts only
+        listeners = [desk.declare_subscriber(key, lambda sample: overheard.append(str(sample.key_expr)),  # noqa: F841
+                                             allowed_origin=zenoh.Locality.REMOTE)  # not its own puts
+                     for key in (KEYS.pose, KEYS.wheels, KEYS.status)]
+        for _, session in [("desk", desk), *outsiders]:
+            stranger_commands(session, 0x5757_5757_5757_5757)
+        trace = tmp_path / "tls.mcap"
+        run = start_run(0, trace, 10.0, f'vehicles.3.connect=["{tls}"]',
+                        f'vehicles.3.zenoh_config="{folder / "laptop.json5"}"', *PATIENT)
+        time.sleep(3.0)
+        for _, session in [("desk", desk), *outsiders]:
+            stranger_commands(session, 0x5757_5757_5757_5757)
+        code, out, err = finish(run)
+        assert code == 0, err
+        assert overheard == []
+        assert {what: _peers(session) for what, session in outsiders} == {what: [] for what, _ in outsiders}
+    finally:
+        for session in sessions:
+            session.close()
+        robot.terminate()
+        robot.wait(10)
+    emulator_log = log.read_text()
+    assert "5757575757575757" not in emulator_log and "refused" not in emulator_log, emulator_log
+    assert "commands received" in emulator_log and "foreign=" not in emulator_log, emulator_log
+    stats = json.loads(load(trace).metadata["platoon.hil"]["vehicle3"])
+    assert stats["command.foreign"] == 0 and stats["command.invalid"] == 0 and stats["pose.dropped.foreign"] == 0
+    assert_tracks_the_all_fmu_run(trace, tmp_path / "fmu.mcap")
