@@ -33,7 +33,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import zenoh
 
@@ -51,7 +51,7 @@ from .protocol import (
     encode_pose,
     encode_status,
 )
-from .session import open_session, zenoh_config
+from .session import open_session, undeclare_all, zenoh_config
 from .states import LinkState, StateMachine
 
 PHYSICS_SUBSTEP = 0.001  # s, the longest RK4 substep of the emulated physics
@@ -102,6 +102,8 @@ class EmulatedRobot:
     status_seq: int = 0
     claim_status_time: float = 0.0  # when the last status was made
     claim_changed: bool = False  # a status is due at once
+    unclaimed_seq: int = 0  # commands of a source without claims (a ROS 2 topic) numbered here, afresh per claim
+    echoes_poses: bool = True  # its poses go out in our protocol, echoing the claim (not on a ROS 2 topic)
 
     def __post_init__(self) -> None:
         spec = self.spec
@@ -165,12 +167,29 @@ class EmulatedRobot:
         try:
             command = self.claim.check(payload, now, f"robot {self.spec.keys.robot}")
         except MessageError as error:
-            self.counters.drop(error)
-            if error.reason.value not in self._warned:
-                self._warned.add(error.reason.value)
-                self.say(f"m3pi-emulator robot {self.spec.keys.robot}: dropped: {error} (further drops of this kind "
-                         "are only counted)")
+            self.refuse(error)
             return
+        self.queue(command, now)
+
+    def accept_unclaimed(self, left: float, right: float, now: float) -> None:
+        """A command from a source that carries no claim (a ROS 2 topic: what guards it is Zenoh access control
+        on its key, docs/hil.md). Numbered here in arrival order, afresh per claim, so that the poses echo
+        it as they would a command of ours; held until ``command_timeout`` after it arrived, as a ROS
+        robot's own command timeout does."""
+        self.unclaimed_seq += 1
+        self.queue(WheelCommand(self.unclaimed_seq, now + self.settings.command_timeout, left, right, self.claim.owner),
+                   now)
+
+    def refuse(self, error: MessageError) -> None:
+        """Count a dropped command; the first of each kind is said."""
+        self.counters.drop(error)
+        if error.reason.value not in self._warned:
+            self._warned.add(error.reason.value)
+            self.say(f"m3pi-emulator robot {self.spec.keys.robot}: dropped: {error} (further drops of this kind "
+                     "are only counted)")
+
+    def queue(self, command: WheelCommand, now: float) -> None:
+        """An accepted command: apply it ``command_latency`` from now (the radio)."""
         self.counters.accept()
         self.last_valid = now
         self.advance(now)
@@ -189,7 +208,7 @@ class EmulatedRobot:
         self._warned.clear()  # each run's log names the first drop of each kind during its claim
         self.say(f"{name}: claimed by {claim_text(claim)}")
         self.pending.clear()
-        self.command_seq = 0
+        self.command_seq = self.unclaimed_seq = 0
         if self.link.state == LinkState.CONFIGURED:
             return
         self._stop_wheels(now, "new claim")
@@ -225,7 +244,7 @@ class EmulatedRobot:
             return None
         self.claim_changed, self.claim_status_time = False, now
         self.status_seq += 1
-        return encode_status(self.claim.status(self.status_seq, now, STATUS_POSES))
+        return encode_status(self.claim.status(self.status_seq, now, STATUS_POSES if self.echoes_poses else 0))
 
 
 class Emulator:
@@ -268,16 +287,12 @@ class Emulator:
         with open_session(self.config, "m3pi-emulator") as session:
             resources, publishers, statuses = [], [], []
             for index, robot in enumerate(self.robots):
-                keys = robot.spec.keys
-                publishers.append(session.declare_publisher(keys.pose, express=True))
-                statuses.append(session.declare_publisher(keys.status, express=True))
-                resources.append(session.declare_subscriber(keys.wheels, self._on_command(index)))
-                resources.append(session.liveliness().declare_subscriber(keys.hosts, self._on_host(index),
+                pose, status = self._declare_robot(session, index, resources)
+                publishers.append(pose)
+                statuses.append(status)
+                resources.append(session.liveliness().declare_subscriber(robot.spec.keys.hosts, self._on_host(index),
                                                                           history=True))
-                resources.append(session.liveliness().declare_token(keys.alive))
-                self.say(f"m3pi-emulator robot {keys.robot}: configured, pose on {keys.pose} at "
-                         f"{self.settings.rate:g} Hz, commands on {keys.wheels}")
-            resources += publishers + statuses
+            resources += publishers + [status for status in statuses if status is not None]
             if ready is not None:
                 ready()
             start = self.clock()
@@ -294,7 +309,7 @@ class Emulator:
                         if now >= next_sample:
                             for index, robot in enumerate(self.robots):
                                 pose = robot.sample(now, self._noise)
-                                self._outbox.append((now + self.settings.latency, index, encode_pose(pose)))
+                                self._outbox.append((now + self.settings.latency, index, self._encode_pose(index, pose)))
                             next_sample += period
                             if next_sample < now:  # fell behind (a stalled machine): no burst of catch-up samples
                                 next_sample = now + period
@@ -308,30 +323,43 @@ class Emulator:
                     for _, index, payload in due:
                         publishers[index].put(payload)
                     for index, report in reports:
-                        if report is not None:
+                        if report is not None and statuses[index] is not None:
                             statuses[index].put(report)
                     wake = min(next_sample, self._outbox[0][0] if self._outbox else next_sample)
                     self.stop_event.wait(max(0.0, min(wake - self.clock(), 0.01)))
             finally:
-                for resource in reversed(resources):
-                    try:
-                        resource.undeclare()
-                    except zenoh.ZError:
-                        pass
+                undeclare_all(resources)
                 for robot in self.robots:
                     c = robot.counters
                     self.say(f"m3pi-emulator robot {robot.spec.keys.robot}: commands received {c.received}, accepted "
                              f"{c.accepted}, dropped {c.dropped_total} "
                              + " ".join(f"{k}={v}" for k, v in c.dropped.items() if v))
 
+    # -- the robot side's seam: our protocol here, ROS 2 topics in bridge.ros2.emulator.RosEmulator ----------
+
+    def _declare_robot(self, session: zenoh.Session, index: int, resources: list) -> tuple[Any, Any]:
+        """Declare robot ``index``'s command subscriber and liveliness token; return its pose publisher and
+        its status publisher (None: a robot side without claims, whose status would say nothing)."""
+        keys = self.robots[index].spec.keys
+        status = session.declare_publisher(keys.status, express=True)
+        resources.append(session.declare_subscriber(keys.wheels, self._on_command(index)))
+        resources.append(session.liveliness().declare_token(keys.alive))
+        self.say(f"m3pi-emulator robot {keys.robot}: configured, pose on {keys.pose} at "
+                 f"{self.settings.rate:g} Hz, commands on {keys.wheels}")
+        return session.declare_publisher(keys.pose, express=True), status
+
+    def _encode_pose(self, index: int, pose: Pose) -> bytes:
+        return encode_pose(pose)
+
 
 def run_emulator(robots: Sequence[RobotSpec], settings: EmulatorSettings, connect: Sequence[str] = (),
                  listen: Sequence[str] = (), zenoh_config_file: str | None = None, duration: float | None = None,
                  stop_event: threading.Event | None = None, ready: Callable[[], None] | None = None,
-                 allow_insecure: bool = False) -> Emulator:
-    """Build and run an emulator until stopped (``stop_event``, ``duration``, or KeyboardInterrupt)."""
-    emulator = Emulator(robots, settings, zenoh_config(connect, listen, zenoh_config_file,
-                                                       allow_insecure=allow_insecure))
+                 make: Callable[..., Emulator] | None = None, allow_insecure: bool = False) -> Emulator:
+    """Build (``make(robots, settings, zenoh config)``, default ``Emulator``) and run an emulator until stopped
+    (``stop_event``, ``duration``, or KeyboardInterrupt)."""
+    emulator = (make or Emulator)(robots, settings, zenoh_config(connect, listen, zenoh_config_file,
+                                                                 allow_insecure=allow_insecure))
     if stop_event is not None:
         emulator.stop_event = stop_event
     emulator.run(duration, ready)

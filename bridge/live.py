@@ -54,7 +54,7 @@ from .protocol import (
     decode_status,
     encode_wheels,
 )
-from .session import SessionError, open_session, zenoh_config
+from .session import SessionError, open_session, undeclare_all, zenoh_config
 from .states import LinkState, StateMachine
 
 STOP_REPEATS = 3  # a stop command is sent this many times: one lost message must not keep a robot going
@@ -113,6 +113,7 @@ class LiveVehicle:
         self.keys = settings.keys
         self.clock = clock
         self.what = f"robot {settings.robot} ({self.keys.prefix}/m3pi/{settings.robot})"
+        self.pose_key = self.keys.pose  # where poses come from (a ROS 2 topic's key in bridge.ros2.link)
         self._lock = threading.Lock()
         self._events: deque[LiveEvent] = deque()
         self._records: deque[LiveRecord] = deque()
@@ -167,7 +168,7 @@ class LiveVehicle:
             return
         received = self.clock()
         try:
-            pose = decode_pose(sample.payload.to_bytes())
+            pose = self._decode_pose(sample, received)
             with self._lock:
                 self.claim.source(pose)
                 check_pose_time(pose, received, self.settings.max_pose_age)
@@ -191,7 +192,7 @@ class LiveVehicle:
                 self.pose_counters.drop(error)
             if error.reason.value not in self._warned:  # the first of each kind in the log; all in the counters
                 self._warned.add(error.reason.value)
-                self._events.append(LiveEvent("Warning", f"{self.what}: dropped a message on {self.keys.pose}: "
+                self._events.append(LiveEvent("Warning", f"{self.what}: dropped a message on {self.pose_key}: "
                                                          f"{error} (further drops of this kind are only counted)"))
 
     def _on_status(self, sample: zenoh.Sample) -> None:
@@ -231,13 +232,8 @@ class LiveVehicle:
         except SessionError as error:
             raise ComponentError(self.name, start_time, str(error)) from None
         session = self._session
-        self._publisher = session.declare_publisher(self.keys.wheels, congestion_control=zenoh.CongestionControl.BLOCK,
-                                                    express=True)
-        self._resources.append(self._publisher)
-        self._resources.append(session.declare_subscriber(self.keys.pose, self._on_pose))
-        self._resources.append(session.declare_subscriber(self.keys.status, self._on_status))
-        self._resources.append(session.liveliness().declare_subscriber(self.keys.alive, self._on_liveliness,
-                                                                        history=True))
+        self._open_commands(session)
+        self._open_poses(session)
         self._resources.append(session.liveliness().declare_token(self.keys.host(self.claim.claim)))  # the claim
         claimed = time.monotonic()
         deadline = claimed + settings.connect_timeout
@@ -249,8 +245,12 @@ class LiveVehicle:
                 self._stop_sent = True  # nothing of ours to stop: the robot does not obey this run
                 raise self._fail(start_time, problem)
             time.sleep(0.005)
-        self.state.go(LinkState.SYNCHRONIZED, f"claim {claim_text(self.claim.claim)} granted, liveliness token and a "
-                                              f"valid pose received (pose {self._latest.seq})")
+        refusal = self._refusal(session)
+        if refusal is not None:
+            self._stop_sent = True  # it cannot hear this run's commands
+            raise self._fail(start_time, refusal)
+        self.state.go(LinkState.SYNCHRONIZED, f"{self._holding()}, liveliness token and a valid pose received "
+                                              f"(pose {self._latest.seq})")
         self._measure()
 
     def _ready(self) -> bool:
@@ -268,6 +268,35 @@ class LiveVehicle:
         for counters, key in ((self.pose_counters, self.keys.pose), (self.status_counters, self.keys.status)):
             if counters.dropped[Drop.VERSION.value] and not counters.accepted:
                 return f"{self.what}: the messages on {key} are of another protocol version ({counters.last_problem})"
+        return None
+
+    # -- the link's seam: our wheel protocol here, ROS 2 topics in bridge.ros2.link.RosLiveVehicle ----------
+
+    def _open_commands(self, session: zenoh.Session) -> None:
+        """Declare the command publisher, and watch the robot side's status and liveliness token."""
+        self._publisher = session.declare_publisher(self.keys.wheels, congestion_control=zenoh.CongestionControl.BLOCK,
+                                                    express=True)
+        self._resources.append(self._publisher)
+        self._resources.append(session.declare_subscriber(self.keys.status, self._on_status))
+        self._resources.append(session.liveliness().declare_subscriber(self.keys.alive, self._on_liveliness,
+                                                                        history=True))
+
+    def _open_poses(self, session: zenoh.Session) -> None:
+        self._resources.append(session.declare_subscriber(self.keys.pose, self._on_pose))
+
+    def _decode_pose(self, sample: zenoh.Sample, received: float) -> Pose:
+        return decode_pose(sample.payload.to_bytes())
+
+    def _publish_command(self, command: WheelCommand) -> None:
+        self._publisher.put(encode_wheels(command))
+
+    def _holding(self) -> str:
+        """How this run holds the robot, for the log."""
+        return f"claim {claim_text(self.claim.claim)} granted"
+
+    def _refusal(self, session: zenoh.Session) -> str | None:
+        """Why this run must not drive the robot it found although it is ready (None: it may). Our protocol
+        has said all in ``_start_problem``; a ROS 2 topic may be subscribed with another type."""
         return None
 
     def _not_found(self) -> str:
@@ -348,7 +377,7 @@ class LiveVehicle:
         self._command_seq += 1
         now = self.clock()
         command = WheelCommand(self._command_seq, now + validity, left, right, self.claim.claim)
-        self._publisher.put(encode_wheels(command))
+        self._publish_command(command)
         with self._lock:
             self._sent[command.seq] = now
             if len(self._sent) > 1000:  # a motion capture that does not echo command numbers: keep the newest
@@ -387,12 +416,7 @@ class LiveVehicle:
             self.state.go(LinkState.STOPPED, "run ended; stop command sent")
         time.sleep(RELEASE_DELAY)
         self._released = True  # what arrives from now on is not counted: the claim is being released
-        for resource in reversed(self._resources):
-            try:
-                resource.undeclare()
-            except zenoh.ZError:
-                pass
-        self._resources.clear()
+        undeclare_all(self._resources)
         self._publisher = None
         session, self._session = self._session, None
         session.close()

@@ -116,3 +116,14 @@ def open_session(config: zenoh.Config, what: str) -> zenoh.Session:
         return zenoh.open(config)
     except zenoh.ZError as error:
         raise SessionError(f"{what}: cannot open a Zenoh session: {error}") from None
+
+
+def undeclare_all(resources: list[Any]) -> None:
+    """Undeclare publishers, subscribers and tokens, newest first, and empty the list; one already gone (its
+    session closed) is skipped, so that closing never fails half-way."""
+    for resource in reversed(resources):
+        try:
+            resource.undeclare()
+        except zenoh.ZError:
+            pass
+    resources.clear()

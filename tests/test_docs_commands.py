@@ -71,6 +71,18 @@ LIVE3_EMULATOR_4 = (".venv/bin/platoon m3pi-emulator --config configs/hil/m3pi_l
                     "--set 'vehicles.4.connect=[\"tcp/127.0.0.1:7447\"]' &")
 LIVE3_RUN_4 = (".venv/bin/platoon run configs/hil/m3pi_live3.toml --set vehicles.4.endpoint=zenoh "
                "--set 'vehicles.4.connect=[\"tcp/127.0.0.1:7447\"]'")
+ROS2_LAB_RUN = (".venv/bin/platoon run configs/hil/ros2_live3.toml --set 'vehicles.3.connect=[\"tcp/192.168.1.20:7447\"]' "
+                "--set vehicles.3.zenoh_config=configs/hil/zenoh-client.json5 "
+                "--set vehicles.3.ros2.command_topic=/diff_drive_controller/cmd_vel --set vehicles.3.ros2.command_type=TwistStamped "
+                "--set hil.allow_insecure=true")
+ROS2_DDS_LAB_RUN = (".venv/bin/platoon run configs/hil/ros2_live3.toml --set 'vehicles.3.connect=[\"tcp/192.168.1.20:7447\"]' "
+                    "--set vehicles.3.zenoh_config=configs/hil/zenoh-client.json5 --set vehicles.3.ros2.convention=bridge_dds "
+                    "--set hil.allow_insecure=true")
+ROS2_DDS_EMULATED_RUN = (".venv/bin/platoon run configs/hil/ros2_live3.toml --set vehicles.3.ros2.convention=bridge_dds "
+                         "--set simulation.stop_time=10")
+ROS2_PUBLISH_RUN = (".venv/bin/platoon run configs/paper/m3pi.toml --set ros2.publish=true "
+                    "--set 'ros2.connect=[\"tcp/192.168.1.20:7447\"]' --set ros2.zenoh_config=configs/hil/zenoh-client.json5 "
+                    "--set hil.allow_insecure=true")
 LAB_RUN = (".venv/bin/platoon run configs/hil/m3pi_live3.toml --set simulation.stop_time=10 --set "
            "'vehicles.3.connect=[\"tls/127.0.0.1:7450\"]' --set 'vehicles.3.zenoh_config=\"/tmp/lab/laptop.json5\"'")
 REAL_ROBOT_RUN = ".venv/bin/platoon run configs/hil/m3pi_live3.toml --set 'vehicles.3.connect=[\"tcp/127.0.0.1:7448\", \"tcp/127.0.0.1:7449\"]'"
@@ -97,7 +109,17 @@ SPECIAL: dict[tuple[str, str], Shorten | Parse | Skip | Expect] = {
     ("docs/hil.md", LAB_RUN): Shorten(LAB_RUN + SHORT, "a live run is paced to the wall clock: 10 s as written"),
     ("docs/hil.md", ".venv/bin/platoon m3pi-serial --port /dev/ttyUSB0 --id 3 --listen tcp/127.0.0.1:7448 --max-speed 0.8 &"):
         Parse("needs a real m3pi behind an XBee on /dev/ttyUSB0"),
-    ("docs/hil.md", "python mocap.py &"): Skip("a sketch to fill in with a real motion capture's reading (read_tracker)"),
+    ("docs/hil.md", ".venv/bin/platoon mocap --system vicon --host 192.168.1.5 --body m3pi_3=3 --listen tcp/127.0.0.1:7449 &"):
+        Parse("needs a Vicon system at 192.168.1.5 (tests/test_ros2.py runs platoon mocap with libmotioncapture's mock)"),
+    ("docs/hil.md", ROS2_LAB_RUN): Parse("needs the lab's ROS 2 machine and its rmw_zenohd at 192.168.1.20"),
+    ("docs/hil.md", ROS2_DDS_LAB_RUN): Parse("needs the lab's ROS 2 machine and its zenoh-bridge-ros2dds at 192.168.1.20"),
+    ("docs/hil.md", ROS2_PUBLISH_RUN): Parse("needs a ROS 2 graph's router at 192.168.1.20 (tests/test_ros2.py publishes "
+                                             "to a local viewer)"),
+    ("docs/hil.md", ".venv/bin/platoon run configs/hil/ros2_live3.toml --set simulation.stop_time=10 --out /tmp/ros2-doc.mcap"):
+        Shorten(".venv/bin/platoon run configs/hil/ros2_live3.toml --set simulation.stop_time=10 --out /tmp/ros2-doc.mcap" + SHORT,
+                "a live run is paced to the wall clock: 10 s as written"),
+    ("docs/hil.md", ROS2_DDS_EMULATED_RUN): Shorten(ROS2_DDS_EMULATED_RUN + SHORT,
+                                                   "a live run is paced to the wall clock: 10 s as written"),
     ("docs/hil.md", REAL_ROBOT_RUN): Parse("needs the real robot and motion capture of the two lines above"),
     ("docs/hil.md", ".venv/bin/platoon bench hil"): Shorten(
         ".venv/bin/platoon bench hil --seconds 0.5", "about 40 s as written; the same measurements, 0.5 s each"),

@@ -22,7 +22,13 @@ DOCS = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md")), *sorted((REP
 # the first folder of an absolute path every Linux machine has, so an example there works anywhere;
 # "platoon" starts the trace's and Zenoh's topic names (/platoon/vehicle1, /platoon/m3pi/3/pose)
 ANYWHERE = {"tmp", "dev", "usr", "proc", "bin", "platoon"}
-HOME_ALLOWED = ("~/.cache/platoon-cosim",)  # the FMU cache the tool itself makes (docs/fmus.md)
+# ROS 2 names of docs/hil.md's "Your lab" and configs/hil/ros2_live3.toml: topics of vrpn_mocap, of a
+# differential-drive base and of tf2, nodes, and a zenoh-bridge-ros2dds namespace
+ROS_NAMES = {"vrpn_mocap", "m3pi_3", "diff_drive_controller", "tf", "platoon_vehicle3", "m3pi_emulator_3",
+             "m3pi_emulator_<id>", "bot3"}
+# the FMU cache the tool itself makes (docs/fmus.md); a ROS node's private topic (``~`` is the node's
+# namespace, not a home folder: diff_drive_controller's ``~/cmd_vel``)
+HOME_ALLOWED = ("~/.cache/platoon-cosim", "~/cmd_vel")
 
 SEGMENT = r"[A-Za-z0-9_.*<>-]+"  # a file or folder name, wildcards and <placeholders> allowed
 # an absolute path: a slash not inside a word, a unit (m/s), a URL (ws://), a relative or home path
@@ -53,7 +59,7 @@ def outside_paths(doc: Path, repo: Path = REPO) -> list[str]:
         where = f"{doc.relative_to(repo)}:{number}"
         for match in ABSOLUTE.finditer(line):
             path = match.group()
-            if path.split("/")[1] not in ANYWHERE:
+            if path.split("/")[1] not in ANYWHERE | ROS_NAMES:
                 found.append(f"{where}: {path} (an absolute path only one machine has)")
         for match in UP.finditer(line):
             path = match.group()

@@ -77,6 +77,7 @@ FLOAT_KEYS = [
     "vehicles.1.k_v", "vehicles.1.initial.x", "vehicles.1.initial.y", "vehicles.1.initial.heading",
     "vehicles.1.initial.speed",
     "hil.pose_timeout", "hil.connect_timeout", "hil.command_validity", "hil.max_pose_age",
+    "vehicles.1.ros2.frame.x", "vehicles.1.ros2.frame.y", "vehicles.1.ros2.frame.yaw", "ros2.rate",
 ]
 
 

@@ -14,7 +14,7 @@ from typing import Annotated
 
 import typer
 
-from orchestrator.cli import bench, hil, run, ssp, sweep, trace, viewer
+from orchestrator.cli import bench, hil, mocap, run, ssp, sweep, trace, viewer
 from orchestrator.cli.common import out
 
 app = typer.Typer(
@@ -46,6 +46,7 @@ def _options(
 for command in (run.build, run.run, trace.report, trace.export, run.analyze):
     app.command()(command)
 hil.register(app)  # m3pi-emulator, m3pi-serial
+mocap.register(app)  # mocap: rigid bodies as robot poses
 sweep.register(app)  # sweep, sweep-plot
 ssp.register(app)  # export-ssp: the platoon for other tools
 viewer.register(app)  # layout, figure: what users look at

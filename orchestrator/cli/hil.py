@@ -57,10 +57,13 @@ def live_table(summary: dict[str, dict[str, Any]]) -> Table:
                                         str(stats.get("command.foreign_claim", "")))
         if refused:
             notes.append(f"{name}: {refused}")
+        trip = "-/-"  # a pose source that does not echo command numbers (a motion capture, ROS) measures none
+        if stats.get("round_trip.count", 0):
+            trip = f"{ms_text(stats.get('round_trip.median'))}/{ms_text(stats.get('round_trip.p99'))}"
         rows.append((
             name, str(stats.get("robot", "")), str(stats.get("state", "")), str(stats.get("command.sent", 0)),
             str(stats.get("pose.accepted", 0)), str(sum(dropped.values())),
-            f"{ms_text(stats.get('round_trip.median'))}/{ms_text(stats.get('round_trip.p99'))}",
+            trip,
             f"{ms_text(stats.get('pose_age.median'))}/{ms_text(stats.get('pose_age.max'))}",
         ))
     from rich import box
@@ -100,6 +103,24 @@ def emulated_robots(config: Any, ids: list[int]) -> list[Any]:
     return robots
 
 
+def emulated_links(config: Any, ids: list[int], convention: str | None) -> list[Any]:
+    """The ``bridge.ros2.link.RosLink`` (or None) of each robot ``emulated_robots`` gives, in its order;
+    ``convention`` (``--ros2``) replaces the config's for every robot with a ``[vehicles.K.ros2]`` table."""
+    from dataclasses import replace
+
+    from orchestrator.components.live import ros_link
+
+    links = []
+    for vehicle in config.live_vehicles():
+        if ids and config.robot_id(vehicle) not in ids:
+            continue
+        link = ros_link(config, vehicle)
+        if link is not None and convention is not None:
+            link = replace(link, graph=replace(link.graph, convention=convention))
+        links.append(link)
+    return links
+
+
 def emulator_endpoints(config: Any) -> tuple[list[str], list[str]]:
     """(listen, connect) that meet the live vehicles: listen where the run connects, connect where it listens."""
     listen, connect = [], []
@@ -126,6 +147,8 @@ def m3pi_emulator(
     connect: Endpoints = [],
     zenoh_config: Annotated[Optional[Path], typer.Option(help="Zenoh config file (JSON5)")] = None,
     duration: Annotated[Optional[float], typer.Option(help="stop after this many seconds (default: until Ctrl-C)")] = None,
+    ros2: Annotated[Optional[str], typer.Option("--ros2", metavar="CONVENTION", help="speak ROS 2 on the topics of "
+                    "each [vehicles.K.ros2] table through rmw_zenoh or bridge_dds (default: the tables' convention)")] = None,
     allow_insecure: AllowInsecure = False,
 ) -> None:
     """Emulate the live robots of a config and their motion capture on Zenoh (stands in for the m3pi)."""
@@ -144,6 +167,17 @@ def m3pi_emulator(
                         ("--latency", latency), ("--command-latency", command_latency)):
         if not (math.isfinite(value) and value >= 0.0):
             fail(2, f"{name} {value}: expected a finite number >= 0")
+    if ros2 is not None and ros2 not in ("rmw_zenoh", "bridge_dds"):
+        fail(2, f"--ros2 {ros2}: expected rmw_zenoh or bridge_dds")
+    links = emulated_links(parsed, ids, ros2)
+    if ros2 is not None and not any(links):
+        fail(2, f"--ros2 {ros2}: config {config} has no [vehicles.K.ros2] table (pose_topic, command_topic) to speak on")
+    make = None
+    if any(links):
+        from bridge.ros2.emulator import RosEmulator
+
+        def make(robots: list, settings: Any, zenoh_config: Any) -> Any:
+            return RosEmulator(robots, settings, zenoh_config, links)
     default_listen, default_connect = emulator_endpoints(parsed)
     settings = EmulatorSettings(rate, noise_position, math.radians(noise_heading), latency, command_latency,
                                 command_timeout, not standing_start, seed)
@@ -151,7 +185,7 @@ def m3pi_emulator(
     _stop_on_signals(stop)
     try:
         run_emulator(robots, settings, connect or default_connect, listen or default_listen,
-                     str(zenoh_config) if zenoh_config else None, duration, stop,
+                     str(zenoh_config) if zenoh_config else None, duration, stop, make=make,
                      allow_insecure=allow_insecure or parsed.hil.allow_insecure)
     except SessionError as error:
         fail(2, str(error))

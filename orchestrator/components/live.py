@@ -58,6 +58,21 @@ def live_settings(config: Config, vehicle: int):
     )
 
 
+def ros_link(config: Config, vehicle: int):
+    """Vehicle ``vehicle``'s ROS 2 topics (a ``bridge.ros2.link.RosLink``), or None without ``[vehicles.K.ros2]``."""
+    table = config.override(vehicle).ros2
+    if table is None:
+        return None
+    from bridge.ros2.link import FrameTransform, RosLink
+    from bridge.ros2.messages import COMMAND_TYPES, POSE_TYPES
+    from bridge.ros2.node import RosGraph
+
+    graph = RosGraph(table.convention, table.domain, table.namespace, table.node or f"platoon_{vehicle_name(vehicle)}")
+    return RosLink(graph, table.pose_topic, POSE_TYPES[table.pose_type], table.command_topic,
+                   COMMAND_TYPES[table.command_type], table.command_stamp,
+                   FrameTransform(table.frame.x, table.frame.y, table.frame.yaw))
+
+
 def live_component(spec: ComponentSpec, fmu: UnpackedFmu, config: Config, vehicle: int) -> Component:
     """The live robot standing in for ``spec``'s Vehicle FMU."""
     from bridge.live import LiveVehicle
@@ -66,5 +81,10 @@ def live_component(spec: ComponentSpec, fmu: UnpackedFmu, config: Config, vehicl
     inputs = [v.name for v in fmu.description.modelVariables if v.causality == "input"]
     outputs = [v.name for v in fmu.description.modelVariables if v.causality == "output"]
     starts = fmu.start_values()
-    return LiveVehicle(spec.name, {**starts, **spec.parameters}, inputs, outputs, [float(starts[n]) for n in inputs],
-                       settings)
+    arguments = (spec.name, {**starts, **spec.parameters}, inputs, outputs, [float(starts[n]) for n in inputs], settings)
+    ros = ros_link(config, vehicle)
+    if ros is not None:  # poses and/or commands on ROS 2 topics
+        from bridge.ros2.link import RosLiveVehicle
+
+        return RosLiveVehicle(*arguments, ros=ros)
+    return LiveVehicle(*arguments)

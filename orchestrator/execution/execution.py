@@ -224,6 +224,10 @@ class Execution:
 
             self.summary_feed = SummaryObserver(config, components, self.steps, sim.trace_every)
             observers.add(self.summary_feed)
+        if config.ros2.publish:  # every vehicle's pose to ROS 2 (docs/hil.md, "Publishing the run to ROS 2")
+            from orchestrator.observers.ros2 import ros2_publisher
+
+            observers.add(ros2_publisher(config, components))
         if self.tick is not None:
             from orchestrator.observers.progress import ProgressObserver
 

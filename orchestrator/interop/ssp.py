@@ -226,6 +226,10 @@ def export_components(config: Config, scenario: Scenario) -> list[ComponentSpec]
             settings = dataclasses.replace(settings, zenoh_config=str(Path(settings.zenoh_config).resolve()))
         return {**spec.parameters, **hil_parameters(settings)}
 
+    on_ros = [f"vehicles.{k}.ros2" for k in sorted(live) if config.override(k).ros2 is not None]
+    if on_ros:
+        raise SspError(f"{', '.join(on_ros)}: the LiveVehicle FMU speaks our protocol only, not ROS 2 topics; "
+                       "export the config without these tables, or run it with platoon run")
     names = {vehicle_name(k): k for k in live}
     return [ComponentSpec(spec.name, LIVE_FMU, parameters(spec)) if spec.name in names else spec
             for spec in scenario.components]

@@ -24,6 +24,9 @@ from bridge.protocol import DEFAULT_PREFIX, check_prefix
 from fmus.model.dynamics import M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEEL_SPEED_MAX
 from fmus.model.integrate import substep_count
 
+from .ros2_config import RunRos2, VehicleRos2
+from .ros2_config import _Rule as _Ros2Rule
+
 
 class ConfigError(ValueError):
     """A configuration problem, phrased for the person who wrote the config."""
@@ -165,6 +168,7 @@ class VehicleOverride(_Strict):
     connect: list[Text] | None = Field(None, description="Zenoh endpoints to connect to, e.g. tcp/127.0.0.1:7447")
     listen: list[Text] | None = Field(None, description="Zenoh endpoints to listen on")
     zenoh_config: Text | None = Field(None, description="Zenoh config file (JSON5): TLS, access control, ...")
+    ros2: VehicleRos2 | None = Field(None, description="pose and/or commands on ROS 2 topics (docs/hil.md)")
 
     @model_validator(mode="after")
     def _prefix_is_a_key(self) -> "VehicleOverride":
@@ -215,6 +219,7 @@ class Config(_Strict):
     disturbance: list[Disturbance] = Field(default_factory=list)
     vehicles: dict[str, VehicleOverride] = Field(default_factory=dict)
     hil: Hil = Hil()
+    ros2: RunRos2 = RunRos2()
 
     @model_validator(mode="after")
     def _platoon_rules(self) -> "Config":
@@ -368,7 +373,7 @@ def _explain(error: ValidationError) -> str:
     ctx = first.get("ctx") or {}
     loc = tuple(part for part in first["loc"] if not (isinstance(part, str) and part.startswith("function-")))
     key = _key_of(loc)
-    if "error" in ctx and isinstance(ctx["error"], _RuleError):  # a rule of a nested table names its own key
+    if "error" in ctx and isinstance(ctx["error"], (_RuleError, _Ros2Rule)):  # a rule of a nested table names its own key
         return f"{key}.{ctx['error']}" if key else str(ctx["error"])
     key = key or "a key"  # the key itself is what is wrong (not UTF-8)
     if first["type"] == "extra_forbidden":

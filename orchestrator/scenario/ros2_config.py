@@ -1,0 +1,95 @@
+"""The config tables for ROS 2 (docs/hil.md, "Your lab"): ``[vehicles.K.ros2]`` (a live vehicle's pose
+and/or commands on ROS 2 topics) and ``[ros2]`` (publish the whole run to ROS 2). Kept apart from
+config.py, which includes them, so that the ROS rules sit together; names are checked as ROS 2 checks
+them (design.ros2.org, "Topic and Service name mapping"): a fully qualified topic, a plain node name.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+_TOPIC = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
+_NODE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_NAMESPACE = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)*$")
+
+Convention = Literal["rmw_zenoh", "bridge_dds"]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
+
+
+class _Rule(ValueError):
+    pass
+
+
+def _check(pattern: re.Pattern, value: str | None, key: str, expected: str) -> None:
+    if value is not None and not pattern.match(value):
+        raise _Rule(f"{key} = {value!r}: expected {expected}")
+
+
+TOPIC_RULE = 'a fully qualified ROS 2 topic such as "/vrpn_mocap/m3pi_3/pose" (segments of letters, digits, "_")'
+NAMESPACE_RULE = 'a ROS 2 namespace such as "/bot3", or "" for none'
+
+
+class Ros2Frame(_Strict):
+    """The tracker's frame in the path's: rotate by ``yaw`` (rad) about the tracker's origin, then shift."""
+
+    x: float = Field(0.0, ge=-1e6, le=1e6)
+    y: float = Field(0.0, ge=-1e6, le=1e6)
+    yaw: float = Field(0.0, ge=-10.0, le=10.0)
+
+
+class _Graph(_Strict):
+    convention: Convention = "rmw_zenoh"
+    domain: int = Field(0, ge=0, le=232, description="ROS_DOMAIN_ID (rmw_zenoh)")
+    namespace: str = Field("", description="zenoh-bridge-ros2dds namespace (bridge_dds)")
+    node: str | None = Field(None, description="our ROS node's name")
+
+    @model_validator(mode="after")
+    def _names(self) -> "_Graph":
+        _check(_NAMESPACE, self.namespace, "namespace", NAMESPACE_RULE)
+        _check(_NODE, self.node, "node", "a ROS 2 node name (letters, digits, '_', not starting with a digit)")
+        return self
+
+
+class VehicleRos2(_Graph):
+    """``[vehicles.K.ros2]``: this live vehicle's pose and/or commands on ROS 2 topics."""
+
+    pose_topic: str | None = None
+    pose_type: Literal["PoseStamped", "Odometry"] = "PoseStamped"
+    command_topic: str | None = None
+    command_type: Literal["Twist", "TwistStamped"] = "TwistStamped"
+    command_stamp: Literal["zero", "now"] = "zero"
+    frame: Ros2Frame = Ros2Frame()
+
+    @model_validator(mode="after")
+    def _topics(self) -> "VehicleRos2":
+        _check(_TOPIC, self.pose_topic, "pose_topic", TOPIC_RULE)
+        _check(_TOPIC, self.command_topic, "command_topic", TOPIC_RULE)
+        if not (self.pose_topic or self.command_topic):
+            raise _Rule("pose_topic and command_topic both unset: set at least one (the other direction keeps "
+                        "our protocol)")
+        return self
+
+
+class RunRos2(_Graph):
+    """``[ros2]``: publish every vehicle's pose (PoseStamped) and a TFMessage to ROS 2 while the run goes."""
+
+    publish: bool = False
+    topic_prefix: str = Field("/platoon", description="poses on <topic_prefix>/vehicleK/pose")
+    frame_id: str = Field("world", pattern=r"^[A-Za-z_][A-Za-z0-9_/]*$")
+    rate: float = Field(50.0, gt=0.0, le=1000.0, description="messages per second at most")
+    connect: list[str] = Field(default_factory=list)
+    listen: list[str] = Field(default_factory=list)
+    zenoh_config: str | None = None
+
+    @model_validator(mode="after")
+    def _prefix(self) -> "RunRos2":
+        _check(_TOPIC, self.topic_prefix, "topic_prefix", TOPIC_RULE)
+        if self.publish and not (self.connect or self.listen or self.zenoh_config):
+            raise _Rule("publish = true needs connect, listen or zenoh_config: where the ROS 2 graph's Zenoh is")
+        return self
