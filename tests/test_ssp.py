@@ -82,19 +82,24 @@ def test_exported_package_is_valid_ssp_and_holds_the_run(tmp_path: Path) -> None
     assert float(algorithm.get("baseStepSize")) == 0.01 and algorithm.get("numWorkerThreads") == "0"
 
 
-def test_export_refuses_bad_input_in_one_line_and_keeps_an_existing_package(tmp_path: Path) -> None:
+def test_export_refuses_bad_input_in_one_line_and_replaces_only_a_package_unless_told(tmp_path: Path) -> None:
     package = tmp_path / "platoon.ssp"
     bad = platoon("export-ssp", str(PAPER), "--set", "platoon.count=0", "--out", str(package))
     assert bad.returncode == 2 and not package.exists()
     assert bad.stderr.strip().splitlines() == [
         f"error: config {PAPER}: platoon.count = 0: must be an integer >= 1 and <= 10000"]
+    notes = tmp_path / "notes.ssp"  # a file that is not an SSP package: replaced only when told
+    notes.write_text("my notes\n")
+    kept = platoon("export-ssp", str(PAPER), "--out", str(notes))
+    assert kept.returncode == 2 and kept.stderr.strip().splitlines() == [
+        f"error: --out {notes}: exists and is not an SSP package; refusing to replace it (pass --overwrite to "
+        f"replace it anyway)"] and notes.read_text() == "my notes\n"
+    forced = platoon("export-ssp", str(PAPER), "--out", str(notes), "--force")  # the deprecated alias of --overwrite
+    assert forced.returncode == 0 and "--force is deprecated; it means --overwrite" in forced.stderr
+    notes.unlink()
     assert platoon("export-ssp", str(PAPER), "--out", str(package)).returncode == 0
-    before = package.read_bytes()
-    again = platoon("export-ssp", str(PAPER), "--set", "platoon.count=2", "--out", str(package))
-    assert again.returncode == 2 and "exists (add --force to replace it)" in again.stderr
-    assert "Traceback" not in again.stderr and package.read_bytes() == before
-    forced = platoon("export-ssp", str(PAPER), "--set", "platoon.count=2", "--out", str(package), "--force")
-    assert forced.returncode == 0, forced.stderr
+    again = platoon("export-ssp", str(PAPER), "--set", "platoon.count=2", "--out", str(package))  # a package: replaced
+    assert again.returncode == 0, again.stderr
     with zipfile.ZipFile(package) as archive:
         assert sorted(n for n in archive.namelist() if n.endswith(".ssv")) == [
             "resources/target.ssv", "resources/vehicle1.ssv", "resources/vehicle2.ssv"]

@@ -53,9 +53,11 @@ def draw_pair(runs: list[tuple[Trace, Config]]) -> Figure:
 
 def save(figure: Figure, out: Path, dpi: int = 150) -> Path:
     """Write ``figure`` as PDF, SVG (vector) or PNG (``dpi``) by ``out``'s suffix, then release it."""
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        figure.savefig(out, dpi=dpi if out.suffix.lower() == ".png" else None)
+    from orchestrator.support.output import replacing
+
+    try:  # the output rule: drawn aside, synced, renamed into place; OutputError (one line) if it cannot be
+        with replacing(out) as aside:
+            figure.savefig(aside, dpi=dpi if out.suffix.lower() == ".png" else None, format=out.suffix.lower()[1:])
     finally:
         plt.close(figure)
     return out

@@ -9,7 +9,7 @@ a colour bar instead of a legend.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 import matplotlib
 
@@ -132,13 +132,26 @@ def colorbar(figure: Any, axes: Any, vehicles: list[str]) -> None:
     bar.set_label("vehicle (1 = leader)")
 
 
-def write_plots(trace: Trace, config: Config, directory: Path) -> list[Path]:
-    """Write speed_errors.png, gap_errors.png, path_errors.png and xy.png into ``directory``."""
-    directory.mkdir(parents=True, exist_ok=True)
+PLOT_STEMS = tuple(stem for stem, *_ in TIME_PANELS) + ("xy",)
+
+
+def write_plots(trace: Trace, config: Config, directory: Path, overwrite: bool = False,
+                protect: Iterable[Path] = ()) -> list[Path]:
+    """Write speed_errors.png, gap_errors.png, path_errors.png and xy.png into ``directory``.
+
+    By the output rule (orchestrator/support/output.py): every target is checked before the first is
+    drawn (an existing PNG is replaced, anything else only with ``overwrite``, an input never), and each
+    is drawn aside and renamed into place; raises ``OutputError`` (one line) if one may not or cannot be.
+    """
+    from orchestrator.support.output import IMAGE, check_folder, check_target, replacing
+
+    check_folder(directory, protect, "--plots")
+    targets = [directory / f"{stem}.png" for stem in PLOT_STEMS]
+    for target in targets:
+        check_target(target, overwrite, protect, "--plots", kind=IMAGE)
     vehicles = trace.vehicles()
     label = f"{config.name} ({config.platoon.law} law)"
-    written = []
-    for stem, ylabel, title, series in TIME_PANELS:
+    for target, (stem, ylabel, title, series) in zip(targets, TIME_PANELS):
         figure, axes = plt.subplots(figsize=(7.5, 4.2), dpi=120)
         draw_time_panel(axes, trace, config, series, ylabel, f"{title}: {label}")
         handles = time_legend_handles(axes, config, vehicles)
@@ -148,16 +161,20 @@ def write_plots(trace: Trace, config: Config, directory: Path) -> list[Path]:
             colorbar(figure, axes, vehicles)
         else:
             figure.tight_layout()
-        figure.savefig(directory / f"{stem}.png")
-        plt.close(figure)
-        written.append(directory / f"{stem}.png")
+        _save_png(figure, target, replacing)
     figure, axes = plt.subplots(figsize=(8.5, 6.5), dpi=120)
     handles = draw_xy(axes, trace, config, f"X-Y positions: {label}")
     axes.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small")
     if many(vehicles):
         colorbar(figure, axes, vehicles)
     figure.tight_layout()
-    figure.savefig(directory / "xy.png")
-    plt.close(figure)
-    written.append(directory / "xy.png")
-    return written
+    _save_png(figure, targets[-1], replacing)
+    return targets
+
+
+def _save_png(figure, target: Path, replacing) -> None:
+    try:
+        with replacing(target, "--plots") as aside:
+            figure.savefig(aside, format="png")
+    finally:
+        plt.close(figure)

@@ -8,7 +8,6 @@ No rich markup in what we print: names, paths and config text are the user's ("[
 from __future__ import annotations
 
 import json
-import os
 import warnings
 from contextlib import contextmanager
 from pathlib import Path
@@ -19,6 +18,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from orchestrator.scenario.config import Config, ConfigError, parse_config, read_config_text
+from orchestrator.support.output import OVERWRITE_HELP, OutputError  # the one output rule (docs/output.md)
 
 if TYPE_CHECKING:  # rich's table is imported where used: `platoon run -q` needs none
     from rich.table import Table
@@ -92,29 +92,34 @@ def summary_table(summaries, config: Config, title: str) -> Table:
     return table
 
 
-OVERWRITE_HELP = "replace an existing --out even if it is not an MCAP trace (never the command's own input)"
+Overwrite = Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)]
+
+
+@contextmanager
+def output_rule() -> Iterator[None]:
+    """Turn a refused or failed write (orchestrator/support/output.py) into exit 2 with its one line."""
+    try:
+        yield
+    except OutputError as error:
+        fail(2, str(error))
 
 
 def check_output(path: Path, overwrite: bool, protect: list[Path], what: str = "--out") -> None:
-    """Exit 2 with one line if ``path`` must not be replaced (trace/output.py: check_replaceable)."""
-    from orchestrator.trace.output import OutputError, check_replaceable
+    """Exit 2 with one line if the trace ``path`` must not be replaced (trace/output.py: check_replaceable)."""
+    from orchestrator.trace.output import check_replaceable
 
-    try:
+    with output_rule():
         check_replaceable(path, overwrite, protect, what)
-    except OutputError as error:
-        fail(2, str(error))
 
 
 def claim_trace(trace: Optional[Path], overwrite: bool, protect: list[Path], default):
     """Claim the trace path before any work (orchestrator/trace/output.py): exit 2 with one line if it is
     in use by another run, is a file that is not a trace (without --overwrite), is the config, or cannot
     be written."""
-    from orchestrator.trace.output import OutputError, claim
+    from orchestrator.trace.output import claim
 
-    try:
+    with output_rule():
         return claim(trace, overwrite, protect) if trace is not None else default()
-    except OutputError as error:
-        fail(2, str(error))
 
 
 @contextmanager
@@ -154,10 +159,4 @@ def load_trace(trace: Path):
     except Exception as error:  # any other reader failure means the file is not a usable trace
         fail(2, f"trace {trace}: not a readable MCAP trace ({error}); try `platoon trace recover {trace}`")
 
-
-def same_file(a: Path, b: Path) -> bool:
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return False
 

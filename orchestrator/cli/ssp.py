@@ -14,15 +14,17 @@ def export_ssp(
     config: Annotated[Path, typer.Argument(help="scenario TOML file, e.g. configs/paper/platoon.toml")],
     out: Annotated[Optional[Path], typer.Option("--out", help="the package to write (default: <config name>.ssp here)")] = None,
     overrides: Annotated[list[str], typer.Option("--set", metavar="KEY=VALUE", help="override a key, as for platoon run")] = [],
-    force: Annotated[bool, typer.Option("--force", help="replace an existing --out file")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing --out that is not an SSP package (never an input, a FIFO, a device or a folder)")] = False,
+    force: Annotated[bool, typer.Option("--force", hidden=True, help="deprecated alias of --overwrite")] = False,
     fmu_kind: Annotated[Optional[str], typer.Option("--fmus", metavar="<native|python>", help="native (C FMUs: no Python needed where the package runs; default where a C compiler can build them) or python (pythonfmu); overrides simulation.fmus")] = None,
     worker_threads: Annotated[int, typer.Option("--worker-threads", min=0, help="libcosim's numWorkerThreads; 0 steps every FMU on the calling thread (pythonfmu FMUs share one Python interpreter, so more threads only add synchronization)")] = 0,
 ) -> None:
     """Write the platoon of CONFIG as an SSP 1.0 package: FMUs, parameters, Fig. 2 wiring, step."""
     from fmus.builders import DEFAULT_OUT
 
-    from orchestrator.cli.common import fail, load_config, err, out as console
-    from orchestrator.interop.ssp import SspError, export_ssp as write_package, ssp_notes
+    from orchestrator.cli.common import fail, load_config, err, out as console, output_rule
+    from orchestrator.support.output import check_target
+    from orchestrator.interop.ssp import SspError, export_ssp as write_package, SSP, ssp_notes
 
     from orchestrator.components.kinds import FmuKindError
 
@@ -30,18 +32,16 @@ def export_ssp(
         overrides = [*overrides, f"simulation.fmus={json.dumps(fmu_kind)}"]
     parsed, _ = load_config(config, overrides)
     target = out if out is not None else Path(f"{parsed.name}.ssp")
-    if target.is_dir():
-        fail(2, f"--out {target}: is a folder; name the .ssp file to write")
-    if target.exists() and not force:
-        fail(2, f"--out {target}: exists (add --force to replace it)")
+    if force:  # kept so old scripts work (docs/fmus.md); it means exactly --overwrite
+        err.print("note: --force is deprecated; it means --overwrite", highlight=False, soft_wrap=True, markup=False)
+    overwrite = overwrite or force
+    with output_rule():  # the output rule (support/output.py), checked before any FMU is built
+        check_target(target, overwrite, [config], kind=SSP)
     try:
-        written = write_package(parsed, target, DEFAULT_OUT, force=force, worker_threads=worker_threads)
-    except FileExistsError:
-        fail(2, f"--out {target}: exists (add --force to replace it)")
+        with output_rule():
+            written = write_package(parsed, target, DEFAULT_OUT, force=overwrite, worker_threads=worker_threads)
     except (SspError, FmuKindError) as error:
         fail(2, f"config {config}: {error}")
-    except OSError as error:
-        fail(2, f"--out {target}: cannot write the package there: {error.strerror or error}")
     for note in ssp_notes(parsed):
         err.print(f"note: {note}", highlight=False, soft_wrap=True, markup=False)
     live = ", ".join(f"vehicle{k}" for k in parsed.live_vehicles())

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Optional
 import typer
 from rich.markup import escape
 
+from orchestrator.cli.common import Overwrite
 from orchestrator.sweep.plan import Run
 from orchestrator.sweep.spec import SweepError
 
@@ -89,7 +90,8 @@ def sweep(
 
     from orchestrator.components.kinds import prepare_fmus
 
-    from orchestrator.cli.common import fail, out
+    from orchestrator.cli.common import fail, out, output_rule
+    from orchestrator.support.output import check_folder
     from orchestrator.sweep.executors import DaskExecutor, Executor, LocalExecutor, SweepAborted
     from orchestrator.sweep.plan import plan
     from orchestrator.sweep.runner import run_sweep
@@ -98,8 +100,8 @@ def sweep(
 
     if workers is not None and scheduler is not None:
         fail(2, "--workers and --scheduler: give one (the cluster has its own workers)")
-    if out_dir.exists() and not out_dir.is_dir():
-        fail(2, f"--out {out_dir}: is a file, expected a folder")
+    with output_rule():
+        check_folder(out_dir, [sweep_file], "--out")
     try:
         runs = plan(load_sweep(sweep_file))
     except SweepError as error:
@@ -138,13 +140,15 @@ def sweep_plot(
     y: Annotated[str, typer.Option("--y", metavar="KEY", help="vertical axis: a config key")] = "platoon.count",
     panel: Annotated[str, typer.Option(metavar="KEY", help="one panel per value of this config key")] = "platoon.law",
     png: Annotated[Optional[Path], typer.Option("--out", help="PNG file (default DIR/map.png)")] = None,
+    overwrite: Overwrite = False,
 ) -> None:
     """Draw a sweep's results as maps: |value| over two parameters, one panel per value of a third."""
-    from orchestrator.cli.common import fail, out
+    from orchestrator.cli.common import fail, out, output_rule
     from orchestrator.sweep.plot import PlotError, draw_map
 
     try:
-        path = draw_map(out_dir, value, x, y, panel, png or out_dir / "map.png")
+        with output_rule():
+            path = draw_map(out_dir, value, x, y, panel, png or out_dir / "map.png", overwrite)
     except PlotError as error:
         fail(2, str(error))
     out.print(f"wrote {path}", highlight=False, soft_wrap=True)

@@ -14,20 +14,23 @@ from orchestrator.scenario.config import ConfigError
 if TYPE_CHECKING:  # rich's table is imported where used: `platoon run -q` needs none
     pass
 
-from orchestrator.cli.common import (err, fail,
-                                     load_trace, note_recovery, out, quiet_nan, same_file, summary_table)
+from orchestrator.cli.common import (Overwrite, err, fail, load_trace, note_recovery, out, output_rule, quiet_nan,
+                                     summary_table)
+from orchestrator.support.output import check_folder
 
 def report(
     trace: Annotated[Path, typer.Argument(help="trace written by `platoon run`")],
     as_json: Annotated[bool, typer.Option("--json", help="print the summary as JSON")] = False,
     plots: Annotated[Optional[Path], typer.Option("--plots", help="write the paper's figure panels as PNG here")] = None,
+    overwrite: Overwrite = False,
 ) -> None:
     """Summarize a trace (path offset, gap, speed, max path error) and draw the paper's panels."""
     from orchestrator.analysis.metrics import report_json, summarize
     from orchestrator.scenario.stored_config import stored_config
 
-    if plots is not None and plots.exists() and not plots.is_dir():
-        fail(2, f"--plots {plots}: is a file; give a folder for the PNG files")
+    if plots is not None:
+        with output_rule():
+            check_folder(plots, [trace], "--plots")
     loaded = load_trace(trace)
     if loaded.config is None:
         fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
@@ -62,10 +65,8 @@ def report(
         if plots is not None:
             from orchestrator.analysis.plots import write_plots
 
-            try:
-                written = write_plots(loaded, config, plots)
-            except OSError as error:
-                fail(2, f"--plots {plots}: cannot write the plots there: {error.strerror or error}")
+            with output_rule():
+                written = write_plots(loaded, config, plots, overwrite, [trace])
             for path in written:
                 note(f"wrote {path}")
 
@@ -73,18 +74,17 @@ def report(
 def export(
     trace: Annotated[Path, typer.Argument(help="trace written by `platoon run`")],
     csv_dir: Annotated[Path, typer.Option("--csv", help="folder for one CSV per component (header: t, then the outputs)")],
+    overwrite: Overwrite = False,
 ) -> None:
     """Export a trace: one CSV per component (t, then its outputs) and errors.csv (path, gap, speed errors)."""
     from orchestrator.trace import export_csv
 
-    if csv_dir.exists() and not csv_dir.is_dir():
-        fail(2, f"--csv {csv_dir}: is a file; give a folder for the CSV files")
+    with output_rule():
+        check_folder(csv_dir, [trace], "--csv")
     loaded = load_trace(trace)
     note_recovery(loaded, err.print)
-    try:
-        written = export_csv(loaded, csv_dir)
-    except OSError as error:
-        fail(2, f"--csv {csv_dir}: cannot write the CSV files there: {error.strerror or error}")
+    with output_rule():
+        written = export_csv(loaded, csv_dir, overwrite, [trace])
     for path in written:
         out.print(f"wrote {path}", highlight=False, soft_wrap=True)
 
@@ -95,11 +95,11 @@ trace_app = typer.Typer(no_args_is_help=True, help="Work on trace files.")
 def trace_recover(
     broken: Annotated[Path, typer.Argument(help="an unfinished or damaged trace (e.g. the run was killed)")],
     fixed: Annotated[Optional[Path], typer.Option("--out", help="recovered trace (default BROKEN-recovered.mcap)")] = None,
-    overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing --out (never BROKEN itself)")] = False,
+    overwrite: Overwrite = False,
 ) -> None:
     """Rewrite the intact chunks of an unfinished or damaged trace into a valid one; say what was lost."""
     from orchestrator.trace import TraceError, recover
-    from orchestrator.trace.output import OutputError, check_in_use, claim, publish
+    from orchestrator.trace.output import OutputError, check_in_use, check_replaceable, claim, publish
     from orchestrator.trace.recovery import describe_lost
 
     if not broken.is_file():
@@ -109,9 +109,8 @@ def trace_recover(
         fixed = broken.with_name(Path(name).stem + "-recovered.mcap")
     try:
         check_in_use(broken)
-        if fixed.exists() and not overwrite and not same_file(fixed, broken):
-            raise OutputError(f"--out {fixed}: exists; pass --overwrite to replace it")
-        target = claim(fixed, overwrite=True, protect=[broken], suffix=".recovering")
+        check_replaceable(fixed, overwrite, [broken])  # an existing trace is replaced, anything else only when told
+        target = claim(fixed, overwrite=True, protect=[broken], suffix=".recovering")  # a stale .recovering: ours
     except OutputError as error:
         fail(2, str(error))
     try:

@@ -10,6 +10,8 @@ from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
+from orchestrator.cli.common import Overwrite
+
 if TYPE_CHECKING:
     pass
 
@@ -21,22 +23,24 @@ FIGURE_SUFFIXES = (".pdf", ".svg", ".png")
 def layout_command(
     trace: Annotated[Path, typer.Argument(metavar="TRACE.mcap", help="trace written by `platoon run`")],
     out: Annotated[Optional[Path], typer.Option("--out", help="layout file (default: beside the trace, <stem>.layout.json)")] = None,
+    overwrite: Overwrite = False,
 ) -> None:
     """Write a Foxglove/Lichtblick layout fitted to a trace: its path in view, one plot series per vehicle."""
-    from orchestrator.cli.common import fail, out as console
+    from orchestrator.cli.common import fail, out as console, output_rule
+    from orchestrator.support.output import check_target, write_text
+    from orchestrator.trace.layout import LAYOUT
 
+    path = out or layout_path(trace)
+    with output_rule():  # before the trace is read: a refused --out costs nothing
+        check_target(path, overwrite, [trace], kind=LAYOUT)
     try:
         view = read_run_view(trace)
     except ValueError as error:
         fail(2, f"trace {trace}: {error}")
     if not view.vehicles:
         fail(2, f"trace {trace}: records no vehicle")
-    path = out or layout_path(trace)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(run_layout(view.config, len(view.vehicles)), indent=2) + "\n")
-    except OSError as error:
-        fail(2, f"--out {path}: cannot write the layout there: {error.strerror or error}")
+    with output_rule():
+        write_text(path, json.dumps(run_layout(view.config, len(view.vehicles)), indent=2) + "\n")
     console.print(f"wrote {path}", highlight=False, soft_wrap=True)
 
 
@@ -45,12 +49,16 @@ def figure_command(
     second: Annotated[Path, typer.Argument(metavar="B.mcap", help="trace of the right column (the paper: sine law)")],
     out: Annotated[Path, typer.Option("--out", help="figure file: .pdf, .svg (vector) or .png")],
     dpi: Annotated[int, typer.Option(min=30, max=1200, help="dots per inch of a PNG (the figure is 12.4 x 15 in)")] = 150,
+    overwrite: Overwrite = False,
 ) -> None:
     """Draw the paper's figure pair from two traces: velocity, distance and path errors, and X-Y, side by side."""
-    from orchestrator.cli.common import fail, load_trace, out as console
+    from orchestrator.cli.common import fail, load_trace, out as console, output_rule
+    from orchestrator.support.output import IMAGE, check_target
 
     if out.suffix.lower() not in FIGURE_SUFFIXES:
         fail(2, f"--out {out}: expected a file ending in {', '.join(FIGURE_SUFFIXES)}")
+    with output_rule():
+        check_target(out, overwrite, [first, second], kind=IMAGE)
     from orchestrator.analysis.figure import draw_pair, save
 
     runs = []
@@ -66,10 +74,8 @@ def figure_command(
         except ValueError as error:
             fail(2, f"trace {trace}: {error}")
     figure = draw_pair(runs)
-    try:
+    with output_rule():
         save(figure, out, dpi)
-    except OSError as error:
-        fail(2, f"--out {out}: cannot write the figure there: {error.strerror or error}")
     console.print(f"wrote {out}", highlight=False, soft_wrap=True)
 
 

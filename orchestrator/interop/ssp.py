@@ -23,8 +23,6 @@ FMPy ships (``fmpy/ssp/schema``) in tests/test_ssp.py.
 from __future__ import annotations
 
 import dataclasses
-import os
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +31,7 @@ from xml.etree.ElementTree import Element, SubElement, indent, register_namespac
 
 from orchestrator.scenario.config import Config
 from orchestrator.scenario.scenario import ComponentSpec, Scenario
+from orchestrator.support.output import Kind, check_target, replacing
 
 SSD = "http://ssp-standard.org/SSP1/SystemStructureDescription"
 SSC = "http://ssp-standard.org/SSP1/SystemStructureCommon"
@@ -159,8 +158,8 @@ def write_ssp(out: Path, scenario: Scenario, fmu_paths: Mapping[str, Path],
     """Write the SSP package of ``scenario`` to ``out`` (written aside, then moved into place).
 
     ``components`` replaces the scenario's own (e.g. a live vehicle's LiveVehicle FMU in place of its
-    Vehicle); ``fmu_paths`` maps each FMU kind used to its file. Without ``force`` an existing ``out``
-    is refused."""
+    Vehicle); ``fmu_paths`` maps each FMU kind used to its file. Without ``force`` (``--overwrite``) an
+    existing ``out`` that is not an SSP package is refused; never a FIFO, device or folder."""
     components = list(scenario.components if components is None else components)
     sim = scenario.config.simulation
     fmus = {kind: FmuInterface.read(fmu_paths[kind]) for kind in sorted({spec.fmu for spec in components})}
@@ -173,25 +172,21 @@ def write_ssp(out: Path, scenario: Scenario, fmu_paths: Mapping[str, Path],
         entries[f"resources/{fmu.path.name}"] = (fmu.path.read_bytes(), False)
 
     out = Path(out)
-    if out.exists() and not force:
-        raise FileExistsError(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    handle, partial = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent)
-    try:
-        with os.fdopen(handle, "wb") as stream, zipfile.ZipFile(stream, "w") as archive:
-            for name in sorted(entries):
-                data, compress = entries[name]
-                archive.writestr(_entry(name, compress), data)
-        if not force and out.exists():  # appeared while we wrote: still not ours to replace
-            raise FileExistsError(out)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(partial, 0o666 & ~umask)  # as any new file (mkstemp made it private)
-        os.replace(partial, out)
-    except BaseException:
-        Path(partial).unlink(missing_ok=True)
-        raise
+    check_target(out, force, fmu_paths.values(), kind=SSP)  # the output rule (support/output.py): OutputError in one line
+    with replacing(out) as partial, zipfile.ZipFile(partial, "w") as archive:  # aside, synced, renamed
+        for name in sorted(entries):
+            data, compress = entries[name]
+            archive.writestr(_entry(name, compress), data)
     return out
+
+
+def is_ssp(path: Path) -> bool:
+    """A ``kind`` test (support/output.py): a zip holding SystemStructure.ssd, as ``write_ssp`` writes."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return "SystemStructure.ssd" in archive.namelist()
+    except (OSError, zipfile.BadZipFile):
+        return False
 
 
 def ssp_notes(config: Config) -> list[str]:
@@ -245,3 +240,6 @@ def export_ssp(config: Config, out: Path, fmu_dir: Path, force: bool = False, wo
     kinds = tuple(sorted({spec.fmu for spec in components}))
     fmu_paths = ensure_fmus(fmu_dir, resolve_fmu_kind(config.simulation.fmus, fmu_dir), kinds)
     return write_ssp(out, scenario, fmu_paths, components, worker_threads=worker_threads, force=force)
+
+
+SSP = Kind("an SSP package", is_ssp)  # what `platoon export-ssp` replaces without --overwrite

@@ -24,6 +24,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.colors import LogNorm  # noqa: E402
 
+from orchestrator.support.output import IMAGE, check_target, replacing  # noqa: E402
+
 RATIO = "d_star/R"
 
 
@@ -69,8 +71,11 @@ def _label(value: Any) -> str:
     return f"{value:.3g}" if isinstance(value, float) else str(value)
 
 
-def draw_map(folder: Path, value: str, x: str, y: str, panel: str, png: Path) -> Path:
-    records = [r for r in _records(folder) if r["status"] != "invalid"]
+def draw_map(folder: Path, value: str, x: str, y: str, panel: str, png: Path, overwrite: bool = False) -> Path:
+    everything = _records(folder)
+    inputs = [folder / "results.csv", folder / "results.parquet", *(folder / "results" / f"{r['id']}.json" for r in everything)]
+    check_target(png, overwrite, inputs, kind=IMAGE)  # before drawing: a refused --out costs nothing
+    records = [r for r in everything if r["status"] != "invalid"]
     columns = {name for r in records for name in r["metrics"]}
     if value not in columns and any(r["status"] == "completed" for r in records):
         raise PlotError(f"--value {value}: not a result column (e.g. {', '.join(sorted(columns)[:4])}, last.path_offset)")
@@ -119,7 +124,9 @@ def draw_map(folder: Path, value: str, x: str, y: str, panel: str, png: Path) ->
     axes[0][0].set_ylabel(y)
     figure.suptitle(f"{value}: signed value in each cell, its magnitude in colour")
     figure.colorbar(image, ax=axes[0].tolist(), label=f"|{value}|", shrink=0.9)
-    png.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(png)
-    plt.close(figure)
+    try:  # the output rule (support/output.py): drawn aside, synced, renamed; OutputError in one line
+        with replacing(png) as aside:
+            figure.savefig(aside, format="png")
+    finally:
+        plt.close(figure)
     return png

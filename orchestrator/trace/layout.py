@@ -9,10 +9,11 @@ Nothing here prints: problems come back as values or one-line ``ValueError``s fo
 from __future__ import annotations
 
 import json
-from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+from orchestrator.support.output import Kind, OutputError, check_target, write_text
 
 if TYPE_CHECKING:
     from orchestrator.scenario.config import Config
@@ -53,14 +54,22 @@ def write_run_layout(trace: Path, config: "Config") -> WrittenLayout:
     warning (a run that failed or was stopped says only that, in its one error line).
     """
     path = layout_path(trace)
-    try:
-        path.write_text(json.dumps(run_layout(config, config.platoon.count), indent=2) + "\n")
-    except OSError as error:
-        with suppress(OSError):  # no half-written layout (a folder in its place stays)
-            if path.is_file():
-                path.unlink()
-        return WrittenLayout(None, f"warning: layout {path} not written: {error.strerror or error}")
+    try:  # the output rule: never a file that is not a layout, never a FIFO or device; aside, then renamed
+        check_target(path, overwrite=False, protect=[trace], what="layout", kind=LAYOUT)
+        write_text(path, json.dumps(run_layout(config, config.platoon.count), indent=2) + "\n", what="layout")
+    except OutputError as error:
+        return WrittenLayout(None, f"warning: {error}")
     return WrittenLayout(path)
+
+
+def is_layout(path: Path) -> bool:
+    """A ``kind`` test (support/output.py): a Foxglove layout JSON as ``run_layout`` writes it."""
+    try:
+        with open(path, "rb") as stream:
+            head = stream.read(4096)
+    except OSError:
+        return False
+    return head.lstrip().startswith(b"{") and b'"configById"' in head
 
 
 def recorded_config(raw: Any) -> "Config":
@@ -111,3 +120,6 @@ def read_run_view(trace: Path) -> RunView:
     topics = [channel.topic[len(CHANNEL_PREFIX):] for channel in summary.channels.values()
               if channel.topic.startswith(CHANNEL_PREFIX)]
     return RunView(config, vehicle_names(topics))
+
+
+LAYOUT = Kind("a Foxglove layout", is_layout)  # what `platoon layout` replaces without --overwrite

@@ -26,8 +26,9 @@ from .format import MAGIC
 ASIDE_SUFFIX = ".partial"
 
 
-class OutputError(ValueError):
-    """An output path that must not (or cannot) be written; the message is one line for the user."""
+from orchestrator.support.output import Kind, OutputError, check_target, sync_file
+
+__all__ = ["OutputError", "Claim", "aside_path", "check_in_use", "check_replaceable", "claim", "claim_new", "publish"]
 
 
 def aside_path(final: Path, suffix: str = ASIDE_SUFFIX) -> Path:
@@ -44,27 +45,13 @@ def is_mcap(path: Path) -> bool:
         return False
 
 
-def _same_file(a: Path, b: Path) -> bool:
-    try:
-        return os.path.samefile(a, b)  # same device and inode: also through hard links and symlinks
-    except OSError:
-        return False
-
-
 def check_replaceable(final: Path, overwrite: bool = False, protect: Iterable[Path] = (), what: str = "--out") -> None:
     """Refuse an output path whose current content must not be replaced.
 
     Never any of ``protect`` (e.g. the run's own config, a recovery's input), whatever ``overwrite``
     says; a file that is not an MCAP trace (and not empty) only with ``overwrite``; never a folder.
     """
-    for kept in protect:
-        if _same_file(final, kept):
-            raise OutputError(f"{what} {final}: is the same file as {kept}, which this command reads; choose another path")
-    if final.is_dir():
-        raise OutputError(f"{what} {final}: is a folder; give a file name")
-    if final.exists() and not overwrite and final.stat().st_size > 0 and not is_mcap(final):
-        raise OutputError(f"{what} {final}: exists and is not an MCAP trace; refusing to replace it "
-                          f"(pass --overwrite to replace it anyway)")
+    check_target(final, overwrite, protect, what, kind=TRACE)
 
 
 @dataclass
@@ -92,7 +79,8 @@ class Claim:
 
 
 def publish(aside: Path, final: Path) -> None:
-    """Put a finalized file in place: one atomic rename in the same folder."""
+    """Put a finalized file in place: synced, then one atomic rename in the same folder."""
+    sync_file(aside)
     os.replace(aside, final)
 
 
@@ -145,9 +133,7 @@ def claim(final: str | Path, overwrite: bool = False, protect: Iterable[Path] = 
     protect = list(protect)
     check_replaceable(final, overwrite, protect, what)
     aside = aside_path(final, suffix)
-    for kept in protect:
-        if _same_file(aside, kept):
-            raise OutputError(f"{what} {final}: its aside file {aside} is {kept} itself; choose another path")
+    check_target(aside, True, protect, f"{what} {final}: its aside file")
     try:
         final.parent.mkdir(parents=True, exist_ok=True)
         fd = _lock(aside, exclusive_create=False)
@@ -184,3 +170,6 @@ def claim_new(folder: Path, stem: str, suffix: str = ".mcap") -> Claim:
     except OSError as error:
         raise OutputError(f"trace folder {folder}: cannot write there: {error.strerror or error}") from None
     raise AssertionError("unreachable")
+
+
+TRACE = Kind("an MCAP trace", is_mcap)  # what `platoon run` and `trace recover` replace without --overwrite

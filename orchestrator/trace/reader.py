@@ -6,7 +6,7 @@ import csv
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable
 
 import numpy as np
 from mcap.exceptions import McapError
@@ -221,24 +221,29 @@ def decode_log(data: bytes) -> LogLine:
 
 # --- export ----------------------------------------------------------------------------------------
 
-def export_csv(trace: Trace, directory: str | Path) -> list[Path]:
+def export_csv(trace: Trace, directory: str | Path, overwrite: bool = False, protect: Iterable[Path] = ()) -> list[Path]:
     """One ``<component>.csv`` per component (header ``t`` then the outputs), and ``errors.csv``.
 
-    Values are written with ``repr``, which round-trips every float exactly.
+    Values are written with ``repr``, which round-trips every float exactly. By the output rule
+    (orchestrator/support/output.py): all targets are checked before the first is written (a CSV this
+    export wrote is replaced, anything else only with ``overwrite``, an input never), each is written
+    aside and renamed into place; ``OutputError`` (one line) if one may not or cannot be.
     """
+    from orchestrator.support.output import Kind, check_folder, check_target, replacing, starts_with
+
     directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
+    check_folder(directory, protect, "--csv")
     tables = dict(trace.channels)
     if trace.errors:
         tables["errors"] = trace.errors
-    written = []
+    targets = {name: directory / f"{name}.csv" for name in tables}
+    for path in targets.values():
+        check_target(path, overwrite, protect, "--csv", kind=Kind("a CSV this export wrote (header starting with t)", starts_with(b"t,", b"t\r\n", b"t\n")))
     for name, columns in tables.items():
-        path = directory / f"{name}.csv"
         keys = list(columns)
-        with open(path, "w", newline="") as stream:
+        with replacing(targets[name], "--csv") as aside, open(aside, "w", newline="") as stream:
             out = csv.writer(stream)
             out.writerow(keys)
             for row in zip(*(columns[k].tolist() for k in keys)):
                 out.writerow([repr(v) for v in row])
-        written.append(path)
-    return written
+    return list(targets.values())
