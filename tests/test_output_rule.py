@@ -1,0 +1,212 @@
+"""Issue 30, part 1: every command that writes follows the one output rule (orchestrator/support/output.py).
+
+For each writer (run, layout, figure, export-ssp, trace recover, report --plots, export --csv,
+sweep-plot), with the real command in a subprocess on real files: it never replaces one of its inputs
+(a hard link or a symlink to it, with or without --overwrite), never a FIFO or a device (a character
+device made with mknod in a temporary folder), replaces a file that is not what it writes only with
+--overwrite; and on a full disk (a real small tmpfs, in a private mount namespace) it ends with one line
+naming the target, the old target untouched and no half file left.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import stat
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import pytest
+
+from tests.test_hostile_traces import PAPER, REPO, one_line_error, platoon, reference  # noqa: F401 (a fixture)
+
+SHORT = ("--set", "simulation.stop_time=2.0")
+
+
+@dataclass(frozen=True)
+class Writer:
+    """A command that writes one file: ``argv(inputs, target)``; ``file`` is the target's name (its suffix matters)."""
+
+    name: str
+    argv: Callable[["Inputs", Path], tuple]
+    file: str = "out.bin"
+    target_in: str = ""  # the target is this file inside the folder given to the command (--plots, --csv)
+
+
+@dataclass(frozen=True)
+class Inputs:
+    config: Path
+    trace: Path
+    sweep: Path
+
+
+def _folder_option(option: str) -> Callable[[Inputs, Path], tuple]:
+    return lambda inputs, target: ("report" if option == "--plots" else "export", inputs.trace, option, target.parent)
+
+
+WRITERS = [
+    Writer("run", lambda i, t: ("run", i.config, *SHORT, "--out", t, "-q")),
+    Writer("layout", lambda i, t: ("layout", i.trace, "--out", t)),
+    Writer("figure", lambda i, t: ("figure", i.trace, i.trace, "--out", t), file="out.png"),
+    Writer("export-ssp", lambda i, t: ("export-ssp", i.config, "--out", t)),
+    Writer("trace recover", lambda i, t: ("trace", "recover", i.trace, "--out", t)),
+    Writer("report --plots", _folder_option("--plots"), target_in="xy.png"),
+    Writer("export --csv", _folder_option("--csv"), target_in="vehicle1.csv"),
+    Writer("sweep-plot", lambda i, t: ("sweep-plot", i.sweep, "--out", t), file="map.png"),
+]
+
+
+@pytest.fixture
+def inputs(reference: Path, tmp_path: Path) -> Inputs:  # noqa: F811 (the fixture imported above)
+    (tmp_path / "build").symlink_to(REPO / "build", target_is_directory=True)
+    config = tmp_path / "victim.toml"
+    shutil.copy(PAPER, config)
+    trace = tmp_path / "victim.mcap"
+    shutil.copy(reference, trace)
+    sweep = tmp_path / "sweep"  # a sweep folder as `platoon sweep` leaves it, one run recorded
+    (sweep / "results").mkdir(parents=True)
+    (sweep / "results.csv").write_text("id,status\nabc,completed\n")
+    (sweep / "results" / "abc.json").write_text(json.dumps({"id": "abc", "status": "completed", "values": {},
+                                                             "metrics": {}, "config": {}}))
+    return Inputs(config, trace, sweep)
+
+
+def target_of(writer: Writer, folder: Path) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder / (writer.target_in or writer.file)
+
+
+def snapshot(path: Path) -> tuple:
+    info = os.lstat(path)
+    return (stat.S_IFMT(info.st_mode), info.st_ino, path.read_bytes() if stat.S_ISREG(info.st_mode) else None)
+
+
+def make_device(path: Path) -> None:
+    """A character device with /dev/null's numbers in a temporary folder (as root), else skip saying why."""
+    try:
+        os.mknod(path, 0o666 | stat.S_IFCHR, os.makedev(1, 3))
+    except PermissionError as error:
+        pytest.skip(f"cannot make a device node here (needs root): {error}")
+
+
+@pytest.mark.parametrize("writer", WRITERS, ids=lambda w: w.name)
+def test_a_writer_never_replaces_its_input_a_fifo_or_a_device(writer: Writer, inputs: Inputs, tmp_path: Path) -> None:
+    own_input = {"run": inputs.config, "export-ssp": inputs.config, "sweep-plot": inputs.sweep / "results.csv"}.get(
+        writer.name, inputs.trace)
+    before = own_input.read_bytes()
+    for n, link in enumerate((os.link, os.symlink)):
+        for extra in ((), ("--overwrite",)):
+            target = target_of(writer, tmp_path / f"alias-{n}-{len(extra)}")
+            link(own_input, target)
+            result = platoon(*writer.argv(inputs, target), *extra, cwd=tmp_path)
+            assert result.returncode == 2, (link, extra, result.stdout, result.stderr)
+            one_line_error(result, "is the same file as", own_input.name, "which this command reads")
+            assert own_input.read_bytes() == before
+    for name, make, kind in (("fifo", os.mkfifo, "a FIFO"), ("device", make_device, "a character device")):
+        for extra in ((), ("--overwrite",)):
+            target = target_of(writer, tmp_path / f"{name}-{len(extra)}")
+            make(target)
+            was = snapshot(target)
+            result = platoon(*writer.argv(inputs, target), *extra, cwd=tmp_path)
+            assert result.returncode == 2, (name, extra, result.stdout, result.stderr)
+            one_line_error(result, str(target.name), f"is {kind}, not a regular file")
+            assert snapshot(target) == was and sorted(p.name for p in target.parent.iterdir()) == [target.name]
+
+
+@pytest.mark.parametrize("writer", [w for w in WRITERS if w.name != "sweep-plot"], ids=lambda w: w.name)
+def test_a_writer_replaces_a_foreign_file_only_with_overwrite(writer: Writer, inputs: Inputs, tmp_path: Path) -> None:
+    target = target_of(writer, tmp_path / "foreign")
+    target.write_text("someone's notes\n")
+    refused = platoon(*writer.argv(inputs, target), cwd=tmp_path)
+    assert refused.returncode == 2, refused.stderr
+    one_line_error(refused, target.name, "exists and is not", "pass --overwrite")
+    assert target.read_text() == "someone's notes\n"
+    replaced = platoon(*writer.argv(inputs, target), "--overwrite", cwd=tmp_path)
+    assert replaced.returncode == 0, replaced.stderr
+    assert target.read_bytes() != b"someone's notes\n" and target.stat().st_size > 100
+    again = platoon(*writer.argv(inputs, target), cwd=tmp_path)  # what the command wrote: replaced untold
+    assert again.returncode == 0, again.stderr
+    assert not [p.name for p in target.parent.iterdir() if p.name.startswith(".") or p.suffix in (".tmp", ".partial")]
+
+
+# --- a full disk: a real small tmpfs in a private mount namespace ------------------------------------------
+
+SMALL_DISK = ('#!/bin/sh\nsize=$1; shift\nmount -t tmpfs -o size="$size" tmpfs small || exit 99\n'
+              'cp -a seed/. small/\n"$@"; code=$?\nmkdir -p left && cp -a small/. left/\nexit $code\n')
+
+
+def on_small_disk(folder: Path, size: str) -> tuple[str, ...]:
+    """A command prefix: ``folder/small`` a tmpfs of ``size`` holding a copy of ``folder/seed``, its content
+    copied to ``folder/left`` after the command. Skips, saying why, where a tmpfs cannot be mounted."""
+    script = folder / "on-small-disk.sh"
+    script.write_text(SMALL_DISK)
+    script.chmod(0o755)
+    (folder / "small").mkdir(exist_ok=True)
+    (folder / "seed").mkdir(exist_ok=True)
+    probe = subprocess.run(["unshare", "-rm", "sh", "-c", f"mount -t tmpfs -o size={size} tmpfs {folder / 'small'}"],
+                           capture_output=True, text=True) if shutil.which("unshare") else None
+    if probe is None or probe.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs in a private namespace here: {probe.stderr.strip() if probe else 'no unshare'}")
+    return ("unshare", "-rm", str(script), size)
+
+
+@pytest.mark.parametrize("writer", [w for w in WRITERS if w.name != "sweep-plot"], ids=lambda w: w.name)
+def test_a_full_disk_leaves_the_old_target_and_no_half_file(writer: Writer, inputs: Inputs, tmp_path: Path) -> None:
+    folder = tmp_path / "disk"
+    folder.mkdir()
+    prefix = on_small_disk(folder, "8k")  # two pages: the old file fits, the new one does not
+    seed = target_of(writer, folder / "seed" / "out")
+    seed.write_text("old\n")
+    target = Path("small/out") / seed.name
+    result = platoon(*writer.argv(inputs, target), "--overwrite", cwd=folder, prefix=prefix)
+    assert result.returncode in (1, 2), (result.stdout, result.stderr)
+    line = one_line_error(result, "No space left on device")
+    assert "small/out" in line, line
+    left = sorted(str(p.relative_to(folder / "left")) for p in (folder / "left").rglob("*") if p.is_file())
+    if writer.name == "run":  # a run's unfinished trace stays in its aside file, for `platoon trace recover`
+        left = [name for name in left if name != f"out/{seed.name}.partial"]
+    assert left == [f"out/{seed.name}"] and (folder / "left" / "out" / seed.name).read_text() == "old\n"
+
+
+@pytest.mark.parametrize("size", ["100k", "700k", "1200k", "2000k", "4m"])  # full at the 1st, 2nd, 3rd, 5th file; none
+def test_export_on_a_disk_that_fills_at_any_file_leaves_only_whole_files(size: str, inputs: Inputs, tmp_path: Path) -> None:
+    """The disk fills at a different file (and offset) for each size: every file left is whole, old or new."""
+    folder = tmp_path / "disk"
+    folder.mkdir()
+    prefix = on_small_disk(folder, size)
+    complete = tmp_path / "complete"
+    assert platoon("export", inputs.trace, "--csv", complete, cwd=tmp_path).returncode == 0
+    (folder / "seed" / "csv").mkdir()
+    for path in complete.iterdir():
+        (folder / "seed" / "csv" / path.name).write_text("t,old\n0.0,1.0\n")
+    result = platoon("export", inputs.trace, "--csv", "small/csv", cwd=folder, prefix=prefix)
+    if result.returncode != 0:
+        one_line_error(result, "--csv small/csv/", "No space left on device", "nothing was replaced")
+    left = {p.name: p.read_bytes() for p in (folder / "left" / "csv").iterdir()}
+    assert sorted(left) == sorted(p.name for p in complete.iterdir())  # no temporary file, none missing
+    for name, data in left.items():
+        assert data in (b"t,old\n0.0,1.0\n", (complete / name).read_bytes()), name
+
+
+def test_a_write_that_fails_at_any_point_leaves_the_old_target_and_nothing_else(tmp_path: Path) -> None:
+    """ENOSPC simulated at every write of a many-write output (where no tmpfs can be mounted this is the check)."""
+    import errno
+
+    from orchestrator.support.output import OutputError, replacing
+
+    target = tmp_path / "table.csv"
+    target.write_text("old\n")
+    for failing in range(5):
+        with pytest.raises(OutputError, match=r"^--out .*table\.csv: cannot write it: No space left on device"):
+            with replacing(target) as aside, open(aside, "w") as stream:
+                for row in range(5):
+                    if row == failing:
+                        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+                    stream.write(f"row {row}\n")
+        assert target.read_text() == "old\n" and [p.name for p in tmp_path.iterdir()] == ["table.csv"]
+    with replacing(target) as aside:
+        aside.write_text("new\n")
+    assert target.read_text() == "new\n" and [p.name for p in tmp_path.iterdir()] == ["table.csv"]
