@@ -22,6 +22,7 @@ from mcap.records import Channel, Chunk, Message, Metadata, Schema
 from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
+from . import channel_copy
 from .format import CHUNK_SIZE, MAGIC, TraceError, channel_kind
 
 _HEADER = struct.Struct("<BQ")  # a record's opcode and content length
@@ -123,24 +124,42 @@ def _resync(stream: BinaryIO, start: int, size: int) -> tuple[int, tuple[int, in
 
 
 def _records(stream: BinaryIO, size: int, scan: _Scan) -> Iterator[tuple[int, int, object]]:
-    """Intact records in file order (position, opcode, content), skipping damage and noting it in ``scan``."""
-    position = len(MAGIC)
+    """Intact records in file order (position, opcode, content), skipping damage and noting it in ``scan``.
+
+    The data section and then the summary (whose schema and channel records are a second copy of the
+    chunks' ones). A record whose content is not checked (an index) is trusted only for its length;
+    if what follows does not check, the search for the next intact record starts again right after
+    the last record that did check, so a damaged length never jumps over an intact chunk.
+    """
+    position = resume = len(MAGIC)
     while position < size:
         parsed = _parse(stream, position, size)
+        if parsed is not None and (parsed[0] == _MESSAGE  # our messages are all in chunks: a loose one is damage
+                                   or (parsed[0] == _FOOTER and parsed[1] + len(MAGIC) != size)):  # not at the end
+            parsed = None
         if parsed is None:
-            found = _resync(stream, position + 1, size)
+            found = _resync(stream, resume, size)
             if found is None:  # nothing intact follows: the file is cut short here
-                scan.cut = True
+                scan.cut = not scan.finished
                 return
             scan.damaged += 1
             scan.lost.append((max(scan.last.values(), default=None), None))
             position, parsed = found
         opcode, end, content = parsed
-        if opcode in (_DATA_END, _FOOTER):
-            scan.finished = True
+        if opcode == _FOOTER:
             return
-        yield position, opcode, content
+        if opcode == _DATA_END:
+            scan.finished = True  # the summary follows: its schemas and channels are read too
+        elif content is not None:
+            yield position, opcode, content
+            resume = end
         position = end
+
+
+def _keep_definition(scan: _Scan, item: Schema | Channel) -> None:
+    """A schema or channel from wherever it survives (a chunk, the summary, the platoon.channels copy)."""
+    table = scan.schemas if isinstance(item, Schema) else scan.channels
+    table.setdefault(item.id, item)
 
 
 def _scan(stream: BinaryIO, size: int) -> _Scan:
@@ -151,10 +170,11 @@ def _scan(stream: BinaryIO, size: int) -> _Scan:
             scan.chunks.append(position)
         first: int | None = None
         for item in items:
-            if isinstance(item, Schema):
-                scan.schemas[item.id] = item
-            elif isinstance(item, Channel):
-                scan.channels[item.id] = item
+            if isinstance(item, (Schema, Channel)):
+                _keep_definition(scan, item)
+            elif isinstance(item, Metadata) and item.name == channel_copy.NAME:
+                for definition in (definitions := channel_copy.decode(item))[0] + definitions[1]:
+                    _keep_definition(scan, definition)
             elif isinstance(item, Metadata):
                 scan.metadata.append(item)
             elif isinstance(item, Message):
@@ -201,6 +221,7 @@ def recover(source: str | Path, destination: str | Path) -> Recovery:
             channel_ids = {cid: writer.register_channel(c.topic, c.message_encoding, schema_ids.get(c.schema_id, 0),
                                                         dict(c.metadata))
                            for cid, c in sorted(channels.items())}
+            channel_copy.write_copy(writer)  # the recovered file keeps a second copy too
             first = min(components) if components else None
             kept = dropped = steps = 0
             for position in scan.chunks:  # second pass: one chunk in memory at a time

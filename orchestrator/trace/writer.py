@@ -26,6 +26,7 @@ from mcap.records import Message, MessageIndex, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
 from fmus.errors import ComponentError
+from .channel_copy import write_copy
 from .encoding import ComponentMessages, LiveStream, register_mcap
 from .format import CHUNK_SIZE, FLUSH_INTERVAL, BLOCK
 from .native_rows import REFUSED_ROW, native_encoder, row_values, rows_of
@@ -154,6 +155,7 @@ class _Encoder:
         self.foxglove = foxglove
         if foxglove is not None:
             foxglove.register(self._writer)
+        write_copy(self._writer)  # schemas and channels outside the chunks, for recovery (trace/channel_copy.py)
         self._chunk_size = chunk_size
         self._fast = _fast_path(self._writer) if fast else None
         # the C encoder for rows given as float64 values (orchestrator/trace/native_rows.py), on the fast path only

@@ -1,0 +1,56 @@
+"""A second copy of a trace's schemas and channels, outside the chunks, for `platoon trace recover`.
+
+MCAP writes a schema and a channel record once, in the chunk that first uses them (the first chunk, for
+every channel registered at the start), and once more in the summary at the end. A killed run has no
+summary; so one damaged byte in its first chunk would leave every later chunk without channels, and
+recovery could keep none of their messages. The copy is one metadata record, ``platoon.channels``,
+written before the first chunk (metadata records are not chunked): JSON lists of the schemas (data in
+base64) and channels, ids as in the file. Recovery takes channels and schemas from wherever they
+survive: the chunks, the summary, this copy (docs/trace-format.md, "Recovering").
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+from typing import Any, Iterable
+
+from mcap.records import Channel, Metadata, Schema
+
+NAME = "platoon.channels"
+
+
+def write_copy(writer: Any) -> None:
+    """Add the ``platoon.channels`` record of what ``writer`` (an ``mcap`` Writer) registered so far.
+
+    Uses the writer's private tables (as trace/writer.py's fast path does); if a future ``mcap`` has
+    none, no copy is written and recovery relies on the chunks and the summary alone."""
+    schemas = getattr(writer, "_Writer__schemas", None)
+    channels = getattr(writer, "_Writer__channels", None)
+    if schemas is None or channels is None:
+        return
+    writer.add_metadata(NAME, encode(schemas.values(), channels.values()))
+
+
+def encode(schemas: Iterable[Schema], channels: Iterable[Channel]) -> dict[str, str]:
+    return {
+        "schemas": json.dumps([{"id": s.id, "name": s.name, "encoding": s.encoding,
+                                "data": base64.b64encode(s.data).decode()} for s in schemas]),
+        "channels": json.dumps([{"id": c.id, "schema_id": c.schema_id, "topic": c.topic,
+                                 "message_encoding": c.message_encoding, "metadata": dict(c.metadata)}
+                                for c in channels]),
+    }
+
+
+def decode(record: Metadata) -> tuple[list[Schema], list[Channel]]:
+    """The schemas and channels of a ``platoon.channels`` record; ([], []) if it does not decode."""
+    try:
+        schemas = [Schema(id=int(s["id"]), name=str(s["name"]), encoding=str(s["encoding"]),
+                          data=base64.b64decode(s["data"], validate=True)) for s in json.loads(record.metadata["schemas"])]
+        channels = [Channel(id=int(c["id"]), schema_id=int(c["schema_id"]), topic=str(c["topic"]),
+                            message_encoding=str(c["message_encoding"]),
+                            metadata={str(k): str(v) for k, v in dict(c["metadata"]).items()})
+                    for c in json.loads(record.metadata["channels"])]
+    except (KeyError, TypeError, ValueError):
+        return [], []
+    return schemas, channels
