@@ -8,6 +8,7 @@ invalid (their errors are in results.csv), or a Dask cluster that cannot run the
 
 from __future__ import annotations
 
+import itertools
 import os
 import signal
 from pathlib import Path
@@ -93,7 +94,7 @@ def sweep(
     from orchestrator.cli.common import fail, out, output_rule
     from orchestrator.support.output import check_folder
     from orchestrator.sweep.executors import DaskExecutor, Executor, LocalExecutor, SweepAborted
-    from orchestrator.sweep.plan import plan
+    from orchestrator.sweep.plan import count, runs as plan_runs, value_columns
     from orchestrator.sweep.runner import run_sweep
     from orchestrator.sweep.spec import load_sweep
     from orchestrator.sweep.store import OutputFolder
@@ -102,8 +103,10 @@ def sweep(
         fail(2, "--workers and --scheduler: give one (the cluster has its own workers)")
     with output_rule():
         check_folder(out_dir, [sweep_file], "--out")
-    try:
-        runs = plan(load_sweep(sweep_file))
+    try:  # streamed: the first point is checked here (a key no config has fails every point), the rest as they run
+        spec = load_sweep(sweep_file)
+        stream = plan_runs(spec)
+        runs = itertools.chain([next(stream)], stream)
     except SweepError as error:
         fail(2, str(error))
     fmu_dir = DEFAULT_OUT.resolve()
@@ -112,7 +115,8 @@ def sweep(
     try:
         executor: Executor = DaskExecutor(scheduler) if scheduler is not None else LocalExecutor(workers or _cores())
         try:
-            summary = run_sweep(runs, OutputFolder(out_dir), executor, fmu_dir, display, retry_failed)
+            summary = run_sweep(runs, count(spec), OutputFolder(out_dir), executor, fmu_dir, display, retry_failed,
+                                value_columns(spec))
         finally:
             display.close()
     except SweepError as error:

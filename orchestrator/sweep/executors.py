@@ -19,7 +19,8 @@ from .plan import Run
 from .spec import SweepError
 from .worker import execute, remote_run, terminate_children
 
-CONNECT_TIMEOUT = "10s"  # to reach the scheduler of --scheduler
+CONNECT_TIMEOUT = "10s"
+DASK_WINDOW = 256  # runs submitted to a cluster at a time: enough to keep a big cluster busy, never the whole plan  # to reach the scheduler of --scheduler
 
 
 class SweepAborted(RuntimeError):
@@ -31,12 +32,14 @@ class Job:
     run: Run
     request: dict[str, Any]  # id, raw config, TOML text, fmu_dir (worker.py)
     partial_trace: Path  # where a local run writes its trace until it is committed
+    index: int = 0  # the run's place in the plan (the tables' row order)
 
 
 class Executor(Protocol):
     name: str
 
-    def outcomes(self, jobs: list[Job]) -> Iterator[tuple[Job, dict[str, Any]]]: ...
+    def outcomes(self, jobs: Iterator[Job]) -> Iterator[tuple[Job, dict[str, Any]]]:
+        """Outcomes as runs finish; ``jobs`` is taken lazily, a bounded number in flight at a time."""
 
     def stop(self) -> None: ...
 
@@ -52,13 +55,24 @@ class LocalExecutor:
         self._futures: list[concurrent.futures.Future] = []
         self._stopping = threading.Event()
 
-    def outcomes(self, jobs: list[Job]) -> Iterator[tuple[Job, dict[str, Any]]]:
+    def outcomes(self, jobs: Iterator[Job]) -> Iterator[tuple[Job, dict[str, Any]]]:
+        jobs = iter(jobs)
         with concurrent.futures.ThreadPoolExecutor(self.workers, thread_name_prefix="sweep-run") as pool:
-            by_future = {pool.submit(self._execute, job): job for job in jobs}
-            self._futures = list(by_future)
-            for future in concurrent.futures.as_completed(by_future):
-                if not future.cancelled():
-                    yield by_future[future], future.result()
+            running: dict[concurrent.futures.Future, Job] = {}
+            while True:
+                while len(running) < 2 * self.workers and not self._stopping.is_set():  # a bounded window
+                    job = next(jobs, None)
+                    if job is None:
+                        break
+                    running[pool.submit(self._execute, job)] = job
+                self._futures = list(running)
+                if not running:
+                    return
+                finished, _ = concurrent.futures.wait(running, return_when=concurrent.futures.FIRST_COMPLETED)
+                for future in finished:
+                    job = running.pop(future)
+                    if not future.cancelled():
+                        yield job, future.result()
 
     def _execute(self, job: Job) -> dict[str, Any]:
         if self._stopping.is_set():  # started after stop(): a thread may pick a job before its cancel lands
@@ -90,18 +104,33 @@ class DaskExecutor:
         self.name = f"Dask scheduler {address}"
         self.address = address
         self._futures: list[Any] = []
+        self._cancelled = False
 
-    def outcomes(self, jobs: list[Job]) -> Iterator[tuple[Job, dict[str, Any]]]:
+    def outcomes(self, jobs: Iterator[Job]) -> Iterator[tuple[Job, dict[str, Any]]]:
         from distributed import as_completed
 
-        by_key = {}
-        for job in jobs:
+        jobs = iter(jobs)
+        by_key: dict[str, Job] = {}
+        completed = as_completed(loop=self.client.loop, with_results=True, raise_errors=False)
+
+        def submit() -> bool:
+            job = next(jobs, None)
+            if job is None:
+                return False
             # pure=False: a new task each time, even for a run resubmitted after a restart
             future = self.client.submit(remote_run, job.request, pure=False, key=f"platoon-run-{job.run.id}-{id(job)}")
             by_key[future.key] = job
             self._futures.append(future)
-        for future, result in as_completed(self._futures, loop=self.client.loop, with_results=True,
-                                                  raise_errors=False):
+            completed.add(future)
+            return True
+
+        window = DASK_WINDOW
+        while window and submit():
+            window -= 1
+        for future, result in completed:
+            self._futures.remove(future)
+            if not self._cancelled:
+                submit()  # one finished, one more in flight: the window stays full
             if future.status == "cancelled":
                 continue
             if future.status == "error":  # the cluster could not run the task (a run's own failure is an outcome)
@@ -112,9 +141,10 @@ class DaskExecutor:
                                        f"{type(error).__name__}: {first} (do its workers have this platoon-cosim installed?)")
                 # its worker died while running it, more than the scheduler's allowed-failures times: maybe the run's fault
                 result = {"status": "failed", "error": f"Dask: {type(error).__name__}: {error}", "wall_time": None}
-            yield by_key[future.key], result
+            yield by_key.pop(future.key), result
 
     def stop(self) -> None:
+        self._cancelled = True
         self.client.cancel(self._futures)
 
     def close(self) -> None:

@@ -17,7 +17,7 @@ import json
 import math
 import random
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Iterator
 
 from orchestrator.scenario.config import Config, ConfigError, load_config, read_config_text
 from orchestrator.scenario.limits import check_run_size
@@ -63,15 +63,28 @@ def _draw(bounds: RandomRange, rng: random.Random) -> int | float:
     return bounds.low + u * (bounds.high - bounds.low)
 
 
-def points(spec: SweepSpec) -> list[dict[str, Scalar]]:
-    """Every point: the grid's combinations (first key slowest), each with every random sample."""
-    combos = [dict(zip(spec.grid, values)) for values in itertools.product(*spec.grid.values())] or [{}]
-    if not spec.ranges:
-        return combos
-    rng = random.Random(spec.seed)
-    draws = [{"sample": index, **{key: _draw(bounds, rng) for key, bounds in spec.ranges.items()}}
-             for index in range(spec.samples)]
-    return [{**combo, **draw} for combo in combos for draw in draws]
+def points(spec: SweepSpec) -> Iterator[dict[str, Scalar]]:
+    """Every point, one at a time: the grid's combinations (first key slowest), each with every random
+    sample. Streamed: memory does not grow with the number of points (the draws are made again for
+    each combination, from the same seed, so each combination gets the same samples)."""
+    combos = (dict(zip(spec.grid, values)) for values in itertools.product(*spec.grid.values()))
+    for combo in combos if spec.grid else iter([{}]):
+        if not spec.ranges:
+            yield combo
+            continue
+        rng = random.Random(spec.seed)
+        for index in range(spec.samples):
+            yield {**combo, "sample": index, **{key: _draw(bounds, rng) for key, bounds in spec.ranges.items()}}
+
+
+def value_columns(spec: SweepSpec) -> list[str]:
+    """The keys of each point's values, in their order (results.csv's columns after ``id``)."""
+    return [*spec.grid, *(["sample", *spec.ranges] if spec.ranges else [])]
+
+
+def count(spec: SweepSpec) -> int:
+    """How many points ``spec`` has, without making them."""
+    return math.prod(len(values) for values in spec.grid.values()) * (spec.samples if spec.ranges else 1)
 
 
 def config_hash(config: Config) -> str:
@@ -79,7 +92,14 @@ def config_hash(config: Config) -> str:
 
 
 def plan(spec: SweepSpec) -> list[Run]:
-    """The runs of ``spec`` in order, each validated; raises ``SweepError`` for a key no config has."""
+    """Every run of ``spec`` in a list (small sweeps, tests); ``runs`` streams them."""
+    return list(runs(spec))
+
+
+def runs(spec: SweepSpec) -> Iterator[Run]:
+    """The runs of ``spec`` in order, each validated as it is made; raises ``SweepError`` for a base that
+    does not load or a key no config has. Ids never repeat: grid values are distinct (spec.py refuses a
+    value listed twice) and random draws carry their sample number."""
     fixed = [f"{key}={toml_literal(value)}" for key, value in spec.fixed.items()]
     try:
         load_config(spec.base, fixed)
@@ -87,22 +107,21 @@ def plan(spec: SweepSpec) -> list[Run]:
         what = f"base {spec.base}" + (" with [set]" if fixed else "")
         raise SweepError(f"sweep file {spec.path}: {what}: {error}") from None
     base_text = read_config_text(spec.base)  # as load_config read it (a byte-order mark dropped)
-    runs: list[Run] = []
     for values in points(spec):
-        overrides = fixed + [f"{key}={toml_literal(value)}" for key, value in values.items() if key != "sample"]
-        identifier = run_id(values)
-        text = f"{base_text.rstrip()}\n\n# platoon sweep {spec.path}, run {identifier}: --set " + " --set ".join(overrides) + "\n"
-        try:
-            config, raw = load_config(spec.base, overrides)
-            check_run_size(config)  # an absurdly long run is rejected like an invalid one (no --allow-long here)
-        except ConfigError as error:
-            if "unknown key" in str(error):  # a key of the sweep file that no config has: every run would fail
-                raise SweepError(f"sweep file {spec.path}: {error}") from None
-            message = f"config: {error}"
-            rejected = "invalid-" + hashlib.sha256(message.encode()).hexdigest()  # same error: same result
-            runs.append(Run(identifier, values, overrides, None, None, text, rejected, message))
-            continue
-        runs.append(Run(identifier, values, overrides, config, raw, text, config_hash(config)))
-    if len({run.id for run in runs}) != len(runs):  # one file per run: never two runs on one id
-        raise SweepError(f"sweep file {spec.path}: two points have the same id (the same values twice)")
-    return runs
+        yield _run(spec, base_text, fixed, values)
+
+
+def _run(spec: SweepSpec, base_text: str, fixed: list[str], values: dict[str, Scalar]) -> Run:
+    overrides = fixed + [f"{key}={toml_literal(value)}" for key, value in values.items() if key != "sample"]
+    identifier = run_id(values)
+    text = f"{base_text.rstrip()}\n\n# platoon sweep {spec.path}, run {identifier}: --set " + " --set ".join(overrides) + "\n"
+    try:
+        config, raw = load_config(spec.base, overrides)
+        check_run_size(config)  # an absurdly long run is rejected like an invalid one (no --allow-long here)
+    except ConfigError as error:
+        if "unknown key" in str(error):  # a key of the sweep file that no config has: every run would fail
+            raise SweepError(f"sweep file {spec.path}: {error}") from None
+        message = f"config: {error}"
+        rejected = "invalid-" + hashlib.sha256(message.encode()).hexdigest()  # same error: same result
+        return Run(identifier, values, overrides, None, None, text, rejected, message)
+    return Run(identifier, values, overrides, config, raw, text, config_hash(config))

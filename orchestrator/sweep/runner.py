@@ -13,7 +13,7 @@ import signal
 import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, Iterable, Iterator, Protocol
 
 from .executors import Executor, Job
 from .plan import Run
@@ -73,40 +73,28 @@ def _is_failure(record: dict[str, Any]) -> bool:
     return record["status"] != "completed"
 
 
-def run_sweep(runs: list[Run], folder: OutputFolder, executor: Executor, fmu_dir: Path, events: Events,
-              retry_failed: bool = False) -> SweepSummary:
-    """Run what is not done of ``runs`` into ``folder`` on ``executor``; the folder is locked throughout."""
+def run_sweep(runs: Iterable[Run], total: int, folder: OutputFolder, executor: Executor, fmu_dir: Path, events: Events,
+              retry_failed: bool = False, varied: list[str] | None = None) -> SweepSummary:
+    """Run what is not done of ``runs`` (``total`` of them, streamed: never all in memory) into ``folder``
+    on ``executor``; the folder is locked throughout. ``varied``: the varied keys (the tables' columns)."""
     folder.acquire()
-    summary = SweepSummary(len(runs))
+    summary = SweepSummary(total)
+    varied = varied or []
     try:
-        todo: list[Run] = []
-        for run in runs:
-            record = folder.result(run)
-            if record is not None and not (retry_failed and _is_failure(record)):
-                summary.done += 1
-                summary.failed += _is_failure(record)
-            else:
-                todo.append(run)
-        for run in todo:
-            folder.forget(run)  # a result and trace of an older config, or a failure to retry: never mixed with the new
-        folder.write_tables(runs)  # a sweep killed between a commit and its table: the table catches up
-        events.started(summary.total, summary.done, summary.failed, len(todo))
+        # a sweep killed between a commit and its row: the table catches up (and says what is done already)
+        done, failed = folder.write_tables(varied, parquet=False)
+        done, failed = (done - failed, 0) if retry_failed else (done, failed)
+        events.started(summary.total, done, failed, total - done)
 
-        def commit(run: Run, outcome: dict[str, Any], trace: Path | None) -> None:
-            record = folder.record(run, outcome, trace)
-            folder.write_tables(runs)
+        def commit(run: Run, outcome: dict[str, Any], trace: Path | None, index: int) -> None:
+            record = folder.record(run, outcome, trace, index)
+            folder.append_row(record, varied)
             summary.done += 1
             summary.ran += 1
             summary.failed += _is_failure(record)
             events.finished(run, record, summary.done, summary.failed)
 
-        jobs = []
-        for run in todo:
-            if run.config is None:  # the config rejects this point: recorded, never run
-                commit(run, {"status": "invalid", "error": run.error}, None)
-            else:
-                jobs.append(Job(run, {"id": run.id, "raw": run.raw, "text": run.text, "fmu_dir": str(fmu_dir)},
-                                folder.partial_trace_path(run)))
+        jobs = _jobs(runs, folder, fmu_dir, summary, retry_failed, commit)
         with _Stop(executor.stop) as stop:
             for job, outcome in executor.outcomes(jobs):
                 partial = job.partial_trace
@@ -116,8 +104,9 @@ def run_sweep(runs: list[Run], folder: OutputFolder, executor: Executor, fmu_dir
                 if outcome["status"] == "interrupted":
                     partial.unlink(missing_ok=True)
                     continue
-                commit(job.run, outcome, folder.place_trace(job.run, partial) if partial.is_file() else None)
+                commit(job.run, outcome, folder.place_trace(job.run, partial) if partial.is_file() else None, job.index)
             summary.signum = stop.signum
+        folder.write_tables(varied)  # once at the end: results.csv in plan order, and results.parquet
     except BaseException:
         executor.stop()  # nothing more is started; local runs under way stop (their results are dropped)
         raise
@@ -125,3 +114,21 @@ def run_sweep(runs: list[Run], folder: OutputFolder, executor: Executor, fmu_dir
         executor.close()
         folder.release()
     return summary
+
+
+def _jobs(runs: Iterable[Run], folder: OutputFolder, fmu_dir: Path, summary: SweepSummary, retry_failed: bool,
+          commit: Callable[[Run, dict[str, Any], Path | None, int], None]) -> Iterator[Job]:
+    """The runs still to do, as jobs, one at a time as the executor asks for them (a done run is counted,
+    a rejected point is committed as invalid, an outdated result is forgotten on the way)."""
+    for index, run in enumerate(runs):
+        record = folder.result(run)
+        if record is not None and not (retry_failed and _is_failure(record)):
+            summary.done += 1
+            summary.failed += _is_failure(record)
+            continue
+        folder.forget(run)  # a result and trace of an older config, or a failure to retry: never mixed with the new
+        if run.config is None:  # the config rejects this point: recorded, never run
+            commit(run, {"status": "invalid", "error": run.error}, None, index)
+            continue
+        yield Job(run, {"id": run.id, "raw": run.raw, "text": run.text, "fmu_dir": str(fmu_dir)},
+                  folder.partial_trace_path(run), index)

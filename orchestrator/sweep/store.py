@@ -3,14 +3,17 @@
 ```
 DIR/results/<id>.json   one per finished run: written to a temporary name, fsynced, renamed (atomic)
 DIR/traces/<id>.mcap    the run's trace (written as <id>.mcap.part, renamed when the run finished)
-DIR/results.csv         one row per finished run, rebuilt from results/ (atomically) after each run
-DIR/results.parquet     the same table, when pyarrow is installed
+DIR/results.csv         one row per finished run: appended as each run is committed, rebuilt (in plan
+                        order, atomically) from results/ once when the sweep starts and once when it ends
+DIR/results.parquet     the same table, when pyarrow is installed: built when the sweep ends
 DIR/.lock               held (flock) by the sweep working on DIR
 ```
 
 A run counts as done once its result file exists: the rename is the commit. Killed before it, the
 run is redone from scratch on restart (its partial trace is removed first); killed after it,
-results.csv is rebuilt from the result files on restart. A result made from another resolved config
+results.csv is rebuilt from the result files on restart. Bookkeeping per run is constant: one result
+file, one appended row (the table is rewritten only when a run brings a column no row had yet, e.g.
+a larger platoon.count's vehicle metrics). A result made from another resolved config
 (the base file was edited) is not this run's, and the run is redone. The lock keeps a second sweep
 off the folder while one works in it; the kernel releases it when the sweep dies, even by SIGKILL.
 """
@@ -26,6 +29,8 @@ import re
 import time
 from pathlib import Path
 from typing import Any, Iterable
+
+from orchestrator.support.output import OutputError, write_bytes
 
 from .plan import Run
 from .spec import SweepError
@@ -44,14 +49,12 @@ def _fsync_dir(folder: Path) -> None:
 
 
 def write_atomically(path: Path, data: bytes) -> None:
-    """Replace ``path`` by ``data`` all at once: readers (and a restart) see the old or the new file, whole."""
-    temporary = path.with_name(f".{path.name}.tmp")
-    with open(temporary, "wb") as file:
-        file.write(data)
-        file.flush()
-        os.fsync(file.fileno())
-    os.replace(temporary, path)
-    _fsync_dir(path.parent)
+    """Replace ``path`` by ``data`` all at once, by the output rule (support/output.py): readers (and a
+    restart) see the old or the new file, whole."""
+    try:
+        write_bytes(path, data, what="sweep file")
+    except OutputError as error:  # the runner treats a folder it cannot write as an OSError (one line)
+        raise OSError(str(error)) from None
 
 
 def metric_order(names: Iterable[str]) -> list[str]:
@@ -75,7 +78,7 @@ class OutputFolder:
         self.csv = self.root / "results.csv"
         self.parquet = self.root / "results.parquet"
         self._lock: io.TextIOWrapper | None = None
-        self._records: dict[str, dict[str, Any]] = {}  # id -> the record committed (tables need no re-reading)
+        self._header: list[str] | None = None  # results.csv's columns as last written
 
     # -- the lock ------------------------------------------------------------------------------------
 
@@ -128,13 +131,10 @@ class OutputFolder:
 
     def result(self, run: Run) -> dict[str, Any] | None:
         """The recorded result of ``run``, if it finished with the config it has now."""
-        record = self._records.get(run.id)
-        if record is None:
-            try:
-                record = json.loads((self.results / f"{run.id}.json").read_text())
-            except (OSError, ValueError):
-                return None
-            self._records[run.id] = record
+        try:  # read when asked, never cached: memory stays flat in the number of runs
+            record = json.loads((self.results / f"{run.id}.json").read_text())
+        except (OSError, ValueError):
+            return None
         return record if record.get("config_hash") == run.config_hash else None
 
     def place_trace(self, run: Run, partial: Path) -> Path:
@@ -151,43 +151,70 @@ class OutputFolder:
         if result.exists():
             result.unlink()
             _fsync_dir(self.results)
-        self._records.pop(run.id, None)
         self.trace_path(run).unlink(missing_ok=True)
 
-    def record(self, run: Run, outcome: dict[str, Any], trace: Path | None) -> dict[str, Any]:
-        """Commit ``run``'s outcome (its trace already in place at ``trace``); returns the record."""
+    def record(self, run: Run, outcome: dict[str, Any], trace: Path | None, index: int | None = None) -> dict[str, Any]:
+        """Commit ``run``'s outcome (its trace already in place at ``trace``); returns the record.
+        ``index``: the run's place in the plan (the tables' row order)."""
         record = {
-            "id": run.id, "values": run.values, "status": outcome["status"], "error": " ".join((outcome.get("error") or "").split()),
+            "id": run.id, "index": index, "values": run.values, "status": outcome["status"], "error": " ".join((outcome.get("error") or "").split()),
             "wall_time": outcome.get("wall_time"),
             "trace": str(trace.relative_to(self.root)) if trace is not None else "",
             "metrics": outcome.get("metrics") or {}, "overrides": run.overrides, "config_hash": run.config_hash,
             "config": json.loads(run.config.model_dump_json()) if run.config is not None else None,
         }
         write_atomically(self.results / f"{run.id}.json", json.dumps(record, indent=1).encode())
-        self._records[run.id] = record
         return record
 
     # -- the tables ----------------------------------------------------------------------------------
 
-    def rows(self, runs: list[Run]) -> tuple[list[str], list[dict[str, Any]]]:
-        """Columns and rows of the results table: the finished runs of ``runs``, in plan order."""
-        records = [record for run in runs if (record := self.result(run)) is not None]
-        varied = list(dict.fromkeys(key for run in runs for key in run.values))
-        metrics = metric_order(name for record in records for name in record["metrics"])
-        columns = ["id", *varied, *FIXED_COLUMNS, *metrics]
-        rows = [{"id": r["id"], **r["values"], **{c: r[c] for c in FIXED_COLUMNS}, **r["metrics"]} for r in records]
-        return columns, rows
+    def _row(self, record: dict[str, Any]) -> dict[str, Any]:
+        return {"id": record["id"], **record["values"], **{c: record[c] for c in FIXED_COLUMNS}, **record["metrics"]}
 
-    def write_tables(self, runs: list[Run]) -> int:
-        """Rebuild results.csv (and results.parquet with pyarrow) from the result files; returns the rows."""
-        columns, rows = self.rows(runs)
+    def _columns(self, varied: list[str], records: Iterable[dict[str, Any]]) -> list[str]:
+        metrics = metric_order(name for record in records for name in record["metrics"])
+        return ["id", *varied, *FIXED_COLUMNS, *metrics]
+
+    def _stored_records(self) -> list[dict[str, Any]]:
+        """Every result file of the folder, in plan order (``index``; records without one last)."""
+        records = []
+        for path in self.results.glob("*.json"):
+            try:
+                records.append(json.loads(path.read_text()))
+            except (OSError, ValueError):
+                continue  # a result file that does not read: its run is redone when the plan reaches it
+        return sorted(records, key=lambda r: (r.get("index") is None, r.get("index") or 0, r["id"]))
+
+    def write_tables(self, varied: list[str], parquet: bool = True) -> tuple[int, int]:
+        """Rebuild results.csv (and results.parquet with pyarrow) from the result files; returns the rows
+        and how many of them are not completed.
+        Once when a sweep starts and once when it ends (or on sweep-plot): O(runs done), not per run."""
+        records = self._stored_records()
+        columns = self._columns(varied, records)
         text = io.StringIO()
         writer = csv.DictWriter(text, columns, lineterminator="\n")
         writer.writeheader()
-        writer.writerows(rows)
+        writer.writerows(self._row(r) for r in records)
         write_atomically(self.csv, text.getvalue().encode())
-        self._write_parquet(columns, rows)
-        return len(rows)
+        self._header = columns
+        if parquet:
+            self._write_parquet(columns, [self._row(r) for r in records])
+        return len(records), sum(r["status"] != "completed" for r in records)
+
+    def append_row(self, record: dict[str, Any], varied: list[str]) -> None:
+        """Add ``record``'s row to results.csv (appended and synced: constant cost per run); the table is
+        rebuilt only when the row has a column the header lacks."""
+        header = getattr(self, "_header", None)
+        row = self._row(record)
+        if header is None or not set(row) <= set(header):
+            self.write_tables(varied, parquet=False)
+            return
+        line = io.StringIO()
+        csv.DictWriter(line, header, lineterminator="\n").writerow(row)
+        with open(self.csv, "a") as table:
+            table.write(line.getvalue())
+            table.flush()
+            os.fsync(table.fileno())
 
     def _write_parquet(self, columns: list[str], rows: list[dict[str, Any]]) -> None:
         try:
