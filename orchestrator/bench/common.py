@@ -119,11 +119,11 @@ def git_commit() -> str | None:
 def write_result(out_dir: Path, suite: str, payload: dict[str, Any], out: Path | None = None) -> Path:
     """Write ``payload`` (plus versions, machine, commit, time) to ``out`` or ``out_dir/<suite>-<time>.json``."""
     path = out or out_dir / f"{suite}-{time.strftime('%Y%m%d-%H%M%S')}.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
     record = {"suite": suite, **payload, "versions": versions(), "machine": machine(), "commit": git_commit(),
               "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
-    path.write_text(json.dumps(record, indent=1))
-    return path
+    from orchestrator.support.output import write_text  # the output rule: aside, synced, renamed
+
+    return write_text(path, json.dumps(record, indent=1))
 
 
 def markdown_table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:

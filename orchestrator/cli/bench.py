@@ -302,6 +302,25 @@ def bench_sweep(
     run_bench("sweep", lambda progress: suite.run(counts, runs, stop_time, rounds, dask, progress), suite.render, out_dir, quiet)
 
 
+def bench_sweep_bookkeeping(
+    points: Annotated[str, typer.Option(metavar="N,...", help="comma-separated sweep sizes (points)")] = "100,1000,10000,100000",
+    first_run: Annotated[int, typer.Option(min=0, help="also time the first run of a sweep this big (0: no)")] = 1_000_000,
+    out_dir: Annotated[Path, typer.Option("--out-dir", help="folder for the JSON results")] = DEFAULT_OUT_DIR,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only the table and the result file")] = False,
+) -> None:
+    """A sweep's bookkeeping per run (plan, result file, results.csv row) against its size; and how soon a
+    sweep of --first-run points starts its first run."""
+    from orchestrator.bench import sweep_bookkeeping as suite
+
+    try:
+        sizes = sorted({int(part) for part in points.split(",") if part.strip()})
+    except ValueError:
+        sizes = []
+    if not sizes or sizes[0] < 10:
+        fail(2, f"--points {points!r}: expected comma-separated sweep sizes of at least 10, e.g. 100,1000")
+    run_bench("sweep-bookkeeping", lambda progress: suite.run(sizes, first_run, progress), suite.render, out_dir, quiet)
+
+
 def register(app: typer.Typer) -> None:
     """``platoon bench`` and its suites."""
     bench_app.command("steps")(bench_steps)
@@ -315,4 +334,5 @@ def register(app: typer.Typer) -> None:
     bench_app.command("cores")(bench_cores)
     bench_app.command("hil")(bench_hil)
     bench_app.command("sweep")(bench_sweep)
+    bench_app.command("sweep-bookkeeping")(bench_sweep_bookkeeping)
     app.add_typer(bench_app, name="bench")
