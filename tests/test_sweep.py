@@ -387,3 +387,31 @@ def test_bench_sweep_measures_each_worker_count(tmp_path: Path, fmu_dir: Path) -
     assert set(data["medians"]) == {"local-1", "local-2"} and data["speedup"]["local-1"] == 1.0
     assert all(s["wall_time"] > 0 for s in data["samples"]) and len(data["samples"]) == 2
     assert "speed-up vs local-1" in result.stdout
+
+
+def test_the_plan_is_streamed_memory_flat_in_the_number_of_points(tmp_path: Path) -> None:
+    """Issue 30: a 10^6-point plan hands out its first runs without making the others (the same memory as
+    a 10^3-point one), and its points are the ones the whole plan has, in order."""
+    import tracemalloc
+
+    from orchestrator.sweep.plan import count, plan, runs
+    from orchestrator.sweep.spec import load_sweep
+
+    def spec_of(samples: int):
+        return load_sweep(sweep_file(tmp_path, '[grid]\n"platoon.law" = ["regular", "sine"]\n'
+                                               f'[random]\nsamples = {samples}\nseed = 4\n'
+                                               '[random.ranges]\n"platoon.k_v" = [0.3, 1.0]\n', name=f"s{samples}.toml"))
+
+    peaks = {}
+    for samples in (500, 500_000):
+        spec = spec_of(samples)
+        tracemalloc.start()
+        first = list(itertools.islice(runs(spec), 50))
+        peaks[samples] = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        assert count(spec) == 2 * samples and [r.values["sample"] for r in first] == list(range(50))
+    assert peaks[500_000] < 1.5 * peaks[500], peaks  # a list of 10^6 runs would be ~7 GB (issue 30)
+    small = spec_of(3)
+    assert [r.values for r in runs(small)] == [r.values for r in plan(small)]
+    sine = [r.values["platoon.k_v"] for r in runs(small) if r.values["platoon.law"] == "sine"]
+    assert sine == [r.values["platoon.k_v"] for r in runs(small) if r.values["platoon.law"] == "regular"]

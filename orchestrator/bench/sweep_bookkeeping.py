@@ -54,11 +54,11 @@ class _Quiet:
 
 
 def _sweep_file(folder: Path, points: int, random_draws: bool) -> Path:
-    """A grid of ``points`` k_v values, or (``random_draws``) a 10 x N/10 grid-by-samples campaign."""
+    """A grid of ``points`` k_v values, or (``random_draws``) both laws x N/2 random k_v draws."""
     path = folder / f"sweep-{points}.toml"
     if random_draws:
-        path.write_text(f'base = "{BASE.resolve()}"\n[grid]\n"platoon.k_v" = [{", ".join(f"{0.5 + 0.01 * i:.2f}" for i in range(10))}]\n'
-                        f'[random]\nsamples = {points // 10}\nseed = 1\n[random.ranges]\n"platoon.k_d" = [0.5, 1.5]\n')
+        path.write_text(f'base = "{BASE.resolve()}"\n[grid]\n"platoon.law" = ["regular", "sine"]\n'
+                        f'[random]\nsamples = {points // 2}\nseed = 1\n[random.ranges]\n"platoon.k_v" = [0.3, 1.0]\n')
     else:
         values = ", ".join(f"{0.5 + index * 1e-6:.6f}" for index in range(points))
         path.write_text(f'base = "{BASE.resolve()}"\n[grid]\n"platoon.k_v" = [{values}]\n')
@@ -86,11 +86,11 @@ def run(sizes: list[int], first_run_points: int, progress: Progress | None = Non
         raise BenchUsageError(f"{BASE}: not found (run the benchmark from the repository)")
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench-sweep-bookkeeping-") as scratch:
-        for points in sizes:
+        for number, points in enumerate(sizes, 1):
             wall, _ = _sweep(Path(scratch), points)
             rows.append({"points": points, "wall_time": wall, "per_run": wall / points})
             if progress is not None:
-                progress(f"{points} points: {wall:.2f} s, {1e3 * wall / points:.3f} ms per run")
+                progress(number, len(sizes), f"{points} points: {wall:.2f} s, {1e3 * wall / points:.3f} ms per run")
         _, first = _sweep(Path(scratch), first_run_points, stop_after=1) if first_run_points else (0.0, None)
     base = rows[0]["per_run"]
     return {"sizes": rows, "ratio": rows[-1]["per_run"] / base, "first_run_points": first_run_points,
@@ -102,5 +102,5 @@ def render(result: dict[str, Any]) -> str:
                            [(f"{r['points']:,}", f"{r['wall_time']:.2f}", f"{1e3 * r['per_run']:.3f}",
                              f"{r['per_run'] / result['sizes'][0]['per_run']:.2f}") for r in result["sizes"]])
     first = (f"\nfirst run of a {result['first_run_points']:,}-point sweep handed out after "
-             f"{result['first_run_after']:.2f} s" if result["first_run_after"] is not None else "")
+             f"{result['first_run_after']:.3f} s" if result["first_run_after"] is not None else "")
     return f"sweep bookkeeping per run (instant runs), ratio largest/smallest {result['ratio']:.2f}\n{table}{first}"
