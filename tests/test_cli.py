@@ -121,7 +121,7 @@ def test_missing_config_file_exits_2(workdir: Path, tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("option, value, expected", [
-    ("--out", "{file}/inside.mcap", "--out {file}/inside.mcap: cannot write the trace there"),
+    ("--out", "{file}/inside.mcap", "--out {file}/inside.mcap: cannot write there: Not a directory"),
     ("--trace-writer", "threads", "--trace-writer 'threads': expected one of auto, inline, process"),
     ("--engine", "fortran", "--engine 'fortran': expected native or python"),
 ])
