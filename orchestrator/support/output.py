@@ -165,7 +165,7 @@ def replacing(final: Path, what: str = "--out") -> Iterator[Path]:
 
 
 def sync_file(path: Path) -> None:
-    """fsync a written file (its data reaches the disk before it is renamed into place)."""
+    """fsync a written file (its data reaches the disk before it is renamed into place), or a folder."""
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)

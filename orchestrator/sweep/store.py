@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 from typing import Any, Iterable
 
-from orchestrator.support.output import OutputError, write_bytes
+from orchestrator.support.output import OutputError, sync_file, write_bytes
 
 from .plan import Run
 from .spec import SweepError
@@ -38,14 +38,6 @@ from .spec import SweepError
 LOCK_WAIT = 10.0  # s to wait for a folder whose previous sweep is just dying (its children go with it)
 FIXED_COLUMNS = ("status", "error", "wall_time", "trace")
 _VEHICLE = re.compile(r"vehicle(\d+)\.")
-
-
-def _fsync_dir(folder: Path) -> None:
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def write_atomically(path: Path, data: bytes) -> None:
@@ -139,8 +131,7 @@ class OutputFolder:
 
     def place_trace(self, run: Run, partial: Path) -> Path:
         """Move a finished run's trace from its partial name to its own, on disk before the result says so."""
-        with open(partial, "rb") as file:
-            os.fsync(file.fileno())
+        sync_file(partial)
         trace = self.trace_path(run)
         os.replace(partial, trace)
         return trace
@@ -150,7 +141,7 @@ class OutputFolder:
         result = self.results / f"{run.id}.json"
         if result.exists():
             result.unlink()
-            _fsync_dir(self.results)
+            sync_file(self.results)  # the removal is on disk before the run is redone
         self.trace_path(run).unlink(missing_ok=True)
 
     def record(self, run: Run, outcome: dict[str, Any], trace: Path | None, index: int | None = None) -> dict[str, Any]:
