@@ -58,7 +58,7 @@ def load_config(config: Path, overrides: list[str], allow_long: bool = True) -> 
 
     try:
         text = read_config_text(config)
-        parsed, _ = parse_config(text, config.stem, overrides)
+        parsed, _ = parse_config(text, config.stem, overrides, config.parent)
         if not allow_long:
             check_run_size(parsed)
     except ConfigError as error:

@@ -466,13 +466,36 @@ def read_config_text(path: str | Path) -> str:
                           "save it as UTF-8)") from None
 
 
-def parse_config(text: str, default_name: str, overrides: list[str] | tuple[str, ...] = ()) -> tuple[Config, dict[str, Any]]:
-    """Parse, override and validate a config's text; returns the config and the raw mapping."""
+FILE_KEYS = ("zenoh_config",)  # keys of [vehicles.K] that name a file
+
+
+def resolve_named_files(raw: dict[str, Any], folder: Path) -> None:
+    """Make the files a config file names relative to that file's ``folder`` (not to the current folder:
+    a config runs the same from anywhere). Values given with ``--set`` stay relative to the current
+    folder, as every path typed on a command line."""
+    vehicles = raw.get("vehicles")
+    if not isinstance(vehicles, dict):
+        return  # validation names the problem
+    for table in vehicles.values():
+        if not isinstance(table, dict):
+            continue
+        for key in FILE_KEYS:
+            value = table.get(key)
+            if isinstance(value, str) and value and not Path(value).is_absolute():
+                table[key] = str(folder / value)
+
+
+def parse_config(text: str, default_name: str, overrides: list[str] | tuple[str, ...] = (),
+                 folder: Path | None = None) -> tuple[Config, dict[str, Any]]:
+    """Parse, override and validate a config's text; returns the config and the raw mapping. ``folder``:
+    the config file's folder, which the files it names are relative to (``resolve_named_files``)."""
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise ConfigError(f"not valid TOML: {error}") from None
     raw.setdefault("name", default_name)
+    if folder is not None:
+        resolve_named_files(raw, folder)
     for assignment in overrides:
         apply_override(raw, assignment)
     return config_from_mapping(raw), raw
@@ -480,4 +503,4 @@ def parse_config(text: str, default_name: str, overrides: list[str] | tuple[str,
 
 def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> tuple[Config, dict[str, Any]]:
     """Read, override and validate a scenario; returns the config and the raw mapping it came from."""
-    return parse_config(read_config_text(path), Path(path).stem, overrides)
+    return parse_config(read_config_text(path), Path(path).stem, overrides, Path(path).parent)
