@@ -19,6 +19,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from orchestrator.scenario.config import Config, ConfigError, parse_config, read_config_text
+from orchestrator.support.suggest import did_you_mean
 
 if TYPE_CHECKING:  # rich's table is imported where used: `platoon run -q` needs none
     from rich.table import Table
@@ -40,6 +41,14 @@ def choices_metavar(choices: tuple[str, ...]) -> str:
     """``<a|b|c>``: the allowed values of an option, as typer shows a choice type, for an option we check
     ourselves (so a wrong value is our one-line error, not typer's framed box)."""
     return "<" + "|".join(choices) + ">"
+
+
+def check_choice(option: str, value: str | None, choices: tuple[str, ...]) -> None:
+    """Exit 2 with one line naming ``option`` when ``value`` is not one of ``choices`` (the nearest one
+    suggested): a wrong option value is the option's error, not the config key it sets."""
+    if value is None or value in choices:
+        return
+    fail(2, f"{option} {value!r}: expected {' or '.join(choices)}{did_you_mean(value, choices)}")
 
 
 AllowLong = Annotated[bool, typer.Option("--allow-long", help="run even above the size limits (docs/config.md: more than "
