@@ -360,6 +360,11 @@ def assert_map_shows(figure, pixels, expected: dict[tuple[str, int, float], floa
 
     axes = [axis for axis in figure.axes if axis.get_title().startswith("platoon.law = ")]
     assert [axis.get_title() for axis in axes] == ["platoon.law = regular", "platoon.law = sine"]
+    (bar,) = [axis for axis in figure.axes if axis.get_label() == "<colorbar>"]
+    assert bar.get_ylabel().endswith(" [m]"), bar.get_ylabel()  # path offsets and gap errors are metres
+    figure.canvas.draw()  # the title whole inside the figure: no letter cut at either edge
+    title = figure._suptitle.get_window_extent()
+    assert title.x0 >= 0 and title.x1 <= figure.bbox.x1 and "[m]" in figure._suptitle.get_text()
     magnitudes = [abs(v) for v in expected.values()]
     norms = {id(axis.get_images()[0].norm) for axis in axes}
     norm = axes[0].get_images()[0].norm
