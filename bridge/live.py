@@ -26,6 +26,7 @@ then releases the claim.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections import deque
@@ -138,6 +139,7 @@ class LiveVehicle:
         self._publisher: Any = None
         self._stop_sent = False
         self._released = False
+        self.on_wait: Callable[[str, float], None] | None = None  # (what the start waits for, s left), each second
 
     # -- events and records for the run (LiveComponent) -----------------------------------------
 
@@ -237,7 +239,12 @@ class LiveVehicle:
         self._resources.append(session.liveliness().declare_token(self.keys.host(self.claim.claim)))  # the claim
         claimed = time.monotonic()
         deadline = claimed + settings.connect_timeout
+        shown = None  # the whole seconds left last reported to on_wait
         while not self._ready():
+            left = deadline - time.monotonic()
+            if self.on_wait is not None and left > 0 and math.ceil(left) != shown:
+                shown = math.ceil(left)
+                self.on_wait(self._awaited(), left)
             problem = self._start_problem(time.monotonic() - claimed)
             if problem is None and time.monotonic() > deadline:
                 problem = self._not_found()
@@ -299,8 +306,20 @@ class LiveVehicle:
         has said all in ``_start_problem``; a ROS 2 topic may be subscribed with another type."""
         return None
 
+    def _endpoints(self) -> str:
+        connect, listen = list(self.settings.connect), list(self.settings.listen)
+        return f"connect={connect} listen={listen}"
+
+    def _awaited(self) -> str:
+        """What initialize still waits for, and where (for a countdown the run shows)."""
+        if not self._alive:
+            return f"{self.what}: its liveliness token {self.keys.alive} ({self._endpoints()})"
+        if not self.claim.granted:
+            return f"{self.what}: its robot side to accept this run's claim {claim_text(self.claim.claim)}"
+        return f"{self.what}: a first valid pose on {self.keys.pose} ({self._endpoints()})"
+
     def _not_found(self) -> str:
-        where = f"connect={list(self.settings.connect)} listen={list(self.settings.listen)}"
+        where = self._endpoints()
         if not self._alive:
             return (f"{self.what} did not appear within {self.settings.connect_timeout:g} s: no liveliness token on "
                     f"{self.keys.alive} ({where}; is `platoon m3pi-emulator` or `platoon m3pi-serial` running?)")

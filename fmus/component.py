@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 import statistics
 from dataclasses import dataclass
-from typing import Any, Protocol, Sequence, runtime_checkable
+from typing import Any, Callable, Protocol, Sequence, runtime_checkable
 
 from fmus.errors import ComponentError
 
@@ -63,6 +63,9 @@ class LiveComponent(Protocol):
     """What a component that talks to real hardware adds to ``Component``."""
 
     realtime: bool  # True: the run paces itself to wall-clock time while this component is in it
+    # set by the run before initialize: called with what the start waits for (robot, key, endpoint) and
+    # the seconds left before it gives up, each second while it waits (the terminal is the run's, not ours)
+    on_wait: Callable[[str, float], None] | None
 
     def drain_events(self) -> list[LiveEvent]:
         """Log lines since the last call (state changes, dropped messages), oldest first."""

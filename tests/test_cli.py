@@ -77,15 +77,19 @@ value = 5.0
 
 BAD_CONFIGS = {
     # id: (config file text or None for configs/paper/platoon.toml, --set overrides, expected pieces)
-    "unknown-key-set": (None, ["platoon.colour=red"], ["platoon.colour", "unknown key"]),
-    "unknown-section-file": ("[platon]\ncount = 4\n", [], ["platon", "unknown key"]),
+    "unknown-key-set": (None, ["platoon.colour=red"], ["platoon.colour: unknown key"]),  # nothing near: no guess
+    "unknown-section-file": ("[platon]\ncount = 4\n", [], ["platon", "unknown key (did you mean platoon?)"]),
+    "mistyped-key": (None, ["platoon.cout=3"], ["platoon.cout: unknown key (did you mean platoon.count?)"]),
+    "mistyped-vehicle-key": (None, ["vehicles.2.endpont=zenoh"], ["(did you mean vehicles.2.endpoint?)"]),
+    "heading-in-degrees": (None, ["path.heading=90"], ["path.heading = 90", "<= 6.28319 rad", "90 degrees = 1.5708 rad"]),
+    "speed-zero": (None, ["platoon.speed=0"], ["platoon.speed = 0", ">= 0.001 m/s and <= 1000 m/s"]),
     "count-string": (None, ['platoon.count="four"'], ["platoon.count", "'four'", "integer"]),
     "count-float": (None, ["platoon.count=2.5"], ["platoon.count", "2.5", "integer"]),
     "count-bool": ("[platoon]\ncount = true\n", [], ["platoon.count", "True", "integer"]),
     "d-star-over-diameter": (None, ["platoon.d_star=150"], ["platoon.d_star", "150", "2 * path.radius = 100"]),
     "radius-too-small": ("[path]\nradius = 10.0\n[platoon]\nd_star = 25.0\n", [], ["platoon.d_star", "25.0", "2 * path.radius = 20"]),
     "count-zero": (None, ["platoon.count=0"], ["platoon.count", "= 0", "must be an integer >= 1"]),
-    "step-negative": (None, ["simulation.step=-0.01"], ["simulation.step", "-0.01", "must be a finite number > 0"]),
+    "step-negative": (None, ["simulation.step=-0.01"], ["simulation.step", "-0.01", "must be a finite number > 0 s"]),
     "step-over-stop": (None, ["simulation.stop_time=0.001"], ["simulation.step", "simulation.stop_time"]),
     "disturbance-vehicle-5": (DISTURBANCE_ON_VEHICLE_5, [], ["disturbance[0].vehicle", "5", "platoon.count = 4"]),
     "override-vehicle-7": (None, ["vehicles.7.law=sine"], ["vehicles.7", "platoon.count = 4"]),
@@ -124,6 +128,8 @@ def test_missing_config_file_exits_2(workdir: Path, tmp_path: Path) -> None:
     ("--out", "{file}/inside.mcap", "--out {file}/inside.mcap: cannot write there: Not a directory"),
     ("--trace-writer", "threads", "--trace-writer 'threads': expected one of auto, inline, process"),
     ("--engine", "fortran", "--engine 'fortran': expected native or python"),
+    ("--engine", "natve", "--engine 'natve': expected native or python (did you mean native?)"),
+    ("--fmus", "c", "--fmus 'c': expected native or python"),  # the option's error, not simulation.fmus's
 ])
 def test_bad_run_option_exits_2_with_one_clear_line(option: str, value: str, expected: str, workdir: Path,
                                                     tmp_path: Path) -> None:

@@ -163,6 +163,15 @@ def test_a_run_in_a_pipe_prints_plain_progress_lines(tmp_path: Path) -> None:
     percents = progress_lines(result.stderr, "simulating", 2000)
     assert len(percents) >= 5 and percents == sorted(set(percents)) and percents[-1] == 100, result.stderr
     assert "trace:" in result.stdout and "simulating" not in result.stdout  # progress on stderr, results on stdout
+    # a fresh folder: the FMUs get built first, and the run says so before any progress line
+    lines = result.stderr.splitlines()
+    building = [k for k, line in enumerate(lines) if line.startswith("building ") and "build/fmus/native/" in line]
+    assert len(building) == 2 and building[-1] < lines.index(next(l for l in lines if l.startswith("simulating:"))), lines
+    # the estimates count stepping time only: the last line's elapsed time is within the run's own (which
+    # excludes the build), to the 0.05 s its one decimal rounds to
+    elapsed = float(re.search(r"100% \(2000/2000 steps\), ([\d.]+) s elapsed", result.stderr).group(1))
+    run_seconds = float(re.search(r"\(2000 steps in ([\d.]+) s\)", result.stdout).group(1))
+    assert elapsed <= run_seconds + 0.05, (elapsed, run_seconds)
 
 
 def test_analyze_of_100_vehicles_in_a_pipe_shows_the_progress_of_its_runs(tmp_path: Path) -> None:

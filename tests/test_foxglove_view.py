@@ -259,6 +259,38 @@ def test_a_live_robots_run_shows_its_link_streams(tmp_path: Path) -> None:
         assert received and received == recorded[len(recorded) - len(received):], topic
 
 
+async def _connect_and_vanish(port: int, run: subprocess.Popen[str]) -> None:
+    """A viewer that takes the first message and disappears without a closing handshake (its TCP connection
+    reset, as when a laptop sleeps or a browser is killed)."""
+    while True:
+        try:
+            connection = await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=CURRENT, open_timeout=None)
+            break
+        except OSError:
+            assert run.poll() is None, "the run ended before its live view accepted a client"
+            await asyncio.sleep(0.05)
+    await connection.recv()
+    raw = connection.transport.get_extra_info("socket")
+    raw.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # close -> RST, no FIN
+    connection.transport.abort()
+
+
+def test_a_viewer_that_vanishes_is_not_reported_as_an_error(tmp_path: Path) -> None:
+    port = free_port()
+    out = tmp_path / "vanish.mcap"
+    run = start_run(out, port, "--set", "simulation.stop_time=2")
+    try:
+        asyncio.run(asyncio.wait_for(_connect_and_vanish(port, run), GIVE_UP))
+        run.wait(timeout=GIVE_UP)
+    finally:
+        if run.poll() is None:
+            run.kill()
+    stderr = out.with_suffix(".stderr").read_text()
+    assert run.returncode == 0, stderr
+    assert "Connection reset" not in stderr and "Error receiving" not in stderr, stderr  # the SDK's raw line is gone
+    assert load(out).run["status"] == "completed"
+
+
 def test_a_port_in_use_exits_2_with_one_line_and_writes_nothing(tmp_path: Path) -> None:
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))

@@ -246,7 +246,7 @@ def endpoint(port: int) -> str:
 
 
 def _env() -> dict[str, str]:
-    env = {**os.environ, "COLUMNS": "120", "NO_COLOR": "1", "TERM": "dumb"}
+    env = {**os.environ, "COLUMNS": "120", "NO_COLOR": "1", "TERM": "dumb", "PLATOON_PROGRESS_SECONDS": "0"}
     env.pop("FORCE_COLOR", None)
     return env
 
@@ -528,9 +528,15 @@ def test_garbage_and_foreign_poses_and_commands_are_counted_and_ignored_and_ctrl
 def test_missing_robot_fails_the_run_with_a_clear_message(tmp_path: Path) -> None:
     port = free_port()
     trace = tmp_path / "missing.mcap"
-    code, _, err = finish(start_run(port, trace, 5.0, "hil.connect_timeout=1.0"), timeout=60)
+    process = start_run(port, trace, 5.0, "hil.connect_timeout=2.0")
+    code, _, err = finish(process, timeout=60)
     assert code == 1
-    assert "robot 3 (platoon/m3pi/3) did not appear within 1 s: no liveliness token on platoon/m3pi/3/alive" in err
+    assert "robot 3 (platoon/m3pi/3) did not appear within 2 s: no liveliness token on platoon/m3pi/3/alive" in err
+    # before giving up it said what it waits for, where, with a countdown (one line a second: PLATOON_PROGRESS_SECONDS=0)
+    waited = f"waiting for robot 3 (platoon/m3pi/3): its liveliness token platoon/m3pi/3/alive (connect=['{endpoint(port)}'] listen=[]): "
+    countdown = [int(line[len(waited):].split()[0]) for line in err.splitlines() if line.startswith(waited)]
+    assert countdown and countdown[0] <= 2 and countdown == list(range(countdown[0], 0, -1)), err
+    assert "simulating" not in err.split("did not appear")[0]  # no progress while nothing steps
     assert load(trace).run["status"] == "failed"
 
 

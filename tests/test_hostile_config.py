@@ -143,27 +143,27 @@ def test_no_float_key_accepts_inf_or_nan(key: str, value: float) -> None:
 
 # key, a value just outside its range, the range the message states, a value just inside it
 RANGES = [
-    ("simulation.stop_time", 0.0, "a finite number > 0", 1.0),
-    ("simulation.max_substep", -0.01, "a finite number > 0", 0.001),
-    ("path.radius", 1.1e6, "a finite number >= 0.001 and <= 1e+06", 1e6),
-    ("path.center[0]", -2e6, "a finite number >= -1e+06 and <= 1e+06", -1e6),
-    ("path.heading", 7.0, "a finite number >= -6.28319 and <= 6.28319", -6.0),
-    ("platoon.d_star", 0.0, "a finite number >= 0.001 and <= 1e+06", 1e-3),
-    ("platoon.k_v", 1001.0, "a finite number >= 0.001 and <= 1000", 200.0),  # 1000 needs a smaller substep
-    ("platoon.k_v", 1e-200, "a finite number >= 0.001 and <= 1000", 1e-3),  # analyze divided by k_v^2 = 0
-    ("platoon.speed", 1e4, "a finite number >= 0.001 and <= 1000", 1000.0),
-    ("platoon.speed", 1e-300, "a finite number >= 0.001 and <= 1000", 1e-3),
+    ("simulation.stop_time", 0.0, "a finite number > 0 s", 1.0),
+    ("simulation.max_substep", -0.01, "a finite number > 0 s", 0.001),
+    ("path.radius", 1.1e6, "a finite number >= 0.001 m and <= 1e+06 m", 1e6),
+    ("path.center[0]", -2e6, "a finite number >= -1e+06 m and <= 1e+06 m", -1e6),
+    ("path.heading", 7.0, "a finite number >= -6.28319 rad and <= 6.28319 rad (radians: 90 degrees = 1.5708 rad)", -6.0),
+    ("platoon.d_star", 0.0, "a finite number >= 0.001 m and <= 1e+06 m", 1e-3),
+    ("platoon.k_v", 1001.0, "a finite number >= 0.001 1/s and <= 1000 1/s", 200.0),  # 1000 needs a smaller substep
+    ("platoon.k_v", 1e-200, "a finite number >= 0.001 1/s and <= 1000 1/s", 1e-3),  # analyze divided by k_v^2 = 0
+    ("platoon.speed", 1e4, "a finite number >= 0.001 m/s and <= 1000 m/s", 1000.0),
+    ("platoon.speed", 1e-300, "a finite number >= 0.001 m/s and <= 1000 m/s", 1e-3),
     ("platoon.count", 10001, "an integer >= 1 and <= 10000", 10000),
-    ("initial.radial_offset", 1e7, "a finite number >= -1e+06 and <= 1e+06", -1e6),
+    ("initial.radial_offset", 1e7, "a finite number >= -1e+06 m and <= 1e+06 m", -1e6),
     ("initial.speed_factor", 11.0, "a finite number >= 0.001 and <= 10", 10.0),
-    ("m3pi.track", 0.0, "a finite number >= 0.001 and <= 10", 0.2),
-    ("m3pi.motor_time_constant", 1e-9, "a finite number >= 0.001 and <= 100", 1e-3),
-    ("disturbance[0].start", -1.0, "a finite number >= 0", 0.0),
+    ("m3pi.track", 0.0, "a finite number >= 0.001 m and <= 10 m", 0.2),
+    ("m3pi.motor_time_constant", 1e-9, "a finite number >= 0.001 s and <= 100 s", 1e-3),
+    ("disturbance[0].start", -1.0, "a finite number >= 0 s", 0.0),
     ("disturbance[0].value", -1e7, "a finite number >= -1e+06 and <= 1e+06", -1e6),
-    ("vehicles.1.k_v", 0.0, "a finite number >= 0.001 and <= 1000", 2.0),
-    ("vehicles.1.initial.speed", 0.0, "a finite number >= 0.001 and <= 1000", 1e-3),
-    ("vehicles.1.initial.heading", -7.0, "a finite number >= -6.28319 and <= 6.28319", 3.0),
-    ("hil.pose_timeout", 6.0, "a finite number > 0 and <= 5", 5.0),
+    ("vehicles.1.k_v", 0.0, "a finite number >= 0.001 1/s and <= 1000 1/s", 2.0),
+    ("vehicles.1.initial.speed", 0.0, "a finite number >= 0.001 m/s and <= 1000 m/s", 1e-3),
+    ("vehicles.1.initial.heading", -7.0, "a finite number >= -6.28319 rad and <= 6.28319 rad (radians: 90 degrees = 1.5708 rad)", 3.0),
+    ("hil.pose_timeout", 6.0, "a finite number > 0 s and <= 5 s", 5.0),
 ]
 
 

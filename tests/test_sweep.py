@@ -109,6 +109,41 @@ def test_a_missing_base_exits_2(tmp_path: Path) -> None:
     assert "nowhere.toml" in error_line(result) and "no such file" in error_line(result)
 
 
+def test_a_sweep_files_base_is_relative_to_the_sweep_file_not_the_current_folder(tmp_path: Path,
+                                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    from orchestrator.sweep.spec import SweepError, load_sweep
+
+    folder = tmp_path / "studies" / "maps"
+    folder.mkdir(parents=True)
+    (tmp_path / "studies" / "base.toml").write_text(PAPER.read_text())
+    (folder / "sweep.toml").write_text('base = "../base.toml"\n[grid]\n"platoon.count" = [1, 2]\n')
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)  # neither the sweep's folder nor its base's
+    assert load_sweep(folder / "sweep.toml").base.resolve() == (tmp_path / "studies" / "base.toml").resolve()
+    shipped = load_sweep(REPO / "configs" / "sweeps" / "offset_map.toml")  # the shipped sweep, run from elsewhere
+    assert shipped.base.resolve() == PAPER.resolve()
+    (elsewhere / "base.toml").write_text(PAPER.read_text())  # a base beside the current folder is not the one named
+    (folder / "near.toml").write_text('base = "base.toml"\n[grid]\n"platoon.count" = [1]\n')
+    with pytest.raises(SweepError, match="relative to the sweep file's folder"):
+        load_sweep(folder / "near.toml")
+
+
+def test_a_file_a_config_names_is_relative_to_the_config_not_the_current_folder(tmp_path: Path,
+                                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    from orchestrator.scenario.config import load_config
+
+    (tmp_path / "hil").mkdir()
+    config = tmp_path / "hil" / "live.toml"
+    config.write_text((REPO / "configs" / "hil" / "m3pi_live3.toml").read_text()
+                      + '\n[vehicles.2]\nendpoint = "zenoh"\nzenoh_config = "zenoh.json5"\n')
+    monkeypatch.chdir(tmp_path)
+    parsed, _ = load_config(config)
+    assert Path(parsed.override(2).zenoh_config) == tmp_path / "hil" / "zenoh.json5"
+    typed, _ = load_config(config, ['vehicles.2.zenoh_config="mine.json5"'])  # a --set path: the current folder's
+    assert typed.override(2).zenoh_config == "mine.json5"
+
+
 # --- failures are recorded, the sweep goes on ------------------------------------------------------
 
 def test_failed_and_rejected_runs_are_recorded_and_the_others_run(tmp_path: Path, fmu_dir: Path) -> None:
@@ -325,6 +360,11 @@ def assert_map_shows(figure, pixels, expected: dict[tuple[str, int, float], floa
 
     axes = [axis for axis in figure.axes if axis.get_title().startswith("platoon.law = ")]
     assert [axis.get_title() for axis in axes] == ["platoon.law = regular", "platoon.law = sine"]
+    (bar,) = [axis for axis in figure.axes if axis.get_label() == "<colorbar>"]
+    assert bar.get_ylabel().endswith(" [m]"), bar.get_ylabel()  # path offsets and gap errors are metres
+    figure.canvas.draw()  # the title whole inside the figure: no letter cut at either edge
+    title = figure._suptitle.get_window_extent()
+    assert title.x0 >= 0 and title.x1 <= figure.bbox.x1 and "[m]" in figure._suptitle.get_text()
     magnitudes = [abs(v) for v in expected.values()]
     norms = {id(axis.get_images()[0].norm) for axis in axes}
     norm = axes[0].get_images()[0].norm

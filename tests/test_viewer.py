@@ -159,6 +159,10 @@ def test_figure_draws_both_laws_side_by_side(runs: dict[str, Path]) -> None:
     assert len(axes) == 8  # velocity, distance, path errors and X-Y, for each law
     titles = " ".join(a.get_title() for a in axes)
     assert "regular law" in titles and "sine law" in titles
+    # the titles name what the axes and the files (speed_errors, gap_errors) name
+    assert [a.get_title().splitlines()[-1] for a in axes[0:6:2]] == ["Speed errors", "Gap errors", "Path errors"]
+    assert axes[2].get_ylabel() == "gap error d - d* [m]"
+    assert axes[6].get_xlim() == axes[7].get_xlim() and axes[6].get_ylim() == axes[7].get_ylim()  # same X-Y ranges
     for column, (trace, _) in zip((axes[0::2], axes[1::2]), pair):
         for time_axes in column[:3]:
             assert len(time_axes.get_lines()) == 4  # a line per vehicle
@@ -177,6 +181,31 @@ def test_figure_draws_both_laws_side_by_side(runs: dict[str, Path]) -> None:
             track = column[3].get_lines()[1 + 2 * k]
             assert np.array_equal(track.get_xdata(), trace.component(vehicle)["x"]), (config.platoon.law, vehicle)
             assert np.array_equal(track.get_ydata(), trace.component(vehicle)["y"]), (config.platoon.law, vehicle)
+
+
+def test_a_figure_of_several_orbits_draws_the_last_one_over_faded_tracks(tmp_path: Path, fmu_dir: Path) -> None:
+    """The regular law's X-Y panel after several orbits: the steady rings readable, not a tangle."""
+    from orchestrator.analysis.figure import draw_pair
+
+    trace_path = tmp_path / "regular.mcap"
+    result = platoon("run", PAPER, "--set", "platoon.law=regular", "--set", "simulation.stop_time=30", "-q",
+                     "--out", trace_path, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    trace = load(trace_path)
+    config = config_from_mapping(trace.config)
+    figure = draw_pair([(trace, config)])
+    xy = [a for a in figure.axes if a.get_title().startswith("X-Y")][0]
+    orbit = 2 * np.pi * config.path.radius / config.platoon.speed  # 12.6 s at 25 m/s on 50 m
+    assert f"from {30 - orbit:.0f} s" in xy.get_title()
+    lines = xy.get_lines()
+    for k, vehicle in enumerate(trace.vehicles()):
+        channel = trace.component(vehicle)
+        whole, last = lines[1 + 2 * k], lines[1 + 2 * len(trace.vehicles()) + k]  # after every (track, end dot)
+        assert whole.get_alpha() == 0.25 and np.array_equal(whole.get_xdata(), channel["x"])
+        t = channel["t"]
+        assert np.array_equal(last.get_xdata(), channel["x"][t >= t[-1] - orbit]) and last.get_alpha() is None
+    labels = [text.get_text() for text in xy.get_legend().get_texts()]
+    assert labels[:4] == ["vehicle 1", "vehicle 2", "vehicle 3", "vehicle 4"]
 
 
 def test_figure_of_a_large_platoon_has_a_colour_bar_and_a_line_shows_deviations(runs: dict[str, Path]) -> None:

@@ -164,6 +164,11 @@ class RosLiveVehicle(LiveVehicle):
         return (f"{self.what}: {topic} is subscribed as {theirs}, not as {ours[0]} ({ours[1][:15]}...): "
                 f"set vehicles.{self.name.removeprefix('vehicle')}.ros2.command_type to the robot's type (ros2 topic info {topic})")
 
+    def _awaited(self) -> str:
+        if not self.ros.pose_topic:
+            return super()._awaited()
+        return f"{self.what}: a first valid pose on {self.ros.pose_topic} (key {self.pose_key}; {self._endpoints()})"
+
     def _not_found(self) -> str:
         if not self.ros.pose_topic:
             return super()._not_found()

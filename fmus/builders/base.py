@@ -15,6 +15,7 @@ import zipfile
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 from xml.etree import ElementTree
 
 # the fmus/ folder, not fmus.__file__: an FMU run in this process first may have imported the
@@ -66,9 +67,11 @@ class Builder(ABC):
         return archive_is_whole(path, guid, self.required_entries(name))
 
     def build(self, out_dir: Path | None = None, force: bool = False,
-              names: tuple[str, ...] = FMU_NAMES) -> list[BuiltFmu]:
+              names: tuple[str, ...] = FMU_NAMES,
+              announce: Callable[[str, Path], None] | None = None) -> list[BuiltFmu]:
         """FMUs ``names`` in ``out_dir`` (default: ``default_out``), each built unless a current one is
-        there already, or always with ``force``."""
+        there already, or always with ``force``; ``announce(name, folder)`` before each build (a build
+        takes seconds: the caller says so)."""
         folder = Path(self.default_out if out_dir is None else out_dir)
         built = []
         for name in names:
@@ -77,6 +80,8 @@ class Builder(ABC):
             if not force and path.exists() and self.is_complete(path, name, guid):
                 built.append(BuiltFmu(name, path, guid, rebuilt=False))
             else:
+                if announce is not None:
+                    announce(name, folder)
                 built.append(BuiltFmu(name, self.build_one(name, guid, folder), guid, rebuilt=True))
         return built
 

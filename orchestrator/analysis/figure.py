@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from typing import Any
+
 import matplotlib
 
 matplotlib.use("Agg")  # files only; never needs a display
@@ -48,7 +50,22 @@ def draw_pair(runs: list[tuple[Trace, Config]]) -> Figure:
                                ncol=3, fontsize="small", frameon=False)
         if many(vehicles):
             colorbar(figure, list(axes_column), vehicles)
+    _same_ranges([grid[-1, column] for column, (_, config) in enumerate(runs) if config.path.kind == "circle"])
     return figure
+
+
+def _same_ranges(panels: list[Any]) -> None:
+    """The X-Y panels of circles over the same ranges (the union of their data), so the columns compare
+    at a glance; as data limits, which their equal aspect may widen alike, not fixed limits."""
+    if len(panels) < 2:
+        return
+    x0 = min(a.dataLim.x0 for a in panels)
+    x1 = max(a.dataLim.x1 for a in panels)
+    y0 = min(a.dataLim.y0 for a in panels)
+    y1 = max(a.dataLim.y1 for a in panels)
+    for a in panels:
+        a.update_datalim([(x0, y0), (x1, y1)])
+        a.autoscale_view()
 
 
 def save(figure: Figure, out: Path, dpi: int = 150) -> Path:

@@ -29,9 +29,9 @@ Series = Callable[[Trace, Config, str], np.ndarray]
 
 # (file stem, y label, title, the series of one vehicle): the three time panels of the paper's figures
 TIME_PANELS: list[tuple[str, str, str, Series]] = [
-    ("speed_errors", "speed error V - V_c [m/s]", "Velocity errors",
+    ("speed_errors", "speed error V - V_c [m/s]", "Speed errors",
      lambda trace, config, v: trace.component(v)["speed"] - config.platoon.speed),
-    ("gap_errors", "distance error d - d* [m]", "Distance errors",
+    ("gap_errors", "gap error d - d* [m]", "Gap errors",
      lambda trace, config, v: trace.component(v)["gap"] - config.platoon.d_star),
     ("path_errors", "path error (signed distance) [m]", "Path errors",
      lambda trace, config, v: path_errors(config, trace.component(v)["x"], trace.component(v)["y"])),
@@ -107,6 +107,10 @@ def draw_xy(axes: Axes, trace: Trace, config: Config, title: str) -> list[Any]:
             x, y = along(x, y), path_errors(config, x, y)
         tracks += axes.plot(x, y, color=color, linewidth=0.8 if many(vehicles) else 1.0, label=_label(name))
         axes.plot(x[-1], y[-1], "o", color=color, markersize=size, zorder=6)
+    start = last_orbit_start(trace, config)
+    if start is not None:
+        tracks = _last_orbit(axes, trace, start, tracks)
+        title += f"\n(the last orbit, from {start:.0f} s, solid; before it faint)"
     tx, ty = target["x"][-1:], target["y"][-1:]
     if not circle:
         tx, ty = along(tx, ty), path_errors(config, tx, ty)
@@ -120,6 +124,29 @@ def draw_xy(axes: Axes, trace: Trace, config: Config, title: str) -> list[Any]:
         Line2D([], [], color="k", marker="*", linestyle="none", markersize=10, label="virtual target at the end"),
     ]
     return handles
+
+
+def last_orbit_start(trace: Trace, config: Config) -> float | None:
+    """On a circle, the time the last orbit (2 pi R / V_c) starts when the run lasts over one and a half
+    orbits (its X-Y tracks would be a tangle of rings); None otherwise."""
+    if config.path.kind != "circle":
+        return None
+    t = trace.component(trace.vehicles()[0])["t"]
+    orbit = 2.0 * np.pi * config.path.radius / config.platoon.speed
+    return float(t[-1] - orbit) if len(t) and t[-1] - t[0] > 1.5 * orbit else None
+
+
+def _last_orbit(axes: Axes, trace: Trace, start: float, tracks: list[Any]) -> list[Any]:
+    """The whole tracks faded, the last orbit (from ``start``) drawn over them, where the steady offsets
+    read as rings; returns the last orbit's lines (the legend's)."""
+    solid = []
+    for name, track in zip(trace.vehicles(), tracks):
+        track.set_alpha(0.25)
+        channel = trace.component(name)
+        last = channel["t"] >= start
+        solid += axes.plot(channel["x"][last], channel["y"][last], color=track.get_color(),
+                           linewidth=track.get_linewidth() * 1.3, label=track.get_label())
+    return solid
 
 
 def colorbar(figure: Any, axes: Any, vehicles: list[str]) -> None:

@@ -19,6 +19,7 @@ from rich.markup import escape
 
 from orchestrator.scenario.config import Config, ConfigError, parse_config, read_config_text
 from orchestrator.support.output import OVERWRITE_HELP, OutputError  # the one output rule (docs/output.md)
+from orchestrator.support.suggest import did_you_mean
 
 if TYPE_CHECKING:  # rich's table is imported where used: `platoon run -q` needs none
     from rich.table import Table
@@ -42,6 +43,14 @@ def choices_metavar(choices: tuple[str, ...]) -> str:
     return "<" + "|".join(choices) + ">"
 
 
+def check_choice(option: str, value: str | None, choices: tuple[str, ...]) -> None:
+    """Exit 2 with one line naming ``option`` when ``value`` is not one of ``choices`` (the nearest one
+    suggested): a wrong option value is the option's error, not the config key it sets."""
+    if value is None or value in choices:
+        return
+    fail(2, f"{option} {value!r}: expected {' or '.join(choices)}{did_you_mean(value, choices)}")
+
+
 AllowLong = Annotated[bool, typer.Option("--allow-long", help="run even above the size limits (docs/config.md: more than "
                                          "1e6 steps, 1000 substeps per step or 1e8 FMU-substeps)")]
 
@@ -58,7 +67,7 @@ def load_config(config: Path, overrides: list[str], allow_long: bool = True) -> 
 
     try:
         text = read_config_text(config)
-        parsed, _ = parse_config(text, config.stem, overrides)
+        parsed, _ = parse_config(text, config.stem, overrides, config.parent)
         if not allow_long:
             check_run_size(parsed)
     except ConfigError as error:

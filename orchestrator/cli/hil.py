@@ -135,12 +135,12 @@ def m3pi_emulator(
     config: Annotated[Path, typer.Option("--config", help="scenario whose live vehicles (endpoint = \"zenoh\") to emulate")],
     overrides: Annotated[list[str], typer.Option("--set", metavar="KEY=VALUE", help="override a config key, as for platoon run")] = [],
     ids: Annotated[list[int], typer.Option("--id", metavar="K", help="emulate only this robot id (repeatable; default: all)")] = [],
-    rate: Annotated[float, typer.Option(help="poses per second (motion capture rate)")] = 200.0,
-    noise_position: Annotated[float, typer.Option(help="pose noise, m (standard deviation per axis; paper ~0.002)")] = 0.0,
-    noise_heading: Annotated[float, typer.Option(help="heading noise, degrees (standard deviation; paper ~2)")] = 0.0,
-    latency: Annotated[float, typer.Option(help="s from taking a pose to publishing it")] = 0.0,
-    command_latency: Annotated[float, typer.Option(help="s from receiving a command to applying it (the radio)")] = 0.0,
-    command_timeout: Annotated[float, typer.Option(help="s without a valid command before the wheels stop")] = 0.25,
+    rate: Annotated[float, typer.Option(metavar="HZ", help="poses per second (motion capture rate), Hz")] = 200.0,
+    noise_position: Annotated[float, typer.Option(metavar="METRES", help="pose noise in m (standard deviation per axis; paper ~0.002 m)")] = 0.0,
+    noise_heading: Annotated[float, typer.Option(metavar="DEGREES", help="heading noise in degrees, not radians as in configs (standard deviation; paper ~2 degrees = 0.035 rad)")] = 0.0,
+    latency: Annotated[float, typer.Option(metavar="SECONDS", help="s from taking a pose to publishing it")] = 0.0,
+    command_latency: Annotated[float, typer.Option(metavar="SECONDS", help="s from receiving a command to applying it (the radio)")] = 0.0,
+    command_timeout: Annotated[float, typer.Option(metavar="SECONDS", help="s without a valid command before the wheels stop")] = 0.25,
     standing_start: Annotated[bool, typer.Option(help="start from rest, not at the config's initial speed")] = False,
     seed: Annotated[Optional[int], typer.Option(help="noise seed (default: different every run)")] = None,
     listen: Endpoints = [],
@@ -160,13 +160,13 @@ def m3pi_emulator(
     if not robots:
         wanted = f" with robot id {', '.join(map(str, ids))}" if ids else ""
         fail(2, f"config {config}: no live vehicle{wanted} (set endpoint = \"zenoh\" on a [vehicles.K] table)")
-    for name, value, low in (("--rate", rate, 0.0), ("--command-timeout", command_timeout, 0.0)):
-        if not (math.isfinite(value) and value > low):
-            fail(2, f"{name} {value}: expected a finite number > {low:g}")
-    for name, value in (("--noise-position", noise_position), ("--noise-heading", noise_heading),
-                        ("--latency", latency), ("--command-latency", command_latency)):
+    for name, value, unit in (("--rate", rate, "Hz"), ("--command-timeout", command_timeout, "s")):
+        if not (math.isfinite(value) and value > 0.0):
+            fail(2, f"{name} {value}: expected a finite number > 0 {unit}")
+    for name, value, unit in (("--noise-position", noise_position, "m"), ("--noise-heading", noise_heading, "degrees"),
+                              ("--latency", latency, "s"), ("--command-latency", command_latency, "s")):
         if not (math.isfinite(value) and value >= 0.0):
-            fail(2, f"{name} {value}: expected a finite number >= 0")
+            fail(2, f"{name} {value}: expected a finite number >= 0 {unit}")
     if ros2 is not None and ros2 not in ("rmw_zenoh", "bridge_dds"):
         fail(2, f"--ros2 {ros2}: expected rmw_zenoh or bridge_dds")
     links = emulated_links(parsed, ids, ros2)

@@ -9,8 +9,9 @@ from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
-from orchestrator.cli.common import (AllowLong, OVERWRITE_HELP, SET_METAVAR, check_output, choices_metavar, claim_trace, err, fail,
+from orchestrator.cli.common import (AllowLong, OVERWRITE_HELP, SET_METAVAR, check_choice, check_output, choices_metavar, claim_trace, err, fail,
                                      load_config, out, summary_table)
+from orchestrator.components.kinds import FMU_KINDS
 from orchestrator.scenario.config import Config, ConfigError
 
 if TYPE_CHECKING:
@@ -103,7 +104,7 @@ def run(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar and no table")] = False,
     trace_every: Annotated[Optional[int], typer.Option("--trace-every", min=1, help="record every K-th communication point (overrides simulation.trace_every)")] = None,
     engine_name: Annotated[Optional[str], typer.Option("--engine", metavar=choices_metavar(RUN_ENGINES), help="native (compiled stepping core; default when built) or python (FMPy); same results")] = None,
-    fmu_kind: Annotated[Optional[str], typer.Option("--fmus", metavar=choices_metavar(("native", "python")), help="native (C FMUs, default where a C compiler can build them) or python (pythonfmu FMUs); same results (overrides simulation.fmus)")] = None,
+    fmu_kind: Annotated[Optional[str], typer.Option("--fmus", metavar=choices_metavar(FMU_KINDS), help="native (C FMUs, default where a C compiler can build them) or python (pythonfmu FMUs); same results (overrides simulation.fmus)")] = None,
     trace_writer: Annotated[str, typer.Option("--trace-writer", metavar=choices_metavar(("auto", "inline", "process")), help="where the trace is encoded: process (a second process), inline, or auto (a second process for long runs on a multi-core machine); same file")] = "auto",
     overwrite: Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="also print where the wall time went: start-up (imports, config, FMUs), the run's phases, the summary")] = False,
@@ -120,6 +121,7 @@ def run(
     entered = seconds_since_process_start()  # the interpreter and the imports so far
     if trace_every is not None:
         overrides = [*overrides, f"simulation.trace_every={trace_every}"]
+    check_choice("--fmus", fmu_kind, FMU_KINDS)
     if fmu_kind is not None:
         overrides = [*overrides, f"simulation.fmus={json.dumps(fmu_kind)}"]
     parsed, text = load_config(config, overrides, allow_long)
@@ -149,7 +151,7 @@ def _chosen_engine(config: Path, parsed: Config, engine_name: str | None, monoli
     from orchestrator.execution.run import TRACE_WRITERS, default_engine
 
     if engine_name is not None and engine_name not in RUN_ENGINES:
-        fail(2, f"--engine {engine_name!r}: expected native or python")
+        check_choice("--engine", engine_name, RUN_ENGINES)
     if engine_name == "native" and default_engine() != "native":
         fail(2, "--engine native: the compiled core is not built here (reinstall with a C compiler: pip install -e .)")
     if trace_writer not in TRACE_WRITERS:

@@ -26,8 +26,10 @@ def export_ssp(
     from orchestrator.support.output import check_target
     from orchestrator.interop.ssp import SspError, export_ssp as write_package, SSP, ssp_notes
 
-    from orchestrator.components.kinds import FmuKindError
+    from orchestrator.cli.common import check_choice
+    from orchestrator.components.kinds import FMU_KINDS, FmuKindError
 
+    check_choice("--fmus", fmu_kind, FMU_KINDS)
     if fmu_kind is not None:
         overrides = [*overrides, f"simulation.fmus={json.dumps(fmu_kind)}"]
     parsed, _ = load_config(config, overrides)

@@ -15,7 +15,7 @@ defaults); a caller passes the first folder and this module finds the second bel
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 FMU_KINDS = ("native", "python")
 NATIVE_SUBFOLDER = "native"
@@ -62,8 +62,10 @@ def fmu_folder(fmu_dir: Path, kind: str) -> Path:
     return Path(fmu_dir) / NATIVE_SUBFOLDER if kind == "native" else Path(fmu_dir)
 
 
-def ensure_fmus(fmu_dir: Path, kind: str, names: Sequence[str]) -> dict[str, Path]:
-    """Paths of FMUs ``names`` of ``kind``, built first where missing or out of date.
+def ensure_fmus(fmu_dir: Path, kind: str, names: Sequence[str],
+                announce: Callable[[str, Path], None] | None = None) -> dict[str, Path]:
+    """Paths of FMUs ``names`` of ``kind``, built first where missing or out of date (``announce(name,
+    folder)`` before each build).
 
     ``LiveVehicle`` (a live robot as an FMU) exists only as a pythonfmu FMU: it runs the bridge's
     Python code, so it comes from the pythonfmu folder whatever ``kind`` says.
@@ -77,12 +79,12 @@ def ensure_fmus(fmu_dir: Path, kind: str, names: Sequence[str]) -> dict[str, Pat
         from fmus.builders import NATIVE_FMI2, NoCompiler
 
         try:
-            built = NATIVE_FMI2.build(fmu_folder(fmu_dir, "native"), names=tuple(native))
+            built = NATIVE_FMI2.build(fmu_folder(fmu_dir, "native"), names=tuple(native), announce=announce)
         except NoCompiler as error:
             raise FmuKindError(f"{error}; run with --fmus python (or simulation.fmus = \"python\")") from None
         paths.update({fmu.name: fmu.path for fmu in built})
     if python:
-        paths.update({fmu.name: fmu.path for fmu in PYTHONFMU.build(Path(fmu_dir), names=tuple(python))})
+        paths.update({fmu.name: fmu.path for fmu in PYTHONFMU.build(Path(fmu_dir), names=tuple(python), announce=announce)})
     return {name: paths[name] for name in names}
 
 

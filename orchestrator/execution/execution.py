@@ -24,6 +24,7 @@ from orchestrator.components.live import check_live_options, live_names
 from orchestrator.execution.engine import EngineSetup, default_engine, engine_class
 from orchestrator.execution.signals import StopRequest
 from orchestrator.observers.base import Observers
+from orchestrator.observers.progress import ProgressDisplay
 from orchestrator.observers.trace import TraceObserver, choose_trace_writer, open_trace_writer, signal_text
 from orchestrator.scenario.config import Config
 from orchestrator.scenario.scenario import build_scenario, step_count
@@ -147,8 +148,9 @@ class Execution:
         if self.target is not None and self.writer_kind == "process":
             self.trace_process = TraceProcess(keep_fds=(self.target.fd,))
         self.fmu_kind = resolve_fmu_kind(sim.fmus, fmu_dir)
+        announce = self.tick.building if isinstance(self.tick, ProgressDisplay) else None  # a first run builds them
         self.fmus = {name: UnpackedFmu.open_cached(path)
-                     for name, path in ensure_fmus(fmu_dir, self.fmu_kind, FMU_NAMES).items()}
+                     for name, path in ensure_fmus(fmu_dir, self.fmu_kind, FMU_NAMES, announce).items()}
 
     def run(self) -> RunResult:
         """Start, step to the end or the first stop, finalize; the result says how it ended."""
@@ -167,6 +169,7 @@ class Execution:
             self.engine = self.engine_class(setup)
             self._report_links(observers)
             self.engine.start(observers, stop.check)
+            observers.stepping()
             marks["initialize"] = clock.perf_counter()
             self.engine.advance(self.steps, observers, stop.check)
         except ComponentError as failure:
@@ -260,6 +263,8 @@ class Execution:
         from orchestrator.observers.hil_link import LinkReporter
 
         self.reporter = LinkReporter(self.engine.components, observers, pacer, self.trace.metadata)
+        for component in self.reporter.live:  # their start's waits (robot, key, endpoint, s left) go to the observers
+            component.on_wait = observers.waiting
         observers.add(self.reporter)
         observers.log(0.0, "Info", f"live: {', '.join(sorted(self.live))} on Zenoh; the run is paced to wall-clock time")
 

@@ -10,6 +10,10 @@ An engine hands what it computes to the list once, and the list hands it to ever
 * ``advanced(k)``: ``k`` communication steps are done (after each step, or each call into C);
 * ``log(t, level, message)`` and ``link(stream, t, fields)``: a line for the run's log, and a live
   robot link's raw message, from the run or from an observer that relays them (the HIL link reporter);
+* ``waiting(what, left)``: before the first point, the start waits for ``what`` (a live robot, on
+  which key and endpoint) and gives up in ``left`` seconds (called about each second);
+* ``stepping()``: the components are initialized, stepping starts (estimates of the time left count
+  from here: building FMUs, waiting for a robot or a viewer is not stepping);
 * ``finish()``: the loop is over, however it ended (the trace is finalized by the execution itself:
   its fate decides the run's status).
 
@@ -41,6 +45,12 @@ class Observer:
 
     def link(self, stream: str, t: float, fields: dict[str, float]) -> None:
         """A live robot link's raw message (``<vehicle>/<stream>``)."""
+
+    def waiting(self, what: str, left: float) -> None:
+        """The start waits for ``what``; it gives up in ``left`` seconds."""
+
+    def stepping(self) -> None:
+        """The components are initialized; stepping starts now."""
 
     def finish(self) -> None:
         """The stepping is over (completed, failed or stopped): release what the observer holds."""
@@ -89,6 +99,14 @@ class Observers(Observer):
     def link(self, stream: str, t: float, fields: dict[str, float]) -> None:
         for observer in self.members:
             observer.link(stream, t, fields)
+
+    def waiting(self, what: str, left: float) -> None:
+        for observer in self.members:
+            observer.waiting(what, left)
+
+    def stepping(self) -> None:
+        for observer in self.members:
+            observer.stepping()
 
     def finish(self) -> None:
         """Every observer's ``finish``, even if one of them raises (the first error is raised after)."""

@@ -29,6 +29,7 @@ from __future__ import annotations
 import sys
 
 import errno
+import logging
 import math
 import threading
 import time as clock
@@ -51,6 +52,25 @@ LAG_NOTE = 1.0  # wall seconds behind the pace from which the run says it could 
 SETTLE = 0.5  # s without a new subscription after which --live-wait takes a viewer's subscriptions as complete
 
 
+# The SDK logs each client's read error at ERROR; a viewer closed without a goodbye (a browser tab shut,
+# a laptop asleep) is how viewers leave, not a fault of the run: it is dropped (other errors still show)
+SDK_CLIENT_LOGGER = "foxglove.websocket.connected_client.poller"
+ABRUPT_DISCONNECTS = ("Connection reset without closing handshake", "Connection reset by peer", "Broken pipe")
+
+
+class _QuietDisconnects(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        return not any(text in message for text in ABRUPT_DISCONNECTS)
+
+
+def quiet_abrupt_disconnects() -> None:
+    """Drop the SDK's log line for a viewer that left abruptly (once per process)."""
+    logger = logging.getLogger(SDK_CLIENT_LOGGER)
+    if not any(isinstance(f, _QuietDisconnects) for f in logger.filters):
+        logger.addFilter(_QuietDisconnects())
+
+
 class FoxgloveViewError(ValueError):
     """The live view cannot start (port in use, bad host): one line for the user."""
 
@@ -71,6 +91,7 @@ class FoxgloveView(Observer):
         import foxglove  # the Rust server and its threads start only for a live run
         from foxglove.websocket import ServerListener
 
+        quiet_abrupt_disconnects()
         self._foxglove = foxglove
         self.context = foxglove.Context()
         self.wait = wait

@@ -9,10 +9,12 @@ elapsed and estimated remaining time. ``PLATOON_PROGRESS_SECONDS=0`` prints ever
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from contextlib import contextmanager
-from typing import Callable, Iterator, TextIO
+from pathlib import Path
+from typing import Any, Callable, Iterator, Protocol, TextIO, runtime_checkable
 
 from orchestrator.observers.base import Observer
 
@@ -40,9 +42,32 @@ def _duration(seconds: float) -> str:
     return f"{whole // 60}:{whole % 60:02d} min" if whole >= 60 else f"{whole} s"
 
 
+def waiting_text(what: str, left: float) -> str:
+    return f"waiting for {what}: {math.ceil(max(0.0, left))} s left before the run gives up"
+
+
+def building_text(name: str, folder: Path) -> str:
+    return f"building {name}.fmu in {folder}/ (once: later runs reuse it while its sources are unchanged)"
+
+
+@runtime_checkable
+class ProgressDisplay(Protocol):
+    """What a run shows before and while it steps: FMUs being built, what its start waits for (with a
+    countdown), then the progress of the steps, whose time estimates count from ``stepping()`` on."""
+
+    def __call__(self, done: int) -> None: ...
+
+    def building(self, name: str, folder: Path) -> None: ...
+
+    def waiting(self, what: str, left: float) -> None: ...
+
+    def stepping(self) -> None: ...
+
+
 class ProgressLines:
     """``label: 30% (3000/10000 steps), 12 s elapsed, about 28 s left``: one line per tenth, at most one
-    per ``min_gap`` seconds; the final 100 % line only when an earlier line was printed."""
+    per ``min_gap`` seconds; the final 100 % line only when an earlier line was printed. The clock
+    starts at ``stepping()`` (or the first tick): building FMUs or waiting for a robot is not stepping."""
 
     def __init__(self, total: int, label: str, unit: str, stream: TextIO, min_gap: float) -> None:
         self.total = max(1, total)
@@ -50,12 +75,31 @@ class ProgressLines:
         self.unit = unit
         self.stream = stream
         self.min_gap = min_gap
-        self.started = time.perf_counter()
-        self.last_line = self.started
+        self.started: float | None = None
+        self.last_line = 0.0
+        self.last_wait: float | None = None
         self.tenth = 0  # the last tenth reached
         self.printed = False
 
+    def _write(self, line: str) -> None:
+        self.stream.write(line + "\n")
+        self.stream.flush()
+
+    def building(self, name: str, folder: Path) -> None:
+        self._write(building_text(name, folder))
+
+    def waiting(self, what: str, left: float) -> None:
+        now = time.perf_counter()  # called about each second: the first line, then at most one per min_gap
+        if self.last_wait is None or now - self.last_wait >= self.min_gap:
+            self.last_wait = now
+            self._write(waiting_text(what, left))
+
+    def stepping(self) -> None:
+        if self.started is None:
+            self.started = self.last_line = time.perf_counter()
+
     def __call__(self, done: int) -> None:
+        self.stepping()
         tenth = min(TENTHS, done * TENTHS // self.total)
         if tenth <= self.tenth:
             return
@@ -63,17 +107,66 @@ class ProgressLines:
         now = time.perf_counter()
         if now - self.last_line < self.min_gap and not (tenth == TENTHS and self.printed):
             return
-        elapsed = now - self.started
+        elapsed = now - (self.started or now)
         left = "" if done >= self.total else f", about {_duration(elapsed * (self.total - done) / done)} left"
-        self.stream.write(f"{self.label}: {100 * done // self.total}% ({done}/{self.total} {self.unit}), "
-                          f"{_duration(elapsed)} elapsed{left}\n")
-        self.stream.flush()
+        self._write(f"{self.label}: {100 * done // self.total}% ({done}/{self.total} {self.unit}), "
+                    f"{_duration(elapsed)} elapsed{left}")
         self.last_line = now
         self.printed = True
 
 
+class ProgressBar:
+    """A transient rich bar on a terminal, shown from ``stepping()`` (or the first tick) on; before it,
+    a status line for what the start waits for, counting down."""
+
+    def __init__(self, total: int, label: str, console) -> None:
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+        self.console, self.total = console, total
+        self.bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
+                            TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=True)
+        self.task = self.bar.add_task(label, total=total, start=False)
+        self.every = max(1, total // 200)  # redraws are costly: at most ~200 updates
+        self.status: Any = None
+        self.shown = False
+
+    def building(self, name: str, folder: Path) -> None:
+        self.console.print(building_text(name, folder), highlight=False)
+
+    def waiting(self, what: str, left: float) -> None:
+        if self.status is None:
+            self.status = self.console.status(waiting_text(what, left))
+            self.status.start()
+        else:
+            self.status.update(waiting_text(what, left))
+
+    def stepping(self) -> None:
+        if self.shown:
+            return
+        self._stop_status()
+        self.shown = True
+        self.bar.start()
+        self.bar.start_task(self.task)
+
+    def __call__(self, done: int) -> None:
+        self.stepping()
+        if done % self.every == 0 or done == self.total:
+            self.bar.update(self.task, completed=done)
+
+    def _stop_status(self) -> None:
+        if self.status is not None:
+            self.status.stop()
+            self.status = None
+
+    def close(self) -> None:
+        self._stop_status()
+        if self.shown:
+            self.bar.stop()
+
+
 @contextmanager
-def progress(total: int, label: str, console, quiet: bool = False, unit: str = "steps") -> Iterator[Tick | None]:
+def progress(total: int, label: str, console, quiet: bool = False,
+             unit: str = "steps") -> Iterator[ProgressDisplay | None]:
     """A ``tick(done)`` for ``total`` units of work shown on ``console`` (a rich Console on stderr): a
     transient bar on a terminal, ``ProgressLines`` elsewhere, None when ``quiet``."""
     if quiet:
@@ -82,29 +175,28 @@ def progress(total: int, label: str, console, quiet: bool = False, unit: str = "
     if not console.is_terminal:
         yield ProgressLines(total, label, unit, console.file, progress_seconds())
         return
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
-    bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
-                   TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=True)
-    task = bar.add_task(label, total=total)
-    every = max(1, total // 200)  # redraws are costly: at most ~200 updates
-
-    def tick(done: int) -> None:
-        if done % every == 0 or done == total:
-            bar.update(task, completed=done)
-
-    bar.start()
+    bar = ProgressBar(total, label, console)
     try:
-        yield tick
+        yield bar
     finally:
-        bar.stop()
+        bar.close()
 
 
 class ProgressObserver(Observer):
-    """A run's progress as one of its observers: ``tick(k)`` as steps complete."""
+    """A run's progress as one of its observers: ``tick(k)`` as steps complete; with a
+    ``ProgressDisplay``, also what the start waits for and when stepping starts."""
 
     def __init__(self, tick: Tick) -> None:
         self.tick = tick
+        self.display = tick if isinstance(tick, ProgressDisplay) else None
+
+    def waiting(self, what: str, left: float) -> None:
+        if self.display is not None:
+            self.display.waiting(what, left)
+
+    def stepping(self) -> None:
+        if self.display is not None:
+            self.display.stepping()
 
     def advanced(self, steps_done: int) -> None:
         self.tick(steps_done)

@@ -23,6 +23,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationErr
 from bridge.protocol import DEFAULT_PREFIX, check_prefix
 from fmus.model.dynamics import M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEEL_SPEED_MAX
 from fmus.model.integrate import substep_count
+from orchestrator.support.suggest import did_you_mean
 
 from .ros2_config import RunRos2, VehicleRos2
 from .ros2_config import _Rule as _Ros2Rule
@@ -51,13 +52,21 @@ GAIN_MAX = 1000.0  # 1/s: a speed loop faster than 1 ms is not a vehicle (and ne
 ANGLE_MAX = 2.0 * math.pi  # rad: one turn either way states every direction
 PULSE_MAX = 1e6  # m/s² or m/s: a disturbance beyond this only produces overflow
 
-# Every float is finite (allow_inf_nan=False above); these add the range.
+
+
+class Unit(str):
+    """The unit of a numeric key, printed with its range in an error ("<= 6.28319 rad"): configs use SI
+    units and radians, and a message says which."""
+
+
+# Every float is finite (allow_inf_nan=False above); these add the range and the unit.
 Positive = Annotated[float, Field(gt=0.0)]
-Length = Annotated[float, Field(ge=-LENGTH_MAX, le=LENGTH_MAX)]
-PositiveLength = Annotated[float, Field(ge=SMALL, le=LENGTH_MAX)]
-Speed = Annotated[float, Field(ge=SMALL, le=SPEED_MAX)]
-Gain = Annotated[float, Field(ge=SMALL, le=GAIN_MAX)]
-Angle = Annotated[float, Field(ge=-ANGLE_MAX, le=ANGLE_MAX)]
+Duration = Annotated[float, Field(gt=0.0), Unit("s")]
+Length = Annotated[float, Field(ge=-LENGTH_MAX, le=LENGTH_MAX), Unit("m")]
+PositiveLength = Annotated[float, Field(ge=SMALL, le=LENGTH_MAX), Unit("m")]
+Speed = Annotated[float, Field(ge=SMALL, le=SPEED_MAX), Unit("m/s")]
+Gain = Annotated[float, Field(ge=SMALL, le=GAIN_MAX), Unit("1/s")]
+Angle = Annotated[float, Field(ge=-ANGLE_MAX, le=ANGLE_MAX), Unit("rad")]
 Pulse = Annotated[float, Field(ge=-PULSE_MAX, le=PULSE_MAX)]
 
 # The run's name becomes a file name (runs/<name>-<time>.mcap): letters, digits (any script), and a
@@ -102,11 +111,11 @@ def step_count(stop_time: float, step: float) -> int:
 
 
 class Simulation(_Strict):
-    stop_time: Positive = Field(100.0, description="simulated time, s")
-    step: Positive = Field(0.01, description="communication step, s (at most stop_time)")
+    stop_time: Duration = Field(100.0, description="simulated time, s")
+    step: Duration = Field(0.01, description="communication step, s (at most stop_time)")
     master: Literal["jacobi", "gauss-seidel"] = "jacobi"
     coupling: Literal["extrapolate", "hold"] = "extrapolate"
-    max_substep: Positive = Field(0.01, description="longest RK4 substep inside an FMU, s")
+    max_substep: Duration = Field(0.01, description="longest RK4 substep inside an FMU, s")
     trace_every: int = Field(1, ge=1, description="record every K-th communication point (at most the step count)")
     fmus: Literal["native", "python"] | None = Field(
         None, description="FMUs to step: native (C, no Python on the host) or python (pythonfmu); "
@@ -122,9 +131,9 @@ class PathConfig(_Strict):
 
 
 class M3pi(_Strict):
-    track: Annotated[float, Field(ge=SMALL, le=10.0)] = Field(M3PI_TRACK, description="m")
-    wheel_speed_max: Annotated[float, Field(ge=SMALL, le=100.0)] = Field(M3PI_WHEEL_SPEED_MAX, description="m/s")
-    motor_time_constant: Annotated[float, Field(ge=SMALL, le=100.0)] = Field(M3PI_MOTOR_TIME_CONSTANT, description="s")
+    track: Annotated[float, Field(ge=SMALL, le=10.0), Unit("m")] = Field(M3PI_TRACK, description="m")
+    wheel_speed_max: Annotated[float, Field(ge=SMALL, le=100.0), Unit("m/s")] = Field(M3PI_WHEEL_SPEED_MAX, description="m/s")
+    motor_time_constant: Annotated[float, Field(ge=SMALL, le=100.0), Unit("s")] = Field(M3PI_MOTOR_TIME_CONSTANT, description="s")
 
 
 Law = Literal["sine", "regular"]
@@ -185,10 +194,10 @@ class Hil(_Strict):
     """Hardware in the loop: shared by every live vehicle of the run (docs/hil.md)."""
 
     prefix: str = Field(DEFAULT_PREFIX, description="Zenoh key prefix: <prefix>/m3pi/<id>/...")
-    pose_timeout: float = Field(0.5, gt=0.0, le=5.0, description="s without a valid pose: the robot is lost")
-    connect_timeout: float = Field(10.0, gt=0.0, le=600.0, description="s to wait for each robot at the start")
-    command_validity: float = Field(0.1, gt=0.0, le=5.0, description="s: a command's deadline after it is sent")
-    max_pose_age: float = Field(0.25, gt=0.0, le=5.0, description="s: an older pose is dropped as late")
+    pose_timeout: Annotated[float, Unit("s")] = Field(0.5, gt=0.0, le=5.0, description="s without a valid pose: the robot is lost")
+    connect_timeout: Annotated[float, Unit("s")] = Field(10.0, gt=0.0, le=600.0, description="s to wait for each robot at the start")
+    command_validity: Annotated[float, Unit("s")] = Field(0.1, gt=0.0, le=5.0, description="s: a command's deadline after it is sent")
+    max_pose_age: Annotated[float, Unit("s")] = Field(0.25, gt=0.0, le=5.0, description="s: an older pose is dropped as late")
     allow_insecure: bool = Field(False, description="allow Zenoh endpoints off this machine without TLS "
                                                     "(docs/hil.md, \"A secure lab\")")
 
@@ -203,8 +212,8 @@ class Hil(_Strict):
 class Disturbance(_Strict):
     vehicle: int = Field(ge=1)
     kind: Literal["lateral_acceleration", "speed"]
-    start: Annotated[float, Field(ge=0.0)]
-    duration: Positive
+    start: Annotated[float, Field(ge=0.0), Unit("s")]
+    duration: Duration
     value: Pulse
 
 
@@ -359,12 +368,24 @@ def _range_text(field: tuple[Any, list[Any]]) -> str:
     annotation, metadata = field
     bounds = [f"{word} {_number(getattr(item, name))}" for item in metadata for name, word in _BOUND_WORDS
               if isinstance(item, getattr(annotated_types, name.capitalize())) and hasattr(item, name)]
+    unit = next((f" {item}" for item in metadata if isinstance(item, Unit)), "")
+    bounds = [bound + unit for bound in bounds]
     kind = "an integer" if annotation is int else "a finite number"
-    return " and ".join([f"{kind} {bounds[0]}" if bounds else kind, *bounds[1:]])
+    text = " and ".join([f"{kind} {bounds[0]}" if bounds else kind, *bounds[1:]])
+    return text + (" (radians: 90 degrees = 1.5708 rad)" if unit == " rad" else "")
 
 
 def _number(value: float | int) -> str:
     return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def _nearest_key(loc: tuple[Any, ...]) -> str:
+    """" (did you mean count?)" for an unknown key ``loc``: the nearest key its table has, if any is near."""
+    table, _ = _field_at(loc[:-1])
+    if not (isinstance(table, type) and issubclass(table, BaseModel)) or not isinstance(loc[-1], str):
+        return ""
+    table_key = _key_of(loc[:-1])
+    return did_you_mean(loc[-1], table.model_fields, f"{table_key}." if table_key else "")
 
 
 def _explain(error: ValidationError) -> str:
@@ -377,7 +398,7 @@ def _explain(error: ValidationError) -> str:
         return f"{key}.{ctx['error']}" if key else str(ctx["error"])
     key = key or "a key"  # the key itself is what is wrong (not UTF-8)
     if first["type"] == "extra_forbidden":
-        return f"{key}: unknown key"
+        return f"{key}: unknown key{_nearest_key(loc)}"
     if first["type"] == "missing":
         return f"{key}: missing (required)"
     if "error" in ctx and isinstance(ctx["error"], _Expected):
@@ -466,13 +487,36 @@ def read_config_text(path: str | Path) -> str:
                           "save it as UTF-8)") from None
 
 
-def parse_config(text: str, default_name: str, overrides: list[str] | tuple[str, ...] = ()) -> tuple[Config, dict[str, Any]]:
-    """Parse, override and validate a config's text; returns the config and the raw mapping."""
+FILE_KEYS = ("zenoh_config",)  # keys of [vehicles.K] that name a file
+
+
+def resolve_named_files(raw: dict[str, Any], folder: Path) -> None:
+    """Make the files a config file names relative to that file's ``folder`` (not to the current folder:
+    a config runs the same from anywhere). Values given with ``--set`` stay relative to the current
+    folder, as every path typed on a command line."""
+    vehicles = raw.get("vehicles")
+    if not isinstance(vehicles, dict):
+        return  # validation names the problem
+    for table in vehicles.values():
+        if not isinstance(table, dict):
+            continue
+        for key in FILE_KEYS:
+            value = table.get(key)
+            if isinstance(value, str) and value and not Path(value).is_absolute():
+                table[key] = str(folder / value)
+
+
+def parse_config(text: str, default_name: str, overrides: list[str] | tuple[str, ...] = (),
+                 folder: Path | None = None) -> tuple[Config, dict[str, Any]]:
+    """Parse, override and validate a config's text; returns the config and the raw mapping. ``folder``:
+    the config file's folder, which the files it names are relative to (``resolve_named_files``)."""
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise ConfigError(f"not valid TOML: {error}") from None
     raw.setdefault("name", default_name)
+    if folder is not None:
+        resolve_named_files(raw, folder)
     for assignment in overrides:
         apply_override(raw, assignment)
     return config_from_mapping(raw), raw
@@ -480,4 +524,4 @@ def parse_config(text: str, default_name: str, overrides: list[str] | tuple[str,
 
 def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> tuple[Config, dict[str, Any]]:
     """Read, override and validate a scenario; returns the config and the raw mapping it came from."""
-    return parse_config(read_config_text(path), Path(path).stem, overrides)
+    return parse_config(read_config_text(path), Path(path).stem, overrides, Path(path).parent)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,7 @@ import numpy as np  # noqa: E402
 from matplotlib.colors import LogNorm  # noqa: E402
 
 from orchestrator.support.output import IMAGE, check_target, replacing  # noqa: E402
+from orchestrator.analysis.metrics import SUMMARY_UNITS  # noqa: E402
 
 RATIO = "d_star/R"
 
@@ -122,8 +124,13 @@ def draw_map(folder: Path, value: str, x: str, y: str, panel: str, png: Path, ov
         axis.set_xlabel("d*/R" if x == RATIO else x)
         axis.set_title(f"{panel} = {name}")
     axes[0][0].set_ylabel(y)
-    figure.suptitle(f"{value}: signed value in each cell, its magnitude in colour")
-    figure.colorbar(image, ax=axes[0].tolist(), label=f"|{value}|", shrink=0.9)
+    unit = SUMMARY_UNITS.get(value.rsplit(".", 1)[-1])  # the report's quantities have units; other columns none
+    unit_text = f" [{unit}]" if unit else ""
+    title = f"{value}{unit_text}: signed value in each cell, its magnitude in colour"
+    # wrapped to the figure's width: a small grid makes a narrow figure, and a long line would be cut at both ends
+    characters = max(16, int(figure.get_figwidth() * 72 / (0.6 * plt.rcParams["font.size"] * 1.2)))
+    figure.suptitle(textwrap.fill(title, characters))
+    figure.colorbar(image, ax=axes[0].tolist(), label=f"|{value}|{unit_text}", shrink=0.9)
     try:  # the output rule (support/output.py): drawn aside, synced, renamed; OutputError in one line
         with replacing(png) as aside:
             figure.savefig(aside, format="png")

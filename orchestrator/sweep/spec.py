@@ -1,7 +1,7 @@
 """The sweep file: which base config, what is fixed, what varies (docs/sweeps.md).
 
 ```toml
-base = "configs/paper/platoon.toml"   # relative to the current folder, like every platoon path
+base = "../paper/platoon.toml"        # relative to this sweep file's folder (runs the same from anywhere)
 [set]                                 # optional: the same overrides for every run
 "simulation.trace_every" = 10
 [grid]                                # every combination of these values
@@ -101,8 +101,10 @@ def load_sweep(path: str | Path) -> SweepSpec:
     base = raw.get("base")
     if not isinstance(base, str) or not base:
         raise SweepError(f"{where} base: missing (required): the config file the runs start from")
-    if not Path(base).is_file():
-        raise SweepError(f"{where} base = {base!r}: no such file (paths are relative to the current folder)")
+    base_path = Path(path).parent / base  # relative to the sweep file, not to the current folder
+    if not base_path.is_file():
+        raise SweepError(f"{where} base = {base!r}: no such file {str(base_path)!r} (a path in a sweep file is "
+                         "relative to the sweep file's folder)")
 
     fixed = _table(raw, "set", where)
     for key, value in fixed.items():
@@ -149,5 +151,5 @@ def load_sweep(path: str | Path) -> SweepSpec:
             raise SweepError(f"{where} {both[0]!r} is both in {a_name} and in {b_name}")
     if not grid and not ranges:
         raise SweepError(f"{where} nothing varies: add a [grid] or a [random] table")
-    return SweepSpec(path, Path(base), dict(fixed), {k: list(v) for k, v in grid.items()}, samples if ranges else 0,
+    return SweepSpec(path, base_path, dict(fixed), {k: list(v) for k, v in grid.items()}, samples if ranges else 0,
                      seed, ranges)
