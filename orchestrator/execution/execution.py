@@ -279,7 +279,11 @@ class Execution:
                     outcome.fail(f"closing the FMUs failed: {closing}")
         if self.reporter is not None:  # stamped at the last communication point the engine reached
             live_summary = self.reporter.close_links(engine.time if engine is not None else 0.0)
-        observers.finish()
+        try:
+            observers.finish()
+        except Exception as finishing:  # an observer that cannot let go (a closing session): the trace comes first
+            if outcome.status == "completed":
+                outcome.fail(f"an observer failed to finish: {type(finishing).__name__}: {finishing}")
         if self.trace is not None:
             self._finalize_trace(outcome, stop, observers)
         if self.trace_process is not None:
