@@ -51,15 +51,21 @@ def _csv(option: str, text: str, choices: tuple[str, ...]) -> list[str]:
     return list(dict.fromkeys(names))
 
 
+def _integers(option: str, text: str, least: int, what: str, example: str) -> list[int]:
+    """A comma-separated list of whole numbers, each at least ``least``, in the order given without repeats;
+    exit 2 naming the option otherwise."""
+    try:
+        values = [int(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        values = []
+    if not values or min(values) < least:
+        fail(2, f"{option} {text!r}: expected comma-separated {what} of at least {least}, e.g. {example}")
+    return list(dict.fromkeys(values))
+
+
 def _counts(text: str) -> list[int]:
     """``--n``: comma-separated vehicle counts, each at least 1."""
-    try:
-        counts = [int(part) for part in text.split(",") if part.strip()]
-    except ValueError:
-        counts = []
-    if not counts or min(counts) < 1:
-        fail(2, f"--n {text!r}: expected comma-separated vehicle counts of at least 1, e.g. 4,16,64,256")
-    return list(dict.fromkeys(counts))
+    return _integers("--n", text, 1, "vehicle counts", "4,16,64,256")
 
 
 class _BenchProgress:
@@ -293,12 +299,7 @@ def bench_sweep(
     """Speed-up of a sweep with more local workers (and on Dask): wall time of real platoon sweep runs."""
     from orchestrator.bench import sweep as suite
 
-    try:
-        counts = sorted({int(part) for part in workers.split(",") if part.strip()})
-    except ValueError:
-        counts = []
-    if not counts or counts[0] < 1:
-        fail(2, f"--workers {workers!r}: expected comma-separated worker counts of at least 1, e.g. 1,2")
+    counts = sorted(_integers("--workers", workers, 1, "worker counts", "1,2"))
     run_bench("sweep", lambda progress: suite.run(counts, runs, stop_time, rounds, dask, progress), suite.render, out_dir, quiet)
 
 
@@ -312,12 +313,7 @@ def bench_sweep_bookkeeping(
     sweep of --first-run points starts its first run."""
     from orchestrator.bench import sweep_bookkeeping as suite
 
-    try:
-        sizes = sorted({int(part) for part in points.split(",") if part.strip()})
-    except ValueError:
-        sizes = []
-    if not sizes or sizes[0] < 10:
-        fail(2, f"--points {points!r}: expected comma-separated sweep sizes of at least 10, e.g. 100,1000")
+    sizes = sorted(_integers("--points", points, 10, "sweep sizes", "100,1000"))
     run_bench("sweep-bookkeeping", lambda progress: suite.run(sizes, first_run, progress), suite.render, out_dir, quiet)
 
 
