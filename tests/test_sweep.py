@@ -455,3 +455,16 @@ def test_the_plan_is_streamed_memory_flat_in_the_number_of_points(tmp_path: Path
     assert [r.values for r in runs(small)] == [r.values for r in plan(small)]
     sine = [r.values["platoon.k_v"] for r in runs(small) if r.values["platoon.law"] == "sine"]
     assert sine == [r.values["platoon.k_v"] for r in runs(small) if r.values["platoon.law"] == "regular"]
+
+
+def test_a_map_axis_names_its_key_with_the_unit() -> None:
+    """sweep-plot's axes and panel titles are config keys: each with its unit, as configs state it."""
+    from orchestrator.scenario.config import key_unit
+    from orchestrator.sweep.plot import _axis_name
+
+    assert _axis_name("platoon.k_v") == "platoon.k_v [1/s]"
+    assert _axis_name("vehicles.3.k_v") == "vehicles.3.k_v [1/s]"
+    assert _axis_name("path.center[0]") == "path.center[0] [m]"
+    assert _axis_name("platoon.count") == "platoon.count"  # a count has no unit
+    assert _axis_name("d_star/R") == "d*/R"  # a ratio neither
+    assert key_unit("simulation.step") == "s" and key_unit("platoon.speed") == "m/s" and key_unit("no.such") is None

@@ -382,6 +382,15 @@ def _unwrap(annotation: Any) -> tuple[Any, list[Any]]:
             return annotation, metadata
 
 
+def key_unit(key: str) -> str | None:
+    """The unit of a numeric config key (``platoon.k_v`` -> ``1/s``, ``path.center[0]`` -> ``m``), for axis
+    labels and messages; None for a key without one (a count, a factor, a word) or no such key."""
+    parts = key.replace("[", ".").replace("]", "").split(".")
+    loc = tuple(int(part) if part.isdigit() else part for part in parts if part)
+    _, metadata = _field_at(loc)
+    return next((str(item) for item in metadata if isinstance(item, (Unit, UnitNote))), None)
+
+
 def _range_text(field: tuple[Any, list[Any]]) -> str:
     """"a finite number >= 0.001 and <= 1000", "an integer >= 1": the declared range of a numeric key."""
     annotation, metadata = field

@@ -27,6 +27,7 @@ from matplotlib.colors import LogNorm  # noqa: E402
 
 from orchestrator.support.output import IMAGE, check_target, replacing  # noqa: E402
 from orchestrator.analysis.metrics import SUMMARY_UNITS  # noqa: E402
+from orchestrator.scenario.config import key_unit  # noqa: E402
 
 RATIO = "d_star/R"
 
@@ -71,6 +72,14 @@ def _lookup(record: dict[str, Any], key: str) -> Any:
 
 def _label(value: Any) -> str:
     return f"{value:.3g}" if isinstance(value, float) else str(value)
+
+
+def _axis_name(key: str) -> str:
+    """An axis's config key with its unit: ``platoon.k_v [1/s]`` (d*/R and counts have none)."""
+    if key == RATIO:
+        return "d*/R"
+    unit = key_unit(key)
+    return f"{key} [{unit}]" if unit else key
 
 
 def draw_map(folder: Path, value: str, x: str, y: str, panel: str, png: Path, overwrite: bool = False) -> Path:
@@ -121,9 +130,10 @@ def draw_map(folder: Path, value: str, x: str, y: str, panel: str, png: Path, ov
         axis.set_facecolor("0.35")
         axis.set_xticks(range(len(xs)), [_label(v) for v in xs])
         axis.set_yticks(range(len(ys)), [_label(v) for v in ys])
-        axis.set_xlabel("d*/R" if x == RATIO else x)
-        axis.set_title(f"{panel} = {name}")
-    axes[0][0].set_ylabel(y)
+        axis.set_xlabel(_axis_name(x))
+        panel_unit = key_unit(panel) if panel != RATIO else None
+        axis.set_title(f"{panel} = {name}" + (f" {panel_unit}" if panel_unit else ""))
+    axes[0][0].set_ylabel(_axis_name(y))
     unit = SUMMARY_UNITS.get(value.rsplit(".", 1)[-1])  # the report's quantities have units; other columns none
     unit_text = f" [{unit}]" if unit else ""
     title = f"{value}{unit_text}: signed value in each cell, its magnitude in colour"
