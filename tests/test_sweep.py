@@ -169,6 +169,12 @@ def test_failed_and_rejected_runs_are_recorded_and_the_others_run(tmp_path: Path
     for stop in ("0.5", "2.0"):
         rejected = by_point[(stop, "120.0")]
         assert rejected["status"] == "invalid" and "platoon.d_star = 120.0" in rejected["error"] and rejected["trace"] == ""
+    # the map says what became of each point: a value, "failed", "invalid" (a refused config is no blank cell)
+    figure = drawn_figure(out, "last.path_offset", tmp_path / "map.png", x="platoon.d_star", y="simulation.stop_time")
+    (axis,) = [a for a in figure.axes if a.get_title().startswith("platoon.law = ")]
+    texts = {(round(t.get_position()[1]), round(t.get_position()[0])): t.get_text() for t in axis.texts}
+    assert texts[(1, 0)] == "failed" and texts[(0, 1)] == texts[(1, 1)] == "invalid" and texts[(0, 0)] not in ("", "failed")
+    assert axis.get_xlabel() == "platoon.d_star [m]" and figure.axes[0].get_ylabel() == "simulation.stop_time [s]"
 
     # started again: everything is done, nothing is redone (the result files stay as they were)
     before = {p.name: p.read_bytes() for p in (out / "results").iterdir()}
@@ -336,7 +342,7 @@ def test_parquet_holds_the_rows_of_the_csv(tmp_path: Path, fmu_dir: Path) -> Non
 
 # --- the map ----------------------------------------------------------------------------------------
 
-def drawn_figure(out: Path, value: str, png: Path):
+def drawn_figure(out: Path, value: str, png: Path, x: str = "d_star/R", y: str = "platoon.count"):
     """The figure ``platoon sweep-plot OUT --value VALUE`` draws, kept open to read what it holds."""
     from orchestrator.sweep import plot
 
@@ -344,7 +350,7 @@ def drawn_figure(out: Path, value: str, png: Path):
     close = plot.plt.close
     plot.plt.close = kept.append  # draw_map closes its figure after saving it: keep it instead
     try:
-        plot.draw_map(out, value, "d_star/R", "platoon.count", "platoon.law", png)
+        plot.draw_map(out, value, x, y, "platoon.law", png)
     finally:
         plot.plt.close = close
     (figure,) = kept
