@@ -1,5 +1,5 @@
 """``python -m orchestrator ARGS``: the ``platoon`` command, for an environment without its console script."""
 
-from orchestrator.cli.app import main
+from orchestrator.cli.launch import main
 
 main()

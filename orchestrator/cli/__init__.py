@@ -1,6 +1,13 @@
 """The `platoon` command line: one module per command group (run, trace, bench, hil, ssp, viewer, sweep), the
-helpers they share in ``common``, the Typer app that gathers them in ``app``."""
+helpers they share in ``common`` (and, without typer or rich, in ``plain``), the Typer app that gathers them
+in ``app``, the entry point in ``launch`` (a plain `platoon run` starts without typer)."""
 
-from orchestrator.cli.app import main
+
+def main() -> None:
+    """The ``platoon`` console script (orchestrator/cli/launch.py)."""
+    from orchestrator.cli.launch import main as launch
+
+    launch()
+
 
 __all__ = ["main"]

@@ -1,5 +1,5 @@
 """``python -m orchestrator.cli ARGS``: the ``platoon`` command, as ``python -m orchestrator``."""
 
-from orchestrator.cli.app import main
+from orchestrator.cli.launch import main
 
 main()

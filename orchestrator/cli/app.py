@@ -8,14 +8,13 @@ shell reports a process killed by it), its trace finalized up to the stop.
 
 from __future__ import annotations
 
-import os
-import sys
 from typing import Annotated
 
 import typer
 
 from orchestrator.cli import bench, hil, mocap, run, ssp, sweep, trace, viewer
 from orchestrator.cli.common import out
+from orchestrator.cli.process import run_and_exit
 
 app = typer.Typer(
     add_completion=False,
@@ -55,29 +54,9 @@ bench.register(app)  # bench ...
 
 
 def main() -> None:
-    """Console entry point: run the command, then leave without interpreter teardown.
-
-    pythonfmu FMUs embed themselves in the host's interpreter, and its teardown after they ran
-    intermittently corrupts the heap (glibc aborts with "corrupted double-linked list", seen in
-    roughly one run in five when started through the console script). Every file is closed and every
-    line printed by the time a command returns, so we flush and exit with the command's code directly.
-    """
-    code = 0
-    try:
-        app()
-    except SystemExit as done:
-        code = done.code if isinstance(done.code, int) else (0 if done.code is None else 1)
-        if isinstance(done.code, str):
-            print(done.code, file=sys.stderr)
-    except BaseException:  # an unexpected error: show it, as Python would, then exit 1
-        import traceback
-
-        traceback.print_exc()
-        code = 1
-    finally:
-        sys.stdout.flush()
-        sys.stderr.flush()
-    os._exit(code)
+    """Console entry point with every command through typer (orchestrator/cli/launch.py is the one that
+    starts `platoon run` without it): run the command, then leave without interpreter teardown."""
+    run_and_exit(app)
 
 
 class _PlainFlags:

@@ -11,26 +11,24 @@ import json
 import warnings
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Iterator, Optional
+from typing import TYPE_CHECKING, Annotated, Iterator
 
 import typer
-from rich.console import Console
-from rich.markup import escape
 
-from orchestrator.scenario.config import Config, ConfigError, parse_config, read_config_text
-from orchestrator.support.output import OVERWRITE_HELP, OutputError  # the one output rule (docs/output.md)
-from orchestrator.support.suggest import did_you_mean
+from orchestrator.cli.plain import (check_choice, check_output, claim_trace, console, fail, load_config,  # noqa: F401
+                                    output_rule)  # re-exported: the commands import them from here
+from orchestrator.scenario.config import Config
+from orchestrator.support.output import OVERWRITE_HELP  # noqa: F401  (the one output rule, docs/output.md)
 
 if TYPE_CHECKING:  # rich's table is imported where used: `platoon run -q` needs none
     from rich.table import Table
 
 
-# No rich markup in what we print: names, paths and config text are the user's ("[[disturbance]]",
-# "runs/[a]/x.mcap") and must appear as written. The one styled line (fail) asks for markup itself.
-out = Console(markup=False)
+# The consoles (orchestrator/cli/plain.py makes them: markup off, the text is the user's)
+out = console()
 
 
-err = Console(stderr=True, markup=False)
+err = console(stderr=True)
 
 
 # Metavars that show what an option takes (typer would print <str> or <list[str]>)
@@ -43,40 +41,8 @@ def choices_metavar(choices: tuple[str, ...]) -> str:
     return "<" + "|".join(choices) + ">"
 
 
-def check_choice(option: str, value: str | None, choices: tuple[str, ...]) -> None:
-    """Exit 2 with one line naming ``option`` when ``value`` is not one of ``choices`` (the nearest one
-    suggested): a wrong option value is the option's error, not the config key it sets."""
-    if value is None or value in choices:
-        return
-    fail(2, f"{option} {value!r}: expected {' or '.join(choices)}{did_you_mean(value, choices)}")
-
-
 AllowLong = Annotated[bool, typer.Option("--allow-long", help="run even above the size limits (docs/config.md: more than "
                                          "1e6 steps, 1000 substeps per step or 1e8 FMU-substeps)")]
-
-
-def fail(code: int, message: str) -> None:
-    err.print(f"[bold red]error:[/] {escape(message)}", markup=True, highlight=False, soft_wrap=True)
-    raise typer.Exit(code)
-
-
-def load_config(config: Path, overrides: list[str], allow_long: bool = True) -> tuple[Config, str]:
-    """The validated config and its text as read (stored in the trace); exit 2 naming the problem.
-    ``allow_long=False`` also refuses a run above the size limits (orchestrator/scenario/limits.py)."""
-    from orchestrator.scenario.limits import check_run_size
-
-    try:
-        text = read_config_text(config)
-        parsed, _ = parse_config(text, config.stem, overrides, config.parent)
-        if not allow_long:
-            check_run_size(parsed)
-    except ConfigError as error:
-        fail(2, f"config {config}: {error}")
-    from orchestrator.scenario.config_warnings import config_warnings
-
-    for warning in config_warnings(parsed):  # valid, but probably not what was meant: the run still goes
-        err.print(f"warning: config {config}: {warning}", highlight=False, soft_wrap=True)
-    return parsed, text
 
 
 def summary_table(summaries, config: Config, title: str) -> Table:
@@ -102,33 +68,6 @@ def summary_table(summaries, config: Config, title: str) -> Table:
 
 
 Overwrite = Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)]
-
-
-@contextmanager
-def output_rule() -> Iterator[None]:
-    """Turn a refused or failed write (orchestrator/support/output.py) into exit 2 with its one line."""
-    try:
-        yield
-    except OutputError as error:
-        fail(2, str(error))
-
-
-def check_output(path: Path, overwrite: bool, protect: list[Path], what: str = "--out") -> None:
-    """Exit 2 with one line if the trace ``path`` must not be replaced (trace/output.py: check_replaceable)."""
-    from orchestrator.trace.output import check_replaceable
-
-    with output_rule():
-        check_replaceable(path, overwrite, protect, what)
-
-
-def claim_trace(trace: Optional[Path], overwrite: bool, protect: list[Path], default):
-    """Claim the trace path before any work (orchestrator/trace/output.py): exit 2 with one line if it is
-    in use by another run, is a file that is not a trace (without --overwrite), is the config, or cannot
-    be written."""
-    from orchestrator.trace.output import claim
-
-    with output_rule():
-        return claim(trace, overwrite, protect) if trace is not None else default()
 
 
 @contextmanager

@@ -1,0 +1,120 @@
+"""The ``platoon`` console entry point: a plain `platoon run` starts without typer; everything else goes
+through the typer app (orchestrator/cli/app.py).
+
+Loading typer, rich and every command group costs a run ~0.1 s before its first step, and a sweep is
+made of short runs (docs/performance.md, "Start-up"). So a `platoon run` command line that is plainly
+well formed (known options, each value where it belongs and in range, one config) is parsed here
+into the same ``RunOptions`` the typer command builds, and run without typer. Anything else (help,
+an unknown or repeated option, a value typer would refuse or read differently, shell completion)
+goes to typer, which then answers exactly as before: its help, its error messages, its parsing.
+tests/test_cli.py holds this parser to typer's on the command lines it accepts.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from orchestrator.cli.process import run_and_exit
+
+if TYPE_CHECKING:
+    from orchestrator.cli.running import RunOptions
+
+# `platoon run`'s options (orchestrator/cli/run.py): option -> (RunOptions field, kind of value)
+RUN_OPTIONS: dict[str, tuple[str, str]] = {
+    "--out": ("trace", "path"),
+    "--set": ("overrides", "list"),
+    "--monolithic": ("monolithic", "flag"),
+    "--compare-monolithic": ("compare", "flag"),
+    "--quiet": ("quiet", "flag"),
+    "-q": ("quiet", "flag"),
+    "--trace-every": ("trace_every", "int"),
+    "--engine": ("engine_name", "text"),
+    "--fmus": ("fmu_kind", "text"),
+    "--trace-writer": ("trace_writer", "text"),
+    "--overwrite": ("overwrite", "flag"),
+    "--verbose": ("verbose", "flag"),
+    "-v": ("verbose", "flag"),
+    "--allow-long": ("allow_long", "flag"),
+    "--live": ("live", "flag"),
+    "--live-port": ("live_port", "int"),
+    "--live-host": ("live_host", "text"),
+    "--live-speed": ("live_speed", "float"),
+    "--live-wait": ("live_wait", "flag"),
+}
+# the ranges typer checks (min=, max= in run.py); a value outside goes to typer for its message
+RUN_RANGES: dict[str, tuple[float | None, float | None]] = {
+    "trace_every": (1, None), "live_port": (0, 65535), "live_speed": (0.0, None)}
+_INTEGER = re.compile(r"[0-9]+")
+_DECIMAL = re.compile(r"[0-9]+(\.[0-9]*)?|\.[0-9]+")
+
+
+def main() -> None:
+    """`platoon ARGS`: a plain `platoon run` without typer, anything else with it."""
+    options = plain_run_options(sys.argv[1:])
+    if options is None:
+        from orchestrator.cli.app import main as typer_main
+
+        typer_main()
+        return
+    from orchestrator.cli.running import run_command
+
+    run_and_exit(lambda: run_command(options), without_typer=True)
+
+
+def plain_run_options(args: list[str]) -> "RunOptions | None":
+    """``RunOptions`` of a plainly well-formed `platoon run` command line, as typer would parse it; None
+    for anything else (typer then handles it)."""
+    if not args or args[0] != "run" or any(name.startswith("_") and name.endswith("_COMPLETE") for name in os.environ):
+        return None  # not a run, or a shell's completion request
+    values: dict[str, Any] = {}
+    rest = args[1:]
+    while rest:
+        token, rest = rest[0], rest[1:]
+        if not token.startswith("-"):
+            if "config" in values or not token:
+                return None  # a second argument (typer: "Got unexpected extra argument"), or an empty one
+            values["config"] = Path(token)
+            continue
+        name, equals, attached = token.partition("=")
+        if name not in RUN_OPTIONS:
+            return None  # help, "--", "-qv", an unknown option ...
+        field, kind = RUN_OPTIONS[name]
+        if kind == "flag":
+            if equals:
+                return None
+            values[field] = True
+            continue
+        if not equals:
+            if not rest:
+                return None
+            attached, rest = rest[0], rest[1:]
+        value = _value(attached, kind, RUN_RANGES.get(field, (None, None)))
+        if value is None or (kind != "list" and field in values):
+            return None  # a value typer would refuse or read otherwise, or one option given twice
+        values[field] = [*values.get(field, []), value] if kind == "list" else value
+    if "config" not in values:
+        return None
+    from orchestrator.cli.running import RunOptions
+
+    return RunOptions(**values)
+
+
+def _value(text: str, kind: str, bounds: tuple[float | None, float | None]) -> Any:
+    """The value of an option as typer reads it, or None where it might read it otherwise or refuse it."""
+    if not text or text.startswith("-"):
+        return None
+    if kind in ("text", "list"):
+        return text
+    if kind == "path":
+        return Path(text)
+    if not (_INTEGER if kind == "int" else _DECIMAL).fullmatch(text):
+        return None
+    number = int(text) if kind == "int" else float(text)
+    low, high = bounds
+    if (low is not None and number < low) or (high is not None and number > high):
+        return None
+    return number
