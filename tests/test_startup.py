@@ -32,10 +32,19 @@ _PROBE = """
 import gc, json, sys
 full = []
 gc.callbacks.append(lambda phase, info: full.append(1) if phase == "stop" and info["generation"] == 2 else None)
-from orchestrator.cli.app import app
+from orchestrator.cli.launch import plain_run_options
 sys.argv = ["platoon", *sys.argv[1:]]
+options = plain_run_options(sys.argv[1:])  # what the console script does (launch.main), without its os._exit
 try:
-    app()
+    if options is None:
+        from orchestrator.cli.app import app
+
+        app()
+    else:
+        from orchestrator.cli.running import run_command
+
+        run_command(options)
+    code = 0
 except SystemExit as done:
     code = done.code
 names = sorted(sys.modules)
@@ -98,6 +107,15 @@ def test_a_run_makes_no_full_garbage_collection(tmp_path: Path, fmu_dir: Path) -
 def test_a_users_blas_setting_is_kept(tmp_path: Path, fmu_dir: Path) -> None:
     found = probe(*quiet_run(tmp_path), cwd=REPO, env={"OPENBLAS_NUM_THREADS": "2"})
     assert found["blas"] == "2" and found["threads"] == 2, found
+
+
+def test_a_plain_run_loads_neither_typer_nor_rich(tmp_path: Path, fmu_dir: Path) -> None:
+    """`platoon run -q` parses its command line without typer and prints its lines without rich
+    (orchestrator/cli/launch.py): ~0.1 s of start-up (docs/performance.md, "Start-up")."""
+    modules = imported_by(*quiet_run(tmp_path), cwd=REPO)
+    assert "orchestrator.execution.run" in modules  # it did run
+    assert [name for name in modules if name.split(".")[0] in ("typer", "rich", "click")] == []
+    assert "orchestrator.cli.app" not in modules
 
 
 def test_the_cli_alone_imports_none_of_it(tmp_path: Path) -> None:

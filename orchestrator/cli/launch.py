@@ -7,7 +7,7 @@ well formed (known options, each value where it belongs and in range, one config
 into the same ``RunOptions`` the typer command builds, and run without typer. Anything else (help,
 an unknown or repeated option, a value typer would refuse or read differently, shell completion)
 goes to typer, which then answers exactly as before: its help, its error messages, its parsing.
-tests/test_cli.py holds this parser to typer's on the command lines it accepts.
+tests/test_launch.py holds this parser to typer's on the command lines it accepts.
 """
 
 from __future__ import annotations
