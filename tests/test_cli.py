@@ -326,3 +326,5 @@ def test_run_verbose_splits_the_wall_time_from_the_process_start(tmp_path):
     for piece in ("interpreter and imports", "config", "run modules imported", "FMUs checked and unpacked", "run: setup", "initialize",
                   "steps", "finish", "after the run"):
         assert re.search(re.escape(piece) + r"[^0-9?]*\d+\.\d\d s", result.stderr), piece
+    first = re.search(r"the first step began (\d+\.\d\d) s after the process started", result.stderr)
+    assert first is not None and 0 < float(first.group(1)) <= float(total.split(": ")[1][:-2]), result.stderr

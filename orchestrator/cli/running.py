@@ -10,6 +10,7 @@ table, an error line, a line rich would print differently (orchestrator/cli/plai
 from __future__ import annotations
 
 import json
+import time as clock
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Optional
@@ -54,7 +55,7 @@ def run_command(options: RunOptions) -> None:
     """Run a scenario: wire the FMUs as the paper's Fig. 2, step them, write an MCAP trace."""
     from orchestrator.support.startup import loading_a_run, seconds_since_process_start
 
-    entered = seconds_since_process_start()  # the interpreter and the imports so far
+    entered, entered_at = seconds_since_process_start(), clock.perf_counter()  # the interpreter and the imports so far
     config, overrides = options.config, list(options.overrides)
     if options.trace_every is not None:
         overrides = [*overrides, f"simulation.trace_every={options.trace_every}"]
@@ -75,16 +76,26 @@ def run_command(options: RunOptions) -> None:
     if options.compare:  # checked now, claimed when its turn comes (no empty aside file if the run fails)
         check_output(reference_path, options.overwrite, [config])
     result = _run_with_view(config, parsed, text, target, engine, options.quiet, options.trace_writer, view)
+    first_step = _first_step(entered, entered_at, result, clock.perf_counter())
     _report_run(result, trace, parsed, engine, options.quiet)
     if options.verbose:
-        console(stderr=True).print(_time_split(entered, loaded, imported, result.timings, seconds_since_process_start()),
-                                   highlight=False)
+        split = _time_split(entered, loaded, imported, result.timings, seconds_since_process_start(), first_step)
+        console(stderr=True).print(split, highlight=False)
     if options.compare:
         _compare_monolithic(config, parsed, text, result, reference_path, options.overwrite, options.quiet)
 
 
+def _first_step(entered: float | None, entered_at: float, result: "RunResult", returned_at: float) -> float | None:
+    """Seconds from the process's start to the first step: the run's start (its return less its wall time)
+    plus its setup and initialization, on the clock read when the run command was entered."""
+    if entered is None or "setup" not in result.timings or "initialize" not in result.timings:
+        return None
+    stepping_at = returned_at - result.wall_time + result.timings["setup"] + result.timings["initialize"]
+    return entered + (stepping_at - entered_at)
+
+
 def _time_split(entered: float | None, loaded: float | None, imported: float | None, timings: dict[str, float],
-                now: float | None) -> str:
+                now: float | None, first_step: float | None = None) -> str:
     """``-v``: where this process's wall time went, from the interpreter's start to now (a few lines)."""
     def seconds(value: float | None) -> str:
         return "?" if value is None else f"{value:.2f} s"
@@ -102,6 +113,7 @@ def _time_split(entered: float | None, loaded: float | None, imported: float | N
         f"            run modules imported {seconds(between(loaded, imported))}, "
         f"FMUs checked and unpacked {seconds(timings.get('open'))}",
         f"  run: {phases}",
+        f"  the first step began {seconds(first_step)} after the process started",
         f"  after the run (summary, output): {seconds(rest)}",
     ])
 

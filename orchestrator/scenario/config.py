@@ -244,8 +244,10 @@ class Config(_Strict):
     platoon: Platoon = Platoon()
     initial: Initial = Initial()
     m3pi: M3pi = M3pi()
-    disturbance: list[Disturbance] = Field(default_factory=list)
-    vehicles: dict[str, VehicleOverride] = Field(default_factory=dict)
+    # a Python function, not the builtin list or dict: pydantic inspects a default factory's signature, and a
+    # builtin's costs the first inspection ~5 ms of every run's start-up (docs/performance.md, "Start-up")
+    disturbance: list[Disturbance] = Field(default_factory=lambda: [])
+    vehicles: dict[str, VehicleOverride] = Field(default_factory=lambda: {})
     hil: Hil = Hil()
     ros2: RunRos2 = RunRos2()
 
