@@ -16,6 +16,12 @@ import tempfile
 import zipfile
 from pathlib import Path
 
+# Imported here, first, on purpose: our FMUs run in the host's interpreter, and if one runs before
+# anything imported pythonfmu, it imports pythonfmu from the FMU's resources folder, a copy without
+# the runtime binaries that the builder copies into every FMU (see _builder). It costs nothing extra:
+# the FMUs' slaves import pythonfmu in every run anyway.
+import pythonfmu  # noqa: F401
+
 import fmus
 from fmus.builders.base import DEFAULT_OUT, LIVE_FMU, PACKAGE_DIR, ROOT, Builder, BuildError, slave_instance, write_fmu
 from fmus.modeldescription.fmi2 import guid_for, model_description
@@ -75,16 +81,6 @@ class PythonFmuBuilder(Builder):
     kind = "python"
     fmi_version = 2
     default_out = DEFAULT_OUT
-
-    def build(self, *args, **kwargs):  # type: ignore[no-untyped-def]  (Builder.build's parameters)
-        """``Builder.build``, with pythonfmu imported first, on purpose: our FMUs run in the host's
-        interpreter, and if one runs before anything imported pythonfmu, it imports pythonfmu from the
-        FMU's resources folder, a copy without the runtime binaries that the builder copies into every
-        FMU (see _builder). Every run of these FMUs gets them from here (components/kinds.py:
-        ensure_fmus); a run of the native FMUs needs no pythonfmu (~10 ms of its start-up)."""
-        import pythonfmu  # noqa: F401
-
-        return super().build(*args, **kwargs)
 
     def expected_guid(self, name: str) -> str:
         return guid_for(source_digest(name), name)
