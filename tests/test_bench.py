@@ -120,6 +120,19 @@ def test_wholerun_measures_another_build_in_the_same_sitting(tmp_path: Path, fmu
     assert absent.returncode == 2 and "no such file" in absent.stderr
 
 
+def test_wholerun_times_the_start_up_against_the_interpreter_and_libcosim(tmp_path: Path, fmu_dir: Path) -> None:
+    """10-step runs (ours with -v, which says when the first step began), `python -c pass` and libcosim's
+    10 steps, in the same rounds: the start-up figure and its ratios."""
+    result = platoon("bench", "wholerun", "--fmus", "native", "--variants", "platoon-start,platoon-first,python,libcosim-start",
+                     "--n", "2", "--steps", "20", "--rounds", "1", "--out-dir", tmp_path, cwd=REPO)
+    data = written(result, tmp_path, "wholerun")
+    first = next(s for s in data["samples"] if s["variant"] == "platoon-first")
+    assert 0 < first["first_step_s"] < first["wall_s"], first  # seconds from the process's start, before its end
+    assert data["medians"]["2"]["platoon-first"]["first_step_s"] == first["first_step_s"]
+    assert {"platoon-start / python", "platoon-start / libcosim-start", "libcosim-start / python"} <= set(data["ratios"]["2"])
+    assert "start-up (10 steps)" in result.stdout and "first step" in result.stdout
+
+
 def test_wholerun_compares_the_same_fmus_on_both_sides(tmp_path: Path, fmu_dir: Path) -> None:
     """Our run and libcosim's step the same kind of FMU: a native-FMU run against libcosim stepping the
     pythonfmu ones would be no comparison."""

@@ -74,7 +74,7 @@ def timed_process(command: list[str], scratch: Path) -> tuple[float, dict[str, A
     with open(scratch / "stdout", "w+") as stdout, open(scratch / "stderr", "w+") as stderr:
         started = time.perf_counter()
         process = subprocess.Popen(command, stdout=stdout, stderr=stderr, stdin=subprocess.DEVNULL,
-                                   env={**os.environ, "NO_COLOR": "1", "TERM": "dumb"})
+                                   env=_timed_environment())
         _, status, usage = os.wait4(process.pid, 0)
         wall = time.perf_counter() - started
         process.returncode = os.waitstatus_to_exitcode(status)
@@ -83,6 +83,13 @@ def timed_process(command: list[str], scratch: Path) -> tuple[float, dict[str, A
         text, errors = stdout.read(), stderr.read()
     return wall, {"exit": process.returncode, "user_s": usage.ru_utime, "sys_s": usage.ru_stime,
                   "max_rss_kib": usage.ru_maxrss}, text, errors
+
+
+def _timed_environment() -> dict[str, str]:
+    """A timed process's environment: no colour, and its bytecode cache used as an installed tool uses it
+    (``PYTHONDONTWRITEBYTECODE`` dropped: a warm-up run writes the cache, the timed ones read it)."""
+    environment = {key: value for key, value in os.environ.items() if key != "PYTHONDONTWRITEBYTECODE"}
+    return {**environment, "NO_COLOR": "1", "TERM": "dumb"}
 
 
 def measure(config: Path, engine: str, variant: str, overrides: list[str], fmu_dir: Path, scratch: Path) -> dict[str, Any]:

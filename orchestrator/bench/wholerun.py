@@ -7,6 +7,10 @@ finalization, exit), on the paper platoon (configs/paper/platoon.toml, Jacobi) w
   progress bar off (not a terminal), every step traced, the summary table printed;
 * ``platoon-q``: ``platoon run ... -q --trace-every 100``;
 * ``platoon-start``: ``platoon run ... -q`` for 10 steps: start-up, what a short run (a sweep's) costs;
+* ``platoon-first``: the same with ``-v``, which also says when the first step began (its
+  ``first_step_s``: seconds from the process's start, docs/performance.md "Start-up");
+* ``python``: ``python -c pass``, the interpreter's own start and exit: the floor of any start-up;
+* ``libcosim-start``: libcosim (no observer) for the same 10 steps: its start-up;
 * ``before``, ``before-q``, ``before-start``: the same three with another build's ``platoon`` script
   (``before=PATH``: e.g. a checkout of the previous commit installed in its own venv), so that a
   change is measured against what it replaces in the same sitting;
@@ -20,13 +24,16 @@ finalization, exit), on the paper platoon (configs/paper/platoon.toml, Jacobi) w
 * ``libcosim-file``: the same with libcosim's file observer (a CSV of every variable, every step): what
   libcosim does to keep a run on disk, the second baseline of a traced run (issue 31).
 
-The SSP is written once, before timing (orchestrator/bench/libcosim.py). Variants run interleaved and
+Every process runs without ``PYTHONDONTWRITEBYTECODE``, so that it reads the bytecode cache that the
+untimed first runs wrote, as an installed tool does (compiling the modules from source each time
+would be measured otherwise). The SSP is written once, before timing (orchestrator/bench/libcosim.py). Variants run interleaved and
 rotated, ``rounds`` times; ratios are taken within a round (paired) and their median is reported.
 """
 
 from __future__ import annotations
 
 import json
+import re
 import statistics
 import subprocess
 import sys
@@ -41,10 +48,13 @@ from .common import PAPER_CONFIGS, RESULT, BenchError, BenchUsageError, Progress
 from .scenarios import platoon_command, timed_process
 
 VARIANTS = ("platoon", "platoon-q", "platoon-start", "libcosim", "libcosim-outputs", "libcosim-last-value",
-            "libcosim-file", "before", "before-q", "before-start")
+            "libcosim-file", "before", "before-q", "before-start", "platoon-first", "python", "libcosim-start")
+START_VARIANTS = ("platoon-start", "platoon-first", "python", "libcosim-start")  # 10-step runs: the start-up
 START_STEPS = 10  # the start-up variants' run
 OBSERVER = {"libcosim": "none", "libcosim-outputs": "outputs", "libcosim-last-value": "last-value",
-            "libcosim-file": "file"}
+            "libcosim-file": "file", "libcosim-start": "none"}
+FIRST_STEP = re.compile(r"the first step began (\d+\.\d+) s after the process started")  # platoon run -v
+START_TARGET = 0.2  # s: a run reaches its first step this soon (issue 31)
 CONFIG = PAPER_CONFIGS / "platoon.toml"
 SPARSE_TRACE = 100  # platoon-q records every 100th communication point
 # the ratios issue 31 bounds: (name, numerator, denominator, upper bound)
@@ -59,6 +69,9 @@ OTHER_RATIOS = (
     ("platoon / before", "platoon", "before"),
     ("platoon-q / before-q", "platoon-q", "before-q"),
     ("platoon-start / before-start", "platoon-start", "before-start"),
+    ("platoon-start / python", "platoon-start", "python"),
+    ("platoon-start / libcosim-start", "platoon-start", "libcosim-start"),
+    ("libcosim-start / python", "libcosim-start", "python"),
     ("platoon / libcosim-outputs", "platoon", "libcosim-outputs"),
     ("libcosim-file / libcosim", "libcosim-file", "libcosim"),
     ("libcosim-outputs / libcosim", "libcosim-outputs", "libcosim"),
@@ -98,34 +111,42 @@ def measure(variant: str, n: int, steps: int, step: float, ssd: Path, scratch: P
     trace = scratch / "trace.mcap"
     trace.unlink(missing_ok=True)
     ours = variant.startswith(("platoon", "before"))
-    kind = variant.split("-", 1)[1] if "-" in variant and ours else ""  # "", "q" or "start"
+    kind = variant.split("-", 1)[1] if "-" in variant and ours else ""  # "", "q", "start" or "first"
+    steps = START_STEPS if variant in START_VARIANTS or kind == "start" else steps
     if ours:
         if variant.startswith("before") and before is None:
             raise BenchUsageError(f"variant {variant} needs before=PATH (another build's platoon script)")
-        steps = START_STEPS if kind == "start" else steps
         sets = [arg for override in _overrides(n, steps, step) for arg in ("--set", override)]
         cli = [str(before)] if variant.startswith("before") else platoon_command()
         command = [*cli, "run", str(CONFIG), "--out", str(trace), "--fmus", fmus, *sets]
         if kind == "q":
             command += ["-q", "--trace-every", str(min(SPARSE_TRACE, steps))]  # at most the run's steps
-        elif kind == "start":
-            command += ["-q"]
+        elif kind in ("start", "first"):
+            command += ["-q", "-v"] if kind == "first" else ["-q"]
+    elif variant == "python":
+        command = [sys.executable, "-c", "pass"]
     else:
         command = [sys.executable, str(Path(__file__).with_name("libcosim_process.py")), str(ssd), str(steps),
                    OBSERVER[variant]]
     wall, usage, stdout, stderr = timed_process(command, scratch)
     if usage["exit"] != 0:
         raise BenchError(f"{' '.join(command)} exited {usage['exit']}:\n{stdout[-2000:]}\n{stderr[-2000:]}")
+    sample = {"variant": variant, "n": n, "wall_s": wall, **usage}
     if ours:
         if not trace.is_file() or (kind == "") != ("max |path error|" in stdout):
             raise BenchError(f"{' '.join(command)}: no trace, or the summary table {'missing' if kind == '' else 'printed'}")
         if kind == "" and f"{fmus} FMUs" not in stdout:  # the summary's title names the FMUs stepped
             raise BenchError(f"{' '.join(command)}: the run did not step the {fmus} FMUs:\n{stdout[-2000:]}")
-    else:
+        if kind == "first":
+            first = FIRST_STEP.search(stderr)
+            if first is None:
+                raise BenchError(f"{' '.join(command)}: no first-step time in its -v lines:\n{stderr[-2000:]}")
+            sample["first_step_s"] = float(first.group(1))
+    elif variant != "python":
         line = next((line for line in stdout.splitlines() if line.startswith(RESULT)), None)
         if line is None or json.loads(line[len(RESULT):])["time_ns"] != round(steps * step * 1e9):
             raise BenchError(f"{' '.join(command)}: libcosim did not reach the end:\n{stdout[-2000:]}")
-    return {"variant": variant, "n": n, "wall_s": wall, **usage}
+    return sample
 
 
 def run(ns: Sequence[int] = (16,), steps: int = 10_000, rounds: int = 5, variants: Sequence[str] = VARIANTS[:7],
@@ -151,17 +172,19 @@ def run(ns: Sequence[int] = (16,), steps: int = 10_000, rounds: int = 5, variant
     started = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench-wholerun-") as scratch:
         systems = {n: write_system(n, steps, step, Path(scratch) / f"ssp-{n}", fmu_dir, fmus) for n in ns}
-        # one untimed run of each kind first: FMUs built and extracted, files in the page cache
+        # one untimed 10-step run of each variant first: FMUs built and extracted, bytecode cached, files in the
+        # page cache
         warm = write_system(ns[0], 10, step, Path(scratch) / "warm", fmu_dir, fmus)
-        for variant in ("platoon", "libcosim"):
-            measure(variant, ns[0], 10, step, warm, Path(scratch), fmus)
+        for variant in dict.fromkeys(("platoon", "libcosim", *variants)):
+            measure(variant, ns[0], 10, step, warm, Path(scratch), fmus, before)
         samples = interleaved(rounds, list(ns), list(variants),
                               lambda n, variant: measure(variant, n, steps, step, systems[n], Path(scratch), fmus,
                                                          before),
                               lambda s: f"N={s['n']:<4} {s['variant']:<20} {s['wall_s']:7.2f} s  {s['max_rss_kib'] / 1024:6.0f} MiB",
                               progress)
     medians = {n: {v: {key: statistics.median(s[key] for s in samples if s["n"] == n and s["variant"] == v)
-                       for key in ("wall_s", "user_s", "sys_s", "max_rss_kib")}
+                       for key in ("wall_s", "user_s", "sys_s", "max_rss_kib", "first_step_s")
+                       if key != "first_step_s" or v == "platoon-first"}
                    for v in variants} for n in ns}
     ratios: dict[int, dict[str, float]] = {}
     for n in ns:
@@ -187,4 +210,22 @@ def markdown(result: dict[str, Any]) -> str:
     return (f"{result.get('fmus', 'python')} FMUs in every variant; "
             f"whole-process wall time in s (peak RSS in MiB), median of {result['rounds']} interleaved rounds, "
             f"{result['steps']} steps\n\n" + markdown_table(["N", *variants], rows)
-            + "\n\nratios, median of the per-round ratios\n\n" + markdown_table(["N", *names], ratio_rows))
+            + "\n\nratios, median of the per-round ratios\n\n" + markdown_table(["N", *names], ratio_rows)
+            + start_up(result))
+
+
+def start_up(result: dict[str, Any]) -> str:
+    """The start-up figures (10-step runs), wall and CPU, and when the first step began, if measured."""
+    shown = [v for v in START_VARIANTS if v in result["variants"]]
+    if not shown:
+        return ""
+    lines = []
+    for n in result["ns"]:
+        medians = result["medians"][n]
+        figures = [f"{v} {medians[v]['wall_s']:.3f} s wall ({medians[v]['user_s'] + medians[v]['sys_s']:.3f} s CPU)"
+                   for v in shown]
+        if "first_step_s" in medians.get("platoon-first", {}):
+            figures.append(f"first step {medians['platoon-first']['first_step_s']:.2f} s after the process started "
+                           f"(target <= {START_TARGET} s)")
+        lines.append(f"N={n}: " + "; ".join(figures))
+    return f"\n\nstart-up ({START_STEPS} steps), medians\n\n" + "\n".join(lines)

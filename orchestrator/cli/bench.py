@@ -166,7 +166,7 @@ def bench_scenarios(
 def bench_wholerun(
     n: Counts = "16",
     steps: Steps = 10_000,
-    variants: Annotated[str, typer.Option(metavar="VARIANT,...", help="comma-separated: platoon (default run, traced, table), platoon-q (-q --trace-every 100), platoon-start (10 steps), libcosim (no observer), libcosim-outputs (time series of every output), libcosim-last-value, libcosim-file (CSV of every variable, every step); before, before-q, before-start: the same with --before's script")] = "platoon,platoon-q,platoon-start,libcosim,libcosim-outputs,libcosim-last-value,libcosim-file",
+    variants: Annotated[str, typer.Option(metavar="VARIANT,...", help="comma-separated: platoon (default run, traced, table), platoon-q (-q --trace-every 100), platoon-start (10 steps), libcosim (no observer), libcosim-outputs (time series of every output), libcosim-last-value, libcosim-file (CSV of every variable, every step); before, before-q, before-start: the same with --before's script; start-up (10 steps): platoon-first (-q -v: when the first step began), python (python -c pass), libcosim-start")] = "platoon,platoon-q,platoon-start,libcosim,libcosim-outputs,libcosim-last-value,libcosim-file",
     rounds: Rounds = 5,
     out_dir: OutDir = Path("runs/bench"),
     quiet: Quiet = False,
