@@ -245,7 +245,7 @@ class Config(_Strict):
     initial: Initial = Initial()
     m3pi: M3pi = M3pi()
     # a Python function, not the builtin list or dict: pydantic inspects a default factory's signature, and a
-    # builtin's costs the first inspection ~5 ms of every run's start-up (docs/performance.md, "Start-up")
+    # builtin's makes inspect compile the tokenizer's regex, 2 % of the models' build (docs/performance.md, "Start-up")
     disturbance: list[Disturbance] = Field(default_factory=lambda: [])
     vehicles: dict[str, VehicleOverride] = Field(default_factory=lambda: {})
     hil: Hil = Hil()
