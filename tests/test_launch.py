@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 import orchestrator.cli.run as run_module
 from orchestrator.cli.app import app
 from orchestrator.cli.launch import RUN_OPTIONS, RUN_RANGES, plain_run_options
-from orchestrator.cli.running import RunOptions
+from orchestrator.cli.options import RunOptions
 
 C = "configs/paper/platoon.toml"
 

@@ -41,7 +41,10 @@ try:
 
         app()
     else:
-        from orchestrator.cli.running import run_command
+        from orchestrator.support.startup import loading_a_run
+
+        with loading_a_run():
+            from orchestrator.cli.running import run_command
 
         run_command(options)
     code = 0

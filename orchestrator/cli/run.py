@@ -9,7 +9,8 @@ from typing import Annotated, Optional
 import typer
 
 from orchestrator.cli.common import AllowLong, OVERWRITE_HELP, SET_METAVAR, choices_metavar, err, fail, load_config, out
-from orchestrator.cli.running import RUN_ENGINES, TRACE_WRITER_CHOICES, RunOptions, run_command
+from orchestrator.cli.options import RunOptions
+from orchestrator.cli.running import RUN_ENGINES, TRACE_WRITER_CHOICES, run_command
 from orchestrator.components.kinds import FMU_KINDS
 from orchestrator.scenario.config import ConfigError
 

@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import json
 import time as clock
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Optional
+from typing import TYPE_CHECKING
 
+from orchestrator.cli.options import RunOptions
 from orchestrator.cli.plain import check_choice, check_output, claim_trace, console, fail, load_config, say
 from orchestrator.components.kinds import FMU_KINDS
 from orchestrator.scenario.config import Config
@@ -25,30 +25,6 @@ if TYPE_CHECKING:
 
 RUN_ENGINES = ("native", "python")  # --engine; --monolithic picks the third engine (run.ENGINES)
 TRACE_WRITER_CHOICES = ("auto", "inline", "process")  # --trace-writer (checked against run.TRACE_WRITERS)
-
-
-@dataclass(frozen=True)
-class RunOptions:
-    """`platoon run`'s arguments and options, with the defaults its command line has."""
-
-    config: Path
-    trace: Optional[Path] = None
-    overrides: list[str] = field(default_factory=list)
-    monolithic: bool = False
-    compare: bool = False
-    quiet: bool = False
-    trace_every: Optional[int] = None
-    engine_name: Optional[str] = None
-    fmu_kind: Optional[str] = None
-    trace_writer: str = "auto"
-    overwrite: bool = False
-    verbose: bool = False
-    allow_long: bool = False
-    live: bool = False
-    live_port: int = 8765
-    live_host: str = "127.0.0.1"
-    live_speed: float = 1.0
-    live_wait: bool = False
 
 
 def run_command(options: RunOptions) -> None:
