@@ -244,10 +244,8 @@ class Config(_Strict):
     platoon: Platoon = Platoon()
     initial: Initial = Initial()
     m3pi: M3pi = M3pi()
-    # a Python function, not the builtin list or dict: pydantic inspects a default factory's signature, and a
-    # builtin's makes inspect compile the tokenizer's regex, 2 % of the models' build (docs/performance.md, "Start-up")
-    disturbance: list[Disturbance] = Field(default_factory=lambda: [])
-    vehicles: dict[str, VehicleOverride] = Field(default_factory=lambda: {})
+    disturbance: list[Disturbance] = Field(default_factory=list)
+    vehicles: dict[str, VehicleOverride] = Field(default_factory=dict)
     hil: Hil = Hil()
     ros2: RunRos2 = RunRos2()
 

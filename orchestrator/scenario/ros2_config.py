@@ -83,8 +83,8 @@ class RunRos2(_Graph):
     topic_prefix: str = Field("/platoon", description="poses on <topic_prefix>/vehicleK/pose")
     frame_id: str = Field("world", pattern=r"^[A-Za-z_][A-Za-z0-9_/]*$")
     rate: float = Field(50.0, gt=0.0, le=1000.0, description="messages per second at most")
-    connect: list[str] = Field(default_factory=lambda: [])
-    listen: list[str] = Field(default_factory=lambda: [])
+    connect: list[str] = Field(default_factory=list)
+    listen: list[str] = Field(default_factory=list)
     zenoh_config: str | None = None
 
     @model_validator(mode="after")
