@@ -44,7 +44,8 @@ def run_command(options: RunOptions) -> None:
         from orchestrator.execution.run import default_trace_path
 
     imported = seconds_since_process_start()  # the engines, numpy, the trace writer
-    engine = _chosen_engine(config, parsed, options.engine_name, options.monolithic, options.trace_writer)
+    engine = _chosen_engine(config, parsed, options.engine_name, options.monolithic, options.trace_writer,
+                            options.compare)
     view = _live_view(parsed, options)
     target = claim_trace(options.trace, options.overwrite, [config], lambda: default_trace_path(parsed, engine))
     trace = target.final
@@ -106,7 +107,8 @@ def _execute(config: Config, text: str, trace, engine: str, quiet: bool, trace_w
                             live_view=live_view)
 
 
-def _chosen_engine(config: Path, parsed: Config, engine_name: str | None, monolithic: bool, trace_writer: str) -> str:
+def _chosen_engine(config: Path, parsed: Config, engine_name: str | None, monolithic: bool, trace_writer: str,
+                   compare: bool = False) -> str:
     """The engine `platoon run` uses, after checking the options that choose it; exit 2 naming a bad one."""
     from orchestrator.components.live import LiveRunError, check_live_options
     from orchestrator.execution.run import TRACE_WRITERS, default_engine
@@ -118,6 +120,12 @@ def _chosen_engine(config: Path, parsed: Config, engine_name: str | None, monoli
     if trace_writer not in TRACE_WRITERS:
         fail(2, f"--trace-writer {trace_writer!r}: expected one of {', '.join(TRACE_WRITERS)}")
     engine = "monolithic" if monolithic else (engine_name or default_engine(parsed))
+    if monolithic or compare:
+        from orchestrator.scenario.scenario import monolithic_refusal
+
+        refusal = monolithic_refusal(parsed)
+        if refusal is not None:
+            fail(2, f"config {config}: {'--monolithic' if monolithic else '--compare-monolithic'}: {refusal}")
     try:
         check_live_options(parsed, engine, trace_writer)
     except LiveRunError as error:
