@@ -1,7 +1,8 @@
 """One platoon vehicle: guidance on top of dynamics, and its life between communication points.
 
-``VehicleModel`` is the vehicle's right-hand side: given its own state, where its target is and how
-the vehicle behind it is doing, it returns the state derivative. The FMU, the monolithic reference
+``VehicleModel`` is the vehicle's right-hand side: given its own state, where its target is, how
+the vehicle behind it is doing and (acc, cacc) where its on-board sensor sees the vehicle ahead, it
+returns the state derivative. The FMU, the monolithic reference
 and the live-robot bridge all call this one function.
 
 ``VehicleStepper`` is what an FMU instance holds: the state, the latest input samples, and the
@@ -11,11 +12,21 @@ coupling mode that decides how those samples are seen inside a step (see ``coupl
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from .coupling import arc_extrapolate, linear_extrapolate
 from .dynamics import Dynamics
-from .guidance import lateral_acceleration, line_of_sight, spacing_speed
+from .guidance import (
+    SENSING_LAWS,
+    cacc_acceleration,
+    distance,
+    lateral_acceleration,
+    line_of_sight,
+    spacing_error,
+    spacing_speed,
+    speed_for_acceleration,
+    time_gap_speed,
+)
 from .integrate import integrate
 
 
@@ -34,9 +45,38 @@ VEHICLE_INPUTS = {
     "follower.speed_rate": "follower_speed_rate",
     "follower.gap_rate": "follower_gap_rate",
     "follower.time": "follower_time",
+    "sensor.x": "sensor_x",
+    "sensor.y": "sensor_y",
+    "sensor.heading": "sensor_heading",
+    "sensor.speed": "sensor_speed",
+    "sensor.speed_rate": "sensor_speed_rate",
+    "sensor.turn_rate": "sensor_turn_rate",
+    "sensor.time": "sensor_time",
     "disturbance.lateral_acceleration": "added_acceleration",
     "disturbance.speed": "added_speed",
 }
+
+
+@dataclass(frozen=True)
+class SpeedLaw:
+    """Which speed law commands the vehicle (``guidance.SPEED_LAWS``) and its parameters.
+
+    ``time_gap`` h (s), ``standstill_gap`` r (m) and ``gain`` k_p (1/s) act only under acc and cacc.
+    """
+
+    kind: str = "paper"
+    time_gap: float = 0.0
+    standstill_gap: float = 0.0
+    gain: float = 0.0
+    # True when the law reads the gap to the vehicle ahead from the on-board sensor (a field, not a
+    # property: the right-hand side asks at every evaluation)
+    senses: bool = field(init=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "senses", self.kind in SENSING_LAWS)
+
+
+PAPER_LAW = SpeedLaw()
 
 
 @dataclass(frozen=True)
@@ -45,9 +85,20 @@ class VehicleModel:
 
     law: str
     d_star: float
-    speed_command: float  # V_c, used when the vehicle is last
+    speed_command: float  # V_c, used when the vehicle is last (paper's law)
     is_last: bool
     dynamics: Dynamics
+    speed_law: SpeedLaw = PAPER_LAW
+
+    def sensing_speed(self, state: list[float], speed: float, sensed_gap: float, predecessor_speed: float) -> float:
+        """V_cmd of the laws that read the on-board sensor: acc, or cacc (which also reads the vehicle
+        ahead's communicated speed)."""
+        law = self.speed_law
+        if law.kind == "acc":
+            return time_gap_speed(sensed_gap, law.standstill_gap, law.time_gap)
+        error = spacing_error(sensed_gap, law.standstill_gap, law.time_gap, speed)
+        acceleration = cacc_acceleration(predecessor_speed, speed, error, law.time_gap, law.gain)
+        return speed_for_acceleration(self.dynamics.loop_speed(state), acceleration, self.dynamics.k_v)
 
     def evaluate(
         self,
@@ -59,19 +110,28 @@ class VehicleModel:
         follower_gap: float,
         added_acceleration: float,
         added_speed: float,
+        target_speed: float = 0.0,
+        sensor_x: float = 0.0,
+        sensor_y: float = 0.0,
     ) -> tuple[list[float], float, float]:
-        """State derivative, acting lateral acceleration and distance to the target."""
+        """State derivative, acting lateral acceleration and distance to the target.
+
+        ``target_speed`` is the vehicle ahead's speed as communicated (cacc); ``sensor_x``, ``sensor_y``
+        its position as the on-board sensor measures it (acc, cacc). The paper's law reads neither.
+        """
         x, y, heading = self.dynamics.pose(state)
         speed = self.dynamics.speed(state, added_speed)
-        distance, los = line_of_sight(x, y, target_x, target_y)
+        target_distance, los = line_of_sight(x, y, target_x, target_y)
         acceleration = (
-            lateral_acceleration(self.law, speed, distance, los, heading, target_heading) + added_acceleration
+            lateral_acceleration(self.law, speed, target_distance, los, heading, target_heading) + added_acceleration
         )
-        if self.is_last:
+        if self.speed_law.senses:
+            commanded = self.sensing_speed(state, speed, distance(x, y, sensor_x, sensor_y), target_speed)
+        elif self.is_last:
             commanded = self.speed_command
         else:
             commanded = spacing_speed(follower_speed, follower_gap, self.d_star)
-        return self.dynamics.derivative(state, acceleration, commanded, added_speed), acceleration, distance
+        return self.dynamics.derivative(state, acceleration, commanded, added_speed), acceleration, target_distance
 
 
 class VehicleStepper:
@@ -83,6 +143,7 @@ class VehicleStepper:
 
     def __init__(self, model: VehicleModel, coupling: str, max_substep: float, state: list[float], time: float):
         self.model = model
+        self.senses = model.speed_law.senses
         self.extrapolate = coupling == "extrapolate"
         self.max_substep = max_substep
         self.state = state
@@ -93,6 +154,9 @@ class VehicleStepper:
         # follower (the vehicle behind): velocity information
         self.follower_speed = self.follower_gap = 1.0
         self.follower_speed_rate = self.follower_gap_rate = self.follower_time = 0.0
+        # sensor (acc, cacc): the vehicle ahead's motion as the on-board sensor measures it
+        self.sensor_x = self.sensor_y = self.sensor_heading = 0.0
+        self.sensor_speed = self.sensor_speed_rate = self.sensor_turn_rate = self.sensor_time = 0.0
         # disturbances, held over the step
         self.added_acceleration = self.added_speed = 0.0
 
@@ -110,6 +174,22 @@ class VehicleStepper:
             t - self.target_time,
         )
 
+    def sensor_at(self, t: float) -> tuple[float, float]:
+        """Position of the vehicle ahead at time t as the on-board sensor sees it (extrapolated as the
+        target is: the sensor's heading, speed and rates only serve that)."""
+        if not self.extrapolate:
+            return self.sensor_x, self.sensor_y
+        x, y, _, _ = arc_extrapolate(
+            self.sensor_x,
+            self.sensor_y,
+            self.sensor_heading,
+            self.sensor_speed,
+            self.sensor_speed_rate,
+            self.sensor_turn_rate,
+            t - self.sensor_time,
+        )
+        return x, y
+
     def follower_at(self, t: float) -> tuple[float, float]:
         """Speed and gap of the vehicle behind at time t as this vehicle sees them."""
         if not self.extrapolate:
@@ -121,10 +201,15 @@ class VehicleStepper:
         )
 
     def evaluate(self, t: float, state: list[float]) -> tuple[list[float], float, float]:
-        tx, ty, th, _ = self.target_at(t)
+        tx, ty, th, tv = self.target_at(t)
         follower_speed, follower_gap = self.follower_at(t)
+        if not self.senses:
+            return self.model.evaluate(
+                state, tx, ty, th, follower_speed, follower_gap, self.added_acceleration, self.added_speed
+            )
+        sx, sy = self.sensor_at(t)
         return self.model.evaluate(
-            state, tx, ty, th, follower_speed, follower_gap, self.added_acceleration, self.added_speed
+            state, tx, ty, th, follower_speed, follower_gap, self.added_acceleration, self.added_speed, tv, sx, sy
         )
 
     def derivative(self, t: float, state: list[float]) -> list[float]:

@@ -54,7 +54,7 @@ class VirtualTarget(PlatoonSlave):
              parameter_dependencies=PATH),
         real("heading", "output", "Path tangent heading at the target", "rad", depends_on=STATE_OUTPUT,
              initial_depends_on=PLACE, parameter_dependencies=PATH),
-        real("speed", "output", "Target speed V_0 = V_1 d*/d_1", "m/s"),
+        real("speed", "output", "Target speed V_0 = V_1 d*/d_1 (acc, cacc: v_c)", "m/s"),
         real("speed_rate", "output", "Rate of the target speed", "m/s2"),
         real("turn_rate", "output", "Heading rate V_0 times curvature", "rad/s"),
         real("curvature", "output", "Signed path curvature at the target", "1/m", depends_on=STATE_OUTPUT,
@@ -63,6 +63,9 @@ class VirtualTarget(PlatoonSlave):
              initial_depends_on=("initial.arc_length",)),
         real("output_time", "output", "Time the outputs describe (the communication point they belong to); wire it to the receiver's target.time input", "s", depends_on=STATE_OUTPUT,
              initial_depends_on=(), depends_on_time=True),  # the (start) time: FMI 3.0's `time`, no variable in FMI 2.0
+        # the speed laws beyond the paper's, last: every earlier variable keeps its value reference
+        VariableInfo("speed_law", "String", "parameter", 'The lead vehicle\'s speed law: "paper" (the target moves at V_1 d*/d_1) or "acc"/"cacc" (it moves at the constant v_c)', start="paper"),
+        real("v_c", "parameter", "Commanded speed V_c: the target's speed under acc and cacc", "m/s", start=d.SPEED, min=0.0),
     )
     input_attributes = _INPUT_ATTRIBUTES
     default_experiment = DefaultExperiment(start_time=0.0, stop_time=d.STOP_TIME, step_size=d.STEP)

@@ -22,6 +22,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationErr
 
 from bridge.protocol import DEFAULT_PREFIX, check_prefix
 from fmus.model.dynamics import M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEEL_SPEED_MAX
+from fmus.model.guidance import SENSING_LAWS
 from fmus.model.integrate import substep_count
 from fmus.model.link import CAPACITY as LINK_CAPACITY
 from fmus.model.link import LinkParameters, messages_held
@@ -147,6 +148,13 @@ class M3pi(_Strict):
 
 Law = Literal["sine", "regular"]
 DynamicsKind = Literal["kinematic", "m3pi"]
+# The speed laws (fmus.model.guidance.SPEED_LAWS; docs/model.md, section 11): the paper's, a constant-time-gap
+# ACC, Ploeg's CACC adapted to the first-order speed loop.
+SpeedLawName = Literal["paper", "acc", "cacc"]
+# A time gap beyond 100 s is no platoon; below 1 ms the cacc pole -1/h is beyond any substep (the stiffness
+# check below names it).
+TimeGap = Annotated[float, Field(ge=SMALL, le=100.0), Unit("s")]
+GapLength = Annotated[float, Field(ge=0.0, le=LENGTH_MAX), Unit("m")]
 
 
 class Platoon(_Strict):
@@ -156,6 +164,17 @@ class Platoon(_Strict):
     k_v: Gain = 0.5
     speed: Speed = Field(25.0, description="V_c, the last vehicle's commanded speed")
     dynamics: DynamicsKind = "kinematic"
+    speed_law: SpeedLawName = Field("paper", description="paper (V d*/d), acc (constant time gap) or cacc (Ploeg)")
+    time_gap: TimeGap = Field(2.0, description="h of acc and cacc: desired gap standstill_gap + h V, s")
+    standstill_gap: GapLength | None = Field(None, description="r of acc and cacc, m (default d_star - time_gap speed)")
+    cacc_gain: Gain = Field(0.2, description="k_p of cacc (Ploeg et al. 2011), 1/s")
+
+    @property
+    def resolved_standstill_gap(self) -> float:
+        """r: as given, or the one that makes the acc/cacc equilibrium gap d* at V_c (d* - h V_c)."""
+        if self.standstill_gap is not None:
+            return self.standstill_gap
+        return self.d_star - self.time_gap * self.speed
 
 
 class Initial(_Strict):
@@ -175,6 +194,7 @@ class VehicleState(_Strict):
 
 class VehicleOverride(_Strict):
     law: Law | None = None
+    speed_law: SpeedLawName | None = None
     k_v: Gain | None = None
     dynamics: DynamicsKind | None = None
     initial: VehicleState | None = None
@@ -338,12 +358,56 @@ class Config(_Strict):
                 f"simulation: {steps:.3g} steps (stop_time / step) x {substeps:.3g} RK4 substeps each (step / "
                 f"max_substep) = {steps * substeps:.3g} substeps per FMU: expected at most 2**53 = {COUNT_LIMIT:.3g} "
                 "(beyond it step counts are not exact in double precision; no option lifts this)"))
+        self._check_speed_laws()
         self._check_stiffness()
         self._check_links()
         if sim.trace_every > self.steps:
             raise _rule("simulation.trace_every", sim.trace_every, f"at most the run's {self.steps} steps "
                         "(stop_time / step), so that a point after t = 0 is recorded")
         return self
+
+    def speed_law_of(self, vehicle: int) -> str:
+        """Vehicle ``vehicle``'s speed law: its [vehicles.K] override, else platoon.speed_law."""
+        return self.override(vehicle).speed_law or self.platoon.speed_law
+
+    def sensing_vehicles(self) -> list[int]:
+        """Numbers of the vehicles whose speed law reads the on-board sensor (acc, cacc), front to back."""
+        return [i for i in range(1, self.platoon.count + 1) if self.speed_law_of(i) in SENSING_LAWS]
+
+    def _check_speed_laws(self) -> None:
+        """acc and cacc need a standstill gap r >= 0; the default r = d* - h V_c is negative for h > d*/V_c.
+
+        Under the paper's law vehicle i's gap is regulated by the component ahead (it reads its follower's
+        gap); under acc and cacc by vehicle i itself. A paper vehicle right behind an acc or cacc one would
+        have its gap regulated by no one (it drifts: measured 91 m instead of 75 m), so it is refused.
+        """
+        p = self.platoon
+        sensing = self.sensing_vehicles()
+        for index in range(2, p.count + 1):
+            if index - 1 in sensing and index not in sensing:
+                key = f"vehicles.{index}.speed_law" if self.override(index).speed_law else "platoon.speed_law"
+                raise _rule(key, self.speed_law_of(index), f"acc or cacc behind vehicle {index - 1}, whose "
+                            f"{self.speed_law_of(index - 1)} law does not read its follower's gap: a paper vehicle's "
+                            "gap is regulated by the vehicle ahead, so behind an acc or cacc one it would drift")
+        if p.standstill_gap is None and sensing and p.resolved_standstill_gap < 0.0:
+            raise _rule("platoon.time_gap", p.time_gap, f"at most platoon.d_star / platoon.speed = {p.d_star / p.speed:g} s "
+                        f"under acc or cacc, or an explicit platoon.standstill_gap >= 0 (the default standstill gap "
+                        f"d_star - time_gap * speed = {p.resolved_standstill_gap:g} m would be negative)")
+
+    def _law_lags(self) -> list[tuple[str, float]]:
+        """The fastest time constant each sensing law adds (1 / the largest |pole| of its loop, docs/model.md
+        section 11): cacc's poles are -1/h and -k_p; acc's are the roots of h s^2 + k_v h s + k_v."""
+        p, lags = self.platoon, []
+        for index in self.sensing_vehicles():
+            k_v = self.override(index).k_v or p.k_v
+            if self.speed_law_of(index) == "cacc":
+                lags.append(("platoon.time_gap", min(p.time_gap, 1.0 / p.cacc_gain)))
+                continue
+            a, b, c = p.time_gap, k_v * p.time_gap, k_v
+            disc = b * b - 4.0 * a * c
+            fastest = math.sqrt(c / a) if disc < 0.0 else (b + math.sqrt(disc)) / (2.0 * a)
+            lags.append(("platoon.time_gap", 1.0 / fastest))
+        return lags
 
     def _check_stiffness(self) -> None:
         """Every first-order lag must be resolved by the RK4 substep, or the integration blows up.
@@ -356,7 +420,7 @@ class Config(_Strict):
         sim = self.simulation
         h = sim.step / substep_count(sim.step, sim.max_substep)
         lags = [(f"vehicles.{key}.k_v" if v.k_v is not None else "platoon.k_v", 1.0 / (v.k_v or self.platoon.k_v))
-                for key, v in self.vehicles.items()] + [("platoon.k_v", 1.0 / self.platoon.k_v)]
+                for key, v in self.vehicles.items()] + [("platoon.k_v", 1.0 / self.platoon.k_v)] + self._law_lags()
         overridden_away = sum(1 for v in self.vehicles.values() if v.dynamics not in (None, "m3pi"))
         if any(v.dynamics == "m3pi" for v in self.vehicles.values()) or (
                 self.platoon.dynamics == "m3pi" and overridden_away < self.platoon.count):  # some vehicle is an m3pi

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from fmus.model.guidance import SENSING_LAWS
 from fmus.model.paths import make_path
 
 from orchestrator.scenario.config import Config, step_count  # noqa: F401  (step_count re-exported: the engines import it from here)
@@ -94,6 +95,18 @@ def initial_states(config: Config) -> list[tuple[float, float, float, float]]:
     return states
 
 
+def speed_law_parameters(config: Config, index: int) -> dict[str, Any]:
+    """Vehicle ``index``'s speed law, with its time gap, standstill gap and gain under acc and cacc only:
+    the paper's law reads none of them, and keeps the FMU's defaults (a d* below h V_c, whose default
+    standstill gap d* - h V_c would be negative, then means nothing)."""
+    law = config.speed_law_of(index)
+    if law not in SENSING_LAWS:
+        return {"speed_law": law}
+    p = config.platoon
+    return {"speed_law": law, "time_gap": p.time_gap, "standstill_gap": p.resolved_standstill_gap,
+            "cacc_gain": p.cacc_gain}
+
+
 def build_scenario(config: Config) -> Scenario:
     sim, platoon, path = config.simulation, config.platoon, config.path
     common = {"d_star": platoon.d_star, "coupling": sim.coupling, "max_substep": sim.max_substep}
@@ -108,6 +121,8 @@ def build_scenario(config: Config) -> Scenario:
             "path.heading": path.heading,
             "path.direction": 1 if path.direction == "ccw" else -1,
             "initial.arc_length": 0.0,
+            "speed_law": config.speed_law_of(1),  # the lead's: acc and cacc need no forward information
+            "v_c": platoon.speed,
             **common,
         },
     )
@@ -131,6 +146,7 @@ def build_scenario(config: Config) -> Scenario:
                     "m3pi.track": config.m3pi.track,
                     "m3pi.wheel_speed_max": config.m3pi.wheel_speed_max,
                     "m3pi.motor_time_constant": config.m3pi.motor_time_constant,
+                    **speed_law_parameters(config, index),
                     **common,
                 },
             )
@@ -140,12 +156,14 @@ def build_scenario(config: Config) -> Scenario:
         for d in config.disturbance
     ]
     links = link_specs(config)
+    sensing = config.sensing_vehicles()
     if not links:  # every link perfect: today's wiring, component for component
-        return Scenario(config, components, platoon_connections(platoon.count), schedules)
+        return Scenario(config, components, platoon_connections(platoon.count, sensing=sensing), schedules)
     linked = frozenset(links)
     order = component_names(platoon.count, linked)
     by_name = {spec.name: spec for spec in components} | {spec.name: spec for spec in links.values()}
-    return Scenario(config, [by_name[name] for name in order], platoon_connections(platoon.count, linked), schedules)
+    return Scenario(config, [by_name[name] for name in order], platoon_connections(platoon.count, linked, sensing),
+                    schedules)
 
 
 def monolithic_refusal(config: Config) -> str | None:
