@@ -34,6 +34,18 @@ first-order motor lag, unicycle kinematics: V = (v<sub>r</sub> + v<sub>l</sub>)/
 where V<sub>1</sub> and d<sub>1</sub> are the lead vehicle's speed and distance to the target.</p>
 """,
 }
+EQUATIONS["Link"] = """
+<h2>What a link does</h2>
+<p>At each step the link looks at its sender's message (the <code>in.*</code> inputs and <code>in.time</code>, the time they
+describe). A message newer than the last one sent is sent when a beacon is due (<code>period</code> = 0: always; else at
+the first new message at or after each multiple of <code>period</code>). Two draws of a splitmix64 stream (seeded by
+<code>seed</code> and <code>stream</code>) decide whether it is lost (probability <code>loss</code>; with <code>burst</code> &gt; 1
+a Gilbert-Elliott channel with that mean burst length and the same mean loss) and its extra delay, uniform in
+[0, <code>jitter</code>]. It arrives at in.time + delay + that extra, never before a message sent earlier. The newest
+message arrived by the end of a step is the one in use (the outputs), held until a newer one arrives; <code>age</code>
+is the time minus its <code>output_time</code>. The message at the end of initialization is in use from the start.
+See docs/links.md of platoon-cosim.</p>
+"""
 EQUATIONS["LiveVehicle"] = EQUATIONS["Vehicle"] + """
 <h2>A live robot</h2>
 <p>The pose (x, y, &gamma;<sub>v</sub>) is the robot's, measured by its motion capture and received over Zenoh

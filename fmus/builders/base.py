@@ -24,7 +24,8 @@ PACKAGE_DIR = Path(__file__).resolve().parent.parent
 ROOT = PACKAGE_DIR.parent  # the folder holding fmus/, bridge/ and orchestrator/ (repository or site-packages)
 FMU_NAMES = ("Vehicle", "VirtualTarget")  # what every run uses
 LIVE_FMU = "LiveVehicle"  # a live robot as an FMU (platoon build --live, platoon export-ssp of a live config)
-ALL_FMUS = FMU_NAMES + (LIVE_FMU,)
+LINK_FMU = "Link"  # a communication link, in runs whose config has a [links] table (docs/links.md)
+ALL_FMUS = FMU_NAMES + (LINK_FMU, LIVE_FMU)
 DEFAULT_OUT = Path("build") / "fmus"
 _ZIP_TIME = (2020, 1, 1, 0, 0, 0)
 

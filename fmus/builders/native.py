@@ -45,7 +45,7 @@ from fmus.platforms import RELEASE_PLATFORMS, Platform, binary_entry, host_platf
 
 NATIVE_OUT = DEFAULT_OUT / "native"
 FMI3_OUT = DEFAULT_OUT / "fmi3"
-MODEL_SOURCE = {"Vehicle": "vehicle.c", "VirtualTarget": "target.c"}
+MODEL_SOURCE = {"Vehicle": "vehicle.c", "VirtualTarget": "target.c", "Link": "link.c"}
 GENERATED_HEADER = "variables.h"
 CONFIG_HEADER = "fmi3config.h"  # FMI 3.0 only
 BUILD_DESCRIPTION = "sources/buildDescription.xml"  # FMI 3.0 only

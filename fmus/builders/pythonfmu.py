@@ -23,7 +23,7 @@ from pathlib import Path
 import pythonfmu  # noqa: F401
 
 import fmus
-from fmus.builders.base import DEFAULT_OUT, LIVE_FMU, PACKAGE_DIR, ROOT, Builder, BuildError, slave_instance, write_fmu
+from fmus.builders.base import DEFAULT_OUT, LINK_FMU, LIVE_FMU, PACKAGE_DIR, ROOT, Builder, BuildError, slave_instance, write_fmu
 from fmus.modeldescription.fmi2 import guid_for, model_description
 from fmus.platforms import binary_entry
 
@@ -33,7 +33,7 @@ BUILDER_MODULES = ("builders/base.py", "builders/pythonfmu.py", "modeldescriptio
                    "documentation.py")
 # What an FMU carries beyond fmus/model and fmus/slaves: the LiveVehicle FMU runs the bridge's host side
 # (bridge.live and what it imports), the component interface and the pacer, so it needs nothing but zenoh installed.
-_ONLY_IN = {"LiveVehicle.py": LIVE_FMU}
+_ONLY_IN = {"LiveVehicle.py": LIVE_FMU, "Link.py": LINK_FMU}
 _EXTRA_SOURCES = {
     LIVE_FMU: ("bridge/__init__.py", "bridge/claim.py", "bridge/live.py", "bridge/protocol.py", "bridge/session.py",
                "bridge/states.py",

@@ -12,6 +12,8 @@ from typing import Any, Mapping
 from .coupling import COUPLING_MODES
 from .dynamics import DYNAMICS_KINDS, make_dynamics
 from .guidance import LAWS
+from .link import LinkParameters, LinkStepper
+from .link import parameter_errors as _link_errors
 from .paths import PATH_KINDS, make_path
 from .target import VirtualTargetStepper
 from .vehicle import VehicleModel, VehicleStepper
@@ -95,3 +97,17 @@ def target_stepper(values: Mapping[str, Any], start_time: float) -> VirtualTarge
         values["initial.arc_length"],
         start_time,
     )
+
+
+def link_parameters(values: Mapping[str, Any]) -> LinkParameters:
+    return LinkParameters(values["delay"], values["jitter"], values["period"], values["loss"], values["burst"],
+                          int(values["seed"]), int(values["stream"]))
+
+
+def link_parameter_errors(values: Mapping[str, Any]) -> list[str]:
+    """Every reason these Link parameters cannot run."""
+    return _link_errors(link_parameters(values))
+
+
+def link_stepper(values: Mapping[str, Any], start_time: float) -> LinkStepper:
+    return LinkStepper(link_parameters(values), start_time)

@@ -222,6 +222,7 @@ static int set_start_values(Instance *instance)
     }
     instance->start_time = instance->time = 0.0;
     memset(instance->state, 0, sizeof instance->state);
+    if (instance->memory) memset(instance->memory, 0, (size_t)model->memory_count * sizeof *instance->memory);
     instance->outputs_valid = 0;
     return 1;
 }
@@ -252,8 +253,10 @@ Instance *fw_instantiate(const ModelDef *model, const char *name, FwLogFunction 
     instance->scratch = calloc((size_t)count, sizeof *instance->scratch);
     instance->config = calloc(1, model->config_size ? model->config_size : 1);
     instance->output_refs = calloc((size_t)count, sizeof *instance->output_refs);
+    if (model->memory_count > 0) instance->memory = calloc((size_t)model->memory_count, sizeof *instance->memory);
     if (!instance->name || !instance->reals || !instance->integers || !instance->strings || !instance->scratch ||
-        !instance->config || !instance->output_refs || !set_start_values(instance)) {
+        !instance->config || !instance->output_refs || (model->memory_count > 0 && !instance->memory) ||
+        !set_start_values(instance)) {
         fw_free(instance);
         return NULL;
     }
@@ -276,6 +279,7 @@ void fw_free(Instance *instance)
     free(instance->scratch);
     free(instance->output_refs);
     free(instance->config);
+    free(instance->memory);
     free(instance->failure);
     free(instance->name);
     free(instance);
@@ -652,6 +656,7 @@ struct FwState {
     double start_time;
     double time;
     double state[FW_MAX_STATE];
+    double *memory; /* model->memory_count doubles (NULL when 0) */
     double *reals;
     int *integers;
     char **strings;
@@ -667,6 +672,7 @@ static void state_release(FwState *state)
     free(state->strings);
     free(state->integers);
     free(state->reals);
+    free(state->memory);
     free(state);
 }
 
@@ -679,7 +685,8 @@ static FwState *state_new(const ModelDef *model)
     state->reals = calloc((size_t)model->variable_count, sizeof *state->reals);
     state->integers = calloc((size_t)model->variable_count, sizeof *state->integers);
     state->strings = calloc((size_t)model->variable_count, sizeof *state->strings);
-    if (!state->reals || !state->integers || !state->strings) {
+    if (model->memory_count > 0) state->memory = calloc((size_t)model->memory_count, sizeof *state->memory);
+    if (!state->reals || !state->integers || !state->strings || (model->memory_count > 0 && !state->memory)) {
         state_release(state);
         return NULL;
     }
@@ -729,6 +736,9 @@ FwStatus fw_get_state(Instance *instance, FwState **state)
     target->start_time = instance->start_time;
     target->time = instance->time;
     memcpy(target->state, instance->state, sizeof target->state);
+    if (instance->model->memory_count > 0) {
+        memcpy(target->memory, instance->memory, (size_t)instance->model->memory_count * sizeof *target->memory);
+    }
     *state = target;
     return FW_OK;
 }
@@ -761,6 +771,9 @@ FwStatus fw_set_state(Instance *instance, const FwState *state)
     if (instance->mode == MODE_STEP || instance->mode == MODE_TERMINATED) instance->model->configure(instance);
     instance->time = state->time;
     memcpy(instance->state, state->state, sizeof instance->state);
+    if (instance->model->memory_count > 0) {
+        memcpy(instance->memory, state->memory, (size_t)instance->model->memory_count * sizeof *instance->memory);
+    }
     instance->outputs_valid = 0;
     return FW_OK;
 }
@@ -846,6 +859,7 @@ static void write_state(Writer *w, const FwState *state)
     put_double(w, state->time);
     put_u32(w, FW_MAX_STATE);
     for (int i = 0; i < FW_MAX_STATE; ++i) put_double(w, state->state[i]);
+    for (int i = 0; i < model->memory_count; ++i) put_double(w, state->memory[i]); /* none but the Link's */
     for (int vr = 0; vr < model->variable_count; ++vr) {
         switch (model->variables[vr].type) {
         case VAR_REAL: put_double(w, state->reals[vr]); break;
@@ -970,6 +984,7 @@ FwStatus fw_deserialize(Instance *instance, const unsigned char *bytes, size_t s
     result->time = get_double(&r);
     if (get_u32(&r) != FW_MAX_STATE && !r.problem) r.problem = "its state vector has the wrong length";
     for (int i = 0; i < FW_MAX_STATE; ++i) result->state[i] = get_double(&r);
+    for (int i = 0; i < model->memory_count; ++i) result->memory[i] = get_double(&r);
     for (int vr = 0; vr < model->variable_count && !r.problem; ++vr) {
         switch (model->variables[vr].type) {
         case VAR_REAL: result->reals[vr] = get_double(&r); break;

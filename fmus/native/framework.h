@@ -101,6 +101,11 @@ typedef struct {
      * may then be anything: the framework restores it). It may leave in memo what its outputs can
      * reuse. */
     int (*step)(Instance *instance, double t, double h, FwStepMemo *memo, FwText *why);
+    /* Doubles of evolving memory beyond the state vector (the Link's messages in flight; 0 for the
+     * others): zeroed at instantiation and reset, carried by the FMU state, serialized after the
+     * state vector. A step does not back it up: a model with memory keeps what its state vector does
+     * not point to as it was, so restoring the state vector undoes a step (link.c's ring). */
+    int memory_count;
 } ModelDef;
 
 /* The FMI layer's log function: forwards one finished message to the host. */
@@ -126,6 +131,7 @@ struct Instance {
     double *scratch;  /* variable_count doubles: outputs computed before they are accepted */
     char *failure;    /* why the instance failed (MODE_FAILED), owned */
     void *config;     /* the model's cached parameters */
+    double *memory;   /* model->memory_count doubles (NULL when 0) */
 };
 
 /* --- life cycle ------------------------------------------------------------------------------- */

@@ -130,7 +130,7 @@ def run(
         from orchestrator.execution.run import default_trace_path
 
     imported = seconds_since_process_start()  # the engines, numpy, the trace writer
-    engine = _chosen_engine(config, parsed, engine_name, monolithic, trace_writer)
+    engine = _chosen_engine(config, parsed, engine_name, monolithic, trace_writer, compare)
     view = _live_view(parsed, live, live_port, live_host, live_speed, live_wait)
     target = claim_trace(trace, overwrite, [config], lambda: default_trace_path(parsed, engine))
     trace = target.final
@@ -145,7 +145,8 @@ def run(
         _compare_monolithic(config, parsed, text, result, reference_path, overwrite, quiet)
 
 
-def _chosen_engine(config: Path, parsed: Config, engine_name: str | None, monolithic: bool, trace_writer: str) -> str:
+def _chosen_engine(config: Path, parsed: Config, engine_name: str | None, monolithic: bool, trace_writer: str,
+                   compare: bool = False) -> str:
     """The engine `platoon run` uses, after checking the options that choose it; exit 2 naming a bad one."""
     from orchestrator.components.live import LiveRunError, check_live_options
     from orchestrator.execution.run import TRACE_WRITERS, default_engine
@@ -157,6 +158,12 @@ def _chosen_engine(config: Path, parsed: Config, engine_name: str | None, monoli
     if trace_writer not in TRACE_WRITERS:
         fail(2, f"--trace-writer {trace_writer!r}: expected one of {', '.join(TRACE_WRITERS)}")
     engine = "monolithic" if monolithic else (engine_name or default_engine(parsed))
+    if monolithic or compare:
+        from orchestrator.scenario.scenario import monolithic_refusal
+
+        refusal = monolithic_refusal(parsed)
+        if refusal is not None:
+            fail(2, f"config {config}: {'--monolithic' if monolithic else '--compare-monolithic'}: {refusal}")
     try:
         check_live_options(parsed, engine, trace_writer)
     except LiveRunError as error:

@@ -15,7 +15,10 @@ defaults); a caller passes the first folder and this module finds the second bel
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
+
+if TYPE_CHECKING:
+    from orchestrator.scenario.scenario import Scenario
 
 FMU_KINDS = ("native", "python")
 NATIVE_SUBFOLDER = "native"
@@ -88,14 +91,21 @@ def ensure_fmus(fmu_dir: Path, kind: str, names: Sequence[str],
     return {name: paths[name] for name in names}
 
 
+def run_fmu_names(scenario: "Scenario") -> tuple[str, ...]:
+    """The FMUs a scenario's run steps: Vehicle and VirtualTarget, and Link when it has links."""
+    from fmus.builders import FMU_NAMES, LINK_FMU
+
+    return FMU_NAMES + ((LINK_FMU,) if any(spec.fmu == LINK_FMU for spec in scenario.components) else ())
+
+
 def prepare_fmus(fmu_dir: Path) -> None:
     """Build every kind a run may pick (pythonfmu always, native where a compiler is present), so that
     parallel runs (a sweep's workers) only check that they are current."""
-    from fmus.builders import FMU_NAMES
+    from fmus.builders import FMU_NAMES, LINK_FMU
 
     for kind in FMU_KINDS:
         if kind == "python" or native_buildable():
-            ensure_fmus(fmu_dir, kind, FMU_NAMES)
+            ensure_fmus(fmu_dir, kind, FMU_NAMES + (LINK_FMU,))
 
 
 def fmus_in_folder(folder: Path) -> dict[str, Path]:

@@ -16,10 +16,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
-from fmus.builders import DEFAULT_OUT, FMU_NAMES
+from fmus.builders import DEFAULT_OUT
 from fmus.errors import ComponentError
 from orchestrator.components.fmu import UnpackedFmu
-from orchestrator.components.kinds import ensure_fmus, resolve_fmu_kind
+from orchestrator.components.kinds import ensure_fmus, resolve_fmu_kind, run_fmu_names
 from orchestrator.components.live import check_live_options, live_names
 from orchestrator.execution.engine import EngineSetup, default_engine, engine_class
 from orchestrator.execution.signals import StopRequest
@@ -150,7 +150,7 @@ class Execution:
         self.fmu_kind = resolve_fmu_kind(sim.fmus, fmu_dir)
         announce = self.tick.building if isinstance(self.tick, ProgressDisplay) else None  # a first run builds them
         self.fmus = {name: UnpackedFmu.open_cached(path)
-                     for name, path in ensure_fmus(fmu_dir, self.fmu_kind, FMU_NAMES, announce).items()}
+                     for name, path in ensure_fmus(fmu_dir, self.fmu_kind, run_fmu_names(self.scenario), announce).items()}
 
     def run(self) -> RunResult:
         """Start, step to the end or the first stop, finalize; the result says how it ended."""

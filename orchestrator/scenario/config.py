@@ -23,6 +23,9 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationErr
 from bridge.protocol import DEFAULT_PREFIX, check_prefix
 from fmus.model.dynamics import M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEEL_SPEED_MAX
 from fmus.model.integrate import substep_count
+from fmus.model.link import CAPACITY as LINK_CAPACITY
+from fmus.model.link import LinkParameters, messages_held
+from fmus.model.link import parameter_errors as link_parameter_errors
 from orchestrator.support.suggest import did_you_mean
 
 from .ros2_config import RunRos2, VehicleRos2
@@ -217,6 +220,60 @@ class Disturbance(_Strict):
     value: Pulse
 
 
+LinkTime = Annotated[float, Field(ge=0.0, le=3600.0), Unit("s")]
+LINK_DIRECTIONS = ("backward", "forward")
+
+
+class LinkKeys(_Strict):
+    """One link's settings (docs/links.md); a key left out comes from the wider table."""
+
+    delay: LinkTime | None = Field(None, description="s from a message's output_time to its arrival")
+    jitter: LinkTime | None = Field(None, description="s: each message's extra delay is uniform in [0, jitter]")
+    period: LinkTime | None = Field(None, description="s between beacons; 0: every communication step")
+    loss: Annotated[float, Field(ge=0.0, le=1.0)] | None = Field(None, description="probability a message is lost")
+    burst: Annotated[float, Field(ge=1.0, le=1e6)] | None = Field(
+        None, description="mean burst length in messages; > 1: Gilbert-Elliott losses with the same mean loss")
+    seed: int | None = Field(None, ge=0, le=2**31 - 1, description="seed of every link's random stream")
+
+
+class VehicleLinks(_Strict):
+    """The two links between vehicle N and the component ahead of it (the target for vehicle 1)."""
+
+    backward: LinkKeys = LinkKeys()
+    forward: LinkKeys = LinkKeys()
+
+
+class Links(LinkKeys):
+    """``[links]``: every link; ``[links.backward]``, ``[links.forward]``: one direction;
+    ``[links.vehicles.N.backward]`` / ``.forward``: the links of vehicle N. The narrowest wins."""
+
+    backward: LinkKeys = LinkKeys()
+    forward: LinkKeys = LinkKeys()
+    vehicles: dict[str, VehicleLinks] = Field(default_factory=dict)
+
+
+def _link_layers(links: Links, direction: str, vehicle: int) -> list[LinkKeys]:
+    """The tables that may set a key of one link, narrowest first."""
+    own = links.vehicles.get(str(vehicle))
+    layers = [getattr(own, direction)] if own is not None else []
+    return layers + [getattr(links, direction), links]
+
+
+def link_stream(direction: str, vehicle: int) -> int:
+    """A link's own stream of the seed: 2 (N - 1) for vehicle N's backward link, + 1 for its forward one."""
+    return 2 * (vehicle - 1) + LINK_DIRECTIONS.index(direction)
+
+
+def resolve_link(links: Links, direction: str, vehicle: int) -> LinkParameters:
+    """The settings of vehicle ``vehicle``'s ``direction`` link: each key from the narrowest table that
+    sets it, else the perfect link's."""
+    layers = _link_layers(links, direction, vehicle)
+    default = LinkParameters()
+    values = {key: next((getattr(t, key) for t in layers if getattr(t, key) is not None), getattr(default, key))
+              for key in LinkKeys.model_fields}
+    return LinkParameters(**values, stream=link_stream(direction, vehicle))
+
+
 class Config(_Strict):
     name: Name = "scenario"
     description: Text = ""
@@ -229,6 +286,7 @@ class Config(_Strict):
     vehicles: dict[str, VehicleOverride] = Field(default_factory=dict)
     hil: Hil = Hil()
     ros2: RunRos2 = RunRos2()
+    links: Links = Links()
 
     @model_validator(mode="after")
     def _platoon_rules(self) -> "Config":
@@ -262,6 +320,7 @@ class Config(_Strict):
                 f"max_substep) = {steps * substeps:.3g} substeps per FMU: expected at most 2**53 = {COUNT_LIMIT:.3g} "
                 "(beyond it step counts are not exact in double precision; no option lifts this)"))
         self._check_stiffness()
+        self._check_links()
         if sim.trace_every > self.steps:
             raise _rule("simulation.trace_every", sim.trace_every, f"at most the run's {self.steps} steps "
                         "(stop_time / step), so that a point after t = 0 is recorded")
@@ -289,6 +348,41 @@ class Config(_Strict):
                         f"RK4 substeps of at most {RK4_STABILITY:g} x the fastest lag, here {key} (time constant "
                         f"{lag:g} s): max_substep <= {RK4_STABILITY * lag:.3g} s (the substep is now {h:.3g} s; "
                         "beyond it the integration diverges)")
+
+    def _check_links(self) -> None:
+        """Links name existing vehicles, their losses can be bursty as asked, and none holds more
+        messages than a Link FMU can (fmus.model.link.CAPACITY)."""
+        count = self.platoon.count
+        for key in self.links.vehicles:
+            if not key.isdigit() or key != str(int(key)) or not 1 <= int(key) <= count:
+                raise _rule(f"links.vehicles.{key}", key, f"a vehicle number from 1 to platoon.count = {count}")
+        if self.links == Links():
+            return  # no link: nothing to check for any of the vehicles
+        for vehicle in range(1, count + 1):
+            for direction in LINK_DIRECTIONS:
+                link = self.resolve_link(direction, vehicle)
+                where = f"links (vehicle {vehicle}'s {direction} link)"
+                errors = link_parameter_errors(link)
+                if errors:
+                    raise _RuleError("links", None, "", message=f"{where}: {errors[0]}")
+                held = messages_held(link, self.simulation.step)
+                if held > LINK_CAPACITY:
+                    raise _RuleError("links", None, "", message=(
+                        f"{where}: delay + jitter = {link.delay + link.jitter:g} s spans up to {held} messages at "
+                        f"step {self.simulation.step:g} s and period {link.period:g} s; a link holds at most "
+                        f"{LINK_CAPACITY} (shorten the delay, or send beacons less often: links.period)"))
+
+    def linked(self) -> list[tuple[str, int]]:
+        """The (direction, vehicle) pairs whose link is not perfect: the runs's Link components."""
+        if self.links == Links():
+            return []
+        return [(direction, vehicle) for vehicle in range(1, self.platoon.count + 1) for direction in LINK_DIRECTIONS
+                if not self.resolve_link(direction, vehicle).perfect]
+
+    def resolve_link(self, direction: str, vehicle: int) -> LinkParameters:
+        """The settings of vehicle ``vehicle``'s ``direction`` ("backward": from the component ahead to
+        it; "forward": from it to the component ahead) link; perfect when no table sets a key."""
+        return resolve_link(self.links, direction, vehicle)
 
     @property
     def steps(self) -> int:

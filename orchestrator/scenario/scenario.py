@@ -12,7 +12,8 @@ from typing import Any
 from fmus.model.paths import make_path
 
 from orchestrator.scenario.config import Config, step_count  # noqa: F401  (step_count re-exported: the engines import it from here)
-from orchestrator.scenario.wiring import TARGET, Connection, platoon_connections, vehicle_name
+from orchestrator.scenario.wiring import (LINK_FMU, TARGET, Connection, component_names, link_name, platoon_connections,
+                                          vehicle_name)
 
 DISTURBANCE_INPUTS = {
     "lateral_acceleration": "disturbance.lateral_acceleration",
@@ -46,7 +47,7 @@ class ScheduledInput:
 @dataclass(frozen=True)
 class ComponentSpec:
     name: str
-    fmu: str  # "VirtualTarget" | "Vehicle"
+    fmu: str  # "VirtualTarget" | "Vehicle" | "Link"
     parameters: dict[str, Any]
 
 
@@ -138,5 +139,32 @@ def build_scenario(config: Config) -> Scenario:
         ScheduledInput(vehicle_name(d.vehicle), DISTURBANCE_INPUTS[d.kind], d.start, d.duration, d.value)
         for d in config.disturbance
     ]
-    return Scenario(config, components, platoon_connections(platoon.count), schedules)
+    links = link_specs(config)
+    if not links:  # every link perfect: today's wiring, component for component
+        return Scenario(config, components, platoon_connections(platoon.count), schedules)
+    linked = frozenset(links)
+    order = component_names(platoon.count, linked)
+    by_name = {spec.name: spec for spec in components} | {spec.name: spec for spec in links.values()}
+    return Scenario(config, [by_name[name] for name in order], platoon_connections(platoon.count, linked), schedules)
+
+
+def monolithic_refusal(config: Config) -> str | None:
+    """Why the monolithic reference cannot run ``config`` (it has links), or None."""
+    linked = config.linked()
+    if not linked:
+        return None
+    return (f"the monolithic reference has no messages, so it cannot run links ({len(linked)} in this config, "
+            "docs/links.md); run without --monolithic, or without the [links] table")
+
+
+def link_specs(config: Config) -> dict[tuple[str, int], ComponentSpec]:
+    """The Link components of the run by (direction, vehicle): one per link that is not perfect (a
+    perfect link is a plain connection, exactly as without a [links] table)."""
+    specs = {}
+    for direction, vehicle in config.linked():
+        link = config.resolve_link(direction, vehicle)
+        parameters = {"delay": link.delay, "jitter": link.jitter, "period": link.period, "loss": link.loss,
+                      "burst": link.burst, "seed": link.seed, "stream": link.stream}
+        specs[(direction, vehicle)] = ComponentSpec(link_name(direction, vehicle), LINK_FMU, parameters)
+    return specs
 

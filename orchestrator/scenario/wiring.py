@@ -5,6 +5,10 @@ vehicle behind); velocity information flows forward (each vehicle's speed, gap a
 component ahead, vehicle 1's into the target). Every signal travels with the sender's ``output_time``
 (into the receiver's ``*.time`` input).
 The master, the SSP export and the libcosim tests all read this one list.
+
+A link (docs/links.md) on one direction between two adjacent components is a component of its own, a
+Link FMU: the sender's message goes into the link's ``in.*`` inputs, and the link's outputs (the
+message in use, same names as the sender's) into the receiver's inputs where the sender's went.
 """
 
 from __future__ import annotations
@@ -28,6 +32,21 @@ LEAD_SIGNALS = tuple((name, f"lead.{name}") for name in ("speed", "gap", "speed_
 )
 
 
+LINK_FMU = "Link"
+BACKWARD, FORWARD = "backward", "forward"
+
+
+def link_name(direction: str, vehicle: int) -> str:
+    """Component name of vehicle ``vehicle``'s link in ``direction`` ("backward": from the component
+    ahead to the vehicle; "forward": from the vehicle to the component ahead), e.g. link_backward2."""
+    return f"link_{direction}{vehicle}"
+
+
+def link_input(output: str) -> str:
+    """The Link input that carries a sender's ``output`` (its output_time into in.time)."""
+    return "in.time" if output == OUTPUT_TIME else f"in.{output}"
+
+
 @dataclass(frozen=True)
 class Connection:
     source: str
@@ -44,16 +63,36 @@ def vehicle_name(index: int) -> str:
     return f"vehicle{index}"
 
 
-def component_names(count: int) -> list[str]:
-    """Front to back: the target, then vehicles 1..count (the Gauss-Seidel order)."""
-    return [TARGET] + [vehicle_name(i) for i in range(1, count + 1)]
+def component_names(count: int, linked: frozenset[tuple[str, int]] = frozenset()) -> list[str]:
+    """Front to back: the target, then vehicles 1..count (the Gauss-Seidel order). A link in
+    ``linked`` ((direction, vehicle) pairs) steps right after its sender: vehicle N's backward link
+    just before vehicle N, its forward link just after it, so under Gauss-Seidel a message reaches
+    its receiver as soon as it would without the link."""
+    names = [TARGET]
+    for i in range(1, count + 1):
+        names += [link_name(BACKWARD, i)] if (BACKWARD, i) in linked else []
+        names.append(vehicle_name(i))
+        names += [link_name(FORWARD, i)] if (FORWARD, i) in linked else []
+    return names
 
 
-def platoon_connections(count: int) -> list[Connection]:
-    names = component_names(count)
+def _through(source: str, destination: str, signals: tuple[tuple[str, str], ...], link: str | None) -> list[Connection]:
+    """One direction's message from ``source`` to ``destination``, straight or through ``link``."""
+    if link is None:
+        return [Connection(source, out, destination, inp) for out, inp in signals]
+    return ([Connection(source, out, link, link_input(out)) for out, _ in signals]
+            + [Connection(link, out, destination, inp) for out, inp in signals])
+
+
+def platoon_connections(count: int, linked: frozenset[tuple[str, int]] = frozenset()) -> list[Connection]:
+    """Fig. 2's connections; the messages of the (direction, vehicle) pairs in ``linked`` pass
+    through their Link components (``link_name``)."""
+    names = [TARGET] + [vehicle_name(i) for i in range(1, count + 1)]
     connections = []
-    for ahead, behind in zip(names, names[1:]):
-        connections += [Connection(ahead, out, behind, inp) for out, inp in LATERAL_SIGNALS]
+    for vehicle, (ahead, behind) in enumerate(zip(names, names[1:]), start=1):
+        backward = link_name(BACKWARD, vehicle) if (BACKWARD, vehicle) in linked else None
+        forward = link_name(FORWARD, vehicle) if (FORWARD, vehicle) in linked else None
+        connections += _through(ahead, behind, LATERAL_SIGNALS, backward)
         signals = LEAD_SIGNALS if ahead == TARGET else FOLLOWER_SIGNALS
-        connections += [Connection(behind, out, ahead, inp) for out, inp in signals]
+        connections += _through(behind, ahead, signals, forward)
     return connections

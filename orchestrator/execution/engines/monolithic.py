@@ -12,12 +12,16 @@ from fmus.model.factory import target_stepper, vehicle_stepper
 from fmus.model.platoon import PlatoonSystem
 from orchestrator.execution.engine import Check, EngineSetup
 from orchestrator.observers.base import Observers
+from orchestrator.scenario.scenario import monolithic_refusal
 
 NAME = "platoon (monolithic)"  # what a failure names as the component
 
 
 def monolithic_system(setup: EngineSetup) -> PlatoonSystem:
     """The same steppers the FMUs would hold, from the same parameter values (FMU defaults + config)."""
+    refusal = monolithic_refusal(setup.config)
+    if refusal is not None:
+        raise ComponentError(NAME, 0.0, refusal)
     steppers = []
     for spec in setup.scenario.components:
         values = {**setup.fmus[spec.fmu].start_values(), **spec.parameters}
