@@ -107,6 +107,8 @@ def build_scenario(config: Config) -> Scenario:
             "path.heading": path.heading,
             "path.direction": 1 if path.direction == "ccw" else -1,
             "initial.arc_length": 0.0,
+            "speed_law": config.speed_law_of(1),  # the lead's: acc and cacc need no forward information
+            "v_c": platoon.speed,
             **common,
         },
     )
@@ -130,6 +132,10 @@ def build_scenario(config: Config) -> Scenario:
                     "m3pi.track": config.m3pi.track,
                     "m3pi.wheel_speed_max": config.m3pi.wheel_speed_max,
                     "m3pi.motor_time_constant": config.m3pi.motor_time_constant,
+                    "speed_law": config.speed_law_of(index),
+                    "time_gap": platoon.time_gap,
+                    "standstill_gap": platoon.resolved_standstill_gap,
+                    "cacc_gain": platoon.cacc_gain,
                     **common,
                 },
             )
@@ -138,5 +144,5 @@ def build_scenario(config: Config) -> Scenario:
         ScheduledInput(vehicle_name(d.vehicle), DISTURBANCE_INPUTS[d.kind], d.start, d.duration, d.value)
         for d in config.disturbance
     ]
-    return Scenario(config, components, platoon_connections(platoon.count), schedules)
+    return Scenario(config, components, platoon_connections(platoon.count, config.sensing_vehicles()), schedules)
 
