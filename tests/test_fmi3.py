@@ -175,7 +175,8 @@ SIMULATE_CASES = [
 ] + [
     ("VirtualTarget", {"path.kind": kind, "coupling": coupling, "path.heading": 0.3})
     for kind in ("circle", "line") for coupling in ("extrapolate", "hold")
-]
+] + [("Vehicle", {"speed_law": law, "coupling": "extrapolate"}) for law in ("acc", "cacc")] + [
+    ("VirtualTarget", {"speed_law": "cacc", "path.kind": "circle"})]
 # a disturbance through FMPy's input, so the run is not only the start values
 PULSES = {"Vehicle": ("disturbance.lateral_acceleration", 0.0, 5.0), "VirtualTarget": ("lead.gap", 75.0, 90.0)}
 
@@ -319,6 +320,9 @@ PLATOON_CASES = {  # config, overrides, lateral kick on vehicle 1 (m/s^2, from 1
                                                    "simulation.coupling=hold"], 35.0),
     "m3pi-regular-circle-extrapolate": ("m3pi.toml", ["platoon.count=3", "platoon.law=regular"], 1.0),
     "m3pi-sine-line-hold": ("m3pi.toml", ["platoon.count=3", "path.kind=line", "simulation.coupling=hold"], 1.0),
+    "highway-acc-circle-extrapolate": ("platoon.toml", ["platoon.count=3", "platoon.speed_law=acc"], 35.0),
+    "highway-cacc-line-hold": ("platoon.toml", ["platoon.count=3", "platoon.speed_law=cacc", "path.kind=line",
+                                                "simulation.coupling=hold"], 35.0),
 }
 
 

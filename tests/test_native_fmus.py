@@ -108,12 +108,17 @@ VEHICLE_CASES = [
 ] + [
     {"is_last": False, "d_star": 60.0, "k_v": 2.0},  # the speed chain: V_cmd from the follower's speed and gap
     {"dynamics": "m3pi", "m3pi.wheel_speed_max": 26.0, "initial.speed": 24.0},  # the wheel limits bite
+] + [  # the speed laws beyond the paper's: the sensed gap (sensor.*, dead-reckoned like target.*) and target.speed
+    {"speed_law": law, "dynamics": dynamics, "time_gap": 1.5, "standstill_gap": 30.0, "cacc_gain": 0.4,
+     "m3pi.wheel_speed_max": 30.0}  # the wheels of a car: the default target runs at 25 m/s
+    for law in ("acc", "cacc") for dynamics in ("kinematic", "m3pi")
 ]
 TARGET_CASES = [
     {"path.kind": kind, "coupling": coupling} for kind in ("circle", "line") for coupling in ("extrapolate", "hold")
 ] + [
     {"path.direction": -1, "path.radius": 80.0, "path.x0": 3.0, "path.heading": 0.7, "initial.arc_length": 5.0},
     {"path.kind": "line", "path.heading": -2.0, "path.y0": -4.0},
+    {"speed_law": "acc", "v_c": 20.0},  # under acc and cacc the target moves at v_c
 ]
 
 
@@ -180,6 +185,11 @@ PLATOONS = [
      "path": {"radius": 1.0}, "simulation": {"coupling": "hold", "master": "gauss-seidel"}},
     {"platoon": {"count": 3, "law": "sine"}, "path": {"kind": "line", "heading": 0.3},
      "simulation": {"coupling": "extrapolate", "master": "gauss-seidel"}},
+    {"platoon": {"count": 3, "law": "sine", "speed_law": "acc", "k_v": 1.0, "time_gap": 2.5},
+     "simulation": {"coupling": "extrapolate", "master": "jacobi"}},
+    {"platoon": {"count": 3, "law": "regular", "speed_law": "cacc", "dynamics": "m3pi", "speed": 0.35, "d_star": 0.7,
+                 "k_v": 2.0, "time_gap": 1.0}, "path": {"radius": 1.0},
+     "simulation": {"coupling": "hold", "master": "gauss-seidel"}, "vehicles": {"2": {"speed_law": "paper"}}},
 ]
 
 
@@ -199,7 +209,8 @@ def _run_platoon(scenario, folder) -> list[list[list[float]]]:
     return points
 
 
-@pytest.mark.parametrize("sections", PLATOONS, ids=["sine-extrapolate-jacobi", "m3pi-regular-hold-gs", "line"])
+@pytest.mark.parametrize("sections", PLATOONS, ids=["sine-extrapolate-jacobi", "m3pi-regular-hold-gs", "line", "acc",
+                                                    "m3pi-cacc-with-a-paper-vehicle-hold-gs"])
 def test_platoon_through_our_master_equals_the_python_fmus(fmu_dir, native_fmu_dir, sections):
     """A virtual target and three vehicles, wired as Fig. 2 (orchestrator.scenario.wiring), a lateral pulse on
     vehicle 2 and a speed pulse on vehicle 3, 20 s: every output of every component at every

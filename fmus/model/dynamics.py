@@ -64,6 +64,11 @@ class KinematicDynamics:
     def speed(self, state: list[float], speed_offset: float) -> float:
         return state[3] + speed_offset
 
+    @staticmethod
+    def loop_speed(state: list[float]) -> float:
+        """The speed the speed loop regulates (its state; a disturbance's added speed is not in it)."""
+        return state[3]
+
     def derivative(
         self, state: list[float], lateral_acceleration: float, commanded_speed: float, speed_offset: float
     ) -> list[float]:
@@ -108,6 +113,11 @@ class M3piDynamics:
 
     def speed(self, state: list[float], speed_offset: float) -> float:
         return 0.5 * (state[3] + state[4]) + speed_offset
+
+    @staticmethod
+    def loop_speed(state: list[float]) -> float:
+        """The speed the controller's speed loop regulates: its setpoint V_s."""
+        return state[5]
 
     def wheel_commands(self, setpoint: float, lateral_acceleration: float) -> tuple[float, float]:
         """Wheel speed commands from eqs. 10-11, clipped to the motors' limits."""

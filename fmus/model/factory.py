@@ -11,12 +11,12 @@ from typing import Any, Mapping
 
 from .coupling import COUPLING_MODES
 from .dynamics import DYNAMICS_KINDS, make_dynamics
-from .guidance import LAWS
+from .guidance import LAWS, SPEED_LAWS
 from .link import LinkParameters, LinkStepper
 from .link import parameter_errors as _link_errors
 from .paths import PATH_KINDS, make_path
 from .target import VirtualTargetStepper
-from .vehicle import VehicleModel, VehicleStepper
+from .vehicle import SpeedLaw, VehicleModel, VehicleStepper
 
 
 def _positive(values: Mapping[str, Any], names: tuple[str, ...]) -> list[str]:
@@ -24,6 +24,14 @@ def _positive(values: Mapping[str, Any], names: tuple[str, ...]) -> list[str]:
         f"{name} = {values[name]}: must be a finite number > 0"
         for name in names
         if not (math.isfinite(values[name]) and values[name] > 0.0)
+    ]
+
+
+def _non_negative(values: Mapping[str, Any], names: tuple[str, ...]) -> list[str]:
+    return [
+        f"{name} = {values[name]}: must be a finite number >= 0"
+        for name in names
+        if not (math.isfinite(values[name]) and values[name] >= 0.0)
     ]
 
 
@@ -37,22 +45,25 @@ def vehicle_parameter_errors(values: Mapping[str, Any]) -> list[str]:
     """Every reason these Vehicle parameters cannot run, as sentences naming the parameter."""
     return (
         _choice(values, "law", LAWS)
+        + _choice(values, "speed_law", SPEED_LAWS)
         + _choice(values, "dynamics", DYNAMICS_KINDS)
         + _choice(values, "coupling", COUPLING_MODES)
         + _positive(
             values,
             ("d_star", "k_v", "v_c", "max_substep", "initial.speed", "m3pi.track", "m3pi.wheel_speed_max",
-             "m3pi.motor_time_constant"),
+             "m3pi.motor_time_constant", "time_gap", "cacc_gain"),
         )
+        + _non_negative(values, ("standstill_gap",))
     )
 
 
 def target_parameter_errors(values: Mapping[str, Any]) -> list[str]:
     """Every reason these VirtualTarget parameters cannot run."""
-    errors = _choice(values, "path.kind", PATH_KINDS) + _choice(values, "coupling", COUPLING_MODES)
+    errors = (_choice(values, "path.kind", PATH_KINDS) + _choice(values, "coupling", COUPLING_MODES)
+              + _choice(values, "speed_law", SPEED_LAWS))
     if values["path.direction"] not in (1, -1):
         errors.append(f"path.direction = {values['path.direction']}: expected 1 or -1")
-    errors += _positive(values, ("d_star", "max_substep"))
+    errors += _positive(values, ("d_star", "max_substep", "v_c"))
     if values["path.kind"] == "circle":
         errors += _positive(values, ("path.radius",))
         if not errors and values["d_star"] > 2.0 * values["path.radius"]:
@@ -70,7 +81,8 @@ def vehicle_stepper(values: Mapping[str, Any], start_time: float) -> VehicleStep
         values["m3pi.wheel_speed_max"],
         values["m3pi.motor_time_constant"],
     )
-    model = VehicleModel(values["law"], values["d_star"], values["v_c"], bool(values["is_last"]), dynamics)
+    speed_law = SpeedLaw(values["speed_law"], values["time_gap"], values["standstill_gap"], values["cacc_gain"])
+    model = VehicleModel(values["law"], values["d_star"], values["v_c"], bool(values["is_last"]), dynamics, speed_law)
     state = dynamics.initial_state(
         values["initial.x"], values["initial.y"], values["initial.heading"], values["initial.speed"]
     )
@@ -96,6 +108,8 @@ def target_stepper(values: Mapping[str, Any], start_time: float) -> VirtualTarge
         values["max_substep"],
         values["initial.arc_length"],
         start_time,
+        values["speed_law"],
+        values["v_c"],
     )
 
 

@@ -62,12 +62,18 @@ class PlatoonSystem:
             gaps.append(math.hypot(ahead[0] - pose[0], ahead[1] - pose[1]))
             ahead = pose
         target.lead_speed, target.lead_gap, target.lead_time = speeds[0], gaps[0], t
-        target_speed = spacing_speed(speeds[0], gaps[0], target.d_star)
+        if target.constant_speed:  # acc, cacc: the target moves at V_c
+            target_speed = target.speed_command
+        else:
+            target_speed = spacing_speed(speeds[0], gaps[0], target.d_star)
         ahead_pose, ahead_speed = (tx, ty, th), target_speed
         n = len(self.vehicles)
         for i, vehicle in enumerate(self.vehicles):
             vehicle.target_x, vehicle.target_y, vehicle.target_heading = ahead_pose
             vehicle.target_speed, vehicle.target_time = ahead_speed, t
+            # the on-board sensor (acc, cacc) sees the same instant's pose: nothing to extrapolate
+            vehicle.sensor_x, vehicle.sensor_y, vehicle.sensor_heading = ahead_pose
+            vehicle.sensor_speed, vehicle.sensor_time = ahead_speed, t
             if i + 1 < n:
                 vehicle.follower_speed = speeds[i + 1]
                 vehicle.follower_gap = gaps[i + 1] if self.speed_chain_gap == "follower" else gaps[i]

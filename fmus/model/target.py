@@ -2,7 +2,8 @@
 
 Only the lead vehicle's target knows the path. Its state is its arc length s along the path; it moves
 at V_0 = V_1 d*/d_1 (eq. 3), where V_1 is the lead vehicle's speed and d_1 the lead's distance to the
-target (velocity information flowing forward).
+target (velocity information flowing forward). Under the acc and cacc speed laws (the lead vehicle's
+law; ``guidance.SENSING_LAWS``) it needs no forward information: it moves at the constant V_c.
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ from __future__ import annotations
 import math
 
 from .coupling import linear_extrapolate
-from .guidance import spacing_speed, spacing_speed_rate
+from .guidance import SENSING_LAWS, spacing_speed, spacing_speed_rate
 from .integrate import integrate
 from .paths import Path
 
@@ -18,9 +19,13 @@ from .paths import Path
 class VirtualTargetStepper:
     """The target between communication points: arc length, latest lead samples, coupling mode."""
 
-    def __init__(self, path: Path, d_star: float, coupling: str, max_substep: float, arc_length: float, time: float):
+    def __init__(self, path: Path, d_star: float, coupling: str, max_substep: float, arc_length: float, time: float,
+                 speed_law: str = "paper", speed_command: float = 0.0):
         self.path = path
         self.d_star = d_star
+        # acc, cacc: the target moves at the constant V_c (speed_command); paper: at V_1 d*/d_1
+        self.constant_speed = speed_law in SENSING_LAWS
+        self.speed_command = speed_command
         self.extrapolate = coupling == "extrapolate"
         self.max_substep = max_substep
         self.arc_length = arc_length
@@ -42,6 +47,8 @@ class VirtualTargetStepper:
         )
 
     def speed_at(self, t: float) -> float:
+        if self.constant_speed:
+            return self.speed_command
         speed, gap, _, _ = self.lead_at(t)
         return spacing_speed(speed, gap, self.d_star)
 
@@ -57,8 +64,12 @@ class VirtualTargetStepper:
 
     def outputs(self) -> dict[str, float]:
         t = self.time
-        speed, gap, speed_rate, gap_rate = self.lead_at(t)
-        target_speed = spacing_speed(speed, gap, self.d_star)
+        if self.constant_speed:
+            target_speed, target_speed_rate = self.speed_command, 0.0
+        else:
+            speed, gap, speed_rate, gap_rate = self.lead_at(t)
+            target_speed = spacing_speed(speed, gap, self.d_star)
+            target_speed_rate = spacing_speed_rate(speed, speed_rate, gap, gap_rate, self.d_star)
         x, y, heading = self.path.pose_at(self.arc_length)
         curvature = self.path.curvature(self.arc_length)
         return {
@@ -66,7 +77,7 @@ class VirtualTargetStepper:
             "y": y,
             "heading": heading,
             "speed": target_speed,
-            "speed_rate": spacing_speed_rate(speed, speed_rate, gap, gap_rate, self.d_star),
+            "speed_rate": target_speed_rate,
             "turn_rate": target_speed * curvature,
             "curvature": curvature,
             "arc_length": self.arc_length,

@@ -1,7 +1,8 @@
 """One platoon vehicle: guidance on top of dynamics, and its life between communication points.
 
-``VehicleModel`` is the vehicle's right-hand side: given its own state, where its target is and how
-the vehicle behind it is doing, it returns the state derivative. The FMU, the monolithic reference
+``VehicleModel`` is the vehicle's right-hand side: given its own state, where its target is, how
+the vehicle behind it is doing and (acc, cacc) where its on-board sensor sees the vehicle ahead, it
+returns the state derivative. The FMU, the monolithic reference
 and the live-robot bridge all call this one function.
 
 ``VehicleStepper`` is what an FMU instance holds: the state, the latest input samples, and the
@@ -15,7 +16,17 @@ from dataclasses import dataclass
 
 from .coupling import arc_extrapolate, linear_extrapolate
 from .dynamics import Dynamics
-from .guidance import lateral_acceleration, line_of_sight, spacing_speed
+from .guidance import (
+    SENSING_LAWS,
+    cacc_acceleration,
+    distance,
+    lateral_acceleration,
+    line_of_sight,
+    spacing_error,
+    spacing_speed,
+    speed_for_acceleration,
+    time_gap_speed,
+)
 from .integrate import integrate
 
 
@@ -34,9 +45,37 @@ VEHICLE_INPUTS = {
     "follower.speed_rate": "follower_speed_rate",
     "follower.gap_rate": "follower_gap_rate",
     "follower.time": "follower_time",
+    "sensor.x": "sensor_x",
+    "sensor.y": "sensor_y",
+    "sensor.heading": "sensor_heading",
+    "sensor.speed": "sensor_speed",
+    "sensor.speed_rate": "sensor_speed_rate",
+    "sensor.turn_rate": "sensor_turn_rate",
+    "sensor.time": "sensor_time",
     "disturbance.lateral_acceleration": "added_acceleration",
     "disturbance.speed": "added_speed",
 }
+
+
+@dataclass(frozen=True)
+class SpeedLaw:
+    """Which speed law commands the vehicle (``guidance.SPEED_LAWS``) and its parameters.
+
+    ``time_gap`` h (s), ``standstill_gap`` r (m) and ``gain`` k_p (1/s) act only under acc and cacc.
+    """
+
+    kind: str = "paper"
+    time_gap: float = 0.0
+    standstill_gap: float = 0.0
+    gain: float = 0.0
+
+    @property
+    def senses(self) -> bool:
+        """True when the law reads the gap to the vehicle ahead from the on-board sensor."""
+        return self.kind in SENSING_LAWS
+
+
+PAPER_LAW = SpeedLaw()
 
 
 @dataclass(frozen=True)
@@ -45,9 +84,31 @@ class VehicleModel:
 
     law: str
     d_star: float
-    speed_command: float  # V_c, used when the vehicle is last
+    speed_command: float  # V_c, used when the vehicle is last (paper's law)
     is_last: bool
     dynamics: Dynamics
+    speed_law: SpeedLaw = PAPER_LAW
+
+    def commanded_speed(
+        self,
+        state: list[float],
+        speed: float,
+        sensed_gap: float,
+        predecessor_speed: float,
+        follower_speed: float,
+        follower_gap: float,
+    ) -> float:
+        """V_cmd of the speed law: paper (the follower's V d*/d, or V_c when last), acc or cacc."""
+        law = self.speed_law
+        if law.kind == "acc":
+            return time_gap_speed(sensed_gap, law.standstill_gap, law.time_gap)
+        if law.kind == "cacc":
+            error = spacing_error(sensed_gap, law.standstill_gap, law.time_gap, speed)
+            acceleration = cacc_acceleration(predecessor_speed, speed, error, law.time_gap, law.gain)
+            return speed_for_acceleration(self.dynamics.loop_speed(state), acceleration, self.dynamics.k_v)
+        if self.is_last:
+            return self.speed_command
+        return spacing_speed(follower_speed, follower_gap, self.d_star)
 
     def evaluate(
         self,
@@ -59,19 +120,24 @@ class VehicleModel:
         follower_gap: float,
         added_acceleration: float,
         added_speed: float,
+        target_speed: float = 0.0,
+        sensor_x: float = 0.0,
+        sensor_y: float = 0.0,
     ) -> tuple[list[float], float, float]:
-        """State derivative, acting lateral acceleration and distance to the target."""
+        """State derivative, acting lateral acceleration and distance to the target.
+
+        ``target_speed`` is the vehicle ahead's speed as communicated (cacc); ``sensor_x``, ``sensor_y``
+        its position as the on-board sensor measures it (acc, cacc). The paper's law reads neither.
+        """
         x, y, heading = self.dynamics.pose(state)
         speed = self.dynamics.speed(state, added_speed)
-        distance, los = line_of_sight(x, y, target_x, target_y)
+        target_distance, los = line_of_sight(x, y, target_x, target_y)
         acceleration = (
-            lateral_acceleration(self.law, speed, distance, los, heading, target_heading) + added_acceleration
+            lateral_acceleration(self.law, speed, target_distance, los, heading, target_heading) + added_acceleration
         )
-        if self.is_last:
-            commanded = self.speed_command
-        else:
-            commanded = spacing_speed(follower_speed, follower_gap, self.d_star)
-        return self.dynamics.derivative(state, acceleration, commanded, added_speed), acceleration, distance
+        sensed_gap = distance(x, y, sensor_x, sensor_y) if self.speed_law.senses else 0.0
+        commanded = self.commanded_speed(state, speed, sensed_gap, target_speed, follower_speed, follower_gap)
+        return self.dynamics.derivative(state, acceleration, commanded, added_speed), acceleration, target_distance
 
 
 class VehicleStepper:
@@ -93,6 +159,9 @@ class VehicleStepper:
         # follower (the vehicle behind): velocity information
         self.follower_speed = self.follower_gap = 1.0
         self.follower_speed_rate = self.follower_gap_rate = self.follower_time = 0.0
+        # sensor (acc, cacc): the vehicle ahead's motion as the on-board sensor measures it
+        self.sensor_x = self.sensor_y = self.sensor_heading = 0.0
+        self.sensor_speed = self.sensor_speed_rate = self.sensor_turn_rate = self.sensor_time = 0.0
         # disturbances, held over the step
         self.added_acceleration = self.added_speed = 0.0
 
@@ -110,6 +179,22 @@ class VehicleStepper:
             t - self.target_time,
         )
 
+    def sensor_at(self, t: float) -> tuple[float, float]:
+        """Position of the vehicle ahead at time t as the on-board sensor sees it (extrapolated as the
+        target is: the sensor's heading, speed and rates only serve that)."""
+        if not self.extrapolate:
+            return self.sensor_x, self.sensor_y
+        x, y, _, _ = arc_extrapolate(
+            self.sensor_x,
+            self.sensor_y,
+            self.sensor_heading,
+            self.sensor_speed,
+            self.sensor_speed_rate,
+            self.sensor_turn_rate,
+            t - self.sensor_time,
+        )
+        return x, y
+
     def follower_at(self, t: float) -> tuple[float, float]:
         """Speed and gap of the vehicle behind at time t as this vehicle sees them."""
         if not self.extrapolate:
@@ -121,10 +206,11 @@ class VehicleStepper:
         )
 
     def evaluate(self, t: float, state: list[float]) -> tuple[list[float], float, float]:
-        tx, ty, th, _ = self.target_at(t)
+        tx, ty, th, tv = self.target_at(t)
         follower_speed, follower_gap = self.follower_at(t)
+        sx, sy = self.sensor_at(t) if self.model.speed_law.senses else (0.0, 0.0)
         return self.model.evaluate(
-            state, tx, ty, th, follower_speed, follower_gap, self.added_acceleration, self.added_speed
+            state, tx, ty, th, follower_speed, follower_gap, self.added_acceleration, self.added_speed, tv, sx, sy
         )
 
     def derivative(self, t: float, state: list[float]) -> list[float]:

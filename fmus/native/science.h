@@ -57,6 +57,41 @@ static inline double lateral_acceleration(Law law, double speed, double distance
     return gain * (4.0 * vehicle_error + 2.0 * target_error);
 }
 
+/* fmus.model.guidance.SPEED_LAWS */
+typedef enum { SPEED_LAW_PAPER, SPEED_LAW_ACC, SPEED_LAW_CACC } SpeedLaw;
+static const char *const SPEED_LAWS[] = {"paper", "acc", "cacc"};
+
+/* fmus.model.guidance.distance (named apart from the distance variables of vehicle.c) */
+static inline double point_distance(double x, double y, double target_x, double target_y)
+{
+    return py_hypot(target_x - x, target_y - y);
+}
+
+/* fmus.model.guidance.time_gap_speed */
+static inline double time_gap_speed(double gap, double standstill_gap, double time_gap)
+{
+    return (gap - standstill_gap) / time_gap;
+}
+
+/* fmus.model.guidance.spacing_error */
+static inline double spacing_error(double gap, double standstill_gap, double time_gap, double speed)
+{
+    return gap - standstill_gap - time_gap * speed;
+}
+
+/* fmus.model.guidance.cacc_acceleration */
+static inline double cacc_acceleration(double predecessor_speed, double speed, double error, double time_gap,
+                                       double gain)
+{
+    return (predecessor_speed - speed + gain * error) / time_gap;
+}
+
+/* fmus.model.guidance.speed_for_acceleration */
+static inline double speed_for_acceleration(double speed, double acceleration, double k_v)
+{
+    return speed + acceleration / k_v;
+}
+
 /* fmus.model.guidance.spacing_speed */
 static inline double spacing_speed(double speed, double gap, double d_star) { return speed * d_star / gap; }
 

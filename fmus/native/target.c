@@ -22,6 +22,8 @@ typedef struct {
     int direction;
     double d_star, max_substep;
     Coupling coupling;
+    int constant_speed; /* VirtualTargetStepper.constant_speed: acc, cacc move at v_c */
+    double speed_command;
 } TargetConfig;
 
 static const TargetConfig *config_of(const Instance *instance) { return (const TargetConfig *)instance->config; }
@@ -35,12 +37,14 @@ static int target_parameter_errors(const Instance *instance, FwText *reasons)
     int errors = 0;
     int kind = fw_choice(instance, VR_PATH_KIND, PATH_KINDS, 2, reasons, &errors);
     fw_choice(instance, VR_COUPLING, COUPLING_MODES, 2, reasons, &errors);
+    fw_choice(instance, VR_SPEED_LAW, SPEED_LAWS, 3, reasons, &errors);
     int direction = instance->integers[VR_PATH_DIRECTION];
     if (direction != 1 && direction != -1) {
         fw_text_append(reasons, "%spath.direction = %d: expected 1 or -1", errors++ ? "; " : "", direction);
     }
     fw_positive(instance, VR_D_STAR, reasons, &errors);
     fw_positive(instance, VR_MAX_SUBSTEP, reasons, &errors);
+    fw_positive(instance, VR_V_C, reasons, &errors);
     if (kind == PATH_CIRCLE) {
         fw_positive(instance, VR_PATH_RADIUS, reasons, &errors);
         double d_star = instance->reals[VR_D_STAR], radius = instance->reals[VR_PATH_RADIUS];
@@ -71,6 +75,8 @@ static void target_configure(Instance *instance)
     config->direction = instance->integers[VR_PATH_DIRECTION];
     config->d_star = r[VR_D_STAR];
     config->max_substep = r[VR_MAX_SUBSTEP];
+    config->constant_speed = fw_chosen(instance, VR_SPEED_LAW, SPEED_LAWS, 3) != SPEED_LAW_PAPER;
+    config->speed_command = r[VR_V_C];
     instance->state[0] = r[VR_INITIAL_ARC_LENGTH];
 }
 
@@ -124,6 +130,10 @@ static void derivative_of(void *context, double t, const double *state, double *
     const Instance *instance = (const Instance *)context;
     double lead[4];
     (void)state;
+    if (config_of(instance)->constant_speed) { /* VirtualTargetStepper.speed_at */
+        derivative[0] = config_of(instance)->speed_command;
+        return;
+    }
     lead_at(instance, t, lead);
     derivative[0] = spacing_speed(lead[0], lead[1], config_of(instance)->d_star);
 }
@@ -150,9 +160,16 @@ static void target_outputs(const Instance *instance, const FwStepMemo *memo, dou
     const TargetConfig *config = config_of(instance);
     double t = instance->time;
     double s = instance->state[0];
-    double lead[4];
-    lead_at(instance, t, lead);
-    double target_speed = spacing_speed(lead[0], lead[1], config->d_star);
+    double target_speed, target_speed_rate;
+    if (config->constant_speed) {
+        target_speed = config->speed_command;
+        target_speed_rate = 0.0;
+    } else {
+        double lead[4];
+        lead_at(instance, t, lead);
+        target_speed = spacing_speed(lead[0], lead[1], config->d_star);
+        target_speed_rate = spacing_speed_rate(lead[0], lead[2], lead[1], lead[3], config->d_star);
+    }
     double x, y, heading;
     pose_at(config, s, &x, &y, &heading);
     double k = curvature(config);
@@ -160,7 +177,7 @@ static void target_outputs(const Instance *instance, const FwStepMemo *memo, dou
     values[VR_Y] = y;
     values[VR_HEADING] = heading;
     values[VR_SPEED] = target_speed;
-    values[VR_SPEED_RATE] = spacing_speed_rate(lead[0], lead[2], lead[1], lead[3], config->d_star);
+    values[VR_SPEED_RATE] = target_speed_rate;
     values[VR_TURN_RATE] = target_speed * k;
     values[VR_CURVATURE] = k;
     values[VR_ARC_LENGTH] = s;

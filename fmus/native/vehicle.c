@@ -19,11 +19,13 @@ typedef enum { DYNAMICS_KINEMATIC, DYNAMICS_M3PI } DynamicsKind; /* fmus.model.d
  * fmus.model.factory.vehicle_stepper builds them from the parameters. */
 typedef struct {
     Law law;
+    SpeedLaw speed_law;
     DynamicsKind dynamics;
     Coupling coupling;
     int is_last;
     double d_star, k_v, v_c, max_substep;
     double track, wheel_speed_max, motor_time_constant;
+    double time_gap, standstill_gap, cacc_gain; /* fmus.model.vehicle.SpeedLaw */
     int state_size;
 } VehicleConfig;
 
@@ -34,15 +36,27 @@ static const VehicleConfig *config_of(const Instance *instance) { return (const 
 static const char *const LAWS[] = {"regular", "sine"};
 static const char *const DYNAMICS_KINDS[] = {"kinematic", "m3pi"};
 
+/* fmus.model.factory._non_negative: Real variable vr must be a finite number >= 0. */
+static void non_negative(const Instance *instance, int vr, FwText *reasons, int *errors)
+{
+    double value = instance->reals[vr];
+    if (isfinite(value) && value >= 0.0) return;
+    fw_text_append(reasons, "%s%s = ", (*errors)++ ? "; " : "", instance->model->variables[vr].name);
+    fw_text_float(reasons, value);
+    fw_text_append(reasons, ": must be a finite number >= 0");
+}
+
 static int vehicle_parameter_errors(const Instance *instance, FwText *reasons)
 {
     int errors = 0;
     fw_choice(instance, VR_LAW, LAWS, 2, reasons, &errors);
+    fw_choice(instance, VR_SPEED_LAW, SPEED_LAWS, 3, reasons, &errors);
     fw_choice(instance, VR_DYNAMICS, DYNAMICS_KINDS, 2, reasons, &errors);
     fw_choice(instance, VR_COUPLING, COUPLING_MODES, 2, reasons, &errors);
     static const int POSITIVE[] = {VR_D_STAR, VR_K_V, VR_V_C, VR_MAX_SUBSTEP, VR_INITIAL_SPEED, VR_M3PI_TRACK,
-                                   VR_M3PI_WHEEL_SPEED_MAX, VR_M3PI_MOTOR_TIME_CONSTANT};
+                                   VR_M3PI_WHEEL_SPEED_MAX, VR_M3PI_MOTOR_TIME_CONSTANT, VR_TIME_GAP, VR_CACC_GAIN};
     for (size_t i = 0; i < sizeof POSITIVE / sizeof POSITIVE[0]; ++i) fw_positive(instance, POSITIVE[i], reasons, &errors);
+    non_negative(instance, VR_STANDSTILL_GAP, reasons, &errors);
     return errors;
 }
 
@@ -52,6 +66,10 @@ static void vehicle_configure(Instance *instance)
     VehicleConfig *config = (VehicleConfig *)instance->config;
     const double *r = instance->reals;
     config->law = fw_chosen(instance, VR_LAW, LAWS, 2) == 1 ? LAW_SINE : LAW_REGULAR;
+    config->speed_law = (SpeedLaw)fw_chosen(instance, VR_SPEED_LAW, SPEED_LAWS, 3); /* same order as the enum */
+    config->time_gap = r[VR_TIME_GAP];
+    config->standstill_gap = r[VR_STANDSTILL_GAP];
+    config->cacc_gain = r[VR_CACC_GAIN];
     config->dynamics = fw_chosen(instance, VR_DYNAMICS, DYNAMICS_KINDS, 2) == 1 ? DYNAMICS_M3PI
                                                                                                : DYNAMICS_KINEMATIC;
     config->coupling = fw_chosen(instance, VR_COUPLING, COUPLING_MODES, 2) == 1 ? COUPLING_EXTRAPOLATE
@@ -96,6 +114,12 @@ static double dynamics_speed(const VehicleConfig *config, const double *state, d
 {
     if (config->dynamics == DYNAMICS_M3PI) return 0.5 * (state[3] + state[4]) + speed_offset;
     return state[3] + speed_offset;
+}
+
+/* KinematicDynamics.loop_speed / M3piDynamics.loop_speed */
+static double dynamics_loop_speed(const VehicleConfig *config, const double *state)
+{
+    return config->dynamics == DYNAMICS_M3PI ? state[5] : state[3];
 }
 
 /* KinematicDynamics.derivative / M3piDynamics.derivative (with wheel_commands, limit_wheels, drive) */
@@ -162,6 +186,39 @@ static void target_at(const Instance *instance, double t, double out[4])
     }
     arc_extrapolate(r[VR_TARGET_X], r[VR_TARGET_Y], r[VR_TARGET_HEADING], r[VR_TARGET_SPEED], r[VR_TARGET_SPEED_RATE],
                     r[VR_TARGET_TURN_RATE], t - r[VR_TARGET_TIME], out);
+}
+
+/* VehicleStepper.sensor_at: the position of the vehicle ahead at time t as the on-board sensor sees it */
+static void sensor_at(const Instance *instance, double t, double *x, double *y)
+{
+    const double *r = instance->reals;
+    if (config_of(instance)->coupling != COUPLING_EXTRAPOLATE) {
+        *x = r[VR_SENSOR_X];
+        *y = r[VR_SENSOR_Y];
+        return;
+    }
+    double out[4];
+    arc_extrapolate(r[VR_SENSOR_X], r[VR_SENSOR_Y], r[VR_SENSOR_HEADING], r[VR_SENSOR_SPEED], r[VR_SENSOR_SPEED_RATE],
+                    r[VR_SENSOR_TURN_RATE], t - r[VR_SENSOR_TIME], out);
+    *x = out[0];
+    *y = out[1];
+}
+
+/* fmus.model.vehicle.VehicleModel.commanded_speed */
+static double commanded_speed(const VehicleConfig *config, const double *state, double speed, double sensed_gap,
+                              double predecessor_speed, double follower_speed, double follower_gap)
+{
+    if (config->speed_law == SPEED_LAW_ACC) {
+        return time_gap_speed(sensed_gap, config->standstill_gap, config->time_gap);
+    }
+    if (config->speed_law == SPEED_LAW_CACC) {
+        double error = spacing_error(sensed_gap, config->standstill_gap, config->time_gap, speed);
+        double acceleration =
+            cacc_acceleration(predecessor_speed, speed, error, config->time_gap, config->cacc_gain);
+        return speed_for_acceleration(dynamics_loop_speed(config, state), acceleration, config->k_v);
+    }
+    if (config->is_last) return config->v_c;
+    return spacing_speed(follower_speed, follower_gap, config->d_star);
 }
 
 /* VehicleStepper.follower_at */
@@ -246,7 +303,14 @@ static void evaluate(TargetSight *sight, double t, const double *state, double *
     line_of_sight(x, y, target[0], target[1], distance, &los);
     *acceleration =
         lateral_acceleration(config->law, speed, *distance, los, heading, target[2]) + added_acceleration;
-    double commanded = config->is_last ? config->v_c : spacing_speed(follower_speed, follower_gap, config->d_star);
+    double sensed_gap = 0.0;
+    if (config->speed_law != SPEED_LAW_PAPER) { /* SpeedLaw.senses */
+        double sensor_x, sensor_y;
+        sensor_at(instance, t, &sensor_x, &sensor_y);
+        sensed_gap = point_distance(x, y, sensor_x, sensor_y);
+    }
+    double commanded =
+        commanded_speed(config, state, speed, sensed_gap, target[3], follower_speed, follower_gap);
     dynamics_derivative(config, state, *acceleration, commanded, added_speed, derivative);
 }
 

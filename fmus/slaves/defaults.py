@@ -17,6 +17,11 @@ K_V = 0.5
 STOP_TIME = 60.0
 STEP = 0.01
 MAX_SUBSTEP = 0.01
+# The speed laws beyond the paper's (docs/model.md, section 11; docs/config.md says why these values):
+# a 2 s time gap, and the standstill gap that makes the equilibrium gap d* at V_c (d* - h V_c = 25 m).
+TIME_GAP = 2.0
+STANDSTILL_GAP = D_STAR - TIME_GAP * SPEED
+CACC_GAIN = 0.2  # Ploeg et al. (ITSC 2011): k_p = 0.2 1/s
 
 _circle = CirclePath(RADIUS)
 TARGET_X, TARGET_Y, TARGET_HEADING = _circle.pose_at(0.0)

@@ -33,8 +33,19 @@ Progress = Callable[[str, int], AbstractContextManager[Callable[[int], None] | N
 _PERTURBATION = 1e-6
 
 
+def require_paper_law(config: Config) -> None:
+    """Refuse, with the reason, a platoon in which some vehicle follows another speed law than the paper's:
+    the linearization about the circle and the speed-chain G(s) below are the paper's law's."""
+    laws = sorted({config.speed_law_of(i) for i in range(1, config.platoon.count + 1)} - {"paper"})
+    if laws:
+        raise ValueError(f"platoon.speed_law = {laws[0]!r}: the linearization (eigenvalues, eq. 9, the speed chain's "
+                         "peak gain) knows only the paper's speed law; docs/model.md, section 11, gives acc's and "
+                         "cacc's G(s) and string-stability conditions")
+
+
 def platoon_system(config: Config, count: int | None = None, speed_chain_gap: str = "follower") -> PlatoonSystem:
     """The config's platoon with kinematic vehicles, as one system (state: s, then x, y, heading, V)."""
+    require_paper_law(config)
     n = count or config.platoon.count
     p = config.platoon
     path = path_of(config)
@@ -176,6 +187,7 @@ def speed_chain_gain(config: Config) -> tuple[float, float]:
     (they do not depend on n), which is why it is reported next to them (docs/model.md, section 10).
     Setting d/dw^2 of |G|^2 to zero gives the peak at w^2 = (k/k_v^2)(sqrt(k^2 + 2 k_v^2 k) - k).
     """
+    require_paper_law(config)
     p = config.platoon
     alpha = math.sqrt(1.0 - (p.d_star / (2.0 * config.path.radius)) ** 2) if config.path.kind == "circle" else 1.0
     k = p.k_v * p.speed * alpha / p.d_star

@@ -141,6 +141,14 @@ class M3pi(_Strict):
 
 Law = Literal["sine", "regular"]
 DynamicsKind = Literal["kinematic", "m3pi"]
+# The speed laws (fmus.model.guidance.SPEED_LAWS; docs/model.md, section 11): the paper's, a constant-time-gap
+# ACC, Ploeg's CACC adapted to the first-order speed loop.
+SpeedLaw = Literal["paper", "acc", "cacc"]
+SENSING_LAWS = ("acc", "cacc")  # the laws that read the on-board sensor (fmus.model.guidance.SENSING_LAWS)
+# A time gap beyond 100 s is no platoon; below 1 ms the cacc pole -1/h is beyond any substep (the stiffness
+# check below names it).
+TimeGap = Annotated[float, Field(ge=SMALL, le=100.0), Unit("s")]
+GapLength = Annotated[float, Field(ge=0.0, le=LENGTH_MAX), Unit("m")]
 
 
 class Platoon(_Strict):
@@ -150,6 +158,17 @@ class Platoon(_Strict):
     k_v: Gain = 0.5
     speed: Speed = Field(25.0, description="V_c, the last vehicle's commanded speed")
     dynamics: DynamicsKind = "kinematic"
+    speed_law: SpeedLaw = Field("paper", description="paper (V d*/d), acc (constant time gap) or cacc (Ploeg)")
+    time_gap: TimeGap = Field(2.0, description="h of acc and cacc: desired gap standstill_gap + h V, s")
+    standstill_gap: GapLength | None = Field(None, description="r of acc and cacc, m (default d_star - time_gap speed)")
+    cacc_gain: Gain = Field(0.2, description="k_p of cacc (Ploeg et al. 2011), 1/s")
+
+    @property
+    def resolved_standstill_gap(self) -> float:
+        """r: as given, or the one that makes the acc/cacc equilibrium gap d* at V_c (d* - h V_c)."""
+        if self.standstill_gap is not None:
+            return self.standstill_gap
+        return self.d_star - self.time_gap * self.speed
 
 
 class Initial(_Strict):
@@ -169,6 +188,7 @@ class VehicleState(_Strict):
 
 class VehicleOverride(_Strict):
     law: Law | None = None
+    speed_law: SpeedLaw | None = None
     k_v: Gain | None = None
     dynamics: DynamicsKind | None = None
     initial: VehicleState | None = None
@@ -319,12 +339,44 @@ class Config(_Strict):
                 f"simulation: {steps:.3g} steps (stop_time / step) x {substeps:.3g} RK4 substeps each (step / "
                 f"max_substep) = {steps * substeps:.3g} substeps per FMU: expected at most 2**53 = {COUNT_LIMIT:.3g} "
                 "(beyond it step counts are not exact in double precision; no option lifts this)"))
+        self._check_speed_laws()
         self._check_stiffness()
         self._check_links()
         if sim.trace_every > self.steps:
             raise _rule("simulation.trace_every", sim.trace_every, f"at most the run's {self.steps} steps "
                         "(stop_time / step), so that a point after t = 0 is recorded")
         return self
+
+    def speed_law_of(self, vehicle: int) -> str:
+        """Vehicle ``vehicle``'s speed law: its [vehicles.K] override, else platoon.speed_law."""
+        return self.override(vehicle).speed_law or self.platoon.speed_law
+
+    def sensing_vehicles(self) -> list[int]:
+        """Numbers of the vehicles whose speed law reads the on-board sensor (acc, cacc), front to back."""
+        return [i for i in range(1, self.platoon.count + 1) if self.speed_law_of(i) in SENSING_LAWS]
+
+    def _check_speed_laws(self) -> None:
+        """acc and cacc need a standstill gap r >= 0; the default r = d* - h V_c is negative for h > d*/V_c."""
+        p = self.platoon
+        if p.standstill_gap is None and self.sensing_vehicles() and p.resolved_standstill_gap < 0.0:
+            raise _rule("platoon.time_gap", p.time_gap, f"at most platoon.d_star / platoon.speed = {p.d_star / p.speed:g} s "
+                        f"under acc or cacc, or an explicit platoon.standstill_gap >= 0 (the default standstill gap "
+                        f"d_star - time_gap * speed = {p.resolved_standstill_gap:g} m would be negative)")
+
+    def _law_lags(self) -> list[tuple[str, float]]:
+        """The fastest time constant each sensing law adds (1 / the largest |pole| of its loop, docs/model.md
+        section 11): cacc's poles are -1/h and -k_p; acc's are the roots of h s^2 + k_v h s + k_v."""
+        p, lags = self.platoon, []
+        for index in self.sensing_vehicles():
+            k_v = self.override(index).k_v or p.k_v
+            if self.speed_law_of(index) == "cacc":
+                lags.append(("platoon.time_gap", min(p.time_gap, 1.0 / p.cacc_gain)))
+                continue
+            a, b, c = p.time_gap, k_v * p.time_gap, k_v
+            disc = b * b - 4.0 * a * c
+            fastest = math.sqrt(c / a) if disc < 0.0 else (b + math.sqrt(disc)) / (2.0 * a)
+            lags.append(("platoon.time_gap", 1.0 / fastest))
+        return lags
 
     def _check_stiffness(self) -> None:
         """Every first-order lag must be resolved by the RK4 substep, or the integration blows up.
@@ -337,7 +389,7 @@ class Config(_Strict):
         sim = self.simulation
         h = sim.step / substep_count(sim.step, sim.max_substep)
         lags = [(f"vehicles.{key}.k_v" if v.k_v is not None else "platoon.k_v", 1.0 / (v.k_v or self.platoon.k_v))
-                for key, v in self.vehicles.items()] + [("platoon.k_v", 1.0 / self.platoon.k_v)]
+                for key, v in self.vehicles.items()] + [("platoon.k_v", 1.0 / self.platoon.k_v)] + self._law_lags()
         overridden_away = sum(1 for v in self.vehicles.values() if v.dynamics not in (None, "m3pi"))
         if any(v.dynamics == "m3pi" for v in self.vehicles.values()) or (
                 self.platoon.dynamics == "m3pi" and overridden_away < self.platoon.count):  # some vehicle is an m3pi

@@ -108,6 +108,8 @@ def build_scenario(config: Config) -> Scenario:
             "path.heading": path.heading,
             "path.direction": 1 if path.direction == "ccw" else -1,
             "initial.arc_length": 0.0,
+            "speed_law": config.speed_law_of(1),  # the lead's: acc and cacc need no forward information
+            "v_c": platoon.speed,
             **common,
         },
     )
@@ -131,6 +133,10 @@ def build_scenario(config: Config) -> Scenario:
                     "m3pi.track": config.m3pi.track,
                     "m3pi.wheel_speed_max": config.m3pi.wheel_speed_max,
                     "m3pi.motor_time_constant": config.m3pi.motor_time_constant,
+                    "speed_law": config.speed_law_of(index),
+                    "time_gap": platoon.time_gap,
+                    "standstill_gap": platoon.resolved_standstill_gap,
+                    "cacc_gain": platoon.cacc_gain,
                     **common,
                 },
             )
@@ -140,12 +146,14 @@ def build_scenario(config: Config) -> Scenario:
         for d in config.disturbance
     ]
     links = link_specs(config)
+    sensing = config.sensing_vehicles()
     if not links:  # every link perfect: today's wiring, component for component
-        return Scenario(config, components, platoon_connections(platoon.count), schedules)
+        return Scenario(config, components, platoon_connections(platoon.count, sensing=sensing), schedules)
     linked = frozenset(links)
     order = component_names(platoon.count, linked)
     by_name = {spec.name: spec for spec in components} | {spec.name: spec for spec in links.values()}
-    return Scenario(config, [by_name[name] for name in order], platoon_connections(platoon.count, linked), schedules)
+    return Scenario(config, [by_name[name] for name in order], platoon_connections(platoon.count, linked, sensing),
+                    schedules)
 
 
 def monolithic_refusal(config: Config) -> str | None:

@@ -3,7 +3,9 @@
 Lateral information flows backward (the target's, then each vehicle's pose, speed and rates into the
 vehicle behind); velocity information flows forward (each vehicle's speed, gap and rates into the
 component ahead, vehicle 1's into the target). Every signal travels with the sender's ``output_time``
-(into the receiver's ``*.time`` input).
+(into the receiver's ``*.time`` input). A vehicle whose speed law reads the on-board sensor (acc, cacc)
+also gets the pose and motion of the component ahead on its ``sensor.*`` inputs, wired directly: a
+sensor measures, it does not communicate, so these never pass through a link.
 The master, the SSP export and the libcosim tests all read this one list.
 
 A link (docs/links.md) on one direction between two adjacent components is a component of its own, a
@@ -14,6 +16,7 @@ message in use, same names as the sender's) into the receiver's inputs where the
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Iterable
 
 TARGET = "target"
 
@@ -27,6 +30,10 @@ LATERAL_SIGNALS = tuple(
 FOLLOWER_SIGNALS = tuple(
     (name, f"follower.{name}") for name in ("speed", "gap", "speed_rate", "gap_rate")
 ) + ((OUTPUT_TIME, "follower.time"),)
+# The on-board sensor's signals: the component ahead's pose and motion (sender output, receiver input).
+SENSOR_SIGNALS = tuple(
+    (name, f"sensor.{name}") for name in ("x", "y", "heading", "speed", "speed_rate", "turn_rate")
+) + ((OUTPUT_TIME, "sensor.time"),)
 LEAD_SIGNALS = tuple((name, f"lead.{name}") for name in ("speed", "gap", "speed_rate", "gap_rate")) + (
     (OUTPUT_TIME, "lead.time"),
 )
@@ -84,9 +91,11 @@ def _through(source: str, destination: str, signals: tuple[tuple[str, str], ...]
             + [Connection(link, out, destination, inp) for out, inp in signals])
 
 
-def platoon_connections(count: int, linked: frozenset[tuple[str, int]] = frozenset()) -> list[Connection]:
+def platoon_connections(count: int, linked: frozenset[tuple[str, int]] = frozenset(),
+                        sensing: Iterable[int] = ()) -> list[Connection]:
     """Fig. 2's connections; the messages of the (direction, vehicle) pairs in ``linked`` pass
-    through their Link components (``link_name``)."""
+    through their Link components (``link_name``); then the sensor connections of the vehicles
+    numbered in ``sensing`` (direct: a sensor never passes through a link)."""
     names = [TARGET] + [vehicle_name(i) for i in range(1, count + 1)]
     connections = []
     for vehicle, (ahead, behind) in enumerate(zip(names, names[1:]), start=1):
@@ -95,4 +104,7 @@ def platoon_connections(count: int, linked: frozenset[tuple[str, int]] = frozens
         connections += _through(ahead, behind, LATERAL_SIGNALS, backward)
         signals = LEAD_SIGNALS if ahead == TARGET else FOLLOWER_SIGNALS
         connections += _through(behind, ahead, signals, forward)
+    for index in sensing:
+        ahead, behind = names[index - 1], names[index]
+        connections += [Connection(ahead, out, behind, inp) for out, inp in SENSOR_SIGNALS]
     return connections
