@@ -26,11 +26,15 @@ the uniform jitter. Its derivatives come from Cauchy's integral on a small circl
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from orchestrator.scenario.config import Config, Simulation
 
 SPEED_LAWS = ("paper", "acc", "cacc")
 
@@ -110,6 +114,19 @@ class Channel:
 
 PERFECT = Channel(0.0, 0.0)
 
+# The frequencies every peak search starts from (rad/s): 2000 points, log-spaced over seven decades.
+BASE_GRID = np.geomspace(1e-4, 1e3, 2000)
+
+
+@functools.lru_cache(maxsize=64)
+def _base_response(channel: Channel) -> np.ndarray:
+    """P(jw) on BASE_GRID, computed once per channel (a time-gap bisection reuses it)."""
+    return channel.response(BASE_GRID)
+
+
+def _response(channel: Channel, w: np.ndarray) -> np.ndarray:
+    return _base_response(channel) if w is BASE_GRID else channel.response(w)
+
 
 @dataclass(frozen=True)
 class Chain:
@@ -144,9 +161,9 @@ class Chain:
             # V_i (s^2 + k_v s + k P) = P (k_v s + k) V_(i+1), k = k_v V_c alpha/d*: the follower's speed
             # and gap both come through the forward link, so its delay is inside vehicle i's loop
             k = self.k_v * self.speed * self.alpha / self.d_star
-            p = self.forward.response(w)
+            p = _response(self.forward, w)
             return p * (self.k_v * s + k), s * s + self.k_v * s + k * p
-        sensed = self.sensor.response(w)
+        sensed = _response(self.sensor, w)
         h = self.time_gap
         if self.law == "acc":
             # V_cmd = (d - r)/h, d' = alpha (V_(i-1) - V_i): G = k_v alpha S / (h s^2 + k_v h s + k_v alpha)
@@ -155,7 +172,7 @@ class Chain:
             # V_i' = a = (V_(i-1)^comm - V_i + k_p (d - r - h V_i))/h (the speed loop realises a exactly):
             # G = (s B + k_p alpha S) / (h s^2 + (1 + k_p h) s + k_p alpha); k_v drops out
             kp = self.cacc_gain
-            return (s * self.backward.response(w) + kp * self.alpha * sensed,
+            return (s * _response(self.backward, w) + kp * self.alpha * sensed,
                     h * s * s + (1.0 + kp * h) * s + kp * self.alpha)
         raise ValueError(f"unknown speed law {self.law!r}; expected one of {', '.join(SPEED_LAWS)}")
 
@@ -171,11 +188,17 @@ class Chain:
         has Z = 1 - (change of its phase from w = 0 to infinity)/pi roots with Re s > 0. Only the paper's
         law has a delay in its loop (the forward link); acc's and cacc's loops are plain polynomials.
         """
-        latest = max(abs(c.min_age) + c.period * (1 + 30 * c.loss) + c.jitter
-                     for c in (self.forward, self.backward, self.sensor))
+        if self.law == "acc":
+            return int(np.sum(np.roots([self.time_gap, self.k_v * self.time_gap, self.k_v * self.alpha]).real > 0))
+        if self.law == "cacc":
+            coefficients = [self.time_gap, 1.0 + self.cacc_gain * self.time_gap, self.cacc_gain * self.alpha]
+            return int(np.sum(np.roots(coefficients).real > 0))
+        c = self.forward
+        latest = abs(c.min_age) + c.period * (1 + 30 * c.loss) + c.jitter
         k = self.k_v * self.speed * self.alpha / self.d_star
-        top = 20.0 * (1.0 + self.k_v + math.sqrt(k) + k * latest + 1.0 / max(self.time_gap, 1e-3) + self.cacc_gain)
-        count = int(min(2_000_000, max(20_000, 40 * top * (latest + 1.0))))
+        top = 20.0 * (1.0 + self.k_v + math.sqrt(k) + k * latest)
+        # fine enough that e^{-jw a} turns by at most 0.025 rad between two points
+        count = int(min(1_000_000, max(20_000, 40 * top * (latest + 1.0))))
         w = np.linspace(0.0, top, count)
         phase = np.unwrap(np.angle(self._parts(w)[1]))
         return int(round(1.0 - (phase[-1] - phase[0]) / math.pi))
@@ -192,10 +215,10 @@ class Peak:
         return self.unstable_roots == 0 and self.gain <= 1.0 + GAIN_TOLERANCE
 
 
-def peak_gain(chain: Chain, low: float = 1e-4, high: float = 1e3) -> Peak:
-    """The largest |G(jw)| over a log grid of w (8000 points, 1e-4 to 1e3 rad/s), refined twice around
-    the best point (each time a 200-point grid over its two neighbours' span)."""
-    w = np.geomspace(low, high, 8000)
+def peak_gain(chain: Chain) -> Peak:
+    """The largest |G(jw)| over BASE_GRID, refined twice around the best point (each time a 200-point
+    grid over its two neighbours' span)."""
+    w = BASE_GRID
     for _ in range(3):
         gain = np.abs(chain.transfer(w))
         best = int(np.argmax(gain))
@@ -207,7 +230,7 @@ def peak_gain(chain: Chain, low: float = 1e-4, high: float = 1e3) -> Peak:
     return Peak(float(top_gain), float(top_w), chain.loop_unstable_roots())
 
 
-def _bisect(stable: Callable[[float], bool], low: float, high: float, steps: int = 50) -> float:
+def _bisect(stable: Callable[[float], bool], low: float, high: float, steps: int) -> float:
     """The boundary between ``stable(low) != stable(high)`` to (high - low) 2^-steps."""
     side = stable(low)
     for _ in range(steps):
@@ -226,7 +249,7 @@ def smallest_time_gap(chain: Chain, longest: float = 100.0) -> float | None:
         return None
     if peak_gain(replace(chain, time_gap=1e-3)).string_stable:
         return 1e-3
-    return _bisect(lambda h: peak_gain(replace(chain, time_gap=h)).string_stable, 1e-3, longest, 40)
+    return _bisect(lambda h: peak_gain(replace(chain, time_gap=h)).string_stable, 1e-3, longest, 24)
 
 
 def largest_delay(chain: Chain, with_delay: Callable[[float], Chain], longest: float = 10.0) -> float | None:
@@ -237,4 +260,137 @@ def largest_delay(chain: Chain, with_delay: Callable[[float], Chain], longest: f
         return None
     if peak_gain(with_delay(longest)).string_stable:
         return longest
-    return _bisect(lambda d: peak_gain(with_delay(d)).string_stable, 0.0, longest, 40)
+    return _bisect(lambda d: peak_gain(with_delay(d)).string_stable, 0.0, longest, 20)
+
+
+# --- from a config ------------------------------------------------------------------------------
+
+
+def _grid(delay: float, step: float) -> float:
+    """A link delivers at the end of the step in which its message arrives: the delay on the step grid."""
+    return math.ceil(delay / step - 1e-9) * step
+
+
+def message_channel(config: "Config", direction: str, vehicle: int, order: int) -> Channel:
+    """How vehicle messages of ``direction`` reach their receiver: the co-simulation's step, and the
+    link of ``vehicle`` (resolved as the run resolves it) when it is not perfect.
+
+    Minimum age a0 of the message in use (the receiver's time minus its output_time), from the wiring
+    (orchestrator/execution/python_master.py; the Link steps right after its sender):
+
+    - no Link component: Jacobi a0 = 0 (outputs at t used over [t, t + h)); Gauss-Seidel front to back
+      a0 = -h backward (the sender ahead already stepped to t + h), 0 forward;
+    - a Link with delay d (delivered at the end of the step in which it arrives, grid(d) = ceil(d/h) h):
+      Jacobi a0 = max(h, grid(d)) (one more hop: sender -> link -> receiver); Gauss-Seidel a0 =
+      grid(d) - h backward, grid(d) forward.
+
+    Samples are renewed every max(period, h); losses, bursts and jitter as the link draws them.
+    """
+    step = config.simulation.step
+    link = config.resolve_link(direction, vehicle)
+    if link.perfect:
+        return Channel(minimum_age(config.simulation, direction, None), step, order)
+    return Channel(minimum_age(config.simulation, direction, link.delay), max(link.period, step), order, link.loss,
+                   link.burst, link.jitter)
+
+
+def minimum_age(sim: "Simulation", direction: str, delay: float | None) -> float:
+    """a0 of ``message_channel``: ``delay`` None for a plain connection (no Link component)."""
+    step, gauss_seidel = sim.step, sim.master == "gauss-seidel"
+    if delay is None:
+        return -step if gauss_seidel and direction == "backward" else 0.0
+    grid = _grid(delay, step)
+    if gauss_seidel:
+        return grid - step if direction == "backward" else grid
+    return max(step, grid)
+
+
+def chain_of(config: "Config", vehicle: int = 2) -> Chain:
+    """The speed chain of ``config`` at ``vehicle`` (its law, its links; kinematic vehicles).
+
+    The chain is analysed as homogeneous: every link as ``vehicle``'s (the paper's law: the forward
+    link of ``vehicle`` into vehicle - 1; acc, cacc: ``vehicle``'s backward link and sensor).
+    """
+    p = config.platoon
+    alpha = math.sqrt(1.0 - (p.d_star / (2.0 * config.path.radius)) ** 2) if config.path.kind == "circle" else 1.0
+    extrapolate = config.simulation.coupling == "extrapolate"
+    vehicle = min(max(vehicle, 1), p.count)
+    law = config.speed_law_of(vehicle)
+    k_v = config.override(vehicle).k_v or p.k_v
+    # The receiver extrapolates the follower's speed and gap, and the target's speed, linearly (order 1),
+    # and the sensed position along an arc with the speed rate (order 2); "hold" uses the sample as is.
+    forward = message_channel(config, "forward", vehicle, 1 if extrapolate else 0)
+    backward = message_channel(config, "backward", vehicle, 1 if extrapolate else 0)
+    step = config.simulation.step
+    sensor = Channel(-step if config.simulation.master == "gauss-seidel" else 0.0, step, 2 if extrapolate else 0)
+    return Chain(law, k_v, alpha, p.speed, p.d_star, p.time_gap, p.cacc_gain, forward, backward, sensor)
+
+
+def _describe(channel: Channel, what: str) -> str:
+    loss = ""
+    if channel.loss:
+        kind = "independent" if channel.burst <= 1.0 else f"Gilbert-Elliott, mean burst {channel.burst:g}"
+        loss = f", {100 * channel.loss:g} % lost ({kind})"
+    jitter = f", jitter up to {channel.jitter:g} s" if channel.jitter else ""
+    use = {0: "held", 1: "extrapolated linearly (order 1)", 2: "extrapolated along an arc (order 2)"}[channel.order]
+    return f"  {what}: age >= {channel.min_age:g} s, renewed every {channel.period:g} s{loss}{jitter}, {use}"
+
+
+def _law_lines(chain: Chain) -> list[str]:
+    if chain.law == "paper":
+        k = chain.k_v * chain.speed * chain.alpha / chain.d_star
+        return [f"  G(s) = P(s) (k_v s + k) / (s^2 + k_v s + k P(s)), k = k_v V_c alpha/d* = {k:.6g} 1/s^2; "
+                "P: the follower's speed and gap through the forward link",
+                _describe(chain.forward, "P (forward)")]
+    if chain.law == "acc":
+        return ["  G(s) = k_v alpha S(s) / (h s^2 + k_v h s + k_v alpha); S: the sensed position (no communication)",
+                _describe(chain.sensor, "S (sensor)")]
+    return ["  G(s) = (s B(s) + k_p alpha S(s)) / (h s^2 + (1 + k_p h) s + k_p alpha) (k_v does not enter); "
+            "B: the communicated speed, S: the sensed position",
+            _describe(chain.backward, "B (backward)"), _describe(chain.sensor, "S (sensor)")]
+
+
+def _condition_lines(config: "Config", chain: Chain) -> list[str]:
+    """Where the chain is string stable: the smallest time gap (acc, cacc), the largest link delay (cacc)."""
+    if chain.law == "paper":
+        return ["  above 1 at low frequency for any k_v (|G|^2 > 1 for w^2 < 2k without links): the paper's constant "
+                "spacing is never string stable; a link only raises the peak"]
+    if chain.law == "acc":
+        h_min = smallest_time_gap(chain)
+        return [f"  string stable for time_gap >= {h_min:.4g} s (with an ideal sensor 2 alpha/k_v = "
+                f"{2 * chain.alpha / chain.k_v:.4g} s); acc communicates nothing, so link delays and losses do not enter"]
+    h_min = smallest_time_gap(chain)
+    lines = [f"  string stable for time_gap >= {h_min:.4g} s with these links" if h_min is not None
+             else "  not string stable for any time_gap up to 100 s with these links"]
+
+    def with_delay(delay: float) -> Chain:
+        return replace(chain, backward=replace(chain.backward, min_age=minimum_age(config.simulation, "backward", delay)))
+
+    most = largest_delay(chain, with_delay)
+    if most is None:
+        lines.append(f"  with time_gap = {chain.time_gap:g} s not string stable even without a link delay")
+    else:
+        lines.append(f"  with time_gap = {chain.time_gap:g} s string stable for backward link delays up to "
+                     f"{most:.4g} s (on the {config.simulation.step:g} s step grid)")
+    return lines
+
+
+def chain_report(config: "Config") -> str:
+    """`platoon analyze`'s string-stability section: G(s), its peak, the conditions."""
+    chain = chain_of(config)
+    n = config.platoon.count
+    arrow = "vehicle i+1 to vehicle i" if chain.direction == "forward" else "vehicle i-1 to vehicle i"
+    lines = [f"string stability in closed form (docs/model.md, section 12): {chain.law} law, k_v = {chain.k_v:g} 1/s, "
+             f"alpha = {chain.alpha:.6g}" + (f", time_gap = {chain.time_gap:g} s" if chain.law != "paper" else "")
+             + (f", cacc_gain = {chain.cacc_gain:g} 1/s" if chain.law == "cacc" else "")
+             + f", {config.simulation.master}, {config.simulation.coupling}, step {config.simulation.step:g} s"]
+    lines += _law_lines(chain)
+    peak = peak_gain(chain)
+    if peak.unstable_roots:
+        lines.append(f"  the vehicle's own loop has {peak.unstable_roots} root(s) in the right half plane: the platoon "
+                     "itself is unstable (a link delay inside the paper's loop), string stability is moot")
+    verdict = "string stable" if peak.string_stable else "NOT string stable"
+    where = f"at {peak.frequency:.4g} rad/s" if peak.frequency > 0 else "as w -> 0 (|G(jw)| <= 1 everywhere)"
+    links = f"; over this platoon's {n - 1} link(s) up to {peak.gain ** (n - 1):.3g}" if n > 1 else ""
+    lines.append(f"  peak |G(jw)| = {peak.gain:.4f} {where}, {arrow}: {verdict}{links}")
+    return "\n".join(lines + _condition_lines(config, chain))
