@@ -238,6 +238,9 @@ class Disturbance(_Strict):
     start: Annotated[float, Field(ge=0.0), Unit("s")]
     duration: Duration
     value: Pulse
+    # 0: a rectangular pulse of height value; > 0: value * sin(frequency (t - start)) over the same window,
+    # a sinusoid to measure the speed chain's gain at one frequency (docs/model.md, section 12)
+    frequency: Annotated[float, Field(ge=0.0, le=1e4), Unit("rad/s")] = 0.0
 
 
 LinkTime = Annotated[float, Field(ge=0.0, le=3600.0), Unit("s")]
