@@ -305,11 +305,12 @@ def minimum_age(sim: "Simulation", direction: str, delay: float | None) -> float
     return max(step, grid)
 
 
-def chain_of(config: "Config", vehicle: int = 2) -> Chain:
+def chain_of(config: "Config", vehicle: int = 2, ideal: bool = False) -> Chain:
     """The speed chain of ``config`` at ``vehicle`` (its law, its links; kinematic vehicles).
 
     The chain is analysed as homogeneous: every link as ``vehicle``'s (the paper's law: the forward
     link of ``vehicle`` into vehicle - 1; acc, cacc: ``vehicle``'s backward link and sensor).
+    ``ideal``: continuous time, no co-simulation step and no link (every channel PERFECT).
     """
     p = config.platoon
     alpha = math.sqrt(1.0 - (p.d_star / (2.0 * config.path.radius)) ** 2) if config.path.kind == "circle" else 1.0
@@ -323,6 +324,8 @@ def chain_of(config: "Config", vehicle: int = 2) -> Chain:
     backward = message_channel(config, "backward", vehicle, 1 if extrapolate else 0)
     step = config.simulation.step
     sensor = Channel(-step if config.simulation.master == "gauss-seidel" else 0.0, step, 2 if extrapolate else 0)
+    if ideal:
+        forward = backward = sensor = PERFECT
     return Chain(law, k_v, alpha, p.speed, p.d_star, p.time_gap, p.cacc_gain, forward, backward, sensor)
 
 

@@ -43,7 +43,7 @@ def _options(
 
 
 # the order `platoon --help` lists them in: a run's life first, then the robot, campaigns, other tools, views
-for command in (run.build, run.run, trace.report, trace.export, run.analyze):
+for command in (run.build, run.run, trace.report, trace.export, run.analyze, trace.stability):
     app.command()(command)
 hil.register(app)  # m3pi-emulator, m3pi-serial
 mocap.register(app)  # mocap: rigid bodies as robot poses

@@ -139,3 +139,33 @@ def register_group(app: typer.Typer) -> None:
     """``platoon trace ...``: the commands that work on trace files."""
     trace_app.command("recover")(trace_recover)
     app.add_typer(trace_app, name="trace")
+
+
+def stability(
+    trace: Annotated[Path, typer.Argument(help="trace of a disturbance run (a [[disturbance]] in its config)")],
+    reference: Annotated[Optional[Path], typer.Option("--reference", help="the same run without the disturbance: "
+                                                      "errors against it (default: against the steady state)")] = None,
+    start: Annotated[Optional[float], typer.Option("--from", help="window start, s (default: the first disturbance)")] = None,
+    end: Annotated[Optional[float], typer.Option("--to", help="window end, s (default: the trace's end)")] = None,
+) -> None:
+    """String stability measured: l2 and l_inf gains of the speed and gap errors from vehicle to vehicle."""
+    from orchestrator.analysis.error_gains import stability_report, window_of
+    from orchestrator.scenario.stored_config import stored_config
+
+    loaded = load_trace(trace)
+    if loaded.config is None:
+        fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
+    try:
+        config, _ = stored_config(loaded.config)
+    except ConfigError as error:
+        fail(2, f"trace {trace}: its stored config is not valid: {error}")
+    if not loaded.vehicles() or any(len(loaded.component(v)["t"]) < 2 for v in loaded.vehicles()):
+        fail(2, f"trace {trace}: fewer than two recorded points, no gains to measure")
+    base = load_trace(reference) if reference is not None else None
+    if base is not None and base.vehicles() != loaded.vehicles():
+        fail(2, f"reference {reference}: its vehicles ({', '.join(base.vehicles())}) are not the trace's")
+    try:
+        text = stability_report(loaded, config, base, window_of(config, loaded, start, end))
+    except ValueError as error:
+        fail(2, f"trace {trace}: {error}")
+    out.print(text, highlight=False, soft_wrap=True)

@@ -1,0 +1,251 @@
+"""String stability measured: how the errors of a disturbance run grow or shrink from vehicle to vehicle.
+
+A vehicle's errors are its speed and its gap (the true distance to the component ahead, from the
+recorded positions: what a link delays is the vehicles' knowledge of each other, not the gap) minus
+the undisturbed run's (a reference trace), or minus the steady state (V_c, and the law's equilibrium
+gap) when there is none. A disturbance travels one way: with the paper's law from the back to the
+front (vehicle i follows vehicle i+1's speed), with acc and cacc from the front to the back. Along
+that way, vehicle to vehicle, the gains are
+
+    l2:  ||e_next||_2 / ||e_previous||_2    (||e||_2 = sqrt(integral of e^2 dt) over the window)
+    l_inf:  max |e_next| / max |e_previous|
+
+A chain is string stable in the l2 sense when no l2 gain exceeds 1 for any disturbance; a measured gain
+is one disturbance's view. For a sinusoid of frequency w held until the response is periodic, the l2
+gain over whole periods of the steady state is |G(jw)| (docs/model.md, section 12); ``amplitude_ratios``
+measures that directly by fitting the sinusoid.
+"""
+
+from __future__ import annotations
+
+import math
+from contextlib import AbstractContextManager, nullcontext
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+
+from orchestrator.scenario.config import Config
+from orchestrator.scenario.wiring import TARGET
+
+if TYPE_CHECKING:
+    from orchestrator.trace.reader import Trace
+
+# progress(label, steps) -> a context manager giving a tick(steps done) or None (orchestrator/observers/progress.py)
+Progress = Callable[[str, int], AbstractContextManager[Callable[[int], None] | None]]
+
+ERRORS = ("speed", "gap")
+
+
+def equilibrium_gap(config: Config, vehicle: int) -> float:
+    """The steady gap: d* under the paper's law, r + h V_c under acc and cacc (d* with the default r)."""
+    p = config.platoon
+    if config.speed_law_of(vehicle) == "paper":
+        return p.d_star
+    return p.resolved_standstill_gap + p.time_gap * p.speed
+
+
+def _gaps(trace: "Trace", names: list[str]) -> dict[str, np.ndarray]:
+    """Each vehicle's distance to the component ahead (the target for vehicle 1), from positions."""
+    gaps = {}
+    for ahead, name in zip([TARGET] + names, names):
+        a, b = trace.component(ahead), trace.component(name)
+        gaps[name] = np.hypot(a["x"] - b["x"], a["y"] - b["y"])
+    return gaps
+
+
+def vehicle_errors(trace: "Trace", config: Config, reference: "Trace | None" = None) -> dict[str, dict[str, np.ndarray]]:
+    """Per vehicle: ``t`` and its ``speed`` and ``gap`` errors (against ``reference``, else the steady state)."""
+    names = trace.vehicles()
+    gaps = _gaps(trace, names)
+    base_gaps = _gaps(reference, names) if reference is not None else None
+    errors = {}
+    for index, name in enumerate(names, start=1):
+        run = trace.component(name)
+        if reference is not None:
+            base = reference.component(name)
+            if len(base["t"]) != len(run["t"]) or not np.allclose(base["t"], run["t"], atol=1e-9):
+                raise ValueError(f"the reference trace's {name} is not recorded at the same times")
+            speed, gap = base["speed"], base_gaps[name]
+        else:
+            speed, gap = config.platoon.speed, equilibrium_gap(config, index)
+        errors[name] = {"t": run["t"], "speed": run["speed"] - speed, "gap": gaps[name] - gap}
+    return errors
+
+
+def propagation(config: Config, names: list[str], source: int) -> list[str]:
+    """The vehicles in the order a disturbance on vehicle ``source`` travels: toward the front under the
+    paper's law, toward the back under acc and cacc."""
+    if config.speed_law_of(source) == "paper":
+        return names[:source][::-1]
+    return names[source - 1:]
+
+
+def norms(t: np.ndarray, error: np.ndarray, window: tuple[float, float]) -> tuple[float, float]:
+    """(l2, l_inf) of ``error`` over ``window`` (trapezoidal integral of e^2 over the recorded points)."""
+    inside = (t >= window[0] - 1e-9) & (t <= window[1] + 1e-9)
+    e, times = error[inside], t[inside]
+    if len(e) < 2:
+        raise ValueError(f"fewer than two recorded points in the window {window[0]:g} to {window[1]:g} s")
+    return math.sqrt(float(np.sum(0.5 * (e[1:] ** 2 + e[:-1] ** 2) * np.diff(times)))), float(np.max(np.abs(e)))
+
+
+def ratio(b: float, a: float) -> float:
+    return b / a if a > 0 else math.inf
+
+
+@dataclass(frozen=True)
+class LinkGains:
+    """Gains from ``sender`` to ``receiver``, the next vehicle the disturbance reaches."""
+
+    sender: str
+    receiver: str
+    l2: dict[str, float]  # per error kind (ERRORS)
+    linf: dict[str, float]
+
+
+def link_gains(errors: dict[str, dict[str, np.ndarray]], order: list[str], window: tuple[float, float]) -> list[LinkGains]:
+    """The l2 and l_inf gains of every error kind along ``order`` (vehicle names) over ``window``."""
+    measured = {name: {kind: norms(errors[name]["t"], errors[name][kind], window) for kind in ERRORS} for name in order}
+    return [LinkGains(a, b, {k: ratio(measured[b][k][0], measured[a][k][0]) for k in ERRORS},
+                      {k: ratio(measured[b][k][1], measured[a][k][1]) for k in ERRORS})
+            for a, b in zip(order, order[1:])]
+
+
+def amplitude_ratios(errors: dict[str, dict[str, np.ndarray]], order: list[str], frequency: float,
+                     window: tuple[float, float], kind: str = "speed") -> list[float]:
+    """|G(jw)| per link as measured: the amplitude of the sinusoid of ``frequency`` (rad/s) fitted by least
+    squares (with an offset) to each vehicle's error over ``window``, divided by the sender's."""
+    amplitudes = []
+    for name in order:
+        t, e = errors[name]["t"], errors[name][kind]
+        inside = (t >= window[0] - 1e-9) & (t <= window[1] + 1e-9)
+        basis = np.column_stack([np.cos(frequency * t[inside]), np.sin(frequency * t[inside]), np.ones(int(inside.sum()))])
+        (c, s, _), *_ = np.linalg.lstsq(basis, e[inside], rcond=None)
+        amplitudes.append(math.hypot(c, s))
+    return [ratio(b, a) for a, b in zip(amplitudes, amplitudes[1:])]
+
+
+def gains_lines(gains: list[LinkGains]) -> list[str]:
+    """The gains as a table, one line per link, and the verdict of the largest l2 gain."""
+    lines = [f"  {'from -> to':22s} {'speed l2':>9s} {'speed l_inf':>11s} {'gap l2':>9s} {'gap l_inf':>9s}"]
+    for g in gains:
+        lines.append(f"  {g.sender + ' -> ' + g.receiver:22s} {g.l2['speed']:9.4f} {g.linf['speed']:11.4f} "
+                     f"{g.l2['gap']:9.4f} {g.linf['gap']:9.4f}")
+    if gains:
+        worst = max(g.l2["speed"] for g in gains[1:] or gains)
+        word = "grows" if worst > 1.0 else "does not grow"
+        lines.append(f"  largest speed l2 gain past the disturbed vehicle: {worst:.4f}: this disturbance {word} along "
+                     "the platoon (string stability asks it of every disturbance: platoon analyze has the bound)")
+    return lines
+
+
+def first_disturbance_vehicle(config: Config) -> int:
+    return min(config.disturbance, key=lambda d: d.start).vehicle
+
+
+def window_of(config: Config, trace: "Trace", start: float | None, end: float | None) -> tuple[float, float]:
+    """The window the gains are taken over: from the first disturbance (or ``start``) to the end (or ``end``)."""
+    first = min((d.start for d in config.disturbance), default=0.0)
+    last = float(trace.component(trace.vehicles()[0])["t"][-1])
+    return (first if start is None else start, last if end is None else end)
+
+
+def string_stability_report(config: Config, config_text: str, progress: Progress | None = None) -> str:
+    """`platoon analyze`'s measured part: the scenario with and without its disturbances; per vehicle the
+    peak path, gap and speed deviations, the path's peak ratios (the lateral chain, front to back), and
+    the l2 and l_inf gains of the speed and gap errors along the way the speed chain carries them.
+
+    ``progress(label, steps)``: a context manager giving each of the two runs its tick (the caller's
+    bar or progress lines), None for none.
+    """
+    from orchestrator.analysis.metrics import path_errors
+    from orchestrator.execution.run import run_scenario
+    from orchestrator.scenario.scenario import step_count
+    from orchestrator.support.scratch import ScratchDir
+    from orchestrator.trace import load
+
+    if not config.disturbance:
+        return "string stability: the config has no [[disturbance]]; add one to measure the gains from vehicle to vehicle"
+    start = min(d.start for d in config.disturbance)
+    steps = step_count(config.simulation.stop_time, config.simulation.step)
+    shown = progress or (lambda label, total: nullcontext())
+    with ScratchDir("analyze") as scratch, shown("disturbed run (1/2)", steps) as tick:  # scratch: removed by the next run if this one is killed
+        result = run_scenario(config, config_text, scratch / "analysis.mcap", tick=tick)
+        if result.status != "completed":
+            return f"string stability: the run {result.status}: {result.error}"
+        trace = load(result.trace)
+    reference_config = config.model_copy(update={"disturbance": []})
+    with ScratchDir("analyze") as scratch, shown("undisturbed run (2/2)", steps) as tick:
+        reference = load(run_scenario(reference_config, config_text, scratch / "reference.mcap", tick=tick).trace)
+    errors = vehicle_errors(trace, config, reference)
+    window = window_of(config, trace, None, None)
+    lines = [f"string stability (peak deviation from the undisturbed run after t = {start:g} s):",
+             f"  {'vehicle':10s} {'path [m]':>12s} {'gap [m]':>12s} {'speed [m/s]':>12s}"]
+    paths = []
+    for name in trace.vehicles():
+        a, b = trace.component(name), reference.component(name)
+        inside = a["t"] >= start
+        paths.append(float(np.abs(path_errors(config, a["x"], a["y"]) - path_errors(config, b["x"], b["y"]))[inside].max()))
+        peaks = [norms(errors[name]["t"], errors[name][kind], window)[1] for kind in ("gap", "speed")]
+        lines.append(f"  {name:10s} {paths[-1]:12.4e} {peaks[0]:12.4e} {peaks[1]:12.4e}")
+    first = first_disturbance_vehicle(config)
+    ratios = ", ".join(f"{ratio(b, a):.3f}" for a, b in zip(paths[first - 1:], paths[first:]))
+    lines.append(f"  path peak ratios behind vehicle {first}, vehicle i+1 / i: {ratios or 'none (last vehicle)'}")
+    order = propagation(config, trace.vehicles(), first)
+    lines.append(f"  gains of the errors from vehicle to vehicle, the way the {config.speed_law_of(first)} law carries "
+                 f"them (l2, and l_inf = peak ratio):")
+    lines += gains_lines(link_gains(errors, order, window))
+    return "\n".join(lines)
+
+
+def _sinusoid(config: Config):
+    """The config's sinusoidal disturbance on the vehicle disturbed first, if that is one."""
+    first = min(config.disturbance, key=lambda d: d.start, default=None)
+    return first if first is not None and first.frequency > 0.0 else None
+
+
+def steady_window(disturbance, window: tuple[float, float], periods_skipped: int) -> tuple[float, float]:
+    """The whole periods of a sinusoidal disturbance inside ``window``, after ``periods_skipped`` periods
+    (the transient): the part over which the l2 gain is |G(jw)|."""
+    period = 2.0 * math.pi / disturbance.frequency
+    begin = disturbance.start + periods_skipped * period
+    end = min(window[1], disturbance.start + disturbance.duration)
+    whole = math.floor((end - begin) / period + 1e-9)
+    if whole < 1:
+        raise ValueError(f"the sinusoid has fewer than {periods_skipped + 1} whole periods in the window")
+    return begin, begin + whole * period
+
+
+def stability_report(trace: "Trace", config: Config, reference: "Trace | None", window: tuple[float, float]) -> str:
+    """`platoon stability TRACE`: the measured gains, and the closed form of the trace's config beside them."""
+    from orchestrator.analysis.string_stability import chain_of, peak_gain
+
+    if not config.disturbance:
+        raise ValueError("its config has no [[disturbance]]: the gains need a disturbance run")
+    errors = vehicle_errors(trace, config, reference)
+    first = first_disturbance_vehicle(config)
+    order = propagation(config, trace.vehicles(), first)
+    against = "the reference trace" if reference is not None else (
+        f"the steady state (V_c = {config.platoon.speed:g} m/s, gap {equilibrium_gap(config, first):g} m)")
+    law = config.speed_law_of(first)
+    lines = [f"string stability measured: {law} law, disturbance on vehicle {first}, errors against {against}, "
+             f"window {window[0]:g} to {window[1]:g} s; the first link starts at the disturbed vehicle"]
+    lines += gains_lines(link_gains(errors, order, window))
+    chain = chain_of(config, first if law == "paper" else min(first + 1, config.platoon.count))
+    peak = peak_gain(chain)
+    where = f"at {peak.frequency:.4g} rad/s" if peak.frequency > 0 else "as w -> 0"
+    lines.append(f"closed form (platoon analyze): peak |G(jw)| = {peak.gain:.4f} {where}: "
+                 f"{'string stable' if peak.string_stable else 'NOT string stable'}")
+    sine = _sinusoid(config)
+    if sine is not None and len(order) > 1:
+        try:
+            steady = steady_window(sine, window, 3)
+        except ValueError as error:
+            lines.append(f"  (no amplitude ratios: {error})")
+        else:
+            analytic = abs(chain.transfer(np.array([sine.frequency]))[0])
+            measured = ", ".join(f"{r:.4f}" for r in amplitude_ratios(errors, order, sine.frequency, steady))
+            lines.append(f"  at the disturbance's {sine.frequency:g} rad/s: |G(jw)| = {analytic:.4f}; measured speed "
+                         f"amplitude ratios {measured} (fitted over {steady[0]:g} to {steady[1]:g} s)")
+    return "\n".join(lines)
