@@ -205,15 +205,16 @@ def _sinusoid(config: Config):
     return first if first is not None and first.frequency > 0.0 else None
 
 
-def steady_window(disturbance, window: tuple[float, float], periods_skipped: int) -> tuple[float, float]:
-    """The whole periods of a sinusoidal disturbance inside ``window``, after ``periods_skipped`` periods
-    (the transient): the part over which the l2 gain is |G(jw)|."""
+def steady_window(disturbance, window: tuple[float, float]) -> tuple[float, float]:
+    """The steady part of a sinusoidal disturbance inside ``window``: the whole periods of its second half
+    (at least three periods skipped: the transient of its start must have died out), over which the l2
+    gain is |G(jw)|."""
     period = 2.0 * math.pi / disturbance.frequency
-    begin = disturbance.start + periods_skipped * period
     end = min(window[1], disturbance.start + disturbance.duration)
+    begin = max(window[0], disturbance.start + max(3.0 * period, 0.5 * (end - disturbance.start)))
     whole = math.floor((end - begin) / period + 1e-9)
     if whole < 1:
-        raise ValueError(f"the sinusoid has fewer than {periods_skipped + 1} whole periods in the window")
+        raise ValueError("the sinusoid has no whole period in the window after its first half")
     return begin, begin + whole * period
 
 
@@ -240,7 +241,7 @@ def stability_report(trace: "Trace", config: Config, reference: "Trace | None", 
     sine = _sinusoid(config)
     if sine is not None and len(order) > 1:
         try:
-            steady = steady_window(sine, window, 3)
+            steady = steady_window(sine, window)
         except ValueError as error:
             lines.append(f"  (no amplitude ratios: {error})")
         else:
