@@ -55,10 +55,14 @@ def _gaps(trace: "Trace", names: list[str]) -> dict[str, np.ndarray]:
 
 
 def vehicle_errors(trace: "Trace", config: Config, reference: "Trace | None" = None) -> dict[str, dict[str, np.ndarray]]:
-    """Per vehicle: ``t`` and its ``speed`` and ``gap`` errors (against ``reference``, else the steady state)."""
+    """Per vehicle: ``t`` and its ``speed`` and ``gap`` errors: against ``reference``, else against the
+    state recorded last before the first disturbance (a settled run: its steady state as the
+    co-simulation has it, which "hold" coupling or a link's sampling shift a little from V_c and the
+    law's gap), else, with no disturbance, against V_c and the law's equilibrium gap."""
     names = trace.vehicles()
     gaps = _gaps(trace, names)
     base_gaps = _gaps(reference, names) if reference is not None else None
+    first = min((d.start for d in config.disturbance), default=None)
     errors = {}
     for index, name in enumerate(names, start=1):
         run = trace.component(name)
@@ -67,6 +71,9 @@ def vehicle_errors(trace: "Trace", config: Config, reference: "Trace | None" = N
             if len(base["t"]) != len(run["t"]) or not np.allclose(base["t"], run["t"], atol=1e-9):
                 raise ValueError(f"the reference trace's {name} is not recorded at the same times")
             speed, gap = base["speed"], base_gaps[name]
+        elif first is not None and run["t"][0] <= first + 1e-9:
+            before = int(np.searchsorted(run["t"], first + 1e-9)) - 1
+            speed, gap = run["speed"][before], gaps[name][before]
         else:
             speed, gap = config.platoon.speed, equilibrium_gap(config, index)
         errors[name] = {"t": run["t"], "speed": run["speed"] - speed, "gap": gaps[name] - gap}
@@ -227,8 +234,8 @@ def stability_report(trace: "Trace", config: Config, reference: "Trace | None", 
     errors = vehicle_errors(trace, config, reference)
     first = first_disturbance_vehicle(config)
     order = propagation(config, trace.vehicles(), first)
-    against = "the reference trace" if reference is not None else (
-        f"the steady state (V_c = {config.platoon.speed:g} m/s, gap {equilibrium_gap(config, first):g} m)")
+    start = min(d.start for d in config.disturbance)
+    against = "the reference trace" if reference is not None else f"the state recorded last before t = {start:g} s"
     law = config.speed_law_of(first)
     lines = [f"string stability measured: {law} law, disturbance on vehicle {first}, errors against {against}, "
              f"window {window[0]:g} to {window[1]:g} s; the first link starts at the disturbed vehicle"]
