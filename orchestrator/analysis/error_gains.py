@@ -206,23 +206,62 @@ def string_stability_report(config: Config, config_text: str, progress: Progress
     return "\n".join(lines)
 
 
-def _sinusoid(config: Config):
-    """The config's sinusoidal disturbance on the vehicle disturbed first, if that is one."""
-    first = min(config.disturbance, key=lambda d: d.start, default=None)
-    return first if first is not None and first.frequency > 0.0 else None
+SETTLE = 60.0  # s after a sinusoid starts before its gains are read (the chain's transients: poles >= 0.2 1/s)
 
 
-def steady_window(disturbance, window: tuple[float, float]) -> tuple[float, float]:
-    """The steady part of a sinusoidal disturbance inside ``window``: the whole periods of its second half
-    (at least three periods skipped: the transient of its start must have died out), over which the l2
-    gain is |G(jw)|."""
-    period = 2.0 * math.pi / disturbance.frequency
-    end = min(window[1], disturbance.start + disturbance.duration)
-    begin = max(window[0], disturbance.start + max(3.0 * period, 0.5 * (end - disturbance.start)))
-    whole = math.floor((end - begin) / period + 1e-9)
+def probe_frequencies(config: Config) -> list[float]:
+    """The distinct frequencies of the config's sinusoidal disturbances (rad/s), lowest first."""
+    return sorted({d.frequency for d in config.disturbance if d.frequency > 0.0})
+
+
+def steady_window(config: Config, end: float) -> tuple[float, float]:
+    """Where the sinusoids' response is periodic: whole periods of the lowest frequency, ending where the
+    sinusoids (or the record, ``end``) end, starting at least min(SETTLE, half their span) after they start."""
+    sines = [d for d in config.disturbance if d.frequency > 0.0]
+    if not sines:
+        raise ValueError("its config has no sinusoidal disturbance (a frequency > 0)")
+    start = max(d.start for d in sines)
+    stop = min(min(d.start + d.duration for d in sines), end)
+    period = 2.0 * math.pi / min(d.frequency for d in sines)
+    whole = math.floor((stop - start - min(SETTLE, 0.5 * (stop - start))) / period + 1e-3)
     if whole < 1:
-        raise ValueError("the sinusoid has no whole period in the window after its first half")
-    return begin, begin + whole * period
+        raise ValueError(f"the sinusoids leave no whole period of {period:.4g} s after their transient")
+    return stop - whole * period, stop
+
+
+def disturbed(config: Config) -> set[int]:
+    return {d.vehicle for d in config.disturbance}
+
+
+def source_vehicle(config: Config) -> int:
+    """The pushed vehicle the law carries a disturbance from: the last pushed under the paper's law (it
+    carries toward the front), the first under acc and cacc."""
+    pushed = sorted(disturbed(config))
+    return pushed[-1] if config.speed_law_of(pushed[-1]) == "paper" else pushed[0]
+
+
+def clean_order(config: Config, names: list[str]) -> list[str]:
+    """The vehicles along the way a disturbance travels that measure the chain itself: not pushed, and not
+    the first receiver of a pushed one (a disturbance is held over each step, a staircase whose jumps the
+    sender's rates do not carry, so the first receiver's extrapolation adds ripple the next link folds in)."""
+    order = propagation(config, names, source_vehicle(config))
+    pushed = {f"vehicle{v}" for v in disturbed(config)}
+    clean = [name for name in order if name not in pushed]
+    return clean[1:]
+
+
+def frequency_gains(errors: dict[str, dict[str, np.ndarray]], order: list[str], frequencies: list[float],
+                    window: tuple[float, float]) -> list[list[float]]:
+    """Per frequency, per link along ``order``: the speed error's amplitude ratio at that frequency (all
+    frequencies and an offset fitted jointly by least squares over ``window``)."""
+    amplitudes = []
+    for name in order:
+        t, e = errors[name]["t"], errors[name]["speed"]
+        inside = (t >= window[0] - 1e-9) & (t <= window[1] + 1e-9)
+        columns = [f(w * t[inside]) for w in frequencies for f in (np.cos, np.sin)] + [np.ones(int(inside.sum()))]
+        fit, *_ = np.linalg.lstsq(np.column_stack(columns), e[inside], rcond=None)
+        amplitudes.append([math.hypot(fit[2 * k], fit[2 * k + 1]) for k in range(len(frequencies))])
+    return [[ratio(b[k], a[k]) for a, b in zip(amplitudes, amplitudes[1:])] for k in range(len(frequencies))]
 
 
 def stability_report(trace: "Trace", config: Config, reference: "Trace | None", window: tuple[float, float]) -> str:
@@ -232,28 +271,31 @@ def stability_report(trace: "Trace", config: Config, reference: "Trace | None", 
     if not config.disturbance:
         raise ValueError("its config has no [[disturbance]]: the gains need a disturbance run")
     errors = vehicle_errors(trace, config, reference)
-    first = first_disturbance_vehicle(config)
-    order = propagation(config, trace.vehicles(), first)
+    source = source_vehicle(config)
+    order = propagation(config, trace.vehicles(), source)
+    law = config.speed_law_of(source)
     start = min(d.start for d in config.disturbance)
     against = "the reference trace" if reference is not None else f"the state recorded last before t = {start:g} s"
-    law = config.speed_law_of(first)
-    lines = [f"string stability measured: {law} law, disturbance on vehicle {first}, errors against {against}, "
-             f"window {window[0]:g} to {window[1]:g} s; the first link starts at the disturbed vehicle"]
+    pushed = ", ".join(str(v) for v in sorted(disturbed(config)))
+    lines = [f"string stability measured: {law} law, carried from vehicle {source} (pushed: {pushed}), errors against "
+             f"{against}, window {window[0]:g} to {window[1]:g} s; a link that starts or ends at a pushed vehicle "
+             "measures the push too"]
     lines += gains_lines(link_gains(errors, order, window))
-    chain = chain_of(config, first if law == "paper" else min(first + 1, config.platoon.count))
+    chain = chain_of(config, source if law == "paper" else min(source + 1, config.platoon.count))
     peak = peak_gain(chain)
     where = f"at {peak.frequency:.4g} rad/s" if peak.frequency > 0 else "as w -> 0"
     lines.append(f"closed form (platoon analyze): peak |G(jw)| = {peak.gain:.4f} {where}: "
                  f"{'string stable' if peak.string_stable else 'NOT string stable'}")
-    sine = _sinusoid(config)
-    if sine is not None and len(order) > 1:
+    frequencies = probe_frequencies(config)
+    clean = clean_order(config, trace.vehicles())
+    if frequencies and len(clean) > 1:
         try:
-            steady = steady_window(sine, window)
+            steady = steady_window(config, window[1])
         except ValueError as error:
-            lines.append(f"  (no amplitude ratios: {error})")
-        else:
-            analytic = abs(chain.transfer(np.array([sine.frequency]))[0])
-            measured = ", ".join(f"{r:.4f}" for r in amplitude_ratios(errors, order, sine.frequency, steady))
-            lines.append(f"  at the disturbance's {sine.frequency:g} rad/s: |G(jw)| = {analytic:.4f}; measured speed "
-                         f"amplitude ratios {measured} (fitted over {steady[0]:g} to {steady[1]:g} s)")
+            lines.append(f"  (no gains per frequency: {error})")
+            return "\n".join(lines)
+        analytic = np.abs(chain.transfer(np.array(frequencies)))
+        lines.append(f"  per frequency, {' -> '.join(clean)} (fitted over {steady[0]:g} to {steady[1]:g} s):")
+        for w, expected, measured in zip(frequencies, analytic, frequency_gains(errors, clean, frequencies, steady)):
+            lines.append(f"    {w:g} rad/s: |G(jw)| = {expected:.4f}, measured " + ", ".join(f"{g:.4f}" for g in measured))
     return "\n".join(lines)

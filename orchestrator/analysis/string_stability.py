@@ -197,8 +197,8 @@ class Chain:
         latest = abs(c.min_age) + c.period * (1 + 30 * c.loss) + c.jitter
         k = self.k_v * self.speed * self.alpha / self.d_star
         top = 20.0 * (1.0 + self.k_v + math.sqrt(k) + k * latest)
-        # fine enough that e^{-jw a} turns by at most 0.025 rad between two points
-        count = int(min(1_000_000, max(20_000, 40 * top * (latest + 1.0))))
+        # fine enough that e^{-jw a} turns by at most 0.05 rad between two points
+        count = int(min(200_000, 2_000 + 20.0 * top * latest))
         w = np.linspace(0.0, top, count)
         phase = np.unwrap(np.angle(self._parts(w)[1]))
         return int(round(1.0 - (phase[-1] - phase[0]) / math.pi))

@@ -47,7 +47,7 @@ for command in (run.build, run.run, trace.report, trace.export, run.analyze, tra
     app.command()(command)
 hil.register(app)  # m3pi-emulator, m3pi-serial
 mocap.register(app)  # mocap: rigid bodies as robot poses
-sweep.register(app)  # sweep, sweep-plot
+sweep.register(app)  # sweep, sweep-plot, stability-map
 ssp.register(app)  # export-ssp: the platoon for other tools
 viewer.register(app)  # layout, figure: what users look at
 trace.register_group(app)  # trace recover
