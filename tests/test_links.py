@@ -243,3 +243,21 @@ def test_libcosim_runs_the_exported_lossy_platoon_to_our_numbers(link_fmus, tmp_
     print(f"\n[libcosim from SSP vs platoon run, lossy links] largest final position difference {worst:.3e} m")
     assert worst <= 1e-9
     assert loaded.component("link_backward2")["lost"][-1] > 0  # the links really lost messages
+
+
+@pytest.mark.parametrize("engine", ["python", "native"])
+def test_the_scene_draws_the_target_and_the_vehicles_never_a_link(link_fmus, run, engine):
+    """A Link repeats its sender's stale pose (or, forward, none at all): the 3D scene and its frames
+    hold the target and the vehicles only, from either engine's trace encoder; the links' counters
+    and ages are in the trace as their components' channels."""
+    from tests.test_traces import _protobuf_messages
+
+    trace = run(config_from_mapping(lossy(stop_time=1.0)), engine)
+    scenes = 0
+    for topic, _, message in _protobuf_messages(trace.path, ["/platoon/scene", "/platoon/tf"]):
+        names = ([f.child_frame_id for f in message.transforms] if topic == "/platoon/tf"
+                 else [e.id for e in message.entities if e.id != "path"])
+        assert names == ["target", "vehicle1", "vehicle2", "vehicle3"]
+        scenes += 1
+    assert scenes > 0
+    assert {"sent", "delivered", "lost", "age"} <= set(trace.channels["link_forward2"])

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from orchestrator.trace.format import LINK_PREFIX
+
 TARGET = "target"
 
 # Every FMU's output naming the time its other outputs describe; it feeds the receiver's <side>.time.
@@ -39,7 +41,7 @@ BACKWARD, FORWARD = "backward", "forward"
 def link_name(direction: str, vehicle: int) -> str:
     """Component name of vehicle ``vehicle``'s link in ``direction`` ("backward": from the component
     ahead to the vehicle; "forward": from the vehicle to the component ahead), e.g. link_backward2."""
-    return f"link_{direction}{vehicle}"
+    return f"{LINK_PREFIX}{direction}{vehicle}"
 
 
 def link_input(output: str) -> str:

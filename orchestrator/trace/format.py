@@ -34,6 +34,15 @@ def vehicle_names(names: "Iterable[str]") -> list[str]:
     return sorted(vehicles, key=lambda n: int(n[len("vehicle"):]))
 
 
+# A communication link's component (orchestrator.scenario.wiring.link_name: link_backward2, link_forward3):
+# it repeats a sender's message, so it is recorded like any component but is no body in the 3D scene.
+LINK_PREFIX = "link_"
+
+
+def is_link(name: str) -> bool:
+    return name.startswith(LINK_PREFIX)
+
+
 def channel_name(component: str) -> str:
     return CHANNEL_PREFIX + component
 
