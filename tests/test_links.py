@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fmus.builders import NATIVE_FMI2, PYTHONFMU
 from fmus.model.link import CAPACITY
 from orchestrator.components.fmu import FmuComponent, UnpackedFmu
 from orchestrator.execution.run import run_scenario
@@ -39,10 +38,14 @@ def platoon(*arguments: str) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="module")
 def link_fmus(fmu_dir, native_fmu_dir):
-    """The pythonfmu and native Link FMUs beside the others."""
-    PYTHONFMU.build(fmu_dir, names=("Link",))
-    NATIVE_FMI2.build(native_fmu_dir, names=("Link",))
+    """The pythonfmu and native Link FMUs (tests/conftest.py builds them beside the others)."""
     return fmu_dir, native_fmu_dir
+
+
+def test_fmpy_validates_the_pythonfmu_link(link_fmus):
+    from fmpy.validation import validate_fmu
+
+    assert validate_fmu(str(link_fmus[0] / "Link.fmu")) == []
 
 
 # --- the config ------------------------------------------------------------------------------------
