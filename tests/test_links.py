@@ -170,11 +170,11 @@ def test_what_a_receiver_gets_is_the_newest_message_delivered_and_the_counters_a
     assert forward["sent"][-1] == 199 and len(np.unique(forward["output_time"])) <= 200
 
 
-def test_the_native_links_fmu_state_carries_its_messages_in_flight(link_fmus):
-    """getFMUstate / setFMUstate and their serialized bytes restore the messages in flight (the
-    framework's memory block), so a replay delivers the same messages."""
-    _, native_dir = link_fmus
-    fmu = UnpackedFmu.open(native_dir / "Link.fmu")
+@pytest.mark.parametrize("kind", ["python", "native"])
+def test_the_links_fmu_state_carries_its_messages_in_flight(link_fmus, kind):
+    """getFMUstate / setFMUstate and their serialized bytes restore the messages in flight (in the
+    native twin: the framework's memory block), so a replay delivers the same messages."""
+    fmu = UnpackedFmu.open(link_fmus[kind == "native"] / "Link.fmu")
     component = FmuComponent("link", fmu, {"delay": 0.3, "jitter": 0.1, "loss": 0.3, "burst": 2.0, "seed": 3})
     time_input = component.inputs.index("in.time")
     x_input = component.inputs.index("in.x")
