@@ -264,3 +264,22 @@ def test_the_scene_draws_the_target_and_the_vehicles_never_a_link(link_fmus, run
         scenes += 1
     assert scenes > 0
     assert {"sent", "delivered", "lost", "age"} <= set(trace.channels["link_forward2"])
+
+
+def test_the_layout_of_a_run_with_links_plots_each_links_age(link_fmus, run, tmp_path):
+    """`platoon run` writes a layout whose extra panel plots every link's age of information, each
+    series a column of the trace; a run without links keeps the layout it had."""
+    import json
+
+    from orchestrator.trace.layout import layout_path, run_layout, write_run_layout
+
+    config = config_from_mapping(lossy(stop_time=0.5))
+    trace = run(config)
+    written = write_run_layout(trace.path, config)
+    assert written.path == layout_path(trace.path)
+    panels = json.loads(written.path.read_text())["configById"]
+    series = [path["value"] for path in panels["Plot!links"]["paths"]]
+    assert series == [f"/platoon/{name}.age" for name in trace.channels if name.startswith("link_")]
+    assert all("age" in trace.channels[value.split("/")[2].split(".")[0]] for value in series)
+    plain = config_from_mapping({**lossy(stop_time=0.5), "links": {}})
+    assert "Plot!links" not in run_layout(plain, 3)["configById"]

@@ -43,6 +43,12 @@ def is_link(name: str) -> bool:
     return name.startswith(LINK_PREFIX)
 
 
+def link_name(direction: str, vehicle: int) -> str:
+    """Component name of vehicle ``vehicle``'s link in ``direction`` ("backward": from the component
+    ahead to the vehicle; "forward": from the vehicle to the component ahead), e.g. link_backward2."""
+    return f"{LINK_PREFIX}{direction}{vehicle}"
+
+
 def channel_name(component: str) -> str:
     return CHANNEL_PREFIX + component
 

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 from foxglove import messages as fg
 
 from .encoding import ChannelSpec, register_mcap, template_of
-from .format import is_link, number_texts
+from .format import CHANNEL_PREFIX, LINK_PREFIX, is_link, number_texts
 
 if TYPE_CHECKING:
     from orchestrator.scenario.config import Config
@@ -480,6 +480,15 @@ def _plot(title: str, field: str, vehicles: Sequence[str], colors: Sequence[tupl
     }
 
 
+def _link_plot(links: Sequence[str]) -> dict[str, Any]:
+    """The age of the message each link delivers (docs/links.md), one series per link."""
+    plot = _plot("age of information [s] (links)", "age", [], [])
+    plot["paths"] = [{"value": message_path(CHANNEL_PREFIX + name, "age"), "enabled": True,
+                      "timestampMethod": "receiveTime", "label": name[len(LINK_PREFIX):]} for name in links]
+    plot["showLegend"], plot["legendDisplay"] = True, "left"
+    return plot
+
+
 def _nice_step(length: float) -> float:
     """1, 2 or 5 times a power of ten, about a fifth of ``length``: the grid's cell."""
     raw = length / 5.0
@@ -517,8 +526,9 @@ def default_settings() -> SceneSettings:
     return SceneSettings(None, "circle", (0.0, 0.0), 50.0, 0.0, 75.0, 25.0)
 
 
-def layout(vehicles: int = 6, settings: SceneSettings | None = None) -> dict[str, Any]:
-    """A Foxglove layout: a 3D panel (fitted to ``settings``' path) beside plots of path, gap and speed errors.
+def layout(vehicles: int = 6, settings: SceneSettings | None = None, links: Sequence[str] = ()) -> dict[str, Any]:
+    """A Foxglove layout: a 3D panel (fitted to ``settings``' path) beside plots of path, gap and speed errors,
+    and, for a run with ``links`` (their component names), of the age of each link's message.
 
     ``platoon layout TRACE`` and ``platoon run`` pass the run's settings and vehicle count (one series
     per vehicle, the camera fitted to its path); without them, the paper's circle.
@@ -545,6 +555,11 @@ def layout(vehicles: int = 6, settings: SceneSettings | None = None) -> dict[str
         "imageMode": {},
     }
     scale_note = "" if vehicles <= LEGEND_UP_TO else f" (colour: vehicle 1 purple to {vehicles} yellow)"
+    lower: Any = "Plot!speed"
+    extra = {}
+    if links:
+        lower = {"first": "Plot!speed", "second": "Plot!links", "direction": "column"}
+        extra["Plot!links"] = _link_plot(links)
     return {
         "configById": {
             "3D!platoon": three_d,
@@ -553,6 +568,7 @@ def layout(vehicles: int = 6, settings: SceneSettings | None = None) -> dict[str
             "Plot!speed": _plot(f"speed error V - V_c [m/s]{scale_note}", "speed_error", names, colors),
             "RosOut!log": {"foxglovePanelTitle": "run log", "searchTerms": [], "minLogLevel": 1,
                            "topicToRender": LOG_TOPIC},
+            **extra,
         },
         "globalVariables": {},
         "userNodes": {},
@@ -561,7 +577,7 @@ def layout(vehicles: int = 6, settings: SceneSettings | None = None) -> dict[str
             "first": {"first": "3D!platoon", "second": "RosOut!log", "direction": "column", "splitPercentage": 82},
             "second": {
                 "first": "Plot!path",
-                "second": {"first": "Plot!gap", "second": "Plot!speed", "direction": "column"},
+                "second": {"first": "Plot!gap", "second": lower, "direction": "column"},
                 "direction": "column",
                 "splitPercentage": 33.3,
             },
