@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 
 from fmus.model.link import CAPACITY
-from orchestrator.components.fmu import FmuComponent, UnpackedFmu
 from orchestrator.execution.run import run_scenario
 from orchestrator.scenario.config import ConfigError, config_from_mapping, parse_config
 from orchestrator.scenario.scenario import build_scenario
@@ -168,52 +167,6 @@ def test_what_a_receiver_gets_is_the_newest_message_delivered_and_the_counters_a
     # the forward links send 10 beacons a second: the target's lead values are held between them
     forward = trace.channels["link_forward1"]
     assert forward["sent"][-1] == 199 and len(np.unique(forward["output_time"])) <= 200
-
-
-@pytest.mark.parametrize("kind", ["python", "native"])
-def test_the_links_fmu_state_carries_its_messages_in_flight(link_fmus, kind):
-    """getFMUstate / setFMUstate and their serialized bytes restore the messages in flight (in the
-    native twin: the framework's memory block), so a replay delivers the same messages."""
-    fmu = UnpackedFmu.open(link_fmus[kind == "native"] / "Link.fmu")
-    component = FmuComponent("link", fmu, {"delay": 0.3, "jitter": 0.1, "loss": 0.3, "burst": 2.0, "seed": 3})
-    time_input = component.inputs.index("in.time")
-    x_input = component.inputs.index("in.x")
-
-    def step(k: int) -> None:
-        values = list(component.input_defaults)
-        values[time_input], values[x_input] = k * 0.01, float(k)
-        component.set_inputs(values)
-        component.step(k * 0.01, 0.01)
-
-    try:
-        component.initialize(0.0)
-        component.set_inputs(component.input_defaults)
-        component.end_initialization()
-        slave = component._slave
-        for k in range(50):
-            step(k)
-        saved = slave.getFMUstate()
-        serialized = slave.serializeFMUstate(saved)
-
-        def replay() -> list[list[float]]:
-            rows = []
-            for k in range(50, 150):
-                step(k)
-                rows.append(component.get_outputs())
-            return rows
-
-        first = replay()
-        slave.setFMUstate(saved)
-        second = replay()
-        slave.setFMUstate(slave.deSerializeFMUstate(serialized))
-        third = replay()
-        assert first == second == third
-        outputs = dict(zip(component.outputs, first[-1]))
-        assert outputs["sent"] > outputs["delivered"] + outputs["lost"]  # messages were in flight
-        slave.freeFMUstate(saved)
-    finally:
-        component.close()
-        fmu.cleanup()
 
 
 # --- SSP and libcosim ----------------------------------------------------------------------------------
