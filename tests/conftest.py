@@ -7,7 +7,7 @@ from typing import Any
 
 import pytest
 
-from fmus.builders import DEFAULT_OUT, PYTHONFMU
+from fmus.builders import DEFAULT_OUT, FMU_NAMES, LINK_FMU, PYTHONFMU
 from orchestrator.scenario.config import Config, config_from_mapping
 from orchestrator.execution.run import run_scenario
 from orchestrator.trace import Trace, load
@@ -35,7 +35,7 @@ value = -100.0
 def fmu_dir() -> Path:
     """The FMUs, built (or found up to date) in the repository's build folder, as users get them."""
     out = REPO / DEFAULT_OUT
-    PYTHONFMU.build(out)
+    PYTHONFMU.build(out, names=FMU_NAMES + (LINK_FMU,))
     return out
 
 
@@ -46,7 +46,7 @@ def native_fmu_dir() -> Path:
 
     out = REPO / NATIVE_OUT
     try:
-        NATIVE_FMI2.build(out)
+        NATIVE_FMI2.build(out, names=FMU_NAMES + (LINK_FMU,))
     except NoCompiler as error:
         pytest.skip(str(error))
     return out

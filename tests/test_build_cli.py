@@ -25,8 +25,8 @@ def test_build_writes_every_fmu_then_reuses_them_and_repairs_a_damaged_one(tmp_p
     from fmus.builders import NATIVE_FMI2, NATIVE_FMI3
 
     first = _build(tmp_path)
-    assert set(first) == {"Vehicle", "VirtualTarget", "LiveVehicle", "native/Vehicle", "native/VirtualTarget",
-                          "fmi3/Vehicle", "fmi3/VirtualTarget"}
+    assert set(first) == {"Vehicle", "VirtualTarget", "Link", "LiveVehicle", "native/Vehicle", "native/VirtualTarget",
+                          "native/Link", "fmi3/Vehicle", "fmi3/VirtualTarget", "fmi3/Link"}
     assert all(line.endswith(("(built)", "(built, native)", "(built, native FMI 3.0)")) for line in first.values())
     for name in ("Vehicle", "VirtualTarget", "LiveVehicle"):
         assert fmu_guid(tmp_path / f"{name}.fmu") == PYTHONFMU.expected_guid(name)

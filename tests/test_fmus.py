@@ -174,33 +174,49 @@ def test_two_platoons_in_one_process_stay_independent(fmu_dir, run):
             assert [channel[k][-1] for k in keys] == values
 
 
+# A Link (docs/links.md) holds messages in flight only when its sender's message changes: it is fed a
+# new one every step, with a delay, jitter and losses, so a state taken mid-run holds some in flight.
+LINK_STATE_PARAMETERS = {"delay": 0.3, "jitter": 0.1, "loss": 0.3, "burst": 2.0, "seed": 3}
+
+
 @pytest.mark.parametrize("kind", ["python", "native"])
-@pytest.mark.parametrize("name", ["Vehicle", "VirtualTarget"])
+@pytest.mark.parametrize("name", ["Vehicle", "VirtualTarget", "Link"])
 def test_fmu_state_rolls_a_run_back_exactly(request, name, kind):
     """canGetAndSetFMUstate and canSerializeFMUstate are declared true: a saved state, restored
     (directly or through its serialized bytes), replays the same steps to the same outputs; for the
-    pythonfmu FMUs and their native twins (fmus/native, whose serialized state starts with its tag)."""
+    pythonfmu FMUs and their native twins (fmus/native, whose serialized state starts with its tag;
+    the Link's carries its messages in flight, the framework's memory block)."""
     from orchestrator.components.fmu import FmuComponent, UnpackedFmu
 
     folder = request.getfixturevalue("fmu_dir" if kind == "python" else "native_fmu_dir")
     fmu = UnpackedFmu.open(folder / f"{name}.fmu")
-    component = FmuComponent("rollback", fmu, {})
+    component = FmuComponent("rollback", fmu, LINK_STATE_PARAMETERS if name == "Link" else {})
+
+    def step(k: int) -> None:
+        if name == "Link":  # the sender's message of t_k
+            values = list(component.input_defaults)
+            values[component.inputs.index("in.time")], values[component.inputs.index("in.x")] = k * 0.01, float(k)
+            component.set_inputs(values)
+        component.step(k * 0.01, 0.01)
+
     try:
         component.initialize(0.0)
         component.set_inputs(component.input_defaults)
         component.end_initialization()
         slave = component._slave
         for k in range(50):
-            component.step(k * 0.01, 0.01)
+            step(k)
         saved = slave.getFMUstate()
         serialized = slave.serializeFMUstate(saved)
         if kind == "native":
             assert bytes(serialized).startswith(b"platoon-cosim native FMU state")
 
-        def replay() -> list[float]:
+        def replay() -> list[list[float]]:
+            rows = []
             for k in range(50, 150):
-                component.step(k * 0.01, 0.01)
-            return component.get_outputs()
+                step(k)
+                rows.append(component.get_outputs())
+            return rows
 
         first = replay()
         slave.setFMUstate(saved)
@@ -208,7 +224,11 @@ def test_fmu_state_rolls_a_run_back_exactly(request, name, kind):
         slave.setFMUstate(slave.deSerializeFMUstate(serialized))
         third = replay()
         assert first == second == third
-        assert component.get_outputs()[component.outputs.index("output_time")] == pytest.approx(1.5)
+        outputs = dict(zip(component.outputs, first[-1]))
+        if name == "Link":  # messages were in flight, and the held one is a delayed one
+            assert outputs["sent"] > outputs["delivered"] + outputs["lost"] and outputs["age"] >= 0.3 - 1e-9
+        else:
+            assert outputs["output_time"] == pytest.approx(1.5)
         slave.freeFMUstate(saved)
     finally:
         component.close()

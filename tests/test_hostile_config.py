@@ -78,7 +78,8 @@ FLOAT_KEYS = [
     "vehicles.1.initial.speed",
     "hil.pose_timeout", "hil.connect_timeout", "hil.command_validity", "hil.max_pose_age",
     "vehicles.1.ros2.frame.x", "vehicles.1.ros2.frame.y", "vehicles.1.ros2.frame.yaw", "ros2.rate",
-]
+] + [f"links.{table}{key}" for table in ("", "backward.", "forward.", "vehicles.1.backward.", "vehicles.1.forward.")
+     for key in ("delay", "jitter", "period", "loss", "burst")]
 
 
 def mapping_with(key: str, value: Any) -> dict[str, Any]:
@@ -472,7 +473,8 @@ def test_an_fmu_with_the_right_guid_but_damaged_is_rebuilt(damage: str, workdir:
     assert result.returncode == 0, result.stderr
     states = {Path(line.split()[0]).name: line.split("(", 1)[1] for line in result.stdout.splitlines()
               if Path(line.split()[0]).parent == out}  # the pythonfmu FMUs (not out/native, out/fmi3)
-    assert states == {"Vehicle.fmu": "built)", "VirtualTarget.fmu": "up to date)", "LiveVehicle.fmu": "up to date)"}
+    assert states == {"Vehicle.fmu": "built)", "VirtualTarget.fmu": "up to date)", "Link.fmu": "up to date)",
+                      "LiveVehicle.fmu": "up to date)"}
     with zipfile.ZipFile(fmu) as archive:
         assert archive.testzip() is None and archive.getinfo(binary).file_size > 0
     assert all(b.rebuilt is False for b in PYTHONFMU.build(out, names=ALL_FMUS)), "a repaired build is up to date"

@@ -613,6 +613,6 @@ def test_two_builds_into_one_folder_at_once_both_succeed(tmp_path: Path) -> None
     assert sorted(p.name for p in (tmp_path / "fmus").iterdir()) == sorted([f"{name}.fmu" for name in ALL_FMUS]
                                                                            + ["fmi3", "native"])
     for kind in ("native", "fmi3"):  # the native twins, FMI 2.0 and 3.0: whole, no .partial left
-        assert sorted(p.name for p in (tmp_path / "fmus" / kind).iterdir()) == ["Vehicle.fmu", "VirtualTarget.fmu"]
+        assert sorted(p.name for p in (tmp_path / "fmus" / kind).iterdir()) == ["Link.fmu", "Vehicle.fmu", "VirtualTarget.fmu"]
     for name in ALL_FMUS:
         assert fmu_guid(tmp_path / "fmus" / f"{name}.fmu") == PYTHONFMU.expected_guid(name)

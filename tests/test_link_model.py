@@ -32,7 +32,7 @@ def run(p: LinkParameters, steps: int, jacobi: bool = True) -> list[dict[str, fl
 
 def test_splitmix64_matches_the_published_reference_outputs():
     # splitmix64 seeded with 1234567 (the reference values of Vigna's splitmix64.c, as quoted by
-    # many ports): the C twin is held to the same numbers by tests/test_link_fmus.py
+    # many ports): the C twin draws the same, tests/test_links.py holds their traces bit for bit
     state, outputs = 1234567, []
     for _ in range(3):
         state, out = splitmix64(state)

@@ -41,12 +41,12 @@ def _root(path) -> ElementTree.Element:
 # --- (a) valid FMUs with the pythonfmu FMUs' interface ----------------------------------------------------
 
 
-@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("name", NAMES + ("Link",))
 def test_fmpy_validates_the_native_fmu(native_fmu_dir, name):
     assert validate_fmu(str(native_fmu_dir / f"{name}.fmu")) == []
 
 
-@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("name", NAMES + ("Link",))
 def test_native_fmu_has_the_python_fmus_variables_and_honest_flags(fmu_dir, native_fmu_dir, name):
     """Same names, value references, types, causalities, variabilities, units, start values, ranges
     and model structure; needsExecutionTool="false" (nothing but the C library is needed)."""

@@ -22,11 +22,11 @@ RUN_ENGINES = ("native", "python")  # --engine; --monolithic picks the third eng
 
 
 def build(
-    out_dir: Annotated[Path, typer.Option("--out", help="folder for Vehicle.fmu, VirtualTarget.fmu and LiveVehicle.fmu")] = Path("build/fmus"),
+    out_dir: Annotated[Path, typer.Option("--out", help="folder for Vehicle.fmu, VirtualTarget.fmu, Link.fmu and LiveVehicle.fmu")] = Path("build/fmus"),
     force: Annotated[bool, typer.Option(help="rebuild even if up to date")] = False,
     all_platforms: Annotated[bool, typer.Option("--all-platforms", help="native FMUs with binaries for x86_64 and aarch64 Linux, x86_64 Windows, x86_64 and aarch64 macOS, cross-compiled with Zig (pip install 'platoon-cosim[release]')")] = False,
 ) -> None:
-    """Build the Vehicle, VirtualTarget and LiveVehicle FMUs, and the native Vehicle and VirtualTarget into OUT/native (FMI 2.0) and OUT/fmi3 (FMI 3.0) (only when their sources changed)."""
+    """Build the Vehicle, VirtualTarget, Link and LiveVehicle FMUs, and the native Vehicle, VirtualTarget and Link into OUT/native (FMI 2.0) and OUT/fmi3 (FMI 3.0) (only when their sources changed)."""
     from fmus.builders import ALL_FMUS, PYTHONFMU
 
     try:
@@ -43,11 +43,12 @@ def build(
 def _build_native(out_dir: Path, force: bool, all_platforms: bool = False) -> None:
     """The native twins into OUT/native (FMI 2.0) and OUT/fmi3 (FMI 3.0), both by fmus/builders/native.py,
     with this machine's binary or every platform's; no compiler is one line, not a failure."""
-    from fmus.builders import BuildError, NativeBuilder, NoCompiler
+    from fmus.builders import FMU_NAMES, LINK_FMU, BuildError, NativeBuilder, NoCompiler
 
+    names = FMU_NAMES + (LINK_FMU,)
     try:
-        built_fmus = NativeBuilder(2, all_platforms).build(out_dir / "native", force=force)
-        built_fmus += NativeBuilder(3, all_platforms).build(out_dir / "fmi3", force=force)
+        built_fmus = NativeBuilder(2, all_platforms).build(out_dir / "native", force=force, names=names)
+        built_fmus += NativeBuilder(3, all_platforms).build(out_dir / "fmi3", force=force, names=names)
     except NoCompiler as error:
         err.print(f"note: {error}", soft_wrap=True)
         return

@@ -428,7 +428,7 @@ class Config(_Strict):
                         f"{LINK_CAPACITY} (shorten the delay, or send beacons less often: links.period)"))
 
     def linked(self) -> list[tuple[str, int]]:
-        """The (direction, vehicle) pairs whose link is not perfect: the runs's Link components."""
+        """The (direction, vehicle) pairs whose link is not perfect: the run's Link components."""
         if self.links == Links():
             return []
         return [(direction, vehicle) for vehicle in range(1, self.platoon.count + 1) for direction in LINK_DIRECTIONS

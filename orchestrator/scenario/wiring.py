@@ -18,6 +18,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Iterable
 
+from orchestrator.trace.format import link_name  # noqa: F401  (a Link's component name, re-exported here)
+
 TARGET = "target"
 
 # Every FMU's output naming the time its other outputs describe; it feeds the receiver's <side>.time.
@@ -41,12 +43,6 @@ LEAD_SIGNALS = tuple((name, f"lead.{name}") for name in ("speed", "gap", "speed_
 
 LINK_FMU = "Link"
 BACKWARD, FORWARD = "backward", "forward"
-
-
-def link_name(direction: str, vehicle: int) -> str:
-    """Component name of vehicle ``vehicle``'s link in ``direction`` ("backward": from the component
-    ahead to the vehicle; "forward": from the vehicle to the component ahead), e.g. link_backward2."""
-    return f"link_{direction}{vehicle}"
 
 
 def link_input(output: str) -> str:

@@ -34,6 +34,21 @@ def vehicle_names(names: "Iterable[str]") -> list[str]:
     return sorted(vehicles, key=lambda n: int(n[len("vehicle"):]))
 
 
+# A communication link's component (orchestrator.scenario.wiring.link_name: link_backward2, link_forward3):
+# it repeats a sender's message, so it is recorded like any component but is no body in the 3D scene.
+LINK_PREFIX = "link_"
+
+
+def is_link(name: str) -> bool:
+    return name.startswith(LINK_PREFIX)
+
+
+def link_name(direction: str, vehicle: int) -> str:
+    """Component name of vehicle ``vehicle``'s link in ``direction`` ("backward": from the component
+    ahead to the vehicle; "forward": from the vehicle to the component ahead), e.g. link_backward2."""
+    return f"{LINK_PREFIX}{direction}{vehicle}"
+
+
 def channel_name(component: str) -> str:
     return CHANNEL_PREFIX + component
 

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 from foxglove import messages as fg
 
 from .encoding import ChannelSpec, register_mcap, template_of
-from .format import number_texts
+from .format import CHANNEL_PREFIX, LINK_PREFIX, is_link, number_texts
 
 if TYPE_CHECKING:
     from orchestrator.scenario.config import Config
@@ -199,10 +199,12 @@ class FoxgloveChannels:
         self.path = settings.path
         self.names = [name for name, _ in components]
         self.vehicles = [name for name in self.names if name.startswith("vehicle")]
+        # what the scene draws: the target and the vehicles (a link only repeats a sender's, stale, pose)
+        self.bodies = [name for name in self.names if not is_link(name)]
         self._index = {name: i for i, name in enumerate(self.names)}
         outputs = {name: list(keys) for name, keys in components}
         # positions of x, y, heading (every component) and of gap, speed (vehicles) among the outputs
-        self._pose = {name: tuple(outputs[name].index(k) for k in ("x", "y", "heading")) for name in self.names}
+        self._pose = {name: tuple(outputs[name].index(k) for k in ("x", "y", "heading")) for name in self.bodies}
         self._gap_speed = {name: (outputs[name].index("gap"), outputs[name].index("speed")) for name in self.vehicles}
         self.d_star = settings.d_star
         self.v_c = settings.v_c
@@ -215,7 +217,7 @@ class FoxgloveChannels:
         self._size = size
         self._label_offset = LABEL_OFFSET * scale.extent
         self._box = fg.Vector3(x=size, y=0.45 * size, z=0.35 * size)
-        self._labels = {name: vehicle_label(name, len(self.vehicles)) for name in self.names}
+        self._labels = {name: vehicle_label(name, len(self.vehicles)) for name in self.bodies}
         self._colors = dict(zip(self.vehicles, vehicle_colors(len(self.vehicles))))
         self._path_points = self._circle_points() if settings.path_kind == "circle" else None
         # the errors JSON cut where the numbers go (orchestrator/trace/native_encoder.c fills the pieces)
@@ -267,7 +269,8 @@ class FoxgloveChannels:
         else:
             return None
         bodies = []
-        for name, start in zip(self.names, starts):
+        for name in self.bodies:
+            start = starts[self._index[name]]
             ix, iy, ih = (start + i for i in self._pose[name])
             ig, iv = (start + i for i in self._gap_speed[name]) if name in self._history else (0, 0)
             rgb = self._colors.get(name, (1.0, 1.0, 1.0))
@@ -293,7 +296,7 @@ class FoxgloveChannels:
         """Follow one recorded row: at a scene tick, add the vehicles' positions to their trails; True then."""
         if time < self._next_scene - 1e-9:
             return False
-        for name, (x, y, _) in zip(self.names, self._poses(outputs)):
+        for name, (x, y, _) in zip(self.bodies, self._poses(outputs)):
             if name in self._history:
                 self._history[name].append(fg.Point3(x=x, y=y, z=0.0))
                 self._trail_end[name] = (x, y)
@@ -306,7 +309,7 @@ class FoxgloveChannels:
         the vehicles (the live view's frame between two scene ticks); changes no state."""
         poses = self._poses(outputs)
         trails = {}
-        for name, (x, y, _) in zip(self.names, poses):
+        for name, (x, y, _) in zip(self.bodies, poses):
             if name in self._history:
                 trail = trails[name] = list(self._history[name])
                 if self._trail_end.get(name) != (x, y):  # at a scene tick the trail ends here already
@@ -359,9 +362,9 @@ class FoxgloveChannels:
         return -math.sin(heading), math.cos(heading)
 
     def _poses(self, outputs: Sequence[Sequence[float]]) -> list[tuple[float, float, float]]:
-        """(x, y, heading) of every component, in component order."""
+        """(x, y, heading) of every body (the target, the vehicles), in component order."""
         poses = []
-        for name in self.names:
+        for name in self.bodies:
             values = outputs[self._index[name]]
             ix, iy, ih = self._pose[name]
             poses.append((values[ix], values[iy], values[ih]))
@@ -381,7 +384,7 @@ class FoxgloveChannels:
             )
         ]
         transforms = []
-        for name, (x, y, heading) in zip(self.names, poses):
+        for name, (x, y, heading) in zip(self.bodies, poses):
             pose = fg.Pose(position=fg.Vector3(x=x, y=y, z=0.0), orientation=_quaternion(heading))
             transforms.append(fg.FrameTransform(
                 timestamp=when, parent_frame_id=ROOT_FRAME, child_frame_id=name,
@@ -477,6 +480,15 @@ def _plot(title: str, field: str, vehicles: Sequence[str], colors: Sequence[tupl
     }
 
 
+def _link_plot(links: Sequence[str]) -> dict[str, Any]:
+    """The age of the message each link delivers (docs/links.md), one series per link."""
+    plot = _plot("age of information [s] (links)", "age", [], [])
+    plot["paths"] = [{"value": message_path(CHANNEL_PREFIX + name, "age"), "enabled": True,
+                      "timestampMethod": "receiveTime", "label": name[len(LINK_PREFIX):]} for name in links]
+    plot["showLegend"], plot["legendDisplay"] = True, "left"
+    return plot
+
+
 def _nice_step(length: float) -> float:
     """1, 2 or 5 times a power of ten, about a fifth of ``length``: the grid's cell."""
     raw = length / 5.0
@@ -514,8 +526,9 @@ def default_settings() -> SceneSettings:
     return SceneSettings(None, "circle", (0.0, 0.0), 50.0, 0.0, 75.0, 25.0)
 
 
-def layout(vehicles: int = 6, settings: SceneSettings | None = None) -> dict[str, Any]:
-    """A Foxglove layout: a 3D panel (fitted to ``settings``' path) beside plots of path, gap and speed errors.
+def layout(vehicles: int = 6, settings: SceneSettings | None = None, links: Sequence[str] = ()) -> dict[str, Any]:
+    """A Foxglove layout: a 3D panel (fitted to ``settings``' path) beside plots of path, gap and speed errors,
+    and, for a run with ``links`` (their component names), of the age of each link's message.
 
     ``platoon layout TRACE`` and ``platoon run`` pass the run's settings and vehicle count (one series
     per vehicle, the camera fitted to its path); without them, the paper's circle.
@@ -542,6 +555,11 @@ def layout(vehicles: int = 6, settings: SceneSettings | None = None) -> dict[str
         "imageMode": {},
     }
     scale_note = "" if vehicles <= LEGEND_UP_TO else f" (colour: vehicle 1 purple to {vehicles} yellow)"
+    lower: Any = "Plot!speed"
+    extra = {}
+    if links:
+        lower = {"first": "Plot!speed", "second": "Plot!links", "direction": "column"}
+        extra["Plot!links"] = _link_plot(links)
     return {
         "configById": {
             "3D!platoon": three_d,
@@ -550,6 +568,7 @@ def layout(vehicles: int = 6, settings: SceneSettings | None = None) -> dict[str
             "Plot!speed": _plot(f"speed error V - V_c [m/s]{scale_note}", "speed_error", names, colors),
             "RosOut!log": {"foxglovePanelTitle": "run log", "searchTerms": [], "minLogLevel": 1,
                            "topicToRender": LOG_TOPIC},
+            **extra,
         },
         "globalVariables": {},
         "userNodes": {},
@@ -558,7 +577,7 @@ def layout(vehicles: int = 6, settings: SceneSettings | None = None) -> dict[str
             "first": {"first": "3D!platoon", "second": "RosOut!log", "direction": "column", "splitPercentage": 82},
             "second": {
                 "first": "Plot!path",
-                "second": {"first": "Plot!gap", "second": "Plot!speed", "direction": "column"},
+                "second": {"first": "Plot!gap", "second": lower, "direction": "column"},
                 "direction": "column",
                 "splitPercentage": 33.3,
             },

@@ -34,8 +34,10 @@ def layout_path(trace: Path) -> Path:
 
 def run_layout(config: "Config", vehicles: int) -> dict[str, Any]:
     from orchestrator.trace.foxglove import SceneSettings, layout
+    from orchestrator.trace.format import link_name
 
-    return layout(vehicles, SceneSettings.of(config))
+    links = [link_name(direction, vehicle) for direction, vehicle in config.linked()]
+    return layout(vehicles, SceneSettings.of(config), links)
 
 
 @dataclass(frozen=True)
