@@ -22,6 +22,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationErr
 
 from bridge.protocol import DEFAULT_PREFIX, check_prefix
 from fmus.model.dynamics import M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEEL_SPEED_MAX
+from fmus.model.guidance import SENSING_LAWS
 from fmus.model.integrate import substep_count
 from orchestrator.support.suggest import did_you_mean
 
@@ -140,8 +141,7 @@ Law = Literal["sine", "regular"]
 DynamicsKind = Literal["kinematic", "m3pi"]
 # The speed laws (fmus.model.guidance.SPEED_LAWS; docs/model.md, section 11): the paper's, a constant-time-gap
 # ACC, Ploeg's CACC adapted to the first-order speed loop.
-SpeedLaw = Literal["paper", "acc", "cacc"]
-SENSING_LAWS = ("acc", "cacc")  # the laws that read the on-board sensor (fmus.model.guidance.SENSING_LAWS)
+SpeedLawName = Literal["paper", "acc", "cacc"]
 # A time gap beyond 100 s is no platoon; below 1 ms the cacc pole -1/h is beyond any substep (the stiffness
 # check below names it).
 TimeGap = Annotated[float, Field(ge=SMALL, le=100.0), Unit("s")]
@@ -155,7 +155,7 @@ class Platoon(_Strict):
     k_v: Gain = 0.5
     speed: Speed = Field(25.0, description="V_c, the last vehicle's commanded speed")
     dynamics: DynamicsKind = "kinematic"
-    speed_law: SpeedLaw = Field("paper", description="paper (V d*/d), acc (constant time gap) or cacc (Ploeg)")
+    speed_law: SpeedLawName = Field("paper", description="paper (V d*/d), acc (constant time gap) or cacc (Ploeg)")
     time_gap: TimeGap = Field(2.0, description="h of acc and cacc: desired gap standstill_gap + h V, s")
     standstill_gap: GapLength | None = Field(None, description="r of acc and cacc, m (default d_star - time_gap speed)")
     cacc_gain: Gain = Field(0.2, description="k_p of cacc (Ploeg et al. 2011), 1/s")
@@ -185,7 +185,7 @@ class VehicleState(_Strict):
 
 class VehicleOverride(_Strict):
     law: Law | None = None
-    speed_law: SpeedLaw | None = None
+    speed_law: SpeedLawName | None = None
     k_v: Gain | None = None
     dynamics: DynamicsKind | None = None
     initial: VehicleState | None = None
