@@ -227,8 +227,8 @@ def test_the_sensor_is_wired_directly_and_only_for_acc_and_cacc_vehicles():
     acc = config_from_mapping({"name": "w", "platoon": {"speed_law": "acc", "count": 3}})
     pairs = [("target", "vehicle1"), ("vehicle1", "vehicle2"), ("vehicle2", "vehicle3")]
     assert sensor_wires(acc) == sorted(pair for pair in pairs for _ in range(7))
-    mixed = config_from_mapping({"name": "w", "platoon": {"count": 3}, "vehicles": {"2": {"speed_law": "cacc"}}})
-    assert sensor_wires(mixed) == [("vehicle1", "vehicle2")] * 7
+    mixed = config_from_mapping({"name": "w", "platoon": {"count": 3}, "vehicles": {"3": {"speed_law": "cacc"}}})
+    assert sensor_wires(mixed) == [("vehicle2", "vehicle3")] * 7
     # the target follows the lead's law: at V_c under acc, at V_1 d*/d_1 under the paper's
     assert build_scenario(acc).components[0].parameters["speed_law"] == "acc"
     assert build_scenario(mixed).components[0].parameters["speed_law"] == "paper"
@@ -249,13 +249,18 @@ def test_the_sensor_is_wired_directly_and_only_for_acc_and_cacc_vehicles():
     ({"speed_law": "pid"}, "platoon.speed_law = 'pid': input should be 'paper', 'acc' or 'cacc'"),
     ({"speed_law": "cacc", "cacc_gain": -0.2}, "platoon.cacc_gain = -0.2: must be a finite number >= 0.001 1/s "
                                                "and <= 1000 1/s"),
+    ({"speed_law": "acc", "count": 3, "vehicles": {"3": {"speed_law": "paper"}}}, "vehicles.3.speed_law = 'paper': "
+     "expected acc or cacc behind vehicle 2, whose acc law does not read its follower's gap: a paper vehicle's gap is "
+     "regulated by the vehicle ahead, so behind an acc or cacc one it would drift"),
     ({"speed_law": "cacc", "time_gap": 0.004}, "simulation.max_substep = 0.01: expected RK4 substeps of at most 2 x "
      "the fastest lag, here platoon.time_gap (time constant 0.004 s): max_substep <= 0.008 s (the substep is now "
      "0.01 s; beyond it the integration diverges)"),
 ])
 def test_bad_speed_law_keys_are_one_line_errors_naming_the_key(platoon, message):
+    platoon = dict(platoon)
+    vehicles = platoon.pop("vehicles", {})
     with pytest.raises(ConfigError) as error:
-        config_from_mapping({"name": "bad", "platoon": platoon})
+        config_from_mapping({"name": "bad", "platoon": platoon, "vehicles": vehicles})
     assert str(error.value) == message
 
 

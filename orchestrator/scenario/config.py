@@ -297,9 +297,21 @@ class Config(_Strict):
         return [i for i in range(1, self.platoon.count + 1) if self.speed_law_of(i) in SENSING_LAWS]
 
     def _check_speed_laws(self) -> None:
-        """acc and cacc need a standstill gap r >= 0; the default r = d* - h V_c is negative for h > d*/V_c."""
+        """acc and cacc need a standstill gap r >= 0; the default r = d* - h V_c is negative for h > d*/V_c.
+
+        Under the paper's law vehicle i's gap is regulated by the component ahead (it reads its follower's
+        gap); under acc and cacc by vehicle i itself. A paper vehicle right behind an acc or cacc one would
+        have its gap regulated by no one (it drifts: measured 91 m instead of 75 m), so it is refused.
+        """
         p = self.platoon
-        if p.standstill_gap is None and self.sensing_vehicles() and p.resolved_standstill_gap < 0.0:
+        sensing = self.sensing_vehicles()
+        for index in range(2, p.count + 1):
+            if index - 1 in sensing and index not in sensing:
+                key = f"vehicles.{index}.speed_law" if self.override(index).speed_law else "platoon.speed_law"
+                raise _rule(key, self.speed_law_of(index), f"acc or cacc behind vehicle {index - 1}, whose "
+                            f"{self.speed_law_of(index - 1)} law does not read its follower's gap: a paper vehicle's "
+                            "gap is regulated by the vehicle ahead, so behind an acc or cacc one it would drift")
+        if p.standstill_gap is None and sensing and p.resolved_standstill_gap < 0.0:
             raise _rule("platoon.time_gap", p.time_gap, f"at most platoon.d_star / platoon.speed = {p.d_star / p.speed:g} s "
                         f"under acc or cacc, or an explicit platoon.standstill_gap >= 0 (the default standstill gap "
                         f"d_star - time_gap * speed = {p.resolved_standstill_gap:g} m would be negative)")
