@@ -330,6 +330,10 @@ GOOD = {
     "m3pi.track": 0.084,
     "m3pi.wheel_speed_max": 1.0,
     "m3pi.motor_time_constant": 0.05,
+    "speed_law": "paper",
+    "time_gap": 2.0,
+    "standstill_gap": 0.0,
+    "cacc_gain": 0.2,
 }
 
 
@@ -356,6 +360,11 @@ def test_vehicle_parameter_errors_accepts_good_parameters():
         ("m3pi.track", 0.0),
         ("m3pi.wheel_speed_max", 0.0),
         ("m3pi.motor_time_constant", 0.0),
+        ("speed_law", "pid"),
+        ("time_gap", 0.0),
+        ("standstill_gap", -0.1),
+        ("standstill_gap", float("inf")),
+        ("cacc_gain", 0.0),
     ],
 )
 def test_vehicle_parameter_errors_names_each_bad_parameter(name, value):

@@ -71,6 +71,7 @@ FLOAT_KEYS = [
     "simulation.stop_time", "simulation.step", "simulation.max_substep",
     "path.radius", "path.center[0]", "path.center[1]", "path.heading",
     "platoon.d_star", "platoon.k_v", "platoon.speed",
+    "platoon.time_gap", "platoon.standstill_gap", "platoon.cacc_gain",
     "initial.radial_offset", "initial.heading_error", "initial.speed_factor",
     "m3pi.track", "m3pi.wheel_speed_max", "m3pi.motor_time_constant",
     "disturbance[0].start", "disturbance[0].duration", "disturbance[0].value",

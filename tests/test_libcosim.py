@@ -76,11 +76,11 @@ DISTURBANCES = [
 
 
 def paper_config(law: str = "sine", coupling: str = "extrapolate", disturbance: list | None = None,
-                 stop_time: float = 20.0) -> Config:
+                 stop_time: float = 20.0, speed_law: str = "paper") -> Config:
     raw: dict[str, Any] = {
         "name": f"libcosim-{law}-{coupling}",
         "simulation": {"stop_time": stop_time, "step": 0.01, "master": "jacobi", "coupling": coupling},
-        "platoon": {"count": 4, "law": law},
+        "platoon": {"count": 4, "law": law, "speed_law": speed_law},
         "initial": dict(PAPER_START),
     }
     if disturbance:
@@ -301,6 +301,9 @@ CASES = {
     "sine-hold": dict(law="sine", coupling="hold"),
     "regular-extrapolate": dict(law="regular", coupling="extrapolate"),
     "sine-extrapolate-disturbed": dict(law="sine", coupling="extrapolate", disturbance=DISTURBANCES),
+    # the speed laws beyond the paper's: the sensor.* connections and a target at V_c
+    "cacc-extrapolate-disturbed": dict(law="sine", coupling="extrapolate", disturbance=DISTURBANCES, speed_law="cacc"),
+    "acc-hold": dict(law="sine", coupling="hold", speed_law="acc"),
 }
 
 

@@ -187,9 +187,9 @@ PLATOONS = [
      "simulation": {"coupling": "extrapolate", "master": "gauss-seidel"}},
     {"platoon": {"count": 3, "law": "sine", "speed_law": "acc", "k_v": 1.0, "time_gap": 2.5},
      "simulation": {"coupling": "extrapolate", "master": "jacobi"}},
-    {"platoon": {"count": 3, "law": "regular", "speed_law": "cacc", "dynamics": "m3pi", "speed": 0.35, "d_star": 0.7,
+    {"platoon": {"count": 3, "law": "regular", "dynamics": "m3pi", "speed": 0.35, "d_star": 0.7,
                  "k_v": 2.0, "time_gap": 1.0}, "path": {"radius": 1.0},
-     "simulation": {"coupling": "hold", "master": "gauss-seidel"}, "vehicles": {"2": {"speed_law": "paper"}}},
+     "simulation": {"coupling": "hold", "master": "gauss-seidel"}, "vehicles": {"3": {"speed_law": "cacc"}}},
 ]
 
 
@@ -210,7 +210,7 @@ def _run_platoon(scenario, folder) -> list[list[list[float]]]:
 
 
 @pytest.mark.parametrize("sections", PLATOONS, ids=["sine-extrapolate-jacobi", "m3pi-regular-hold-gs", "line", "acc",
-                                                    "m3pi-cacc-with-a-paper-vehicle-hold-gs"])
+                                                    "m3pi-paper-then-cacc-hold-gs"])
 def test_platoon_through_our_master_equals_the_python_fmus(fmu_dir, native_fmu_dir, sections):
     """A virtual target and three vehicles, wired as Fig. 2 (orchestrator.scenario.wiring), a lateral pulse on
     vehicle 2 and a speed pulse on vehicle 3, 20 s: every output of every component at every

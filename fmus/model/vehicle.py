@@ -12,7 +12,7 @@ coupling mode that decides how those samples are seen inside a step (see ``coupl
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from .coupling import arc_extrapolate, linear_extrapolate
 from .dynamics import Dynamics
@@ -68,11 +68,12 @@ class SpeedLaw:
     time_gap: float = 0.0
     standstill_gap: float = 0.0
     gain: float = 0.0
+    # True when the law reads the gap to the vehicle ahead from the on-board sensor (a field, not a
+    # property: the right-hand side asks at every evaluation)
+    senses: bool = field(init=False)
 
-    @property
-    def senses(self) -> bool:
-        """True when the law reads the gap to the vehicle ahead from the on-board sensor."""
-        return self.kind in SENSING_LAWS
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "senses", self.kind in SENSING_LAWS)
 
 
 PAPER_LAW = SpeedLaw()
@@ -89,26 +90,15 @@ class VehicleModel:
     dynamics: Dynamics
     speed_law: SpeedLaw = PAPER_LAW
 
-    def commanded_speed(
-        self,
-        state: list[float],
-        speed: float,
-        sensed_gap: float,
-        predecessor_speed: float,
-        follower_speed: float,
-        follower_gap: float,
-    ) -> float:
-        """V_cmd of the speed law: paper (the follower's V d*/d, or V_c when last), acc or cacc."""
+    def sensing_speed(self, state: list[float], speed: float, sensed_gap: float, predecessor_speed: float) -> float:
+        """V_cmd of the laws that read the on-board sensor: acc, or cacc (which also reads the vehicle
+        ahead's communicated speed)."""
         law = self.speed_law
         if law.kind == "acc":
             return time_gap_speed(sensed_gap, law.standstill_gap, law.time_gap)
-        if law.kind == "cacc":
-            error = spacing_error(sensed_gap, law.standstill_gap, law.time_gap, speed)
-            acceleration = cacc_acceleration(predecessor_speed, speed, error, law.time_gap, law.gain)
-            return speed_for_acceleration(self.dynamics.loop_speed(state), acceleration, self.dynamics.k_v)
-        if self.is_last:
-            return self.speed_command
-        return spacing_speed(follower_speed, follower_gap, self.d_star)
+        error = spacing_error(sensed_gap, law.standstill_gap, law.time_gap, speed)
+        acceleration = cacc_acceleration(predecessor_speed, speed, error, law.time_gap, law.gain)
+        return speed_for_acceleration(self.dynamics.loop_speed(state), acceleration, self.dynamics.k_v)
 
     def evaluate(
         self,
@@ -135,8 +125,12 @@ class VehicleModel:
         acceleration = (
             lateral_acceleration(self.law, speed, target_distance, los, heading, target_heading) + added_acceleration
         )
-        sensed_gap = distance(x, y, sensor_x, sensor_y) if self.speed_law.senses else 0.0
-        commanded = self.commanded_speed(state, speed, sensed_gap, target_speed, follower_speed, follower_gap)
+        if self.speed_law.senses:
+            commanded = self.sensing_speed(state, speed, distance(x, y, sensor_x, sensor_y), target_speed)
+        elif self.is_last:
+            commanded = self.speed_command
+        else:
+            commanded = spacing_speed(follower_speed, follower_gap, self.d_star)
         return self.dynamics.derivative(state, acceleration, commanded, added_speed), acceleration, target_distance
 
 
@@ -149,6 +143,7 @@ class VehicleStepper:
 
     def __init__(self, model: VehicleModel, coupling: str, max_substep: float, state: list[float], time: float):
         self.model = model
+        self.senses = model.speed_law.senses
         self.extrapolate = coupling == "extrapolate"
         self.max_substep = max_substep
         self.state = state
@@ -208,7 +203,11 @@ class VehicleStepper:
     def evaluate(self, t: float, state: list[float]) -> tuple[list[float], float, float]:
         tx, ty, th, tv = self.target_at(t)
         follower_speed, follower_gap = self.follower_at(t)
-        sx, sy = self.sensor_at(t) if self.model.speed_law.senses else (0.0, 0.0)
+        if not self.senses:
+            return self.model.evaluate(
+                state, tx, ty, th, follower_speed, follower_gap, self.added_acceleration, self.added_speed
+            )
+        sx, sy = self.sensor_at(t)
         return self.model.evaluate(
             state, tx, ty, th, follower_speed, follower_gap, self.added_acceleration, self.added_speed, tv, sx, sy
         )

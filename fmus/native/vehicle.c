@@ -204,7 +204,7 @@ static void sensor_at(const Instance *instance, double t, double *x, double *y)
     *y = out[1];
 }
 
-/* fmus.model.vehicle.VehicleModel.commanded_speed */
+/* fmus.model.vehicle.VehicleModel.evaluate's speed command, with VehicleModel.sensing_speed */
 static double commanded_speed(const VehicleConfig *config, const double *state, double speed, double sensed_gap,
                               double predecessor_speed, double follower_speed, double follower_gap)
 {

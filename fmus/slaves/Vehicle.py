@@ -39,10 +39,6 @@ def _parameters() -> tuple[VariableInfo, ...]:
         real("m3pi.track", "parameter", "Distance W between the wheels (Pololu m3pi estimate; also used for the kinematic model's equivalent wheel speeds)", "m", start=M3PI_TRACK, min=0.0),
         real("m3pi.wheel_speed_max", "parameter", "Wheel speed limit (m3pi)", "m/s", start=M3PI_WHEEL_SPEED_MAX, min=0.0),
         real("m3pi.motor_time_constant", "parameter", "First-order motor lag of each wheel (m3pi)", "s", start=M3PI_MOTOR_TIME_CONSTANT, min=0.0),
-        VariableInfo("speed_law", "String", "parameter", 'Speed law: "paper" (V_cmd = V_follower d*/d_follower, V_c when last), "acc" (constant time gap on the sensed gap) or "cacc" (Ploeg\'s, adapted: time gap plus the communicated target.speed)', start="paper"),
-        real("time_gap", "parameter", "Time gap h of acc and cacc: desired gap standstill_gap + h V", "s", start=d.TIME_GAP, min=0.0),
-        real("standstill_gap", "parameter", "Standstill gap r of acc and cacc: desired gap r + h V", "m", start=d.STANDSTILL_GAP, min=0.0),
-        real("cacc_gain", "parameter", "Spacing-error gain k_p of cacc: the spacing error decays as de/dt = -k_p e", "1/s", start=d.CACC_GAIN, min=0.0),
     )
 
 
@@ -62,13 +58,6 @@ def _inputs() -> tuple[VariableInfo, ...]:
         real("follower.time", "input", "Time the follower values describe (the sender's output_time)", "s", start=0.0),
         real("disturbance.lateral_acceleration", "input", "Lateral acceleration added to the guidance command", "m/s2", start=0.0),
         real("disturbance.speed", "input", "Speed added over ground (an external push the speed loop does not see)", "m/s", start=0.0),
-        real("sensor.x", "input", "Position x of the vehicle ahead, from the on-board sensor (acc, cacc; wired directly, never through a link)", "m", start=d.TARGET_X),
-        real("sensor.y", "input", "Position y of the vehicle ahead, from the on-board sensor (acc, cacc)", "m", start=d.TARGET_Y),
-        real("sensor.heading", "input", "Heading of the vehicle ahead (sensor; to extrapolate its position)", "rad", start=d.TARGET_HEADING),
-        real("sensor.speed", "input", "Speed of the vehicle ahead (sensor; to extrapolate its position)", "m/s", start=d.SPEED, min=0.0),
-        real("sensor.speed_rate", "input", "Speed rate of the vehicle ahead (sensor; to extrapolate its position)", "m/s2", start=0.0),
-        real("sensor.turn_rate", "input", "Heading rate of the vehicle ahead (sensor; to extrapolate its position)", "rad/s", start=d.TARGET_TURN_RATE),
-        real("sensor.time", "input", "Time the sensor values describe (the sender's output_time)", "s", start=0.0),
     )
 
 
@@ -91,6 +80,30 @@ def _outputs() -> tuple[VariableInfo, ...]:
     )
 
 
+def _speed_law_parameters() -> tuple[VariableInfo, ...]:
+    """The speed laws beyond the paper's (docs/model.md, section 11): declared after the outputs, so that
+    every variable the FMU had before keeps its value reference."""
+    return (
+        VariableInfo("speed_law", "String", "parameter", 'Speed law: "paper" (V_cmd = V_follower d*/d_follower, V_c when last), "acc" (constant time gap on the sensed gap) or "cacc" (Ploeg\'s, adapted: time gap plus the communicated target.speed)', start="paper"),
+        real("time_gap", "parameter", "Time gap h of acc and cacc: desired gap standstill_gap + h V", "s", start=d.TIME_GAP, min=0.0),
+        real("standstill_gap", "parameter", "Standstill gap r of acc and cacc: desired gap r + h V", "m", start=d.STANDSTILL_GAP, min=0.0),
+        real("cacc_gain", "parameter", "Spacing-error gain k_p of cacc: the spacing error decays as de/dt = -k_p e", "1/s", start=d.CACC_GAIN, min=0.0),
+    )
+
+
+def _sensor_inputs() -> tuple[VariableInfo, ...]:
+    """The on-board sensor of acc and cacc: the vehicle ahead's pose and motion, wired directly."""
+    return (
+        real("sensor.x", "input", "Position x of the vehicle ahead, from the on-board sensor (acc, cacc; wired directly, never through a link)", "m", start=d.TARGET_X),
+        real("sensor.y", "input", "Position y of the vehicle ahead, from the on-board sensor (acc, cacc)", "m", start=d.TARGET_Y),
+        real("sensor.heading", "input", "Heading of the vehicle ahead (sensor; to extrapolate its position)", "rad", start=d.TARGET_HEADING),
+        real("sensor.speed", "input", "Speed of the vehicle ahead (sensor; to extrapolate its position)", "m/s", start=d.SPEED, min=0.0),
+        real("sensor.speed_rate", "input", "Speed rate of the vehicle ahead (sensor; to extrapolate its position)", "m/s2", start=0.0),
+        real("sensor.turn_rate", "input", "Heading rate of the vehicle ahead (sensor; to extrapolate its position)", "rad/s", start=d.TARGET_TURN_RATE),
+        real("sensor.time", "input", "Time the sensor values describe (the sender's output_time)", "s", start=0.0),
+    )
+
+
 class Vehicle(PlatoonSlave):
     """Platoon vehicle: trajectory shaping guidance (regular or sine) on kinematic or m3pi dynamics."""
 
@@ -98,7 +111,7 @@ class Vehicle(PlatoonSlave):
         "Platoon vehicle chasing its target with (modified) trajectory shaping guidance "
         "(Erekson, Sharma, Ratnoo, Gerdes: Multi-vehicle path following using modified trajectory shaping guidance)"
     )
-    variables = _parameters() + _inputs() + _outputs()
+    variables = _parameters() + _inputs() + _outputs() + _speed_law_parameters() + _sensor_inputs()
     input_attributes = _INPUT_ATTRIBUTES
     default_experiment = DefaultExperiment(start_time=0.0, stop_time=d.STOP_TIME, step_size=d.STEP)
 
@@ -106,5 +119,5 @@ class Vehicle(PlatoonSlave):
     stepper_of = staticmethod(vehicle_stepper)
 
 
-assert set(_INPUT_ATTRIBUTES) == {i.name for i in _inputs()}
-assert not any(math.isnan(i.start) for i in _inputs())
+assert set(_INPUT_ATTRIBUTES) == {i.name for i in _inputs() + _sensor_inputs()}
+assert not any(math.isnan(i.start) for i in _inputs() + _sensor_inputs())

@@ -41,8 +41,6 @@ class VirtualTarget(PlatoonSlave):
         VariableInfo("path.direction", "Integer", "parameter", "Circle travel direction: 1 counter-clockwise, -1 clockwise", start=1, min=-1, max=1),
         real("initial.arc_length", "parameter", "Initial arc length s along the path", "m", start=0.0),
         real("d_star", "parameter", "Desired distance d* of the lead vehicle", "m", start=d.D_STAR, min=0.0),
-        VariableInfo("speed_law", "String", "parameter", 'The lead vehicle\'s speed law: "paper" (the target moves at V_1 d*/d_1) or "acc"/"cacc" (it moves at the constant v_c)', start="paper"),
-        real("v_c", "parameter", "Commanded speed V_c: the target's speed under acc and cacc", "m/s", start=d.SPEED, min=0.0),
         VariableInfo("coupling", "String", "parameter", 'Inputs inside a step: "extrapolate" (rates; second order) or "hold" (zero-order hold)', start="extrapolate"),
         real("max_substep", "parameter", "Longest internal RK4 substep", "s", start=d.MAX_SUBSTEP, min=0.0),
         real("lead.speed", "input", "Lead vehicle speed V_1", "m/s", start=d.SPEED, min=0.0),
@@ -65,6 +63,9 @@ class VirtualTarget(PlatoonSlave):
              initial_depends_on=("initial.arc_length",)),
         real("output_time", "output", "Time the outputs describe (the communication point they belong to); wire it to the receiver's target.time input", "s", depends_on=STATE_OUTPUT,
              initial_depends_on=(), depends_on_time=True),  # the (start) time: FMI 3.0's `time`, no variable in FMI 2.0
+        # the speed laws beyond the paper's, last: every earlier variable keeps its value reference
+        VariableInfo("speed_law", "String", "parameter", 'The lead vehicle\'s speed law: "paper" (the target moves at V_1 d*/d_1) or "acc"/"cacc" (it moves at the constant v_c)', start="paper"),
+        real("v_c", "parameter", "Commanded speed V_c: the target's speed under acc and cacc", "m/s", start=d.SPEED, min=0.0),
     )
     input_attributes = _INPUT_ATTRIBUTES
     default_experiment = DefaultExperiment(start_time=0.0, stop_time=d.STOP_TIME, step_size=d.STEP)

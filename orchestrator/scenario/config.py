@@ -22,6 +22,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationErr
 
 from bridge.protocol import DEFAULT_PREFIX, check_prefix
 from fmus.model.dynamics import M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEEL_SPEED_MAX
+from fmus.model.guidance import SENSING_LAWS
 from fmus.model.integrate import substep_count
 from fmus.model.link import CAPACITY as LINK_CAPACITY
 from fmus.model.link import LinkParameters, messages_held
@@ -143,8 +144,7 @@ Law = Literal["sine", "regular"]
 DynamicsKind = Literal["kinematic", "m3pi"]
 # The speed laws (fmus.model.guidance.SPEED_LAWS; docs/model.md, section 11): the paper's, a constant-time-gap
 # ACC, Ploeg's CACC adapted to the first-order speed loop.
-SpeedLaw = Literal["paper", "acc", "cacc"]
-SENSING_LAWS = ("acc", "cacc")  # the laws that read the on-board sensor (fmus.model.guidance.SENSING_LAWS)
+SpeedLawName = Literal["paper", "acc", "cacc"]
 # A time gap beyond 100 s is no platoon; below 1 ms the cacc pole -1/h is beyond any substep (the stiffness
 # check below names it).
 TimeGap = Annotated[float, Field(ge=SMALL, le=100.0), Unit("s")]
@@ -158,7 +158,7 @@ class Platoon(_Strict):
     k_v: Gain = 0.5
     speed: Speed = Field(25.0, description="V_c, the last vehicle's commanded speed")
     dynamics: DynamicsKind = "kinematic"
-    speed_law: SpeedLaw = Field("paper", description="paper (V d*/d), acc (constant time gap) or cacc (Ploeg)")
+    speed_law: SpeedLawName = Field("paper", description="paper (V d*/d), acc (constant time gap) or cacc (Ploeg)")
     time_gap: TimeGap = Field(2.0, description="h of acc and cacc: desired gap standstill_gap + h V, s")
     standstill_gap: GapLength | None = Field(None, description="r of acc and cacc, m (default d_star - time_gap speed)")
     cacc_gain: Gain = Field(0.2, description="k_p of cacc (Ploeg et al. 2011), 1/s")
@@ -188,7 +188,7 @@ class VehicleState(_Strict):
 
 class VehicleOverride(_Strict):
     law: Law | None = None
-    speed_law: SpeedLaw | None = None
+    speed_law: SpeedLawName | None = None
     k_v: Gain | None = None
     dynamics: DynamicsKind | None = None
     initial: VehicleState | None = None
@@ -359,9 +359,21 @@ class Config(_Strict):
         return [i for i in range(1, self.platoon.count + 1) if self.speed_law_of(i) in SENSING_LAWS]
 
     def _check_speed_laws(self) -> None:
-        """acc and cacc need a standstill gap r >= 0; the default r = d* - h V_c is negative for h > d*/V_c."""
+        """acc and cacc need a standstill gap r >= 0; the default r = d* - h V_c is negative for h > d*/V_c.
+
+        Under the paper's law vehicle i's gap is regulated by the component ahead (it reads its follower's
+        gap); under acc and cacc by vehicle i itself. A paper vehicle right behind an acc or cacc one would
+        have its gap regulated by no one (it drifts: measured 91 m instead of 75 m), so it is refused.
+        """
         p = self.platoon
-        if p.standstill_gap is None and self.sensing_vehicles() and p.resolved_standstill_gap < 0.0:
+        sensing = self.sensing_vehicles()
+        for index in range(2, p.count + 1):
+            if index - 1 in sensing and index not in sensing:
+                key = f"vehicles.{index}.speed_law" if self.override(index).speed_law else "platoon.speed_law"
+                raise _rule(key, self.speed_law_of(index), f"acc or cacc behind vehicle {index - 1}, whose "
+                            f"{self.speed_law_of(index - 1)} law does not read its follower's gap: a paper vehicle's "
+                            "gap is regulated by the vehicle ahead, so behind an acc or cacc one it would drift")
+        if p.standstill_gap is None and sensing and p.resolved_standstill_gap < 0.0:
             raise _rule("platoon.time_gap", p.time_gap, f"at most platoon.d_star / platoon.speed = {p.d_star / p.speed:g} s "
                         f"under acc or cacc, or an explicit platoon.standstill_gap >= 0 (the default standstill gap "
                         f"d_star - time_gap * speed = {p.resolved_standstill_gap:g} m would be negative)")
