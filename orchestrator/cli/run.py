@@ -274,13 +274,15 @@ def analyze(
                 check_run_size(parsed)
         except ConfigError as error:
             fail(2, f"config {config}: {error}")
-    if parsed.path.kind != "circle":
-        fail(2, f"config {config}: path.kind = 'line': the analysis linearizes about the circular equilibrium; use a circle")
-    if all(parsed.speed_law_of(i) == "paper" for i in range(1, parsed.platoon.count + 1)):
+    paper = all(parsed.speed_law_of(i) == "paper" for i in range(1, parsed.platoon.count + 1))
+    if paper and parsed.path.kind == "circle":
         out.print(eigen_report(parsed), highlight=False, soft_wrap=True)
-    else:  # the linearization about the circle is the paper's law's; the speed chain below is every law's
-        out.print(f"eigenvalues: not for platoon.speed_law = {parsed.platoon.speed_law!r} (the linearization knows "
-                  "only the paper's law); its speed chain:", highlight=False, soft_wrap=True)
+    elif parsed.platoon.count < 2:
+        fail(2, f"config {config}: path.kind = 'line': the analysis linearizes about the circular equilibrium; use a circle")
+    else:  # the linearization about the circle is the paper's law's; the speed chain below is every law's, on any path
+        why = "path.kind = 'line' (it linearizes about the circle)" if paper else (
+            f"platoon.speed_law = {parsed.platoon.speed_law!r} (it knows only the paper's law)")
+        out.print(f"eigenvalues: not for {why}; the speed chain:", highlight=False, soft_wrap=True)
     if parsed.platoon.count > 1:
         out.print(chain_report(parsed), highlight=False, soft_wrap=True)
     if string_stability:
