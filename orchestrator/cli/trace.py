@@ -18,6 +18,20 @@ from orchestrator.cli.common import (Overwrite, err, fail, load_trace, note_reco
                                      summary_table)
 from orchestrator.support.output import check_folder
 
+def _trace_and_config(trace: Path):
+    """The trace read back, its config and the keys that were not finite; exit 2 naming what is wrong."""
+    from orchestrator.scenario.stored_config import stored_config
+
+    loaded = load_trace(trace)
+    if loaded.config is None:
+        fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
+    try:
+        config, non_finite = stored_config(loaded.config)
+    except ConfigError as error:
+        fail(2, f"trace {trace}: its stored config is not valid: {error}")
+    return loaded, config, non_finite
+
+
 def report(
     trace: Annotated[Path, typer.Argument(help="trace written by `platoon run`")],
     as_json: Annotated[bool, typer.Option("--json", help="print the summary as JSON")] = False,
@@ -26,18 +40,11 @@ def report(
 ) -> None:
     """Summarize a trace (path offset, gap, speed, max path error) and draw the paper's panels."""
     from orchestrator.analysis.metrics import report_json, summarize
-    from orchestrator.scenario.stored_config import stored_config
 
     if plots is not None:
         with output_rule():
             check_folder(plots, [trace], "--plots")
-    loaded = load_trace(trace)
-    if loaded.config is None:
-        fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
-    try:
-        config, non_finite = stored_config(loaded.config)
-    except ConfigError as error:
-        fail(2, f"trace {trace}: its stored config is not valid: {error}")
+    loaded, config, non_finite = _trace_and_config(trace)
     note = (err.print if as_json else out.print)
     if non_finite:
         note(f"warning: the run's config held values that were not finite (stored as null): {', '.join(non_finite)}; "
@@ -150,15 +157,8 @@ def stability(
 ) -> None:
     """String stability measured: l2 and l_inf gains of the speed and gap errors from vehicle to vehicle."""
     from orchestrator.analysis.error_gains import stability_report, window_of
-    from orchestrator.scenario.stored_config import stored_config
 
-    loaded = load_trace(trace)
-    if loaded.config is None:
-        fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
-    try:
-        config, _ = stored_config(loaded.config)
-    except ConfigError as error:
-        fail(2, f"trace {trace}: its stored config is not valid: {error}")
+    loaded, config, _ = _trace_and_config(trace)
     if not loaded.vehicles() or any(len(loaded.component(v)["t"]) < 2 for v in loaded.vehicles()):
         fail(2, f"trace {trace}: fewer than two recorded points, no gains to measure")
     base = load_trace(reference) if reference is not None else None
