@@ -62,6 +62,11 @@ STOP_REPEATS = 3  # a stop command is sent this many times: one lost message mus
 # s between the last stop command and the claim's release: Zenoh may deliver the token's removal ahead of
 # the data sent just before it, and the robot side then counts the last stop as arriving after its claim
 RELEASE_DELAY = 0.02
+# the numbers of each raw message a link records (``LiveRecord``), in order: known before the link opens, so
+# a live view declares these streams before its first viewer connects (orchestrator/observers/hil_link.py)
+POSE_FIELDS = ("received", "stamp", "seq", "command_seq", "x", "y", "heading")
+COMMAND_FIELDS = ("sent", "seq", "deadline", "left", "right")
+RECORD_FIELDS = {"pose": POSE_FIELDS, "command": COMMAND_FIELDS}
 
 
 @dataclass(frozen=True)
@@ -154,14 +159,8 @@ class LiveVehicle:
         return _drain(self._records)
 
     def link_statistics(self) -> dict[str, Any]:
-        values: dict[str, Any] = {"robot": self.settings.robot, "state": self.state.state.value,
-                                  "claim": claim_text(self.claim.claim), "command.sent": self._command_seq}
-        values.update(self.pose_counters.as_dict("pose"))
-        values.update(robot_side_counts(self.claim))
-        # every key from the first call on (0 with count 0 until measured): the trace's link stream keeps its fields
-        values.update(percentile_summary("round_trip", self.round_trips, empty=0.0))
-        values.update(percentile_summary("pose_age", self.pose_ages, empty=0.0))
-        return values
+        return _link_statistics(self.settings.robot, self.state.state.value, self.claim, self._command_seq,
+                                self.pose_counters, self.round_trips, self.pose_ages)
 
     # -- Zenoh callbacks (Zenoh's threads) -------------------------------------------------------
 
@@ -186,9 +185,8 @@ class LiveVehicle:
                     self.round_trips.append(received - self._sent[max(sent)])
                     for seq in sent:
                         del self._sent[seq]
-            self._records.append(LiveRecord("pose", {"received": received, "stamp": pose.stamp, "seq": pose.seq,
-                                                     "command_seq": pose.command_seq, "x": pose.x, "y": pose.y,
-                                                     "heading": pose.heading}))
+            self._records.append(LiveRecord("pose", dict(zip(POSE_FIELDS, (
+                received, pose.stamp, pose.seq, pose.command_seq, pose.x, pose.y, pose.heading)))))
         except MessageError as error:
             with self._lock:
                 self.pose_counters.drop(error)
@@ -402,8 +400,8 @@ class LiveVehicle:
             if len(self._sent) > 1000:  # a motion capture that does not echo command numbers: keep the newest
                 for seq in sorted(self._sent)[:-100]:
                     del self._sent[seq]
-        self._records.append(LiveRecord("command", {"sent": now, "seq": command.seq, "deadline": command.deadline,
-                                                    "left": left, "right": right}))
+        self._records.append(LiveRecord("command", dict(zip(COMMAND_FIELDS, (
+            now, command.seq, command.deadline, left, right)))))
 
     def _fail(self, t: float, reason: str) -> ComponentError:
         """Enter the error state, stop the robot, and return the error to raise."""
@@ -439,6 +437,22 @@ class LiveVehicle:
         self._publisher = None
         session, self._session = self._session, None
         session.close()
+
+
+def _link_statistics(robot: int, state: str, claim: HostClaim, command_seq: int, pose_counters: LinkCounters,
+                     round_trips: Sequence[float], pose_ages: Sequence[float]) -> dict[str, Any]:
+    values: dict[str, Any] = {"robot": robot, "state": state, "claim": claim_text(claim.claim), "command.sent": command_seq}
+    values.update(pose_counters.as_dict("pose"))
+    values.update(robot_side_counts(claim))
+    # every key from the first call on (0 with count 0 until measured): the trace's link stream keeps its fields
+    values.update(percentile_summary("round_trip", round_trips, empty=0.0))
+    values.update(percentile_summary("pose_age", pose_ages, empty=0.0))
+    return values
+
+
+def initial_link_statistics() -> dict[str, Any]:
+    """``LiveVehicle.link_statistics`` before the link opened: the keys of every later call, in order."""
+    return _link_statistics(0, LinkState.CONFIGURED.value, HostClaim(), 0, LinkCounters(), [], [])
 
 
 def robot_side_counts(claim: HostClaim) -> dict[str, Any]:

@@ -58,6 +58,7 @@ class Watched:
     the server's time announcements (ns)."""
 
     channels: dict[int, dict] = field(default_factory=dict)
+    advertised_first: list[dict] = field(default_factory=list)  # the channels of the server's first advertisement
     messages: list[tuple[str, int, bytes]] = field(default_factory=list)
     times: list[int] = field(default_factory=list)
     closed: bool = False
@@ -90,6 +91,8 @@ async def _watch(port: int, run: subprocess.Popen[str], interrupt_after: int | N
             if isinstance(data, str):
                 message = json.loads(data)
                 if message["op"] == "advertise":
+                    if not seen.channels:
+                        seen.advertised_first = list(message["channels"])
                     for channel in message["channels"]:
                         seen.channels[channel["id"]] = channel
                     await connection.send(json.dumps({"op": "subscribe", "subscriptions": [
@@ -250,13 +253,23 @@ def test_a_live_robots_run_shows_its_link_streams(tmp_path: Path) -> None:
     assert load(out).run["status"] == "completed"
     from mcap.reader import make_reader
 
-    for topic in ("/platoon/vehicle3/pose", "/platoon/vehicle3/command"):
+    streams = ("/platoon/vehicle3/pose", "/platoon/vehicle3/command", "/platoon/vehicle3/link")
+    # the robot's streams are advertised with the run's other channels, before the viewer got in (a channel
+    # advertised mid-run is one the SDK's server may refuse a connected viewer's subscription to)
+    assert set(streams) <= {channel["topic"] for channel in seen.advertised_first}
+    channels = trace_channels(out)
+    for channel in seen.channels.values():
+        if channel["topic"] in streams:  # the same schema as the trace's, though declared before any message
+            encoding, name, schema_encoding, schema = channels[channel["topic"]]
+            assert (channel["encoding"], channel["schemaName"], channel.get("schemaEncoding")) == (encoding, name, schema_encoding)
+            assert channel["schema"].encode() == schema
+    for topic in streams:
         received = [(stamp, payload) for t, stamp, payload in seen.messages if t == topic]
         with open(out, "rb") as stream:
             recorded = [(m.log_time, m.data) for _, _, m in make_reader(stream).iter_messages(topics=[topic], log_time_order=False)]
-        # a link's channel appears with its first message, mid-run: a viewer has every message from the
-        # moment its subscription arrived, the same bytes in the same order as the trace, to the end
-        assert received and received == recorded[len(recorded) - len(received):], topic
+        # a viewer there from the start (--live-wait) has every message of the robot's link, the same bytes
+        # in the same order as the trace
+        assert recorded and received == recorded, topic
 
 
 async def _connect_and_vanish(port: int, run: subprocess.Popen[str]) -> None:

@@ -161,7 +161,8 @@ RANGES = [
     ("m3pi.track", 0.0, "a finite number >= 0.001 m and <= 10 m", 0.2),
     ("m3pi.motor_time_constant", 1e-9, "a finite number >= 0.001 s and <= 100 s", 1e-3),
     ("disturbance[0].start", -1.0, "a finite number >= 0 s", 0.0),
-    ("disturbance[0].value", -1e7, "a finite number >= -1e+06 and <= 1e+06", -1e6),
+    ("disturbance[0].value", -1e7, 'a finite number >= -1e+06 and <= 1e+06 (m/s² for kind = "lateral_acceleration", '
+     'm/s for kind = "speed")', -1e6),
     ("vehicles.1.k_v", 0.0, "a finite number >= 0.001 1/s and <= 1000 1/s", 2.0),
     ("vehicles.1.initial.speed", 0.0, "a finite number >= 0.001 m/s and <= 1000 m/s", 1e-3),
     ("vehicles.1.initial.heading", -7.0, "a finite number >= -6.28319 rad and <= 6.28319 rad (radians: 90 degrees = 1.5708 rad)", 3.0),

@@ -107,6 +107,8 @@ def test_export_refuses_bad_input_in_one_line_and_replaces_only_a_package_unless
     pulses = platoon("export-ssp", str(REPO / "configs/paper/platoon_front_lateral.toml"), "--out",
                      str(tmp_path / "kick.ssp"))
     assert pulses.returncode == 0 and "note: disturbance pulses are not in the package" in pulses.stderr
+    # the pulse a user must drive by hand, with its unit (a number alone says neither m/s² nor m/s)
+    assert "+35 m/s² lateral acceleration on vehicle 1 at 35 s for 1 s" in pulses.stderr, pulses.stderr
 
 
 def test_libcosim_runs_the_exported_paper_platoon_to_our_jacobi_numbers(tmp_path: Path) -> None:

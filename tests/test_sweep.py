@@ -169,6 +169,12 @@ def test_failed_and_rejected_runs_are_recorded_and_the_others_run(tmp_path: Path
     for stop in ("0.5", "2.0"):
         rejected = by_point[(stop, "120.0")]
         assert rejected["status"] == "invalid" and "platoon.d_star = 120.0" in rejected["error"] and rejected["trace"] == ""
+    # the map says what became of each point: a value, "failed", "invalid" (a refused config is no blank cell)
+    figure = drawn_figure(out, "last.path_offset", tmp_path / "map.png", x="platoon.d_star", y="simulation.stop_time")
+    (axis,) = [a for a in figure.axes if a.get_title().startswith("platoon.law = ")]
+    texts = {(round(t.get_position()[1]), round(t.get_position()[0])): t.get_text() for t in axis.texts}
+    assert texts[(1, 0)] == "failed" and texts[(0, 1)] == texts[(1, 1)] == "invalid" and texts[(0, 0)] not in ("", "failed")
+    assert axis.get_xlabel() == "platoon.d_star [m]" and figure.axes[0].get_ylabel() == "simulation.stop_time [s]"
 
     # started again: everything is done, nothing is redone (the result files stay as they were)
     before = {p.name: p.read_bytes() for p in (out / "results").iterdir()}
@@ -336,7 +342,7 @@ def test_parquet_holds_the_rows_of_the_csv(tmp_path: Path, fmu_dir: Path) -> Non
 
 # --- the map ----------------------------------------------------------------------------------------
 
-def drawn_figure(out: Path, value: str, png: Path):
+def drawn_figure(out: Path, value: str, png: Path, x: str = "d_star/R", y: str = "platoon.count"):
     """The figure ``platoon sweep-plot OUT --value VALUE`` draws, kept open to read what it holds."""
     from orchestrator.sweep import plot
 
@@ -344,7 +350,7 @@ def drawn_figure(out: Path, value: str, png: Path):
     close = plot.plt.close
     plot.plt.close = kept.append  # draw_map closes its figure after saving it: keep it instead
     try:
-        plot.draw_map(out, value, "d_star/R", "platoon.count", "platoon.law", png)
+        plot.draw_map(out, value, x, y, "platoon.law", png)
     finally:
         plot.plt.close = close
     (figure,) = kept
@@ -455,3 +461,16 @@ def test_the_plan_is_streamed_memory_flat_in_the_number_of_points(tmp_path: Path
     assert [r.values for r in runs(small)] == [r.values for r in plan(small)]
     sine = [r.values["platoon.k_v"] for r in runs(small) if r.values["platoon.law"] == "sine"]
     assert sine == [r.values["platoon.k_v"] for r in runs(small) if r.values["platoon.law"] == "regular"]
+
+
+def test_a_map_axis_names_its_key_with_the_unit() -> None:
+    """sweep-plot's axes and panel titles are config keys: each with its unit, as configs state it."""
+    from orchestrator.scenario.config import key_unit
+    from orchestrator.sweep.plot import _axis_name
+
+    assert _axis_name("platoon.k_v") == "platoon.k_v [1/s]"
+    assert _axis_name("vehicles.3.k_v") == "vehicles.3.k_v [1/s]"
+    assert _axis_name("path.center[0]") == "path.center[0] [m]"
+    assert _axis_name("platoon.count") == "platoon.count"  # a count has no unit
+    assert _axis_name("d_star/R") == "d*/R"  # a ratio neither
+    assert key_unit("simulation.step") == "s" and key_unit("platoon.speed") == "m/s" and key_unit("no.such") is None

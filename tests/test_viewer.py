@@ -156,7 +156,7 @@ def test_figure_draws_both_laws_side_by_side(runs: dict[str, Path]) -> None:
     pair = [(load(runs[name]), config_from_mapping(load(runs[name]).config)) for name in ("regular", "paper")]
     figure = draw_pair(pair)
     axes = [a for a in figure.axes if a.get_label() != "<colorbar>"]
-    assert len(axes) == 8  # velocity, distance, path errors and X-Y, for each law
+    assert len(axes) == 8  # speed, gap, path errors and X-Y, for each law
     titles = " ".join(a.get_title() for a in axes)
     assert "regular law" in titles and "sine law" in titles
     # the titles name what the axes and the files (speed_errors, gap_errors) name
@@ -206,6 +206,22 @@ def test_a_figure_of_several_orbits_draws_the_last_one_over_faded_tracks(tmp_pat
         assert np.array_equal(last.get_xdata(), channel["x"][t >= t[-1] - orbit]) and last.get_alpha() is None
     labels = [text.get_text() for text in xy.get_legend().get_texts()]
     assert labels[:4] == ["vehicle 1", "vehicle 2", "vehicle 3", "vehicle 4"]
+
+
+def test_the_disturbance_band_says_what_struck_with_its_unit() -> None:
+    """A pulse's value means m/s² or m/s by its kind: the legend of the grey band says which."""
+    from matplotlib.figure import Figure
+
+    from orchestrator.analysis.plots import time_legend_handles
+
+    pulse = {"start": 30.0, "duration": 1.0}
+    one = config_from_mapping({"disturbance": [{"vehicle": 1, "kind": "lateral_acceleration", "value": 35.0, **pulse}]})
+    two = config_from_mapping({"disturbance": [{"vehicle": 1, "kind": "lateral_acceleration", "value": 35.0, **pulse},
+                                               {"vehicle": 2, "kind": "speed", "value": -5.0, **pulse}]})
+    axes = Figure().subplots()
+    assert time_legend_handles(axes, one, [])[-1].get_label() == "disturbance: +35 m/s² lateral acceleration on vehicle 1"
+    assert time_legend_handles(axes, two, [])[-1].get_label() == (
+        "disturbances: +35 m/s² lateral acceleration on vehicle 1; -5 m/s speed on vehicle 2")
 
 
 def test_figure_of_a_large_platoon_has_a_colour_bar_and_a_line_shows_deviations(runs: dict[str, Path]) -> None:

@@ -1,5 +1,5 @@
 """The paper's figure pair from two traces: each run a column (the paper: regular law left, sine law
-right), rows of velocity, distance and path errors over time, then the X-Y plane.
+right), rows of speed, gap and path errors over time, then the X-Y plane.
 
 The panels are orchestrator/analysis/plots.py's (one implementation each); this module only arranges them,
 and adds one legend per column

@@ -224,16 +224,16 @@ def eigen_report(config: Config) -> str:
         f"Linearization of {config.name}: {n} kinematic vehicle(s), {config.platoon.law} law, "
         f"R = {config.path.radius:g} m, d* = {config.platoon.d_star:g} m, V_c = {config.platoon.speed:g} m/s, k_v = {config.platoon.k_v:g} 1/s",
         f"residual |f(x_eq)| = {residual:.3e}  ({'an equilibrium' if residual < 1e-9 else 'NOT an equilibrium of this law'})",
-        "eigenvalues (ours, from the model code):",
+        "eigenvalues [1/s] (ours, from the model code):",
     ]
     for value in eigenvalues[order]:
         lines.append(f"  {value.real:+.6f} {value.imag:+.6f}j")
-    lines.append("eigenvalue families, ours in closed form (a family of k is tested by the rank of (A - lambda I)^k):")
+    lines.append("eigenvalue families [1/s], ours in closed form (a family of k is tested by the rank of (A - lambda I)^k):")
     ours = our_families(config, n)
     tests = [multiplicity_test(a, family.value, family.count) for family in ours]
     for family, test in zip(ours, tests):
         lines.append(f"  {family.label:52s} {_c(family.value)} x{family.count}: {test}")
-    lines.append("the paper's eq. 9, family by family:")
+    lines.append("the paper's eq. 9, family by family [1/s]:")
     chain = ", ".join(_c(f.value) for f in ours[4:])
     for family in paper_eigenvalues(config, n):
         verdict = multiplicity_test(a, family.value, family.count)

@@ -64,8 +64,9 @@ def draw_time_panel(axes: Axes, trace: Trace, config: Config, series: Series, yl
 def time_legend_handles(axes: Axes, config: Config, vehicles: list[str]) -> list[Any]:
     """The legend's entries: each vehicle's line (unless a colour bar names them) and the disturbance band."""
     handles = [] if many(vehicles) else list(axes.get_lines())
-    if config.disturbance:
-        handles.append(Patch(color="0.85", label="disturbance"))
+    if config.disturbance:  # what struck, with its unit (the band shows when)
+        label = "disturbance" + ("s" if len(config.disturbance) > 1 else "")
+        handles.append(Patch(color="0.85", label=f"{label}: " + "; ".join(d.what() for d in config.disturbance)))
     return handles
 
 

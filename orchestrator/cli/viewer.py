@@ -51,7 +51,7 @@ def figure_command(
     dpi: Annotated[int, typer.Option(min=30, max=1200, help="dots per inch of a PNG (the figure is 12.4 x 15 in)")] = 150,
     overwrite: Overwrite = False,
 ) -> None:
-    """Draw the paper's figure pair from two traces: velocity, distance and path errors, and X-Y, side by side."""
+    """Draw the paper's figure pair from two traces: speed, gap and path errors, and X-Y, side by side."""
     from orchestrator.cli.common import fail, load_trace, out as console, output_rule
     from orchestrator.support.output import IMAGE, check_target
 

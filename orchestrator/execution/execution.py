@@ -218,8 +218,10 @@ class Execution:
         self.trace = trace = TraceObserver(writer)
         observers.add(trace)  # first: every other observer sees a point once the trace holds it
         if self.live_view is not None:  # the view sees what the trace records; a live robot's run is paced already
+            from orchestrator.observers.hil_link import live_streams
+
             self.live_view.open(config, components, descriptions, sim.trace_every, self.scene_rate,
-                                on_wall_clock=bool(self.live), check=stop.check)
+                                on_wall_clock=bool(self.live), check=stop.check, streams=live_streams(sorted(self.live)))
             observers.add(self.live_view)
         self._write_start(observers, trace)
         if self.summarize:

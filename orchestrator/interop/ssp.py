@@ -193,8 +193,7 @@ def ssp_notes(config: Config) -> list[str]:
     """What the config asks for that an SSP 1.0 package cannot carry (the command prints these)."""
     notes = []
     if config.disturbance:
-        pulses = ", ".join(f"{d.kind} {d.value:g} on vehicle{d.vehicle} at {d.start:g} s for {d.duration:g} s"
-                           for d in config.disturbance)
+        pulses = ", ".join(d.text() for d in config.disturbance)
         notes.append(f"disturbance pulses are not in the package (SSP 1.0 has no input schedules): {pulses}; "
                      "drive the disturbance.* inputs in the importing tool")
     if config.simulation.master != "jacobi":

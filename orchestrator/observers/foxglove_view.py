@@ -131,15 +131,19 @@ class FoxgloveView(Observer):
 
     def open(self, config: "Config", components: Sequence[tuple[str, Sequence[str]]],
              descriptions: dict[str, dict[str, str]] | None, every: int, scene_rate: float, on_wall_clock: bool,
-             check: Callable[[], object] = lambda: None) -> None:
+             check: Callable[[], object] = lambda: None, streams: dict[str, Sequence[str]] | None = None) -> None:
         """Advertise the run's channels; with ``wait``, return once a viewer subscribed to the scene (``check()``
-        meanwhile, which raises to stop waiting, e.g. on Ctrl-C). ``on_wall_clock``: the run is paced already."""
+        meanwhile, which raises to stop waiting, e.g. on Ctrl-C). ``on_wall_clock``: the run is paced already.
+        ``streams``: the live robots' raw streams and their numbers (``hil_link.live_streams``), advertised now too."""
         self.rows = ComponentMessages(components, descriptions)
         self.components = [self._advertise(spec) for spec in self.rows.specs]
         self.foxglove = FoxgloveChannels(config, components, scene_rate)
         self.foxglove.bind(self._advertise)
         self.every = every
         self.streams: dict[str, tuple[LiveStream, int]] = {}
+        for stream, keys in (streams or {}).items():
+            link = LiveStream(stream, keys)
+            self.streams[stream] = (link, self._advertise(link.spec))
         if on_wall_clock:
             self.paced = False
         self._pacer: Pacer | None = None
@@ -153,7 +157,7 @@ class FoxgloveView(Observer):
         self._sent_at = -float("inf")
         # viewers reach the server only now (until then they wait in the port's backlog): the SDK's server
         # refuses a subscription to a channel advertised while a client is connected ("Unknown channel ID")
-        # now and then, so every channel of the run exists before the first viewer gets in
+        # now and then, so every channel of the run, a live robot's streams too, exists before the first viewer
         self.relay.start(self.server.port)
         # a viewer subscribes to its panels' channels one after the other: once it has the scene, the
         # run starts when no subscription came for SETTLE seconds, so the first frame reaches them all
@@ -224,7 +228,8 @@ class FoxgloveView(Observer):
         self.foxglove.log(lambda channel, stamp, data: self._send([(channel, data)], stamp), time, level, message)
 
     def link(self, stream: str, time: float, fields: dict[str, float]) -> None:
-        """A live robot link's raw message, on the channel the trace gives it."""
+        """A live robot link's raw message, on the channel the trace gives it (advertised by ``open``; a stream
+        it was not told of gets its channel now, which a viewer connected meanwhile may not get to see)."""
         entry = self.streams.get(stream)
         if entry is None:
             link = LiveStream(stream, list(fields))

@@ -13,6 +13,28 @@ from fmus.realtime import Pacer
 from orchestrator.observers.base import Observer
 
 LINK_STATS_INTERVAL = 1.0  # s of simulated (= wall) time between two link statistics messages
+LINK_STREAM = "link"  # the stream of a live component's link statistics: /platoon/<component>/link
+
+
+def link_numbers(statistics: dict[str, Any]) -> dict[str, float]:
+    """The numbers of a link's statistics (its robot, state and claim are text: the summary has them)."""
+    return {k: float(v) for k, v in statistics.items() if isinstance(v, (int, float))}
+
+
+def live_streams(names: Sequence[str]) -> dict[str, list[str]]:
+    """Every raw stream the live components ``names`` will record (``<component>/pose``, ``/command``,
+    ``/link``) and its numbers, in order, before any link opens: the live view advertises them before its
+    first viewer connects (a channel advertised mid-run is one a connected viewer may fail to subscribe to)."""
+    if not names:
+        return {}
+    from bridge.live import RECORD_FIELDS, initial_link_statistics  # Zenoh is imported only by live runs
+
+    link = list(link_numbers(initial_link_statistics()))
+    streams: dict[str, list[str]] = {}
+    for name in sorted(names):
+        streams.update({f"{name}/{stream}": list(fields) for stream, fields in RECORD_FIELDS.items()})
+        streams[f"{name}/{LINK_STREAM}"] = link
+    return streams
 
 
 class LinkReporter(Observer):
@@ -38,8 +60,7 @@ class LinkReporter(Observer):
         if t >= self._next_stats or final:
             self._next_stats = t + LINK_STATS_INTERVAL
             for component in self.live:
-                numbers = {k: float(v) for k, v in component.link_statistics().items() if isinstance(v, (int, float))}
-                outlet.link(f"{component.name}/link", t, numbers)
+                outlet.link(f"{component.name}/{LINK_STREAM}", t, link_numbers(component.link_statistics()))
 
     def close_links(self, t: float) -> dict[str, dict[str, Any]]:
         """Drain what is left, record the links' final statistics (the last ``/link`` message always

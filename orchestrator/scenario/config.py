@@ -54,13 +54,17 @@ SMALL = 1e-3
 SPEED_MAX = 1000.0  # m/s: three times the speed of sound, far above any vehicle
 GAIN_MAX = 1000.0  # 1/s: a speed loop faster than 1 ms is not a vehicle (and needs substeps below 1 ms)
 ANGLE_MAX = 2.0 * math.pi  # rad: one turn either way states every direction
-PULSE_MAX = 1e6  # m/s² or m/s: a disturbance beyond this only produces overflow
+PULSE_MAX = 1e6  # m/s² or m/s (PULSE_UNITS): a disturbance beyond this only produces overflow
 
 
 
 class Unit(str):
     """The unit of a numeric key, printed with its range in an error ("<= 6.28319 rad"): configs use SI
     units and radians, and a message says which."""
+
+
+class UnitNote(str):
+    """The unit of a numeric key that depends on another key, said once after its range in an error."""
 
 
 # Every float is finite (allow_inf_nan=False above); these add the range and the unit.
@@ -71,7 +75,9 @@ PositiveLength = Annotated[float, Field(ge=SMALL, le=LENGTH_MAX), Unit("m")]
 Speed = Annotated[float, Field(ge=SMALL, le=SPEED_MAX), Unit("m/s")]
 Gain = Annotated[float, Field(ge=SMALL, le=GAIN_MAX), Unit("1/s")]
 Angle = Annotated[float, Field(ge=-ANGLE_MAX, le=ANGLE_MAX), Unit("rad")]
-Pulse = Annotated[float, Field(ge=-PULSE_MAX, le=PULSE_MAX)]
+PULSE_UNITS = {"lateral_acceleration": "m/s²", "speed": "m/s"}  # a disturbance's value, by its kind
+Pulse = Annotated[float, Field(ge=-PULSE_MAX, le=PULSE_MAX),
+                  UnitNote(", ".join(f'{unit} for kind = "{kind}"' for kind, unit in PULSE_UNITS.items()))]
 
 # The run's name becomes a file name (runs/<name>-<time>.mcap): letters, digits (any script), and a
 # few punctuation marks, starting with a letter or digit, so it can hold no path separator, no "..",
@@ -237,10 +243,24 @@ class Disturbance(_Strict):
     kind: Literal["lateral_acceleration", "speed"]
     start: Annotated[float, Field(ge=0.0), Unit("s")]
     duration: Duration
-    value: Pulse
+    value: Pulse = Field(description="m/s² for kind lateral_acceleration, m/s for kind speed")
     # 0: a rectangular pulse of height value; > 0: value * sin(frequency (t - start)) over the same window,
     # a sinusoid to measure the speed chain's gain at one frequency (docs/model.md, section 12)
     frequency: Annotated[float, Field(ge=0.0, le=1e4), Unit("rad/s")] = 0.0
+
+    @property
+    def unit(self) -> str:
+        """The unit of ``value``: m/s² for a lateral acceleration, m/s for a speed."""
+        return PULSE_UNITS[self.kind]
+
+    def what(self) -> str:
+        """The pulse's size and target in words, with its unit: "+5 m/s speed on vehicle 2"."""
+        return f"{self.value:+g} {self.unit} {self.kind.replace('_', ' ')} on vehicle {self.vehicle}"
+
+    def text(self) -> str:
+        """The whole pulse in words: "+5 m/s speed on vehicle 2 at 30 s for 1 s"."""
+        shape = f", a sinusoid of {self.frequency:g} rad/s," if self.frequency > 0.0 else ""
+        return f"{self.what()}{shape} at {self.start:g} s for {self.duration:g} s"
 
 
 LinkTime = Annotated[float, Field(ge=0.0, le=3600.0), Unit("s")]
@@ -524,16 +544,26 @@ def _unwrap(annotation: Any) -> tuple[Any, list[Any]]:
             return annotation, metadata
 
 
+def key_unit(key: str) -> str | None:
+    """The unit of a numeric config key (``platoon.k_v`` -> ``1/s``, ``path.center[0]`` -> ``m``), for axis
+    labels and messages; None for a key without one (a count, a factor, a word) or no such key."""
+    parts = key.replace("[", ".").replace("]", "").split(".")
+    loc = tuple(int(part) if part.isdigit() else part for part in parts if part)
+    _, metadata = _field_at(loc)
+    return next((str(item) for item in metadata if isinstance(item, (Unit, UnitNote))), None)
+
+
 def _range_text(field: tuple[Any, list[Any]]) -> str:
     """"a finite number >= 0.001 and <= 1000", "an integer >= 1": the declared range of a numeric key."""
     annotation, metadata = field
     bounds = [f"{word} {_number(getattr(item, name))}" for item in metadata for name, word in _BOUND_WORDS
               if isinstance(item, getattr(annotated_types, name.capitalize())) and hasattr(item, name)]
     unit = next((f" {item}" for item in metadata if isinstance(item, Unit)), "")
+    note = next((f" ({item})" for item in metadata if isinstance(item, UnitNote)), "")
     bounds = [bound + unit for bound in bounds]
     kind = "an integer" if annotation is int else "a finite number"
     text = " and ".join([f"{kind} {bounds[0]}" if bounds else kind, *bounds[1:]])
-    return text + (" (radians: 90 degrees = 1.5708 rad)" if unit == " rad" else "")
+    return text + (" (radians: 90 degrees = 1.5708 rad)" if unit == " rad" else note)
 
 
 def _number(value: float | int) -> str:

@@ -27,6 +27,7 @@ from matplotlib.colors import LogNorm  # noqa: E402
 
 from orchestrator.support.output import IMAGE, check_target, replacing  # noqa: E402
 from orchestrator.analysis.metrics import SUMMARY_UNITS  # noqa: E402
+from orchestrator.scenario.config import key_unit  # noqa: E402
 
 RATIO = "d_star/R"
 
@@ -69,22 +70,47 @@ def _lookup(record: dict[str, Any], key: str) -> Any:
     return node
 
 
+def _shared(records: list[dict[str, Any]], keys: list[str]) -> dict[str, Any]:
+    """The keys of ``keys`` that every run with a config has at one value (not varied), and that value."""
+    shared = {}
+    for key in keys:
+        found = {json.dumps(_lookup(r, key)) for r in records if r.get("config") is not None}
+        if len(found) == 1:
+            shared[key] = json.loads(found.pop())
+    return shared
+
+
 def _label(value: Any) -> str:
     return f"{value:.3g}" if isinstance(value, float) else str(value)
+
+
+def _axis_name(key: str) -> str:
+    """An axis's config key with its unit: ``platoon.k_v [1/s]`` (d*/R and counts have none)."""
+    if key == RATIO:
+        return "d*/R"
+    unit = key_unit(key)
+    return f"{key} [{unit}]" if unit else key
 
 
 def draw_map(folder: Path, value: str, x: str, y: str, panel: str, png: Path, overwrite: bool = False) -> Path:
     everything = _records(folder)
     inputs = [folder / "results.csv", folder / "results.parquet", *(folder / "results" / f"{r['id']}.json" for r in everything)]
     check_target(png, overwrite, inputs, kind=IMAGE)  # before drawing: a refused --out costs nothing
-    records = [r for r in everything if r["status"] != "invalid"]
+    records = everything  # an invalid point (its config refused) is a cell too: it says "invalid", never blank
     columns = {name for r in records for name in r["metrics"]}
     if value not in columns and any(r["status"] == "completed" for r in records):
         raise PlotError(f"--value {value}: not a result column (e.g. {', '.join(sorted(columns)[:4])}, last.path_offset)")
     cells: dict[tuple[Any, Any, Any], float] = {}
+    invalid: set[tuple[Any, Any, Any]] = set()
     axes_options = {"--panel": panel, "--y": y, "--x": x}
+    shared = _shared(records, list(axes_options.values()))
     for record in records:
         where = tuple(_lookup(record, key) for key in axes_options.values())
+        if record["status"] == "invalid":  # a refused config has no resolved keys: the runs' common value stands
+            where = tuple(shared.get(key) if found is None else found for key, found in zip(axes_options.values(), where))
+            if None in where:
+                continue
+            invalid.add(where)
         for (option, key), found in zip(axes_options.items(), where):
             if found is None:
                 raise PlotError(f"{option} {key}: no such config key in run {record['id']}")
@@ -115,15 +141,17 @@ def draw_map(folder: Path, value: str, x: str, y: str, panel: str, png: Path, ov
             for column in range(len(xs)):
                 v = grid[row, column]
                 missing = (name, ys[row], xs[column]) not in cells
-                text = "" if missing else ("failed" if math.isnan(v) else f"{v:.2g}")
+                cell = (name, ys[row], xs[column])
+                text = "" if missing else "invalid" if cell in invalid else "failed" if math.isnan(v) else f"{v:.2g}"
                 bright = not math.isnan(v) and norm(max(abs(v), norm.vmin)) > 0.6
                 axis.text(column, row, text, ha="center", va="center", fontsize=7, color="black" if bright else "white")
         axis.set_facecolor("0.35")
         axis.set_xticks(range(len(xs)), [_label(v) for v in xs])
         axis.set_yticks(range(len(ys)), [_label(v) for v in ys])
-        axis.set_xlabel("d*/R" if x == RATIO else x)
-        axis.set_title(f"{panel} = {name}")
-    axes[0][0].set_ylabel(y)
+        axis.set_xlabel(_axis_name(x))
+        panel_unit = key_unit(panel) if panel != RATIO else None
+        axis.set_title(f"{panel} = {name}" + (f" {panel_unit}" if panel_unit else ""))
+    axes[0][0].set_ylabel(_axis_name(y))
     unit = SUMMARY_UNITS.get(value.rsplit(".", 1)[-1])  # the report's quantities have units; other columns none
     unit_text = f" [{unit}]" if unit else ""
     title = f"{value}{unit_text}: signed value in each cell, its magnitude in colour"
