@@ -98,9 +98,11 @@ def draw_stability_map(folder: Path, png: Path, overwrite: bool = False, resolut
             unstable = not p["gain"] <= 1.0
             axis.scatter(p[DELAY], p[LOSS], s=70, c="#d62728" if unstable else "#2ca02c", edgecolors="black", zorder=3)
             label = "failed" if math.isnan(p["gain"]) else f"{p['gain']:.3f}"
-            axis.annotate(label, (p[DELAY], p[LOSS]), textcoords="offset points", xytext=(0, -12), ha="center", fontsize=6)
+            axis.annotate(label, (p[DELAY], p[LOSS]), textcoords="offset points", xytext=(0, 7), ha="center", fontsize=6)
         axis.set_title(f"speed_law = {law}")
-        axis.margins(0.06)
+        pad_x, pad_y = 0.06 * (delays[-1] or 1.0), 0.08 * (losses[-1] or 1.0)
+        axis.set_xlim(-pad_x, delays[-1] + pad_x)
+        axis.set_ylim(-pad_y, losses[-1] + pad_y)
         axis.set_xlabel("links.delay [s]")
     axes[0][0].set_ylabel("links.loss")
     figure.suptitle("String stability: analytic peak |G(jw)| (colour; solid line = 1, dashed = 1 at the probes)\n"
