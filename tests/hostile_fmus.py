@@ -205,9 +205,13 @@ def init_read_refused(reason: str) -> Check:
 # --- the cases ----------------------------------------------------------------------------------------
 
 
+# Real parameters declared with min = 0 that may be 0 (the others must be > 0): acc's standstill gap.
+MAY_BE_ZERO = ("standstill_gap",)
+
+
 def invalid_parameter_cases() -> list[Case]:
     """Every parameter constraint of both FMUs, broken one at a time (item 12 and its siblings):
-    each Real parameter declared with min = 0 must be > 0, each String is one of a list, the circle's
+    each Real parameter declared with min = 0 must be > 0 (``MAY_BE_ZERO``: >= 0), each String is one of a list, the circle's
     direction is 1 or -1, and the target's d* is a chord of its circle (d* <= 2 R)."""
     from fmus.slaves.Vehicle import Vehicle
     from fmus.slaves.VirtualTarget import VirtualTarget
@@ -217,8 +221,10 @@ def invalid_parameter_cases() -> list[Case]:
         for info in cls.variables:
             if info.causality != "parameter":
                 continue
-            if info.type == "Real" and info.min == 0.0:
-                bad: list[Any] = [0.0, -1.0] if info.name == "d_star" else [0.0]
+            if info.type == "Real" and info.name in MAY_BE_ZERO:
+                bad: list[Any] = [-1.0]
+            elif info.type == "Real" and info.min == 0.0:
+                bad = [0.0, -1.0] if info.name == "d_star" else [0.0]
                 if info.name == "path.radius":
                     bad = [0.0]
             elif info.type == "String":

@@ -156,7 +156,7 @@ def _set(slave, variable, value) -> None:
     setter([variable.valueReference], [value])
 
 
-OTHER_CHOICES = {"law": "regular", "dynamics": "m3pi", "coupling": "hold", "path.kind": "line"}
+OTHER_CHOICES = {"law": "regular", "dynamics": "m3pi", "coupling": "hold", "path.kind": "line", "speed_law": "acc"}
 
 
 def _other_value(variable):

@@ -20,6 +20,7 @@ from fmpy import simulate_fmu
 
 from fmus.model.factory import target_stepper, vehicle_stepper
 from fmus.model.platoon import PlatoonSystem
+from fmus.slaves.Vehicle import Vehicle
 from orchestrator.analysis.linear import eigen_report
 from orchestrator.execution.run import run_scenario
 from orchestrator.scenario.config import ConfigError, config_from_mapping, load_config
@@ -114,8 +115,9 @@ def _measured_gains(law: str, keys: dict, amplitude: float) -> np.ndarray:
     config = config_from_mapping({"name": "g", "path": {"kind": "line"}, "platoon": platoon,
                                   "simulation": {"step": STEP, "max_substep": STEP, "stop_time": SETTLE + WINDOW}})
     specs = build_scenario(config).components
+    defaults = {info.name: info.start for info in Vehicle.variables if info.causality == "parameter"}
     system = PlatoonSystem(target_stepper(specs[0].parameters, 0.0),
-                           [vehicle_stepper(spec.parameters, 0.0) for spec in specs[1:]])
+                           [vehicle_stepper({**defaults, **spec.parameters}, 0.0) for spec in specs[1:]])
     pushed = 2 if law == "paper" else 0
     y = system.initial_state()
     start, steps = round(SETTLE / STEP), round((SETTLE + WINDOW) / STEP)
@@ -264,11 +266,14 @@ def test_bad_speed_law_keys_are_one_line_errors_naming_the_key(platoon, message)
     assert str(error.value) == message
 
 
-def test_the_paper_law_ignores_the_time_gap_keys():
-    """A time gap that would make acc's default standstill gap negative is no error under the paper's law
-    (nor is it read)."""
-    config = config_from_mapping({"name": "ok", "platoon": {"time_gap": 10.0}})
-    assert build_scenario(config).components[1].parameters["speed_law"] == "paper"
+@pytest.mark.parametrize("platoon", [{"time_gap": 10.0}, {"d_star": 25.0}], ids=["long-time-gap", "short-d-star"])
+def test_the_paper_law_ignores_the_time_gap_keys(platoon, tmp_path):
+    """A time gap or a d* that would make acc's default standstill gap negative is no error under the
+    paper's law: its vehicles get none of the acc keys, and the run goes."""
+    config = config_from_mapping({"name": "ok", "platoon": platoon, "simulation": {"stop_time": 1.0}})
+    parameters = build_scenario(config).components[1].parameters
+    assert parameters["speed_law"] == "paper" and "standstill_gap" not in parameters
+    assert run_scenario(config, "", tmp_path / "run.mcap", foxglove=False).status == "completed"
 
 
 def test_the_linearization_refuses_laws_it_does_not_know():

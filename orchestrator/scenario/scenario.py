@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from fmus.model.guidance import SENSING_LAWS
 from fmus.model.paths import make_path
 
 from orchestrator.scenario.config import Config, step_count  # noqa: F401  (step_count re-exported: the engines import it from here)
@@ -100,6 +101,18 @@ def initial_states(config: Config) -> list[tuple[float, float, float, float]]:
     return states
 
 
+def speed_law_parameters(config: Config, index: int) -> dict[str, Any]:
+    """Vehicle ``index``'s speed law, with its time gap, standstill gap and gain under acc and cacc only:
+    the paper's law reads none of them, and keeps the FMU's defaults (a d* below h V_c, whose default
+    standstill gap d* - h V_c would be negative, then means nothing)."""
+    law = config.speed_law_of(index)
+    if law not in SENSING_LAWS:
+        return {"speed_law": law}
+    p = config.platoon
+    return {"speed_law": law, "time_gap": p.time_gap, "standstill_gap": p.resolved_standstill_gap,
+            "cacc_gain": p.cacc_gain}
+
+
 def build_scenario(config: Config) -> Scenario:
     sim, platoon, path = config.simulation, config.platoon, config.path
     common = {"d_star": platoon.d_star, "coupling": sim.coupling, "max_substep": sim.max_substep}
@@ -139,10 +152,7 @@ def build_scenario(config: Config) -> Scenario:
                     "m3pi.track": config.m3pi.track,
                     "m3pi.wheel_speed_max": config.m3pi.wheel_speed_max,
                     "m3pi.motor_time_constant": config.m3pi.motor_time_constant,
-                    "speed_law": config.speed_law_of(index),
-                    "time_gap": platoon.time_gap,
-                    "standstill_gap": platoon.resolved_standstill_gap,
-                    "cacc_gain": platoon.cacc_gain,
+                    **speed_law_parameters(config, index),
                     **common,
                 },
             )
