@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from orchestrator.analysis.linear import jacobian, multiplicity_test, our_families, paper_eigenvalues, speed_chain_gain
+from orchestrator.analysis.linear import jacobian, multiplicity_test, our_families, paper_eigenvalues
+from orchestrator.analysis.string_stability import chain_of, peak_gain
 from tests.conftest import make_config
 
 
@@ -62,7 +63,8 @@ def test_speed_chain_peak_gain_is_the_peak_of_the_link_transfer_function_and_abo
     k = k_v * p.speed * math.sqrt(1.0 - (p.d_star / (2.0 * config.path.radius)) ** 2) / p.d_star
     w = np.linspace(1e-4, 5.0, 200001)
     sweep = np.abs((k_v * 1j * w + k) / (-(w**2) + k_v * 1j * w + k))
-    gain, frequency = speed_chain_gain(config)
+    peak = peak_gain(chain_of(config, ideal=True))
+    gain, frequency = peak.gain, peak.frequency
     assert gain == pytest.approx(sweep.max(), rel=1e-9)
     assert frequency == pytest.approx(w[sweep.argmax()], abs=1e-3)
     assert gain > 1.0  # never string stable, only less so as k_v grows
@@ -70,10 +72,11 @@ def test_speed_chain_peak_gain_is_the_peak_of_the_link_transfer_function_and_abo
 
 def test_a_hundred_vehicle_speed_chain_amplifies_by_trillions_at_the_papers_k_v():
     """docs/model.md, section 10: 1.3416 per link at R = 2000 m, 4.3e12 over 99 links; k_v = 2: 3.1e4."""
-    gain, frequency = speed_chain_gain(make_config(path={"radius": 2000.0}))
+    peak = peak_gain(chain_of(make_config(path={"radius": 2000.0}), ideal=True))
+    gain, frequency = peak.gain, peak.frequency
     assert gain == pytest.approx(1.3416, abs=1e-4) and frequency == pytest.approx(0.333, abs=1e-3)
     assert gain**99 > 1e12
-    assert speed_chain_gain(make_config(path={"radius": 2000.0}, platoon={"k_v": 2.0}))[0] ** 99 < 1e5
+    assert peak_gain(chain_of(make_config(path={"radius": 2000.0}, platoon={"k_v": 2.0}), ideal=True)).gain ** 99 < 1e5
 
 
 @pytest.mark.parametrize("count", [30, 100])

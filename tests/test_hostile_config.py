@@ -74,7 +74,7 @@ FLOAT_KEYS = [
     "platoon.time_gap", "platoon.standstill_gap", "platoon.cacc_gain",
     "initial.radial_offset", "initial.heading_error", "initial.speed_factor",
     "m3pi.track", "m3pi.wheel_speed_max", "m3pi.motor_time_constant",
-    "disturbance[0].start", "disturbance[0].duration", "disturbance[0].value",
+    "disturbance[0].start", "disturbance[0].duration", "disturbance[0].value", "disturbance[0].frequency",
     "vehicles.1.k_v", "vehicles.1.initial.x", "vehicles.1.initial.y", "vehicles.1.initial.heading",
     "vehicles.1.initial.speed",
     "hil.pose_timeout", "hil.connect_timeout", "hil.command_validity", "hil.max_pose_age",

@@ -176,26 +176,6 @@ def our_families(config: Config, count: int) -> list[Family]:
     return families
 
 
-def speed_chain_gain(config: Config) -> tuple[float, float]:
-    """Peak over w of |G(jw)| for one link of the speed chain, and the w where it peaks.
-
-    Holding all but V_i and d_(i+1), d_(i+1)' = alpha (V_i - V_(i+1)) and V_i' = k_v (V_(i+1) -
-    V_c (d_(i+1) - d*)/d* - V_i), so vehicle i follows vehicle i+1 through G(s) = (k_v s + k)/(s^2 +
-    k_v s + k) with k = k_v V_c alpha/d* (the loop of the speed-chain eigenvalue family). |G(jw)| > 1
-    for every w^2 < 2k, whatever k_v: the chain is never string stable, and over the n-1 links of a
-    long platoon a fluctuation near the peak grows like peak^(n-1). The eigenvalues do not show this
-    (they do not depend on n), which is why it is reported next to them (docs/model.md, section 10).
-    Setting d/dw^2 of |G|^2 to zero gives the peak at w^2 = (k/k_v^2)(sqrt(k^2 + 2 k_v^2 k) - k).
-    """
-    require_paper_law(config)
-    p = config.platoon
-    alpha = math.sqrt(1.0 - (p.d_star / (2.0 * config.path.radius)) ** 2) if config.path.kind == "circle" else 1.0
-    k = p.k_v * p.speed * alpha / p.d_star
-    w2 = (k / p.k_v**2) * (math.sqrt(k * k + 2.0 * p.k_v**2 * k) - k)
-    gain = math.sqrt((p.k_v**2 * w2 + k * k) / ((k - w2) ** 2 + p.k_v**2 * w2))
-    return gain, math.sqrt(w2)
-
-
 # Real parts within this of zero are zero to the accuracy of the finite-difference Jacobian.
 _ZERO_REAL = 1e-7
 
@@ -266,71 +246,10 @@ def eigen_report(config: Config) -> str:
         lines.append("  (the paper gives beta only for k_v = 0.5, so its last two families are not evaluated here)")
     lines.append(stability_verdict(eigenvalues, ours, tests))
     if n > 1:
-        gain, frequency = speed_chain_gain(config)
-        lines.append(
-            f"speed chain, vehicle i+1 to vehicle i: peak gain {gain:.4f} at {frequency:.3f} rad/s (above 1 for any k_v: "
-            f"not string stable); over this platoon's {n - 1} link(s) up to {gain ** (n - 1):.3g}"
-        )
-    if n > 1:
         own, _ = jacobian(config, speed_chain_gap="own")
         worst = np.linalg.eigvals(own).real.max()
         lines.append(
             f"with the paper's printed V_cmd,i = V_(i+1) d*/d_i instead of d_(i+1): largest real part {worst:+.6f} "
             f"({stability_word(worst)})"
         )
-    return "\n".join(lines)
-
-
-def peak_ratios(peaks: list[float]) -> list[float]:
-    return [b / a if a > 0 else math.inf for a, b in zip(peaks, peaks[1:])]
-
-
-def string_stability_report(config: Config, config_text: str, progress: Progress | None = None) -> str:
-    """Peak path, gap and speed errors per vehicle after the first disturbance, and their ratios.
-
-    ``progress(label, steps)``: a context manager giving each of the two runs its tick (the caller's
-    bar or progress lines), None for none.
-    """
-    from orchestrator.analysis.metrics import path_errors
-    from orchestrator.execution.run import run_scenario
-    from orchestrator.scenario.scenario import step_count
-    from orchestrator.support.scratch import ScratchDir
-    from orchestrator.trace import load
-
-    if not config.disturbance:
-        return "string stability: the config has no [[disturbance]]; add one to measure peak-error ratios"
-    start = min(d.start for d in config.disturbance)
-    steps = step_count(config.simulation.stop_time, config.simulation.step)
-    shown = progress or (lambda label, total: nullcontext())
-    with ScratchDir("analyze") as scratch, shown("disturbed run (1/2)", steps) as tick:  # scratch: removed by the next run if this one is killed
-        result = run_scenario(config, config_text, scratch / "analysis.mcap", tick=tick)
-        if result.status != "completed":
-            return f"string stability: the run {result.status}: {result.error}"
-        trace = load(result.trace)
-    reference_config = config.model_copy(update={"disturbance": []})
-    with ScratchDir("analyze") as scratch, shown("undisturbed run (2/2)", steps) as tick:
-        reference = load(run_scenario(reference_config, config_text, scratch / "reference.mcap", tick=tick).trace)
-    lines = [f"string stability (peak deviation from the undisturbed run after t = {start:g} s):",
-             f"  {'vehicle':10s} {'path [m]':>12s} {'gap [m]':>12s} {'speed [m/s]':>12s}"]
-    peaks = {"path": [], "gap": [], "speed": []}
-    for name in trace.vehicles():
-        a, b = trace.component(name), reference.component(name)
-        window = a["t"] >= start
-        path = np.abs(path_errors(config, a["x"], a["y"]) - path_errors(config, b["x"], b["y"]))[window].max()
-        gap = np.abs(a["gap"] - b["gap"])[window].max()
-        speed = np.abs(a["speed"] - b["speed"])[window].max()
-        peaks["path"].append(path)
-        peaks["gap"].append(gap)
-        peaks["speed"].append(speed)
-        lines.append(f"  {name:10s} {path:12.4e} {gap:12.4e} {speed:12.4e}")
-    first = min(config.disturbance, key=lambda d: d.start).vehicle
-    # Lateral disturbances propagate backward (to the vehicles behind), speed ones forward.
-    behind = slice(first - 1, None)
-    for key in ("path", "gap"):
-        ratios = ", ".join(f"{r:.3f}" for r in peak_ratios(peaks[key][behind]))
-        lines.append(f"  {key} peak ratios behind vehicle {first}, vehicle i+1 / i: {ratios or 'none (last vehicle)'}")
-    ahead = peaks["speed"][:first][::-1]
-    ratios = ", ".join(f"{r:.3f}" for r in peak_ratios(ahead))
-    lines.append(f"  speed peak ratios ahead of vehicle {first}, vehicle i-1 / i: {ratios or 'none (first vehicle)'}")
-    lines.append("  (a ratio below 1 everywhere means the disturbance shrinks as it travels: string stable for this case)")
     return "\n".join(lines)

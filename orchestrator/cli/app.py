@@ -42,11 +42,11 @@ def _options(
 
 
 # the order `platoon --help` lists them in: a run's life first, then the robot, campaigns, other tools, views
-for command in (run.build, run.run, trace.report, trace.export, run.analyze):
+for command in (run.build, run.run, trace.report, trace.export, run.analyze, trace.stability):
     app.command()(command)
 hil.register(app)  # m3pi-emulator, m3pi-serial
 mocap.register(app)  # mocap: rigid bodies as robot poses
-sweep.register(app)  # sweep, sweep-plot
+sweep.register(app)  # sweep, sweep-plot, stability-map
 ssp.register(app)  # export-ssp: the platoon for other tools
 viewer.register(app)  # layout, figure: what users look at
 trace.register_group(app)  # trace recover

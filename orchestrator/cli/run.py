@@ -91,7 +91,9 @@ def analyze(
     allow_long: AllowLong = False,
 ) -> None:
     """Linearize about the circular equilibrium; eigenvalues next to the paper's eq. 9; string stability."""
-    from orchestrator.analysis.linear import eigen_report, string_stability_report
+    from orchestrator.analysis.error_gains import string_stability_report
+    from orchestrator.analysis.linear import eigen_report
+    from orchestrator.analysis.string_stability import chain_report
     from orchestrator.scenario.limits import check_analyze_size, check_run_size
 
     parsed, text = load_config(config, overrides)
@@ -102,11 +104,17 @@ def analyze(
                 check_run_size(parsed)
         except ConfigError as error:
             fail(2, f"config {config}: {error}")
-    try:
-        report_text = eigen_report(parsed)
-    except ValueError as error:
-        fail(2, f"config {config}: {error}")
-    out.print(report_text, highlight=False, soft_wrap=True)
+    paper = all(parsed.speed_law_of(i) == "paper" for i in range(1, parsed.platoon.count + 1))
+    if paper and parsed.path.kind == "circle":
+        out.print(eigen_report(parsed), highlight=False, soft_wrap=True)
+    elif parsed.platoon.count < 2:
+        fail(2, f"config {config}: path.kind = 'line': the analysis linearizes about the circular equilibrium; use a circle")
+    else:  # the linearization about the circle is the paper's law's; the speed chain below is every law's, on any path
+        why = "path.kind = 'line' (it linearizes about the circle)" if paper else (
+            f"platoon.speed_law = {parsed.platoon.speed_law!r} (it knows only the paper's law)")
+        out.print(f"eigenvalues: not for {why}; the speed chain:", highlight=False, soft_wrap=True)
+    if parsed.platoon.count > 1:
+        out.print(chain_report(parsed), highlight=False, soft_wrap=True)
     if string_stability:
         from orchestrator.observers.progress import progress
 

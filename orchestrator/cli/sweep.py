@@ -158,7 +158,26 @@ def sweep_plot(
     out.print(f"wrote {path}", highlight=False, soft_wrap=True)
 
 
+def stability_map(
+    out_dir: Annotated[Path, typer.Argument(help="the output folder of a string-stability sweep (configs/sweeps/string_stability.toml)")],
+    png: Annotated[Optional[Path], typer.Option("--out", help="PNG file (default DIR/stability.png)")] = None,
+    overwrite: Overwrite = False,
+) -> None:
+    """Map a string-stability sweep: per law, the analytic boundary over the measured gains (delay x loss)."""
+    from orchestrator.cli.common import fail, out, output_rule
+    from orchestrator.sweep.plot import PlotError
+    from orchestrator.sweep.stability_map import draw_stability_map
+
+    try:
+        with output_rule():
+            path = draw_stability_map(out_dir, png or out_dir / "stability.png", overwrite)
+    except (PlotError, ValueError) as error:
+        fail(2, str(error))
+    out.print(f"wrote {path}", highlight=False, soft_wrap=True)
+
+
 def register(app: typer.Typer) -> None:
-    """Add ``sweep`` and ``sweep-plot`` to ``platoon``."""
+    """Add ``sweep``, ``sweep-plot`` and ``stability-map`` to ``platoon``."""
     app.command("sweep")(sweep)
     app.command("sweep-plot")(sweep_plot)
+    app.command("stability-map")(stability_map)

@@ -18,6 +18,20 @@ from orchestrator.cli.common import (Overwrite, err, fail, load_trace, note_reco
                                      summary_table)
 from orchestrator.support.output import check_folder
 
+def _trace_and_config(trace: Path):
+    """The trace read back, its config and the keys that were not finite; exit 2 naming what is wrong."""
+    from orchestrator.scenario.stored_config import stored_config
+
+    loaded = load_trace(trace)
+    if loaded.config is None:
+        fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
+    try:
+        config, non_finite = stored_config(loaded.config)
+    except ConfigError as error:
+        fail(2, f"trace {trace}: its stored config is not valid: {error}")
+    return loaded, config, non_finite
+
+
 def report(
     trace: Annotated[Path, typer.Argument(help="trace written by `platoon run`")],
     as_json: Annotated[bool, typer.Option("--json", help="print the summary as JSON")] = False,
@@ -26,18 +40,11 @@ def report(
 ) -> None:
     """Summarize a trace (path offset, gap, speed, max path error) and draw the paper's panels."""
     from orchestrator.analysis.metrics import report_json, summarize
-    from orchestrator.scenario.stored_config import stored_config
 
     if plots is not None:
         with output_rule():
             check_folder(plots, [trace], "--plots")
-    loaded = load_trace(trace)
-    if loaded.config is None:
-        fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
-    try:
-        config, non_finite = stored_config(loaded.config)
-    except ConfigError as error:
-        fail(2, f"trace {trace}: its stored config is not valid: {error}")
+    loaded, config, non_finite = _trace_and_config(trace)
     note = (err.print if as_json else out.print)
     if non_finite:
         note(f"warning: the run's config held values that were not finite (stored as null): {', '.join(non_finite)}; "
@@ -139,3 +146,26 @@ def register_group(app: typer.Typer) -> None:
     """``platoon trace ...``: the commands that work on trace files."""
     trace_app.command("recover")(trace_recover)
     app.add_typer(trace_app, name="trace")
+
+
+def stability(
+    trace: Annotated[Path, typer.Argument(help="trace of a disturbance run (a [[disturbance]] in its config)")],
+    reference: Annotated[Optional[Path], typer.Option("--reference", help="the same run without the disturbance: "
+                                                      "errors against it (default: against the steady state)")] = None,
+    start: Annotated[Optional[float], typer.Option("--from", help="window start, s (default: the first disturbance)")] = None,
+    end: Annotated[Optional[float], typer.Option("--to", help="window end, s (default: the trace's end)")] = None,
+) -> None:
+    """String stability measured: l2 and l_inf gains of the speed and gap errors from vehicle to vehicle."""
+    from orchestrator.analysis.error_gains import stability_report, window_of
+
+    loaded, config, _ = _trace_and_config(trace)
+    if not loaded.vehicles() or any(len(loaded.component(v)["t"]) < 2 for v in loaded.vehicles()):
+        fail(2, f"trace {trace}: fewer than two recorded points, no gains to measure")
+    base = load_trace(reference) if reference is not None else None
+    if base is not None and base.vehicles() != loaded.vehicles():
+        fail(2, f"reference {reference}: its vehicles ({', '.join(base.vehicles())}) are not the trace's")
+    try:
+        text = stability_report(loaded, config, base, window_of(config, loaded, start, end))
+    except ValueError as error:
+        fail(2, f"trace {trace}: {error}")
+    out.print(text, highlight=False, soft_wrap=True)

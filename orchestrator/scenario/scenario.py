@@ -6,6 +6,8 @@ vehicle starts, how they are connected and which inputs follow a schedule.
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,10 +29,11 @@ _TIME_TOLERANCE = 1e-9
 
 @dataclass(frozen=True)
 class ScheduledInput:
-    """A rectangular pulse on one input: ``value`` on [start, start + duration), zero elsewhere.
+    """A rectangular pulse on one input: ``value`` on [start, start + duration), zero elsewhere; with a
+    ``frequency`` w > 0 (rad/s), ``value * sin(w (t - start))`` on that window instead.
 
     Sampled at communication points and held over the step, in the co-simulation and in the
-    monolithic reference alike.
+    monolithic reference alike (the native core computes the same ``sin``, C's, which Python's calls).
     """
 
     component: str
@@ -38,9 +41,12 @@ class ScheduledInput:
     start: float
     duration: float
     value: float
+    frequency: float = 0.0
 
     def value_at(self, t: float) -> float:
         if self.start - _TIME_TOLERANCE <= t < self.start + self.duration - _TIME_TOLERANCE:
+            if self.frequency > 0.0:
+                return self.value * math.sin(self.frequency * (t - self.start))
             return self.value
         return 0.0
 
@@ -152,7 +158,7 @@ def build_scenario(config: Config) -> Scenario:
             )
         )
     schedules = [
-        ScheduledInput(vehicle_name(d.vehicle), DISTURBANCE_INPUTS[d.kind], d.start, d.duration, d.value)
+        ScheduledInput(vehicle_name(d.vehicle), DISTURBANCE_INPUTS[d.kind], d.start, d.duration, d.value, d.frequency)
         for d in config.disturbance
     ]
     links = link_specs(config)

@@ -128,7 +128,8 @@ class NativeMaster:
         routes = resolve_routes(self.components, connections, schedules)  # Master's checks and messages
         connected = [[(inp, offsets[source] + out) for inp, source, out in r.connected] for r in routes]
         scheduled = [
-            [(inp, float(s.start), float(s.duration), float(s.value), _TIME_TOLERANCE) for inp, s in r.scheduled]
+            [(inp, float(s.start), float(s.duration), float(s.value), _TIME_TOLERANCE, float(s.frequency))
+             for inp, s in r.scheduled]
             for r in routes
         ]
         description = [

@@ -176,6 +176,7 @@ typedef struct {
     size_t n_scheduled; /* pulses: value on [start - tol, start + duration - tol) */
     size_t *scheduled_input;
     double *scheduled_start, *scheduled_duration, *scheduled_value, *scheduled_tolerance;
+    double *scheduled_frequency; /* > 0: value * sin(frequency (t - start)) on the window */
 
     size_t n_groups;
     ParameterGroup *groups;
@@ -242,6 +243,7 @@ static void free_instance_memory(Instance *inst) {
     free(inst->scheduled_duration);
     free(inst->scheduled_value);
     free(inst->scheduled_tolerance);
+    free(inst->scheduled_frequency);
     for (size_t g = 0; g < inst->n_groups; g++) {
         ParameterGroup *group = &inst->groups[g];
         free(group->refs);
@@ -337,7 +339,7 @@ static char *copy_string(PyObject *text) {
 /* One component description, a tuple:
  * (name, library path, guid, resource URI, input refs, output refs, input start values,
  *  parameter groups [(kind, refs, values)], connected [(input, global output index)],
- *  scheduled [(input, start, duration, value, tolerance)]) */
+ *  scheduled [(input, start, duration, value, tolerance, frequency)]) */
 static int parse_instance(Instance *inst, PyObject *item) {
     PyObject *name, *library, *guid, *uri, *in_refs, *out_refs, *defaults, *groups, *connected, *scheduled;
     if (!PyArg_ParseTuple(item, "UUUUOOOOOO", &name, &library, &guid, &uri, &in_refs, &out_refs, &defaults,
@@ -481,16 +483,18 @@ static int parse_instance(Instance *inst, PyObject *item) {
     inst->scheduled_duration = calloc(m + 1, sizeof(double));
     inst->scheduled_value = calloc(m + 1, sizeof(double));
     inst->scheduled_tolerance = calloc(m + 1, sizeof(double));
+    inst->scheduled_frequency = calloc(m + 1, sizeof(double));
     if (!inst->scheduled_input || !inst->scheduled_start || !inst->scheduled_duration || !inst->scheduled_value
-        || !inst->scheduled_tolerance) {
+        || !inst->scheduled_tolerance || !inst->scheduled_frequency) {
         Py_DECREF(fast);
         PyErr_NoMemory();
         return -1;
     }
     for (size_t i = 0; i < m; i++) {
         Py_ssize_t input;
-        if (!PyArg_ParseTuple(PySequence_Fast_GET_ITEM(fast, (Py_ssize_t)i), "ndddd", &input, &inst->scheduled_start[i],
-                              &inst->scheduled_duration[i], &inst->scheduled_value[i], &inst->scheduled_tolerance[i])) {
+        if (!PyArg_ParseTuple(PySequence_Fast_GET_ITEM(fast, (Py_ssize_t)i), "nddddd", &input, &inst->scheduled_start[i],
+                              &inst->scheduled_duration[i], &inst->scheduled_value[i], &inst->scheduled_tolerance[i],
+                              &inst->scheduled_frequency[i])) {
             Py_DECREF(fast);
             return -1;
         }
@@ -608,6 +612,8 @@ static inline fmi2Status transfer(const Core *self, Instance *inst, double t) {
             double start = inst->scheduled_start[i], tolerance = inst->scheduled_tolerance[i];
             double value = (start - tolerance <= t && t < start + inst->scheduled_duration[i] - tolerance)
                                ? inst->scheduled_value[i] : 0.0;
+            if (value != 0.0 && inst->scheduled_frequency[i] > 0.0)
+                value *= sin(inst->scheduled_frequency[i] * (t - start));
             vector[inst->scheduled_input[i]] += value;
         }
     }

@@ -1,0 +1,303 @@
+"""String stability measured: how the errors of a disturbance run grow or shrink from vehicle to vehicle.
+
+A vehicle's errors are its speed and its gap (the true distance to the component ahead, from the
+recorded positions: what a link delays is the vehicles' knowledge of each other, not the gap) minus
+the undisturbed run's (a reference trace), or minus the steady state (V_c, and the law's equilibrium
+gap) when there is none. A disturbance travels one way: with the paper's law from the back to the
+front (vehicle i follows vehicle i+1's speed), with acc and cacc from the front to the back. Along
+that way, vehicle to vehicle, the gains are
+
+    l2:  ||e_next||_2 / ||e_previous||_2    (||e||_2 = sqrt(integral of e^2 dt) over the window)
+    l_inf:  max |e_next| / max |e_previous|
+
+A chain is string stable in the l2 sense when no l2 gain exceeds 1 for any disturbance; a measured gain
+is one disturbance's view. For a sinusoid of frequency w held until the response is periodic, the l2
+gain over whole periods of the steady state is |G(jw)| (docs/model.md, section 12); ``amplitude_ratios``
+measures that directly by fitting the sinusoid.
+"""
+
+from __future__ import annotations
+
+import math
+from contextlib import AbstractContextManager, nullcontext
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+
+from orchestrator.scenario.config import Config
+from orchestrator.scenario.wiring import TARGET
+
+if TYPE_CHECKING:
+    from orchestrator.trace.reader import Trace
+
+# progress(label, steps) -> a context manager giving a tick(steps done) or None (orchestrator/observers/progress.py)
+Progress = Callable[[str, int], AbstractContextManager[Callable[[int], None] | None]]
+
+ERRORS = ("speed", "gap")
+
+
+def equilibrium_gap(config: Config, vehicle: int) -> float:
+    """The steady gap: d* under the paper's law, r + h V_c under acc and cacc (d* with the default r)."""
+    p = config.platoon
+    if config.speed_law_of(vehicle) == "paper":
+        return p.d_star
+    return p.resolved_standstill_gap + p.time_gap * p.speed
+
+
+def _gaps(trace: "Trace", names: list[str]) -> dict[str, np.ndarray]:
+    """Each vehicle's distance to the component ahead (the target for vehicle 1), from positions."""
+    gaps = {}
+    for ahead, name in zip([TARGET] + names, names):
+        a, b = trace.component(ahead), trace.component(name)
+        gaps[name] = np.hypot(a["x"] - b["x"], a["y"] - b["y"])
+    return gaps
+
+
+def vehicle_errors(trace: "Trace", config: Config, reference: "Trace | None" = None) -> dict[str, dict[str, np.ndarray]]:
+    """Per vehicle: ``t`` and its ``speed`` and ``gap`` errors: against ``reference``, else against the
+    state recorded last before the first disturbance (a settled run: its steady state as the
+    co-simulation has it, which "hold" coupling or a link's sampling shift a little from V_c and the
+    law's gap), else, with no disturbance, against V_c and the law's equilibrium gap."""
+    names = trace.vehicles()
+    gaps = _gaps(trace, names)
+    base_gaps = _gaps(reference, names) if reference is not None else None
+    first = min((d.start for d in config.disturbance), default=None)
+    errors = {}
+    for index, name in enumerate(names, start=1):
+        run = trace.component(name)
+        if reference is not None:
+            base = reference.component(name)
+            if len(base["t"]) != len(run["t"]) or not np.allclose(base["t"], run["t"], atol=1e-9):
+                raise ValueError(f"the reference trace's {name} is not recorded at the same times")
+            speed, gap = base["speed"], base_gaps[name]
+        elif first is not None and run["t"][0] <= first + 1e-9:
+            before = int(np.searchsorted(run["t"], first + 1e-9)) - 1
+            speed, gap = run["speed"][before], gaps[name][before]
+        else:
+            speed, gap = config.platoon.speed, equilibrium_gap(config, index)
+        errors[name] = {"t": run["t"], "speed": run["speed"] - speed, "gap": gaps[name] - gap}
+    return errors
+
+
+def propagation(config: Config, names: list[str], source: int) -> list[str]:
+    """The vehicles in the order a disturbance on vehicle ``source`` travels: toward the front under the
+    paper's law, toward the back under acc and cacc."""
+    if config.speed_law_of(source) == "paper":
+        return names[:source][::-1]
+    return names[source - 1:]
+
+
+def norms(t: np.ndarray, error: np.ndarray, window: tuple[float, float]) -> tuple[float, float]:
+    """(l2, l_inf) of ``error`` over ``window`` (trapezoidal integral of e^2 over the recorded points)."""
+    inside = (t >= window[0] - 1e-9) & (t <= window[1] + 1e-9)
+    e, times = error[inside], t[inside]
+    if len(e) < 2:
+        raise ValueError(f"fewer than two recorded points in the window {window[0]:g} to {window[1]:g} s")
+    return math.sqrt(float(np.sum(0.5 * (e[1:] ** 2 + e[:-1] ** 2) * np.diff(times)))), float(np.max(np.abs(e)))
+
+
+def ratio(b: float, a: float) -> float:
+    return b / a if a > 0 else math.inf
+
+
+@dataclass(frozen=True)
+class LinkGains:
+    """Gains from ``sender`` to ``receiver``, the next vehicle the disturbance reaches."""
+
+    sender: str
+    receiver: str
+    l2: dict[str, float]  # per error kind (ERRORS)
+    linf: dict[str, float]
+
+
+def link_gains(errors: dict[str, dict[str, np.ndarray]], order: list[str], window: tuple[float, float]) -> list[LinkGains]:
+    """The l2 and l_inf gains of every error kind along ``order`` (vehicle names) over ``window``."""
+    measured = {name: {kind: norms(errors[name]["t"], errors[name][kind], window) for kind in ERRORS} for name in order}
+    return [LinkGains(a, b, {k: ratio(measured[b][k][0], measured[a][k][0]) for k in ERRORS},
+                      {k: ratio(measured[b][k][1], measured[a][k][1]) for k in ERRORS})
+            for a, b in zip(order, order[1:])]
+
+
+def amplitude_ratios(errors: dict[str, dict[str, np.ndarray]], order: list[str], frequency: float,
+                     window: tuple[float, float], kind: str = "speed") -> list[float]:
+    """|G(jw)| per link as measured: the amplitude of the sinusoid of ``frequency`` (rad/s) fitted by least
+    squares (with an offset) to each vehicle's error over ``window``, divided by the sender's."""
+    amplitudes = []
+    for name in order:
+        t, e = errors[name]["t"], errors[name][kind]
+        inside = (t >= window[0] - 1e-9) & (t <= window[1] + 1e-9)
+        basis = np.column_stack([np.cos(frequency * t[inside]), np.sin(frequency * t[inside]), np.ones(int(inside.sum()))])
+        (c, s, _), *_ = np.linalg.lstsq(basis, e[inside], rcond=None)
+        amplitudes.append(math.hypot(c, s))
+    return [ratio(b, a) for a, b in zip(amplitudes, amplitudes[1:])]
+
+
+def gains_lines(gains: list[LinkGains]) -> list[str]:
+    """The gains as a table, one line per link, and the verdict of the largest l2 gain."""
+    lines = [f"  {'from -> to':22s} {'speed l2':>9s} {'speed l_inf':>11s} {'gap l2':>9s} {'gap l_inf':>9s}"]
+    for g in gains:
+        lines.append(f"  {g.sender + ' -> ' + g.receiver:22s} {g.l2['speed']:9.4f} {g.linf['speed']:11.4f} "
+                     f"{g.l2['gap']:9.4f} {g.linf['gap']:9.4f}")
+    if gains:
+        worst = max(g.l2["speed"] for g in gains[1:] or gains)
+        word = "grows" if worst > 1.0 else "does not grow"
+        lines.append(f"  largest speed l2 gain past the disturbed vehicle: {worst:.4f}: this disturbance {word} along "
+                     "the platoon (string stability asks it of every disturbance: platoon analyze has the bound)")
+    return lines
+
+
+def first_disturbance_vehicle(config: Config) -> int:
+    return min(config.disturbance, key=lambda d: d.start).vehicle
+
+
+def window_of(config: Config, trace: "Trace", start: float | None, end: float | None) -> tuple[float, float]:
+    """The window the gains are taken over: from the first disturbance (or ``start``) to the end (or ``end``)."""
+    first = min((d.start for d in config.disturbance), default=0.0)
+    last = float(trace.component(trace.vehicles()[0])["t"][-1])
+    return (first if start is None else start, last if end is None else end)
+
+
+def string_stability_report(config: Config, config_text: str, progress: Progress | None = None) -> str:
+    """`platoon analyze`'s measured part: the scenario with and without its disturbances; per vehicle the
+    peak path, gap and speed deviations, the path's peak ratios (the lateral chain, front to back), and
+    the l2 and l_inf gains of the speed and gap errors along the way the speed chain carries them.
+
+    ``progress(label, steps)``: a context manager giving each of the two runs its tick (the caller's
+    bar or progress lines), None for none.
+    """
+    from orchestrator.analysis.metrics import path_errors
+    from orchestrator.execution.run import run_scenario
+    from orchestrator.scenario.scenario import step_count
+    from orchestrator.support.scratch import ScratchDir
+    from orchestrator.trace import load
+
+    if not config.disturbance:
+        return "string stability: the config has no [[disturbance]]; add one to measure the gains from vehicle to vehicle"
+    start = min(d.start for d in config.disturbance)
+    steps = step_count(config.simulation.stop_time, config.simulation.step)
+    shown = progress or (lambda label, total: nullcontext())
+    with ScratchDir("analyze") as scratch, shown("disturbed run (1/2)", steps) as tick:  # scratch: removed by the next run if this one is killed
+        result = run_scenario(config, config_text, scratch / "analysis.mcap", tick=tick)
+        if result.status != "completed":
+            return f"string stability: the run {result.status}: {result.error}"
+        trace = load(result.trace)
+    reference_config = config.model_copy(update={"disturbance": []})
+    with ScratchDir("analyze") as scratch, shown("undisturbed run (2/2)", steps) as tick:
+        reference = load(run_scenario(reference_config, config_text, scratch / "reference.mcap", tick=tick).trace)
+    errors = vehicle_errors(trace, config, reference)
+    window = window_of(config, trace, None, None)
+    lines = [f"string stability (peak deviation from the undisturbed run after t = {start:g} s):",
+             f"  {'vehicle':10s} {'path [m]':>12s} {'gap [m]':>12s} {'speed [m/s]':>12s}"]
+    paths = []
+    for name in trace.vehicles():
+        a, b = trace.component(name), reference.component(name)
+        inside = a["t"] >= start
+        paths.append(float(np.abs(path_errors(config, a["x"], a["y"]) - path_errors(config, b["x"], b["y"]))[inside].max()))
+        peaks = [norms(errors[name]["t"], errors[name][kind], window)[1] for kind in ("gap", "speed")]
+        lines.append(f"  {name:10s} {paths[-1]:12.4e} {peaks[0]:12.4e} {peaks[1]:12.4e}")
+    first = first_disturbance_vehicle(config)
+    ratios = ", ".join(f"{ratio(b, a):.3f}" for a, b in zip(paths[first - 1:], paths[first:]))
+    lines.append(f"  path peak ratios behind vehicle {first}, vehicle i+1 / i: {ratios or 'none (last vehicle)'}")
+    order = propagation(config, trace.vehicles(), first)
+    lines.append(f"  gains of the errors from vehicle to vehicle, the way the {config.speed_law_of(first)} law carries "
+                 f"them (l2, and l_inf = peak ratio):")
+    lines += gains_lines(link_gains(errors, order, window))
+    return "\n".join(lines)
+
+
+SETTLE = 60.0  # s after a sinusoid starts before its gains are read (the chain's transients: poles >= 0.2 1/s)
+
+
+def probe_frequencies(config: Config) -> list[float]:
+    """The distinct frequencies of the config's sinusoidal disturbances (rad/s), lowest first."""
+    return sorted({d.frequency for d in config.disturbance if d.frequency > 0.0})
+
+
+def steady_window(config: Config, end: float) -> tuple[float, float]:
+    """Where the sinusoids' response is periodic: whole periods of the lowest frequency, ending where the
+    sinusoids (or the record, ``end``) end, starting at least min(SETTLE, half their span) after they start."""
+    sines = [d for d in config.disturbance if d.frequency > 0.0]
+    if not sines:
+        raise ValueError("its config has no sinusoidal disturbance (a frequency > 0)")
+    start = max(d.start for d in sines)
+    stop = min(min(d.start + d.duration for d in sines), end)
+    period = 2.0 * math.pi / min(d.frequency for d in sines)
+    whole = math.floor((stop - start - min(SETTLE, 0.5 * (stop - start))) / period + 1e-3)
+    if whole < 1:
+        raise ValueError(f"the sinusoids leave no whole period of {period:.4g} s after their transient")
+    return stop - whole * period, stop
+
+
+def disturbed(config: Config) -> set[int]:
+    return {d.vehicle for d in config.disturbance}
+
+
+def source_vehicle(config: Config) -> int:
+    """The pushed vehicle the law carries a disturbance from: the last pushed under the paper's law (it
+    carries toward the front), the first under acc and cacc."""
+    pushed = sorted(disturbed(config))
+    return pushed[-1] if config.speed_law_of(pushed[-1]) == "paper" else pushed[0]
+
+
+def clean_order(config: Config, names: list[str]) -> list[str]:
+    """The vehicles along the way a disturbance travels that measure the chain itself: not pushed, and not
+    the first two receivers of the pushed one. A push is held over each step, a staircase whose jumps the
+    sender's rates do not carry: the first receiver's extrapolation turns it into ripple at multiples of
+    2 pi/step, which beacons at a multiple of the step fold back exactly onto the push's frequencies (3 %
+    at the second receiver in the study's runs, 0.3 % at the third)."""
+    order = propagation(config, names, source_vehicle(config))
+    pushed = {f"vehicle{v}" for v in disturbed(config)}
+    clean = [name for name in order if name not in pushed]
+    return clean[2:]
+
+
+def frequency_gains(errors: dict[str, dict[str, np.ndarray]], order: list[str], frequencies: list[float],
+                    window: tuple[float, float]) -> list[list[float]]:
+    """Per frequency, per link along ``order``: the speed error's amplitude ratio at that frequency (all
+    frequencies and an offset fitted jointly by least squares over ``window``)."""
+    amplitudes = []
+    for name in order:
+        t, e = errors[name]["t"], errors[name]["speed"]
+        inside = (t >= window[0] - 1e-9) & (t <= window[1] + 1e-9)
+        columns = [f(w * t[inside]) for w in frequencies for f in (np.cos, np.sin)] + [np.ones(int(inside.sum()))]
+        fit, *_ = np.linalg.lstsq(np.column_stack(columns), e[inside], rcond=None)
+        amplitudes.append([math.hypot(fit[2 * k], fit[2 * k + 1]) for k in range(len(frequencies))])
+    return [[ratio(b[k], a[k]) for a, b in zip(amplitudes, amplitudes[1:])] for k in range(len(frequencies))]
+
+
+def stability_report(trace: "Trace", config: Config, reference: "Trace | None", window: tuple[float, float]) -> str:
+    """`platoon stability TRACE`: the measured gains, and the closed form of the trace's config beside them."""
+    from orchestrator.analysis.string_stability import chain_of, peak_gain
+
+    if not config.disturbance:
+        raise ValueError("its config has no [[disturbance]]: the gains need a disturbance run")
+    errors = vehicle_errors(trace, config, reference)
+    source = source_vehicle(config)
+    order = propagation(config, trace.vehicles(), source)
+    law = config.speed_law_of(source)
+    start = min(d.start for d in config.disturbance)
+    against = "the reference trace" if reference is not None else f"the state recorded last before t = {start:g} s"
+    pushed = ", ".join(str(v) for v in sorted(disturbed(config)))
+    lines = [f"string stability measured: {law} law, carried from vehicle {source} (pushed: {pushed}), errors against "
+             f"{against}, window {window[0]:g} to {window[1]:g} s; a link that starts or ends at a pushed vehicle "
+             "measures the push too"]
+    lines += gains_lines(link_gains(errors, order, window))
+    chain = chain_of(config, source if law == "paper" else min(source + 1, config.platoon.count))
+    peak = peak_gain(chain)
+    where = f"at {peak.frequency:.4g} rad/s" if peak.frequency > 0 else "as w -> 0"
+    lines.append(f"closed form (platoon analyze): peak |G(jw)| = {peak.gain:.4f} {where}: "
+                 f"{'string stable' if peak.string_stable else 'NOT string stable'}")
+    frequencies = probe_frequencies(config)
+    clean = clean_order(config, trace.vehicles())
+    if frequencies and len(clean) > 1:
+        try:
+            steady = steady_window(config, window[1])
+        except ValueError as error:
+            lines.append(f"  (no gains per frequency: {error})")
+            return "\n".join(lines)
+        analytic = np.abs(chain.transfer(np.array(frequencies)))
+        lines.append(f"  per frequency, {' -> '.join(clean)} (fitted over {steady[0]:g} to {steady[1]:g} s):")
+        for w, expected, measured in zip(frequencies, analytic, frequency_gains(errors, clean, frequencies, steady)):
+            lines.append(f"    {w:g} rad/s: |G(jw)| = {expected:.4f}, measured " + ", ".join(f"{g:.4f}" for g in measured))
+    return "\n".join(lines)

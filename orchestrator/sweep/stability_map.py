@@ -1,0 +1,116 @@
+"""``platoon stability-map``: a string-stability sweep as maps, the analytic boundary over the measured points.
+
+One panel per speed law, link delay across, loss rate up. Each run of the sweep (configs/sweeps/
+string_stability.toml) is measured from its trace: per probe frequency (the config's sinusoids), the
+speed error's amplitude ratio over the chain's clean links (``error_gains.clean_order``), as one gain
+per link (the geometric mean over those links); the point's gain is the largest over the probes. A
+point is filled green when that gain is at most 1, red above. Under it, the analysis of each (delay,
+loss) on a finer grid: its peak |G(jw)| in colour, the line where it is 1 (the analytic boundary of
+string stability) solid, and the line where the largest |G| at the probe frequencies is 1 dashed (what
+the probes can see: near the boundary a chain's peak sits at low frequencies, below the probes).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only; never needs a display
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.colors import TwoSlopeNorm  # noqa: E402
+
+from orchestrator.analysis.error_gains import (clean_order, frequency_gains, probe_frequencies, steady_window,  # noqa: E402
+                                               vehicle_errors)
+from orchestrator.analysis.string_stability import chain_of, peak_gain  # noqa: E402
+from orchestrator.scenario.config import Config, config_from_mapping  # noqa: E402
+from orchestrator.support.output import IMAGE, check_target, replacing  # noqa: E402
+from orchestrator.sweep.plot import PlotError, _lookup, _records  # noqa: E402  (the sweep folder's reading)
+
+LAW, DELAY, LOSS = "platoon.speed_law", "links.delay", "links.loss"
+
+
+def measured_gain(config: Config, trace_path: Path) -> float:
+    """The run's largest gain per link over its probe frequencies (geometric mean over the clean links)."""
+    from orchestrator.trace import load
+
+    trace = load(trace_path)
+    frequencies = probe_frequencies(config)
+    order = clean_order(config, trace.vehicles())
+    if not frequencies or len(order) < 2:
+        raise PlotError(f"{trace_path}: its config has no sinusoid, or too few vehicles past the pushed ones")
+    window = steady_window(config, float(trace.component(order[0])["t"][-1]))
+    gains = frequency_gains(vehicle_errors(trace, config), order, frequencies, window)
+    return max(math.prod(per_link) ** (1.0 / len(per_link)) for per_link in gains)
+
+
+def _analytic(config: Config, delay: float, loss: float) -> tuple[float, float]:
+    """(peak |G(jw)|, largest |G| at the probe frequencies) of ``config`` with every link's delay and loss set."""
+    links = config.links.model_copy(update={"delay": delay, "loss": loss})
+    chain = chain_of(config.model_copy(update={"links": links}))
+    probes = np.abs(chain.transfer(np.array(probe_frequencies(config)))).max()
+    return peak_gain(chain).gain, float(probes)
+
+
+def _points(folder: Path) -> list[dict[str, Any]]:
+    points = []
+    for record in _records(folder):
+        if record["status"] == "invalid":
+            continue
+        where = {key: _lookup(record, key) for key in (LAW, DELAY, LOSS)}
+        if any(value is None for value in where.values()):
+            raise PlotError(f"run {record['id']}: no {', '.join(k for k, v in where.items() if v is None)} (not a "
+                            "string-stability sweep: configs/sweeps/string_stability.toml)")
+        config = config_from_mapping(record["config"])
+        gain = math.nan
+        if record["status"] == "completed":
+            gain = measured_gain(config, folder / record["trace"])
+        points.append({**where, "gain": gain, "config": config})
+    return points
+
+
+def draw_stability_map(folder: Path, png: Path, overwrite: bool = False, resolution: int = 11) -> Path:
+    points = _points(folder)
+    check_target(png, overwrite, [folder / "results.csv"], kind=IMAGE)
+    laws = list(dict.fromkeys(p[LAW] for p in points))
+    delays = np.linspace(0.0, max(p[DELAY] for p in points), resolution)
+    losses = np.linspace(0.0, max(p[LOSS] for p in points), resolution)
+    figure, axes = plt.subplots(1, len(laws), figsize=(4.2 * len(laws) + 1.0, 4.2), dpi=120, squeeze=False,
+                                sharey=True, layout="constrained")
+    norm = TwoSlopeNorm(vcenter=1.0, vmin=0.8, vmax=1.6)
+    image = None
+    for axis, law in zip(axes[0], laws):
+        mine = [p for p in points if p[LAW] == law]
+        peaks, probes = np.empty((len(losses), len(delays))), np.empty((len(losses), len(delays)))
+        for i, loss in enumerate(losses):
+            for j, delay in enumerate(delays):
+                peaks[i, j], probes[i, j] = _analytic(mine[0]["config"], float(delay), float(loss))
+        image = axis.pcolormesh(delays, losses, np.clip(peaks, norm.vmin, norm.vmax), norm=norm, cmap="RdBu_r",
+                                shading="gouraud")
+        if peaks.min() < 1.0 + 1e-12 < peaks.max():
+            axis.contour(delays, losses, peaks, levels=[1.0 + 1e-9], colors="black", linewidths=1.6)
+        if probes.min() < 1.0 < probes.max():
+            axis.contour(delays, losses, probes, levels=[1.0], colors="black", linewidths=1.0, linestyles="dashed")
+        for p in mine:
+            unstable = not p["gain"] <= 1.0
+            axis.scatter(p[DELAY], p[LOSS], s=70, c="#d62728" if unstable else "#2ca02c", edgecolors="black", zorder=3)
+            label = "failed" if math.isnan(p["gain"]) else f"{p['gain']:.3f}"
+            axis.annotate(label, (p[DELAY], p[LOSS]), textcoords="offset points", xytext=(0, 7), ha="center", fontsize=6)
+        axis.set_title(f"speed_law = {law}")
+        pad_x, pad_y = 0.06 * (delays[-1] or 1.0), 0.08 * (losses[-1] or 1.0)
+        axis.set_xlim(-pad_x, delays[-1] + pad_x)
+        axis.set_ylim(-pad_y, losses[-1] + pad_y)
+        axis.set_xlabel("links.delay [s]")
+    axes[0][0].set_ylabel("links.loss")
+    figure.suptitle("String stability: analytic peak |G(jw)| (colour; solid line = 1, dashed = 1 at the probes)\n"
+                    "over the measured gain per link (green <= 1, red > 1)", fontsize=9)
+    figure.colorbar(image, ax=axes[0].tolist(), label="analytic peak |G(jw)|", shrink=0.9)
+    try:  # the output rule (support/output.py): drawn aside, synced, renamed
+        with replacing(png) as aside:
+            figure.savefig(aside, format="png")
+    finally:
+        plt.close(figure)
+    return png

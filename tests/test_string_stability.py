@@ -1,0 +1,188 @@
+"""String stability, analytic and measured, held together (docs/model.md, section 12).
+
+* the channel model of the analysis (age of the message in use, with beacons, losses and bursts) is
+  the age distribution the Link model (fmus/model/link.py) produces;
+* the closed forms: acc is string stable iff k_v h >= 2 alpha; cacc with a pure delay theta on the
+  communicated speed (held) needs h >= sqrt(2 theta / k_p); the paper's chain peaks at 1.3416;
+* on a grid of laws x k_v or time gap x link delay, a co-simulation (native FMUs, links as Link FMUs)
+  pushed by a sinusoid at the analytic peak frequency measures the l2 gain the analysis predicts;
+* `platoon stability` reads a trace back and prints those gains next to the closed form.
+"""
+
+from __future__ import annotations
+
+import math
+import numpy as np
+import pytest
+
+from fmus.model.link import LinkParameters, LinkStepper
+from orchestrator.analysis.error_gains import link_gains, propagation, vehicle_errors
+from orchestrator.analysis.string_stability import Chain, Channel, chain_of, peak_gain, smallest_time_gap
+from orchestrator.execution.run import run_scenario
+from orchestrator.scenario.config import config_from_mapping
+from orchestrator.trace import load
+
+
+# --- the channel model against the Link model ----------------------------------------------------------------
+
+@pytest.mark.parametrize("loss, burst, period, delay", [(0.0, 1.0, 0.0, 0.3), (0.3, 1.0, 0.0, 0.0), (0.5, 4.0, 0.1, 0.2),
+                                                        (0.2, 1.0, 0.25, 0.05)])
+def test_the_channels_age_transform_is_the_link_models_age_distribution(loss, burst, period, delay):
+    """E[e^{-jwA}] over the ages a Jacobi receiver works with (the link's age at each step, growing over the
+    step), from 200 000 steps of the Link model, against Channel.age_transform. The Monte-Carlo error of a
+    mean of unit phasors over N samples correlated over ~K steps is ~sqrt(K/N): 0.01 for K = 20 here."""
+    step, steps = 0.01, 200_000
+    link = LinkStepper(LinkParameters(delay=delay, period=period, loss=loss, burst=burst, seed=7), 0.0)
+    ages = np.empty(steps)
+    link.in_time = 0.0
+    for k in range(steps):
+        link.in_time = k * step  # the sender's message of this communication point (Jacobi: outputs at t)
+        link.step(k * step, step)
+        ages[k] = link.outputs()["age"]  # at t + h: what the receiver uses over [t + h, t + 2h)
+    ages = ages[1000:]
+    w = np.array([0.3, 1.0, 3.0])
+    within = np.where(w == 0, 1.0, (1 - np.exp(-1j * w * step)) / (1j * w * step))  # the age grows over the step
+    measured = np.exp(-1j * np.outer(w, ages)).mean(axis=1) * within
+    channel = Channel(max(step, math.ceil(delay / step - 1e-9) * step), max(period, step), 0, loss, burst)
+    assert np.abs(measured - channel.age_transform(1j * w)).max() < 0.02
+
+
+# --- closed forms -------------------------------------------------------------------------------------------
+
+def test_acc_is_string_stable_exactly_from_a_time_gap_of_two_alpha_over_k_v():
+    for k_v, alpha in [(0.5, 1.0), (2.0, 0.66)]:
+        h = smallest_time_gap(Chain("acc", k_v, alpha))
+        assert h == pytest.approx(2.0 * alpha / k_v, rel=1e-4)
+
+
+@pytest.mark.parametrize("delay", [0.1, 0.3, 1.0])
+def test_cacc_with_a_held_delayed_speed_needs_a_time_gap_of_sqrt_two_delay_over_k_p(delay):
+    """|G|^2 = 1 + c w^2 + ... with c ~ 2 k_p theta - k_p^2 h^2: the low-frequency condition, which binds."""
+    chain = Chain("cacc", 1.0, time_gap=1.0, cacc_gain=0.2, backward=Channel(delay, 0.0, 0))
+    assert smallest_time_gap(chain) == pytest.approx(math.sqrt(2.0 * delay / 0.2), rel=1e-3)
+
+
+def test_a_delay_is_harmless_to_cacc_when_extrapolated_and_costly_when_held():
+    """The receiver knows each message's age: extrapolating the speed along its rate cancels a delay to
+    first order (e^{-s theta}(1 + s theta) = 1 - (s theta)^2/2 + ...), holding it does not."""
+    held = Chain("cacc", 1.0, time_gap=1.0, cacc_gain=0.2, backward=Channel(0.5, 0.0, 0))
+    extrapolated = Chain("cacc", 1.0, time_gap=1.0, cacc_gain=0.2, backward=Channel(0.5, 0.0, 1))
+    assert not peak_gain(held).string_stable and peak_gain(extrapolated).string_stable
+
+
+def test_the_papers_chain_peaks_at_1_3416_and_a_forward_delay_raises_it():
+    paper = Chain("paper", 0.5, math.sqrt(1.0 - (75.0 / 4000.0) ** 2), 25.0, 75.0)
+    peak = peak_gain(paper)
+    assert peak.gain == pytest.approx(1.3416, abs=1e-4) and peak.frequency == pytest.approx(0.333, abs=1e-3)
+    delayed = peak_gain(Chain("paper", 0.5, paper.alpha, 25.0, 75.0, forward=Channel(1.0, 0.0, 0)))
+    assert delayed.gain > peak.gain and delayed.unstable_roots == 0
+    # a long enough delay inside the paper's loop destabilizes the platoon itself, not only the chain
+    assert peak_gain(Chain("paper", 0.5, paper.alpha, 25.0, 75.0, forward=Channel(8.0, 0.0, 0))).unstable_roots > 0
+
+
+# --- analytic and measured on a grid ------------------------------------------------------------------------
+
+STEP = 0.01
+START, SETTLE, PERIODS = 10.0, 60.0, 40.0  # s: the sinusoid starts, its transient dies out, then >= 40 s measured
+AMPLITUDE = 0.01  # m/s against V_c = 25: second-order terms ~4e-4 of the response
+PROBE = 0.3  # rad/s: where a string-stable chain (peak at w -> 0) is probed
+COUPLING = "extrapolate"  # the default; see TOLERANCE
+# Where the analysis applies: small disturbances (linear), the chain's own transient gone (slowest pole
+# here -0.2 1/s: e^{-0.2 * 60} = 6e-6), and the fundamental-harmonic model of the sampling (a 0.01 s step):
+# it leaves out the ripple a sampled, extrapolated message carries at 2 pi/T +- w, which the next
+# sampling folds back onto w. That grows like w^2 A T (A the message's age): the grid's worst case, cacc
+# with h = 0.5 s and a 0.5 s delay peaking at 3.6 rad/s, measures 1.0321 against 1.0246 (0.7 %); with
+# a 0.05 s step it measured 1.094 against 1.056 (3.6 %), which is why the step is 0.01 s. The other
+# cases agree to 0.3 %. 1 % holds these and still separates a 1.02 gain from a 1.
+TOLERANCE = 0.01
+GRID = [(law, key, value, delay)
+        for law, key, values in [("paper", "k_v", (0.5, 2.0)), ("acc", "time_gap", (3.0, 5.0)), ("cacc", "time_gap", (0.5, 2.0))]
+        for value in values for delay in (0.0, 0.5)]
+
+
+def _grid_config(law: str, key: str, value: float, delay: float, frequency: float | None, periods: float):
+    """Five vehicles on a line, started at the law's equilibrium: d* = 75 m, or h V_c when a time gap needs
+    more (the default standstill gap d* - h V_c then 0), links with ``delay`` both ways."""
+    count = 5
+    platoon = {"count": count, "speed_law": law, "d_star": max(75.0, 25.0 * value if key == "time_gap" else 0.0),
+               "speed": 25.0, key: value}
+    raw = {"name": "grid", "path": {"kind": "line"}, "platoon": platoon,
+           "simulation": {"step": STEP, "max_substep": STEP, "stop_time": START + SETTLE + periods, "fmus": "native",
+                          "coupling": COUPLING}}
+    if delay:
+        raw["links"] = {"delay": delay}
+    if frequency is not None:
+        raw["disturbance"] = [{"vehicle": count if law == "paper" else 1, "kind": "speed", "start": START,
+                               "duration": SETTLE + periods, "value": AMPLITUDE, "frequency": frequency}]
+    return config_from_mapping(raw)
+
+
+@pytest.mark.parametrize("law, key, value, delay", GRID)
+def test_the_measured_l2_gain_is_the_analytic_gain_at_the_peak_frequency(law, key, value, delay, native_fmu_dir, tmp_path):
+    """A sinusoid at the analytic peak frequency (or at PROBE when the chain is string stable) on the vehicle
+    the law propagates from; the l2 gain of the speed errors over the steady part, from every undisturbed
+    vehicle to the next, against |G(jw)| of the analysis (links as the run wires them)."""
+    chain = chain_of(_grid_config(law, key, value, delay, None, PERIODS))
+    peak = peak_gain(chain)
+    frequency = peak.frequency if not peak.string_stable else PROBE
+    period = 2.0 * math.pi / frequency
+    periods = math.ceil(PERIODS / period) * period
+    config = _grid_config(law, key, value, delay, frequency, periods)
+    result = run_scenario(config, "", tmp_path / "grid.mcap", foxglove=False)
+    assert result.status == "completed", result.error
+    trace = load(result.trace)
+    window = (START + SETTLE, START + SETTLE + periods)
+    source = config.disturbance[0].vehicle
+    order = propagation(config, trace.vehicles(), source)
+    # from the second vehicle past the pushed one: the pushed vehicle's disturbance is held over each step,
+    # a staircase whose jumps its speed_rate output does not carry, so the first receiver's extrapolation
+    # adds ripple that the next sampling folds back onto w (up to 9 % at 3.6 rad/s with a 0.5 s delay)
+    gains = [g.l2["speed"] for g in link_gains(vehicle_errors(trace, config), order, window)[2:]]
+    expected = abs(chain.transfer(np.array([frequency]))[0])
+    assert np.abs(np.array(gains) / expected - 1.0).max() < TOLERANCE, (gains, expected, peak)
+    if not peak.string_stable:
+        assert expected == pytest.approx(peak.gain, rel=1e-9) and min(gains) > 1.0  # the measured chain amplifies
+    else:
+        assert max(gains) < 1.0
+
+
+# --- platoon stability ---------------------------------------------------------------------------------------
+
+def _platoon(*args, cwd):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "orchestrator", *map(str, args)], cwd=cwd, capture_output=True,
+                          text=True, timeout=600)
+
+
+def test_platoon_stability_prints_the_gains_and_the_closed_form_beside_them(native_fmu_dir, tmp_path):
+    """The study's platoon under cacc with a 0.3 s link: each probe frequency's measured gain per clean link
+    against |G(jw)| (below 1 rad/s, where the fundamental-harmonic model holds: section 12, within 1 %)."""
+    from pathlib import Path
+
+    study = Path(__file__).resolve().parent.parent / "configs" / "study" / "string_stability.toml"
+    trace = tmp_path / "cacc.mcap"
+    ran = _platoon("run", study, "--set", "platoon.speed_law=cacc", "--set", "links.delay=0.3", "-q", "--out", trace,
+                   cwd=tmp_path)
+    assert ran.returncode == 0, ran.stderr
+    shown = _platoon("stability", trace, cwd=tmp_path)
+    assert shown.returncode == 0, shown.stderr
+    assert "vehicle4 -> vehicle5" in shown.stdout and "closed form (platoon analyze): peak |G(jw)| = 1.0000" in shown.stdout
+    rows = [line.split() for line in shown.stdout.splitlines() if line.strip().startswith(("0.1 rad/s", "0.3 rad/s"))]
+    assert len(rows) == 2, shown.stdout
+    for row in rows:  # "0.1 rad/s: |G(jw)| = 0.9989, measured 0.9982, 0.9987"
+        expected = float(row[4].rstrip(","))
+        measured = [float(value.rstrip(",")) for value in row[6:]]
+        assert np.abs(np.array(measured) / expected - 1.0).max() < TOLERANCE, shown.stdout
+
+
+def test_platoon_stability_refuses_a_run_without_disturbance_in_one_line(native_fmu_dir, tmp_path):
+    from pathlib import Path
+
+    paper = Path(__file__).resolve().parent.parent / "configs" / "paper" / "platoon.toml"
+    trace = tmp_path / "calm.mcap"
+    assert _platoon("run", paper, "--set", "simulation.stop_time=2", "-q", "--out", trace, cwd=tmp_path).returncode == 0
+    shown = _platoon("stability", trace, cwd=tmp_path)
+    assert shown.returncode == 2 and shown.stderr.strip().count("\n") == 0
+    assert "has no [[disturbance]]" in shown.stderr and "Traceback" not in shown.stderr
