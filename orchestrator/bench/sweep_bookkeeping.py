@@ -41,6 +41,7 @@ class _Instant:
     def __init__(self, stop_after: int | None = None) -> None:
         self.first: float | None = None
         self.stop_after = stop_after
+        self.stopped = False
 
     def outcomes(self, jobs: Iterator[Any]) -> Iterator[tuple[Any, dict[str, Any]]]:
         placeholder = bytes(TRACE_BYTES)
@@ -50,11 +51,11 @@ class _Instant:
             with open(job.partial_trace, "wb") as trace:  # what a run's trace writer leaves behind
                 trace.write(placeholder)
             yield job, {"status": "completed", "wall_time": 0.0, "metrics": {"last.path_offset": 0.0}}
-            if self.stop_after is not None and number >= self.stop_after:
+            if self.stopped or (self.stop_after is not None and number >= self.stop_after):
                 return
 
-    def stop(self) -> None:
-        pass
+    def stop(self) -> None:  # SIGINT or SIGTERM (run_sweep's handler): no more runs
+        self.stopped = True
 
     def close(self) -> None:
         pass
