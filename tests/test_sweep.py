@@ -436,6 +436,19 @@ def test_bench_sweep_measures_each_worker_count(tmp_path: Path, fmu_dir: Path) -
     assert "speed-up vs local-1" in result.stdout
 
 
+def test_bench_sweep_bookkeeping_measures_each_size_and_the_first_run(tmp_path: Path) -> None:
+    """Functional only: each size in its own interpreter through the real runner, the smallest measured
+    before and after each larger one; the numbers are not asserted (speed is the benchmark's business)."""
+    from tests.test_bench import written
+
+    result = platoon("bench", "sweep-bookkeeping", "--points", "10,30", "--first-run", "1000", "--out-dir", tmp_path, "-q")
+    data = written(result, tmp_path, "sweep-bookkeeping")
+    assert [r["points"] for r in data["sizes"]] == [10, 30] and [r["points"] for r in data["references"]] == [10, 10]
+    assert all(r["per_run"] > 0 and r["cpu_per_run"] > 0 and r["peak_rss_mib"] > 0 for r in data["sizes"])
+    assert data["first_run_points"] == 1000 and data["first_run_after"] > 0
+    assert "ratio largest/smallest" in result.stdout and "first run of a 1,000-point sweep" in result.stdout
+
+
 def test_the_plan_is_streamed_memory_flat_in_the_number_of_points(tmp_path: Path) -> None:
     """Issue 30: a 10^6-point plan hands out its first runs without making the others (the same memory as
     a 10^3-point one), and its points are the ones the whole plan has, in order."""
