@@ -210,3 +210,46 @@ def test_a_write_that_fails_at_any_point_leaves_the_old_target_and_nothing_else(
     with replacing(target) as aside:
         aside.write_text("new\n")
     assert target.read_text() == "new\n" and [p.name for p in tmp_path.iterdir()] == ["table.csv"]
+
+
+# --- platoon build --out: the FMUs have names of their own in the folder it is given --------------------
+
+def test_build_never_replaces_a_source_a_fifo_or_a_device(tmp_path: Path) -> None:
+    """`platoon build --out DIR` replaces DIR/Vehicle.fmu whatever it holds (a damaged FMU is rebuilt), but
+    never when it is one of the sources it reads (hard link or symlink), a FIFO (it used to hang reading it
+    as a zip) or a device: exit 2, one line, nothing changed."""
+    source = REPO / "fmus" / "slaves" / "Vehicle.py"
+    before = source.read_bytes()
+    for n, link in enumerate((os.link, os.symlink)):
+        out = tmp_path / f"alias-{n}"
+        out.mkdir()
+        try:
+            link(source, out / "Vehicle.fmu")
+        except OSError as error:  # a hard link across filesystems (the temporary folder elsewhere)
+            pytest.skip(f"cannot link the source into the temporary folder: {error}")
+        result = platoon("build", "--out", out, cwd=tmp_path)
+        assert result.returncode == 2, (result.stdout, result.stderr)
+        one_line_error(result, "build --out", "Vehicle.fmu", "is the same file as", "Vehicle.py", "which this command reads")
+        assert source.read_bytes() == before
+    for name, make, kind in (("fifo", os.mkfifo, "a FIFO"), ("device", make_device, "a character device")):
+        out = tmp_path / name
+        out.mkdir()
+        make(out / "Vehicle.fmu")
+        was = snapshot(out / "Vehicle.fmu")
+        result = platoon("build", "--out", out, cwd=tmp_path, timeout=120)
+        assert result.returncode == 2, (name, result.stdout, result.stderr)
+        one_line_error(result, "Vehicle.fmu", f"is {kind}, not a regular file")
+        assert snapshot(out / "Vehicle.fmu") == was and [p.name for p in out.iterdir()] == ["Vehicle.fmu"]
+
+
+def test_build_on_a_full_disk_leaves_the_old_fmu_and_no_half_file(tmp_path: Path) -> None:
+    folder = tmp_path / "disk"
+    folder.mkdir()
+    prefix = on_small_disk(folder, "8k")  # two pages: the old file fits, a 250 kB FMU does not
+    (folder / "seed" / "out").mkdir()
+    (folder / "seed" / "out" / "Vehicle.fmu").write_text("old\n")
+    result = platoon("build", "--out", "small/out", "--force", cwd=folder, prefix=prefix)
+    assert result.returncode == 2, (result.stdout, result.stderr)
+    one_line_error(result, "build --out small/out/Vehicle.fmu", "No space left on device", "nothing was replaced")
+    left = sorted(str(p.relative_to(folder / "left")) for p in (folder / "left").rglob("*") if p.is_file())
+    assert left == ["out/Vehicle.fmu"] and (folder / "left" / "out" / "Vehicle.fmu").read_text() == "old\n"

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import itertools
+import json
 import math
 import os
 import signal
@@ -435,6 +436,19 @@ def test_bench_sweep_measures_each_worker_count(tmp_path: Path, fmu_dir: Path) -
     assert "speed-up vs local-1" in result.stdout
 
 
+def test_bench_sweep_bookkeeping_measures_each_size_and_the_first_run(tmp_path: Path) -> None:
+    """Functional only: each size in its own interpreter through the real runner, the smallest measured
+    before and after each larger one; the numbers are not asserted (speed is the benchmark's business)."""
+    from tests.test_bench import written
+
+    result = platoon("bench", "sweep-bookkeeping", "--points", "10,30", "--first-run", "1000", "--out-dir", tmp_path, "-q")
+    data = written(result, tmp_path, "sweep-bookkeeping")
+    assert [r["points"] for r in data["sizes"]] == [10, 30] and [r["points"] for r in data["references"]] == [10, 10]
+    assert all(r["per_run"] > 0 and r["cpu_per_run"] > 0 and r["peak_rss_mib"] > 0 for r in data["sizes"])
+    assert data["first_run_points"] == 1000 and data["first_run_after"] > 0
+    assert "ratio largest/smallest" in result.stdout and "first run of a 1,000-point sweep" in result.stdout
+
+
 def test_the_plan_is_streamed_memory_flat_in_the_number_of_points(tmp_path: Path) -> None:
     """Issue 30: a 10^6-point plan hands out its first runs without making the others (the same memory as
     a 10^3-point one), and its points are the ones the whole plan has, in order."""
@@ -474,3 +488,40 @@ def test_a_map_axis_names_its_key_with_the_unit() -> None:
     assert _axis_name("platoon.count") == "platoon.count"  # a count has no unit
     assert _axis_name("d_star/R") == "d*/R"  # a ratio neither
     assert key_unit("simulation.step") == "s" and key_unit("platoon.speed") == "m/s" and key_unit("no.such") is None
+
+
+# --- a sweep that cannot fit on its disk -------------------------------------------------------------------
+
+def test_a_sweep_that_cannot_fit_on_its_disk_is_refused_before_its_first_run(tmp_path: Path, fmu_dir: Path) -> None:
+    """Issue 30: on a real 2 MB tmpfs (a private mount namespace), 1000 runs of ~0.2 MB each are refused in
+    one line with the estimate and the free space, before any run; --allow-full-disk starts them, and when
+    the disk is full the sweep stops with every committed run whole (its result readable, its trace there)."""
+    from tests.test_hostile_traces import one_line_error, platoon as platoon_with
+    from tests.test_output_rule import on_small_disk
+
+    folder = tmp_path / "disk"
+    folder.mkdir()
+    prefix = on_small_disk(folder, "2m")
+    (folder / "build").symlink_to(REPO / "build", target_is_directory=True)
+    sweep = sweep_file(folder, '[set]\n"simulation.stop_time" = 2.0\n[random]\nsamples = 1000\nseed = 3\n'
+                               '[random.ranges]\n"platoon.k_v" = [0.4, 1.0]\n')
+    refused = platoon_with("sweep", sweep, "--out", "small/out", "--workers", "1", "-q", cwd=folder, prefix=prefix)
+    assert refused.returncode == 2, (refused.stdout, refused.stderr)
+    line = one_line_error(refused, "small/out", "1,000 runs need about", "MB free", "--allow-full-disk")
+    needed = float(line.split("need about ")[1].split(" MB")[0])
+    assert 150 < needed < 400, line  # 1000 x (a 201-row trace of 5 components, ~0.2 MB, and a result file)
+    files = [p.relative_to(folder / "left") for p in (folder / "left").rglob("*") if p.is_file() and p.name != ".lock"]
+    assert files == [Path("out/results.csv")] and len(rows(folder / "left" / "out")) == 0, files  # nothing ran
+
+    allowed = platoon_with("sweep", sweep, "--out", "small/out", "--workers", "1", "-q", "--allow-full-disk",
+                           cwd=folder, prefix=prefix, timeout=600)
+    assert allowed.returncode == 1, (allowed.stdout, allowed.stderr)
+    one_line_error(allowed, "No space left on device")
+    left = folder / "left" / "out"
+    results = sorted((left / "results").glob("*.json"))
+    assert results, allowed.stderr  # some runs fitted
+    records = [json.loads(path.read_text()) for path in results]  # every committed run whole: its result reads,
+    for record in records:
+        if record["status"] == "completed":
+            load(left / record["trace"])  # its trace is there and reads
+    assert any(record["status"] == "completed" for record in records), records

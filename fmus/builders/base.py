@@ -15,7 +15,7 @@ import zipfile
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, ContextManager, Protocol
 from xml.etree import ElementTree
 
 # the fmus/ folder, not fmus.__file__: an FMU run in this process first may have imported the
@@ -58,8 +58,8 @@ class Builder(ABC):
         """The archive entries without which FMU ``name`` is not a whole build for this machine."""
 
     @abstractmethod
-    def build_one(self, name: str, guid: str, out_dir: Path) -> Path:
-        """Build FMU ``name`` with ``guid`` into ``out_dir``; its path."""
+    def build_one(self, name: str, guid: str) -> dict[str, bytes]:
+        """Build FMU ``name`` with ``guid``: its archive's entries (``build`` writes them)."""
 
     def is_complete(self, path: Path, name: str, guid: str) -> bool:
         """True when ``path`` is a whole, intact build of ``name`` with ``guid``: every entry passes its
@@ -69,22 +69,38 @@ class Builder(ABC):
 
     def build(self, out_dir: Path | None = None, force: bool = False,
               names: tuple[str, ...] = FMU_NAMES,
-              announce: Callable[[str, Path], None] | None = None) -> list[BuiltFmu]:
+              announce: Callable[[str, Path], None] | None = None, output: Output | None = None) -> list[BuiltFmu]:
         """FMUs ``names`` in ``out_dir`` (default: ``default_out``), each built unless a current one is
         there already, or always with ``force``; ``announce(name, folder)`` before each build (a build
-        takes seconds: the caller says so)."""
+        takes seconds: the caller says so). ``output``: the orchestrator's output rule (checks each
+        target before reading it, writes it aside and renames it); by default an FMU is written aside
+        and renamed into place (``write_fmu``)."""
         folder = Path(self.default_out if out_dir is None else out_dir)
         built = []
         for name in names:
             guid = self.expected_guid(name)
             path = folder / f"{name}.fmu"
+            if output is not None:
+                output.check(path)  # before reading it: a FIFO in its place would block the zip reader
             if not force and path.exists() and self.is_complete(path, name, guid):
                 built.append(BuiltFmu(name, path, guid, rebuilt=False))
             else:
                 if announce is not None:
                     announce(name, folder)
-                built.append(BuiltFmu(name, self.build_one(name, guid, folder), guid, rebuilt=True))
+                entries = self.build_one(name, guid)
+                write_fmu(path, entries, output.replacing if output is not None else None)
+                built.append(BuiltFmu(name, path, guid, rebuilt=True))
         return built
+
+
+class Output(Protocol):
+    """Where a builder may write, and how (orchestrator/support/output.py: ``FmuOutput``)."""
+
+    def check(self, target: Path) -> None:
+        """Raise (an ``OSError`` or ``ValueError`` subclass, one line) if ``target`` must not be replaced."""
+
+    def replacing(self, target: Path) -> ContextManager[Path]:
+        """A temporary path beside ``target`` to write, renamed onto it when complete and synced."""
 
 
 def fmu_guid(path: Path) -> str | None:
@@ -122,8 +138,15 @@ def _zip_entry(name: str) -> zipfile.ZipInfo:
     return info
 
 
-def write_fmu(target: Path, entries: dict[str, bytes]) -> Path:
-    """Write an FMU archive reproducibly (sorted entries, fixed timestamps) aside, then move it into place."""
+def write_fmu(target: Path, entries: dict[str, bytes],
+              replacing: Callable[[Path], ContextManager[Path]] | None = None) -> Path:
+    """Write an FMU archive reproducibly (sorted entries, fixed timestamps) aside, then move it into place
+    (``replacing``: the output rule's way, which also syncs it; by default a rename)."""
+    if replacing is not None:
+        with replacing(target) as partial, zipfile.ZipFile(partial, "w") as archive:
+            for entry in sorted(entries):
+                archive.writestr(_zip_entry(entry), entries[entry])
+        return target
     target.parent.mkdir(parents=True, exist_ok=True)
     # one name per process: two runs that find the FMUs out of date build them side by side, each
     # renaming its own complete file into place (the last one wins; both are the same FMU)

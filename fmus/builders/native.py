@@ -35,7 +35,7 @@ from pathlib import Path
 from xml.etree.ElementTree import Element, SubElement
 
 import fmus
-from fmus.builders.base import DEFAULT_OUT, PACKAGE_DIR, Builder, BuildError, slave_instance, write_fmu
+from fmus.builders.base import DEFAULT_OUT, PACKAGE_DIR, Builder, BuildError, slave_instance
 from fmus.builders.pythonfmu import bundled_sources
 from fmus.builders.toolchain import (CFLAGS, FMI_HEADERS, HEADERS, LIBS, NATIVE_SOURCES, compile_binary, fmi_headers,
                                      universal_binary)
@@ -226,7 +226,7 @@ class NativeBuilder(Builder):
             entries[f"sources/{file}"] = (NATIVE_SOURCES / file).read_bytes()
         return entries
 
-    def build_one(self, name: str, guid: str, out_dir: Path) -> Path:
+    def build_one(self, name: str, guid: str) -> dict[str, bytes]:
         slave = slave_instance(name)
         files, headers = sources_of(name, self.fmi_version), self.generated_headers(slave, guid)
         with tempfile.TemporaryDirectory(prefix=f"platoon-native{self.fmi_version}-") as scratch:
@@ -238,4 +238,4 @@ class NativeBuilder(Builder):
                 binaries = {entry: thin[platforms[0]] if len(platforms) == 1
                             else universal_binary([thin[platform] for platform in platforms])
                             for entry, platforms in self.binary_entries(name).items()}
-        return write_fmu(out_dir / f"{name}.fmu", self.entries(name, slave, guid, binaries))
+        return self.entries(name, slave, guid, binaries)

@@ -23,7 +23,7 @@ from pathlib import Path
 import pythonfmu  # noqa: F401
 
 import fmus
-from fmus.builders.base import DEFAULT_OUT, LINK_FMU, LIVE_FMU, PACKAGE_DIR, ROOT, Builder, BuildError, slave_instance, write_fmu
+from fmus.builders.base import DEFAULT_OUT, LINK_FMU, LIVE_FMU, PACKAGE_DIR, ROOT, Builder, BuildError, slave_instance
 from fmus.modeldescription.fmi2 import guid_for, model_description
 from fmus.platforms import binary_entry
 
@@ -90,7 +90,7 @@ class PythonFmuBuilder(Builder):
         required = {binary_entry(name, 2), f"resources/{name}.py"}
         return required | {f"resources/{source.relative_to(ROOT).as_posix()}" for source in bundled_sources(name)}
 
-    def build_one(self, name: str, guid: str, out_dir: Path) -> Path:
+    def build_one(self, name: str, guid: str) -> dict[str, bytes]:
         from fmus.documentation import documentation_html  # only to build (html.entities: start-up time of every run)
 
         version = fmus.__version__
@@ -116,4 +116,4 @@ class PythonFmuBuilder(Builder):
             entries[f"resources/{path.relative_to(ROOT).as_posix()}"] = path.read_bytes()
         entries["modelDescription.xml"] = model_description(slave, guid, version)
         entries["documentation/index.html"] = documentation_html(slave, version).encode()
-        return write_fmu(out_dir / f"{name}.fmu", entries)
+        return entries

@@ -72,6 +72,10 @@ def perform(task: dict[str, Any]) -> dict[str, Any]:
         from .flatness import callgrind_target
 
         return callgrind_target(task["n"], task["steps"], task["client"], fmu_dir, task.get("engine", "native"))
+    if kind == "sweep-bookkeeping":
+        from .sweep_bookkeeping import measure
+
+        return measure(task["points"], task.get("first_run_only", False))
     raise ValueError(f"unknown task kind {kind!r}")
 
 

@@ -4,7 +4,7 @@ summary, layout and optional monolithic comparison), linearize a config."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
@@ -13,6 +13,9 @@ from orchestrator.cli.options import RunOptions
 from orchestrator.cli.running import RUN_ENGINES, TRACE_WRITER_CHOICES, run_command
 from orchestrator.components.kinds import FMU_KINDS
 from orchestrator.scenario.config import ConfigError
+
+if TYPE_CHECKING:
+    from orchestrator.support.output import OwnFiles
 
 
 def build(
@@ -23,26 +26,41 @@ def build(
     """Build the Vehicle, VirtualTarget, Link and LiveVehicle FMUs, and the native Vehicle, VirtualTarget and Link into OUT/native (FMI 2.0) and OUT/fmi3 (FMI 3.0) (only when their sources changed)."""
     from fmus.builders import ALL_FMUS, PYTHONFMU
 
+    from orchestrator.cli.common import output_rule
+    from orchestrator.support.output import OwnFiles
+
+    rule = OwnFiles(_build_inputs(), "build --out")  # never a source, a FIFO or a device; aside, synced, renamed
     try:
-        built_fmus = PYTHONFMU.build(out_dir, force=force, names=ALL_FMUS)
+        with output_rule():
+            built_fmus = PYTHONFMU.build(out_dir, force=force, names=ALL_FMUS, output=rule)
     except OSError as error:  # a full disk, a read-only folder ...: the FMUs already in place are untouched
         where = f" {error.filename}" if error.filename else ""
         fail(2, f"build --out {out_dir}: cannot write the FMUs{where}: {error.strerror or error}")
     for built in built_fmus:
         state = "built" if built.rebuilt else "up to date"
         out.print(f"{built.path}  {built.guid}  ({state})", soft_wrap=True)
-    _build_native(out_dir, force, all_platforms)
+    _build_native(out_dir, force, all_platforms, rule)
 
 
-def _build_native(out_dir: Path, force: bool, all_platforms: bool = False) -> None:
+def _build_inputs() -> tuple[Path, ...]:
+    """What `platoon build` reads: every file of the fmus package (slaves, models, C sources, builders)."""
+    from fmus.builders.base import PACKAGE_DIR
+
+    return tuple(path for path in PACKAGE_DIR.rglob("*") if path.is_file() and "__pycache__" not in path.parts)
+
+
+def _build_native(out_dir: Path, force: bool, all_platforms: bool = False, rule: OwnFiles | None = None) -> None:
     """The native twins into OUT/native (FMI 2.0) and OUT/fmi3 (FMI 3.0), both by fmus/builders/native.py,
     with this machine's binary or every platform's; no compiler is one line, not a failure."""
     from fmus.builders import FMU_NAMES, LINK_FMU, BuildError, NativeBuilder, NoCompiler
 
+    from orchestrator.cli.common import output_rule
+
     names = FMU_NAMES + (LINK_FMU,)
     try:
-        built_fmus = NativeBuilder(2, all_platforms).build(out_dir / "native", force=force, names=names)
-        built_fmus += NativeBuilder(3, all_platforms).build(out_dir / "fmi3", force=force, names=names)
+        with output_rule():
+            built_fmus = NativeBuilder(2, all_platforms).build(out_dir / "native", force=force, names=names, output=rule)
+            built_fmus += NativeBuilder(3, all_platforms).build(out_dir / "fmi3", force=force, names=names, output=rule)
     except NoCompiler as error:
         err.print(f"note: {error}", soft_wrap=True)
         return

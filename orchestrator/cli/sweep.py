@@ -84,6 +84,7 @@ def sweep(
     workers: Annotated[Optional[int], typer.Option("--workers", min=1, help="runs at a time on this machine (default: its cores)")] = None,
     scheduler: Annotated[Optional[str], typer.Option("--scheduler", metavar="ADDRESS", help="run on an existing Dask cluster, e.g. tcp://10.0.0.5:8786")] = None,
     retry_failed: Annotated[bool, typer.Option("--retry-failed", help="run again the runs recorded as failed (or invalid)")] = False,
+    allow_full_disk: Annotated[bool, typer.Option("--allow-full-disk", help="start even if the runs' traces and results are estimated not to fit on the disk (the sweep stops when it is full, the runs done kept)")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only failures and the final line")] = False,
 ) -> None:
     """Run a parameter sweep (a grid and/or random samples over a base config); stop and resume at will."""
@@ -116,7 +117,7 @@ def sweep(
         executor: Executor = DaskExecutor(scheduler) if scheduler is not None else LocalExecutor(workers or _cores())
         try:
             summary = run_sweep(runs, count(spec), OutputFolder(out_dir), executor, fmu_dir, display, retry_failed,
-                                value_columns(spec))
+                                value_columns(spec), allow_full_disk)
         finally:
             display.close()
     except SweepError as error:

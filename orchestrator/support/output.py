@@ -205,3 +205,23 @@ def _is_image(path: Path) -> bool:
 
 
 IMAGE = Kind("an image (PNG, PDF or SVG, as its suffix says)", _is_image)
+
+
+@dataclass(frozen=True)
+class OwnFiles:
+    """The rule for a command whose files have names of its own in the folder it is given (``platoon
+    build --out``: Vehicle.fmu, native/Vehicle.fmu ...): such a file is replaced whatever it holds (a
+    damaged FMU is rebuilt; the names are the command's, so no ``--overwrite``), but never one of the
+    command's inputs (``protect``), never a FIFO, device or folder in its place, and only by a complete,
+    synced file renamed onto it. The builders call ``check`` before they read a target and ``replacing``
+    to write it (fmus/builders/base.py: ``Output``)."""
+
+    protect: tuple[Path, ...] = ()
+    what: str = "--out"
+
+    def check(self, target: Path) -> None:
+        check_folder(Path(target).parent, (), self.what)
+        check_target(target, overwrite=True, protect=self.protect, what=self.what)
+
+    def replacing(self, target: Path):  # a context manager yielding the aside path (``replacing`` above)
+        return replacing(target, self.what)

@@ -9,6 +9,7 @@ folder in a state the next invocation cleans up (store.py).
 
 from __future__ import annotations
 
+import itertools
 import signal
 import threading
 from dataclasses import dataclass
@@ -17,6 +18,7 @@ from typing import Any, Callable, Iterable, Iterator, Protocol
 
 from .executors import Executor, Job
 from .plan import Run
+from .space import check_space
 from .store import OutputFolder
 
 FINISHED = ("completed", "failed", "invalid")  # statuses of a run that is done (never redone unless asked)
@@ -74,16 +76,22 @@ def _is_failure(record: dict[str, Any]) -> bool:
 
 
 def run_sweep(runs: Iterable[Run], total: int, folder: OutputFolder, executor: Executor, fmu_dir: Path, events: Events,
-              retry_failed: bool = False, varied: list[str] | None = None) -> SweepSummary:
+              retry_failed: bool = False, varied: list[str] | None = None, allow_full_disk: bool = False) -> SweepSummary:
     """Run what is not done of ``runs`` (``total`` of them, streamed: never all in memory) into ``folder``
-    on ``executor``; the folder is locked throughout. ``varied``: the varied keys (the tables' columns)."""
+    on ``executor``; the folder is locked throughout. ``varied``: the varied keys (the tables' columns).
+    A sweep whose files would not fit on the disk is refused before its first run (space.py), unless
+    ``allow_full_disk``."""
     folder.acquire()
     summary = SweepSummary(total)
     varied = varied or []
+    runs = iter(runs)
+    first = next(runs, None)  # the point whose files stand for every run's in the disk estimate
+    runs = itertools.chain([first] if first is not None else [], runs)
     try:
         # a sweep killed between a commit and its row: the table catches up (and says what is done already)
         done, failed = folder.write_tables(varied, parquet=False)
         done, failed = (done - failed, 0) if retry_failed else (done, failed)
+        check_space(folder.root, first.config if first is not None else None, total - done, allow_full_disk)
         events.started(summary.total, done, failed, total - done)
 
         def commit(run: Run, outcome: dict[str, Any], trace: Path | None, index: int) -> None:

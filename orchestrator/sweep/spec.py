@@ -117,11 +117,11 @@ def load_sweep(path: str | Path) -> SweepSpec:
         _check_key(f"{where} grid", key)
         if not isinstance(values, list) or not values or not all(_is_scalar(v) for v in values):
             raise SweepError(f"{where} grid {key!r} = {values!r}: expected a non-empty list of strings, numbers or booleans")
-        seen: list[Any] = []
+        seen: set[tuple[type, Any]] = set()  # a set, not a list: a grid of 10^5 values is checked in linear time
         for value in values:
-            if any(value == other and type(value) is type(other) for other in seen):
+            if (type(value), value) in seen:  # 1 and 1.0 (or true) are different values; nan never repeats
                 raise SweepError(f"{where} grid {key!r}: {value!r} is listed twice")
-            seen.append(value)
+            seen.add((type(value), value))
 
     random = _table(raw, "random", where)
     unknown = sorted(set(random) - {"samples", "seed", "ranges"})

@@ -26,17 +26,20 @@ import io
 import json
 import os
 import re
+import sqlite3
+import tempfile
 import time
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Iterator
 
-from orchestrator.support.output import OutputError, sync_file, write_bytes
+from orchestrator.support.output import OutputError, replacing, sync_file, write_bytes
 
 from .plan import Run
 from .spec import SweepError
 
 LOCK_WAIT = 10.0  # s to wait for a folder whose previous sweep is just dying (its children go with it)
 FIXED_COLUMNS = ("status", "error", "wall_time", "trace")
+TABLE_BATCH = 1_000  # rows per SQLite insert and per parquet row group: memory bounded, whatever the sweep's size
 _VEHICLE = re.compile(r"vehicle(\d+)\.")
 
 
@@ -162,39 +165,86 @@ class OutputFolder:
     def _row(self, record: dict[str, Any]) -> dict[str, Any]:
         return {"id": record["id"], **record["values"], **{c: record[c] for c in FIXED_COLUMNS}, **record["metrics"]}
 
-    def _columns(self, varied: list[str], records: Iterable[dict[str, Any]]) -> list[str]:
-        metrics = metric_order(name for record in records for name in record["metrics"])
-        return ["id", *varied, *FIXED_COLUMNS, *metrics]
-
-    def _stored_records(self) -> list[dict[str, Any]]:
-        """Every result file of the folder, in plan order (``index``; records without one last)."""
-        records = []
-        for path in self.results.glob("*.json"):
-            try:
-                records.append(json.loads(path.read_text()))
-            except (OSError, ValueError):
-                continue  # a result file that does not read: its run is redone when the plan reaches it
-        return sorted(records, key=lambda r: (r.get("index") is None, r.get("index") or 0, r["id"]))
+    def _sorted_rows(self, scratch: Path) -> tuple[sqlite3.Connection, set[str], dict[str, set[str]], int, int]:
+        """Every result file's row, put in plan order (``index``; records without one last) by a temporary
+        SQLite table on disk (``scratch``): memory stays flat however many runs the folder holds. Returns
+        the open table, the metric names, each column's value kinds (for the parquet schema), the rows
+        and how many of them are not completed."""
+        db = sqlite3.connect(scratch)
+        db.execute("PRAGMA journal_mode = OFF")  # a scratch table: nothing to recover if we die
+        db.execute("PRAGMA synchronous = OFF")
+        db.execute("PRAGMA cache_size = -1024")  # KiB of pages held in memory; the rest stays on disk
+        # the key is the plan order: rows come out of the B-tree in order, with no sort in memory
+        db.execute("CREATE TABLE rows (late INTEGER, position INTEGER, id TEXT, row TEXT, "
+                   "PRIMARY KEY (late, position, id)) WITHOUT ROWID")
+        metrics: set[str] = set()
+        kinds: dict[str, set[str]] = {}
+        count = failed = 0
+        batch: list[tuple[int, int, str, str]] = []
+        with os.scandir(self.results) as entries:
+            for entry in entries:
+                if not entry.name.endswith(".json") or entry.name.startswith("."):
+                    continue
+                try:
+                    with open(entry.path, "rb") as stream:
+                        record = json.loads(stream.read())
+                    row = self._row(record)
+                except (OSError, ValueError, KeyError, TypeError):
+                    continue  # a result file that does not read: its run is redone when the plan reaches it
+                metrics.update(record["metrics"])
+                for column, value in row.items():
+                    kinds.setdefault(column, set()).add(_kind(value))
+                count += 1
+                failed += record["status"] != "completed"
+                index = record.get("index")
+                batch.append((index is None, index or 0, record["id"], json.dumps(row)))
+                if len(batch) >= TABLE_BATCH:
+                    db.executemany("INSERT OR REPLACE INTO rows VALUES (?, ?, ?, ?)", batch)
+                    batch.clear()
+        db.executemany("INSERT OR REPLACE INTO rows VALUES (?, ?, ?, ?)", batch)
+        return db, metrics, kinds, count, failed
 
     def write_tables(self, varied: list[str], parquet: bool = True) -> tuple[int, int]:
         """Rebuild results.csv (and results.parquet with pyarrow) from the result files; returns the rows
-        and how many of them are not completed.
-        Once when a sweep starts and once when it ends (or on sweep-plot): O(runs done), not per run."""
-        records = self._stored_records()
-        columns = self._columns(varied, records)
-        text = io.StringIO()
-        writer = csv.DictWriter(text, columns, lineterminator="\n")
-        writer.writeheader()
-        writer.writerows(self._row(r) for r in records)
-        write_atomically(self.csv, text.getvalue().encode())
+        and how many of them are not completed. Once when a sweep starts and once when it ends (or on
+        sweep-plot): O(runs done) in time, streamed (flat in memory), not per run."""
+        fd, name = tempfile.mkstemp(prefix=".tables.", suffix=".tmp", dir=self.root)  # removed on start if we die
+        os.close(fd)
+        scratch = Path(name)
+        try:
+            db, metrics, kinds, count, failed = self._sorted_rows(scratch)
+            try:
+                columns = ["id", *varied, *FIXED_COLUMNS, *metric_order(metrics)]
+
+                def rows() -> Iterator[dict[str, Any]]:
+                    for (text,) in db.execute("SELECT row FROM rows ORDER BY late, position, id"):
+                        yield json.loads(text)
+
+                self._write_csv(columns, rows())
+                if parquet:
+                    self._write_parquet(columns, kinds, rows())
+            finally:
+                db.close()
+        finally:
+            scratch.unlink(missing_ok=True)
+        return count, failed
+
+    def _write_csv(self, columns: list[str], rows: Iterable[dict[str, Any]]) -> None:
+        try:
+            with replacing(self.csv, "sweep file") as aside, open(aside, "w", newline="") as stream:
+                writer = csv.DictWriter(stream, columns, lineterminator="\n")
+                writer.writeheader()
+                writer.writerows(rows)
+        except OutputError as error:  # the runner treats a folder it cannot write as an OSError (one line)
+            raise OSError(str(error)) from None
         self._header = columns
-        if parquet:
-            self._write_parquet(columns, [self._row(r) for r in records])
-        return len(records), sum(r["status"] != "completed" for r in records)
 
     def append_row(self, record: dict[str, Any], varied: list[str]) -> None:
-        """Add ``record``'s row to results.csv (appended and synced: constant cost per run); the table is
-        rebuilt only when the row has a column the header lacks."""
+        """Add ``record``'s row to results.csv (appended: constant cost per run); the table is rebuilt
+        only when the row has a column the header lacks. Not synced: the result file is the commit (synced
+        before it is renamed), and the table is rebuilt from the result files when a sweep starts, so a
+        row a power cut cuts short is made whole by the next invocation; a reader sees each row once
+        written (it is flushed)."""
         header = getattr(self, "_header", None)
         row = self._row(record)
         if header is None or not set(row) <= set(header):
@@ -204,22 +254,59 @@ class OutputFolder:
         csv.DictWriter(line, header, lineterminator="\n").writerow(row)
         with open(self.csv, "a") as table:
             table.write(line.getvalue())
-            table.flush()
-            os.fsync(table.fileno())
 
-    def _write_parquet(self, columns: list[str], rows: list[dict[str, Any]]) -> None:
+    def _write_parquet(self, columns: list[str], kinds: dict[str, set[str]], rows: Iterable[dict[str, Any]]) -> None:
+        """results.parquet, written row group by row group (``TABLE_BATCH`` rows): flat in memory."""
         try:
             import pyarrow
             import pyarrow.parquet
         except ImportError:
             return
-        def array(values: list[Any]) -> Any:
-            try:
-                return pyarrow.array(values)
-            except (pyarrow.ArrowInvalid, pyarrow.ArrowTypeError):  # mixed types (a grid of 1 and "a"): as text
-                return pyarrow.array([None if value is None else str(value) for value in values])
+        schema = pyarrow.schema([(column, _arrow_type(pyarrow, kinds.get(column, set()))) for column in columns])
+        text = {column for column in columns if pyarrow.types.is_string(schema.field(column).type)}
 
-        table = pyarrow.table({column: array([row.get(column) for row in rows]) for column in columns})
-        sink = pyarrow.BufferOutputStream()
-        pyarrow.parquet.write_table(table, sink)
-        write_atomically(self.parquet, sink.getvalue().to_pybytes())
+        def batch_of(chunk: list[dict[str, Any]]) -> Any:
+            values = {column: [row.get(column) for row in chunk] for column in columns}
+            for column in text:  # mixed types (a grid of 1 and "a"): as text
+                values[column] = [None if value is None else str(value) for value in values[column]]
+            return pyarrow.table(values, schema=schema)
+
+        try:
+            with replacing(self.parquet, "sweep file") as aside:
+                with pyarrow.parquet.ParquetWriter(str(aside), schema) as writer:
+                    chunk: list[dict[str, Any]] = []
+                    for row in rows:
+                        chunk.append(row)
+                        if len(chunk) >= TABLE_BATCH:
+                            writer.write_table(batch_of(chunk))
+                            chunk.clear()
+                    writer.write_table(batch_of(chunk))
+        except OutputError as error:
+            raise OSError(str(error)) from None
+
+
+def _kind(value: Any) -> str:
+    """What a value is, for the column's parquet type: null, bool, int, float or str."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "bool"
+    if isinstance(value, int):
+        return "int"
+    if isinstance(value, float):
+        return "float"
+    return "str"
+
+
+def _arrow_type(pyarrow: Any, kinds: set[str]) -> Any:
+    """The parquet type of a column holding ``kinds`` of values (as pyarrow would infer from the whole column)."""
+    kinds = kinds - {"null"}
+    if not kinds:
+        return pyarrow.null()
+    if kinds == {"bool"}:
+        return pyarrow.bool_()
+    if kinds == {"int"}:
+        return pyarrow.int64()
+    if kinds <= {"int", "float"}:
+        return pyarrow.float64()
+    return pyarrow.string()
