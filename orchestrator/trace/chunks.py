@@ -7,9 +7,10 @@ core the compression leaves the run's critical path.
 
 Nothing about the file changes: the chunk is written by the ``mcap`` writer's own code, in the order
 the chunks were filled, with the bytes it would have compressed itself (``ready`` hands them over).
-At most ``PENDING`` chunks wait (the memory stays bounded, and a killed run loses no more than
-before: the worker writes everything it received before it finalizes). The writer waits for every
-pending chunk before anything else touches the file (a flush, metadata, a new channel, the end).
+At most ``PENDING`` chunks wait, so memory stays bounded. The writer waits for every pending chunk
+before anything else touches the file (the flush at least every ``FLUSH_INTERVAL``, metadata, a new
+channel, the end), so a killed run still loses at most that interval's rows, as before; a worker
+whose runner died writes everything it received, as before.
 """
 
 from __future__ import annotations
