@@ -95,11 +95,19 @@ def test_scenarios_times_whole_processes(tmp_path: Path, fmu_dir: Path) -> None:
 
 
 def test_wholerun_times_our_runs_and_libcosim_on_the_same_system(tmp_path: Path, fmu_dir: Path) -> None:
-    result = platoon("bench", "wholerun", "--n", "2", "--steps", "20", "--rounds", "1", "--out-dir", tmp_path, cwd=REPO)
+    short = tmp_path / "short.toml"  # platoon-hour's run, made short
+    short.write_text((REPO / "configs/paper/platoon.toml").read_text().replace("stop_time = 100.0", "stop_time = 0.5"))
+    result = platoon("bench", "wholerun", "--n", "2", "--steps", "20", "--rounds", "1", "--out-dir", tmp_path,
+                     "--variants", "platoon,platoon-q,platoon-start,libcosim,libcosim-outputs,libcosim-last-value,"
+                     "libcosim-file,platoon-hour", "--hour-config", short, cwd=REPO)
     data = written(result, tmp_path, "wholerun")
     assert {s["variant"] for s in data["samples"]} == set(data["variants"]) == {
-        "platoon", "platoon-q", "platoon-start", "libcosim", "libcosim-outputs", "libcosim-last-value", "libcosim-file"}
+        "platoon", "platoon-q", "platoon-start", "libcosim", "libcosim-outputs", "libcosim-last-value", "libcosim-file",
+        "platoon-hour"}
     assert all(s["wall_s"] > 0 and s["exit"] == 0 for s in data["samples"])
+    # the hour's run (here a short config's) is measured once per round, whatever N, and reported on its own
+    assert [s["n"] for s in data["samples"] if s["variant"] == "platoon-hour"] == ["platoon-hour"]
+    assert data["hour"]["wall_s"] > 0 and "platoon-hour, with its trace" in result.stdout
     assert set(data["ratios"]["2"]) >= {"platoon / libcosim", "platoon / libcosim-file", "platoon-q / libcosim",
                                         "libcosim-last-value / libcosim", "libcosim-file / libcosim"}
     assert "platoon / libcosim" in result.stdout and "(target ≤ 1.50)" in result.stdout
@@ -131,6 +139,17 @@ def test_wholerun_times_the_start_up_against_the_interpreter_and_libcosim(tmp_pa
     assert data["medians"]["2"]["platoon-first"]["first_step_s"] == first["first_step_s"]
     assert {"platoon-start / python", "platoon-start / libcosim-start", "libcosim-start / python"} <= set(data["ratios"]["2"])
     assert "start-up (10 steps)" in result.stdout and "first step" in result.stdout
+
+
+def test_wholerun_runs_each_n_for_its_own_step_count(tmp_path: Path, fmu_dir: Path) -> None:
+    """``--steps 20,10`` with ``--n 2,3``: each N runs its own count, ours and libcosim's alike (libcosim's
+    end time is checked against it); a count per N or one for all, anything else is a usage error."""
+    result = platoon("bench", "wholerun", "--fmus", "native", "--variants", "platoon-q,libcosim", "--n", "2,3",
+                     "--steps", "20,10", "--rounds", "1", "--out-dir", tmp_path, cwd=REPO)
+    data = written(result, tmp_path, "wholerun")
+    assert data["steps"] == {"2": 20, "3": 10} and "20 steps at N = 2, 10 at N = 3" in result.stdout
+    wrong = platoon("bench", "wholerun", "--n", "2,3", "--steps", "20,10,5", "--out-dir", tmp_path, cwd=REPO)
+    assert wrong.returncode == 2 and "--steps" in wrong.stderr
 
 
 def test_wholerun_compares_the_same_fmus_on_both_sides(tmp_path: Path, fmu_dir: Path) -> None:

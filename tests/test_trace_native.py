@@ -158,6 +158,33 @@ def test_native_and_python_encoders_write_the_same_file(tmp_path: Path, override
     assert messages == count * (len(components) + 1) + 2 + 2 * scenes  # + the errors; two log lines
 
 
+@pytest.mark.parametrize("flush_interval", [1e9, 0.0])  # chunks closed by size only, or by a flush after every block
+def test_chunks_compressed_on_a_thread_give_the_same_file(tmp_path: Path, monkeypatch, flush_interval: float) -> None:
+    """The writer compresses full chunks on a second thread (orchestrator/trace/chunks.py): the file is byte
+    for byte the one written when the writer's own thread compresses every chunk, metadata and log lines
+    written between chunks still waiting for their compression included."""
+    import orchestrator.trace.writer as writer_module
+
+    config = paper("platoon.count=6")
+    components = [("target", COMPONENTS["target"])] + [(f"vehicle{k}", COMPONENTS["vehicle"]) for k in range(1, 7)]
+    rows = _rows(config, components, 600, seed=5)
+    files = {}
+    for threaded in (True, False):
+        if not threaded:
+            monkeypatch.setattr(writer_module, "ChunkPipeline", lambda *arguments: None)
+        files[threaded] = tmp_path / f"{threaded}.mcap"
+        writer = TraceWriter(files[threaded], components, native=True, flush_interval=flush_interval,
+                             chunk_size=1 << 13, foxglove=FoxgloveChannels(config, components))
+        assert (writer._encoder._pipeline is not None) == threaded
+        for start in range(0, len(rows), 50):
+            writer.write_block(rows[start:start + 50])
+            writer.metadata(f"block{start}", {"rows": str(start)})
+            writer.log(float(rows[start, 0]), "Info", f"block {start}")
+        writer.close()
+    assert files[True].read_bytes() == files[False].read_bytes()
+    assert len(decoded(files[True])) == 600 * (len(components) + 1) + 12 + 2 * load(files[True]).topics["/platoon/tf"].messages
+
+
 def _refusals(tmp_path: Path, components, rows: np.ndarray, error: type[Exception]) -> dict[bool, tuple]:
     """Each encoder's (writer, error message, file bytes) after writing ``rows``, which must raise ``error``."""
     config = paper()

@@ -51,14 +51,17 @@ def rotated(items: Sequence[Any], round_: int) -> list[Any]:
 
 def interleaved(rounds: int, groups: Sequence[Any], variants: Sequence[Any],
                 measure: Callable[[Any, Any], dict[str, Any]], describe: Callable[[dict[str, Any]], str],
-                progress: Progress | None) -> list[dict[str, Any]]:
+                progress: Progress | None,
+                variants_of: Callable[[Any], Sequence[Any]] | None = None) -> list[dict[str, Any]]:
     """``measure(group, variant)`` for every group and variant once per round, variants rotated each
-    round; every result gets its ``round`` and is described to ``progress`` as it arrives."""
-    total = rounds * len(groups) * len(variants)
+    round; every result gets its ``round`` and is described to ``progress`` as it arrives.
+    ``variants_of(group)``: a group's own variants, when they are not ``variants`` for every group."""
+    chosen = variants_of or (lambda group: variants)
+    total = rounds * sum(len(chosen(group)) for group in groups)
     samples: list[dict[str, Any]] = []
     for round_ in range(rounds):
         for group in groups:
-            for variant in rotated(variants, round_):
+            for variant in rotated(chosen(group), round_):
                 result = measure(group, variant)
                 result["round"] = round_
                 samples.append(result)

@@ -22,7 +22,9 @@ finalization, exit), on the paper platoon (configs/paper/platoon.toml, Jacobi) w
   every component after each step; the baseline the earlier per-step benchmark used (docs/performance.md
   says why that was not a fair reference);
 * ``libcosim-file``: the same with libcosim's file observer (a CSV of every variable, every step): what
-  libcosim does to keep a run on disk, the second baseline of a traced run (issue 31).
+  libcosim does to keep a run on disk, the second baseline of a traced run (issue 31);
+* ``platoon-hour``: ``platoon run configs/bench/platoon100-1h.toml --out TRACE``, 100 vehicles for one
+  simulated hour with its trace (the config's own size: measured once per round, whatever N).
 
 Every process runs without ``PYTHONDONTWRITEBYTECODE``, so that it reads the bytecode cache that the
 untimed first runs wrote, as an installed tool does (compiling the modules from source each time
@@ -48,7 +50,12 @@ from .common import PAPER_CONFIGS, RESULT, BenchError, BenchUsageError, Progress
 from .scenarios import platoon_command, timed_process
 
 VARIANTS = ("platoon", "platoon-q", "platoon-start", "libcosim", "libcosim-outputs", "libcosim-last-value",
-            "libcosim-file", "before", "before-q", "before-start", "platoon-first", "python", "libcosim-start")
+            "libcosim-file", "before", "before-q", "before-start", "platoon-first", "python", "libcosim-start",
+            "platoon-hour")
+DEFAULT_VARIANTS = ("platoon", "platoon-q", "platoon-start", "libcosim", "libcosim-file", "platoon-hour")
+HOUR = "platoon-hour"  # its own config, measured once per round
+HOUR_CONFIG = Path("configs") / "bench" / "platoon100-1h.toml"
+HOUR_LIMIT = 5.0  # s of wall time the 100-vehicle hour with its trace may take (issue 31)
 START_VARIANTS = ("platoon-start", "platoon-first", "python", "libcosim-start")  # 10-step runs: the start-up
 START_STEPS = 10  # the start-up variants' run
 OBSERVER = {"libcosim": "none", "libcosim-outputs": "outputs", "libcosim-last-value": "last-value",
@@ -107,13 +114,15 @@ def write_system(n: int, steps: int, step: float, folder: Path, fmu_dir: Path, f
 
 
 def measure(variant: str, n: int, steps: int, step: float, ssd: Path, scratch: Path, fmus: str = "python",
-            before: Path | None = None) -> dict[str, Any]:
+            before: Path | None = None, hour: Path = HOUR_CONFIG) -> dict[str, Any]:
     trace = scratch / "trace.mcap"
     trace.unlink(missing_ok=True)
     ours = variant.startswith(("platoon", "before"))
-    kind = variant.split("-", 1)[1] if "-" in variant and ours else ""  # "", "q", "start" or "first"
+    kind = variant.split("-", 1)[1] if "-" in variant and ours and variant != HOUR else ""  # "", "q", "start" or "first"
     steps = START_STEPS if variant in START_VARIANTS or kind == "start" else steps
-    if ours:
+    if variant == HOUR:
+        command = [*platoon_command(), "run", str(hour), "--out", str(trace), "--fmus", fmus]
+    elif ours:
         if variant.startswith("before") and before is None:
             raise BenchUsageError(f"variant {variant} needs before=PATH (another build's platoon script)")
         sets = [arg for override in _overrides(n, steps, step) for arg in ("--set", override)]
@@ -149,19 +158,27 @@ def measure(variant: str, n: int, steps: int, step: float, ssd: Path, scratch: P
     return sample
 
 
-def run(ns: Sequence[int] = (16,), steps: int = 10_000, rounds: int = 5, variants: Sequence[str] = VARIANTS[:7],
+def run(ns: Sequence[int] = (16,), steps: int | Sequence[int] = 10_000, rounds: int = 5,
+        variants: Sequence[str] = DEFAULT_VARIANTS,
         fmu_dir: Path = DEFAULT_OUT, progress: Progress | None = None, fmus: str = "python",
-        before: Path | None = None) -> dict[str, Any]:
+        before: Path | None = None, hour: Path = HOUR_CONFIG) -> dict[str, Any]:
     """Every variant steps the same FMUs, ``fmus`` ("python": the pythonfmu FMUs, the system the issue's
     floors were set on; "native": the C twins), ours through ``platoon run --fmus`` and libcosim's
-    from an SSP of the same files."""
+    from an SSP of the same files. ``steps``: one count for every N, or one per N (the paper platoon
+    at N = 64 leaves its circle at t = 28 s, so it runs fewer steps than N = 16 in the same sitting).
+    ``hour``: the config of ``platoon-hour`` (the 100-vehicle hour)."""
+    counts = [steps] * len(ns) if isinstance(steps, int) else list(steps)
+    if len(counts) != len(ns):
+        raise BenchUsageError(f"{len(counts)} step counts for {len(ns)} vehicle counts: give one, or one per N")
+    steps_of = dict(zip(ns, counts))
     if before is None and any(v.startswith("before") for v in variants):
         raise BenchUsageError("the before* variants need --before PLATOON (another build's platoon script)")
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         raise BenchUsageError(f"unknown variant(s) {', '.join(unknown)}; expected some of {', '.join(VARIANTS)}")
-    if not CONFIG.is_file():
-        raise BenchUsageError(f"{CONFIG} not found: run from the repository")
+    for config in (CONFIG, hour) if HOUR in variants else (CONFIG,):
+        if not config.is_file():
+            raise BenchUsageError(f"{config} not found: run from the repository")
     try:
         import libcosimpy  # noqa: F401
     except ImportError:
@@ -171,47 +188,70 @@ def run(ns: Sequence[int] = (16,), steps: int = 10_000, rounds: int = 5, variant
     step = load_config(CONFIG, [])[0].simulation.step
     started = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench-wholerun-") as scratch:
-        systems = {n: write_system(n, steps, step, Path(scratch) / f"ssp-{n}", fmu_dir, fmus) for n in ns}
+        systems = {n: write_system(n, steps_of[n], step, Path(scratch) / f"ssp-{n}", fmu_dir, fmus) for n in ns}
         # one untimed 10-step run of each variant first: FMUs built and extracted, bytecode cached, files in the
         # page cache
         warm = write_system(ns[0], 10, step, Path(scratch) / "warm", fmu_dir, fmus)
-        for variant in dict.fromkeys(("platoon", "libcosim", *variants)):
+        for variant in dict.fromkeys(("platoon", "libcosim", *(v for v in variants if v != HOUR))):
             measure(variant, ns[0], 10, step, warm, Path(scratch), fmus, before)
-        samples = interleaved(rounds, list(ns), list(variants),
-                              lambda n, variant: measure(variant, n, steps, step, systems[n], Path(scratch), fmus,
-                                                         before),
+        per_n = [v for v in variants if v != HOUR]
+        groups = [*(ns if per_n else ()), *((HOUR,) if HOUR in variants else ())]
+        samples = interleaved(rounds, groups, per_n,
+                              lambda n, variant: measure(variant, n, steps_of.get(n, 1), step, systems.get(n),
+                                                         Path(scratch), fmus, before, hour),
                               lambda s: f"N={s['n']:<4} {s['variant']:<20} {s['wall_s']:7.2f} s  {s['max_rss_kib'] / 1024:6.0f} MiB",
-                              progress)
-    medians = {n: {v: {key: statistics.median(s[key] for s in samples if s["n"] == n and s["variant"] == v)
-                       for key in ("wall_s", "user_s", "sys_s", "max_rss_kib", "first_step_s")
-                       if key != "first_step_s" or v == "platoon-first"}
-                   for v in variants} for n in ns}
+                              progress, variants_of=lambda group: [HOUR] if group == HOUR else per_n)
+    medians = {n: {v: _median(samples, n, v) for v in per_n} for n in ns if per_n}
+    hour_medians = _median(samples, HOUR, HOUR) if HOUR in variants else None
     ratios: dict[int, dict[str, float]] = {}
-    for n in ns:
+    for n in medians:
         by_round = {(s["round"], s["variant"]): s["wall_s"] for s in samples if s["n"] == n}
         for name, top, bottom, *_ in (*FLOORS, *OTHER_RATIOS):
             if top in variants and bottom in variants:
                 ratios.setdefault(n, {})[name] = statistics.median(by_round[r, top] / by_round[r, bottom] for r in range(rounds))
-    return {"config": str(CONFIG), "ns": list(ns), "steps": steps, "rounds": rounds, "variants": list(variants),
+        # the same floors in CPU time (user + system): what a loaded machine leaves readable
+        cpu = {(s["round"], s["variant"]): s["user_s"] + s["sys_s"] for s in samples if s["n"] == n}
+        for name, top, bottom, _ in FLOORS:
+            if top in variants and bottom in variants:
+                ratios[n][f"{name}, CPU"] = statistics.median(cpu[r, top] / cpu[r, bottom] for r in range(rounds))
+    return {"config": str(CONFIG), "ns": list(ns), "steps": steps_of, "rounds": rounds, "variants": list(variants),
             "fmus": fmus, "before": None if before is None else str(before),
             "cli": platoon_command(), "medians": medians, "ratios": ratios,
             "floors": {name: floor for name, _, _, floor in FLOORS}, "samples": samples,
+            "hour": None if hour_medians is None else {"config": str(hour), "limit_s": HOUR_LIMIT, **hour_medians},
             "seconds": time.perf_counter() - started}
 
 
+def _median(samples: list[dict[str, Any]], group: Any, variant: str) -> dict[str, float]:
+    """Median wall, user, system time and peak RSS of one variant's samples in one group (an N, or the
+    hour), and when the first step began for ``platoon-first``."""
+    return {key: statistics.median(s[key] for s in samples if s["n"] == group and s["variant"] == variant)
+            for key in ("wall_s", "user_s", "sys_s", "max_rss_kib", "first_step_s")
+            if key != "first_step_s" or variant == "platoon-first"}
+
+
 def markdown(result: dict[str, Any]) -> str:
-    variants = result["variants"]
-    rows = [[n, *(f"{result['medians'][n][v]['wall_s']:.2f} ({result['medians'][n][v]['max_rss_kib'] / 1024:.0f})"
-                  for v in variants)] for n in result["ns"]]
+    variants = [v for v in result["variants"] if v != HOUR]
+    hour = result.get("hour")
+    tail = "" if hour is None else (
+        f"\n\nplatoon-hour, with its trace ({hour['config']}): {hour['wall_s']:.2f} s wall, "
+        f"{hour['user_s'] + hour['sys_s']:.2f} s CPU, {hour['max_rss_kib'] / 1024:.0f} MiB "
+        f"(the 100-vehicle hour's target: ≤ {hour['limit_s']:g} s), median of {result['rounds']}")
+    if not variants:
+        return tail.strip()
+    medians = result["medians"]
+    rows = [[n, *(f"{medians[n][v]['wall_s']:.2f} ({medians[n][v]['user_s'] + medians[n][v]['sys_s']:.2f}; "
+                  f"{medians[n][v]['max_rss_kib'] / 1024:.0f})" for v in variants)] for n in result["ns"]]
     names = list(dict.fromkeys(k for r in result["ratios"].values() for k in r))
     floors = result["floors"]
     ratio_rows = [[n, *(f"{result['ratios'][n][k]:.2f}" + (" (target ≤ %.2f)" % floors[k] if k in floors else "")
                         for k in names)] for n in result["ns"]]
     return (f"{result.get('fmus', 'python')} FMUs in every variant; "
-            f"whole-process wall time in s (peak RSS in MiB), median of {result['rounds']} interleaved rounds, "
-            f"{result['steps']} steps\n\n" + markdown_table(["N", *variants], rows)
+            f"whole-process wall time in s (CPU s: user + system, the trace worker's included; peak RSS in MiB), "
+            f"median of {result['rounds']} interleaved rounds, "
+            f"{_steps_text(result['steps'])}\n\n" + markdown_table(["N", *variants], rows)
             + "\n\nratios, median of the per-round ratios\n\n" + markdown_table(["N", *names], ratio_rows)
-            + start_up(result))
+            + start_up(result) + tail)
 
 
 def start_up(result: dict[str, Any]) -> str:
@@ -229,3 +269,12 @@ def start_up(result: dict[str, Any]) -> str:
                            f"(target <= {START_TARGET} s)")
         lines.append(f"N={n}: " + "; ".join(figures))
     return f"\n\nstart-up ({START_STEPS} steps), medians\n\n" + "\n".join(lines)
+
+
+def _steps_text(steps: Any) -> str:
+    """"10000 steps", or "10000 steps at N = 16, 2000 at N = 64" (``steps``: a count, or one per N)."""
+    if not isinstance(steps, dict):
+        return f"{steps} steps"
+    if len(set(steps.values())) == 1:
+        return f"{next(iter(steps.values()))} steps"
+    return ", ".join(f"{count}{' steps' if i == 0 else ''} at N = {n}" for i, (n, count) in enumerate(steps.items()))

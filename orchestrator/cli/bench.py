@@ -165,13 +165,14 @@ def bench_scenarios(
 
 def bench_wholerun(
     n: Counts = "16",
-    steps: Steps = 10_000,
-    variants: Annotated[str, typer.Option(metavar="VARIANT,...", help="comma-separated: platoon (default run, traced, table), platoon-q (-q --trace-every 100), platoon-start (10 steps), libcosim (no observer), libcosim-outputs (time series of every output), libcosim-last-value, libcosim-file (CSV of every variable, every step); before, before-q, before-start: the same with --before's script; start-up (10 steps): platoon-first (-q -v: when the first step began), python (python -c pass), libcosim-start")] = "platoon,platoon-q,platoon-start,libcosim,libcosim-outputs,libcosim-last-value,libcosim-file",
+    steps: Annotated[str, typer.Option(metavar="STEPS[,...]", help="communication steps of 0.01 s per run: one count, or one per --n (e.g. --n 16,64 --steps 10000,2000)")] = "10000",
+    variants: Annotated[str, typer.Option(metavar="VARIANT,...", help="comma-separated: platoon (default run, traced, table), platoon-q (-q --trace-every 100), platoon-start (10 steps), libcosim (no observer), libcosim-outputs (time series of every output), libcosim-last-value, libcosim-file (CSV of every variable, every step); before, before-q, before-start: the same with --before's script; start-up (10 steps): platoon-first (-q -v: when the first step began), python (python -c pass), libcosim-start; platoon-hour (configs/bench/platoon100-1h.toml with its trace, once per round)")] = "platoon,platoon-q,platoon-start,libcosim,libcosim-file,platoon-hour",
     rounds: Rounds = 5,
     out_dir: OutDir = Path("runs/bench"),
     quiet: Quiet = False,
     fmus: Annotated[str, typer.Option("--fmus", metavar="<python|native>", help="the FMUs every variant steps: python (pythonfmu, the system the floors were set on) or native (the C twins)")] = "python",
     before: Annotated[Optional[Path], typer.Option("--before", metavar="PLATOON", help="another build's platoon script, for the before* variants (a change against what it replaces, in one sitting)")] = None,
+    hour_config: Annotated[Path, typer.Option("--hour-config", metavar="CONFIG", help="the config platoon-hour runs")] = Path("configs/bench/platoon100-1h.toml"),
 ) -> None:
     """Whole `platoon run` processes against libcosim running the same system from an SSP (0 threads)."""
     from orchestrator.bench import wholerun as suite
@@ -180,10 +181,18 @@ def bench_wholerun(
     if fmus not in FMU_KINDS:
         fail(2, f"--fmus {fmus!r}: expected one of {', '.join(FMU_KINDS)}")
     kinds, counts = _csv("--variants", variants, suite.VARIANTS), _counts(n)
+    try:
+        per_n = [int(part) for part in steps.split(",")]
+    except ValueError:
+        per_n = []
+    if not per_n or min(per_n) < 1 or len(per_n) not in (1, len(counts)):
+        fail(2, f"--steps {steps!r}: expected one step count of at least 1, or one per --n value, e.g. 10000,2000")
     if before is not None and not before.is_file():
         fail(2, f"--before {before}: no such file")
-    run_bench("wholerun", lambda progress: suite.run(counts, steps, rounds, kinds, progress=progress, fmus=fmus,
-                                                  before=before),
+    if "platoon-hour" in kinds and not hour_config.is_file():
+        fail(2, f"--hour-config {hour_config}: no such file")
+    run_bench("wholerun", lambda progress: suite.run(counts, per_n if len(per_n) > 1 else per_n[0], rounds, kinds,
+                                                  progress=progress, fmus=fmus, before=before, hour=hour_config),
            suite.markdown, out_dir, quiet)
 
 

@@ -195,21 +195,34 @@ static int format_double(char *out, double x)
     static const char pairs[] = "00010203040506070809101112131415161718192021222324252627282930313233343536373839"
                                 "40414243444546474849505152535455565758596061626364656667686970717273747576777879"
                                 "8081828384858687888990919293949596979899";
-    char text[20];
+    char text[24];
     int n = 0;
-    while (c >= 100) {
-        unsigned pair = (unsigned)(c % 100);
-        c /= 100;
-        text[19 - n++] = pairs[2 * pair + 1];
-        text[19 - n++] = pairs[2 * pair];
+    /* eight digits at a time from 32-bit halves: their divisions do not wait on each other (one chain
+     * of 64-bit divisions by 100 was a fifth of the encoder's time) */
+    while (c >= 100000000) {
+        uint64_t high = c / 100000000;
+        uint32_t low = (uint32_t)(c - high * 100000000), upper = low / 10000, lower = low % 10000;
+        c = high;
+        memcpy(text + 16 - n, pairs + 2 * (upper / 100), 2);
+        memcpy(text + 18 - n, pairs + 2 * (upper % 100), 2);
+        memcpy(text + 20 - n, pairs + 2 * (lower / 100), 2);
+        memcpy(text + 22 - n, pairs + 2 * (lower % 100), 2);
+        n += 8;
     }
-    if (c >= 10) {
-        text[19 - n++] = pairs[2 * c + 1];
-        text[19 - n++] = pairs[2 * c];
+    uint32_t rest = (uint32_t)c; /* below 10^8 */
+    while (rest >= 100) {
+        unsigned pair = rest % 100;
+        rest /= 100;
+        n += 2;
+        memcpy(text + 24 - n, pairs + 2 * pair, 2);
+    }
+    if (rest >= 10) {
+        n += 2;
+        memcpy(text + 24 - n, pairs + 2 * rest, 2);
     } else {
-        text[19 - n++] = (char)('0' + c);
+        text[24 - ++n] = (char)('0' + rest);
     }
-    const char *digits = text + 20 - n;
+    const char *digits = text + 24 - n;
     int exponent = scale + n - 1; /* of the first digit */
     if (exponent >= -5 && exponent <= 15) {
         if (exponent < 0) {

@@ -27,6 +27,7 @@ from mcap.writer import CompressionType, Writer
 
 from fmus.errors import ComponentError
 from .channel_copy import write_copy
+from .chunks import ChunkPipeline, CompressedChunk
 from .encoding import ComponentMessages, LiveStream, register_mcap
 from .format import CHUNK_SIZE, FLUSH_INTERVAL, BLOCK
 from .native_rows import REFUSED_ROW, native_encoder, row_values, rows_of
@@ -72,26 +73,50 @@ _INDEX_ENTRY = struct.Struct("<QQ")
 ZSTD_LEVEL = 1  # zstd's fastest regular level: 2-3x faster than the default 3 on traces, and smaller (docs/performance.md)
 
 
-def _fast_compression() -> None:
+def _fast_compression() -> "_LeveledZstd | None":
     """Make the ``mcap`` writer compress chunks at ``ZSTD_LEVEL`` (it calls ``zstandard.compress``, level 3).
 
     Compressing took half of the encoding time of a trace at level 3; any zstd reader reads either.
-    If a future ``mcap`` release no longer compresses through a module-level ``zstandard``, its default stays.
+    If a future ``mcap`` release no longer compresses through a module-level ``zstandard``, its default
+    stays (and returns None: chunks are then compressed in the writer's thread, by the writer).
     """
     import mcap.writer
 
     library = getattr(mcap.writer, "zstandard", None)
-    if library is None or isinstance(library, _LeveledZstd):
-        return
-    mcap.writer.zstandard = _LeveledZstd(library)
+    if library is None:
+        return None
+    if not isinstance(library, _LeveledZstd):
+        library = mcap.writer.zstandard = _LeveledZstd(library)
+    return library
 
 
 class _LeveledZstd:
-    """The ``zstandard`` module as ``mcap.writer`` uses it, with ``compress`` at ``ZSTD_LEVEL``."""
+    """The ``zstandard`` module as ``mcap.writer`` uses it, with ``compress`` at ``ZSTD_LEVEL``.
+
+    ``prepared``: a chunk's records and their compression, done on the pipeline's thread
+    (orchestrator/trace/chunks.py); ``compress`` of those very records returns it. One compressor
+    per thread: a ``ZstdCompressor`` used by two threads at once crashes.
+    """
 
     def __init__(self, library: Any) -> None:
+        import threading
+
         self._library = library
-        self.compress = library.ZstdCompressor(level=ZSTD_LEVEL).compress
+        self._local = threading.local()
+        self.prepared: tuple[bytes, bytes] | None = None
+
+    def compressor(self) -> Any:
+        """This thread's compress function at ``ZSTD_LEVEL``."""
+        compress = getattr(self._local, "compress", None)
+        if compress is None:
+            compress = self._local.compress = self._library.ZstdCompressor(level=ZSTD_LEVEL).compress
+        return compress
+
+    def compress(self, data: bytes) -> bytes:
+        prepared = self.prepared
+        if prepared is not None and prepared[0] is data:
+            return prepared[1]
+        return self.compressor()(data)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._library, name)
@@ -143,7 +168,7 @@ class _Encoder:
         fast: bool = True,
         native: bool = False,
     ) -> None:
-        _fast_compression()
+        zstd = _fast_compression()
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(self.path, "wb")
@@ -158,6 +183,9 @@ class _Encoder:
         write_copy(self._writer)  # schemas and channels outside the chunks, for recovery (trace/channel_copy.py)
         self._chunk_size = chunk_size
         self._fast = _fast_path(self._writer) if fast else None
+        # full chunks compressed on a thread (orchestrator/trace/chunks.py), on the fast path only
+        self._pipeline = ChunkPipeline(zstd.compressor, self._write_chunk) if self._fast and zstd else None
+        self._zstd = zstd
         # the C encoder for rows given as float64 values (orchestrator/trace/native_rows.py), on the fast path only
         self.native = native_encoder(self.messages, self._channels, foxglove) if native and self._fast else None
         self.width = 1 + sum(len(outputs) for _, outputs in self.components)
@@ -179,7 +207,7 @@ class _Encoder:
             for channel, data in messages:
                 write(channel_id=channel, log_time=stamp, publish_time=stamp, sequence=sequence, data=data)
             return
-        builder, statistics, finalize = fast
+        builder, statistics, _ = fast
         buffer = builder.record_writer._buffer  # a new one after every chunk
         indexes = builder.message_indices
         counts = statistics.channel_message_counts
@@ -202,14 +230,37 @@ class _Encoder:
         _cover(statistics, stamp, statistics.message_count == 0)  # the file's
         statistics.message_count += len(messages)
         if buffer.tell() > self._chunk_size:
+            self._chunk_full()
+
+    def _chunk_full(self) -> None:
+        """The open chunk is full: compress it on the pipeline's thread (or here) and start the next."""
+        if self._pipeline is None:
+            self._fast[2]()
+        else:
+            self._pipeline.submit(self._fast[0])
+        self._pack_indexes()
+
+    def _write_chunk(self, chunk: CompressedChunk) -> None:
+        """Have the ``mcap`` writer write a chunk compressed on the pipeline's thread, as its own."""
+        builder, _, finalize = self._fast
+        self._zstd.prepared = (chunk.data, chunk.compressed)
+        self._writer._Writer__chunk_builder = chunk  # type: ignore[attr-defined]
+        try:
             finalize()
-            self._pack_indexes()
+        finally:
+            self._writer._Writer__chunk_builder = builder  # type: ignore[attr-defined]
+            self._zstd.prepared = None
+
+    def _drain(self) -> None:
+        """Write the chunks still being compressed: before anything else goes to the file."""
+        if self._pipeline is not None:
+            self._pipeline.drain()
 
     def float_rows(self, data: Any) -> tuple[int, float | None, int | None, int]:
         """Write rows of float64 values (``data``: a C-contiguous array or raw bytes, ``width`` per row) with
         the C encoder; close chunks as they fill. Returns (rows written, time of the last, the row it
         refused or None, why: ``native_rows.REFUSED_ROW`` or ``REFUSED_ERRORS``)."""
-        builder, statistics, finalize = self._fast
+        builder, statistics, _ = self._fast
         encode = self.native.encode
         total = memoryview(data).nbytes // (8 * self.width)
         row, written_here, last_time = 0, 0, None
@@ -231,8 +282,7 @@ class _Encoder:
                 self.last_time = last_time = time
                 written_here += written
             if buffer.tell() > self._chunk_size:
-                finalize()
-                self._pack_indexes()
+                self._chunk_full()
             if refused:
                 return written_here, last_time, row, refused
         self.tick()
@@ -272,6 +322,7 @@ class _Encoder:
     def tick(self) -> None:
         now = clock.monotonic()
         if now - self._last_chunk >= self.flush_interval:
+            self._drain()
             flush = getattr(self._writer, "flush", None)
             if flush is not None:  # mcap >= 1.3: finishes the chunk and flushes the stream
                 flush()
@@ -287,25 +338,33 @@ class _Encoder:
 
     def live_channel(self, stream: LiveStream) -> int:
         """Register a live link's raw message channel (``LiveStream``); returns its channel id."""
+        self._drain()  # the writer may close the open chunk: after the pending ones
         return register_mcap(self._writer, stream.spec)
 
     def live_message(self, channel: int, stream: LiveStream, time: float, values: Sequence[float]) -> None:
         self._write(channel, int(round(time * 1e9)), stream.encode(time, values))
 
     def metadata(self, name: str, values: dict[str, str]) -> None:
+        self._drain()
         self._writer.add_metadata(name, values)
         self._file.flush()
 
     def close(self) -> None:
         try:
+            self._drain()
             self._writer.finish()
         except OSError:
             self.abandon()
             raise
+        finally:
+            if self._pipeline is not None:
+                self._pipeline.close()
         self._file.close()
 
     def abandon(self) -> None:
         """Close the file without finishing it (after a write failure): no more bytes are written."""
+        if self._pipeline is not None:
+            self._pipeline.close()  # chunks still being compressed are not written
         try:
             self._file.close()  # closes the descriptor even when flushing the buffered tail fails
         except OSError:  # the tail could not be written either; the complete chunks stay

@@ -1,0 +1,118 @@
+"""Full chunks compressed on a thread while the next chunk is encoded (the trace writer's pipeline).
+
+zstd takes about as much CPU as encoding a trace's rows in C (docs/performance.md: "Where a traced
+run's time goes"). ``zstandard`` releases the GIL while it compresses, so a second thread does it
+while the writer's thread encodes the next chunk (or steps the next block, in process): on an idle
+core the compression leaves the run's critical path.
+
+Nothing about the file changes: the chunk is written by the ``mcap`` writer's own code, in the order
+the chunks were filled, with the bytes it would have compressed itself (``ready`` hands them over).
+At most ``PENDING`` chunks wait, so memory stays bounded. The writer waits for every pending chunk
+before anything else touches the file (the flush at least every ``FLUSH_INTERVAL``, metadata, a new
+channel, the end), so a killed run still loses at most that interval's rows, as before; a worker
+whose runner died writes everything it received, as before.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections import deque
+from typing import Any, Callable
+
+PENDING = 2  # full chunks that may wait for their compression; the writer waits for the oldest beyond
+_SENTINEL = None
+
+
+class CompressedChunk:
+    """A full chunk's records and bookkeeping, compressed on the thread; stands in for the ``mcap``
+    writer's chunk builder while that writer writes the chunk (it reads exactly these attributes)."""
+
+    __slots__ = ("data", "message_indices", "message_start_time", "message_end_time", "num_messages", "compressed",
+                 "error", "done")
+
+    def __init__(self, builder: Any) -> None:
+        self.message_indices = builder.message_indices
+        self.message_start_time = builder.message_start_time
+        self.message_end_time = builder.message_end_time
+        self.num_messages = builder.num_messages
+        self.data: bytes = builder.end()  # the records; the builder's buffer starts afresh
+        builder.message_indices = {}
+        builder.num_messages = 0
+        builder.message_start_time = builder.message_end_time = 0
+        self.compressed: bytes | None = None
+        self.error: BaseException | None = None
+        self.done = threading.Event()
+
+    @property
+    def count(self) -> int:
+        return len(self.data)
+
+    def end(self) -> bytes:
+        return self.data
+
+    def reset(self) -> None:
+        """The writer resets the builder it wrote; this one is simply dropped."""
+
+
+class ChunkPipeline:
+    """Compresses full chunks on one daemon thread, in order; ``write`` hands each, once compressed, to
+    ``finalize`` (the ``mcap`` writer's chunk writing, with ``ready`` telling its compressor the result).
+
+    ``compressor``: makes the thread's compress function (one ``ZstdCompressor`` per thread: they are
+    not thread-safe).
+    """
+
+    def __init__(self, compressor: Callable[[], Callable[[bytes], bytes]], finalize: Callable[[CompressedChunk], None]) -> None:
+        self._make = compressor
+        self._finalize = finalize
+        self._pending: deque[CompressedChunk] = deque()
+        self._jobs: queue.SimpleQueue[CompressedChunk | None] = queue.SimpleQueue()
+        self._thread: threading.Thread | None = None
+
+    def submit(self, builder: Any) -> None:
+        """Take the full chunk out of ``builder`` (which goes on with an empty one) and compress it;
+        write the chunks whose compression is done, waiting for the oldest beyond ``PENDING``."""
+        if builder.num_messages == 0:
+            return
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._serve, name="trace-compress", daemon=True)
+            self._thread.start()
+        chunk = CompressedChunk(builder)
+        self._pending.append(chunk)
+        self._jobs.put(chunk)
+        self._write(keep=PENDING)
+
+    def drain(self) -> None:
+        """Write every pending chunk (waiting for its compression): before anything else goes to the file."""
+        self._write(keep=0)
+
+    def _write(self, keep: int) -> None:
+        """Write the compressed chunks in order, waiting for the oldest while more than ``keep`` are pending."""
+        pending = self._pending
+        while pending and (len(pending) > keep or pending[0].done.is_set()):
+            chunk = pending.popleft()
+            chunk.done.wait()
+            if chunk.error is not None:
+                raise chunk.error
+            self._finalize(chunk)
+
+    def close(self) -> None:
+        """Stop the thread (pending chunks are dropped: call ``drain`` first to keep them)."""
+        self._pending.clear()
+        if self._thread is not None:
+            self._jobs.put(_SENTINEL)
+            self._thread.join()
+            self._thread = None
+
+    def _serve(self) -> None:
+        compress = self._make()
+        while True:
+            chunk = self._jobs.get()
+            if chunk is _SENTINEL:
+                return
+            try:
+                chunk.compressed = compress(chunk.data)
+            except BaseException as error:  # e.g. MemoryError: raised by the writer's thread when it writes this chunk
+                chunk.error = error
+            chunk.done.set()
