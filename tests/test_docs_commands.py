@@ -99,6 +99,9 @@ SPECIAL: dict[tuple[str, str], Shorten | Parse | Skip | Expect] = {
     ("README.md", ".venv/bin/python -m pytest -q"): Shorten(
         ".venv/bin/python -m pytest -q --collect-only",
         "the whole suite takes minutes (and includes this test); collecting it imports every test module"),
+    ("README.md", ".venv/bin/python -m pytest -q -m slow --dist loadfile"): Shorten(
+        ".venv/bin/python -m pytest -q -m slow --dist loadfile --collect-only",
+        "the slow tests take ~10 min (CI runs them); collecting them imports their modules and selects them"),
     ("README.md", ".venv/bin/platoon run configs/hil/m3pi_live3.toml"): Shorten(
         ".venv/bin/platoon run configs/hil/m3pi_live3.toml" + SHORT,
         "a live run is paced to the wall clock: 60 s as written"),
