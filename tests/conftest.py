@@ -1,7 +1,17 @@
-"""Shared fixtures: FMUs built once per test session, and quick scenario runs."""
+"""Shared fixtures: FMUs built once per test session, and quick scenario runs.
+
+The suite runs in parallel (pytest-xdist, pyproject's addopts): each worker has its own session, so a
+session fixture runs once per worker. What workers share (the repository's build/ folder) is built
+under ``shared_build``'s lock: the first worker builds, the others wait and find it up to date. A test
+that must listen on a fixed port holds ``fixed_ports``; any other takes a free port (orchestrator.bench.hil.free_port).
+"""
 
 from __future__ import annotations
 
+import fcntl
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -31,11 +41,34 @@ value = -100.0
 """
 
 
+@contextmanager
+def shared_build() -> Iterator[None]:
+    """Held while building into the repository's build/ folder: parallel workers (and two test runs in
+    one checkout) would otherwise compile the same FMUs side by side, each a few seconds of both cores.
+    Builds are safe without it (each FMU is renamed into place whole); the lock only saves the work."""
+    folder = REPO / "build"
+    folder.mkdir(exist_ok=True)
+    with open(folder / ".tests-build.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file is closed, or the process dies
+        yield
+
+
+@contextmanager
+def fixed_ports() -> Iterator[None]:
+    """Held while a test listens on a fixed, documented port (a HIL config's tcp/127.0.0.1:7447, a live
+    view's port) instead of a free one: such tests run one at a time across parallel workers, and across
+    test runs of other checkouts on this machine (the lock file is in the system's temporary folder)."""
+    with open(Path(tempfile.gettempdir()) / "platoon-cosim-tests-fixed-ports.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield
+
+
 @pytest.fixture(scope="session")
 def fmu_dir() -> Path:
     """The FMUs, built (or found up to date) in the repository's build folder, as users get them."""
     out = REPO / DEFAULT_OUT
-    PYTHONFMU.build(out, names=FMU_NAMES + (LINK_FMU,))
+    with shared_build():
+        PYTHONFMU.build(out, names=FMU_NAMES + (LINK_FMU,))
     return out
 
 
@@ -46,7 +79,8 @@ def native_fmu_dir() -> Path:
 
     out = REPO / NATIVE_OUT
     try:
-        NATIVE_FMI2.build(out, names=FMU_NAMES + (LINK_FMU,))
+        with shared_build():
+            NATIVE_FMI2.build(out, names=FMU_NAMES + (LINK_FMU,))
     except NoCompiler as error:
         pytest.skip(str(error))
     return out

@@ -26,10 +26,13 @@ import signal
 import subprocess
 import sys
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+
+from tests.conftest import fixed_ports, shared_build
 
 REPO = Path(__file__).resolve().parents[1]
 DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
@@ -96,6 +99,9 @@ SPECIAL: dict[tuple[str, str], Shorten | Parse | Skip | Expect] = {
     ("README.md", ".venv/bin/python -m pytest -q"): Shorten(
         ".venv/bin/python -m pytest -q --collect-only",
         "the whole suite takes minutes (and includes this test); collecting it imports every test module"),
+    ("README.md", ".venv/bin/python -m pytest -q -m slow --dist loadfile"): Shorten(
+        ".venv/bin/python -m pytest -q -m slow --dist loadfile --collect-only",
+        "the slow tests take ~10 min (CI runs them); collecting them imports their modules and selects them"),
     ("README.md", ".venv/bin/platoon run configs/hil/m3pi_live3.toml"): Shorten(
         ".venv/bin/platoon run configs/hil/m3pi_live3.toml" + SHORT,
         "a live run is paced to the wall clock: 60 s as written"),
@@ -251,7 +257,16 @@ def _env(root: Path) -> dict[str, str]:
 
 @pytest.fixture(scope="module")
 def tree(tmp_path_factory: pytest.TempPathFactory, fmu_dir: Path) -> Path:
-    """A copy of this working tree with the built FMUs (no .git, runs or caches) and ``.venv`` linked."""
+    """A copy of this working tree with the built FMUs (no .git, runs or caches) and ``.venv`` linked.
+    The native FMUs are built first where a compiler is (docs/fmus.md unzips one): a block must not
+    depend on another having run before it in the same copy (the blocks run on parallel workers)."""
+    from fmus.builders import NATIVE_FMI2, NATIVE_OUT, NoCompiler
+
+    try:
+        with shared_build():
+            NATIVE_FMI2.build(REPO / NATIVE_OUT)
+    except NoCompiler:
+        pass  # the blocks that need them skip, saying so
     root = tmp_path_factory.mktemp("docs") / "repo"
     skip = shutil.ignore_patterns(".git", "runs", "build", "__pycache__", ".venv", "*.mcap", "*.mcap.partial",
                                   ".pytest_cache", "node_modules")
@@ -308,7 +323,20 @@ def parse_only(command: str, root: Path) -> None:
         load_config(root / context.params["config"], context.params.get("overrides") or [])
 
 
-@pytest.mark.parametrize("block", BLOCKS, ids=[f"{b.doc}:{b.line}" for b in BLOCKS])
+# Blocks that listen on a fixed port as documented (the HIL configs' tcp/127.0.0.1:7447, a --live
+# server): run one at a time, across parallel workers too (tests/conftest.py: fixed_ports)
+FIXED_PORT = re.compile(r"m3pi-emulator|--live\b|configs/hil/|ros2\.publish")
+# Blocks that are long by nature, run as written by the slow tests only (pytest -m slow; CI runs them)
+SLOW = {"platoon build --all-platforms --out /tmp/release":
+        "cross-compiles five binaries with Zig: a minute (tests/test_platforms.py, also slow, runs them)"}
+
+
+def block_param(block: Block):
+    slow = any(bare(command) in SLOW for command in block.commands)
+    return pytest.param(block, marks=[pytest.mark.slow] if slow else [], id=f"{block.doc}:{block.line}")
+
+
+@pytest.mark.parametrize("block", [block_param(block) for block in BLOCKS])
 def test_doc_block_runs(block: Block, tree: Path, tmp_path: Path) -> None:
     setup = SETUP.get((block.doc, block.line))
     if setup is not None:
@@ -321,14 +349,15 @@ def test_doc_block_runs(block: Block, tree: Path, tmp_path: Path) -> None:
     script, parsed = script_of(block, tmp_path)
     for command in parsed:
         parse_only(command, tree)
-    started = subprocess.Popen(["bash", "-c", script], cwd=tree, env=_env(tree), stdout=subprocess.PIPE,
-                               stderr=subprocess.STDOUT, text=True, start_new_session=True)
-    try:
-        output, _ = started.communicate(timeout=120)
-    except subprocess.TimeoutExpired:
-        os.killpg(started.pid, signal.SIGKILL)
-        output, _ = started.communicate()
-        pytest.fail(f"{block.doc}:{block.line} took more than 120 s:\n{output[-3000:]}")
+    with fixed_ports() if FIXED_PORT.search("\n".join(block.commands)) else nullcontext():
+        started = subprocess.Popen(["bash", "-c", script], cwd=tree, env=_env(tree), stdout=subprocess.PIPE,
+                                   stderr=subprocess.STDOUT, text=True, start_new_session=True)
+        try:
+            output, _ = started.communicate(timeout=120)
+        except subprocess.TimeoutExpired:
+            os.killpg(started.pid, signal.SIGKILL)
+            output, _ = started.communicate()
+            pytest.fail(f"{block.doc}:{block.line} took more than 120 s:\n{output[-3000:]}")
     assert started.returncode == 0, f"{block.doc}:{block.line}:\n{output[-4000:]}"
     assert "Traceback" not in output, output[-4000:]
     for command in block.commands:

@@ -139,11 +139,14 @@ def built():
     from fmus.builders import DEFAULT_OUT
     from fmus.builders import NATIVE_FMI2, NATIVE_FMI3, NoCompiler
 
+    from tests.conftest import shared_build
+
     if sys.platform != "linux":
         pytest.skip("the native FMUs are built and tested on Linux here")
     try:
-        fmi2 = {fmu.name: fmu.path for fmu in NATIVE_FMI2.build(REPO / DEFAULT_OUT / "native")}
-        fmi3 = {fmu.name: fmu.path for fmu in NATIVE_FMI3.build(REPO / DEFAULT_OUT / "fmi3")}
+        with shared_build():
+            fmi2 = {fmu.name: fmu.path for fmu in NATIVE_FMI2.build(REPO / DEFAULT_OUT / "native")}
+            fmi3 = {fmu.name: fmu.path for fmu in NATIVE_FMI3.build(REPO / DEFAULT_OUT / "fmi3")}
     except NoCompiler as error:
         pytest.skip(str(error))
     return {"fmi2": fmi2, "fmi3": fmi3}

@@ -392,6 +392,7 @@ def test_live_robot_tracks_the_all_fmu_run(tmp_path: Path) -> None:
     assert "step jitter median" in out and "vehicle3" in out
 
 
+@pytest.mark.slow  # a long HIL run; the live link's tracking is tested fast by test_live_robot_tracks_the_all_fmu_run
 def test_noisy_late_robot_still_converges(tmp_path: Path) -> None:
     """The paper's motion capture noise (2 mm, 2 deg) and 20 ms of latency on poses and on commands:
     every vehicle ends within 20 mm of the path (the all-FMU run converges by about 15 s)."""
@@ -399,7 +400,7 @@ def test_noisy_late_robot_still_converges(tmp_path: Path) -> None:
     trace = tmp_path / "noisy.mcap"
     with emulator(port, tmp_path, "--noise-position", "0.002", "--noise-heading", "2", "--latency", "0.02",
                   "--command-latency", "0.02", "--seed", "7"):
-        code, out, err = finish(start_run(port, trace, 20.0))
+        code, out, err = finish(start_run(port, trace, 20.0, *PATIENT))
     assert code == 0, err
     loaded = load(trace)
     config = config_from_mapping(loaded.config)

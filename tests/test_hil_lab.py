@@ -22,7 +22,7 @@ from bridge.session import SessionError, open_session, zenoh_config
 from orchestrator.bench.hil import free_port
 from orchestrator.trace import load
 from tests.test_hil import (KEYS, LIVE3, PATIENT, PLATOON, REPO, _env, assert_tracks_the_all_fmu_run, finish,
-                            start_run, stranger_commands)
+                            start_run, stranger_commands, wait_for_running)
 
 LAB = Lab(run_hosts={"laptop": {3}, "desk": {5}}, robot_sides={"xbee-pc": {3, 5}},
           addresses={"xbee-pc": ["192.168.1.20", "xbee-pc.lab"]})
@@ -156,7 +156,7 @@ def test_with_tls_and_acl_strangers_cannot_connect_or_drive_and_the_platoon_trac
         trace = tmp_path / "tls.mcap"
         run = start_run(0, trace, 10.0, f'vehicles.3.connect=["{tls}"]',
                         f'vehicles.3.zenoh_config="{folder / "laptop.json5"}"', *PATIENT)
-        time.sleep(3.0)
+        wait_for_running(log, run)  # the strangers try again while the run drives the robot
         for _, session in [("desk", desk), *outsiders]:
             stranger_commands(session, 0x5757_5757_5757_5757)
         code, out, err = finish(run)

@@ -317,6 +317,7 @@ print(before, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 """
 
 
+@pytest.mark.slow  # a 10000-row, 400-column trace, and a minute on a loaded machine; recover's other tests are fast
 def test_recover_streams_a_large_trace(tmp_path: Path) -> None:
     """Peak memory of `recover` grows by far less than the input (it held every message before: a peak
     of ~3x the input above the imports on this file, 7.5x on a real trace; docs/trace-format.md)."""

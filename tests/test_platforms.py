@@ -32,6 +32,7 @@ from fmpy.validation import validate_fmu
 from fmus.builders import DEFAULT_OUT, FMU_NAMES, NativeBuilder
 from fmus.builders.toolchain import fmi_headers
 from fmus.platforms import release_layout
+from tests.conftest import shared_build
 
 REPO = Path(__file__).resolve().parents[1]
 HOSTS = Path(__file__).resolve().parent / "c_host"
@@ -49,8 +50,11 @@ WINDOWS_TOLERANCE = 1e-9
 # FMI name, so no importer looks them up
 MACHO_LINKER_SYMBOLS = {"_mh_dylib_header", "__dso_handle"}
 
-pytestmark = pytest.mark.skipif(sys.platform != "linux" or platform.machine() != "x86_64",
-                                reason="the reference run is this machine's x86_64 Linux binary")
+# slow: cross-compiling five binaries and running them under wine and qemu takes minutes (pytest -m slow;
+# CI runs it); the native FMUs this machine builds are tested in the default run (tests/test_native_fmus.py)
+pytestmark = [pytest.mark.skipif(sys.platform != "linux" or platform.machine() != "x86_64",
+                                 reason="the reference run is this machine's x86_64 Linux binary"),
+              pytest.mark.slow]
 
 
 def _zig() -> list[str]:
@@ -75,8 +79,9 @@ def release(tmp_path_factory) -> dict[int, dict[str, Path]]:
 @pytest.fixture(scope="module")
 def host_build() -> dict[int, dict[str, Path]]:
     """The FMUs a plain `platoon build` makes (this machine's binary, the system compiler)."""
-    return {version: {fmu.name: fmu.path for fmu in NativeBuilder(version).build(REPO / DEFAULT_OUT / folder)}
-            for version, folder in ((2, "native"), (3, "fmi3"))}
+    with shared_build():
+        return {version: {fmu.name: fmu.path for fmu in NativeBuilder(version).build(REPO / DEFAULT_OUT / folder)}
+                for version, folder in ((2, "native"), (3, "fmi3"))}
 
 
 def _exports(binary) -> set[str]:
