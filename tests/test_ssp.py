@@ -157,10 +157,10 @@ def test_canary_fmpy_simulate_ssp_still_needs_our_workaround(paper_20s) -> None:
     """A canary on FMPy, not a test of ours: FMPy 0.3.32's SSP runner ignores the ParameterBindings and
     starts every connector at 0.0, so the VirtualTarget's first step divides by its lead's gap of 0 m.
     docs/fmus.md ("In FMPy") says so and gives tests/fmpy_ssp.py as the workaround. When an FMPy runs
-    our package as is, this fails, saying what to change."""
+    our package as is, this fails, saying what to change. FMPy runs in a child process: its SSP runner
+    loads the pythonfmu FMUs into the interpreter that calls it, and once crashed a parallel test
+    worker that had loaded them before (a segmentation fault in fmi2DoStep)."""
     import fmpy
-    from fmpy.fmi1 import FMICallException
-    from fmpy.ssp.simulation import simulate_ssp
 
     package, _ = paper_20s
     fixed = (f"FMPy {fmpy.__version__}'s simulate_ssp now runs our SSP package as is. Update docs/fmus.md, "
@@ -168,14 +168,22 @@ def test_canary_fmpy_simulate_ssp_still_needs_our_workaround(paper_20s) -> None:
              "check which remain), drop what tests/fmpy_ssp.py patches that FMPy now does (all of it: remove "
              "the file and its quote in docs/fmus.md), run the next test on FMPy's own simulate_ssp, and "
              "delete or invert this canary")
-    try:
-        simulate_ssp(str(package), stop_time=20.0, step_size=0.01)
-    except FMICallException as error:
-        assert "fmi2DoStep failed" in str(error), (f"FMPy {fmpy.__version__}'s simulate_ssp fails on our package "
-                                                   f"otherwise than docs/fmus.md ('In FMPy') says: {error}; update "
-                                                   "that section and tests/fmpy_ssp.py")
-    else:
-        pytest.fail(fixed)
+    script = ("import sys\n"
+              "from fmpy.fmi1 import FMICallException\n"
+              "from fmpy.ssp.simulation import simulate_ssp\n"
+              "try:\n"
+              "    simulate_ssp(sys.argv[1], stop_time=20.0, step_size=0.01)\n"
+              "except FMICallException as error:\n"
+              "    print('FMICallException:', error)\n"
+              "else:\n"
+              "    print('RAN')\n")
+    child = subprocess.run([sys.executable, "-c", script, str(package)], capture_output=True, text=True,
+                           timeout=300)
+    output = child.stdout.strip().splitlines()[-1] if child.stdout.strip() else ""  # after the FMUs' log lines
+    assert output != "RAN", fixed
+    assert child.returncode == 0 and output.startswith("FMICallException:") and "fmi2DoStep failed" in output, (
+        f"FMPy {fmpy.__version__}'s simulate_ssp fails on our package otherwise than docs/fmus.md ('In FMPy') "
+        f"says (exit {child.returncode}): {output or child.stderr[-2000:]}; update that section and tests/fmpy_ssp.py")
 
 
 def test_fmpy_simulate_ssp_with_the_workaround_runs_the_package_to_our_numbers(paper_20s) -> None:
