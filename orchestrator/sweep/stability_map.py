@@ -73,8 +73,8 @@ def _points(folder: Path) -> list[dict[str, Any]]:
 
 
 def draw_stability_map(folder: Path, png: Path, overwrite: bool = False, resolution: int = 11) -> Path:
+    check_target(png, overwrite, [folder / "results.csv"], kind=IMAGE)  # before minutes of reading traces
     points = _points(folder)
-    check_target(png, overwrite, [folder / "results.csv"], kind=IMAGE)
     laws = list(dict.fromkeys(p[LAW] for p in points))
     delays = np.linspace(0.0, max(p[DELAY] for p in points), resolution)
     losses = np.linspace(0.0, max(p[LOSS] for p in points), resolution)
