@@ -10,6 +10,7 @@ first use; it is skipped, saying why, only when npm cannot reach the registry.
 from __future__ import annotations
 
 import csv
+import fcntl
 import json
 import math
 import os
@@ -620,18 +621,30 @@ def mcap_js() -> Path:
     node, npm = shutil.which("node"), shutil.which("npm")
     if node is None or npm is None:
         pytest.skip("node/npm not installed: the independent @mcap/core reader cannot run")
-    if not (MCAP_JS / "node_modules" / "@mcap" / "core").is_dir():
-        try:
-            done = subprocess.run([npm, "ci", "--no-audit", "--no-fund"], cwd=MCAP_JS, capture_output=True, text=True,
-                                  timeout=300)
-        except subprocess.TimeoutExpired:
-            pytest.skip("npm ci timed out: the npm registry is not reachable")
-        if done.returncode != 0:
-            text = done.stderr + done.stdout
-            if any(s in text for s in ("ENOTFOUND", "ECONNREFUSED", "ETIMEDOUT", "EAI_AGAIN", "network", "ECONNRESET")):
-                pytest.skip(f"npm cannot reach the registry: {text.strip().splitlines()[-1]}")
-            raise AssertionError(f"npm ci failed:\n{text}")
+    # Parallel workers share tests/mcap_js: one installs under the lock while the others wait (two
+    # concurrent `npm ci` runs delete each other's node_modules). The install counts as done only when
+    # every package the reader imports is there; npm writes its hidden lockfile last.
+    with open(MCAP_JS / ".install.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        _npm_install(npm)
     return MCAP_JS / "read_mcap.mjs"
+
+
+def _npm_install(npm: str) -> None:
+    modules = MCAP_JS / "node_modules"
+    wanted = json.loads((MCAP_JS / "package.json").read_text())["dependencies"]
+    if (modules / ".package-lock.json").is_file() and all((modules / name).is_dir() for name in wanted):
+        return
+    try:
+        done = subprocess.run([npm, "ci", "--no-audit", "--no-fund"], cwd=MCAP_JS, capture_output=True, text=True,
+                              timeout=300)
+    except subprocess.TimeoutExpired:
+        pytest.skip("npm ci timed out: the npm registry is not reachable")
+    if done.returncode != 0:
+        text = done.stderr + done.stdout
+        if any(s in text for s in ("ENOTFOUND", "ECONNREFUSED", "ETIMEDOUT", "EAI_AGAIN", "network", "ECONNRESET")):
+            pytest.skip(f"npm cannot reach the registry: {text.strip().splitlines()[-1]}")
+        raise AssertionError(f"npm ci failed:\n{text}")
 
 
 def read_js(script: Path, path: Path) -> dict:
