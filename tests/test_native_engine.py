@@ -146,7 +146,7 @@ def test_run_blocks_fills_trace_rows(every: int, block: int, fmus) -> None:
     blocks: list[np.ndarray] = []
     ticks: list[int] = []
     try:
-        master.run_blocks(0.01, len(python_rows) - 1, lambda rows: blocks.append(rows.copy()), every=every,
+        master.run_blocks(0.01, len(python_rows) - 1, lambda rows: blocks.append(rows.array().copy()), every=every,
                           block=block, tick=ticks.append)
     finally:
         master.close()
@@ -216,7 +216,7 @@ def test_step_failure_in_blocks_delivers_rows_then_raises(fmus) -> None:
     blocks: list[np.ndarray] = []
     try:
         with pytest.raises(ComponentError) as caught:
-            master.run_blocks(0.01, 300, lambda rows: blocks.append(rows.copy()), block=64)
+            master.run_blocks(0.01, 300, lambda rows: blocks.append(rows.array().copy()), block=64)
         messages = master.messages("vehicle4")
         assert master.time == 1.0
     finally:
@@ -274,7 +274,7 @@ def test_check_stops_the_run_between_two_steps_after_delivering_its_rows(fmus, w
     master = make_master("native", scenario, fmus)
     try:
         with pytest.raises(Stop):
-            master.run_blocks(0.01, 200, (lambda rows: blocks.append(rows.copy())) if with_sink else None, every=2,
+            master.run_blocks(0.01, 200, (lambda rows: blocks.append(rows.array().copy())) if with_sink else None, every=2,
                               block=500, check=check)
         assert master.time == pytest.approx(0.37)  # 37 steps taken, not one more
     finally:

@@ -257,3 +257,25 @@ def test_a_run_failing_mid_way_traces_the_same_messages(tmp_path: Path, fmu_dir:
     trace = load(native)
     assert trace.run["status"] == "failed" and trace.run["error"].startswith("vehicle4 failed at t = 1 s")
     assert trace.component("vehicle4")["t"][-1] == pytest.approx(1.0)
+
+
+@pytest.mark.skipif(not available(), reason="the C trace encoder is not built")
+def test_the_non_finite_check_finds_the_first_bad_row_as_numpy_does() -> None:
+    """The stepping process checks each block in C before shipping it (no numpy in a plain run): the row
+    it names is numpy's, for nan, both infinities, in raw bytes and in a RowBlock."""
+    from orchestrator.support.rows import RowBlock
+    from orchestrator.trace import native_rows
+
+    generator = np.random.default_rng(7)
+    for _ in range(200):
+        rows, width = int(generator.integers(1, 40)), int(generator.integers(1, 30))
+        block = generator.normal(size=(rows, width)) * 10.0 ** generator.integers(-300, 300, size=(rows, width))
+        for _ in range(int(generator.integers(0, 3))):
+            block[generator.integers(rows), generator.integers(width)] = generator.choice([np.nan, np.inf, -np.inf])
+        finite = np.isfinite(block).all(axis=1)
+        expected = None if finite.all() else int(np.argmin(finite))
+        assert native_rows.first_non_finite(block.tobytes(), width) == expected
+        view = RowBlock.of(block)
+        assert native_rows.first_non_finite(view.values, view.width) == expected
+    with pytest.raises(ValueError, match="not whole rows of 4"):
+        native_rows.first_non_finite(np.zeros(6).tobytes(), 4)

@@ -198,9 +198,10 @@ class FoxgloveView(Observer):
             self.publish()
 
     def block(self, rows: Any) -> None:
-        """A block of recorded rows (the native engine's float64 array): trails follow its scene ticks."""
+        """A block of recorded rows (the native engine's ``RowBlock``): trails follow its scene ticks."""
         if len(rows) == 0:
             return
+        rows = rows.array()
         times = rows[:, 0]
         while True:  # only the rows at scene ticks are looked at one by one (advance moves the next tick on)
             index = int(times.searchsorted(self.foxglove.next_scene - 1e-9))  # the first row at or after it

@@ -108,7 +108,7 @@ class Ros2RunPublisher(Observer):
             self.rows(row, now)
 
     def block(self, rows: Any) -> None:
-        self.rows(rows)
+        self.rows(rows.array())
 
     def finish(self) -> None:
         self.close()

@@ -36,7 +36,7 @@ class SummaryObserver(Observer):
         self._count += 1
 
     def block(self, rows: Any) -> None:
-        self.summary.add(rows)
+        self.summary.add(rows.array())
 
     def _flush(self) -> None:
         if self._rows:

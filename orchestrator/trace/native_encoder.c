@@ -274,6 +274,40 @@ static PyObject *py_format_double(PyObject *self, PyObject *arg)
     return n < 0 ? NULL : PyBytes_FromStringAndSize(out, n);
 }
 
+/* The first row of a flat float64 block holding nan or inf, or None: the stepping process checks each
+   block before shipping it (orchestrator/trace/worker.py) without importing numpy for it. */
+static PyObject *py_first_non_finite(PyObject *self, PyObject *args)
+{
+    PyObject *data;
+    Py_ssize_t width;
+    if (!PyArg_ParseTuple(args, "On", &data, &width)) return NULL;
+    if (width < 1) {
+        PyErr_SetString(PyExc_ValueError, "width must be >= 1");
+        return NULL;
+    }
+    Py_buffer view;
+    if (PyObject_GetBuffer(data, &view, PyBUF_C_CONTIGUOUS) < 0) return NULL;
+    Py_ssize_t count = view.len / (Py_ssize_t)sizeof(double);
+    if (view.len % (Py_ssize_t)sizeof(double) != 0 || count % width != 0) {
+        PyBuffer_Release(&view);
+        PyErr_Format(PyExc_ValueError, "%zd bytes are not whole rows of %zd doubles", view.len, width);
+        return NULL;
+    }
+    const double *values = (const double *)view.buf;
+    Py_ssize_t bad = -1;
+    for (Py_ssize_t i = 0; i < count; i++) {
+        double x;
+        memcpy(&x, values + i, sizeof x); /* raw bytes need not be aligned */
+        if (!isfinite(x)) {
+            bad = i / width;
+            break;
+        }
+    }
+    PyBuffer_Release(&view);
+    if (bad < 0) Py_RETURN_NONE;
+    return PyLong_FromSsize_t(bad);
+}
+
 /* --- protobuf, as prost writes it --------------------------------------------------------------- */
 
 static int pb_varint(Buf *b, uint64_t v)
@@ -1089,6 +1123,8 @@ static PyTypeObject EncoderType = {
 
 static PyMethodDef module_methods[] = {
     {"format_double", py_format_double, METH_O, "The JSON text of a finite double, as orjson writes it."},
+    {"first_non_finite", py_first_non_finite, METH_VARARGS,
+     "first_non_finite(data, width): the first row of flat float64 data holding nan or inf, or None."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -65,3 +65,14 @@ def rows_of(data: Any, width: int) -> list[list[float]]:
     """Float64 ``data`` (an array or raw bytes) as rows of ``width`` floats (the Python encoder's input)."""
     flat = memoryview(data).cast("B").cast("d").tolist()
     return [flat[start:start + width] for start in range(0, len(flat), width)]
+
+
+def first_non_finite(data: Any, width: int) -> int | None:
+    """The first row of flat float64 ``data`` (a buffer: ``RowBlock.values``, raw bytes) holding nan or
+    inf, or None; in C, else with numpy (imported only then: a plain run never needs it)."""
+    if _native is not None:
+        return _native.first_non_finite(data, width)
+    import numpy as np
+
+    finite = np.isfinite(np.frombuffer(data, dtype=np.float64).reshape(-1, width)).all(axis=1)
+    return None if finite.all() else int(np.argmin(finite))

@@ -39,15 +39,17 @@ import select
 import subprocess
 import sys
 import time as clock
+from array import array
 from itertools import chain
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, Sequence
 
-import numpy as np
+from orchestrator.support.rows import RowBlock, float_buffer
 
 from .format import CHUNK_SIZE, FLUSH_INTERVAL
 from .native_rows import available as native_available
+from .native_rows import first_non_finite
 from .writer import non_finite_error
 
 WORKER_BLOCK = 64  # rows per hand-over: small, so the worker's backlog when the run ends stays short
@@ -65,14 +67,6 @@ def _widen(connection: Connection) -> None:
         fcntl.fcntl(connection.fileno(), _F_SETPIPE_SZ, PIPE_BYTES)
     except OSError:  # not Linux, or above the system's limit: the default 64 KiB still works, with more waiting
         pass
-
-
-def first_non_finite(rows: np.ndarray) -> int | None:
-    """Index of the first row of a float64 block holding nan or inf, or None."""
-    finite = np.isfinite(rows).all(axis=1)
-    if finite.all():
-        return None
-    return int(np.argmin(finite))
 
 
 class TraceProcess:
@@ -155,7 +149,9 @@ class TraceWorker:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         open(self.path, "wb").close()
         width = 1 + sum(len(outputs) for _, outputs in self.components)
-        self._buffer = np.empty((max(block, 1), width))
+        self._width = width
+        self._buffer = float_buffer(max(block, 1), width)
+        self._capacity = max(block, 1)
         self._filled = 0
         self._count = 0
         self.recorded = 0  # rows handed to the worker
@@ -229,30 +225,32 @@ class TraceWorker:
     def record(self, time: float, outputs: Sequence[Sequence[float]]) -> None:
         """Keep the outputs at ``time`` (every ``every``-th call); ship the block when full or due."""
         if self._count % self.every == 0:
-            row = self._buffer[self._filled]
-            row[0] = time
-            row[1:] = list(chain.from_iterable(outputs))
+            row = array("d", (time,))
+            row.extend(chain.from_iterable(outputs))
+            start = self._filled * self._width
+            self._buffer[start:start + self._width] = row
             self._filled += 1
-            if self._filled == len(self._buffer) or clock.monotonic() - self._last_flush >= self.flush_interval:
+            if self._filled == self._capacity or clock.monotonic() - self._last_flush >= self.flush_interval:
                 self.flush()
         self._count += 1
 
-    def write_block(self, rows: np.ndarray) -> None:
-        """Ship a float64 block of flat rows ``[t, outputs...]`` (already decimated), after buffered rows."""
+    def write_block(self, rows: Any) -> None:
+        """Ship a block of flat float64 rows ``[t, outputs...]`` (a ``RowBlock`` or a 2-D array; already
+        decimated), after buffered rows."""
         self.flush()
-        self._ship(rows)
+        self._ship(RowBlock.coerce(rows))
 
-    def _ship(self, rows: np.ndarray) -> None:
+    def _ship(self, rows: RowBlock) -> None:
         if self._failure is not None or self._closed:
             return
-        bad = first_non_finite(rows)
-        good = rows if bad is None else rows[:bad]
+        bad = first_non_finite(rows.values, rows.width)
+        good = rows if bad is None else rows.head(bad)
         if len(good):
-            self._send(("rows", (good.shape[1], np.ascontiguousarray(good, dtype=np.float64).tobytes())))
+            self._send(("rows", (good.width, good.tobytes())))
             self.recorded += len(good)
-            self.last_time = float(good[-1, 0])
+            self.last_time = float(good.time(-1))
         if bad is not None:
-            raise non_finite_error(self.components, rows[bad].tolist())
+            raise non_finite_error(self.components, rows.row(bad))
 
     @property
     def rows_recorded(self) -> int:
@@ -262,7 +260,7 @@ class TraceWorker:
         filled, self._filled = self._filled, 0
         self._last_flush = clock.monotonic()
         if filled:
-            self._ship(self._buffer[:filled])
+            self._ship(RowBlock(self._buffer[:filled * self._width], self._width))
 
     def log(self, time: float, level: str, message: str) -> None:
         if self._failure is None and not self._closed:

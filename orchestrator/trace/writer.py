@@ -26,6 +26,8 @@ from mcap.records import Message, MessageIndex, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
 from fmus.errors import ComponentError
+from orchestrator.support.rows import RowBlock
+
 from .channel_copy import write_copy
 from .chunks import ChunkPipeline, CompressedChunk
 from .encoding import ComponentMessages, LiveStream, register_mcap
@@ -460,11 +462,12 @@ class TraceWriter:
         return self._encoder.native is not None
 
     def write_block(self, rows: Any) -> None:
-        """Write a float64 block (a numpy array) of flat rows ``[t, outputs...]``, already decimated."""
+        """Write a block of flat float64 rows ``[t, outputs...]`` (a ``RowBlock`` or a 2-D array), already decimated."""
+        block = RowBlock.coerce(rows)
         if self.native:
-            self.write_floats(rows)
+            self.write_floats(block.values)
         else:
-            self.write_rows(rows.tolist())
+            self.write_rows(block.tolist())
 
     def write_floats(self, data: Any) -> None:
         """Write flat rows ``[t, outputs...]`` given as float64 values (a C-contiguous array or raw bytes),

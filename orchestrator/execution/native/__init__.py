@@ -11,7 +11,7 @@ block of steps:
 * ``run(stop_time, step, observer, steps, ...)`` calls ``observer(t, outputs)`` at every
   communication point like Master.run (so ``run_scenario``'s observer works unchanged), from rows the
   C loop filled for a block of steps;
-* ``run_blocks(step, steps, sink, every=..., block=...)`` hands ``sink`` a float64 array of rows
+* ``run_blocks(step, steps, sink, every=..., block=...)`` hands ``sink`` a ``RowBlock`` of float64 rows
   ``[t, every output of every component]`` per block (decimated ``every`` steps in C), so a trace
   writer can encode whole blocks off the hot loop.
 
@@ -23,15 +23,15 @@ The C core holds the GIL: pythonfmu FMUs run their Python model in this interpre
 from __future__ import annotations
 
 import time as clock
+from array import array
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
-
-import numpy as np
 
 from orchestrator.components.fmu import ComponentError, UnpackedFmu, parameters_by_type
 from orchestrator.execution.python_master import MASTERS, Observer, check_finite, resolve_routes
 from orchestrator.scenario.scenario import _TIME_TOLERANCE, ScheduledInput
 from orchestrator.scenario.wiring import Connection
+from orchestrator.support.rows import RowBlock, float_buffer
 
 try:
     from orchestrator.execution.native import _core
@@ -45,7 +45,7 @@ BLOCK = 256  # steps per return to Python in run() (observer path)
 TRACE_BLOCK = 500  # rows per block in run_blocks(), as the trace writer's block
 CALL_STEPS = 64  # steps per call into C when blocks are also delivered on a wall-time interval
 
-Sink = Callable[[np.ndarray], None]
+Sink = Callable[[RowBlock], None]
 
 
 def available() -> bool:
@@ -169,7 +169,8 @@ class NativeMaster:
             tick: Callable[[int], None] | None = None, block: int = BLOCK) -> None:
         """Initialize and run ``steps`` steps, calling ``observer(t, outputs)`` at every point (Master.run)."""
         observer(start_time, self.initialize(start_time))
-        buffer = np.empty((min(block, steps) or 1, self.width))
+        width = self.width
+        buffer = float_buffer(min(block, steps) or 1, width)
         slices = self._slices
         k = 0
         while k < steps:
@@ -179,7 +180,7 @@ class NativeMaster:
             finally:
                 # rows completed before a failure are observed first, as Master observed each step
                 done = self._core.rows_done
-                for j, row in enumerate(buffer[:done].tolist()):
+                for j, row in enumerate(RowBlock(buffer[:done * width], width).tolist()):
                     self.time = row[0]
                     observer(row[0], [row[1 + a:1 + b] for a, b in slices])
                     if tick is not None:
@@ -192,7 +193,7 @@ class NativeMaster:
                    deliver_interval: float | None = None, call_steps: int | None = None) -> None:
         """Initialize and run ``steps`` steps; ``sink(rows)`` gets each block of recorded rows.
 
-        ``rows`` is a float64 array view of shape (n, width): ``[t, outputs of component 0, ...]``,
+        ``rows`` is a ``RowBlock`` (orchestrator/support/rows.py: no numpy until asked) of n rows of width values: ``[t, outputs of component 0, ...]``,
         the initial point first, then every ``every``-th communication point (the trace writer's
         decimation), at most ``block`` rows; it is overwritten after ``sink`` returns (copy to keep).
         ``sink=None`` records nothing (tracing off). ``tick(k)`` is called after each call into C.
@@ -222,11 +223,13 @@ class NativeMaster:
                 if tick is not None:
                     tick(k)
             return
-        buffer = np.empty((max(block, 2), self.width))
-        buffer[0, 0] = start_time
-        buffer[0, 1:] = [value for values in initial for value in values]
+        width = self.width
+        capacity = max(block, 2)
+        buffer = float_buffer(capacity, width)
+        first = array("d", (start_time,))
+        first.extend(value for values in initial for value in values)
+        buffer[:width] = first
         row, k = 1, 0
-        capacity = buffer.shape[0]
         call_steps = (call_steps or CALL_STEPS) if deliver_interval is not None else steps
         delivered = clock.monotonic()
         while k < steps:
@@ -238,7 +241,7 @@ class NativeMaster:
                 self.time = t0 + (k + core.steps_done) * h
                 done = row + core.rows_done
                 if done:
-                    sink(buffer[:done])
+                    sink(RowBlock(buffer[:done * width], width))
                 raise
             row += core.rows_done
             k = stop
@@ -246,7 +249,7 @@ class NativeMaster:
             due = deliver_interval is not None and clock.monotonic() - delivered >= deliver_interval
             if row == capacity or k == steps or (due and row):
                 if row:
-                    sink(buffer[:row])
+                    sink(RowBlock(buffer[:row * width], width))
                 row = 0
                 delivered = clock.monotonic()
             if tick is not None:
