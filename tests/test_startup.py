@@ -159,3 +159,13 @@ def test_the_fmi_platform_is_fmpys() -> None:
 
     assert fmi_platform() == (fmpy.platform, fmpy.sharedLibraryExtension)
     assert host_platform().directory(3) == fmpy.platform_tuple
+
+
+def test_a_run_whose_trace_a_worker_writes_loads_no_mcap_writer(tmp_path: Path, fmu_dir: Path) -> None:
+    """With the trace encoded in the worker process, the stepping process imports neither the MCAP
+    writer (mcap, zstandard, lz4) nor the Foxglove SDK: they are the worker's (issue 31's start-up)."""
+    modules = imported_by(*quiet_run(tmp_path), "--trace-writer", "process", cwd=REPO)
+    assert "orchestrator.trace.worker" in modules  # the worker did write it
+    assert [name for name in modules if name.split(".")[0] in ("mcap", "zstandard", "lz4", "foxglove")
+            or name == "orchestrator.trace.writer"] == []
+    assert (tmp_path / "t.mcap").stat().st_size > 0

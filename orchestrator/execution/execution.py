@@ -33,7 +33,7 @@ from orchestrator.trace.foxglove import SCENE_RATE
 from orchestrator.trace.format import BLOCK
 from orchestrator.trace.output import Claim, claim
 from orchestrator.trace.worker import WORKER_BLOCK, TraceProcess, TraceWorkerError
-from orchestrator.trace.writer import NullTraceWriter, TraceWriteError
+from orchestrator.trace.writer_base import NullTraceWriter, TraceWriteError
 
 if TYPE_CHECKING:
     from orchestrator.analysis.metrics import VehicleSummary

@@ -18,10 +18,11 @@ from fmus.errors import ComponentError
 from orchestrator.observers.base import Observer
 from orchestrator.trace.foxglove import SCENE_RATE, FoxgloveChannels, SceneSettings
 from orchestrator.trace.worker import TraceProcess, TraceWorker, TraceWorkerError
-from orchestrator.trace.writer import NullTraceWriter, TraceWriteError, TraceWriter
+from orchestrator.trace.writer_base import NullTraceWriter, TraceWriteError
 
 if TYPE_CHECKING:
     from orchestrator.scenario.config import Config
+    from orchestrator.trace.writer import TraceWriter
 
 # Where the trace is encoded: "inline" in the stepping process, "process" in a second process
 # (orchestrator/trace/worker.py), "auto": a second process when the machine has a spare core and the
@@ -64,6 +65,8 @@ def open_trace_writer(
         return TraceWorker(path, components, descriptions, every=every, process=process, publish=publish,
                            foxglove=(SceneSettings.of(config), components, scene_rate) if foxglove else None,
                            native=native)
+    from orchestrator.trace.writer import TraceWriter  # the MCAP writer: loaded only when this process writes
+
     return TraceWriter(path, components, descriptions, every=every, publish=publish, native=native,
                        foxglove=FoxgloveChannels(config, components, scene_rate) if foxglove else None)
 

@@ -6,9 +6,10 @@ the recovery (``recovery``) all take their constants from here.
 
 from __future__ import annotations
 
-from typing import Iterable
+from typing import TYPE_CHECKING, Iterable
 
-from mcap.records import Channel, Schema
+if TYPE_CHECKING:  # annotations only: a run's stepping process needs no mcap (its trace worker writes)
+    from mcap.records import Channel, Schema
 
 CHANNEL_PREFIX = "/platoon/"
 SCHEMA_ENCODING = "jsonschema"

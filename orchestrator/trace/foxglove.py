@@ -26,10 +26,22 @@ from collections import deque
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
-from foxglove import messages as fg
-
 from .encoding import ChannelSpec, register_mcap, template_of
 from .format import CHANNEL_PREFIX, LINK_PREFIX, is_link, number_texts
+
+
+class _FoxgloveMessages:
+    """``foxglove.messages``, imported when the first scene is encoded: a run's stepping process (which
+    builds only ``SceneSettings``; its trace worker encodes) never pays for the SDK's import."""
+
+    def __getattr__(self, name: str) -> Any:
+        from foxglove import messages
+
+        globals()["fg"] = messages  # later lookups go straight to the module
+        return getattr(messages, name)
+
+
+fg: Any = _FoxgloveMessages()
 
 if TYPE_CHECKING:
     from orchestrator.scenario.config import Config

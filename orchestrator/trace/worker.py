@@ -50,7 +50,7 @@ from orchestrator.support.rows import RowBlock, float_buffer
 from .format import CHUNK_SIZE, FLUSH_INTERVAL
 from .native_rows import available as native_available
 from .native_rows import first_non_finite
-from .writer import non_finite_error
+from .writer_base import non_finite_error
 
 WORKER_BLOCK = 64  # rows per hand-over: small, so the worker's backlog when the run ends stays short
 PIPE_BYTES = 1 << 20  # requested pipe capacity (Linux F_SETPIPE_SZ; /proc/sys/fs/pipe-max-size allows 1 MiB)

@@ -25,13 +25,13 @@ from mcap.data_stream import RecordBuilder
 from mcap.records import Message, MessageIndex, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
-from fmus.errors import ComponentError
 from orchestrator.support.rows import RowBlock
 
 from .channel_copy import write_copy
 from .chunks import ChunkPipeline, CompressedChunk
 from .encoding import ComponentMessages, LiveStream, register_mcap
 from .format import CHUNK_SIZE, FLUSH_INTERVAL, BLOCK
+from .writer_base import NullTraceWriter, TraceWriteError, non_finite_error  # noqa: F401  (re-exported)
 from .native_rows import REFUSED_ROW, native_encoder, row_values, rows_of
 
 if TYPE_CHECKING:
@@ -373,22 +373,6 @@ class _Encoder:
             pass
 
 
-def non_finite_error(components: Sequence[tuple[str, Sequence[str]]], row: Sequence[float]) -> ComponentError:
-    """The error for a flat row ``[t, outputs...]`` holding a non-finite output: which component, which output."""
-    time, position = float(row[0]), 1
-    for name, outputs in components:
-        for key in outputs:
-            if not math.isfinite(row[position]):
-                return ComponentError(name, time, f"output {key} = {row[position]} is not finite (the trace ends before it)")
-            position += 1
-    return ComponentError(components[0][0], time, "outputs overflow")
-
-
-class TraceWriteError(OSError):
-    """The trace file could not be written (disk full, file too large, I/O error): one line saying
-    what happened and where the complete chunks written so far are."""
-
-
 def _write_error(path: Path, error: OSError) -> TraceWriteError:
     reason = error.strerror or str(error)
     failure = TraceWriteError(f"cannot write the trace {path}: {reason}; the complete chunks written so far are kept "
@@ -575,33 +559,3 @@ class TraceWriter:
                 os.replace(self.path, self.publish)
             except OSError as error:
                 raise _write_error(self.path, error) from None
-
-
-class NullTraceWriter:
-    """Records nothing: ``run_scenario(..., out=None)`` runs with this (benchmarks, dry runs)."""
-
-    foxglove = None
-    recorded = 0
-    rows_recorded = 0
-    last_time = None
-
-    def record(self, time: float, outputs: Sequence[Sequence[float]]) -> None:
-        pass
-
-    def write_block(self, rows: Any) -> None:
-        pass
-
-    def flush(self) -> None:
-        pass
-
-    def log(self, time: float, level: str, message: str) -> None:
-        pass
-
-    def live(self, stream: str, time: float, fields: dict[str, float]) -> None:
-        pass
-
-    def metadata(self, name: str, values: dict[str, Any]) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
