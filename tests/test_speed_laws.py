@@ -297,3 +297,18 @@ def test_both_fmu_kinds_refuse_bad_speed_law_parameters_with_the_same_reasons(fm
         simulate_fmu(str(folder / "Vehicle.fmu"), start_values=REFUSED, stop_time=1.0,
                      logger=lambda *args: logged.append(args[-1].decode()), debug_logging=True)
     assert any(REFUSAL in line for line in logged), logged
+
+
+def test_the_run_header_names_the_speed_laws() -> None:
+    """The table's title and the trace's first log line say which speed law each vehicle runs when it is
+    not the paper's: a user comparing runs must not mistake an acc run for a paper one."""
+    def laws(platoon: dict, vehicles: dict | None = None) -> str:
+        mapping = {"name": "h", "platoon": {"count": 4, "time_gap": 1.0, **platoon}}
+        if vehicles:
+            mapping["vehicles"] = vehicles
+        return config_from_mapping(mapping).laws_text()
+
+    assert laws({"law": "sine"}) == "sine law"
+    assert laws({"law": "regular", "speed_law": "cacc"}) == "regular law, cacc speed law"
+    assert laws({"law": "sine"}, {"2": {"speed_law": "acc"}, "3": {"speed_law": "acc"}, "4": {"speed_law": "cacc"}}) \
+        == "sine law, speed laws paper (1), acc (2-3), cacc (4)"

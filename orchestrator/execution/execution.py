@@ -253,7 +253,7 @@ class Execution:
                                          "trace_encoder": trace.encoder,
                                          "scene_rate": repr(float(self.scene_rate)) if self.foxglove else "",
                                          "started": clock.strftime("%Y-%m-%dT%H:%M:%S%z")})
-        observers.log(0.0, "Info", f"run started: {config.name}, {config.platoon.count} vehicles, {config.platoon.law} law, "
+        observers.log(0.0, "Info", f"run started: {config.name}, {config.platoon.count} vehicles, {config.laws_text()}, "
                                    f"{self.engine_name} engine ({sim.master}), {self.fmu_kind} FMUs, step {sim.step:g} s, "
                                    f"stop {sim.stop_time:g} s")
 

@@ -374,6 +374,24 @@ class Config(_Strict):
         """Vehicle ``vehicle``'s speed law: its [vehicles.K] override, else platoon.speed_law."""
         return self.override(vehicle).speed_law or self.platoon.speed_law
 
+    def laws_text(self) -> str:
+        """The guidance law and, when not the paper's alone, the speed laws: "sine law", "sine law, acc
+        speed law", "sine law, speed laws paper (1), acc (2-4)" (run headers and the trace's first log line)."""
+        laws = [self.speed_law_of(i) for i in range(1, self.platoon.count + 1)]
+        text = f"{self.platoon.law} law"
+        if set(laws) == {"paper"}:
+            return text
+        if len(set(laws)) == 1:
+            return f"{text}, {laws[0]} speed law"
+        runs: list[tuple[str, int, int]] = []  # (law, first vehicle, last vehicle)
+        for vehicle, law in enumerate(laws, start=1):
+            if runs and runs[-1][0] == law:
+                runs[-1] = (law, runs[-1][1], vehicle)
+            else:
+                runs.append((law, vehicle, vehicle))
+        parts = [f"{law} ({first})" if first == last else f"{law} ({first}-{last})" for law, first, last in runs]
+        return f"{text}, speed laws {', '.join(parts)}"
+
     def sensing_vehicles(self) -> list[int]:
         """Numbers of the vehicles whose speed law reads the on-board sensor (acc, cacc), front to back."""
         return [i for i in range(1, self.platoon.count + 1) if self.speed_law_of(i) in SENSING_LAWS]
