@@ -111,7 +111,8 @@ def sweep(
     except SweepError as error:
         fail(2, str(error))
     fmu_dir = DEFAULT_OUT.resolve()
-    prepare_fmus(fmu_dir)  # once, before the workers start (each run only checks that they are up to date)
+    with output_rule():  # a FIFO or device where an FMU goes: one line, before any run
+        prepare_fmus(fmu_dir)  # once, before the workers start (each run only checks that they are up to date)
     display = _Display(quiet)
     try:
         executor: Executor = DaskExecutor(scheduler) if scheduler is not None else LocalExecutor(workers or _cores())

@@ -214,7 +214,8 @@ class OwnFiles:
     damaged FMU is rebuilt; the names are the command's, so no ``--overwrite``), but never one of the
     command's inputs (``protect``), never a FIFO, device or folder in its place, and only by a complete,
     synced file renamed onto it. The builders call ``check`` before they read a target and ``replacing``
-    to write it (fmus/builders/base.py: ``Output``)."""
+    to write it (fmus/builders/base.py: ``Output``). The FMUs a run builds for itself into build/fmus
+    follow it too (orchestrator/components/kinds.py: ``ensure_fmus``)."""
 
     protect: tuple[Path, ...] = ()
     what: str = "--out"
