@@ -583,3 +583,29 @@ def test_a_sweep_waiting_for_the_folder_of_one_refused_up_front_takes_it_whole(t
     second.undo()
     second.release()
     assert not out.exists()
+
+
+def test_a_placed_trace_is_synced_then_renamed_then_its_folder_synced(tmp_path: Path, monkeypatch) -> None:
+    """A committed run's trace survives a power cut: its data is fsynced before the rename, and traces/ is
+    fsynced after it (else the result file, the commit, could outlive the rename that put the trace in
+    place). Watched on the real files: each fsync's target and what traces/ holds at that moment."""
+    from orchestrator.sweep.plan import Run
+    from orchestrator.sweep.store import OutputFolder
+
+    folder = OutputFolder(tmp_path / "out")
+    folder.acquire()
+    run = Run("abc123", {}, [], None, None, "", "hash")
+    partial = folder.partial_trace_path(run)
+    partial.write_bytes(b"\x89MCAP0\r\n" + b"x" * 100)
+    synced: list[tuple[str, list[str]]] = []
+    real_fsync = os.fsync
+
+    def watched(fd: int) -> None:
+        synced.append((os.path.realpath(f"/proc/self/fd/{fd}"), sorted(p.name for p in folder.traces.iterdir())))
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", watched)
+    placed = folder.place_trace(run, partial)
+    folder.release()
+    assert placed == folder.trace_path(run) and placed.read_bytes().endswith(b"x" * 100)
+    assert synced == [(str(partial), ["abc123.mcap.part"]), (str(folder.traces), ["abc123.mcap"])], synced

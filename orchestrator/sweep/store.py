@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
-from orchestrator.support.output import OutputError, replacing, sync_file, write_bytes
+from orchestrator.support.output import OutputError, rename_into_place, replacing, sync_file, write_bytes
 
 from .plan import Run
 from .spec import SweepError
@@ -183,10 +183,10 @@ class OutputFolder:
         return record if record.get("config_hash") == run.config_hash else None
 
     def place_trace(self, run: Run, partial: Path) -> Path:
-        """Move a finished run's trace from its partial name to its own, on disk before the result says so."""
-        sync_file(partial)
+        """Move a finished run's trace from its partial name to its own, on disk before the result says so:
+        its data synced, renamed, and traces/ synced (a power cut after the commit keeps the rename too)."""
         trace = self.trace_path(run)
-        os.replace(partial, trace)
+        rename_into_place(partial, trace)
         return trace
 
     def forget(self, run: Run) -> None:
