@@ -554,6 +554,13 @@ def test_a_sweep_refused_up_front_leaves_the_disk_as_it_found_it(tmp_path: Path,
     one_line_error(refused, "runs need about")
     assert _tree(tmp_path) == before and (mine / "notes.txt").read_text() == "mine\n"
 
+    bad = sweep_file(tmp_path, '[grid]\n"platoon.no_such_key" = [1, 2]\n', name="bad.toml")  # a bad config: the same
+    before = _tree(tmp_path)
+    refused = platoon("sweep", bad, "--out", "new/out", "-q", cwd=tmp_path)
+    assert refused.returncode == 2, (refused.stdout, refused.stderr)
+    one_line_error(refused, "platoon.no_such_key")
+    assert _tree(tmp_path) == before
+
 
 def test_a_sweep_waiting_for_the_folder_of_one_refused_up_front_takes_it_whole(tmp_path: Path) -> None:
     """Two sweeps start on one new folder; the first takes it and is refused up front, removing what it made
