@@ -279,3 +279,46 @@ def test_trace_memory_samples_rss_and_checks_the_platoon(tmp_path: Path, fmu_dir
     assert data["suite"] == "trace-memory" and data["status"] == "completed" and data["vehicles"] == 2
     assert data["rss_max_mb"] > 0 and data["samples"]
     assert data["max_deviation_from_equilibrium"]["speed_worst_vehicle"] in {"vehicle1", "vehicle2"}
+
+
+def test_paper_scenarios_refuses_a_json_target_it_must_not_replace_before_running(tmp_path: Path) -> None:
+    """The output rule for ``python -m orchestrator.bench.paper_scenarios --json``: a FIFO (opening it to
+    write used to block forever, after minutes of runs) or a file that is not JSON is refused at once, in
+    one line naming it, and left as it was."""
+    import os
+    import stat
+
+    from tests.test_hostile_traces import one_line_error
+
+    fifo, foreign = tmp_path / "results.json", tmp_path / "notes.json"
+    os.mkfifo(fifo)
+    foreign.write_text("my notes\n")
+    for target, kind in ((fifo, "is a FIFO, not a regular file"), (foreign, "exists and is not a JSON file")):
+        done = subprocess.run([sys.executable, "-m", "orchestrator.bench.paper_scenarios", "--json", str(target)],
+                              cwd=REPO, capture_output=True, text=True, timeout=120)
+        assert done.returncode == 1, (done.stdout, done.stderr)
+        one_line_error(done, f"--json {target}", kind)
+        assert done.stdout == ""  # refused before the first run
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode) and foreign.read_text() == "my notes\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.json", "results.json"]  # no aside file left
+
+
+def test_a_hil_helpers_log_is_a_new_file_never_what_is_in_its_place(tmp_path: Path) -> None:
+    """``bench hil`` helpers log their stderr to a new file each (mkstemp): a FIFO where the log used to go
+    (``echo.stderr``) is neither opened (which would block) nor replaced, and two helpers of one name keep
+    two logs."""
+    import os
+    import stat
+
+    os.mkfifo(tmp_path / "echo.stderr")
+    script = ("import sys\nfrom pathlib import Path\nfrom orchestrator.bench.hil import Helper\n"
+              "child = [sys.executable, '-c', 'import sys; print(\"ready\", file=sys.stderr, flush=True); sys.stdin.read()']\n"
+              "for _ in range(2):\n"
+              f"    with Helper(child, 'ready', Path({str(tmp_path)!r}), 'echo') as helper:\n"
+              "        print(helper.log.name)\n")
+    done = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    logs = done.stdout.split()
+    assert len(set(logs)) == 2 and "echo.stderr" not in logs, logs
+    assert all((tmp_path / log).read_text() == "ready\n" for log in logs)
+    assert stat.S_ISFIFO(os.lstat(tmp_path / "echo.stderr").st_mode)

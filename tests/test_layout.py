@@ -3,6 +3,7 @@
 * bridge/ depends on the science (fmus.model) and on the orchestrator's interface only: never on the
   master, the trace or FMPy, so the robot side can change without touching the co-simulation.
 * orchestrator/trace/ is one package without an import circle inside it.
+* no module imports another module's private (underscored) name: what two modules share is public.
 """
 
 from __future__ import annotations
@@ -181,3 +182,47 @@ def test_every_engine_is_one_module_behind_the_engine_protocol() -> None:
         assert engine.name == name
         for method in ("start", "advance", "close"):
             assert callable(getattr(engine, method)), f"{name} engine has no {method}"
+
+
+# a module's private names (a leading underscore) are its own: a second module that needs one gets it made
+# public where it lives (one implementation, named as shared). Known exceptions, each to be made public:
+PRIVATE_IMPORTS_LEFT = {("orchestrator/scenario/config.py", "_Rule")}  # ros2_config's; config.py is being reworked
+
+
+def compiled_modules() -> set[str]:
+    """The compiled modules setup.py builds (``Extension("orchestrator.trace._native", ...)``)."""
+    import re
+
+    return set(re.findall(r'Extension\(\s*"([\w.]+)"', (REPO / "setup.py").read_text()))
+
+
+def _source_folder(path: Path, node: ast.ImportFrom) -> Path:
+    """The folder of the package an ``ImportFrom`` names (relative imports resolved against ``path``)."""
+    if node.level:
+        base = path.parent
+        for _ in range(node.level - 1):
+            base = base.parent
+        return base.joinpath(*(node.module.split(".") if node.module else []))
+    return REPO.joinpath(*(node.module or "").split("."))
+
+
+def test_no_module_imports_a_private_name_of_another() -> None:
+    """E.g. ``platoon stability-map`` reads a sweep's folder with orchestrator/sweep/results.py's public
+    helpers, as ``sweep-plot`` does, not with plot.py's private ones. A private *module* (a compiled
+    extension such as ``_core``) may be imported: it is a file of its own."""
+    offenders, compiled = [], compiled_modules()
+    for package in ("orchestrator", "bridge", "fmus"):
+        for path in (REPO / package).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text(), str(path))):
+                if not isinstance(node, ast.ImportFrom):
+                    continue
+                folder = _source_folder(path, node)
+                for alias in node.names:
+                    name = alias.name
+                    module = ".".join((*folder.relative_to(REPO).parts, name))
+                    if not name.startswith("_") or name.startswith("__") or (folder / name).is_dir() or module in compiled:
+                        continue
+                    where = str(path.relative_to(REPO))
+                    if (where, name) not in PRIVATE_IMPORTS_LEFT:
+                        offenders.append(f"{where}:{node.lineno} imports {name} from {node.module or '.'}")
+    assert offenders == []

@@ -253,3 +253,36 @@ def test_build_on_a_full_disk_leaves_the_old_fmu_and_no_half_file(tmp_path: Path
     one_line_error(result, "build --out small/out/Vehicle.fmu", "No space left on device", "nothing was replaced")
     left = sorted(str(p.relative_to(folder / "left")) for p in (folder / "left").rglob("*") if p.is_file())
     assert left == ["out/Vehicle.fmu"] and (folder / "left" / "out" / "Vehicle.fmu").read_text() == "old\n"
+
+
+# --- the FMUs a run builds for itself (build/fmus, before its first step) ---------------------------------
+
+@pytest.mark.parametrize("command", ["run", "sweep"])
+def test_a_fifo_where_a_run_builds_its_fmus_is_refused_in_one_line_not_read(command: str, tmp_path: Path) -> None:
+    """A run (and a sweep, before its workers start) builds its FMUs into build/fmus/ under the current
+    folder when they are missing or stale. A FIFO in an FMU's place used to hang the run (the zip reader
+    opened it, waiting for a writer forever): now exit 2, one line naming it, the FIFO left as it was."""
+    from tests.test_hostile_traces import start
+
+    fifos = [tmp_path / "build" / "fmus" / "Vehicle.fmu", tmp_path / "build" / "fmus" / "native" / "Vehicle.fmu"]
+    for fifo in fifos:  # the pythonfmu and the native one: whichever kind this machine runs
+        fifo.parent.mkdir(parents=True, exist_ok=True)
+        os.mkfifo(fifo)
+    was = [snapshot(fifo) for fifo in fifos]
+    if command == "run":
+        argv = ("run", PAPER, "--out", tmp_path / "t.mcap")
+    else:
+        (tmp_path / "sweep.toml").write_text(f'base = "{PAPER}"\n[grid]\n"platoon.k_v" = [0.5, 0.6]\n')
+        argv = ("sweep", tmp_path / "sweep.toml", "--out", tmp_path / "out", "-q")
+    process = start(*argv, cwd=tmp_path)
+    try:
+        stdout, stderr = process.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, 9)
+        process.communicate()
+        raise AssertionError(f"platoon {command} hung on the FIFO at build/fmus") from None
+    assert process.returncode == 2, (stdout, stderr)
+    line = one_line_error((process.returncode, stdout, stderr), "Vehicle.fmu", "is a FIFO, not a regular file")
+    assert "build/fmus/" in line, line  # where it is
+    assert [snapshot(fifo) for fifo in fifos] == was
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["build", *(["sweep.toml"] if command == "sweep" else [])]

@@ -510,8 +510,7 @@ def test_a_sweep_that_cannot_fit_on_its_disk_is_refused_before_its_first_run(tmp
     line = one_line_error(refused, "small/out", "1,000 runs need about", "MB free", "--allow-full-disk")
     needed = float(line.split("need about ")[1].split(" MB")[0])
     assert 150 < needed < 400, line  # 1000 x (a 201-row trace of 5 components, ~0.2 MB, and a result file)
-    files = [p.relative_to(folder / "left") for p in (folder / "left").rglob("*") if p.is_file() and p.name != ".lock"]
-    assert files == [Path("out/results.csv")] and len(rows(folder / "left" / "out")) == 0, files  # nothing ran
+    assert list((folder / "left").rglob("*")) == []  # nothing ran, and the folder it made is gone again
 
     allowed = platoon_with("sweep", sweep, "--out", "small/out", "--workers", "1", "-q", "--allow-full-disk",
                            cwd=folder, prefix=prefix, timeout=600)
@@ -525,3 +524,95 @@ def test_a_sweep_that_cannot_fit_on_its_disk_is_refused_before_its_first_run(tmp
         if record["status"] == "completed":
             load(left / record["trace"])  # its trace is there and reads
     assert any(record["status"] == "completed" for record in records), records
+
+
+def _tree(folder: Path) -> list[tuple[str, bool]]:
+    """Every path below ``folder`` (folders included), and whether it is a folder."""
+    return sorted((str(path.relative_to(folder)), path.is_dir()) for path in folder.rglob("*"))
+
+
+def test_a_sweep_refused_up_front_leaves_the_disk_as_it_found_it(tmp_path: Path, fmu_dir: Path) -> None:
+    """Refused before its first run (here: 10^9 runs need petabytes, more than any disk has), a sweep
+    removes the folders and files it made (new/out/results, traces, .lock, results.csv, and new/ itself),
+    and nothing it did not make: a folder that was there, even an empty one, and what it holds stay."""
+    from tests.test_hostile_traces import one_line_error
+
+    (tmp_path / "build").symlink_to(REPO / "build", target_is_directory=True)
+    sweep = sweep_file(tmp_path, '[random]\nsamples = 1000000000\nseed = 1\n[random.ranges]\n"platoon.k_v" = [0.4, 1.0]\n')
+    before = _tree(tmp_path)
+    refused = platoon("sweep", sweep, "--out", "new/out", "-q", cwd=tmp_path)
+    assert refused.returncode == 2, (refused.stdout, refused.stderr)
+    one_line_error(refused, "--out new/out", "1,000,000,000 runs need about", "free")
+    assert _tree(tmp_path) == before  # no new/, no new/out/, nothing in them
+
+    mine = tmp_path / "mine"
+    (mine / "results").mkdir(parents=True)  # empty, but there before: not the sweep's to remove
+    (mine / "notes.txt").write_text("mine\n")
+    before = _tree(tmp_path)
+    refused = platoon("sweep", sweep, "--out", mine, "-q", cwd=tmp_path)
+    assert refused.returncode == 2, (refused.stdout, refused.stderr)
+    one_line_error(refused, "runs need about")
+    assert _tree(tmp_path) == before and (mine / "notes.txt").read_text() == "mine\n"
+
+    bad = sweep_file(tmp_path, '[grid]\n"platoon.no_such_key" = [1, 2]\n', name="bad.toml")  # a bad config: the same
+    before = _tree(tmp_path)
+    refused = platoon("sweep", bad, "--out", "new/out", "-q", cwd=tmp_path)
+    assert refused.returncode == 2, (refused.stdout, refused.stderr)
+    one_line_error(refused, "platoon.no_such_key")
+    assert _tree(tmp_path) == before
+
+
+def test_a_sweep_waiting_for_the_folder_of_one_refused_up_front_takes_it_whole(tmp_path: Path) -> None:
+    """Two sweeps start on one new folder; the first takes it and is refused up front, removing what it made
+    (.lock included) while the second waits for the lock. The second then holds the folder's lock and its
+    folders, not a lock on a removed file in a removed folder (it opens .lock again)."""
+    import threading
+
+    from orchestrator.sweep.store import OutputFolder
+
+    out = tmp_path / "out"
+    first, second = OutputFolder(out), OutputFolder(out)
+    first.acquire()
+    waiting = threading.Thread(target=second.acquire)
+    waiting.start()
+    lock = str(out / ".lock")
+    deadline = time.monotonic() + 60
+    while sum(os.path.realpath(f"/proc/self/fd/{fd}") == lock for fd in os.listdir("/proc/self/fd")) < 2:
+        assert time.monotonic() < deadline, "the second sweep never opened the folder's .lock"
+        time.sleep(POLL)
+    first.undo()
+    first.release()
+    waiting.join(timeout=60)
+    assert not waiting.is_alive()
+    held = os.fstat(second._lock.fileno())
+    assert (held.st_dev, held.st_ino) == (os.stat(lock).st_dev, os.stat(lock).st_ino)
+    assert second.results.is_dir() and second.traces.is_dir()
+    second.undo()
+    second.release()
+    assert not out.exists()
+
+
+def test_a_placed_trace_is_synced_then_renamed_then_its_folder_synced(tmp_path: Path, monkeypatch) -> None:
+    """A committed run's trace survives a power cut: its data is fsynced before the rename, and traces/ is
+    fsynced after it (else the result file, the commit, could outlive the rename that put the trace in
+    place). Watched on the real files: each fsync's target and what traces/ holds at that moment."""
+    from orchestrator.sweep.plan import Run
+    from orchestrator.sweep.store import OutputFolder
+
+    folder = OutputFolder(tmp_path / "out")
+    folder.acquire()
+    run = Run("abc123", {}, [], None, None, "", "hash")
+    partial = folder.partial_trace_path(run)
+    partial.write_bytes(b"\x89MCAP0\r\n" + b"x" * 100)
+    synced: list[tuple[str, list[str]]] = []
+    real_fsync = os.fsync
+
+    def watched(fd: int) -> None:
+        synced.append((os.path.realpath(f"/proc/self/fd/{fd}"), sorted(p.name for p in folder.traces.iterdir())))
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", watched)
+    placed = folder.place_trace(run, partial)
+    folder.release()
+    assert placed == folder.trace_path(run) and placed.read_bytes().endswith(b"x" * 100)
+    assert synced == [(str(partial), ["abc123.mcap.part"]), (str(folder.traces), ["abc123.mcap"])], synced

@@ -94,13 +94,19 @@ class Builder(ABC):
 
 
 class Output(Protocol):
-    """Where a builder may write, and how (orchestrator/support/output.py: ``FmuOutput``)."""
+    """Where a builder may write, and how (orchestrator/support/output.py: ``OwnFiles``)."""
 
     def check(self, target: Path) -> None:
         """Raise (an ``OSError`` or ``ValueError`` subclass, one line) if ``target`` must not be replaced."""
 
     def replacing(self, target: Path) -> ContextManager[Path]:
         """A temporary path beside ``target`` to write, renamed onto it when complete and synced."""
+
+
+def source_files() -> tuple[Path, ...]:
+    """What a build reads: every file of the fmus package (slaves, models, C sources, builders). The
+    output rule never lets a build replace one of them (``Output.check``, ``protect``)."""
+    return tuple(path for path in PACKAGE_DIR.rglob("*") if path.is_file() and "__pycache__" not in path.parts)
 
 
 def fmu_guid(path: Path) -> str | None:
@@ -114,7 +120,10 @@ def fmu_guid(path: Path) -> str | None:
 
 
 def archive_is_whole(path: Path, guid: str, required: set[str]) -> bool:
-    """``path`` has ``guid``, every entry of ``required`` (not empty) and passes every CRC."""
+    """``path`` has ``guid``, every entry of ``required`` (not empty) and passes every CRC. Anything but a
+    regular file is no FMU (and is never opened: reading a FIFO would block until someone writes to it)."""
+    if not path.is_file():
+        return False
     if fmu_guid(path) != guid:
         return False
     try:

@@ -119,14 +119,31 @@ def git_commit() -> str | None:
     return done.stdout.strip() or None
 
 
+def check_json_target(path: Path) -> None:
+    """Refuse (``OutputError``, one line) a result file a benchmark must not replace, before it measures:
+    by the output rule (orchestrator/support/output.py) only a missing or empty file or one holding JSON
+    (a result of an earlier run) is replaced; never a FIFO, a device or a folder. Benchmarks have no
+    ``--overwrite``: another file in the way is for the user to move."""
+    from orchestrator.support.output import Kind, check_target, starts_with
+
+    check_target(Path(path), kind=Kind("a JSON file", starts_with(b"{", b"[")), what="--json")
+
+
+def write_json(path: Path, data: Any, indent: int = 1) -> Path:
+    """``data`` as JSON to ``path`` by the output rule: checked (``check_json_target``), written aside,
+    synced and renamed into place."""
+    from orchestrator.support.output import write_text
+
+    check_json_target(path)
+    return write_text(Path(path), json.dumps(data, indent=indent), what="--json")
+
+
 def write_result(out_dir: Path, suite: str, payload: dict[str, Any], out: Path | None = None) -> Path:
     """Write ``payload`` (plus versions, machine, commit, time) to ``out`` or ``out_dir/<suite>-<time>.json``."""
     path = out or out_dir / f"{suite}-{time.strftime('%Y%m%d-%H%M%S')}.json"
     record = {"suite": suite, **payload, "versions": versions(), "machine": machine(), "commit": git_commit(),
               "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
-    from orchestrator.support.output import write_text  # the output rule: aside, synced, renamed
-
-    return write_text(path, json.dumps(record, indent=1))
+    return write_json(path, record)
 
 
 def markdown_table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:

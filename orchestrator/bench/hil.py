@@ -26,6 +26,7 @@ afresh), and is always stopped (terminate, then kill). Times in the JSON are sec
 
 from __future__ import annotations
 
+import os
 import socket
 import statistics
 import struct
@@ -64,18 +65,26 @@ def free_port() -> int:
 
 
 class Helper:
-    """A helper process (stderr to a file) that is ready once its stderr holds ``ready``; always stopped."""
+    """A helper process (stderr to a file) that is ready once its stderr holds ``ready``; always stopped.
+
+    Its log is a new file of its own in ``scratch`` (``<name>.<random>.stderr``, made by ``mkstemp``:
+    created exclusively, never following a symlink), so by the output rule (orchestrator/support/output.py)
+    it never opens or replaces what is there: not an earlier helper's log, not a FIFO (which would block
+    the open until someone read it), not a device. A log a helper writes while it runs cannot be renamed
+    into place when complete; it is read while it grows, and removed with ``scratch``."""
 
     def __init__(self, command: list[str], ready: str, scratch: Path, name: str) -> None:
-        self.command, self.ready, self.name = command, ready, name
-        self.log = scratch / f"{name}.stderr"
+        self.command, self.ready, self.name, self.scratch = command, ready, name, scratch
+        self.log: Path | None = None
         self.process: subprocess.Popen | None = None
 
     def stderr(self) -> str:
-        return self.log.read_text()[-2000:] if self.log.exists() else ""
+        return self.log.read_text()[-2000:] if self.log is not None and self.log.exists() else ""
 
     def __enter__(self) -> "Helper":
-        with open(self.log, "w") as log:
+        fd, name = tempfile.mkstemp(prefix=f"{self.name}.", suffix=".stderr", dir=self.scratch)
+        self.log = Path(name)
+        with os.fdopen(fd, "w") as log:
             self.process = subprocess.Popen(self.command, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=log)
         try:
             deadline = time.monotonic() + START_TIMEOUT

@@ -11,15 +11,15 @@ with the FMUs in build/fmus.
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 from pathlib import Path
 
 from fmus.builders import DEFAULT_OUT
 from orchestrator.analysis.metrics import report_json, summarize
+from orchestrator.support.output import OutputError
 from orchestrator.trace import load
 
-from .common import DEFAULT_OUT_DIR, BenchError
+from .common import DEFAULT_OUT_DIR, BenchError, check_json_target, write_json
 from .scenarios import find_configs, run_config
 
 
@@ -29,8 +29,9 @@ def main() -> None:
     parser.add_argument("--json", type=Path, default=DEFAULT_OUT_DIR / "paper_scenarios.json")
     args = parser.parse_args()
     try:
+        check_json_target(args.json)  # before minutes of runs, not after them
         paths = find_configs(None)
-    except BenchError as error:
+    except (BenchError, OutputError) as error:
         raise SystemExit(f"error: {error}") from None
     results = []
     with tempfile.TemporaryDirectory() as scratch:
@@ -45,9 +46,10 @@ def main() -> None:
                 print(f"{path.stem:24s} {law:8s} {result.wall_time:6.2f} s  " + "  ".join(
                     f"{v['name']}: off {v['path_offset']:+.3g} gap {v['gap']:.5g} V {v['speed']:.5g} max|e| {v['path_error_max']:.3g}"
                     for v in summary["vehicles"]), flush=True)
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(results, indent=2))
-    print(f"wrote {args.json}")
+    try:
+        print(f"wrote {write_json(args.json, results, indent=2)}")  # the output rule: aside, synced, renamed
+    except OutputError as error:
+        raise SystemExit(f"error: {error}") from None
 
 
 if __name__ == "__main__":

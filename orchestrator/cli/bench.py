@@ -16,7 +16,7 @@ if TYPE_CHECKING:  # rich's table is imported where used: `platoon run -q` needs
 from orchestrator.bench import ENGINES as BENCH_ENGINES
 from orchestrator.bench.common import DEFAULT_OUT_DIR
 from orchestrator.cli.common import (SET_METAVAR, err, fail,
-                                     out)
+                                     out, output_rule)
 
 bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks: what steps and whole runs cost against FMPy and libcosim, memory per vehicle, HIL latency (JSON under runs/bench/; not pass/fail tests; docs/performance.md).")
 
@@ -113,7 +113,9 @@ def run_bench(suite: str, measure, render, out_dir: Path, quiet: bool) -> None:
         fail(1, f"bench {suite}: {error}")
     result["command"] = " ".join(["platoon", *sys.argv[1:]])
     out.print(render(result), highlight=False, soft_wrap=True)
-    out.print(f"results: {write_result(out_dir, suite, result)}", highlight=False, soft_wrap=True)
+    with output_rule():  # a folder it cannot write: one line
+        written = write_result(out_dir, suite, result)
+    out.print(f"results: {written}", highlight=False, soft_wrap=True)
 
 
 def _per_fmu_step(suite_name: str, engines: str, n: str, steps: int, rounds: int, out_dir: Path, quiet: bool,

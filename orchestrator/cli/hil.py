@@ -26,7 +26,7 @@ AllowInsecure = Annotated[bool, typer.Option("--allow-insecure", help="allow end
                                                                       "(docs/hil.md, \"A secure lab\")")]
 
 
-def _stop_on_signals(stop: threading.Event) -> None:
+def stop_on_signals(stop: threading.Event) -> None:
     """SIGINT and SIGTERM set ``stop``: the program's loop ends, stops the wheels, releases Zenoh."""
     def handler(signum: int, frame: object) -> None:
         stop.set()
@@ -182,7 +182,7 @@ def m3pi_emulator(
     settings = EmulatorSettings(rate, noise_position, math.radians(noise_heading), latency, command_latency,
                                 command_timeout, not standing_start, seed)
     stop = threading.Event()
-    _stop_on_signals(stop)
+    stop_on_signals(stop)
     try:
         run_emulator(robots, settings, connect or default_connect, listen or default_listen,
                      str(zenoh_config) if zenoh_config else None, duration, stop, make=make,
@@ -221,7 +221,7 @@ def m3pi_serial(
     scale = SpeedScale.from_options(max_speed=max_speed, swap_motors=swap_motors, invert_left=invert_left,
                                     invert_right=invert_right)
     stop = threading.Event()
-    _stop_on_signals(stop)
+    stop_on_signals(stop)
     try:
         run_serial_endpoint(port, robot, prefix=prefix, connect=connect, listen=listen,
                             zenoh_config_file=str(zenoh_config) if zenoh_config else None, scale=scale,

@@ -11,7 +11,7 @@ from typing import Annotated, Optional
 import typer
 
 from orchestrator.cli.common import fail
-from orchestrator.cli.hil import AllowInsecure, Endpoints, _stop_on_signals
+from orchestrator.cli.hil import AllowInsecure, Endpoints, stop_on_signals
 
 
 def _pairs(values: list[str], flag: str) -> list[tuple[str, str]]:
@@ -76,7 +76,7 @@ def mocap(
         settings["hostname"] = host
     graph = RosGraph(ros2, domain, namespace, "platoon_mocap") if ros2 else None
     stop = threading.Event()
-    _stop_on_signals(stop)
+    stop_on_signals(stop)
     try:
         config = make_config(connect, listen, str(zenoh_config) if zenoh_config else None,
                              allow_insecure=allow_insecure)

@@ -25,11 +25,12 @@ def build(
 ) -> None:
     """Build the Vehicle, VirtualTarget, Link and LiveVehicle FMUs, and the native Vehicle, VirtualTarget and Link into OUT/native (FMI 2.0) and OUT/fmi3 (FMI 3.0) (only when their sources changed)."""
     from fmus.builders import ALL_FMUS, PYTHONFMU
+    from fmus.builders.base import source_files
 
     from orchestrator.cli.common import output_rule
     from orchestrator.support.output import OwnFiles
 
-    rule = OwnFiles(_build_inputs(), "build --out")  # never a source, a FIFO or a device; aside, synced, renamed
+    rule = OwnFiles(source_files(), "build --out")  # never a source, a FIFO or a device; aside, synced, renamed
     try:
         with output_rule():
             built_fmus = PYTHONFMU.build(out_dir, force=force, names=ALL_FMUS, output=rule)
@@ -40,13 +41,6 @@ def build(
         state = "built" if built.rebuilt else "up to date"
         out.print(f"{built.path}  {built.guid}  ({state})", soft_wrap=True)
     _build_native(out_dir, force, all_platforms, rule)
-
-
-def _build_inputs() -> tuple[Path, ...]:
-    """What `platoon build` reads: every file of the fmus package (slaves, models, C sources, builders)."""
-    from fmus.builders.base import PACKAGE_DIR
-
-    return tuple(path for path in PACKAGE_DIR.rglob("*") if path.is_file() and "__pycache__" not in path.parts)
 
 
 def _build_native(out_dir: Path, force: bool, all_platforms: bool = False, rule: OwnFiles | None = None) -> None:

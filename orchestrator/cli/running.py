@@ -156,6 +156,7 @@ def _run_with_view(config: Path, parsed: Config, text: str, target, engine: str,
     from fmus.builders import BuildError
 
     from orchestrator.components.kinds import FmuKindError
+    from orchestrator.support.output import OutputError
 
     if view is not None:
         from orchestrator.observers.foxglove_view import announce
@@ -165,6 +166,8 @@ def _run_with_view(config: Path, parsed: Config, text: str, target, engine: str,
         return _execute(parsed, text, target, engine, quiet, trace_writer, view)
     except (FmuKindError, BuildError) as error:  # nothing was run, the trace path is released
         fail(2, f"config {config}: {error}")
+    except OutputError as error:  # a FIFO, device or folder where an FMU is built: one line naming it
+        fail(2, str(error))
     finally:
         if view is not None:
             view.close()

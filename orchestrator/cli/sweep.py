@@ -111,7 +111,8 @@ def sweep(
     except SweepError as error:
         fail(2, str(error))
     fmu_dir = DEFAULT_OUT.resolve()
-    prepare_fmus(fmu_dir)  # once, before the workers start (each run only checks that they are up to date)
+    with output_rule():  # a FIFO or device where an FMU goes: one line, before any run
+        prepare_fmus(fmu_dir)  # once, before the workers start (each run only checks that they are up to date)
     display = _Display(quiet)
     try:
         executor: Executor = DaskExecutor(scheduler) if scheduler is not None else LocalExecutor(workers or _cores())
@@ -149,12 +150,13 @@ def sweep_plot(
 ) -> None:
     """Draw a sweep's results as maps: |value| over two parameters, one panel per value of a third."""
     from orchestrator.cli.common import fail, out, output_rule
-    from orchestrator.sweep.plot import PlotError, draw_map
+    from orchestrator.sweep.plot import draw_map
+    from orchestrator.sweep.results import ResultsError
 
     try:
         with output_rule():
             path = draw_map(out_dir, value, x, y, panel, png or out_dir / "map.png", overwrite)
-    except PlotError as error:
+    except ResultsError as error:  # PlotError is one too
         fail(2, str(error))
     out.print(f"wrote {path}", highlight=False, soft_wrap=True)
 
@@ -166,13 +168,12 @@ def stability_map(
 ) -> None:
     """Map a string-stability sweep: per law, the analytic boundary over the measured gains (delay x loss)."""
     from orchestrator.cli.common import fail, out, output_rule
-    from orchestrator.sweep.plot import PlotError
     from orchestrator.sweep.stability_map import draw_stability_map
 
     try:
         with output_rule():
             path = draw_stability_map(out_dir, png or out_dir / "stability.png", overwrite)
-    except (PlotError, ValueError) as error:
+    except ValueError as error:  # a PlotError, a ResultsError, a config the analysis refuses
         fail(2, str(error))
     out.print(f"wrote {path}", highlight=False, soft_wrap=True)
 

@@ -70,11 +70,19 @@ def ensure_fmus(fmu_dir: Path, kind: str, names: Sequence[str],
     """Paths of FMUs ``names`` of ``kind``, built first where missing or out of date (``announce(name,
     folder)`` before each build).
 
+    The build follows the output rule (orchestrator/support/output.py, ``OwnFiles``): a FIFO, device or
+    folder in an FMU's place is refused (``OutputError``, one line naming it) before anything reads it,
+    a source of the fmus package is never replaced, and an FMU is written aside, synced and renamed.
+
     ``LiveVehicle`` (a live robot as an FMU) exists only as a pythonfmu FMU: it runs the bridge's
     Python code, so it comes from the pythonfmu folder whatever ``kind`` says.
     """
     from fmus.builders import LIVE_FMU, PYTHONFMU
+    from fmus.builders.base import source_files
 
+    from orchestrator.support.output import OwnFiles
+
+    rule = OwnFiles(source_files(), "FMU")
     paths: dict[str, Path] = {}
     native = [name for name in names if name != LIVE_FMU] if kind == "native" else []
     python = [name for name in names if name not in native]
@@ -82,12 +90,13 @@ def ensure_fmus(fmu_dir: Path, kind: str, names: Sequence[str],
         from fmus.builders import NATIVE_FMI2, NoCompiler
 
         try:
-            built = NATIVE_FMI2.build(fmu_folder(fmu_dir, "native"), names=tuple(native), announce=announce)
+            built = NATIVE_FMI2.build(fmu_folder(fmu_dir, "native"), names=tuple(native), announce=announce, output=rule)
         except NoCompiler as error:
             raise FmuKindError(f"{error}; run with --fmus python (or simulation.fmus = \"python\")") from None
         paths.update({fmu.name: fmu.path for fmu in built})
     if python:
-        paths.update({fmu.name: fmu.path for fmu in PYTHONFMU.build(Path(fmu_dir), names=tuple(python), announce=announce)})
+        built = PYTHONFMU.build(Path(fmu_dir), names=tuple(python), announce=announce, output=rule)
+        paths.update({fmu.name: fmu.path for fmu in built})
     return {name: paths[name] for name in names}
 
 

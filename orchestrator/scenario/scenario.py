@@ -24,7 +24,7 @@ DISTURBANCE_INPUTS = {
 }
 
 # A communication point t is inside [start, start + duration) up to this much rounding.
-_TIME_TOLERANCE = 1e-9
+TIME_TOLERANCE = 1e-9
 
 
 @dataclass(frozen=True)
@@ -44,7 +44,7 @@ class ScheduledInput:
     frequency: float = 0.0
 
     def value_at(self, t: float) -> float:
-        if self.start - _TIME_TOLERANCE <= t < self.start + self.duration - _TIME_TOLERANCE:
+        if self.start - TIME_TOLERANCE <= t < self.start + self.duration - TIME_TOLERANCE:
             if self.frequency > 0.0:
                 return self.value * math.sin(self.frequency * (t - self.start))
             return self.value

@@ -119,13 +119,22 @@ def _umask() -> int:
     return mask
 
 
-def _sync_folder(folder: Path) -> None:
+def sync_folder(folder: Path) -> None:
+    """fsync a folder, so that a rename (or removal) in it survives a power cut, not only its files' data."""
     with suppress(OSError):  # some filesystems refuse to open or sync a folder; the rename already happened
         fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
         try:
             os.fsync(fd)
         finally:
             os.close(fd)
+
+
+def rename_into_place(aside: Path, final: Path) -> None:
+    """The rule's last step: sync the complete file ``aside``, rename it onto ``final`` (atomic, same
+    folder), then sync the folder (the rename itself reaches the disk). Every writer ends this way."""
+    sync_file(aside)
+    os.replace(aside, final)
+    sync_folder(Path(final).parent)
 
 
 def fail_line(what: str, final: Path, error: OSError) -> OutputError:
@@ -153,15 +162,13 @@ def replacing(final: Path, what: str = "--out") -> Iterator[Path]:
     aside = Path(name)
     try:
         yield aside
-        sync_file(aside)
-        os.replace(aside, final)
+        rename_into_place(aside, final)
     except BaseException as error:
         with suppress(OSError):
             aside.unlink()
         if isinstance(error, OSError):
             raise fail_line(what, final, error) from None
         raise
-    _sync_folder(final.parent)
 
 
 def sync_file(path: Path) -> None:
@@ -214,7 +221,8 @@ class OwnFiles:
     damaged FMU is rebuilt; the names are the command's, so no ``--overwrite``), but never one of the
     command's inputs (``protect``), never a FIFO, device or folder in its place, and only by a complete,
     synced file renamed onto it. The builders call ``check`` before they read a target and ``replacing``
-    to write it (fmus/builders/base.py: ``Output``)."""
+    to write it (fmus/builders/base.py: ``Output``). The FMUs a run builds for itself into build/fmus
+    follow it too (orchestrator/components/kinds.py: ``ensure_fmus``)."""
 
     protect: tuple[Path, ...] = ()
     what: str = "--out"

@@ -6,12 +6,12 @@ logarithmic colour scale (the sine law's offsets are ~1e-9 m, the regular law's 
 says the signed value; a run that failed is marked so.
 
 The rows are those of DIR/results.csv; axes may name any config key, varied or not, read from each
-run's resolved config (DIR/results/<id>.json), or ``d_star/R`` (platoon.d_star / path.radius).
+run's resolved config (DIR/results/<id>.json), or ``d_star/R`` (platoon.d_star / path.radius): results.py
+reads them.
 """
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import textwrap
@@ -29,52 +29,19 @@ from orchestrator.support.output import IMAGE, check_target, replacing  # noqa: 
 from orchestrator.analysis.metrics import SUMMARY_UNITS  # noqa: E402
 from orchestrator.scenario.config import key_unit  # noqa: E402
 
-RATIO = "d_star/R"
+from .results import RATIO, ResultsError, lookup, read_records  # noqa: E402  (the sweep folder's reading)
 
 
-class PlotError(ValueError):
+
+class PlotError(ResultsError):
     """The folder or the options cannot make a map; the message names which."""
-
-
-def _records(folder: Path) -> list[dict[str, Any]]:
-    table = folder / "results.csv"
-    try:
-        with open(table, newline="") as file:
-            ids = [row["id"] for row in csv.DictReader(file)]
-    except OSError:
-        raise PlotError(f"{folder}: no results.csv (not a platoon sweep --out folder, or no run finished yet)") from None
-    records = []
-    for identifier in ids:
-        try:
-            records.append(json.loads((folder / "results" / f"{identifier}.json").read_text()))
-        except (OSError, ValueError):
-            raise PlotError(f"{folder}: results.csv names run {identifier}, whose results/{identifier}.json is unreadable") from None
-    if not records:
-        raise PlotError(f"{folder}/results.csv: no finished run yet")
-    return records
-
-
-def _lookup(record: dict[str, Any], key: str) -> Any:
-    """``key`` for one run: its varied value, else its resolved config's, else None."""
-    if key in record["values"]:
-        return record["values"][key]
-    node: Any = record.get("config")
-    if node is None:
-        return None
-    if key == RATIO:
-        return node["platoon"]["d_star"] / node["path"]["radius"]
-    for part in key.split("."):
-        if not isinstance(node, dict) or part not in node:
-            return None
-        node = node[part]
-    return node
 
 
 def _shared(records: list[dict[str, Any]], keys: list[str]) -> dict[str, Any]:
     """The keys of ``keys`` that every run with a config has at one value (not varied), and that value."""
     shared = {}
     for key in keys:
-        found = {json.dumps(_lookup(r, key)) for r in records if r.get("config") is not None}
+        found = {json.dumps(lookup(r, key)) for r in records if r.get("config") is not None}
         if len(found) == 1:
             shared[key] = json.loads(found.pop())
     return shared
@@ -93,7 +60,7 @@ def _axis_name(key: str) -> str:
 
 
 def draw_map(folder: Path, value: str, x: str, y: str, panel: str, png: Path, overwrite: bool = False) -> Path:
-    everything = _records(folder)
+    everything = read_records(folder)
     inputs = [folder / "results.csv", folder / "results.parquet", *(folder / "results" / f"{r['id']}.json" for r in everything)]
     check_target(png, overwrite, inputs, kind=IMAGE)  # before drawing: a refused --out costs nothing
     records = everything  # an invalid point (its config refused) is a cell too: it says "invalid", never blank
@@ -105,7 +72,7 @@ def draw_map(folder: Path, value: str, x: str, y: str, panel: str, png: Path, ov
     axes_options = {"--panel": panel, "--y": y, "--x": x}
     shared = _shared(records, list(axes_options.values()))
     for record in records:
-        where = tuple(_lookup(record, key) for key in axes_options.values())
+        where = tuple(lookup(record, key) for key in axes_options.values())
         if record["status"] == "invalid":  # a refused config has no resolved keys: the runs' common value stands
             where = tuple(shared.get(key) if found is None else found for key, found in zip(axes_options.values(), where))
             if None in where:

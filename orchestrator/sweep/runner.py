@@ -80,8 +80,9 @@ def run_sweep(runs: Iterable[Run], total: int, folder: OutputFolder, executor: E
     """Run what is not done of ``runs`` (``total`` of them, streamed: never all in memory) into ``folder``
     on ``executor``; the folder is locked throughout. ``varied``: the varied keys (the tables' columns).
     A sweep whose files would not fit on the disk is refused before its first run (space.py), unless
-    ``allow_full_disk``."""
+    ``allow_full_disk``; a sweep refused before its first run leaves the disk as it found it (``undo``)."""
     folder.acquire()
+    started = False
     summary = SweepSummary(total)
     varied = varied or []
     runs = iter(runs)
@@ -102,6 +103,7 @@ def run_sweep(runs: Iterable[Run], total: int, folder: OutputFolder, executor: E
             summary.failed += _is_failure(record)
             events.finished(run, record, summary.done, summary.failed)
 
+        started = True  # from here on runs are made: what they leave is kept
         jobs = _jobs(runs, folder, fmu_dir, summary, retry_failed, commit)
         with _Stop(executor.stop) as stop:
             for job, outcome in executor.outcomes(jobs):
@@ -117,6 +119,8 @@ def run_sweep(runs: Iterable[Run], total: int, folder: OutputFolder, executor: E
         folder.write_tables(varied)  # once at the end: results.csv in plan order, and results.parquet
     except BaseException:
         executor.stop()  # nothing more is started; local runs under way stop (their results are dropped)
+        if not started:  # refused up front: remove the folders and files this invocation made
+            folder.undo()
         raise
     finally:
         executor.close()

@@ -28,7 +28,8 @@ from orchestrator.analysis.error_gains import (clean_order, frequency_gains, pro
 from orchestrator.analysis.string_stability import chain_of, peak_gain  # noqa: E402
 from orchestrator.scenario.config import Config, config_from_mapping  # noqa: E402
 from orchestrator.support.output import IMAGE, check_target, replacing  # noqa: E402
-from orchestrator.sweep.plot import PlotError, _lookup, _records  # noqa: E402  (the sweep folder's reading)
+from orchestrator.sweep.plot import PlotError  # noqa: E402
+from orchestrator.sweep.results import lookup, read_records  # noqa: E402  (the sweep folder's reading)
 
 LAW, DELAY, LOSS = "platoon.speed_law", "links.delay", "links.loss"
 
@@ -57,10 +58,10 @@ def _analytic(config: Config, delay: float, loss: float) -> tuple[float, float]:
 
 def _points(folder: Path) -> list[dict[str, Any]]:
     points = []
-    for record in _records(folder):
+    for record in read_records(folder):
         if record["status"] == "invalid":
             continue
-        where = {key: _lookup(record, key) for key in (LAW, DELAY, LOSS)}
+        where = {key: lookup(record, key) for key in (LAW, DELAY, LOSS)}
         if any(value is None for value in where.values()):
             raise PlotError(f"run {record['id']}: no {', '.join(k for k, v in where.items() if v is None)} (not a "
                             "string-stability sweep: configs/sweeps/string_stability.toml)")

@@ -16,10 +16,12 @@ file, one appended row (the table is rewritten only when a run brings a column n
 a larger platoon.count's vehicle metrics). A result made from another resolved config
 (the base file was edited) is not this run's, and the run is redone. The lock keeps a second sweep
 off the folder while one works in it; the kernel releases it when the sweep dies, even by SIGKILL.
+A sweep refused before its first run removes what it made (``undo``): the disk is left as it was found.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import fcntl
 import io
@@ -32,7 +34,7 @@ import time
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
-from orchestrator.support.output import OutputError, replacing, sync_file, write_bytes
+from orchestrator.support.output import OutputError, rename_into_place, replacing, sync_file, write_bytes
 
 from .plan import Run
 from .spec import SweepError
@@ -74,18 +76,38 @@ class OutputFolder:
         self.parquet = self.root / "results.parquet"
         self._lock: io.TextIOWrapper | None = None
         self._header: list[str] | None = None  # results.csv's columns as last written
+        self._created: list[Path] = []  # what this invocation made (folders, .lock, results.csv): ``undo``
 
     # -- the lock ------------------------------------------------------------------------------------
 
     def acquire(self) -> None:
         """Take the folder for this sweep; SweepError if another sweep holds it."""
-        try:
-            self.results.mkdir(parents=True, exist_ok=True)
-            self.traces.mkdir(parents=True, exist_ok=True)
-            lock = open(self.root / ".lock", "a+")
-        except OSError as error:
-            raise SweepError(f"--out {self.root}: cannot write there: {error.strerror or error}") from None
         deadline = time.monotonic() + LOCK_WAIT
+        while True:
+            lock = self._open_lock()
+            if self._take(lock, deadline):
+                break
+        lock.seek(0)
+        lock.truncate()
+        lock.write(str(os.getpid()))
+        lock.flush()
+        self._lock = lock
+        self._remove_leftovers()
+
+    def _open_lock(self) -> io.TextIOWrapper:
+        """The folder's .lock, opened (the folder made first, and what is made noted for ``undo``)."""
+        try:
+            self._make_folder(self.results)
+            self._make_folder(self.traces)
+            self._note_new(self.root / ".lock", self.csv)
+            return open(self.root / ".lock", "a+")
+        except OSError as error:
+            self.undo()
+            raise SweepError(f"--out {self.root}: cannot write there: {error.strerror or error}") from None
+
+    def _take(self, lock: io.TextIOWrapper, deadline: float) -> bool:
+        """Lock ``lock``, waiting until ``deadline`` for a sweep that is just dying; False (closed) if the
+        file was meanwhile removed by a sweep refused up front (``undo``): then open it again."""
         while True:
             try:
                 fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -97,12 +119,40 @@ class OutputFolder:
                     lock.close()
                     raise SweepError(f"--out {self.root}: another platoon sweep works in this folder (pid {holder})") from None
                 time.sleep(0.1)
-        lock.seek(0)
-        lock.truncate()
-        lock.write(str(os.getpid()))
-        lock.flush()
-        self._lock = lock
-        self._remove_leftovers()
+        held = os.fstat(lock.fileno())
+        try:
+            now = os.stat(self.root / ".lock")
+        except OSError:
+            now = None
+        if now is None or (now.st_dev, now.st_ino) != (held.st_dev, held.st_ino):
+            lock.close()
+            return False
+        return True
+
+    def _make_folder(self, folder: Path) -> None:
+        """``mkdir -p folder``, noting each folder it makes (the root's parents included)."""
+        missing = []
+        while not os.path.lexists(folder):
+            missing.append(folder)
+            folder = folder.parent
+        for made in reversed(missing):
+            try:
+                made.mkdir()
+            except FileExistsError:  # made meanwhile by someone else: not ours to remove
+                continue
+            self._created.append(made)
+
+    def _note_new(self, *files: Path) -> None:
+        self._created += [path for path in files if not os.path.lexists(path)]
+
+    def undo(self) -> None:
+        """Remove what this invocation made, for a sweep refused before its first run (the disk estimate, a
+        table it cannot write): the disk is left as it was found. Only what it made, and only if nothing
+        else came into it meanwhile (a folder is removed only when empty); call it holding the lock."""
+        for path in reversed(self._created):
+            with contextlib.suppress(OSError):
+                path.rmdir() if path.is_dir() and not path.is_symlink() else path.unlink()
+        self._created = []
 
     def release(self) -> None:
         if self._lock is not None:
@@ -133,10 +183,10 @@ class OutputFolder:
         return record if record.get("config_hash") == run.config_hash else None
 
     def place_trace(self, run: Run, partial: Path) -> Path:
-        """Move a finished run's trace from its partial name to its own, on disk before the result says so."""
-        sync_file(partial)
+        """Move a finished run's trace from its partial name to its own, on disk before the result says so:
+        its data synced, renamed, and traces/ synced (a power cut after the commit keeps the rename too)."""
         trace = self.trace_path(run)
-        os.replace(partial, trace)
+        rename_into_place(partial, trace)
         return trace
 
     def forget(self, run: Run) -> None:

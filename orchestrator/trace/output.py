@@ -26,7 +26,7 @@ from .format import MAGIC
 ASIDE_SUFFIX = ".partial"
 
 
-from orchestrator.support.output import Kind, OutputError, check_target, sync_file
+from orchestrator.support.output import Kind, OutputError, check_target, rename_into_place
 
 __all__ = ["OutputError", "Claim", "aside_path", "check_in_use", "check_replaceable", "claim", "claim_new", "publish"]
 
@@ -79,9 +79,9 @@ class Claim:
 
 
 def publish(aside: Path, final: Path) -> None:
-    """Put a finalized file in place: synced, then one atomic rename in the same folder."""
-    sync_file(aside)
-    os.replace(aside, final)
+    """Put a finalized file in place: synced, then one atomic rename in the same folder, then the folder
+    synced (support/output.py: ``rename_into_place``)."""
+    rename_into_place(aside, final)
 
 
 def check_in_use(path: Path) -> None:

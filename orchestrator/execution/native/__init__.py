@@ -29,7 +29,7 @@ from typing import Any, Callable, Sequence
 
 from orchestrator.components.fmu import ComponentError, UnpackedFmu, parameters_by_type
 from orchestrator.execution.python_master import MASTERS, Observer, check_finite, resolve_routes
-from orchestrator.scenario.scenario import _TIME_TOLERANCE, ScheduledInput
+from orchestrator.scenario.scenario import TIME_TOLERANCE, ScheduledInput
 from orchestrator.scenario.wiring import Connection
 from orchestrator.support.rows import RowBlock, float_buffer
 
@@ -128,7 +128,7 @@ class NativeMaster:
         routes = resolve_routes(self.components, connections, schedules)  # Master's checks and messages
         connected = [[(inp, offsets[source] + out) for inp, source, out in r.connected] for r in routes]
         scheduled = [
-            [(inp, float(s.start), float(s.duration), float(s.value), _TIME_TOLERANCE, float(s.frequency))
+            [(inp, float(s.start), float(s.duration), float(s.value), TIME_TOLERANCE, float(s.frequency))
              for inp, s in r.scheduled]
             for r in routes
         ]
