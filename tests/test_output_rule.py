@@ -21,7 +21,8 @@ from typing import Callable
 
 import pytest
 
-from tests.test_hostile_traces import PAPER, REPO, one_line_error, platoon, reference  # noqa: F401 (a fixture)
+from tests.test_hostile_traces import CLI, PAPER, REPO, one_line_error, platoon, reference  # noqa: F401 (a fixture)
+from tests.test_hostile_traces import env as test_env
 
 SHORT = ("--set", "simulation.stop_time=2.0")
 
@@ -286,3 +287,37 @@ def test_a_fifo_where_a_run_builds_its_fmus_is_refused_in_one_line_not_read(comm
     assert "build/fmus/" in line, line  # where it is
     assert [snapshot(fifo) for fifo in fifos] == was
     assert sorted(p.name for p in tmp_path.iterdir()) == ["build", *(["sweep.toml"] if command == "sweep" else [])]
+
+
+@pytest.mark.parametrize("writer_kind", ["inline", "process"])
+def test_a_runs_trace_is_synced_then_renamed_then_its_folder_synced(writer_kind: str, tmp_path: Path) -> None:
+    """`platoon run` replacing an existing trace: the finalized aside file reaches the disk before the
+    rename, and the folder after it (a power cut then leaves the old trace or the whole new one).
+    Watched in the process that finalizes the file (the worker's, for "process"): a sitecustomize on
+    the path wraps os.fsync and prints each synced path with the folder's listing at that moment."""
+    old = tmp_path / "t.mcap"
+    done = platoon("run", PAPER, "--set", "simulation.stop_time=0.2", "-q", "--out", old, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    watcher = tmp_path / "sitecustomize.py"
+    watcher.write_text(
+        "import os, sys\n"
+        "_fsync = os.fsync\n"
+        "def _watched(fd):\n"
+        "    path = os.path.realpath(f'/proc/self/fd/{fd}')\n"
+        "    folder = path if os.path.isdir(path) else os.path.dirname(path)\n"
+        "    if folder == %r:\n"
+        "        print('FSYNC', os.path.basename(path) or '.', sorted(os.listdir(folder)), file=sys.stderr, flush=True)\n"
+        "    _fsync(fd)\n"
+        "os.fsync = _watched\n" % str(tmp_path))
+    env = {**test_env(), "PYTHONPATH": os.pathsep.join([str(tmp_path), str(REPO)])}
+    result = subprocess.run([*CLI, "run", str(PAPER), "--set", "simulation.stop_time=0.2", "-q", "--trace-writer",
+                             writer_kind, "--out", str(old)], cwd=tmp_path, env=env, capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 0, result.stderr
+    synced = [line.split(" ", 1)[1] for line in result.stderr.splitlines() if line.startswith("FSYNC ")]
+    names = [entry.split(" ", 1)[0] for entry in synced]
+    trace = next((i for i, name in enumerate(names) if name.startswith(("t.mcap.", ".t.mcap."))), None)
+    assert trace is not None, result.stderr  # the aside file was synced ...
+    assert "'t.mcap'" in synced[trace] and f"'{names[trace]}'" in synced[trace], synced  # ... before the rename
+    assert tmp_path.name in names[trace + 1:], synced  # then the folder, after the rename
+    assert not any(name.startswith(("t.mcap.", ".t.mcap.")) for name in os.listdir(tmp_path))
