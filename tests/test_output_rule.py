@@ -22,7 +22,7 @@ from typing import Callable
 import pytest
 
 from tests.test_hostile_traces import CLI, PAPER, REPO, one_line_error, platoon, reference  # noqa: F401 (a fixture)
-from tests.test_hostile_traces import env as test_env
+from tests.test_hostile_traces import env as cli_env
 
 SHORT = ("--set", "simulation.stop_time=2.0")
 
@@ -309,7 +309,7 @@ def test_a_runs_trace_is_synced_then_renamed_then_its_folder_synced(writer_kind:
         "        print('FSYNC', os.path.basename(path) or '.', sorted(os.listdir(folder)), file=sys.stderr, flush=True)\n"
         "    _fsync(fd)\n"
         "os.fsync = _watched\n" % str(tmp_path))
-    env = {**test_env(), "PYTHONPATH": os.pathsep.join([str(tmp_path), str(REPO)])}
+    env = {**cli_env(), "PYTHONPATH": os.pathsep.join([str(tmp_path), str(REPO)])}
     result = subprocess.run([*CLI, "run", str(PAPER), "--set", "simulation.stop_time=0.2", "-q", "--trace-writer",
                              writer_kind, "--out", str(old)], cwd=tmp_path, env=env, capture_output=True, text=True,
                             timeout=120)
