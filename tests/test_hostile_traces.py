@@ -120,7 +120,12 @@ def chunk_spans(path: Path) -> list[tuple[int, int, int, int]]:
 
 def test_a_second_run_on_a_trace_being_written_is_refused_and_the_first_finishes_intact(work: Path) -> None:
     trace = work / "shared.mcap"
-    first = start("run", "victim.toml", *LONG, "--out", trace, "-q", "--trace-writer", "inline", cwd=work)
+    # every 1000th point recorded: the run keeps writing while the two refusals start (seconds on a loaded
+    # machine), and every step it records is read back below (~0.15 ms each: 2 s of every-step writing
+    # were ~20 s of reading); at that rate its 10^8 steps (--allow-long: above the 10^6 a run may have
+    # unasked) outlast any test
+    first = start("run", "victim.toml", "--set", "simulation.stop_time=1000000.0", "--allow-long", "--trace-every",
+                  "1000", "--out", trace, "-q", "--trace-writer", "inline", cwd=work)
     try:
         wait_for_size(trace, 100_000, first)
         second = platoon("run", "victim.toml", *SHORT, "--out", trace, "-q", cwd=work)

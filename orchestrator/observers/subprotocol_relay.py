@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import socket
 import threading
+import time
 from contextlib import suppress
 
 LEGACY = b"foxglove.websocket.v1"
@@ -23,6 +24,7 @@ CURRENT = b"foxglove.sdk.v1"
 HEADER = b"sec-websocket-protocol:"
 MAX_HEAD = 64 * 1024  # bytes of an HTTP upgrade request or answer, at most
 BUFFER = 1 << 16
+DRAIN = 5.0  # s a closing relay lets each client's copy finish (what the server sent before it stopped)
 
 
 def _read_head(connection: socket.socket) -> tuple[bytes, bytes]:
@@ -85,6 +87,7 @@ class SubprotocolRelay:
         self.port = self._listener.getsockname()[1]
         self.upstream = 0
         self._open: set[socket.socket] = set()
+        self._serving: list[threading.Thread] = []
         self._lock = threading.Lock()
 
     def start(self, upstream: int) -> None:
@@ -97,7 +100,10 @@ class SubprotocolRelay:
                 client, _ = self._listener.accept()
             except OSError:  # closed
                 return
-            threading.Thread(target=self._serve, args=(client,), name="live-view client", daemon=True).start()
+            serving = threading.Thread(target=self._serve, args=(client,), name="live-view client", daemon=True)
+            with self._lock:
+                self._serving.append(serving)
+            serving.start()
 
     def _serve(self, client: socket.socket) -> None:
         server = None
@@ -137,11 +143,19 @@ class SubprotocolRelay:
             self._open.difference_update(c for c in connections if c is not None)
 
     def close(self) -> None:
-        """Stop accepting and drop the clients still connected (after the SDK's server said goodbye)."""
+        """Stop accepting; once the SDK's server has stopped, each client's copy ends when it has passed on
+        the server's last bytes (the run's last log line, its goodbye): those are let through, up to
+        ``DRAIN`` s (a loaded machine had the relay drop them), then the clients still connected are dropped."""
         with suppress(OSError):
             self._listener.shutdown(socket.SHUT_RDWR)  # wakes the thread blocked in accept()
         with suppress(OSError):
             self._listener.close()
+        deadline = time.monotonic() + DRAIN
+        with self._lock:
+            serving = list(self._serving)
+        for thread in serving:
+            if thread.is_alive():
+                thread.join(max(0.0, deadline - time.monotonic()))
         with self._lock:
             connections, self._open = list(self._open), set()
         for connection in connections:
