@@ -68,7 +68,7 @@ def report(
             out.print_json(json.dumps({"trace": str(trace), "law": config.platoon.law, "status": status,
                                         **report_json(summaries, config)}))
         else:
-            out.print(summary_table(summaries, config, f"{trace.name}: {config.platoon.law} law ({status})"))
+            out.print(summary_table(summaries, config, f"{trace.name}: {config.laws_text()} ({status})"))
         if plots is not None:
             from orchestrator.analysis.plots import write_plots
 
