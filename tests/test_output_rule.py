@@ -321,3 +321,19 @@ def test_a_runs_trace_is_synced_then_renamed_then_its_folder_synced(writer_kind:
     assert "'t.mcap'" in synced[trace] and f"'{names[trace]}'" in synced[trace], synced  # ... before the rename
     assert tmp_path.name in names[trace + 1:], synced  # then the folder, after the rename
     assert not any(name.startswith(("t.mcap.", ".t.mcap.")) for name in os.listdir(tmp_path))
+
+
+def test_report_refuses_a_plot_target_before_reading_the_trace(tmp_path: Path) -> None:
+    """`platoon report --plots DIR`: a panel's target that may not be replaced (a foreign file, without
+    --overwrite) is refused before the trace is read: the error names the target even when the trace
+    is not one, and the foreign file is untouched."""
+    plots = tmp_path / "plots"
+    plots.mkdir()
+    foreign = plots / "xy.png"
+    foreign.write_text("my notes, not an image\n")
+    bogus = tmp_path / "bogus.mcap"
+    bogus.write_text("not an MCAP file\n")
+    result = platoon("report", bogus, "--plots", plots, cwd=tmp_path)
+    assert result.returncode == 2, result.stderr
+    assert "xy.png" in result.stderr and "not an MCAP" not in result.stderr, result.stderr
+    assert foreign.read_text() == "my notes, not an image\n"

@@ -163,6 +163,18 @@ def colorbar(figure: Any, axes: Any, vehicles: list[str]) -> None:
 PLOT_STEMS = tuple(stem for stem, *_ in TIME_PANELS) + ("xy",)
 
 
+def check_plot_targets(directory: Path, overwrite: bool = False, protect: Iterable[Path] = ()) -> list[Path]:
+    """The panels' paths in ``directory``, each checked by the output rule (raises ``OutputError``, one
+    line): `platoon report` calls it before reading the trace, so a refused target costs no reading."""
+    from orchestrator.support.output import IMAGE, check_folder, check_target
+
+    check_folder(directory, protect, "--plots")
+    targets = [directory / f"{stem}.png" for stem in PLOT_STEMS]
+    for target in targets:
+        check_target(target, overwrite, protect, "--plots", kind=IMAGE)
+    return targets
+
+
 def write_plots(trace: Trace, config: Config, directory: Path, overwrite: bool = False,
                 protect: Iterable[Path] = ()) -> list[Path]:
     """Write speed_errors.png, gap_errors.png, path_errors.png and xy.png into ``directory``.
@@ -171,14 +183,11 @@ def write_plots(trace: Trace, config: Config, directory: Path, overwrite: bool =
     drawn (an existing PNG is replaced, anything else only with ``overwrite``, an input never), and each
     is drawn aside and renamed into place; raises ``OutputError`` (one line) if one may not or cannot be.
     """
-    from orchestrator.support.output import IMAGE, check_folder, check_target, replacing
+    from orchestrator.support.output import replacing
 
-    check_folder(directory, protect, "--plots")
-    targets = [directory / f"{stem}.png" for stem in PLOT_STEMS]
-    for target in targets:
-        check_target(target, overwrite, protect, "--plots", kind=IMAGE)
+    targets = check_plot_targets(directory, overwrite, protect)
     vehicles = trace.vehicles()
-    label = f"{config.name} ({config.platoon.law} law)"
+    label = f"{config.name} ({config.laws_text()})"
     for target, (stem, ylabel, title, series) in zip(targets, TIME_PANELS):
         figure, axes = plt.subplots(figsize=(7.5, 4.2), dpi=120)
         draw_time_panel(axes, trace, config, series, ylabel, f"{title}: {label}")

@@ -41,9 +41,11 @@ def report(
     """Summarize a trace (path offset, gap, speed, max path error) and draw the paper's panels."""
     from orchestrator.analysis.metrics import report_json, summarize
 
-    if plots is not None:
+    if plots is not None:  # every panel's target checked before the trace is read
+        from orchestrator.analysis.plots import check_plot_targets
+
         with output_rule():
-            check_folder(plots, [trace], "--plots")
+            check_plot_targets(plots, overwrite, [trace])
     loaded, config, non_finite = _trace_and_config(trace)
     note = (err.print if as_json else out.print)
     if non_finite:
