@@ -58,12 +58,28 @@ def main() -> None:
 
         typer_main()
         return
+    from orchestrator.cli.trace_forecast import wants_trace_worker
     from orchestrator.support.startup import loading_a_run
 
-    with loading_a_run():  # pydantic and the config models, built without garbage collection (~2 % of a start-up)
-        from orchestrator.cli.running import run_command
+    if wants_trace_worker(options):  # its start-up overlaps ours (pydantic, the models, the FMUs)
+        from orchestrator.trace.worker import prestart
 
-    run_and_exit(lambda: run_command(options), without_typer=True)
+        prestart()
+    with loading_a_run():  # pydantic and the config models, built without garbage collection (~2 % of a start-up)
+        import orchestrator.cli.running  # noqa: F401
+
+    run_and_exit(lambda: _run(options), without_typer=True)
+
+
+def _run(options: RunOptions) -> None:
+    from orchestrator.cli.running import run_command
+
+    try:
+        run_command(options)
+    finally:
+        from orchestrator.trace.worker import discard_prestarted
+
+        discard_prestarted()  # a worker the run did not want (a wrong forecast, a refused config)
 
 
 def plain_run_options(args: list[str]) -> RunOptions | None:

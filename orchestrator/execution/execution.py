@@ -32,7 +32,7 @@ from orchestrator.support.versions import tool_versions
 from orchestrator.trace.foxglove import SCENE_RATE
 from orchestrator.trace.format import BLOCK
 from orchestrator.trace.output import Claim, claim
-from orchestrator.trace.worker import WORKER_BLOCK, TraceProcess, TraceWorkerError
+from orchestrator.trace.worker import WORKER_BLOCK, TraceProcess, TraceWorkerError, take_prestarted
 from orchestrator.trace.writer_base import NullTraceWriter, TraceWriteError
 
 if TYPE_CHECKING:
@@ -107,6 +107,25 @@ def _phase_durations(marks: dict[str, float]) -> dict[str, float]:
     return durations
 
 
+def _trace_process(lock: int) -> TraceProcess:
+    """The run's trace writer process, holding the trace's ``lock``: the one started with the command
+    (orchestrator/cli/trace_forecast.py), or a new one if there is none or it is gone."""
+    early = take_prestarted()
+    if early is not None:
+        try:
+            early.share(lock)
+            return early
+        except OSError:  # it died before the run needed it: start another, as without it
+            early.close()
+    process = TraceProcess()
+    try:
+        process.share(lock)
+    except BaseException:
+        process.close()
+        raise
+    return process
+
+
 class Execution:
     """One run of ``config`` (see the module's docstring); ``run()`` once.
 
@@ -142,11 +161,12 @@ class Execution:
         self.live = live_names(config) if self.engine_name == "python" else set()
         self.writer_kind = "inline" if self.live else choose_trace_writer(
             trace_writer, self.steps // sim.trace_every + 1, len(self.scenario.components))
-        # the trace writer process starts first: its start-up overlaps unpacking and instantiating the FMUs;
-        # it inherits the trace's lock, so the path stays claimed while it still writes
+        # the trace writer process starts first (or started with the command: prestart): its start-up
+        # overlaps loading the config and the FMUs; it holds the trace's lock, so the path stays claimed
+        # while it still writes
         self.opening = clock.perf_counter()
         if self.target is not None and self.writer_kind == "process":
-            self.trace_process = TraceProcess(keep_fds=(self.target.fd,))
+            self.trace_process = _trace_process(self.target.fd)
         self.fmu_kind = resolve_fmu_kind(sim.fmus, fmu_dir)
         announce = self.tick.building if isinstance(self.tick, ProgressDisplay) else None  # a first run builds them
         self.fmus = {name: UnpackedFmu.open_cached(path)

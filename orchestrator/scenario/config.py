@@ -29,12 +29,10 @@ from fmus.model.link import LinkParameters, messages_held
 from fmus.model.link import parameter_errors as link_parameter_errors
 from orchestrator.support.suggest import did_you_mean
 
+from .raw_config import (DEFAULT_COUNT, DEFAULT_STEP, DEFAULT_STOP_TIME, DEFAULT_TRACE_EVERY, ConfigError, apply_override,
+                         parse_value, read_config_text, step_count)
 from .ros2_config import RunRos2, VehicleRos2
 from .ros2_config import _Rule as _Ros2Rule
-
-
-class ConfigError(ValueError):
-    """A configuration problem, phrased for the person who wrote the config."""
 
 
 class _Strict(BaseModel):
@@ -115,18 +113,13 @@ RK4_STABILITY = 2.0
 COUNT_LIMIT = 2**53
 
 
-def step_count(stop_time: float, step: float) -> int:
-    """Number of communication steps; the last one ends at stop_time (to rounding)."""
-    return max(1, int(math.floor(stop_time / step + 1e-9)))
-
-
 class Simulation(_Strict):
-    stop_time: Duration = Field(100.0, description="simulated time, s")
-    step: Duration = Field(0.01, description="communication step, s (at most stop_time)")
+    stop_time: Duration = Field(DEFAULT_STOP_TIME, description="simulated time, s")
+    step: Duration = Field(DEFAULT_STEP, description="communication step, s (at most stop_time)")
     master: Literal["jacobi", "gauss-seidel"] = "jacobi"
     coupling: Literal["extrapolate", "hold"] = "extrapolate"
     max_substep: Duration = Field(0.01, description="longest RK4 substep inside an FMU, s")
-    trace_every: int = Field(1, ge=1, description="record every K-th communication point (at most the step count)")
+    trace_every: int = Field(DEFAULT_TRACE_EVERY, ge=1, description="record every K-th communication point (at most the step count)")
     fmus: Literal["native", "python"] | None = Field(
         None, description="FMUs to step: native (C, no Python on the host) or python (pythonfmu); "
                           "default native where a C compiler can build them (orchestrator/components/kinds.py)")
@@ -158,7 +151,7 @@ GapLength = Annotated[float, Field(ge=0.0, le=LENGTH_MAX), Unit("m")]
 
 
 class Platoon(_Strict):
-    count: int = Field(4, ge=1, le=10000)
+    count: int = Field(DEFAULT_COUNT, ge=1, le=10000)
     law: Law = "sine"
     d_star: PositiveLength = Field(75.0, description="m; on a circle less than 2 path.radius")
     k_v: Gain = 0.5
@@ -624,76 +617,11 @@ def _explain(error: ValidationError) -> str:
     return f"{key} = {first['input']!r}: {message}"
 
 
-# A --set value that starts like one of these is TOML and must parse as exactly one value; anything
-# else (a bare word such as regular) is taken as a string.
-_TOML_START = tuple("\"'[{+-0123456789")
-_TOML_WORDS = ("true", "false", "inf", "nan")
-
-
-def parse_value(text: str) -> Any:
-    """A ``--set`` value: one TOML value (7, 0.5, true, "x", [1, 2]); a bare word is a string.
-
-    The value is parsed inside an inline table, where TOML allows neither a comment nor a second
-    statement, so ``3 x=1``, ``3 # note`` or ``3`` followed by a newline and more TOML is an error
-    instead of a 3 with the rest silently dropped.
-    """
-    stripped = text.strip()
-    word = stripped.split(None, 1)[0].rstrip(",]}") if stripped else ""
-    looks_like_toml = stripped.startswith(_TOML_START) or word in _TOML_WORDS
-    if not stripped:
-        return ""
-    try:
-        parsed = tomllib.loads(f"value = {{v = {stripped}}}")
-    except tomllib.TOMLDecodeError:
-        if looks_like_toml or "\n" in stripped:
-            raise ConfigError(f"{stripped!r} is not one TOML value (more after the value, a comment, or a typo?); "
-                              "a string with spaces or quotes needs TOML quotes: 'KEY=\"...\"'") from None
-        return stripped
-    if list(parsed) != ["value"] or list(parsed["value"]) != ["v"]:
-        raise ConfigError(f"{stripped!r} is not one TOML value: more TOML after it")
-    return parsed["value"]["v"]
-
-
-def apply_override(raw: dict[str, Any], assignment: str) -> None:
-    """Apply ``KEY=VALUE`` (dotted key) to the raw config mapping."""
-    if "=" not in assignment:
-        raise ConfigError(f"--set {assignment!r}: expected KEY=VALUE, e.g. platoon.count=7")
-    key, text = assignment.split("=", 1)
-    parts = key.strip().split(".")
-    if not all(parts):
-        raise ConfigError(f"--set {assignment!r}: {key!r} is not a dotted key like platoon.count")
-    node = raw
-    for index, part in enumerate(parts[:-1]):
-        child = node.setdefault(part, {})
-        if not isinstance(child, dict):
-            raise ConfigError(f"--set {assignment!r}: {'.'.join(parts[: index + 1])} is not a table")
-        node = child
-    try:
-        node[parts[-1]] = parse_value(text)
-    except ConfigError as error:
-        raise ConfigError(f"--set {assignment!r}: {error}") from None
-
-
 def config_from_mapping(raw: dict[str, Any]) -> Config:
     try:
         return Config.model_validate(raw)
     except ValidationError as error:
         raise ConfigError(_explain(error)) from None
-
-
-def read_config_text(path: str | Path) -> str:
-    """The config file's text: UTF-8, with a byte-order mark accepted and dropped (Windows editors write
-    one; it is not part of the TOML)."""
-    try:
-        data = Path(path).read_bytes()
-    except OSError as error:
-        raise ConfigError(f"cannot read the file: {error.strerror or error}") from None
-    try:
-        return data.decode("utf-8-sig")
-    except UnicodeDecodeError as error:
-        line = data[: error.start].count(b"\n") + 1
-        raise ConfigError(f"not UTF-8 text: byte 0x{data[error.start]:02x} at line {line} (TOML files are UTF-8; "
-                          "save it as UTF-8)") from None
 
 
 FILE_KEYS = ("zenoh_config",)  # keys of [vehicles.K] that name a file

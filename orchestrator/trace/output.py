@@ -6,7 +6,7 @@ what was at ``<trace>`` before (its unfinished data stays in the aside file, for
 recover``), and a reader never sees a half-written file under the final name.
 
 The aside file is also the lock: the run holds an exclusive ``fcntl.flock`` on it for as long as it
-writes (the trace writer process inherits the descriptor), and the operating system drops the lock
+writes (the trace writer process holds a duplicate of the descriptor: TraceProcess.share), and the operating system drops the lock
 when the process dies, however it dies. A second run on the same path finds it locked and refuses;
 there is no check-then-write window. The same rules serve ``trace recover --out``
 (docs/trace-format.md, "Where a trace is written").

@@ -1,8 +1,10 @@
-"""The trace writer process: ``python -m orchestrator.trace.serve INBOX_FD STATUS_FD``.
+"""The trace writer process: ``python -m orchestrator.trace.serve INBOX_FD STATUS_FD HANDLES_FD``.
 
 Started by ``orchestrator.trace.worker.TraceWorker`` (see there for why). It reads, in order, from the
 inbox pipe: the writer's arguments, then blocks of rows, log lines and metadata, then "close"; it
-answers on the status pipe ("closed" or "error" with a traceback). It imports only the writer (no
+answers on the status pipe ("closed" or "error" with a traceback). The arguments say how many
+descriptors the stepping process shared on the handles socket (the trace's lock): the worker holds
+them until it exits, so the trace's path stays claimed while it writes. It imports only the writer (no
 numpy, no config validation), so that it is ready while the stepping process still loads its FMUs.
 
 Rows arrive as raw float64 bytes (``width`` values per row), already checked finite and decimated by
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import sys
 
 if __name__ == "__main__":  # before the imports below: a Ctrl-C to the process group must not stop us
@@ -31,7 +34,10 @@ from .writer import TraceWriteError, TraceWriter  # noqa: E402
 ABORTED = "the stepping process ended without closing the trace (killed?); every point it handed over is kept"
 
 
-def serve(inbox: Connection, outbox: Connection) -> None:
+_held: list[int] = []  # descriptors the stepping process shared (the trace's lock), open until we exit
+
+
+def serve(inbox: Connection, outbox: Connection, handles: socket.socket) -> None:
     """Build the writer, then apply what arrives in order until told to close (or orphaned)."""
     try:
         try:
@@ -40,6 +46,7 @@ def serve(inbox: Connection, outbox: Connection) -> None:
             return
         if kind != "arguments":
             raise ValueError(f"expected the writer's arguments first, got {kind!r}")
+        _hold(handles, arguments.pop("held"))
         foxglove = arguments.pop("foxglove")
         if foxglove is not None:
             from .foxglove import FoxgloveChannels
@@ -83,6 +90,16 @@ def serve(inbox: Connection, outbox: Connection) -> None:
                 pass
 
 
+def _hold(handles: socket.socket, count: int) -> None:
+    """Take the ``count`` descriptors shared before the arguments; keep them open for the process's life."""
+    while len(_held) < count:
+        _, fds, _, _ = socket.recv_fds(handles, 1, count - len(_held))
+        if not fds:
+            raise ValueError(f"expected {count} shared descriptors, the stepping process closed after {len(_held)}")
+        _held.extend(fds)
+    handles.close()
+
+
 def abandon(writer: TraceWriter) -> None:
     """Finalize the file of a run whose stepping process died: say so in the log and the run record."""
     last = writer.last_time
@@ -96,9 +113,10 @@ def abandon(writer: TraceWriter) -> None:
 def main(argv: list[str]) -> int:
     from orchestrator.support.internal_entry import check_arguments
 
-    check_arguments(argv, "python -m orchestrator.trace.serve INBOX_FD STATUS_FD", __doc__, count=2,
+    check_arguments(argv, "python -m orchestrator.trace.serve INBOX_FD STATUS_FD HANDLES_FD", __doc__, count=3,
                     fits=lambda args: all(arg.isdigit() for arg in args))
-    serve(Connection(int(argv[0]), writable=False), Connection(int(argv[1]), readable=False))
+    serve(Connection(int(argv[0]), writable=False), Connection(int(argv[1]), readable=False),
+          socket.socket(fileno=int(argv[2])))
     return 0
 
 

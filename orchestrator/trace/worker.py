@@ -36,6 +36,7 @@ from __future__ import annotations
 import fcntl
 import os
 import select
+import socket
 import subprocess
 import sys
 import time as clock
@@ -72,22 +73,36 @@ def _widen(connection: Connection) -> None:
 class TraceProcess:
     """A trace writer process, started and waiting for its writer's arguments (``TraceWorker`` sends them).
 
-    Created at the very start of a run, it lets the worker's start-up overlap everything
-    the stepping process does before its first step; ``close()`` ends an unused one. ``keep_fds``:
-    descriptors the worker inherits and keeps open for its life, e.g. the trace's lock
-    (orchestrator/trace/output.py), so the path stays locked while the worker still writes.
+    Created before the run needs it, it lets the worker's start-up (an interpreter, the MCAP writer,
+    zstd: about 0.1 s) overlap everything the stepping process does before its first step; ``close()``
+    ends an unused one. ``share(fd)`` hands the worker a descriptor it keeps open for its life, e.g. the
+    trace's lock (orchestrator/trace/output.py), so the path stays locked while the worker still
+    writes; it travels over a Unix socket (SCM_RIGHTS), so the worker can be started before the lock
+    exists. A descriptor in flight stays open: a stepping process killed right after sharing still
+    leaves the lock held.
     """
 
-    def __init__(self, keep_fds: Sequence[int] = ()) -> None:
-        self.process, self.outbox, self.status = _start_worker(keep_fds)
+    def __init__(self) -> None:
+        self.process, self.outbox, self.status, self.handles = _start_worker()
+        self.shared = 0  # descriptors handed over; the worker takes them with its arguments
         self.taken = False
 
-    def close(self) -> None:
-        """End the worker if no ``TraceWorker`` took it (it sees the pipe close before any argument)."""
+    def share(self, fd: int) -> None:
+        """Hand the worker a duplicate of ``fd`` to hold until it exits."""
+        socket.send_fds(self.handles, [b"F"], [fd])
+        self.shared += 1
+
+    def close(self, wait: bool = True) -> None:
+        """End the worker if no ``TraceWorker`` took it (it sees the pipe close before any argument and
+        exits); ``wait``: until it has."""
+        self.handles.close()
         if self.taken:
             return
         self.taken = True
         self.outbox.close()
+        if not wait:
+            self.status.close()
+            return
         try:
             self.process.wait(timeout=10)
         except subprocess.TimeoutExpired:
@@ -96,26 +111,61 @@ class TraceProcess:
         self.status.close()
 
 
-def _start_worker(keep_fds: Sequence[int] = ()) -> tuple[subprocess.Popen[bytes], Connection, Connection]:
-    """Start ``python -m orchestrator.trace.serve INBOX STATUS`` with two pipes: blocks in, status out."""
+_prestarted: TraceProcess | None = None  # started for this process's run (prestart), not taken yet
+
+
+def prestart() -> None:
+    """Start the trace writer process for the run this process is about to make, before the run knows
+    its config (`platoon run` does when the config's size says the run will want one:
+    orchestrator/cli/trace_forecast.py). ``take_prestarted`` hands it to the run; ``discard_prestarted``
+    ends it if the run did not want it. A process that exits without either leaves nothing behind:
+    the worker sees its inbox close before any argument and ends."""
+    global _prestarted
+    if _prestarted is None:
+        _prestarted = TraceProcess()
+
+
+def take_prestarted() -> TraceProcess | None:
+    """The prestarted worker, once (None if there is none or it was taken)."""
+    global _prestarted
+    process, _prestarted = _prestarted, None
+    return process
+
+
+def discard_prestarted() -> None:
+    """End the prestarted worker if no run took it, without waiting for it to finish importing: it
+    exits as soon as it sees its inbox closed."""
+    process = take_prestarted()
+    if process is not None:
+        process.close(wait=False)
+
+
+def _start_worker() -> tuple[subprocess.Popen[bytes], Connection, Connection, socket.socket]:
+    """Start ``python -m orchestrator.trace.serve INBOX STATUS HANDLES``: blocks in, status out, and a Unix
+    socket for the descriptors it must hold (``TraceProcess.share``)."""
     inbox_read, inbox_write = os.pipe()
     status_read, status_write = os.pipe()
+    handles, worker_handles = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
     # the worker imports this very package, wherever it was imported from (an install, or a checkout
     # put on sys.path, e.g. by PYTHONPATH)
     root = str(Path(__file__).resolve().parents[1])
     environment = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
+    passed = (inbox_read, status_write, worker_handles.fileno())
     try:
-        process = subprocess.Popen([sys.executable, "-m", "orchestrator.trace.serve", str(inbox_read), str(status_write)],
-                                   pass_fds=(inbox_read, status_write, *keep_fds), stdin=subprocess.DEVNULL, env=environment)
+        process = subprocess.Popen([sys.executable, "-m", "orchestrator.trace.serve", *map(str, passed)],
+                                   pass_fds=passed, stdin=subprocess.DEVNULL, env=environment)
     except BaseException:
         for fd in (inbox_read, inbox_write, status_read, status_write):
             os.close(fd)
+        handles.close()
         raise
+    finally:
+        worker_handles.close()
     os.close(inbox_read)
     os.close(status_write)
     outbox = Connection(inbox_write, readable=False)
     _widen(outbox)
-    return process, outbox, Connection(status_read, writable=False)
+    return process, outbox, Connection(status_read, writable=False), handles
 
 
 class TraceWorker:
@@ -166,7 +216,8 @@ class TraceWorker:
         self._process, self._outbox, self._status = process.process, process.outbox, process.status
         self._send(("arguments", {"path": self.path, "components": self.components, "descriptions": descriptions,
                                   "foxglove": foxglove, "flush_interval": flush_interval, "chunk_size": chunk_size,
-                                  "publish": publish, "native": native}))
+                                  "publish": publish, "native": native, "held": process.shared}))
+        process.handles.close()  # what was shared stays readable for the worker
 
     # --- what the worker says -------------------------------------------------------------------
 
