@@ -6,7 +6,8 @@ while the writer's thread encodes the next chunk (or steps the next block, in pr
 core the compression leaves the run's critical path.
 
 Nothing about the file changes: the chunk is written by the ``mcap`` writer's own code, in the order
-the chunks were filled, with the bytes it would have compressed itself (``ready`` hands them over).
+the chunks were filled, with the bytes it would have compressed itself and their CRC-32, both computed
+here (writer.py hands them to it).
 At most ``PENDING`` chunks wait, so memory stays bounded. The writer waits for every pending chunk
 before anything else touches the file (the flush at least every ``FLUSH_INTERVAL``, metadata, a new
 channel, the end), so a killed run still loses at most that interval's rows, as before; a worker
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import queue
 import threading
+import zlib
 from collections import deque
 from typing import Any, Callable
 
@@ -29,7 +31,7 @@ class CompressedChunk:
     writer's chunk builder while that writer writes the chunk (it reads exactly these attributes)."""
 
     __slots__ = ("data", "message_indices", "message_start_time", "message_end_time", "num_messages", "compressed",
-                 "error", "done")
+                 "crc", "error", "done")
 
     def __init__(self, builder: Any) -> None:
         self.message_indices = builder.message_indices
@@ -41,6 +43,7 @@ class CompressedChunk:
         builder.num_messages = 0
         builder.message_start_time = builder.message_end_time = 0
         self.compressed: bytes | None = None
+        self.crc = 0  # CRC-32 of ``data`` (the chunk record's uncompressed_crc)
         self.error: BaseException | None = None
         self.done = threading.Event()
 
@@ -57,7 +60,7 @@ class CompressedChunk:
 
 class ChunkPipeline:
     """Compresses full chunks on one daemon thread, in order; ``write`` hands each, once compressed, to
-    ``finalize`` (the ``mcap`` writer's chunk writing, with ``ready`` telling its compressor the result).
+    ``finalize`` (the ``mcap`` writer's chunk writing, told the compression and CRC-32 computed here).
 
     ``compressor``: makes the thread's compress function (one ``ZstdCompressor`` per thread: they are
     not thread-safe).
@@ -113,6 +116,7 @@ class ChunkPipeline:
                 return
             try:
                 chunk.compressed = compress(chunk.data)
+                chunk.crc = zlib.crc32(chunk.data)  # the writer's thread would compute it: one pass less there
             except BaseException as error:  # e.g. MemoryError: raised by the writer's thread when it writes this chunk
                 chunk.error = error
             chunk.done.set()

@@ -147,12 +147,13 @@ def _start_worker() -> tuple[subprocess.Popen[bytes], Connection, Connection, so
     status_read, status_write = os.pipe()
     handles, worker_handles = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
     # the worker imports this very package, wherever it was imported from (an install, or a checkout
-    # put on sys.path, e.g. by PYTHONPATH)
+    # put on sys.path, e.g. by PYTHONPATH), and never another copy that happens to be in the current
+    # folder (-P: `python -m` would otherwise put the current folder first)
     root = str(Path(__file__).resolve().parents[1])
     environment = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
     passed = (inbox_read, status_write, worker_handles.fileno())
     try:
-        process = subprocess.Popen([sys.executable, "-m", "orchestrator.trace.serve", *map(str, passed)],
+        process = subprocess.Popen([sys.executable, "-P", "-m", "orchestrator.trace.serve", *map(str, passed)],
                                    pass_fds=passed, stdin=subprocess.DEVNULL, env=environment)
     except BaseException:
         for fd in (inbox_read, inbox_write, status_read, status_write):
