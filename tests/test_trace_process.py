@@ -5,6 +5,8 @@ the run shares it, and `platoon run` starts it early only when the run will want
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -18,6 +20,7 @@ from orchestrator.trace.worker import TraceProcess, TraceWorker
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "configs" / "paper" / "platoon.toml"  # 10 000 steps of 5 components
+PLATOON = Path(sys.executable).parent / "platoon"
 
 
 def test_the_worker_holds_the_shared_lock_until_it_has_finished_the_file(tmp_path: Path) -> None:
@@ -75,3 +78,24 @@ def test_a_config_the_forecast_cannot_read_starts_no_worker(tmp_path: Path) -> N
     odd.write_text('simulation = "not a table"\n')
     assert wants_trace_worker(_options(str(odd))) is False
     assert wants_trace_worker(_options(str(tmp_path / "missing.toml"))) is False
+
+
+def test_children_run_this_package_not_a_copy_in_the_current_folder(tmp_path: Path) -> None:
+    """A run (its trace worker) and a sweep (its run processes) started from a folder that holds another
+    ``orchestrator`` package still run this one: children are started with ``python -P`` and this
+    package's folder on PYTHONPATH (orchestrator/support/child_python.py)."""
+    impostor = tmp_path / "orchestrator"
+    impostor.mkdir()
+    (impostor / "__init__.py").write_text('raise ImportError("the copy in the current folder was imported")\n')
+    config = tmp_path / "short.toml"
+    config.write_text(PAPER.read_text().replace("stop_time = 100.0", "stop_time = 2.0"))
+    run = subprocess.run([PLATOON, "run", str(config), "--trace-writer", "process", "--out", str(tmp_path / "run.mcap")],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert len(load(tmp_path / "run.mcap").component("vehicle1")["t"]) == 201
+    sweep = tmp_path / "sweep.toml"
+    sweep.write_text(f'base = "{config}"\n\n[grid]\n"platoon.k_v" = [0.5, 1.0]\n')
+    done = subprocess.run([PLATOON, "sweep", str(sweep), "--out", str(tmp_path / "swept")], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert "2 runs completed" in done.stdout, done.stdout + done.stderr

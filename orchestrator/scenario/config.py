@@ -30,7 +30,8 @@ from fmus.model.link import parameter_errors as link_parameter_errors
 from orchestrator.support.suggest import did_you_mean
 
 from .raw_config import (DEFAULT_COUNT, DEFAULT_STEP, DEFAULT_STOP_TIME, DEFAULT_TRACE_EVERY, ConfigError, apply_override,
-                         parse_value, read_config_text, step_count)
+                         read_config_text, step_count)
+from .raw_config import parse_value  # noqa: F401  (re-exported: a --set value's parser, where it always was)
 from .ros2_config import RunRos2, VehicleRos2
 from .ros2_config import _Rule as _Ros2Rule
 

@@ -27,6 +27,8 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from orchestrator.support.child_python import module_command, module_environment
+
 RESULT = "RESULT "
 STDERR_TAIL = 400  # characters of a dead child's stderr kept in its error message
 
@@ -111,8 +113,8 @@ def execute(request: dict[str, Any], trace: Path) -> dict[str, Any]:
     the children it wants stopped (``terminate_children``); their outcome is "interrupted".
     """
     message = json.dumps({**request, "trace": str(trace), "parent": os.getpid()})
-    process = subprocess.Popen([sys.executable, "-m", "orchestrator.sweep.worker"], stdin=subprocess.PIPE,
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    process = subprocess.Popen(module_command("orchestrator.sweep.worker"), stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True, start_new_session=True, env=module_environment())
     with _children_lock:
         _children.add(process)
     try:

@@ -38,7 +38,6 @@ import os
 import select
 import socket
 import subprocess
-import sys
 import time as clock
 from array import array
 from itertools import chain
@@ -46,6 +45,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, Sequence
 
+from orchestrator.support.child_python import module_command, module_environment
 from orchestrator.support.rows import RowBlock, float_buffer
 
 from .format import CHUNK_SIZE, FLUSH_INTERVAL
@@ -146,15 +146,11 @@ def _start_worker() -> tuple[subprocess.Popen[bytes], Connection, Connection, so
     inbox_read, inbox_write = os.pipe()
     status_read, status_write = os.pipe()
     handles, worker_handles = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
-    # the worker imports this very package, wherever it was imported from (an install, or a checkout
-    # put on sys.path, e.g. by PYTHONPATH), and never another copy that happens to be in the current
-    # folder (-P: `python -m` would otherwise put the current folder first)
-    root = str(Path(__file__).resolve().parents[1])
-    environment = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
     passed = (inbox_read, status_write, worker_handles.fileno())
     try:
-        process = subprocess.Popen([sys.executable, "-P", "-m", "orchestrator.trace.serve", *map(str, passed)],
-                                   pass_fds=passed, stdin=subprocess.DEVNULL, env=environment)
+        # the worker runs this very package, never a copy in the current folder (support/child_python.py)
+        process = subprocess.Popen(module_command("orchestrator.trace.serve", *map(str, passed)),
+                                   pass_fds=passed, stdin=subprocess.DEVNULL, env=module_environment())
     except BaseException:
         for fd in (inbox_read, inbox_write, status_read, status_write):
             os.close(fd)
