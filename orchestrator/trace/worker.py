@@ -5,9 +5,9 @@ Foxglove scene, MCAP framing; docs/performance.md), so a trace written in the st
 every-step tracing down by 1.5-1.8x. ``TraceWorker`` has ``TraceWriter``'s interface (``record``,
 ``write_block``, ``log``, ``metadata``, ``flush``, ``close``, ``rows_recorded``, ``last_time``) but runs
 the real ``TraceWriter`` in a worker process: a fresh ``python -m orchestrator.trace.serve``, which
-inherits none of the FMUs loaded here and imports only what writing needs (ready in about 0.3 s), while the
-stepping process unpacks and instantiates its FMUs (a ``TraceProcess`` lets a run start it before
-anything else). The stepping process keeps what must stay on its side:
+inherits none of the FMUs loaded here and imports only what writing needs (ready in about 0.1 s), while the
+stepping process loads its config and FMUs (a ``TraceProcess`` lets a run start it before anything
+else: `platoon run` starts one with the command, ``prestart``). The stepping process keeps what must stay on its side:
 
 * the non-finite check, vectorized per block, so a bad output still ends the run with
   ``ComponentError`` at the right point, and the rows before it are written;
@@ -23,7 +23,7 @@ Nothing is lost when things go wrong:
   the stepping process closes the trace (with the run's final status) after its own handling.
 * If the stepping process dies without closing (SIGKILL, a crash), the worker sees the pipe close,
   writes every block it received, records the run as ``aborted``, finalizes the file and puts it in
-  place (``publish``: the aside file is renamed onto the trace's path; the worker inherited the
+  place (``publish``: the aside file is renamed onto the trace's path; the worker holds the
   path's lock, so no other run can take the path meanwhile).
 * A signal while the stepping process waits for the worker to finish (a second Ctrl-C) ends the
   wait: the worker is killed, its file keeps its complete chunks. A stalled worker never holds a run.
