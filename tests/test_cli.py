@@ -12,6 +12,7 @@ import json
 import math
 import re
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -50,9 +51,16 @@ def error_line(result: subprocess.CompletedProcess[str]) -> str:
 
 
 @pytest.fixture(scope="module")
-def workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Current folder of every call (`platoon run` builds its FMUs into ./build/fmus)."""
-    return tmp_path_factory.mktemp("cli")
+def workdir(tmp_path_factory: pytest.TempPathFactory, fmu_dir: Path, native_fmu_dir: Path) -> Path:
+    """Current folder of every call, holding the FMUs in ./build/fmus as a first run leaves them: the
+    tests that expect exactly one line on stderr must not depend on which of them runs first (a first
+    run says it builds them)."""
+    folder = tmp_path_factory.mktemp("cli")
+    for built, where in ((fmu_dir, folder / "build" / "fmus"), (native_fmu_dir, folder / "build" / "fmus" / "native")):
+        where.mkdir(parents=True, exist_ok=True)
+        for fmu in built.glob("*.fmu"):
+            shutil.copy2(fmu, where / fmu.name)
+    return folder
 
 
 def write_config(folder: Path, name: str, text: str) -> Path:

@@ -66,3 +66,33 @@ def test_platoon_run_prints_its_table_without_reading_the_trace(tmp_path, fmu_di
     config, _ = load_config(PLATOON, ["simulation.stop_time=20.0"])
     last = summarize(load(out), config)[-1]
     assert f"{last.path_offset:+.3e}" in result.output
+
+
+def test_a_failure_of_the_folding_thread_reaches_the_run_and_never_holds_it() -> None:
+    """The summary folds on a thread of its own (observers/summary.py): what it raises is raised by
+    ``finish`` in the run's thread, and blocks handed over after the failure are still taken (more than
+    the queue holds), so the run goes on to finish instead of waiting forever."""
+    import threading
+
+    import numpy as np
+
+    from orchestrator.observers.summary import PENDING_BLOCKS, SummaryObserver
+
+    config, _ = load_config(PLATOON)
+    components = [("target", ["x", "y"]), ("vehicle1", ["x", "y", "gap", "speed"])]
+    observer = SummaryObserver(config, components, steps=100, every=1)
+    width = 1 + 2 + 4
+    done = threading.Event()
+
+    def feed() -> None:
+        observer.block(np.zeros(width + 1))  # not a whole row: the fold's reshape refuses it
+        for _ in range(3 * PENDING_BLOCKS):
+            observer.block(np.zeros((4, width)))
+        done.set()
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    assert done.wait(timeout=60), "the run waited on a folding thread that had failed"
+    with pytest.raises(ValueError, match="reshape"):
+        observer.finish()
+    observer.finish()  # raised once; finishing again is quiet

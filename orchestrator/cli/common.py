@@ -11,18 +11,14 @@ import json
 import warnings
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Iterator
+from typing import Annotated, Iterator
 
 import typer
 
 from orchestrator.cli.plain import (check_choice, check_output, claim_trace, console, fail, load_config,  # noqa: F401
                                     output_rule)  # re-exported: the commands import them from here
-from orchestrator.scenario.config import Config
 from orchestrator.support.output import OVERWRITE_HELP  # noqa: F401  (the one output rule, docs/output.md)
-
-if TYPE_CHECKING:  # rich's table is imported where used: `platoon run -q` needs none
-    from rich.table import Table
-
+from orchestrator.cli.tables import summary_table  # noqa: F401  (re-exported for the commands)
 
 # The consoles (orchestrator/cli/plain.py makes them: markup off, the text is the user's)
 out = console()
@@ -43,28 +39,6 @@ def choices_metavar(choices: tuple[str, ...]) -> str:
 
 AllowLong = Annotated[bool, typer.Option("--allow-long", help="run even above the size limits (docs/config.md: more than "
                                          "1e6 steps, 1000 substeps per step or 1e8 FMU-substeps)")]
-
-
-def summary_table(summaries, config: Config, title: str) -> Table:
-    """The per-vehicle summary (the consoles print text literally: the units "[m]" are not markup); the same
-    quantities, keys and units as `platoon report --json` (metrics.SUMMARY_COLUMNS, summary_rows)."""
-    from rich.table import Table
-
-    from orchestrator.analysis.metrics import STEADY_FRACTION, SUMMARY_COLUMNS, path_error_interval, summary_rows
-
-    _, interval = path_error_interval(config)  # max |path error| is taken from the first disturbance on (metrics.py)
-    table = Table(title=title, title_justify="left", caption_justify="left",
-                  caption=f"path offset, gap, speed: means over the last {STEADY_FRACTION:.0%} of the recorded time")
-    table.add_column("vehicle", justify="left")
-    for column in SUMMARY_COLUMNS:
-        header = f"{column.label} [{column.unit}]" + (f", {interval}" if column.key == "path_error_max" else "")
-        table.add_column(header, justify="right",
-                         min_width=len(column.label) if column.key == "path_error_max" else None,  # unbroken
-                         max_width=len("path offset") if column.key == "path_offset" else None)  # fits 80 columns
-    for row in summary_rows(summaries, config):  # deviations signed; the largest |error| is a magnitude
-        table.add_row(str(row["name"]), *(f"{row[c.key]:.3e}" if c.key == "path_error_max" else f"{row[c.key]:+.3e}"
-                                           for c in SUMMARY_COLUMNS))
-    return table
 
 
 Overwrite = Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)]

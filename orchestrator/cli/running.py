@@ -194,7 +194,7 @@ def _report_run(result: "RunResult", trace: Path, parsed: Config, engine: str, q
         fail(1, f"run {result.status}: {result.error} (trace up to that point: {result.trace})")
     if not quiet:
         from orchestrator.analysis.metrics import summarize
-        from orchestrator.cli.common import summary_table
+        from orchestrator.cli.tables import summary_table
         from orchestrator.trace import load
 
         # accumulated while stepping; the trace is read again only if the run's end was not the planned one
