@@ -328,7 +328,10 @@ def parse_only(command: str, root: Path) -> None:
 FIXED_PORT = re.compile(r"m3pi-emulator|--live\b|configs/hil/|ros2\.publish")
 # Blocks that are long by nature, run as written by the slow tests only (pytest -m slow; CI runs them)
 SLOW = {"platoon build --all-platforms --out /tmp/release":
-        "cross-compiles five binaries with Zig: a minute (tests/test_platforms.py, also slow, runs them)"}
+        "cross-compiles five binaries with Zig: a minute (tests/test_platforms.py, also slow, runs them)",
+        "platoon export-ssp configs/hil/m3pi_live3.toml --set simulation.stop_time=20 --out m3pi_live3.ssp":
+        "libcosim runs the package paced to the wall clock for 20 s, the longest test of the default run; "
+        "tests/test_live_fmu.py runs LiveVehicle.fmu in libcosim against the emulator there"}
 
 
 def block_param(block: Block):
