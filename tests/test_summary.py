@@ -34,10 +34,11 @@ def _agree(ours, theirs) -> None:
 @pytest.mark.parametrize("engine", ["native", "python"])
 @pytest.mark.parametrize("every", [1, 7])  # 7 does not divide the 2000 steps: the window's end moves
 @pytest.mark.parametrize("config_path", [PLATOON, LATERAL], ids=["platoon", "front_lateral"])
-def test_run_summary_equals_the_report_of_its_trace(tmp_path, fmu_dir, engine, every, config_path):
+@pytest.mark.parametrize("writer", ["inline", "process"])  # the summary folds in the stepping thread, or on its own
+def test_run_summary_equals_the_report_of_its_trace(tmp_path, fmu_dir, engine, every, config_path, writer):
     config, text = load_config(config_path, ["simulation.stop_time=40.0", f"simulation.trace_every={every}"])
     out = tmp_path / "run.mcap"
-    result = run_scenario(config, text, out, engine=engine, fmu_dir=fmu_dir, summarize=True)
+    result = run_scenario(config, text, out, engine=engine, fmu_dir=fmu_dir, summarize=True, trace_writer=writer)
     assert result.status == "completed"
     assert result.summary is not None
     _agree(result.summary, summarize(load(out), config))
@@ -69,7 +70,8 @@ def test_platoon_run_prints_its_table_without_reading_the_trace(tmp_path, fmu_di
 
 
 def test_a_failure_of_the_folding_thread_reaches_the_run_and_never_holds_it() -> None:
-    """The summary folds on a thread of its own (observers/summary.py): what it raises is raised by
+    """With its trace in a worker process, a run's summary folds on a thread of its own
+    (observers/summary.py): what it raises is raised by
     ``finish`` in the run's thread, and blocks handed over after the failure are still taken (more than
     the queue holds), so the run goes on to finish instead of waiting forever."""
     import threading
@@ -80,7 +82,7 @@ def test_a_failure_of_the_folding_thread_reaches_the_run_and_never_holds_it() ->
 
     config, _ = load_config(PLATOON)
     components = [("target", ["x", "y"]), ("vehicle1", ["x", "y", "gap", "speed"])]
-    observer = SummaryObserver(config, components, steps=100, every=1)
+    observer = SummaryObserver(config, components, steps=100, every=1, on_thread=True)
     width = 1 + 2 + 4
     done = threading.Event()
 

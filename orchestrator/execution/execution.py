@@ -247,7 +247,8 @@ class Execution:
         if self.summarize:
             from orchestrator.observers.summary import SummaryObserver
 
-            self.summary_feed = SummaryObserver(config, components, self.steps, sim.trace_every)
+            self.summary_feed = SummaryObserver(config, components, self.steps, sim.trace_every,
+                                                on_thread=trace.in_a_process)
             observers.add(self.summary_feed)
         if config.ros2.publish:  # every vehicle's pose to ROS 2 (docs/hil.md, "Publishing the run to ROS 2")
             from orchestrator.observers.ros2 import ros2_publisher

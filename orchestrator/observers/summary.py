@@ -1,13 +1,15 @@
 """The running summary: the per-vehicle summary of the rows the trace records (same decimation),
 accumulated while stepping, so that `platoon run` prints its table without reading the trace again.
 
-The folding runs on a thread of its own, fed copies of the recorded blocks through a short queue.
-Folding needs numpy (0.06 s to import) and about 2.6 µs per row of 16 vehicles; done in the
-stepping thread at the first block, it held up the run's trace writer process, which then waited
-for the next block (docs/performance.md, "Round 4"). The stepping thread spends most of a traced
-run waiting for that process to take its blocks, with the GIL released; the folding thread uses
-that time. The queue is short, so a folding thread that falls behind holds the run back rather than
-its memory growing; ``finish`` waits for it to fold every block.
+When the trace is written by a worker process, the folding runs on a thread of its own
+(``on_thread``), fed copies of the recorded blocks through a short queue. Folding needs numpy (0.06 s
+to import) and about 2.6 µs per row of 16 vehicles; done in the stepping thread at the first block,
+it held up the trace writer process, which then waited for the next block (docs/performance.md,
+"Round 4"). The stepping thread spends most of such a run waiting for that process to take its
+blocks, with the GIL released; the folding thread uses that time. The queue is short, so a folding
+thread that falls behind holds the run back rather than its memory growing; ``finish`` waits for it
+to fold every block. A run that encodes its trace itself (a sweep's) never waits like that: there
+the thread only added switching (3.6 % of a traced N = 16 run), so it folds in the stepping thread.
 """
 
 from __future__ import annotations
@@ -31,7 +33,8 @@ class SummaryObserver(Observer):
     wants_rows = True
     BLOCK = 1024  # rows gathered from single points before the summary takes them
 
-    def __init__(self, config: Config, components: list[tuple[str, list[str]]], steps: int, every: int) -> None:
+    def __init__(self, config: Config, components: list[tuple[str, list[str]]], steps: int, every: int,
+                 on_thread: bool = False) -> None:
         step = config.simulation.step
         # the last recorded point is the last multiple of ``every`` steps; rows are every * step apart
         self._settings = (config, components, 0.0, (steps // every) * every * step, 0.5 * every * step)
@@ -43,6 +46,7 @@ class SummaryObserver(Observer):
         self._blocks: queue.Queue[bytes | None] = queue.Queue(maxsize=PENDING_BLOCKS)
         self._thread: threading.Thread | None = None
         self._failure: BaseException | None = None
+        self.on_thread = on_thread
 
     def point(self, t: float, outputs: Sequence[Sequence[float]]) -> None:
         if self._count % self.every == 0:
@@ -64,21 +68,28 @@ class SummaryObserver(Observer):
             self._rows = []
 
     def _hand_over(self, data: bytes) -> None:
+        if not self.on_thread:
+            self._fold_block(data)
+            return
         if self._thread is None:
             self._thread = threading.Thread(target=self._fold, name="running-summary", daemon=True)
             self._thread.start()
         self._blocks.put(data)
 
-    def _fold(self) -> None:
-        try:
-            import numpy as np
+    def _fold_block(self, data: bytes) -> None:
+        import numpy as np
 
+        if self.summary is None:
             from orchestrator.analysis.metrics import running_summary
 
             config, components, start, expected_end, margin = self._settings
             self.summary = running_summary(config, components, start, expected_end, margin=margin)
+        self.summary.add(np.frombuffer(data, dtype=np.float64).reshape(-1, self.width))
+
+    def _fold(self) -> None:
+        try:
             while (data := self._blocks.get()) is not None:
-                self.summary.add(np.frombuffer(data, dtype=np.float64).reshape(-1, self.width))
+                self._fold_block(data)
         except BaseException as error:  # noqa: BLE001  (raised by finish, in the run's thread)
             self._failure = error
             while self._blocks.get() is not None:  # keep taking blocks: the run must never wait on a dead thread
