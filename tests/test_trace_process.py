@@ -99,3 +99,20 @@ def test_children_run_this_package_not_a_copy_in_the_current_folder(tmp_path: Pa
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     assert "2 runs completed" in done.stdout, done.stdout + done.stderr
+
+
+def test_a_run_that_writes_in_process_ends_the_early_worker_before_it_steps(tmp_path: Path, fmu_dir: Path) -> None:
+    """A worker started on a forecast the run does not confirm (here: --trace-writer inline decided
+    later, as a config's live robots do) is ended when the run decides, not left idle for its length."""
+    from orchestrator.execution.run import run_scenario
+    from orchestrator.scenario.config import load_config
+    from orchestrator.trace import worker
+
+    worker.prestart()
+    early = worker._prestarted
+    assert early is not None
+    config, text = load_config(PAPER, ["simulation.stop_time=1.0"])
+    result = run_scenario(config, text, tmp_path / "run.mcap", fmu_dir=fmu_dir, trace_writer="inline")
+    assert result.status == "completed"
+    assert worker.take_prestarted() is None
+    assert early.process.wait(timeout=30) == 0  # it saw its inbox close and ended

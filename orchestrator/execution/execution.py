@@ -32,7 +32,7 @@ from orchestrator.support.versions import tool_versions
 from orchestrator.trace.foxglove import SCENE_RATE
 from orchestrator.trace.format import BLOCK
 from orchestrator.trace.output import Claim, claim
-from orchestrator.trace.worker import WORKER_BLOCK, TraceProcess, TraceWorkerError, take_prestarted
+from orchestrator.trace.worker import WORKER_BLOCK, TraceProcess, TraceWorkerError, discard_prestarted, take_prestarted
 from orchestrator.trace.writer_base import NullTraceWriter, TraceWriteError
 
 if TYPE_CHECKING:
@@ -167,6 +167,8 @@ class Execution:
         self.opening = clock.perf_counter()
         if self.target is not None and self.writer_kind == "process":
             self.trace_process = _trace_process(self.target.fd)
+        else:
+            discard_prestarted()  # started with the command on a forecast this run did not confirm (e.g. live robots)
         self.fmu_kind = resolve_fmu_kind(sim.fmus, fmu_dir)
         announce = self.tick.building if isinstance(self.tick, ProgressDisplay) else None  # a first run builds them
         self.fmus = {name: UnpackedFmu.open_cached(path)
