@@ -28,7 +28,8 @@ PENDING_BLOCKS = 8  # copied blocks that may wait for the folding thread
 
 
 class SummaryObserver(Observer):
-    """Feeds a ``RunningSummary`` the recorded rows, in blocks, on a thread of its own."""
+    """Feeds a ``RunningSummary`` the recorded rows, in blocks: in the stepping thread, or on a thread of
+    its own (``on_thread``: when a worker process writes the trace)."""
 
     wants_rows = True
     BLOCK = 1024  # rows gathered from single points before the summary takes them
@@ -58,7 +59,10 @@ class SummaryObserver(Observer):
         self._count += 1
 
     def block(self, rows: Any) -> None:
-        self._hand_over(rows.tobytes())  # a copy: the engine refills its buffer
+        if self.on_thread:
+            self._hand_over(rows.tobytes())  # a copy: the engine refills its buffer
+        else:
+            self._fold_rows(rows.array() if hasattr(rows, "array") else rows)  # a RowBlock, or a 2-D array
 
     def _flush(self) -> None:
         if self._rows:
@@ -79,12 +83,15 @@ class SummaryObserver(Observer):
     def _fold_block(self, data: bytes) -> None:
         import numpy as np
 
+        self._fold_rows(np.frombuffer(data, dtype=np.float64).reshape(-1, self.width))
+
+    def _fold_rows(self, rows: Any) -> None:
         if self.summary is None:
             from orchestrator.analysis.metrics import running_summary
 
             config, components, start, expected_end, margin = self._settings
             self.summary = running_summary(config, components, start, expected_end, margin=margin)
-        self.summary.add(np.frombuffer(data, dtype=np.float64).reshape(-1, self.width))
+        self.summary.add(rows)
 
     def _fold(self) -> None:
         try:
