@@ -5,7 +5,11 @@ reached at wall time origin + t_k, never earlier. The master calls ``wait_until(
 stepped the components and before it reads outputs that describe t_k (a live component's outputs are
 the robot's pose at that instant). ``lateness`` per point is how long after its deadline the master
 got going again (the step jitter); an *overrun* is a point whose work was not done by its deadline,
-so the master could not wait at all.
+so the master could not wait at all. The schedule never shifts: after a stall the master catches up.
+``fell_behind`` adds up how far the run fell behind, once per stall (each rise of the lateness from one
+point to the next), so two stalls of 0.1 s count 0.2 s, and one stall caught up over many points counts
+once: while a run is behind, a live robot keeps moving on its last command, and the way it covers
+meanwhile is what separates the platoon from an all-simulated one.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ class Pacer:
         self.lateness: list[float] = []  # s after each point's deadline the master resumed
         self.overruns = 0
         self.worst_overrun = 0.0
+        self.fell_behind = 0.0  # s: the sum of every rise of the lateness (see the module's docstring)
         self._last_target: float | None = None
 
     def start(self, start_time: float = 0.0) -> None:
@@ -48,10 +53,15 @@ class Pacer:
             while self.clock() < deadline:
                 pass
             now = self.clock()
-        self.lateness.append(now - deadline)
+        late = now - deadline
+        if late > 0.0:
+            self.fell_behind += max(0.0, late - (self.lateness[-1] if self.lateness else 0.0))
+        self.lateness.append(late)
 
     def summary(self) -> dict[str, float]:
-        """Step jitter (median, p99, max lateness, s), overruns and the worst one, for the trace and the table."""
+        """Step jitter (median, p99, max lateness, s), overruns and the worst one, and how far the run fell
+        behind in all (s), for the trace and the table."""
         jitter = percentile_summary("jitter", self.lateness)
         jitter.pop("jitter.count", None)
-        return {"points": len(self.lateness), **jitter, "overruns": self.overruns, "overrun.max": self.worst_overrun}
+        return {"points": len(self.lateness), **jitter, "overruns": self.overruns, "overrun.max": self.worst_overrun,
+                "behind.total": self.fell_behind}
