@@ -218,14 +218,20 @@ def test_the_run_tells_its_robots_poses_from_foreign_ones_and_notices_when_the_r
                                    " and 1 invalid commands")
 
 
-def test_pacer_waits_for_each_point_and_counts_overruns() -> None:
-    now = [10.0]
+def fake_time(start: float) -> tuple[list[float], Pacer]:
+    """A Pacer on a fake clock: ``now[0]`` is the time; every reading takes 1 us, as polling a real clock
+    does, and sleeping advances it."""
+    now = [start]
 
-    def clock() -> float:  # every reading takes 1 us, as polling a real clock does
+    def clock() -> float:
         now[0] += 1e-6
         return now[0]
 
-    pacer = Pacer(clock=clock, sleep=lambda s: now.__setitem__(0, now[0] + s))
+    return now, Pacer(clock=clock, sleep=lambda s: now.__setitem__(0, now[0] + s))
+
+
+def test_pacer_waits_for_each_point_and_counts_overruns() -> None:
+    now, pacer = fake_time(10.0)
     pacer.start(0.0)
     pacer.wait_until(0.01)
     assert now[0] >= 10.01
@@ -242,13 +248,7 @@ def test_pacer_waits_for_each_point_and_counts_overruns() -> None:
 def test_pacer_adds_up_how_far_the_run_fell_behind_once_per_stall() -> None:
     """Two stalls of 40 and 25 ms, each caught up over the next points: the run fell behind by 65 ms in
     all (not by the 40 ms of the worst point, nor by the sum of every late point's lateness)."""
-    now = [0.0]
-
-    def clock() -> float:  # every reading takes 1 us, as polling a real clock does
-        now[0] += 1e-6
-        return now[0]
-
-    pacer = Pacer(clock=clock, sleep=lambda s: now.__setitem__(0, now[0] + s))
+    now, pacer = fake_time(0.0)
     pacer.start(0.0)
     for k, work in enumerate([0.0, 0.05, 0.0, 0.0, 0.0, 0.0, 0.035, 0.0, 0.0, 0.0], start=1):
         now[0] += work  # the work of step k (10 ms steps): 50 ms once, 35 ms once
