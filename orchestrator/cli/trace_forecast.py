@@ -17,7 +17,7 @@ from typing import Any
 
 from orchestrator.cli.options import RunOptions
 from orchestrator.scenario.raw_config import (DEFAULT_COUNT, DEFAULT_STEP, DEFAULT_STOP_TIME, DEFAULT_TRACE_EVERY,
-                                              apply_override, read_config_text, step_count)
+                                              apply_override, read_config_text, recorded_rows, step_count)
 
 
 def wants_trace_worker(options: RunOptions) -> bool:
@@ -46,4 +46,4 @@ def _recording_size(options: RunOptions) -> tuple[int, int]:
     simulation, platoon = raw.get("simulation", {}), raw.get("platoon", {})
     steps = step_count(float(simulation.get("stop_time", DEFAULT_STOP_TIME)), float(simulation.get("step", DEFAULT_STEP)))
     every = options.trace_every or int(simulation.get("trace_every", DEFAULT_TRACE_EVERY))
-    return steps // every + 1, int(platoon.get("count", DEFAULT_COUNT)) + 1  # the vehicles and the target
+    return recorded_rows(steps, every), int(platoon.get("count", DEFAULT_COUNT)) + 1  # the vehicles and the target

@@ -28,6 +28,7 @@ from orchestrator.observers.progress import ProgressDisplay
 from orchestrator.observers.trace import TraceObserver, choose_trace_writer, open_trace_writer, signal_text
 from orchestrator.scenario.config import Config
 from orchestrator.scenario.scenario import build_scenario, step_count
+from orchestrator.scenario.raw_config import recorded_rows
 from orchestrator.support.versions import tool_versions
 from orchestrator.trace.foxglove import SCENE_RATE
 from orchestrator.trace.format import BLOCK
@@ -160,7 +161,7 @@ class Execution:
         self.steps = step_count(sim.stop_time, sim.step)
         self.live = live_names(config) if self.engine_name == "python" else set()
         self.writer_kind = "inline" if self.live else choose_trace_writer(
-            trace_writer, self.steps // sim.trace_every + 1, len(self.scenario.components))
+            trace_writer, recorded_rows(self.steps, sim.trace_every), len(self.scenario.components))
         # the trace writer process starts first (or started with the command: prestart): its start-up
         # overlaps loading the config and the FMUs; it holds the trace's lock, so the path stays claimed
         # while it still writes

@@ -29,6 +29,12 @@ def step_count(stop_time: float, step: float) -> int:
     return max(1, int(math.floor(stop_time / step + 1e-9)))
 
 
+def recorded_rows(steps: int, every: int) -> int:
+    """Rows a run of ``steps`` steps records with ``simulation.trace_every`` = ``every``: its start, then
+    every ``every``-th communication point."""
+    return steps // every + 1
+
+
 # A --set value that starts like one of these is TOML and must parse as exactly one value; anything
 # else (a bare word such as regular) is taken as a string.
 _TOML_START = tuple("\"'[{+-0123456789")

@@ -20,6 +20,7 @@ import shutil
 from pathlib import Path
 
 from orchestrator.scenario.config import Config
+from orchestrator.scenario.raw_config import recorded_rows
 
 from .spec import SweepError
 
@@ -36,7 +37,7 @@ def _blocks(size: int) -> int:
 
 def run_bytes(config: Config) -> int:
     """The disk one run of ``config`` takes: its trace, its result file (whole blocks each), its row."""
-    rows = config.steps // config.simulation.trace_every + 1
+    rows = recorded_rows(config.steps, config.simulation.trace_every)
     trace = rows * (config.platoon.count + 1) * TRACE_BYTES_PER_ROW
     result = len(config.model_dump_json()) * 2 + RESULT_OVERHEAD  # indented JSON: about twice the compact text
     return _blocks(trace) + _blocks(result) + ROW_BYTES
