@@ -152,10 +152,13 @@ def sweep_plot(
     from orchestrator.cli.common import fail, out, output_rule
     from orchestrator.sweep.plot import draw_map
     from orchestrator.sweep.results import ResultsError
+    from orchestrator.sweep.store import check_not_in_folder
 
+    target = png or out_dir / "map.png"
     try:
         with output_rule():
-            path = draw_map(out_dir, value, x, y, panel, png or out_dir / "map.png", overwrite)
+            check_not_in_folder(target, out_dir)  # every file of the folder it reads, not only results.csv
+            path = draw_map(out_dir, value, x, y, panel, target, overwrite)
     except ResultsError as error:  # PlotError is one too
         fail(2, str(error))
     out.print(f"wrote {path}", highlight=False, soft_wrap=True)
@@ -169,10 +172,13 @@ def stability_map(
     """Map a string-stability sweep: per law, the analytic boundary over the measured gains (delay x loss)."""
     from orchestrator.cli.common import fail, out, output_rule
     from orchestrator.sweep.stability_map import draw_stability_map
+    from orchestrator.sweep.store import check_not_in_folder
 
+    target = png or out_dir / "stability.png"
     try:
         with output_rule():
-            path = draw_stability_map(out_dir, png or out_dir / "stability.png", overwrite)
+            check_not_in_folder(target, out_dir)  # its results, traces, tables and lock: every file it reads
+            path = draw_stability_map(out_dir, target, overwrite)
     except ValueError as error:  # a PlotError, a ResultsError, a config the analysis refuses
         fail(2, str(error))
     out.print(f"wrote {path}", highlight=False, soft_wrap=True)

@@ -19,7 +19,7 @@ from typing import Any, Callable, Iterable, Iterator, Protocol
 from .executors import Executor, Job
 from .plan import Run
 from .space import check_space
-from .store import OutputFolder
+from .store import OutputFolder, storing
 
 FINISHED = ("completed", "failed", "invalid")  # statuses of a run that is done (never redone unless asked)
 
@@ -109,7 +109,8 @@ def run_sweep(runs: Iterable[Run], total: int, folder: OutputFolder, executor: E
             for job, outcome in executor.outcomes(jobs):
                 partial = job.partial_trace
                 if outcome.get("trace_bytes") is not None:  # a remote run: its trace came back with it
-                    partial.write_bytes(outcome.pop("trace_bytes"))
+                    with storing(partial, "write the run's trace"):
+                        partial.write_bytes(outcome.pop("trace_bytes"))
                 outcome.pop("trace_bytes", None)
                 if outcome["status"] == "interrupted":
                     partial.unlink(missing_ok=True)

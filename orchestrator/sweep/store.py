@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
-from orchestrator.support.output import OutputError, rename_into_place, replacing, sync_file, write_bytes
+from orchestrator.support.output import OutputError, check_not_input, rename_into_place, replacing, sync_file, write_bytes
 
 from .plan import Run
 from .spec import SweepError
@@ -45,13 +45,69 @@ TABLE_BATCH = 1_000  # rows per SQLite insert and per parquet row group: memory 
 _VEHICLE = re.compile(r"vehicle(\d+)\.")
 
 
+OWN_FILES = ("results.csv", "results.parquet", ".lock")  # the folder's own files beside results/ and traces/
+OWN_FOLDERS = ("results", "traces")
+
+
+def folder_files(root: Path) -> Iterator[Path]:
+    """Every file of the sweep folder ``root`` that a command reading the folder reads (or a sweep resuming
+    in it): its tables, its lock, and every file in results/ and traces/, whatever its name."""
+    root = Path(root)
+    for name in OWN_FILES:
+        yield root / name
+    for folder in OWN_FOLDERS:
+        try:
+            with os.scandir(root / folder) as entries:
+                for entry in entries:
+                    yield Path(entry.path)
+        except OSError:  # no such folder (a sweep that never ran there): nothing in it to protect
+            continue
+
+
+def check_not_in_folder(target: Path, root: Path, what: str = "--out") -> None:
+    """Refuse ``target`` if it is one of the sweep folder ``root``'s files: by name (results/ and traces/
+    are the sweep's, whether the file exists yet or not; results.csv, results.parquet, .lock), by hard
+    link or by symlink (compared by device and inode: support/output.py), with or without --overwrite.
+    A file drawn from a sweep (its map) may go anywhere else, the folder itself included."""
+    check_not_input(Path(target), folder_files(root), what)
+    real = Path(os.path.realpath(target))
+    places = {Path(os.path.realpath(Path(root) / name)): name for name in OWN_FOLDERS}
+    files = {Path(os.path.realpath(Path(root) / name)): name for name in OWN_FILES}
+    own = f"{places[real.parent]}/{real.name}" if real.parent in places else files.get(real)
+    if own is not None:
+        raise OutputError(f"{what} {target}: is {own} of the sweep folder {root} (its tables, lock, results/ and "
+                          f"traces/ are the sweep's files, which this command reads); choose another path")
+
+
+class StorageError(OSError):
+    """A file of the sweep's bookkeeping that could not be written (a full disk, a read-only folder): the
+    message is one line naming the file and what failed; the sweep stops with it (exit 1), the runs
+    committed before kept."""
+
+
+@contextlib.contextmanager
+def storing(path: Path, doing: str) -> Iterator[None]:
+    """Turn any storage failure while ``doing`` something to the sweep file ``path`` into a ``StorageError``:
+    an ``OSError`` (which may not name the file: a failed write or fsync does not), an ``OutputError``
+    (the output rule's own line), or an SQLite error ("database or disk is full": the table rebuild's
+    scratch table is SQLite's, and sqlite3's errors are not OSErrors)."""
+    try:
+        yield
+    except StorageError:
+        raise
+    except OutputError as error:
+        raise StorageError(str(error)) from None
+    except OSError as error:
+        raise StorageError(f"sweep file {path}: cannot {doing}: {error.strerror or error}") from None
+    except sqlite3.Error as error:
+        raise StorageError(f"sweep file {path}: cannot {doing}: {error}") from None
+
+
 def write_atomically(path: Path, data: bytes) -> None:
     """Replace ``path`` by ``data`` all at once, by the output rule (support/output.py): readers (and a
     restart) see the old or the new file, whole."""
-    try:
+    with storing(path, "write it"):  # the runner treats a folder it cannot write as an OSError (one line)
         write_bytes(path, data, what="sweep file")
-    except OutputError as error:  # the runner treats a folder it cannot write as an OSError (one line)
-        raise OSError(str(error)) from None
 
 
 def metric_order(names: Iterable[str]) -> list[str]:
@@ -87,12 +143,17 @@ class OutputFolder:
             lock = self._open_lock()
             if self._take(lock, deadline):
                 break
-        lock.seek(0)
-        lock.truncate()
-        lock.write(str(os.getpid()))
-        lock.flush()
         self._lock = lock
-        self._remove_leftovers()
+        try:
+            with storing(self.root / ".lock", "write the sweep's pid in it"):  # unbuffered: nothing left to fail on close
+                os.ftruncate(lock.fileno(), 0)
+                os.pwrite(lock.fileno(), str(os.getpid()).encode(), 0)
+            with storing(self.root, "remove the leftovers of a killed sweep"):
+                self._remove_leftovers()
+        except StorageError:  # e.g. a disk already full: nothing ran, the disk is left as it was found
+            self.undo()
+            self.release()
+            raise
 
     def _open_lock(self) -> io.TextIOWrapper:
         """The folder's .lock, opened (the folder made first, and what is made noted for ``undo``)."""
@@ -156,7 +217,8 @@ class OutputFolder:
 
     def release(self) -> None:
         if self._lock is not None:
-            self._lock.close()  # closing the file releases the flock
+            with contextlib.suppress(OSError):  # the flock goes with the descriptor, which close() always releases
+                self._lock.close()  # closing the file releases the flock
             self._lock = None
 
     def _remove_leftovers(self) -> None:
@@ -186,16 +248,18 @@ class OutputFolder:
         """Move a finished run's trace from its partial name to its own, on disk before the result says so:
         its data synced, renamed, and traces/ synced (a power cut after the commit keeps the rename too)."""
         trace = self.trace_path(run)
-        rename_into_place(partial, trace)
+        with storing(trace, "put the run's trace in place"):
+            rename_into_place(partial, trace)
         return trace
 
     def forget(self, run: Run) -> None:
         """Remove what an earlier attempt of ``run`` left: its result first (the commit), then its trace."""
         result = self.results / f"{run.id}.json"
-        if result.exists():
-            result.unlink()
-            sync_file(self.results)  # the removal is on disk before the run is redone
-        self.trace_path(run).unlink(missing_ok=True)
+        with storing(result, "remove an earlier attempt's result"):
+            if result.exists():
+                result.unlink()
+                sync_file(self.results)  # the removal is on disk before the run is redone
+            self.trace_path(run).unlink(missing_ok=True)
 
     def record(self, run: Run, outcome: dict[str, Any], trace: Path | None, index: int | None = None) -> dict[str, Any]:
         """Commit ``run``'s outcome (its trace already in place at ``trace``); returns the record.
@@ -258,6 +322,10 @@ class OutputFolder:
         """Rebuild results.csv (and results.parquet with pyarrow) from the result files; returns the rows
         and how many of them are not completed. Once when a sweep starts and once when it ends (or on
         sweep-plot): O(runs done) in time, streamed (flat in memory), not per run."""
+        with storing(self.csv, "rebuild it (its scratch table in the folder)"):
+            return self._write_tables(varied, parquet)
+
+    def _write_tables(self, varied: list[str], parquet: bool) -> tuple[int, int]:
         fd, name = tempfile.mkstemp(prefix=".tables.", suffix=".tmp", dir=self.root)  # removed on start if we die
         os.close(fd)
         scratch = Path(name)
@@ -280,13 +348,10 @@ class OutputFolder:
         return count, failed
 
     def _write_csv(self, columns: list[str], rows: Iterable[dict[str, Any]]) -> None:
-        try:
-            with replacing(self.csv, "sweep file") as aside, open(aside, "w", newline="") as stream:
-                writer = csv.DictWriter(stream, columns, lineterminator="\n")
-                writer.writeheader()
-                writer.writerows(rows)
-        except OutputError as error:  # the runner treats a folder it cannot write as an OSError (one line)
-            raise OSError(str(error)) from None
+        with replacing(self.csv, "sweep file") as aside, open(aside, "w", newline="") as stream:
+            writer = csv.DictWriter(stream, columns, lineterminator="\n")
+            writer.writeheader()
+            writer.writerows(rows)
         self._header = columns
 
     def append_row(self, record: dict[str, Any], varied: list[str]) -> None:
@@ -302,7 +367,7 @@ class OutputFolder:
             return
         line = io.StringIO()
         csv.DictWriter(line, header, lineterminator="\n").writerow(row)
-        with open(self.csv, "a") as table:
+        with storing(self.csv, f"append run {record['id']}'s row"), open(self.csv, "a") as table:
             table.write(line.getvalue())
 
     def _write_parquet(self, columns: list[str], kinds: dict[str, set[str]], rows: Iterable[dict[str, Any]]) -> None:
@@ -321,18 +386,19 @@ class OutputFolder:
                 values[column] = [None if value is None else str(value) for value in values[column]]
             return pyarrow.table(values, schema=schema)
 
-        try:
-            with replacing(self.parquet, "sweep file") as aside:
-                with pyarrow.parquet.ParquetWriter(str(aside), schema) as writer:
-                    chunk: list[dict[str, Any]] = []
-                    for row in rows:
-                        chunk.append(row)
-                        if len(chunk) >= TABLE_BATCH:
-                            writer.write_table(batch_of(chunk))
-                            chunk.clear()
-                    writer.write_table(batch_of(chunk))
-        except OutputError as error:
-            raise OSError(str(error)) from None
+        with storing(self.parquet, "write it"):
+            try:
+                with replacing(self.parquet, "sweep file") as aside:
+                    with pyarrow.parquet.ParquetWriter(str(aside), schema) as writer:
+                        chunk: list[dict[str, Any]] = []
+                        for row in rows:
+                            chunk.append(row)
+                            if len(chunk) >= TABLE_BATCH:
+                                writer.write_table(batch_of(chunk))
+                                chunk.clear()
+                        writer.write_table(batch_of(chunk))
+            except pyarrow.ArrowException as error:  # an Arrow I/O failure that is not an OSError
+                raise OSError(str(error)) from None
 
 
 def _kind(value: Any) -> str:
