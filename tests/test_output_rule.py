@@ -337,3 +337,34 @@ def test_report_refuses_a_plot_target_before_reading_the_trace(tmp_path: Path) -
     assert result.returncode == 2, result.stderr
     assert "xy.png" in result.stderr and "not an MCAP" not in result.stderr, result.stderr
     assert foreign.read_text() == "my notes, not an image\n"
+
+
+# --- what a run reads besides its config: the FMUs in build/fmus and the files the config names ------------
+
+@pytest.mark.parametrize("command", ["run", "export-ssp"])
+def test_a_run_never_replaces_an_fmu_it_reads_or_a_file_its_config_names(command: str, tmp_path: Path,
+                                                                        fmu_dir: Path) -> None:
+    """`platoon run` and `platoon export-ssp` read the FMUs in build/fmus (and build/fmus/native) under the
+    current folder: `--out build/fmus/Vehicle.fmu --overwrite` used to replace the FMU with the trace. Now
+    each FMU, by name, hard link or symlink, and a Zenoh config the config names, is refused (exit 2)."""
+    fmus = tmp_path / "build" / "fmus"
+    shutil.copytree(fmu_dir, fmus, ignore=shutil.ignore_patterns("*.tmp"))
+    zenoh = tmp_path / "zenoh.json5"
+    zenoh.write_text("{}\n")
+    config = tmp_path / "live.toml"  # a live vehicle: the run would wait for its robot, but is refused before
+    config.write_text((REPO / "configs" / "hil" / "m3pi_live3.toml").read_text()
+                      + '\n[vehicles.2]\nendpoint = "zenoh"\nzenoh_config = "zenoh.json5"\n')
+    victims = [fmus / "Vehicle.fmu", zenoh] + ([fmus / "native" / "Vehicle.fmu"] if (fmus / "native").is_dir() else [])
+    for victim in victims:
+        before = victim.read_bytes()
+        hard, soft = tmp_path / "hard.bin", tmp_path / "soft.bin"
+        os.link(victim, hard)
+        soft.symlink_to(victim)
+        for target in (victim, hard, soft):
+            argv = ("run", config, "-q") if command == "run" else ("export-ssp", config)
+            result = platoon(*argv, "--out", target, "--overwrite", cwd=tmp_path, timeout=120)
+            assert result.returncode == 2, (victim, target, result.stdout, result.stderr)
+            one_line_error(result, "is the same file as", victim.name, "which this command reads")
+            assert victim.read_bytes() == before
+        hard.unlink()
+        soft.unlink()

@@ -103,6 +103,17 @@ def check_output(path: Path, overwrite: bool, protect: list[Path], what: str = "
         check_replaceable(path, overwrite, protect, what)
 
 
+def run_inputs(config: Path, parsed: Config) -> list[Path]:
+    """Every file a run of ``config`` (or its SSP export) reads, which its output never replaces: the config,
+    the files it names (a Zenoh config), the FMUs in build/fmus (both kinds) and the sources they are
+    built from."""
+    from fmus.builders import DEFAULT_OUT
+
+    from orchestrator.components.kinds import fmu_files
+
+    return [config, *parsed.named_files(), *fmu_files(DEFAULT_OUT)]
+
+
 def claim_trace(trace: Optional[Path], overwrite: bool, protect: list[Path], default):
     """Claim the trace path before any work (orchestrator/trace/output.py): exit 2 with one line if it is
     in use by another run, is a file that is not a trace (without --overwrite), is the config, or cannot

@@ -15,7 +15,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from orchestrator.cli.options import RunOptions
-from orchestrator.cli.plain import check_choice, check_output, claim_trace, console, fail, load_config, say
+from orchestrator.cli.plain import (check_choice, check_output, claim_trace, console, fail, load_config, run_inputs,
+                                    say)
 from orchestrator.components.kinds import FMU_KINDS
 from orchestrator.scenario.config import Config
 
@@ -47,11 +48,12 @@ def run_command(options: RunOptions) -> None:
     engine = _chosen_engine(config, parsed, options.engine_name, options.monolithic, options.trace_writer,
                             options.compare)
     view = _live_view(parsed, options)
-    target = claim_trace(options.trace, options.overwrite, [config], lambda: default_trace_path(parsed, engine))
+    inputs = run_inputs(config, parsed)
+    target = claim_trace(options.trace, options.overwrite, inputs, lambda: default_trace_path(parsed, engine))
     trace = target.final
     reference_path = trace.with_name(trace.stem + "-monolithic.mcap")
     if options.compare:  # checked now, claimed when its turn comes (no empty aside file if the run fails)
-        check_output(reference_path, options.overwrite, [config])
+        check_output(reference_path, options.overwrite, inputs)
     result = _run_with_view(config, parsed, text, target, engine, options.quiet, options.trace_writer, view)
     first_step = _first_step(entered, entered_at, result, clock.perf_counter())
     _report_run(result, trace, parsed, engine, options.quiet)
@@ -211,7 +213,7 @@ def _compare_monolithic(config: Path, parsed: Config, text: str, result: "RunRes
     from orchestrator.analysis.compare import deviations
     from orchestrator.trace import load
 
-    reference = _execute(parsed, text, claim_trace(reference_path, overwrite, [config], None), "monolithic", quiet)
+    reference = _execute(parsed, text, claim_trace(reference_path, overwrite, run_inputs(config, parsed), None), "monolithic", quiet)
     if reference.status != "completed":
         fail(1, f"monolithic reference {reference.status}: {reference.error}")
     worst = deviations(load(result.trace), load(reference.trace))

@@ -27,6 +27,7 @@ def export_ssp(
     from orchestrator.interop.ssp import SspError, export_ssp as write_package, SSP, ssp_notes
 
     from orchestrator.cli.common import check_choice
+    from orchestrator.cli.plain import run_inputs
     from orchestrator.components.kinds import FMU_KINDS, FmuKindError
 
     check_choice("--fmus", fmu_kind, FMU_KINDS)
@@ -38,7 +39,7 @@ def export_ssp(
         err.print("note: --force is deprecated; it means --overwrite", highlight=False, soft_wrap=True, markup=False)
     overwrite = overwrite or force
     with output_rule():  # the output rule (support/output.py), checked before any FMU is built
-        check_target(target, overwrite, [config], kind=SSP)
+        check_target(target, overwrite, run_inputs(config, parsed), kind=SSP)  # the FMUs it packs too
     try:
         with output_rule():
             written = write_package(parsed, target, DEFAULT_OUT, force=overwrite, worker_threads=worker_threads)

@@ -117,6 +117,16 @@ def prepare_fmus(fmu_dir: Path) -> None:
             ensure_fmus(fmu_dir, kind, FMU_NAMES + (LINK_FMU,))
 
 
+def fmu_files(fmu_dir: Path) -> list[Path]:
+    """Every FMU a run (or an SSP export) may read below ``fmu_dir``, of both kinds, and the fmus package's
+    sources it builds them from: the inputs its output must never replace (support/output.py)."""
+    from fmus.builders import FMU_NAMES, LINK_FMU, LIVE_FMU
+    from fmus.builders.base import source_files
+
+    names = (*FMU_NAMES, LINK_FMU, LIVE_FMU)
+    return [fmu_folder(fmu_dir, kind) / f"{name}.fmu" for kind in FMU_KINDS for name in names] + list(source_files())
+
+
 def fmus_in_folder(folder: Path) -> dict[str, Path]:
     """The run's FMUs (Vehicle, VirtualTarget) in ``folder``, built there if stale: native ones when the
     folder is a ``fmu_folder(..., "native")``, pythonfmu ones otherwise. For tools handed one folder

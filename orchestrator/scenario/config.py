@@ -491,6 +491,11 @@ class Config(_Strict):
     def override(self, vehicle: int) -> VehicleOverride:
         return self.vehicles.get(str(vehicle), VehicleOverride())
 
+    def named_files(self) -> list[Path]:
+        """The files this config names (``FILE_KEYS`` of [vehicles.K]): inputs of the run, like the config."""
+        return [Path(value) for table in self.vehicles.values() for key in FILE_KEYS
+                if (value := getattr(table, key, None))]
+
     def live_vehicles(self) -> list[int]:
         """Numbers of the vehicles that are live robots, front to back."""
         return sorted(int(k) for k, v in self.vehicles.items() if v.endpoint == "zenoh")
