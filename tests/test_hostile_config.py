@@ -23,7 +23,7 @@ from pydantic import BaseModel
 
 from fmus.builders import ALL_FMUS, FMU_NAMES, PYTHONFMU
 from orchestrator.scenario.config import Config, ConfigError, config_from_mapping, load_config, parse_value
-from orchestrator.scenario.limits import MAX_FMU_SUBSTEPS, MAX_STEPS, MAX_SUBSTEPS_PER_STEP, check_run_size
+from orchestrator.scenario.limits import MAX_FMU_SUBSTEPS, MAX_STEPS, MAX_SUBSTEPS_PER_STEP, check_run_size, run_size
 from orchestrator.support.scratch import ScratchDir, sweep
 from orchestrator.trace import load
 from tests.test_cli import error_line
@@ -234,7 +234,11 @@ PULSE = 'disturbance=[{vehicle=2, kind="speed", start=1.0, duration=1.0, value=1
     (["simulation.stop_time=1e12"], ["100,000,000,000,000 steps", f"more than {MAX_STEPS:,}", "--allow-long"]),
     (["simulation.max_substep=1e-12"], ["10,000,000,000 RK4 substeps per step", f"more than {MAX_SUBSTEPS_PER_STEP:,}"]),
     (["simulation.stop_time=10000", "simulation.max_substep=0.0001"],
-     ["1,000,000 steps x 100 substeps x 5 components = 500,000,000 FMU-substeps", "more than 100,000,000"]),
+     ["1,000,000 steps x 100 substeps x 5 components (4 vehicles and the target) = 500,000,000 FMU-substeps",
+      "more than 100,000,000"]),
+    (["simulation.stop_time=4000", "platoon.count=100", "path.radius=2000", "links.delay=0.05"],  # 2 links a vehicle
+     ["400,000 steps x (1 substeps x 101 components (100 vehicles and the target) + 200 link FMUs, one step each) = "
+      "120,400,000 FMU-substeps", "more than 100,000,000"]),
     (["simulation.step=1e-300"], ["1e+302 steps", "at most 2**53", "no option lifts this"]),
 ])
 def test_absurd_sizes_are_refused_with_the_numbers(command: str, assignments: list[str], pieces: list[str],
@@ -274,8 +278,23 @@ def test_the_limits_are_above_the_longest_shipped_run_and_below_absurd() -> None
 
 def test_ten_thousand_vehicles_for_the_default_100_s_are_above_the_work_limit() -> None:
     config = config_from_mapping({"platoon": {"count": 10000}, "path": {"radius": 1e6}})
-    with pytest.raises(ConfigError, match=r"^10,000 steps x 1 substeps x 10,001 components = 100,010,000 FMU-substeps"):
+    with pytest.raises(ConfigError, match=r"^10,000 steps x 1 substeps x 10,001 components \(10,000 vehicles and the "
+                                          r"target\) = 100,010,000 FMU-substeps"):
         check_run_size(config)
+
+
+def test_link_fmus_count_in_the_work_limit_and_the_refusal_says_so() -> None:
+    """With [links] every vehicle has two more FMUs (a step each, whatever max_substep says; a link's step
+    costs about a vehicle's): 4,000 vehicles for 100 s are within the limit without links, above it with."""
+    mapping = {"platoon": {"count": 4000}, "path": {"radius": 1e6}}
+    check_run_size(config_from_mapping(mapping))  # 10,000 x 4,001 = 40,010,000
+    linked = config_from_mapping({**mapping, "links": {"delay": 0.05}})
+    assert len(linked.linked()) == 8000
+    with pytest.raises(ConfigError, match=r"^10,000 steps x \(1 substeps x 4,001 components \(4,000 vehicles and the "
+                                          r"target\) \+ 8,000 link FMUs, one step each\) = 120,010,000 FMU-substeps"):
+        check_run_size(linked)
+    one_way = config_from_mapping({**mapping, "links": {"vehicles": {"7": {"forward": {"delay": 0.05}}}}})
+    assert run_size(one_way).links == 1 and run_size(one_way).work == 10_000 * (4001 + 1)  # only the links made
 
 
 def test_a_sweep_point_above_the_size_limits_is_invalid_not_run(tmp_path: Path) -> None:
