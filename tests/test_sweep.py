@@ -616,3 +616,20 @@ def test_a_placed_trace_is_synced_then_renamed_then_its_folder_synced(tmp_path: 
     folder.release()
     assert placed == folder.trace_path(run) and placed.read_bytes().endswith(b"x" * 100)
     assert synced == [(str(partial), ["abc123.mcap.part"]), (str(folder.traces), ["abc123.mcap"])], synced
+
+
+@pytest.mark.parametrize("links", [(), ("--set", "links.delay=0.05")], ids=["no links", "links"])
+def test_the_disk_estimate_covers_a_real_trace_with_or_without_links(links: tuple[str, ...], tmp_path: Path,
+                                                                     fmu_dir: Path) -> None:
+    """The estimate counts every component the wiring makes (a [links] run records two link FMUs per
+    vehicle, ~40% more trace here): a real trace is at most the estimate and not far below it."""
+    from orchestrator.scenario.config import load_config
+    from orchestrator.sweep.space import BLOCK, ROW_BYTES, run_bytes
+
+    sets = ["simulation.stop_time=20", *links[1:]]
+    trace = tmp_path / "t.mcap"
+    done = platoon("run", PAPER, *(arg for s in sets for arg in ("--set", s)), "-q", "--out", trace)
+    assert done.returncode == 0, done.stderr
+    config, _ = load_config(PAPER, sets)
+    estimate = run_bytes(config) - ROW_BYTES - BLOCK  # the trace's share (a result file of this config: one block)
+    assert 0.75 * estimate < trace.stat().st_size <= estimate, (trace.stat().st_size, estimate)

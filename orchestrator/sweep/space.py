@@ -9,8 +9,9 @@ stops there, every committed run kept: store.py).
 
 One run's trace is estimated from its config: (steps / trace_every + 1) rows of each of its
 components (the vehicles and the virtual target) at ``TRACE_BYTES_PER_ROW``, measured on the paper's
-platoon (zstd-compressed rows: 195 B per vehicle-row, less for the target; see docs/sweeps.md), so the
-estimate errs on the large side by about 10 %. The first point of the plan stands for all: a grid
+platoon (zstd-compressed rows: 195 B per vehicle-row, less for the target; see docs/sweeps.md), and of
+each link FMU the wiring makes ([links]) at ``LINK_BYTES_PER_ROW``, so the estimate errs on the large
+side by about 10 %. The first point of the plan stands for all: a grid
 that varies the platoon's length or the run's duration needs more or less than this says.
 """
 
@@ -25,6 +26,10 @@ from orchestrator.scenario.raw_config import recorded_rows
 from .spec import SweepError
 
 TRACE_BYTES_PER_ROW = 200  # compressed bytes per component per recorded row (measured: 195 B per vehicle)
+# a link FMU's channel ([links]: two per vehicle) records fewer, more regular values: measured 41 B per
+# link-row (paper platoon, 20 s, 2001 rows: 4 vehicles 1,806,415 B without links, 2,463,167 B with their
+# 8 links; 12 vehicles 4,949,809 B and 6,905,423 B with 24)
+LINK_BYTES_PER_ROW = 48
 BLOCK = 4096  # a file takes whole blocks of the filesystem (ext4, tmpfs: 4 KiB)
 RESULT_OVERHEAD = 2048  # bytes of a result file besides its resolved config (values, metrics, overrides)
 ROW_BYTES = 512  # a results.csv row with a dozen vehicles' metrics, and its share of results.parquet
@@ -38,7 +43,7 @@ def _blocks(size: int) -> int:
 def run_bytes(config: Config) -> int:
     """The disk one run of ``config`` takes: its trace, its result file (whole blocks each), its row."""
     rows = recorded_rows(config.steps, config.simulation.trace_every)
-    trace = rows * (config.platoon.count + 1) * TRACE_BYTES_PER_ROW
+    trace = rows * ((config.platoon.count + 1) * TRACE_BYTES_PER_ROW + len(config.linked()) * LINK_BYTES_PER_ROW)
     result = len(config.model_dump_json()) * 2 + RESULT_OVERHEAD  # indented JSON: about twice the compact text
     return _blocks(trace) + _blocks(result) + ROW_BYTES
 
