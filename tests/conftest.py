@@ -63,12 +63,37 @@ def shared_build() -> Iterator[None]:
 
 
 @contextmanager
+def machine_lock(name: str) -> Iterator[None]:
+    """Held across parallel workers and across test runs of other checkouts on this machine (the lock
+    file is in the system's temporary folder): for what the machine shares, a fixed port or Zig's cache."""
+    with open(Path(tempfile.gettempdir()) / f"platoon-cosim-tests-{name}.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file is closed, or the process dies
+        yield
+
+
+@pytest.fixture(scope="session")
+def zig_cache() -> dict[str, float]:
+    """Zig's global cache warmed for every release target (fmus/builders/zig_cache.py) before a test
+    times a cross-compilation (`platoon build --all-platforms`): on a cold cache the first build for a
+    target also builds its C library and compiler-rt, minutes on 2 cores (MinGW-w64's CRT most of it).
+    Once per machine: the first worker warms it under the lock, the others then find it warm (under a
+    second). Returns the seconds each target took; skips without ziglang."""
+    from importlib.util import find_spec
+
+    if find_spec("ziglang") is None:
+        pytest.skip("ziglang is not installed (pip install -e '.[release]'): no cross-compiled binaries")
+    from fmus.builders.zig_cache import warm_cross_cache
+
+    with machine_lock("zig-cache"):
+        return warm_cross_cache()
+
+
+@contextmanager
 def fixed_ports() -> Iterator[None]:
     """Held while a test listens on a fixed, documented port (a HIL config's tcp/127.0.0.1:7447, a live
     view's port) instead of a free one: such tests run one at a time across parallel workers, and across
-    test runs of other checkouts on this machine (the lock file is in the system's temporary folder)."""
-    with open(Path(tempfile.gettempdir()) / "platoon-cosim-tests-fixed-ports.lock", "a") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
+    test runs of other checkouts on this machine."""
+    with machine_lock("fixed-ports"):
         yield
 
 

@@ -64,8 +64,9 @@ def _zig() -> list[str]:
 
 
 @pytest.fixture(scope="module")
-def release(tmp_path_factory) -> dict[int, dict[str, Path]]:
-    """`platoon build --all-platforms` into a fresh folder: the native FMUs by FMI version and name."""
+def release(tmp_path_factory, zig_cache) -> dict[int, dict[str, Path]]:
+    """`platoon build --all-platforms` into a fresh folder: the native FMUs by FMI version and name
+    (Zig's cache warmed first, once per machine: tests/conftest.py)."""
     _zig()
     out = tmp_path_factory.mktemp("release")
     command = [sys.executable, "-c", "import sys; sys.argv[0] = 'platoon'; from orchestrator.cli import main; main()",

@@ -1,0 +1,60 @@
+"""Zig's cache warmed before anything times a cross-compilation (``platoon build --all-platforms``).
+
+Not one of the builder's modules (native.py: ``BUILDER_MODULES``): what it does never changes an FMU.
+Run as ``python -m fmus.builders.zig_cache`` it warms the cache and prints what each target took.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from fmus.builders.base import BuildError
+from fmus.builders.toolchain import LIBS, ZIG_TARGETS, cross_flags, zig_cc
+
+# What a first cross-compilation for a target costs, paid once per machine: Zig builds that target's C
+# library stubs (glibc 2.17, MinGW-w64's CRT, macOS's libSystem) and compiler-rt from source into its
+# global cache (``zig env``: global_cache_dir, ~/.cache/zig unless $ZIG_GLOBAL_CACHE_DIR). A tiny
+# library compiled with the release flags builds exactly those; every later compile for the target
+# only compiles its own files. The function is exported, as an FMU's are: Zig's Mach-O linker crashes
+# (SIGSEGV, Zig 0.17.1) on a stripped dylib that exports nothing.
+WARM_SOURCE = '__attribute__((visibility("default"))) double platoon_warm(double x) { return x * 2.0; }\n'
+
+
+def warm_cross_cache() -> dict[str, float]:
+    """Build Zig's C library stubs and compiler-rt for every release target into its global cache, so
+    that the first ``platoon build --all-platforms`` costs what any later one does (the tests that run it
+    under a time budget call this first). Returns the seconds each target took (a fraction of a second
+    each when the cache is warm already). ``NoCrossCompiler`` without the ziglang package."""
+    taken = {}
+    with tempfile.TemporaryDirectory(prefix="platoon-zig-warm-") as scratch:
+        source = Path(scratch) / "warm.c"
+        source.write_text(WARM_SOURCE)
+        for platform in ZIG_TARGETS:
+            started = time.monotonic()
+            output = Path(scratch) / f"warm-{platform.tuple}{platform.suffix}"
+            command = [*zig_cc(), *cross_flags("warm", platform), str(source), "-o", str(output), *LIBS]
+            result = subprocess.run(command, cwd=scratch, capture_output=True, text=True, timeout=1800)
+            if result.returncode != 0:
+                raise BuildError(f"warming Zig's cache for {platform.tuple} failed ({' '.join(command)}):\n"
+                                 f"{result.stderr.strip()}")
+            taken[platform.tuple] = time.monotonic() - started
+    return taken
+
+
+def main() -> None:
+    """Warm the cache, printing each target's seconds and the total; the error and exit 1 if it fails."""
+    began = time.monotonic()
+    try:
+        for target, seconds in warm_cross_cache().items():
+            print(f"zig cache: {target} {seconds:.1f} s", flush=True)
+    except BuildError as error:
+        sys.exit(f"error: {error}")
+    print(f"zig cache warm in {time.monotonic() - began:.1f} s", flush=True)
+
+
+if __name__ == "__main__":  # python -m fmus.builders.zig_cache: what .ci/run does before the slow tests
+    main()
