@@ -93,6 +93,43 @@ def test_sweep_plot_still_writes_beside_the_folders_files(sweep_folder: Path, tm
     (sweep_folder / "map.png").unlink()
 
 
+def _hardlink(source: Path, link: Path) -> None:
+    os.link(source, link)
+
+
+def _symlink(source: Path, link: Path) -> None:
+    link.symlink_to(source)
+
+
+@pytest.mark.parametrize("input_, place, make", [
+    ("sweep file", "results.csv", None),  # the sweep file itself named DIR/results.csv
+    ("sweep file", ".lock", _hardlink),  # the lock's pid would replace its text
+    ("base config", "results/abc.json", _symlink),
+    ("base config", "traces/abc.mcap", _hardlink),
+], ids=["sweep file by name", "sweep file as the lock", "base as a result", "base as a trace"])
+def test_a_sweep_never_writes_over_its_sweep_file_or_base(input_: str, place: str, make, tmp_path: Path) -> None:
+    """The sweep reads its sweep file and base config, and writes its tables, lock, results and traces in
+    --out: a folder where one of those is an input (by name, hard link or symlink) is refused (exit 2, one
+    line) before anything is written, the input left as it was."""
+    out = tmp_path / "out"
+    (out / "results").mkdir(parents=True)
+    (out / "traces").mkdir()
+    base = tmp_path / "base.toml"
+    base.write_text(PAPER.read_text())
+    text = f'base = "{base}"\n[grid]\n"platoon.k_v" = [0.5, 0.6]\n'
+    sweep = out / place if make is None else tmp_path / "sweep.toml"
+    sweep.write_text(text)
+    victim = sweep if input_ == "sweep file" else base
+    if make is not None:
+        make(victim, out / place)
+    before = victim.read_bytes()
+    result = platoon("sweep", sweep, "--out", out, "-q", cwd=tmp_path)
+    assert result.returncode == 2, (result.stdout, result.stderr)
+    one_line_error(result, f"--out {out}: its {place} would be", str(victim if make is None or input_ == "base config"
+                                                                     else sweep), "which this command reads")
+    assert victim.read_bytes() == before and not (out / "results.parquet").exists()
+
+
 # --- a full disk under the sweep's bookkeeping ------------------------------------------------------------
 
 FILLED = ('#!/bin/sh\nfree=$1; shift\nmount -t tmpfs -o size=1m tmpfs small || exit 99\ncp -a seed/. small/\n'

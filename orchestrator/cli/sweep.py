@@ -98,7 +98,7 @@ def sweep(
     from orchestrator.sweep.plan import count, runs as plan_runs, value_columns
     from orchestrator.sweep.runner import run_sweep
     from orchestrator.sweep.spec import load_sweep
-    from orchestrator.sweep.store import OutputFolder
+    from orchestrator.sweep.store import OutputFolder, check_inputs_outside
 
     if workers is not None and scheduler is not None:
         fail(2, "--workers and --scheduler: give one (the cluster has its own workers)")
@@ -110,6 +110,8 @@ def sweep(
         runs = itertools.chain([next(stream)], stream)
     except SweepError as error:
         fail(2, str(error))
+    with output_rule():  # e.g. a sweep file named DIR/results.csv: the table's rebuild would replace it
+        check_inputs_outside(out_dir, [sweep_file, spec.base])
     fmu_dir = DEFAULT_OUT.resolve()
     with output_rule():  # a FIFO or device where an FMU goes: one line, before any run
         prepare_fmus(fmu_dir)  # once, before the workers start (each run only checks that they are up to date)

@@ -34,7 +34,8 @@ import time
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
-from orchestrator.support.output import OutputError, check_not_input, rename_into_place, replacing, sync_file, write_bytes
+from orchestrator.support.output import (OutputError, check_not_input, identity, rename_into_place, replacing, sync_file,
+                                         write_bytes)
 
 from .plan import Run
 from .spec import SweepError
@@ -70,13 +71,32 @@ def check_not_in_folder(target: Path, root: Path, what: str = "--out") -> None:
     link or by symlink (compared by device and inode: support/output.py), with or without --overwrite.
     A file drawn from a sweep (its map) may go anywhere else, the folder itself included."""
     check_not_input(Path(target), folder_files(root), what)
-    real = Path(os.path.realpath(target))
-    places = {Path(os.path.realpath(Path(root) / name)): name for name in OWN_FOLDERS}
-    files = {Path(os.path.realpath(Path(root) / name)): name for name in OWN_FILES}
-    own = f"{places[real.parent]}/{real.name}" if real.parent in places else files.get(real)
+    own = _own_name(target, root)
     if own is not None:
         raise OutputError(f"{what} {target}: is {own} of the sweep folder {root} (its tables, lock, results/ and "
                           f"traces/ are the sweep's files, which this command reads); choose another path")
+
+
+def check_inputs_outside(root: Path, inputs: Iterable[Path], what: str = "--out") -> None:
+    """Refuse the sweep folder ``root`` when one of the sweep's ``inputs`` (its sweep file, its base config)
+    is one of the files the sweep writes there (results.csv, .lock, a result or a trace): by name, hard
+    link or symlink. The sweep would write over what it reads."""
+    files = {identity(path): str(path.relative_to(root)) for path in folder_files(root)}
+    files.pop(None, None)
+    for given in inputs:
+        own = _own_name(given, root) or files.get(identity(Path(given)))
+        if own is not None:
+            raise OutputError(f"{what} {root}: its {own} would be {given}, which this command reads; choose another "
+                              f"folder")
+
+
+def _own_name(path: Path, root: Path) -> str | None:
+    """The name ``path`` has among the sweep folder's own files (``results.csv``, ``results/<id>.json``),
+    symlinks followed; None if it is none of them (whether or not the file exists)."""
+    real = Path(os.path.realpath(path))
+    places = {Path(os.path.realpath(Path(root) / name)): name for name in OWN_FOLDERS}
+    files = {Path(os.path.realpath(Path(root) / name)): name for name in OWN_FILES}
+    return f"{places[real.parent]}/{real.name}" if real.parent in places else files.get(real)
 
 
 class StorageError(OSError):
