@@ -167,12 +167,18 @@ def stability_map(
     overwrite: Overwrite = False,
 ) -> None:
     """Map a string-stability sweep: per law, the analytic boundary over the measured gains (delay x loss)."""
-    from orchestrator.cli.common import fail, out, output_rule
+    from orchestrator.cli.common import err, fail, out, output_rule
+    from orchestrator.observers.progress import progress
     from orchestrator.sweep.stability_map import draw_stability_map
+
+    def shown(total: int):  # a bar on a terminal, plain lines elsewhere: measuring many traces takes a while
+        err.print(f"stability-map: measuring {total} traces of {out_dir} and the analytic maps ...", highlight=False,
+                  soft_wrap=True)
+        return progress(total, "stability-map", err, unit="traces")
 
     try:
         with output_rule():
-            path = draw_stability_map(out_dir, png or out_dir / "stability.png", overwrite)
+            path = draw_stability_map(out_dir, png or out_dir / "stability.png", overwrite, progress=shown)
     except ValueError as error:  # a PlotError, a ResultsError, a config the analysis refuses
         fail(2, str(error))
     out.print(f"wrote {path}", highlight=False, soft_wrap=True)
