@@ -51,6 +51,10 @@ def _build_native(out_dir: Path, force: bool, all_platforms: bool = False, rule:
     from orchestrator.cli.common import output_rule
 
     names = FMU_NAMES + (LINK_FMU,)
+    if all_platforms:  # said before it starts: a cold Zig cache makes the first such build take minutes
+        err.print("note: --all-platforms cross-compiles with Zig for 5 platforms; on a machine whose Zig cache is cold "
+                  "Zig first compiles its C runtimes for each target (several minutes on 2 cores, docs/fmus.md); "
+                  "later builds reuse its cache", highlight=False, soft_wrap=True)
     try:
         with output_rule():
             built_fmus = NativeBuilder(2, all_platforms).build(out_dir / "native", force=force, names=names, output=rule)

@@ -171,10 +171,10 @@ def stability_map(
     from orchestrator.observers.progress import progress
     from orchestrator.sweep.stability_map import draw_stability_map
 
-    def shown(total: int):  # a bar on a terminal, plain lines elsewhere: measuring many traces takes a while
-        err.print(f"stability-map: measuring {total} traces of {out_dir} and the analytic maps ...", highlight=False,
-                  soft_wrap=True)
-        return progress(total, "stability-map", err, unit="traces")
+    def shown(traces: int, total: int):  # a bar on a terminal, plain lines elsewhere: it takes a while
+        err.print(f"stability-map: measuring {traces} traces of {out_dir} and computing the analytic maps "
+                  f"({total} tasks) ...", highlight=False, soft_wrap=True)
+        return progress(total, "stability-map", err, unit="tasks")
 
     try:
         with output_rule():

@@ -99,35 +99,48 @@ def _grid(rows: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
 def _compute(points: list[dict[str, Any]], laws: list[str], delays: np.ndarray, losses: np.ndarray,
              tick: Callable[[int], None] | None, workers: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Every point's measured gain (into the points) and each law's analytic grid, on ``workers`` processes:
-    the grids' rows (the longest tasks) first, then the traces, each a task, counted by ``tick`` as they
-    finish."""
+    the grids' rows (the longest tasks) first, then the traces, each a task; ``tick(done)`` counts both
+    as they finish (``tasks(points, laws, losses)`` of them)."""
     first = {law: next(p for p in points if p[LAW] == law)["raw"] for law in laws}
     measured = [p for p in points if p["trace"] is not None]
     done = 0
+
+    def finished() -> None:
+        nonlocal done
+        done += 1
+        if tick is not None:
+            tick(done)
+
+    rows: dict[str, list[Any]] = {law: [] for law in laws}
     if workers <= 1:
-        grids = {law: _grid([_analytic_row(first[law], delays, float(loss)) for loss in losses]) for law in laws}
+        for law in laws:
+            for loss in losses:
+                rows[law].append(_analytic_row(first[law], delays, float(loss)))
+                finished()
         for p in measured:
             p["gain"] = measured_gain(p["config"], p["trace"])
-            done += 1
-            if tick is not None:
-                tick(done)
-        return grids
+            finished()
+        return {law: _grid(rows[law]) for law in laws}
     with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
         grid_tasks = {law: [pool.submit(_analytic_row, first[law], delays, float(loss)) for loss in losses] for law in laws}
         tasks = {pool.submit(_measure, p["raw"], p["trace"]): p for p in measured}
-        for task in as_completed(tasks):
-            tasks[task]["gain"] = task.result()
-            done += 1
-            if tick is not None:
-                tick(done)
-        return {law: _grid([task.result() for task in rows]) for law, rows in grid_tasks.items()}
+        for task in as_completed([*tasks, *(t for law_tasks in grid_tasks.values() for t in law_tasks)]):
+            if task in tasks:
+                tasks[task]["gain"] = task.result()
+            finished()
+        return {law: _grid([task.result() for task in law_tasks]) for law, law_tasks in grid_tasks.items()}
+
+
+def tasks(points: list[dict[str, Any]], laws: list[str], losses: np.ndarray) -> int:
+    """How many tasks ``_compute`` counts: a trace each, and a row of the analytic grid per law and loss."""
+    return sum(p["trace"] is not None for p in points) + len(laws) * len(losses)
 
 
 def draw_stability_map(folder: Path, png: Path, overwrite: bool = False, resolution: int = 11,
-                       progress: Callable[[int], Any] | None = None, workers: int | None = None) -> Path:
-    """Measure every trace of the sweep in ``folder`` and draw the map into ``png``. ``progress(total)`` gives
-    a context manager whose ``tick(done)`` counts the traces measured (the CLI's bar or lines); ``workers``
-    processes share the traces and the analytic grids (default: the usable CPUs)."""
+                       progress: Callable[[int, int], Any] | None = None, workers: int | None = None) -> Path:
+    """Measure every trace of the sweep in ``folder`` and draw the map into ``png``. ``progress(traces, total)``
+    gives a context manager whose ``tick(done)`` counts the tasks done (a trace measured, a row of an
+    analytic grid: the CLI's bar or lines); ``workers`` processes share them (default: the usable CPUs)."""
     check_target(png, overwrite, [folder / "results.csv"], kind=IMAGE)  # before minutes of reading traces
     points = _points(folder)
     laws = list(dict.fromkeys(p[LAW] for p in points))
@@ -135,8 +148,8 @@ def draw_stability_map(folder: Path, png: Path, overwrite: bool = False, resolut
     losses = np.linspace(0.0, max(p[LOSS] for p in points), resolution)
     workers = workers if workers is not None else len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") \
         else (os.cpu_count() or 1)
-    total = sum(p["trace"] is not None for p in points)
-    with (progress(total) if progress is not None else nullcontext()) as tick:
+    traces = sum(p["trace"] is not None for p in points)
+    with (progress(traces, tasks(points, laws, losses)) if progress is not None else nullcontext()) as tick:
         grids = _compute(points, laws, delays, losses, tick, workers)
     figure, axes = plt.subplots(1, len(laws), figsize=(4.2 * len(laws) + 1.0, 4.2), dpi=120, squeeze=False,
                                 sharey=True, layout="constrained")
