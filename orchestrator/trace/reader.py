@@ -79,13 +79,13 @@ class Trace:
         return vehicle_names(self.channels)
 
 
-def load(path: str | Path, *, components: Iterable[str] | None = None, start: float | None = None,
+def load(path: str | Path, *, components: Iterable[str] | Callable[[str], bool] | None = None, start: float | None = None,
          end: float | None = None, errors: bool = True,
          progress: Callable[[int, int], None] | None = None) -> Trace:
     """Read a finished trace (CRCs checked) into numpy arrays, with its metadata, errors and log.
 
-    ``components`` (names such as ``vehicle3``, ``target``; a live vehicle's streams come with it) and
-    ``errors=False`` leave channels out; ``start`` / ``end`` (s, inclusive) keep the messages logged in
+    ``components`` (names such as ``vehicle3``, ``target``, or a test of a name; a live vehicle's streams
+    come with it) and ``errors=False`` leave channels out; ``start`` / ``end`` (s, inclusive) keep the messages logged in
     that window, and only the chunks that hold them are read: a slice costs in proportion to the slice.
     ``progress(done, total)`` is called after each chunk. The arrays are bit for bit what Python's json
     reads from the messages (orchestrator/trace/columns.py says how they are read fast).
@@ -146,11 +146,14 @@ def _component_of(topic: str) -> str:
     return name.split("/", 1)[0]
 
 
-def _chosen(summary: Any, kinds: dict[int, str], components: Iterable[str] | None) -> set[str] | None:
+def _chosen(summary: Any, kinds: dict[int, str],
+            components: Iterable[str] | Callable[[str], bool] | None) -> set[str] | None:
     if components is None:
         return None
-    chosen = set(components)
     present = {_component_of(ch.topic) for cid, ch in summary.channels.items() if kinds[cid] == "component"}
+    if callable(components):
+        return {name for name in present if components(name)}
+    chosen = set(components)
     missing = sorted(chosen - present)
     if missing:
         raise TraceError(f"no component {', '.join(missing)} in this trace (it has {', '.join(sorted(present))})")
