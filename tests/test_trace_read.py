@@ -249,3 +249,25 @@ def test_load_holds_at_most_twice_the_arrays_it_returns(lossy: Path) -> None:
     arrays = sum(a.nbytes for group in (*trace.channels.values(), trace.errors) for a in group.values())
     assert arrays > 4 << 20  # a trace large enough that a chunk or two of overhead is small beside it
     assert peak <= 2 * arrays, (peak, arrays)
+
+
+def test_components_by_a_test_of_their_name(lossy: Path) -> None:
+    from orchestrator.trace.format import is_link
+
+    whole = load(lossy)
+    bodies = load(lossy, components=lambda name: not is_link(name), errors=False)
+    assert list(bodies.channels) == [name for name in whole.channels if not is_link(name)] and bodies.errors == {}
+    assert all(same_bits(bodies.channels[n][k], whole.channels[n][k]) for n in bodies.channels for k in whole.channels[n])
+
+
+def test_the_readback_benchmark_writes_its_ratios(tmp_path: Path) -> None:
+    platoon = Path(sys.executable).parent / "platoon"
+    done = subprocess.run([str(platoon), "bench", "readback", "--rounds", "1", "-q", "--out-dir", str(tmp_path)], cwd=REPO,
+                          capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(next(tmp_path.glob("readback-*.json")).read_text())
+    medians = result["medians"]
+    assert {"study run", "study load", "study stability", "readme run", "readme report"} <= set(medians)
+    assert 0 < medians["study load"]["slice"] < medians["study load"]["whole"]
+    assert medians["study memory"]["arrays"] > 20 << 20  # the study trace's columns: 10 284 rows, 23 channels
+    assert "reader / writer" in done.stdout

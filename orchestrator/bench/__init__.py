@@ -13,6 +13,8 @@
 * ``callgrind``: instructions and simulated cache misses per FMU-step, the master's own apart (``flatness.py``);
 * ``hil``: Zenoh round trip and step jitter of live runs on loopback (``hil.py``);
 * ``sweep``: wall time of a sweep with 1, 2, ... local workers and on Dask; the speed-up (``sweep.py``);
+* ``readback``: each trace reader (load, report, stability, stability-map) against the run that wrote the
+  trace, whole processes in one sitting; load's peak memory against its arrays (``readback.py``);
 * ``cores LABEL=PATH LABEL=PATH``: the native engine with two or more builds of _core.c (``flatness.py``).
 
 ``python -m orchestrator.bench.<name>`` (each module's docstring has its options):
