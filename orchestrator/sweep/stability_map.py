@@ -43,9 +43,11 @@ def measured_gain(config: Config, trace_path: Path) -> float:
     """The run's largest gain per link over its probe frequencies (geometric mean over the clean links)."""
     from orchestrator.trace import load
 
-    # the vehicles and the target are all the gains need (gaps from positions): not the links, not errors
+    # what the gains need: the vehicles and the target (gaps from positions), not the links or the errors, from
+    # a second before the first disturbance (the state recorded before it is the errors' baseline) on
+    first = min((d.start for d in config.disturbance), default=None)
     trace = load(trace_path, components=[TARGET] + [f"vehicle{k}" for k in range(1, config.platoon.count + 1)],
-                 errors=False)
+                 errors=False, start=None if first is None else max(0.0, first - 1.0))
     frequencies = probe_frequencies(config)
     order = clean_order(config, trace.vehicles())
     if not frequencies or len(order) < 2:
