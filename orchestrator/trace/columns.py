@@ -81,7 +81,7 @@ class JsonColumns:
         record = self.record(first)
         self.keys = list(record)
         self.values = np.empty((len(self.keys), max(self.capacity, 1)), dtype=np.float64)
-        self.times = np.empty(max(self.capacity, 1), dtype=np.int64)
+        self.times = np.empty(max(self.capacity, 1), dtype=np.uint64)
         self.capacity = self.times.shape[0]
         shape = _decode.skeleton(first) if _decode is not None else None
         numeric = all(type(value) in (int, float) for value in record.values())
@@ -100,7 +100,7 @@ class JsonColumns:
         capacity = 2 * self.capacity
         values = np.empty((len(self.keys), capacity), dtype=np.float64)
         values[:, :self.count] = self.values[:, :self.count]
-        times = np.empty(capacity, dtype=np.int64)
+        times = np.empty(capacity, dtype=np.uint64)
         times[:self.count] = self.times[:self.count]
         self.values, self.times, self.capacity = values, times, capacity
 

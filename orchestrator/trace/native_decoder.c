@@ -316,7 +316,7 @@ static int walk(const unsigned char *data, size_t n, size_t offset, const int *s
                         if (handback(handbacks, (Handback){slot, target->count, log_time, start, size}) < 0)
                             return STOP_MEMORY;
                     }
-                    ((int64_t *)target->times.buf)[target->count] = (int64_t)log_time;
+                    ((uint64_t *)target->times.buf)[target->count] = log_time;
                     target->count++;
                 }
             }
@@ -368,7 +368,7 @@ static Target *read_targets(PyObject *list, Py_ssize_t *count)
             }
             t->kind = TARGET_JSON;
             if (t->out.len < (Py_ssize_t)sizeof(double) * t->values * t->capacity ||
-                t->times.len < (Py_ssize_t)sizeof(int64_t) * t->capacity || t->count < 0 || t->count > t->capacity) {
+                t->times.len < (Py_ssize_t)sizeof(uint64_t) * t->capacity || t->count < 0 || t->count > t->capacity) {
                 release_targets(targets, i + 1);
                 Py_DECREF(seq);
                 PyErr_SetString(PyExc_ValueError, "a target's buffers are smaller than its capacity");

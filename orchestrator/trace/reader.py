@@ -111,7 +111,7 @@ def load(path: str | Path, *, components: Iterable[str] | Callable[[str], bool] 
         slots = _slots(summary, kinds, _chosen(summary, kinds, components), errors)
         try:
             _decode_file(path, reader, summary, slots, window, progress)
-        except (TraceError, ValueError, TypeError, KeyError, struct.error) as error:  # a bad CRC, chunk, record or message
+        except (TraceError, ValueError, TypeError, KeyError, OverflowError, struct.error) as error:  # a bad CRC, chunk, record or message
             raise TraceError(f"damaged MCAP file: a chunk does not check ({error}); recover every intact chunk "
                              f"with `platoon trace recover {path}`") from None
         metadata = {item.name: dict(item.metadata) for item in reader.iter_metadata()}
