@@ -271,3 +271,34 @@ def test_the_readback_benchmark_writes_its_ratios(tmp_path: Path) -> None:
     assert 0 < medians["study load"]["slice"] < medians["study load"]["whole"]
     assert medians["study memory"]["arrays"] > 20 << 20  # the study trace's columns: 10 284 rows, 23 channels
     assert "reader / writer" in done.stdout
+
+
+def test_mutated_chunks_are_read_or_refused_never_a_crash(lossy: Path, decoder: str) -> None:
+    """Chunk contents a hostile file can carry past its CRC (the CRC is the file's own): random bytes in the
+    records and the JSON, cut at record boundaries; each chunk decodes or is refused with an error naming it."""
+    from mcap.reader import make_reader
+
+    with open(lossy, "rb") as stream:
+        summary = make_reader(stream).get_summary()
+        first = min(summary.chunk_indexes, key=lambda chunk: chunk.chunk_start_offset)
+        records = columns.read_chunk(stream, first.chunk_start_offset)
+    bounds, at = [], 0
+    while at < len(records) and len(bounds) < 400:
+        at += 9 + struct.unpack_from("<BQ", records, at)[1]
+        bounds.append(at)
+    json_channels = [cid for cid, ch in summary.channels.items() if ch.message_encoding == "json"]
+    rng = random.Random(43)
+    outcomes = {"read": 0, "refused": 0}
+    for _ in range(300):
+        data = bytearray(records[:rng.choice(bounds)])
+        for _ in range(rng.randrange(1, 12)):
+            data[rng.randrange(len(data))] = rng.choice([rng.randrange(256), *b'"\\-0e.{', 0])
+        slots = {cid: columns.JsonColumns(str(cid), False, rng.choice([0, 1, 100])) for cid in json_channels}
+        try:
+            columns.ChunkDecoder(slots).chunk(bytes(data))
+            for slot in slots.values():
+                slot.columns()
+            outcomes["read"] += 1
+        except (TraceError, ValueError, KeyError, TypeError):
+            outcomes["refused"] += 1
+    assert outcomes["read"] > 30 and outcomes["refused"] > 30, outcomes
