@@ -387,6 +387,20 @@ def test_the_readme_first_block_is_ci_s_two_commands() -> None:
     assert "pip install -e '.[test]'" in lines[1] and lines[1].endswith("pytest -q")
 
 
+def test_what_the_docs_commands_write_into_the_checkout_is_ignored_by_git() -> None:
+    """A newcomer following the docs in the repository's folder gets no untracked packages, traces or FMUs
+    in `git status` (docs/fmus.md writes platoon.ssp there); the figures docs/ shows are the exception."""
+    written = {match for block in BLOCKS for command in block.commands
+               for match in re.findall(r"--out[ =](\S+\.(?:ssp|mcap|fmu))\b", command)}
+    written |= {"platoon.ssp", "runs/x.mcap", "build/fmus/Vehicle.fmu"}  # export-ssp's default name, a run's, a build's
+    inside = sorted(path for path in written if not path.startswith(("/", "$")))
+    assert any(path.endswith(".ssp") for path in inside), inside
+    checked = subprocess.run(["git", "check-ignore", "--no-index", "--verbose", "--non-matching", *inside], cwd=REPO,
+                             capture_output=True, text=True)
+    not_ignored = [line.split("\t")[-1] for line in checked.stdout.splitlines() if line.startswith("::")]
+    assert not not_ignored, f"not ignored by .gitignore: {not_ignored}"
+
+
 def test_the_dask_extra_the_docs_install_exists() -> None:
     """docs/sweeps.md installs ``platoon-cosim[dask]``: the extra must be declared."""
     import tomllib
