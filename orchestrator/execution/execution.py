@@ -37,9 +37,11 @@ from orchestrator.trace.worker import WORKER_BLOCK, TraceProcess, TraceWorkerErr
 from orchestrator.trace.writer_base import NullTraceWriter, TraceWriteError
 
 if TYPE_CHECKING:
+    from orchestrator.analysis.link_stats import LinkStats
     from orchestrator.analysis.metrics import VehicleSummary
     from orchestrator.observers.foxglove_view import FoxgloveView
     from orchestrator.observers.hil_link import LinkReporter
+    from orchestrator.observers.link_stats import LinkStatsObserver
     from orchestrator.observers.summary import SummaryObserver
 
 Tick = Callable[[int], None]
@@ -63,6 +65,8 @@ class RunResult:
     # `platoon report` computes it from the trace (None otherwise)
     summary: "list[VehicleSummary] | None" = None
     fmus: str = ""  # the FMU kind stepped: "native" or "python" (orchestrator/components/kinds.py)
+    # run_scenario(..., summarize=True): what each link did (sent, delivered, lost, mean age of information)
+    links: "list[LinkStats]" = field(default_factory=list)
 
 
 @dataclass
@@ -185,6 +189,7 @@ class Execution:
         self.engine: Any = None
         self.reporter: "LinkReporter | None" = None
         self.summary_feed: "SummaryObserver | None" = None
+        self.link_feed: "LinkStatsObserver | None" = None
         try:
             stop.install()
             setup = self._observe(observers, stop)
@@ -222,7 +227,8 @@ class Execution:
         summary = feed.result() if feed is not None and outcome.status == "completed" else None
         return RunResult(self.target.where() if self.target is not None else None, self.steps, marks["finish"] - started,
                          outcome.status, outcome.error, outcome.signum, {"open": opened, **_phase_durations(marks)},
-                         live_summary, summary, self.fmu_kind)
+                         live_summary, summary, self.fmu_kind,
+                         self.link_feed.result() if self.link_feed is not None else [])
 
     def _observe(self, observers: Observers, stop: StopRequest) -> EngineSetup:
         """Open the trace and the other observers, write the run's metadata; what the engine is built from."""
@@ -247,12 +253,21 @@ class Execution:
                                 on_wall_clock=bool(self.live), check=stop.check, streams=live_streams(sorted(self.live)))
             observers.add(self.live_view)
         self._write_start(observers, trace)
+        if config.disturbance:  # a log line when each starts and ends
+            from orchestrator.observers.disturbance_log import DisturbanceLog
+
+            observers.add(DisturbanceLog(config, observers.log))
         if self.summarize:
             from orchestrator.observers.summary import SummaryObserver
 
             self.summary_feed = SummaryObserver(config, components, self.steps, sim.trace_every,
                                                 on_thread=trace.in_a_process)
             observers.add(self.summary_feed)
+            if config.linked():  # what the links did, beside the summary (docs/links.md)
+                from orchestrator.observers.link_stats import LinkStatsObserver
+
+                self.link_feed = LinkStatsObserver(components, sim.trace_every)
+                observers.add(self.link_feed)
         if config.ros2.publish:  # every vehicle's pose to ROS 2 (docs/hil.md, "Publishing the run to ROS 2")
             from orchestrator.observers.ros2 import ros2_publisher
 
@@ -277,7 +292,7 @@ class Execution:
                                          "trace_encoder": trace.encoder,
                                          "scene_rate": repr(float(self.scene_rate)) if self.foxglove else "",
                                          "started": clock.strftime("%Y-%m-%dT%H:%M:%S%z")})
-        observers.log(0.0, "Info", f"run started: {config.name}, {config.platoon.count} vehicles, {config.laws_text()}, "
+        observers.log(0.0, "Info", f"run started: {config.name}, {config.platoon.count} vehicles, {config.header_text()}, "
                                    f"{self.engine_name} engine ({sim.master}), {self.fmu_kind} FMUs, step {sim.step:g} s, "
                                    f"stop {sim.stop_time:g} s")
 
