@@ -204,7 +204,7 @@ def _report_run(result: "RunResult", trace: Path, parsed: Config, engine: str, q
             from orchestrator.cli.tables import link_table
 
             console().print(link_table(result.links))
-    say(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)")
+    say(f"trace: {result.trace}  ({result.steps} steps in {result.working_time:.2f} s)")  # waits for a viewer or robot left out
     if written.path is not None:
         say(f"layout: {written.path}  (open both in Foxglove: docs/foxglove.md)")  # one line in a log
 

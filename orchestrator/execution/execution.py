@@ -23,7 +23,7 @@ from orchestrator.components.kinds import ensure_fmus, resolve_fmu_kind, run_fmu
 from orchestrator.components.live import check_live_options, live_names
 from orchestrator.execution.engine import EngineSetup, default_engine, engine_class
 from orchestrator.execution.signals import StopRequest
-from orchestrator.observers.base import Observers
+from orchestrator.observers.base import Observers, WaitClock
 from orchestrator.observers.progress import ProgressDisplay
 from orchestrator.observers.trace import TraceObserver, choose_trace_writer, open_trace_writer, signal_text
 from orchestrator.scenario.config import Config
@@ -65,8 +65,15 @@ class RunResult:
     # `platoon report` computes it from the trace (None otherwise)
     summary: "list[VehicleSummary] | None" = None
     fmus: str = ""  # the FMU kind stepped: "native" or "python" (orchestrator/components/kinds.py)
+
+    @property
+    def working_time(self) -> float:
+        """Wall seconds of the run without its waits for a viewer or a robot: what "N steps in X s" says."""
+        return self.wall_time - self.waited
     # run_scenario(..., summarize=True): what each link did (sent, delivered, lost, mean age of information)
     links: "list[LinkStats]" = field(default_factory=list)
+    # of wall_time, the seconds the start waited for a viewer (--live-wait) or a live robot: not the run's work
+    waited: float = 0.0
 
 
 @dataclass
@@ -190,6 +197,7 @@ class Execution:
         self.reporter: "LinkReporter | None" = None
         self.summary_feed: "SummaryObserver | None" = None
         self.link_feed: "LinkStatsObserver | None" = None
+        self.wait_clock = WaitClock()  # a robot's wait; the viewer's the view measures itself
         try:
             stop.install()
             setup = self._observe(observers, stop)
@@ -228,7 +236,8 @@ class Execution:
         return RunResult(self.target.where() if self.target is not None else None, self.steps, marks["finish"] - started,
                          outcome.status, outcome.error, outcome.signum, {"open": opened, **_phase_durations(marks)},
                          live_summary, summary, self.fmu_kind,
-                         self.link_feed.result() if self.link_feed is not None else [])
+                         self.link_feed.result() if self.link_feed is not None else [],
+                         self.wait_clock.waited + (self.live_view.waited if self.live_view is not None else 0.0))
 
     def _observe(self, observers: Observers, stop: StopRequest) -> EngineSetup:
         """Open the trace and the other observers, write the run's metadata; what the engine is built from."""
@@ -246,6 +255,7 @@ class Execution:
                                        native=self.engine_name == "native")
         self.trace = trace = TraceObserver(writer)
         observers.add(trace)  # first: every other observer sees a point once the trace holds it
+        observers.add(self.wait_clock)
         if self.live_view is not None:  # the view sees what the trace records; a live robot's run is paced already
             from orchestrator.observers.hil_link import live_streams
 
