@@ -4,28 +4,44 @@ struck and what struck it, next to the link and run lines."""
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable, Sequence
 
 from orchestrator.observers.base import Observer
 from orchestrator.scenario.config import Config
+from orchestrator.support.rows import RowBlock
 
 Log = Callable[[float, str, str], None]
 
 
 class DisturbanceLog(Observer):
-    """Logs ``config``'s disturbances through ``log`` as the run reaches their start and end (once the step
-    that crosses them is done; a run stopped before one logs nothing of it)."""
+    """Logs ``config``'s disturbances through ``log`` once the run records a row at or after their start and
+    end: the rows the trace records (the same decimation), so every engine logs the same lines, and a run
+    that stopped before a row past one (a failure, Ctrl-C) logs nothing of it."""
+
+    wants_rows = True
 
     def __init__(self, config: Config, log: Log) -> None:
-        self.step, self.to_log = config.simulation.step, log  # not `log`: that is the hook every observer is called on
+        step = config.simulation.step
+        self.every, self.slack = config.simulation.trace_every, 1e-9 * step  # a row's time is k h, rounded
+        self.to_log = log  # not `log`: that is the hook every observer is called on
+        self._count = 0
         events = []
         for pulse in config.disturbance:
             events.append((pulse.start, f"disturbance starts: {pulse.text()}"))
             events.append((pulse.start + pulse.duration, f"disturbance ends: {pulse.what()}"))
         self.events = sorted(events, key=lambda event: event[0])
 
-    def advanced(self, steps_done: int) -> None:
-        reached = steps_done * self.step * (1.0 + 1e-12)  # t_k = k h, to the rounding of the product
-        while self.events and self.events[0][0] <= reached:
+    def point(self, t: float, outputs: Sequence[Sequence[float]]) -> None:
+        if self._count % self.every == 0:
+            self._reached(t)
+        self._count += 1
+
+    def block(self, rows: Any) -> None:
+        block = RowBlock.coerce(rows)
+        if len(block):
+            self._reached(block.time(-1))
+
+    def _reached(self, t: float) -> None:
+        while self.events and self.events[0][0] <= t + self.slack:
             at, message = self.events.pop(0)
             self.to_log(at, "Info", message)
