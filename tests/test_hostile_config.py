@@ -1,4 +1,4 @@
-"""Issue 18, configs and command line under hostile input: exit 2 and one clear line, never a
+"""Configs and command line under hostile input: exit 2 and one clear line, never a
 traceback, a hang, a write outside runs/ or a temp folder left behind.
 
 Where the user meets a case it is a real ``platoon`` subprocess (with PYTHONPATH set to this
