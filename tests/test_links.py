@@ -295,3 +295,13 @@ def test_the_run_log_says_when_a_disturbance_starts_and_ends(tmp_path, engine, s
     logged = [(line.t, line.message) for line in log if line.message.startswith("disturbance")]
     assert logged == list(zip([35.0, 36.0][:len(lines)], lines))
     assert [line.t for line in log] == sorted(line.t for line in log)  # in time order, between start and end
+
+
+def test_a_link_that_sent_nothing_reports_null_not_nan():
+    """`report --json` stays valid JSON (no NaN) for a link with nothing sent or recorded."""
+    from orchestrator.analysis.link_stats import LinkStats, link_rows
+
+    rows = link_rows([LinkStats("link_forward1", 0, 0, 0, float("nan")), LinkStats("link_backward1", 4, 3, 1, 0.25)])
+    assert json.loads(json.dumps(rows, allow_nan=False)) == [
+        {"name": "link_forward1", "sent": 0, "delivered": 0, "lost": 0, "lost_share": None, "mean_age": None},
+        {"name": "link_backward1", "sent": 4, "delivered": 3, "lost": 1, "lost_share": 0.25, "mean_age": 0.25}]

@@ -73,6 +73,10 @@ def link_stats_of_trace(trace: "Trace") -> list[LinkStats]:
 
 
 def link_rows(stats: list[LinkStats]) -> list[dict[str, float | int | str]]:
-    """The links as `platoon report --json` gives them (mean age in s, lost share as a fraction)."""
-    return [{"name": s.name, "sent": s.sent, "delivered": s.delivered, "lost": s.lost, "lost_share": s.lost_share,
-             "mean_age": s.mean_age} for s in stats]
+    """The links as `platoon report --json` gives them (mean age in s, lost share as a fraction; null for
+    what cannot be told: nothing sent, nothing recorded), valid JSON whatever the run."""
+    def number(value: float) -> float | None:
+        return value if math.isfinite(value) else None
+
+    return [{"name": s.name, "sent": s.sent, "delivered": s.delivered, "lost": s.lost,
+             "lost_share": number(s.lost_share), "mean_age": number(s.mean_age)} for s in stats]
