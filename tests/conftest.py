@@ -33,7 +33,7 @@ from orchestrator.trace import Trace, load
 
 REPO = Path(__file__).resolve().parents[1]
 
-# The start issue 9 measures from: vehicle 1 5 m off the path and 0.1 rad off its heading, everyone at
+# A start far enough from the equilibrium to show convergence: vehicle 1 5 m off the path and 0.1 rad off its heading, everyone at
 # 80 % of V_c (also the shipped configs/paper/platoon.toml start).
 PAPER_START = {"radial_offset": 5.0, "heading_error": 0.1, "speed_factor": 0.8}
 

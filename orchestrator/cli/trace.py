@@ -40,6 +40,7 @@ def report(
     overwrite: Overwrite = False,
 ) -> None:
     """Summarize a trace (path offset, gap, speed, max path error) and draw the paper's panels."""
+    from orchestrator.analysis.link_stats import link_rows, link_stats_of_trace
     from orchestrator.analysis.metrics import report_json, summarize
 
     if plots is not None:  # every panel's target checked before the trace is read
@@ -67,11 +68,16 @@ def report(
         return
     with quiet_nan(bool(non_finite)):  # nan figures were announced above
         summaries = summarize(loaded, config)
+        links = link_stats_of_trace(loaded)
         if as_json:
             out.print_json(json.dumps({"trace": str(trace), "law": config.platoon.law, "status": status,
-                                        **report_json(summaries, config)}))
+                                        **report_json(summaries, config), "links": link_rows(links)}))
         else:
-            out.print(summary_table(summaries, config, f"{trace.name}: {config.laws_text()} ({status})"))
+            out.print(summary_table(summaries, config, f"{trace.name}: {config.header_text()} ({status})"))
+            if links:
+                from orchestrator.cli.tables import link_table
+
+                out.print(link_table(links))
         if plots is not None:
             from orchestrator.analysis.plots import write_plots
 
