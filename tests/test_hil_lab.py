@@ -8,6 +8,7 @@ but not robot 3's role. The outsiders have no certificate of the lab at all.
 from __future__ import annotations
 
 import json
+import os
 import stat
 import subprocess
 import time
@@ -17,7 +18,8 @@ import pytest
 import zenoh
 from cryptography import x509
 
-from bridge.lab import Lab, make_ca, make_host_certificate, write_lab, zenoh_lab_config, _pem
+from bridge.lab import Lab, make_ca, make_host_certificate, zenoh_lab_config, _pem
+from orchestrator.cli.hil_certs import write_lab
 from bridge.session import SessionError, open_session, zenoh_config
 from orchestrator.bench.hil import free_port
 from orchestrator.trace import load
@@ -42,10 +44,16 @@ def test_hil_certs_writes_a_ca_and_host_configs_that_zenoh_takes_and_keeps_the_c
         assert stat.S_IMODE(path.stat().st_mode) == 0o600  # it holds the host's private key
         zenoh_config(connect=["tls/127.0.0.1:7447"], config_file=str(path))  # Zenoh parses it
     assert stat.S_IMODE((folder / "ca.key").stat().st_mode) == 0o600
+    assert stat.S_IMODE((folder / "lab.key").stat().st_mode) == 0o600 and stat.S_IMODE(folder.stat().st_mode) == 0o700
+    lab_key = (folder / "lab.key").read_bytes()
+    unasked = subprocess.run([str(PLATOON), "hil-certs", str(folder), "--run-host", "laptop=3", "--robot-side",
+                              "xbee-pc=3"], cwd=REPO, env=_env(), capture_output=True, text=True, timeout=60)
+    assert unasked.returncode == 2 and "a CA is already there" in unasked.stderr, unasked.stderr  # never used unasked
     added = subprocess.run([str(PLATOON), "hil-certs", str(folder), "--run-host", "laptop=3", "--run-host", "desk=5",
-                            "--robot-side", "xbee-pc=3,5"], cwd=REPO, env=_env(), capture_output=True, text=True,
-                           timeout=60)
-    assert added.returncode == 0 and "the lab CA already there" in added.stdout, added.stderr
+                            "--robot-side", "xbee-pc=3,5", "--ca", str(folder / "ca.pem")], cwd=REPO, env=_env(),
+                           capture_output=True, text=True, timeout=60)
+    assert added.returncode == 0 and f"lab CA {folder / 'ca.pem'}" in added.stdout, added.stderr
+    assert (folder / "lab.key").read_bytes() == lab_key  # the hosts already set up keep theirs
     assert (folder / "ca.pem").read_bytes() == ca.public_bytes(__import__("cryptography").hazmat.primitives
                                                                .serialization.Encoding.PEM)
     bad = subprocess.run([str(PLATOON), "hil-certs", str(folder), "--run-host", "laptop", "--robot-side", "x=3"],
@@ -174,3 +182,85 @@ def test_with_tls_and_acl_strangers_cannot_connect_or_drive_and_the_platoon_trac
     stats = json.loads(load(trace).metadata["platoon.hil"]["vehicle3"])
     assert stats["command.foreign"] == 0 and stats["command.invalid"] == 0 and stats["pose.dropped.foreign"] == 0
     assert_tracks_the_all_fmu_run(trace, tmp_path / "fmu.mcap")
+
+
+def hil_certs(folder: Path, *options: str) -> subprocess.CompletedProcess:
+    return subprocess.run([str(PLATOON), "hil-certs", str(folder), "--run-host", "laptop=3", "--robot-side", "xbee-pc=3",
+                           *options], cwd=REPO, env=_env(), capture_output=True, text=True, timeout=60)
+
+
+@pytest.mark.parametrize("options, problem", [
+    (("--address", "laptop=héllo.example"), "is neither an IP address nor a DNS name"),
+    (("--address", "laptop=bad name"), "is neither an IP address nor a DNS name"),
+    (("--address", "laptop=*"), "is neither an IP address nor a DNS name"),
+    (("--address", "laptop=*.lab.example"), "is neither an IP address nor a DNS name"),
+    (("--days", "4000000"), "--days 4000000: expected 1 to 3650"),
+    (("--days", "0"), "--days 0: expected 1 to 3650"),
+    (("--run-host", "desk=99999999999999999999"), "robot ids go from 0 to 2147483647"),
+])
+def test_hil_certs_bad_input_is_one_line_exit_2_and_leaves_nothing(tmp_path: Path, options: tuple, problem: str) -> None:
+    made = hil_certs(tmp_path / "lab", *options)
+    assert made.returncode == 2 and problem in made.stderr, made.stderr
+    assert len(made.stderr.strip().splitlines()) == 1 and "Traceback" not in made.stderr
+    assert not (tmp_path / "lab").exists()
+
+
+def test_hil_certs_never_writes_through_a_link_or_onto_a_fifo_or_folder(tmp_path: Path) -> None:
+    folder = tmp_path / "lab"
+    folder.mkdir(mode=0o700)
+    victim = tmp_path / "victim.txt"
+    victim.write_text("mine\n")
+    (folder / "laptop.json5").symlink_to(victim)
+    linked = hil_certs(folder)
+    assert linked.returncode == 2 and "is a symbolic link" in linked.stderr, linked.stderr
+    assert victim.read_text() == "mine\n" and sorted(p.name for p in folder.iterdir()) == ["laptop.json5"]
+    (folder / "laptop.json5").unlink()
+    os.mkfifo(folder / "laptop.json5")
+    fifo = hil_certs(folder)  # would hang if it opened the FIFO
+    assert fifo.returncode == 2 and "not a regular file" in fifo.stderr, fifo.stderr
+    (folder / "laptop.json5").unlink()
+    (folder / "laptop.json5").mkdir()
+    made = hil_certs(folder)
+    assert made.returncode == 2 and "not a regular file" in made.stderr and "Errno" not in made.stderr, made.stderr
+
+
+def test_hil_certs_refuses_a_folder_others_can_write_and_rewrites_an_open_key_file_0600(tmp_path: Path) -> None:
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)  # as /tmp/lab made by another user would let them swap the CA
+    made = hil_certs(shared)
+    assert made.returncode == 2 and "others may write in it" in made.stderr and list(shared.iterdir()) == []
+    folder = tmp_path / "lab"
+    assert hil_certs(folder).returncode == 0
+    (folder / "laptop.json5").chmod(0o644)
+    again = hil_certs(folder, "--ca", str(folder / "ca.pem"))
+    assert again.returncode == 0, again.stderr
+    assert stat.S_IMODE((folder / "laptop.json5").stat().st_mode) == 0o600  # a new private key is never left 0644
+    (folder / "ca.key").chmod(0o644)
+    opened = hil_certs(folder, "--ca", str(folder / "ca.pem"))
+    assert opened.returncode == 2 and "only you can read (mode 0600)" in opened.stderr
+
+
+def test_hil_certs_on_a_full_disk_names_the_file_and_keeps_the_old_ones(tmp_path: Path) -> None:
+    """A 64 KiB tmpfs would need root; RLIMIT_FSIZE makes every write past the limit fail with EFBIG (the child
+    ignores SIGXFSZ), the same path through the code as ENOSPC: the error names the file, the old stays whole."""
+    import resource
+    import signal as signals
+
+    folder = tmp_path / "lab"
+    assert hil_certs(folder).returncode == 0
+    before = {path.name: path.read_bytes() for path in folder.iterdir()}
+
+    def small_files() -> None:
+        signals.signal(signals.SIGXFSZ, signals.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (2048, 2048))
+
+    full = subprocess.run([str(PLATOON), "hil-certs", str(folder), "--run-host", "laptop=3", "--robot-side",
+                           "xbee-pc=3", "--ca", str(folder / "ca.pem")], cwd=REPO, env=_env(), capture_output=True,
+                          text=True, timeout=60, preexec_fn=small_files)
+    assert full.returncode == 2 and "cannot write it" in full.stderr and ".json5" in full.stderr, full.stderr
+    assert {path.name: path.read_bytes() for path in folder.iterdir()} == before  # no half file, nothing cut
+    fresh = tmp_path / "fresh"
+    new = subprocess.run([str(PLATOON), "hil-certs", str(fresh), "--run-host", "laptop=3", "--robot-side", "xbee-pc=3"],
+                         cwd=REPO, env=_env(), capture_output=True, text=True, timeout=60, preexec_fn=small_files)
+    assert new.returncode == 2 and not fresh.exists(), new.stderr  # no lone ca.pem blocking the next try
