@@ -732,8 +732,10 @@ def test_strangers_commands_never_move_the_robot_and_runs_back_to_back_drive_lis
 
 
 def test_a_robot_that_obeys_someone_else_ends_the_run_non_zero_and_stops(tmp_path: Path) -> None:
-    """A stranger who reads the run's claim off the wire and commands the robot with it: the robot's pose
-    echoes a command the run never sent, the run ends with exit 1 saying so, keeps the trace, stops."""
+    """Someone who holds the lab key (a lab member, a leaked key file) reads the run's claim off the wire and
+    commands the robot with it: the robot's pose echoes a command the run never sent, the run ends with
+    exit 1 saying so, keeps the trace, stops."""
+    from bridge.lab_key import load_lab_key
     from bridge.session import open_session, zenoh_config
 
     port, host_port = free_port(), free_port()
@@ -751,7 +753,8 @@ def test_a_robot_that_obeys_someone_else_ends_the_run_non_zero_and_stops(tmp_pat
                 time.sleep(0.01)
             claim = decode_wheels(commands[-1]).claim
             hijacked = time.time()
-            session.put(KEYS.wheels, encode_wheels(WheelCommand(2**31, hijacked + 1.0, 0.5, -0.5, claim)))
+            session.put(KEYS.wheels, encode_wheels(WheelCommand(2**31, hijacked + 1.0, 0.5, -0.5, claim), load_lab_key(),
+                                                   KEYS.wheels))
             code, _, err = finish(run, timeout=30)
             subscriber.undeclare()
         wait_for(lambda: "released" in log.read_text(), lambda: f"the robot side releases the claim: {log.read_text()}")
@@ -765,6 +768,76 @@ def test_a_robot_that_obeys_someone_else_ends_the_run_non_zero_and_stops(tmp_pat
     assert stopped > 0
     emulator_log = log.read_text()
     assert "released" in emulator_log and "-> stopped" in emulator_log.split("released")[-1] + emulator_log
+
+
+def test_a_command_applied_in_the_stop_window_ends_the_run_non_zero_and_the_stops_still_stop(tmp_path: Path) -> None:
+    """The hostile round's case: right after the run's first stop command, one command of the run's claim
+    numbered 2^31 at 1 m/s (by someone holding the lab key: without it the robot side refuses it). The
+    robot side applies the run's later stops anyway (a stop is applied whatever its number), the run
+    watches until its claim's release is confirmed and ends with exit 1 naming the command; the robot
+    stands at the end."""
+    from bridge.lab_key import load_lab_key
+    from bridge.session import open_session, zenoh_config
+
+    port, host_port = free_port(), free_port()
+    trace = tmp_path / "stop-window.mcap"
+    key = load_lab_key()
+    sent: list[float] = []
+    with emulator(port, tmp_path) as (_, log):
+        run = start_run(port, trace, 3.0, f'vehicles.3.listen=["{endpoint(host_port)}"]', *PATIENT)
+        with open_session(zenoh_config(connect=[endpoint(port), endpoint(host_port)]), "insider") as session:
+            def on_command(sample: Any) -> None:
+                command = decode_wheels(sample.payload.to_bytes())
+                if command.seq > 1 and command.left == command.right == 0.0 and not sent:  # the run's first stop
+                    session.put(KEYS.wheels, encode_wheels(WheelCommand(2**31, time.time() + 1.0, 1.0, 1.0,
+                                                                        command.claim), key, KEYS.wheels))
+                    sent.append(time.time())
+            subscriber = session.declare_subscriber(KEYS.wheels, on_command)
+            code, out, err = finish(run, timeout=60)
+            subscriber.undeclare()
+        wait_for(lambda: "released" in log.read_text(), lambda: f"the robot side releases the claim: {log.read_text()}")
+        emulator_log = log.read_text()
+    assert sent, "the insider saw no stop command"
+    assert code == 1, (out, err)
+    said = " ".join(err.split())
+    assert "does not obey this run: the robot" in said and "applied command 2147483648 of this run's claim" in said, said
+    assert "(seen while it stopped)" in said, said
+    assert load(trace).run["status"] == "failed"
+    assert "-> stopped" in emulator_log.split("claimed by")[-1]
+
+
+def test_a_stranger_who_reads_nothing_moves_an_idle_robot_0_m_and_a_run_then_drives_it(tmp_path: Path) -> None:
+    """The hostile round's first case, as the README's setup runs it (emulator and run of one user on
+    127.0.0.1, the default lab key): a client of the emulator's port declares its own host token, asks for
+    the claim and sends 2 s of full-speed commands at 200 Hz. The robot is never claimed and moves
+    0.000 m; a run then claims it and drives it the whole way."""
+    from bridge.session import open_session, zenoh_config
+
+    port = free_port()
+    stranger_claim = 0x5757_5757_5757_5757
+    poses: list[Pose] = []
+    with emulator(port, tmp_path) as (_, log), \
+            open_session(zenoh_config(connect=[endpoint(port)]), "stranger") as stranger:
+        watcher = stranger.declare_subscriber(KEYS.pose, lambda sample: poses.append(decode_pose(sample.payload.to_bytes())))
+        token = stranger.liveliness().declare_token(KEYS.host(stranger_claim))  # noqa: F841 (held)
+        reach = stranger.declare_publisher(KEYS.wheels)
+        wait_for(lambda: reach.matching_status.matching, "the robot side subscribes to what the stranger publishes")
+        for seq in range(1, 401):
+            now = time.time()
+            reach.put(encode_wheels(WheelCommand(0, now + 1.0, 0.0, 0.0, stranger_claim)))  # a request, no MAC
+            reach.put(encode_wheels(WheelCommand(seq, now + 0.5, 1.0, 1.0, stranger_claim)))
+            time.sleep(0.005)
+        wait_for(lambda: "MAC does not check" in log.read_text(), "the emulator refuses the stranger's commands")
+        first = len(poses)
+        wait_for(lambda: len(poses) > first + 20, "poses after the stranger's last command")
+        watcher.undeclare()
+        moved = max(math.hypot(pose.x - poses[0].x, pose.y - poses[0].y) for pose in poses)
+        assert moved == 0.0 and all(pose.claim == 0 for pose in poses), moved  # to the last bit: never claimed
+        assert "claimed by" not in log.read_text()
+        trace = tmp_path / "after.mcap"
+        code, _, err = finish(start_run(port, trace, 2.0, *PATIENT))
+    assert code == 0, err
+    assert drove(trace, 2.0) > 0.5
 
 
 def test_a_run_whose_commands_the_robot_side_mostly_refuses_ends_non_zero(tmp_path: Path) -> None:

@@ -13,6 +13,7 @@ import stat
 import subprocess
 import time
 from pathlib import Path
+from typing import Any, Callable
 
 import pytest
 import zenoh
@@ -264,3 +265,132 @@ def test_hil_certs_on_a_full_disk_names_the_file_and_keeps_the_old_ones(tmp_path
     new = subprocess.run([str(PLATOON), "hil-certs", str(fresh), "--run-host", "laptop=3", "--robot-side", "xbee-pc=3"],
                          cwd=REPO, env=_env(), capture_output=True, text=True, timeout=60, preexec_fn=small_files)
     assert new.returncode == 2 and not fresh.exists(), new.stderr  # no lone ca.pem blocking the next try
+
+
+def _robot_side(folder: Path, listen: str, change: Callable[[dict], None] = lambda config: None):
+    """xbee-pc's session (robot 3's robot side) listening on ``listen``, its config changed by ``change``
+    (to show what a defence is worth: the same case with that defence off), and the commands it receives."""
+    text = (folder / "xbee-pc.json5").read_text()
+    config = json.loads(text[text.index("{"):])
+    change(config)
+    path = folder / "robot-side.json5"
+    path.write_text(json.dumps(config))
+    session = open_session(zenoh_config(listen=[listen], config_file=str(path)), "robot side")
+    received: list[bytes] = []
+    held = [session.declare_subscriber(KEYS.wheels, lambda sample: received.append(sample.payload.to_bytes())),
+            session.liveliness().declare_token(KEYS.alive)]
+    return session, received, held
+
+
+def _drives(session, received: list[bytes], seconds: float = 3.0) -> bool:
+    """Whether ``session``'s commands to robot 3 reach the robot side within ``seconds`` (it puts until they do)."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        stranger_commands(session, 0x5757_5757_5757_5757)
+        if received:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def _lab_client(folder: Path, tls: str, host: str | None, change: Callable[[dict], None]) -> Any:
+    """A session connecting to ``tls`` with the lab's CA, as ``host`` (its certificate) or none, changed by ``change``."""
+    text = (folder / f"{host or 'laptop'}.json5").read_text()
+    config = json.loads(text[text.index("{"):])
+    change(config)
+    path = folder / f"client-{host}.json5"
+    path.write_text(json.dumps(config))
+    return open_session(zenoh_config(connect=[tls], config_file=str(path)), f"client {host}")
+
+
+@pytest.mark.parametrize("mtls, acl", [(True, False), (False, True), (False, False)])
+def test_an_outsider_who_trusts_the_lab_ca_but_has_no_certificate_is_kept_out_by_mutual_tls_or_the_acl_alone(
+        tmp_path: Path, mtls: bool, acl: bool) -> None:
+    """The outsider trusts the lab's CA (it verifies the robot side and would connect) but shows no client
+    certificate and keeps no access list of its own. Either defence of the robot side alone keeps it out: its
+    demand for a client certificate (its access list off), or its access list (which names the lab's
+    hosts by their certificates; client certificates not asked for). With both off (a server certificate
+    only, which bridge.session refuses to listen off loopback with) the outsider's commands arrive."""
+    folder = tmp_path / "lab"
+    write_lab(LAB, folder, days=1)
+    tls = f"tls/127.0.0.1:{free_port()}"
+
+    def robot_side(config: dict) -> None:  # one defence on, the other off
+        config["transport"]["link"]["tls"]["enable_mtls"] = mtls
+        config["access_control"]["enabled"] = acl
+
+    def outsider(config: dict) -> None:
+        tls_config = config["transport"]["link"]["tls"]
+        for name in ("connect_certificate_base64", "connect_private_key_base64", "listen_certificate_base64",
+                     "listen_private_key_base64"):
+            del tls_config[name]
+        tls_config["enable_mtls"] = False
+        del config["access_control"]
+
+    side, received, _ = _robot_side(folder, tls, robot_side)
+    client = _lab_client(folder, tls, None, outsider)
+    try:
+        assert _drives(client, received) is not (mtls or acl)
+    finally:
+        client.close()
+        side.close()
+    if not mtls:
+        with pytest.raises(SessionError, match="needs mutual TLS"):
+            zenoh_config(listen=[tls.replace("127.0.0.1", "0.0.0.0")], config_file=str(folder / "robot-side.json5"))
+
+
+@pytest.mark.parametrize("robot_side_acl", [True, False])
+def test_a_lab_host_without_robot_3s_role_and_without_its_own_acl_is_stopped_by_the_robot_sides_acl_alone(
+        tmp_path: Path, robot_side_acl: bool) -> None:
+    """desk (a valid lab certificate, run host of robot 5 only) drops its own access list: its puts on robot 3's
+    keys leave it, and only the robot side's list refuses them. With the robot side's list off too, they arrive."""
+    folder = tmp_path / "lab"
+    write_lab(LAB, folder, days=1)
+    tls = f"tls/127.0.0.1:{free_port()}"
+
+    def robot_side(config: dict) -> None:
+        config["access_control"]["enabled"] = robot_side_acl
+
+    def insider(config: dict) -> None:
+        del config["access_control"]
+
+    side, received, _ = _robot_side(folder, tls, robot_side)
+    desk = _lab_client(folder, tls, "desk", insider)
+    try:
+        deadline = time.monotonic() + 10
+        while not _peers(desk):  # it does connect: TLS lets a lab host in
+            assert time.monotonic() < deadline, "desk, a lab host, could not connect"
+            time.sleep(0.05)
+        assert _drives(desk, received) is not robot_side_acl
+    finally:
+        desk.close()
+        side.close()
+
+
+def test_an_exposed_listener_needs_mutual_tls_and_a_deny_by_default_acl_before_the_session_opens(tmp_path: Path) -> None:
+    """TLS checked by more than its scheme: the lab's server certificate without client authentication, or
+    without access control, on tls/0.0.0.0 is refused before anything listens, one line naming the recipe;
+    the lab's own config is taken; loopback and allow_insecure are as before."""
+    folder = tmp_path / "lab"
+    write_lab(LAB, folder, days=1)
+    text = (folder / "xbee-pc.json5").read_text()
+    lab_config = json.loads(text[text.index("{"):])
+    anywhere = f"tls/0.0.0.0:{free_port()}"
+    for what, change in (("mutual TLS", lambda c: c["transport"]["link"]["tls"].update(enable_mtls=False)),
+                         ("access control", lambda c: c.pop("access_control")),
+                         ("access control", lambda c: c["access_control"].update(default_permission="allow"))):
+        config = json.loads(json.dumps(lab_config))
+        change(config)
+        path = folder / "weak.json5"
+        path.write_text(json.dumps(config))
+        with pytest.raises(SessionError, match=f"listening on {anywhere}, off this machine, needs .*{what}") as refused:
+            zenoh_config(listen=[anywhere], config_file=str(path))
+        assert "platoon hil-certs" in str(refused.value) and "\n" not in str(refused.value)
+        zenoh_config(listen=[anywhere], config_file=str(path), allow_insecure=True)
+        zenoh_config(listen=["tls/127.0.0.1:7450"], config_file=str(path))
+    zenoh_config(listen=[anywhere], config_file=str(folder / "xbee-pc.json5"))
+    emulator = subprocess.run([str(PLATOON), "m3pi-emulator", "--config", str(LIVE3), "--listen", anywhere,
+                               "--zenoh-config", str(path), "--duration", "1"], cwd=REPO, env=_env(),
+                              capture_output=True, text=True, timeout=60)
+    assert emulator.returncode == 2 and "needs access control" in emulator.stderr, emulator.stderr
+    assert len(emulator.stderr.strip().splitlines()) == 1
