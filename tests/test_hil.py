@@ -850,3 +850,51 @@ def test_a_run_whose_commands_the_robot_side_mostly_refuses_ends_non_zero(tmp_pa
     assert code == 1, err
     assert "robot 3 (platoon/m3pi/3) does not obey this run: the robot side refused most of this run's commands" in err
     assert load(trace).run["status"] == "failed"
+
+
+def test_a_lab_key_file_others_can_read_or_a_link_is_refused_and_the_default_one_is_made_private(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from bridge.lab_key import LabKeyError, key_text, load_lab_key, new_secret
+
+    monkeypatch.setenv("PLATOON_LAB_KEY", str(tmp_path / "made" / "lab.key"))
+    made = load_lab_key()  # the default, missing: made 0600 in a folder of 0700
+    assert (tmp_path / "made" / "lab.key").stat().st_mode & 0o777 == 0o600
+    assert (tmp_path / "made").stat().st_mode & 0o777 == 0o700
+    assert load_lab_key().secret == made.secret and len(made.secret) == 32  # the next program takes the same
+    opened = tmp_path / "open.key"
+    opened.write_text(key_text(new_secret()))
+    opened.chmod(0o644)
+    with pytest.raises(LabKeyError, match="mode 0644, others can read it"):
+        load_lab_key(opened)
+    linked = tmp_path / "linked.key"
+    linked.symlink_to(tmp_path / "made" / "lab.key")
+    with pytest.raises(LabKeyError, match="a link is refused"):
+        load_lab_key(linked)
+    with pytest.raises(LabKeyError, match="no such file"):
+        load_lab_key(tmp_path / "missing.key")
+    garbage = tmp_path / "garbage.key"
+    garbage.write_text("not a key\n")
+    garbage.chmod(0o600)
+    with pytest.raises(LabKeyError, match="not a lab key file"):
+        load_lab_key(garbage)
+
+
+def test_a_run_and_a_robot_side_with_different_lab_keys_say_so_within_seconds(tmp_path: Path) -> None:
+    """The robot side given another key file than the run's: the run ends at its start (exit 1) naming the
+    lab key as the reason, not after connect_timeout; a key file others can read stops the emulator (exit 2)."""
+    from bridge.lab_key import key_text, new_secret
+
+    other = tmp_path / "other.key"
+    other.write_text(key_text(new_secret()))
+    other.chmod(0o600)
+    port = free_port()
+    with emulator(port, tmp_path, "--lab-key", str(other)):
+        # connect_timeout 120 s: the run must end on the refusal, long before (finish gives it 60 s)
+        code, _, err = finish(start_run(port, tmp_path / "keys.mcap", 2.0, "hil.connect_timeout=120"), timeout=60)
+    assert code == 1, err
+    assert "its robot side refused this run's claim" in err and "does not check with the robot side's lab key" in err
+    other.chmod(0o644)
+    refused = subprocess.run([str(PLATOON), "m3pi-emulator", "--config", str(LIVE3), "--lab-key", str(other),
+                              "--duration", "1"], cwd=REPO, env=_env(), capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 2 and "others can read it" in refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1

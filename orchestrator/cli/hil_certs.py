@@ -130,6 +130,7 @@ def write_lab(lab, folder: Path, days: int = 365, ca: Path | None = None) -> tup
         folder.mkdir(mode=0o700, parents=True, exist_ok=True)
     except OSError as error:
         raise LabError(f"{folder}: cannot make it ({error.strerror or error})") from None
+    check_private_folder(folder)  # again: someone may have made it between the check and mkdir (in /tmp)
     written: list[Path] = []
     try:
         for path, (data, private) in files.items():
