@@ -11,6 +11,7 @@ import json
 import os
 import stat
 import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -394,3 +395,69 @@ def test_an_exposed_listener_needs_mutual_tls_and_a_deny_by_default_acl_before_t
                               capture_output=True, text=True, timeout=60)
     assert emulator.returncode == 2 and "needs access control" in emulator.stderr, emulator.stderr
     assert len(emulator.stderr.strip().splitlines()) == 1
+
+
+NAMESPACE_SCRIPT = '''
+import json, subprocess, sys, time
+from bridge.protocol import RobotKeys, WheelCommand, decode_pose, encode_wheels
+from bridge.session import open_session, zenoh_config
+platoon, config, address = sys.argv[1:4]
+keys = RobotKeys("platoon", 3)
+base = [platoon, "m3pi-emulator", "--config", config, "--set", f'vehicles.3.connect=["tcp/{address}"]']
+refused = subprocess.run(base + ["--duration", "1"], capture_output=True, text=True, timeout=60)
+robot = subprocess.Popen(base + ["--allow-insecure"], stderr=subprocess.PIPE, text=True)
+poses = []
+try:
+    with open_session(zenoh_config(connect=[f"tcp/{address}"], allow_insecure=True), "stranger") as stranger:
+        stranger.declare_subscriber(keys.pose, lambda sample: poses.append(decode_pose(sample.payload.to_bytes())))
+        token = stranger.liveliness().declare_token(keys.host(0x5757575757575757))
+        publisher = stranger.declare_publisher(keys.wheels)
+        deadline = time.monotonic() + 60
+        while not (publisher.matching_status.matching and poses):
+            assert time.monotonic() < deadline, "the stranger never reached the emulator"
+            time.sleep(0.02)
+        for seq in range(1, 201):
+            now = time.time()
+            publisher.put(encode_wheels(WheelCommand(0, now + 1.0, 0.0, 0.0, 0x5757575757575757)))
+            publisher.put(encode_wheels(WheelCommand(seq, now + 0.5, 1.0, 1.0, 0x5757575757575757)))
+            time.sleep(0.005)
+        seen = len(poses)
+        while len(poses) < seen + 40:
+            time.sleep(0.01)
+    run = subprocess.run([platoon, "run", config, "--set", "simulation.stop_time=2", "--set",
+                          f'vehicles.3.connect=["tcp/{address}"]', "--set", "hil.allow_insecure=true", "--out",
+                          sys.argv[4]], capture_output=True, text=True, timeout=120)
+finally:
+    robot.terminate()
+    log = robot.communicate(timeout=30)[1]
+moved = max(((p.x - poses[0].x) ** 2 + (p.y - poses[0].y) ** 2) ** 0.5 for p in poses)
+print(json.dumps({"refused": [refused.returncode, refused.stderr], "moved": moved,
+                  "claims": sorted({p.claim for p in poses}), "run": [run.returncode, run.stderr], "log": log}))
+'''
+
+
+def test_on_a_trusted_network_a_stranger_without_the_lab_key_moves_the_robot_0_m(tmp_path: Path) -> None:
+    """The trusted-network setup, on a real non-loopback address (10.200.0.1 in a private network namespace,
+    ``unshare -rn``): the emulator refuses to listen there without TLS unless allow_insecure; with it, a
+    stranger who reads nothing (its own token, claim requests, 1 s of full-speed commands, no lab key) moves
+    the robot 0.000 m, and a run with the key then drives it."""
+    import shutil
+
+    if shutil.which("unshare") is None or shutil.which("ip") is None:
+        pytest.skip("needs unshare and ip (util-linux, iproute2) for a private network namespace")
+    probe = subprocess.run(["unshare", "-rn", "true"], capture_output=True, text=True)
+    if probe.returncode != 0:
+        pytest.skip(f"no private network namespace here (unshare -rn: {probe.stderr.strip()})")
+    script = tmp_path / "namespace.py"
+    script.write_text(NAMESPACE_SCRIPT)
+    address = f"10.200.0.1:{free_port()}"
+    done = subprocess.run(["unshare", "-rn", "sh", "-c", "ip link set lo up && ip addr add 10.200.0.1/32 dev lo && "
+                           f'exec "$0" "$@"', sys.executable, str(script), str(PLATOON), str(LIVE3), address,
+                           str(tmp_path / "after.mcap")], cwd=REPO, env=_env(), capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    assert result["refused"][0] == 2 and "leaves this machine without TLS" in result["refused"][1], result["refused"]
+    assert result["moved"] == 0.0 and result["claims"] == [0], result
+    assert "claimed by 5757575757575757" not in result["log"] and "MAC does not check" in result["log"]
+    assert result["run"][0] == 0, result["run"][1]
