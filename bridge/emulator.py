@@ -15,9 +15,9 @@ motor lag, clipped to the wheel speed limit, and a unicycle body. It runs in wal
   command's deadline passes, when no valid command came for ``command_timeout``, or when the host's
   liveliness token disappears: a robot never keeps driving on a stale command;
 * a liveliness token on ``<prefix>/m3pi/<id>/alive`` says the robot is there;
-* a new claim (a host's token on ``<prefix>/m3pi/<id>/host/<claim>`` appears while the robot is free)
-  puts the robot back on its mark, at rest and waiting, so one emulator serves any number of runs one
-  after the other; the claim ends when that token goes.
+* a new claim (a host's token on ``<prefix>/m3pi/<id>/host/<claim>`` and its request with the lab key's
+  MAC, while the robot is free: ``bridge.claim``) puts the robot back on its mark, at rest and waiting,
+  so one emulator serves any number of runs one after the other; the claim ends when that token goes.
 
 Before its first command a robot stands at its config's initial pose. With ``flying_start`` (the
 default) its wheels are set to the config's initial speed at the first command, as the simulated
@@ -206,8 +206,8 @@ class EmulatedRobot:
         self.advance(now)
 
     def host_arrived(self, claim: int, now: float) -> None:
-        """A host's token appeared: if the robot was free, that claim now owns it, and the robot goes back on
-        its mark, at rest, as before a first run."""
+        """A host's token appeared: if that makes a claim (the robot free and, with a lab key, the claim's request
+        already here), the robot goes back on its mark, at rest, as before a first run."""
         if self.claim.host_appeared(claim, now):
             self._claimed(claim, now)
         elif self.claim.owner and claim != self.claim.owner:

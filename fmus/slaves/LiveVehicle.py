@@ -189,7 +189,11 @@ class LiveVehicle(PlatoonSlave):
         if self.link is None:
             return
         link, self.link = self.link, None
-        link.close()
+        try:
+            link.close()
+        except ComponentError as error:  # a command it never sent, applied while it stopped: said at Error level
+            self._forward_link_log(link)  # (pythonfmu 0.7 drops the log of a call that raises)
+            self.log(str(error), Fmi2Status.error)
         self._forward_link_log(link)
         statistics = link.link_statistics()
         pacing = self.pacer.summary() if self.pacer is not None else {}
