@@ -232,6 +232,11 @@ def test_hil_certs_refuses_a_folder_others_can_write_and_rewrites_an_open_key_fi
     shared.chmod(0o777)  # as /tmp/lab made by another user would let them swap the CA
     made = hil_certs(shared)
     assert made.returncode == 2 and "others may write in it" in made.stderr and list(shared.iterdir()) == []
+    from orchestrator.cli.hil_certs import _own_group
+
+    shared.chmod(0o770)  # group-writable: fine only if the group is the user's own private group (umask 002)
+    grouped = hil_certs(shared)
+    assert grouped.returncode == (0 if _own_group(shared.stat().st_gid) else 2), grouped.stderr
     folder = tmp_path / "lab"
     assert hil_certs(folder).returncode == 0
     (folder / "laptop.json5").chmod(0o644)

@@ -43,9 +43,22 @@ def check_private_folder(folder: Path) -> None:
     if info.st_uid != os.geteuid():
         raise LabError(f"{folder}: owned by user {info.st_uid}, not by you: its owner could read the lab's keys "
                        "or swap its CA; use a folder of your own (e.g. ~/lab)")
-    if info.st_mode & 0o022:
+    if info.st_mode & 0o002 or (info.st_mode & 0o020 and not _own_group(info.st_gid)):
         raise LabError(f"{folder}: mode {stat.S_IMODE(info.st_mode):04o}, others may write in it (and swap its CA); "
                        f"`chmod go-w {folder}` or use a folder of your own")
+
+
+def _own_group(gid: int) -> bool:
+    """Whether group ``gid`` is this user's private group (named after them, no other member): with umask
+    002, as some systems set it, folders are group-writable, and that group is the user alone."""
+    import grp
+    import pwd
+
+    try:
+        group, user = grp.getgrgid(gid), pwd.getpwuid(os.geteuid())
+    except KeyError:
+        return False
+    return gid == user.pw_gid and group.gr_name == user.pw_name and not group.gr_mem
 
 
 def check_new_file(path: Path) -> None:
