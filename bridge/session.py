@@ -138,7 +138,27 @@ def listener_problems(config: zenoh.Config) -> list[str]:
         problems.append("mutual TLS (transport.link.tls.enable_mtls = true with the lab's root_ca_certificate)")
     if value("access_control/enabled") is not True or value("access_control/default_permission") != "deny":
         problems.append("access control that denies by default (access_control.enabled, default_permission \"deny\")")
+    else:
+        problems += _open_puts(value("access_control"))
     return problems
+
+
+def _open_puts(acl: dict[str, Any]) -> list[str]:
+    """A policy of ``acl`` that allows puts or tokens in from sessions named by no certificate (or user): any
+    client could then drive the robot, deny by default or not."""
+    rules = {rule.get("id"): rule for rule in acl.get("rules") or []}
+    subjects = {subject.get("id"): subject for subject in acl.get("subjects") or []}
+    for policy in acl.get("policies") or []:
+        opening = [rules.get(name) or {} for name in policy.get("rules") or []]
+        opening = [rule for rule in opening if rule.get("permission") == "allow"
+                   and "ingress" in (rule.get("flows") or ["ingress"])
+                   and {"put", "liveliness_token"} & set(rule.get("messages") or [])]
+        anyone = [name for name in policy.get("subjects") or []
+                  if not ((subjects.get(name) or {}).get("cert_common_names") or (subjects.get(name) or {}).get("usernames"))]
+        if opening and anyone:
+            return [f"access control that lets only named hosts put (rule {opening[0].get('id')!r} lets subject "
+                    f"{anyone[0]!r}, which names no certificate, put)"]
+    return []
 
 
 def open_session(config: zenoh.Config, what: str) -> zenoh.Session:

@@ -384,7 +384,11 @@ def test_an_exposed_listener_needs_mutual_tls_and_a_deny_by_default_acl_before_t
     anywhere = f"tls/0.0.0.0:{free_port()}"
     for what, change in (("mutual TLS", lambda c: c["transport"]["link"]["tls"].update(enable_mtls=False)),
                          ("access control", lambda c: c.pop("access_control")),
-                         ("access control", lambda c: c["access_control"].update(default_permission="allow"))):
+                         ("access control", lambda c: c["access_control"].update(default_permission="allow")),
+                         ("access control that lets only named hosts put",  # a rule open to a subject of interfaces
+                          lambda c: c["access_control"]["subjects"].append({"id": "anyone", "interfaces": ["lo"]})
+                          or c["access_control"]["policies"].append({"rules": ["commands in 3"],
+                                                                      "subjects": ["anyone"]}))):
         config = json.loads(json.dumps(lab_config))
         change(config)
         path = folder / "weak.json5"
