@@ -17,6 +17,13 @@ import os
 for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_variable, "1")
 
+# Every live run and robot side a test starts shares one lab key (bridge/lab_key.py) of this test session,
+# handed down to subprocesses: none reads or makes the key in the user's own ~/.config.
+if "PLATOON_LAB_KEY" not in os.environ:
+    import tempfile as _tempfile
+
+    os.environ["PLATOON_LAB_KEY"] = os.path.join(_tempfile.mkdtemp(prefix="platoon-lab-key-"), "lab.key")
+
 import fcntl
 import tempfile
 from collections.abc import Iterator

@@ -325,6 +325,9 @@ class Execution:
         if engine is not None:
             try:
                 engine.close()
+            except ComponentError as closing:  # a live robot that obeyed someone else while it stopped
+                if outcome.status == "completed":
+                    outcome.fail(str(closing), closing.time)
             except Exception as closing:  # still finalize the trace; say what went wrong
                 if outcome.status == "completed":
                     outcome.fail(f"closing the FMUs failed: {closing}")

@@ -223,6 +223,8 @@ class Hil(_Strict):
     max_pose_age: Annotated[float, Unit("s")] = Field(0.25, gt=0.0, le=5.0, description="s: an older pose is dropped as late")
     allow_insecure: bool = Field(False, description="allow Zenoh endpoints off this machine without TLS "
                                                     "(docs/hil.md, \"A secure lab\")")
+    lab_key: Text | None = Field(None, description="the lab key file runs and robot sides share (default: "
+                                                   "$PLATOON_LAB_KEY or ~/.config/platoon/lab.key; docs/hil.md)")
 
     @model_validator(mode="after")
     def _prefix_is_a_key(self) -> "Hil":
@@ -659,6 +661,9 @@ def resolve_named_files(raw: dict[str, Any], folder: Path) -> None:
     """Make the files a config file names relative to that file's ``folder`` (not to the current folder:
     a config runs the same from anywhere). Values given with ``--set`` stay relative to the current
     folder, as every path typed on a command line."""
+    hil = raw.get("hil")
+    if isinstance(hil, dict) and isinstance(hil.get("lab_key"), str) and hil["lab_key"]:
+        hil["lab_key"] = str(folder / Path(hil["lab_key"]).expanduser())  # an absolute one stays as it is
     vehicles = raw.get("vehicles")
     if not isinstance(vehicles, dict):
         return  # validation names the problem
