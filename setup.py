@@ -38,5 +38,13 @@ setup(
             extra_compile_args=compile_args,
             optional=True,
         ),
+        # the read side's twin: a trace chunk's JSON messages decoded into float64 columns
+        # (orchestrator/trace/native_decoder.c, driven by orchestrator/trace/columns.py)
+        Extension(
+            "orchestrator.trace._decode",
+            sources=["orchestrator/trace/native_decoder.c"],
+            extra_compile_args=compile_args,
+            optional=True,
+        ),
     ]
 )

@@ -1,32 +1,37 @@
 """Who drives a robot: one run at a time, by claim, and each side checks the other.
 
 A run claims a robot with a fresh random 64-bit claim id: it declares the liveliness token
-``<prefix>/m3pi/<id>/host/<claim>`` and puts that claim in every wheel command. The robot side
-(emulator, ``m3pi-serial``) obeys the first claim it sees while it obeys none, numbers that claim's
-commands afresh (so nothing sent before, a sequence number 2^32 - 1 included, touches the next run),
-and refuses every command of any other claim: counted, and reported back on its status key. The claim
-ends when its token goes: the run released it (it undeclares the token after its stop commands) or
-its session died (Zenoh drops the token). Nothing else ends it, so another run's or a stranger's
-token or command can never take a robot that is claimed.
+``<prefix>/m3pi/<id>/host/<claim>``, sends claim requests (commands numbered 0) until the robot side
+grants it, and puts that claim in every wheel command. Every request and command carries a MAC made
+with the lab key (``bridge.lab_key``): the robot side (emulator, ``m3pi-serial``) grants the first
+claim whose token is there and whose request checks with its own key, while it obeys none; it numbers
+that claim's commands afresh (so nothing sent before, a sequence number 2^32 - 1 included, touches the
+next run), and refuses every command of any other claim or without a valid MAC: counted, and reported
+back on its status key. The claim ends when its token goes: the run released it (it undeclares the
+token after its stop commands) or its session died (Zenoh drops the token). Nothing else ends it, and
+an ended claim is never granted again.
 
 ``RobotClaim`` is the robot side's bookkeeping, ``HostClaim`` the run's: it tells its own poses from
 foreign ones (another publisher on the pose key: dropped and counted as ``foreign``, with their own
 sequence numbers, so they never lock out the robot's), and it notices when the robot does not do
 what the run commands: a pose or status echoing a command the run never sent (someone drives with
-this run's claim), or most of the run's commands refused.
+this run's claim, up to and including the status that says the claim ended), or most of the run's
+commands refused.
 
-Without authentication anyone who can read the traffic can copy a claim id; that is what TLS and
-access control are for (docs/hil.md, "Threat model"). The claim stops everything short of that:
-stale or replayed commands, a second run, a script left running, garbage, poses from elsewhere.
+Who holds no lab key cannot claim, command or hold a robot, even when it reads the traffic (it can
+copy a claim id, not make a MAC); TLS and access control keep the traffic itself from strangers
+(docs/hil.md, "Threat model").
 """
-
 from __future__ import annotations
 
 import secrets
+from collections import deque
 from dataclasses import dataclass, field
 
+from .lab_key import LabKey
 from .protocol import (
     STATUS_POSES,
+    WHEELS_BODY,
     Drop,
     MessageError,
     Pose,
@@ -38,6 +43,7 @@ from .protocol import (
 )
 
 REFUSED_VERDICT_AFTER = 50  # commands the robot side received before "mostly refused" can end a run
+ENDED_KEPT = 1024  # claims that ended, remembered so that a copy of their requests never claims the robot again
 GRANT_GRACE = 1.0  # s the robot side may take to see a new claim before its status naming another owner counts
 
 
@@ -63,8 +69,21 @@ def claim_from_key(key: str) -> int | None:
 
 @dataclass
 class RobotClaim:
-    """The robot side's claim: whom it obeys, and the counts it reports on its status key."""
+    """The robot side's claim: whom it obeys, and the counts it reports on its status key.
 
+    With a lab key (our wheel protocol) a claim is granted only to a run that proves it holds the key:
+    a claim request (a command numbered 0, both speeds 0) with a valid MAC, while that claim's token is
+    there. A token alone claims nothing, so a stranger who reaches the robot side but holds no key never
+    moves nor blocks the robot. Without a key (commands on a ROS topic, which carry no claim: Zenoh's
+    access control guards them) the first token claims the robot, as the claim only numbers commands then.
+
+    A stop (both speeds 0) of the claim is applied whatever its number and however late, also right after
+    its claim ended: stopping is always safe, and a copied command numbered 2^31 must not lock out the
+    run's stops. ``applied`` is the highest number applied, so the run sees a command it never sent
+    even when its own stops came after it."""
+
+    key: LabKey | None = None
+    command_key: str = ""  # the key expression the commands' MACs name
     owner: int = 0
     hosts: set[int] = field(default_factory=set)  # claims whose tokens are present
     sequence: SequenceCheck = field(default_factory=SequenceCheck)
@@ -75,13 +94,21 @@ class RobotClaim:
     invalid: int = 0
     foreign_claim: int = 0
     released: int = 0  # the claim that ended last: its stragglers are late, not foreign
+    ended: deque = field(default_factory=lambda: deque(maxlen=ENDED_KEPT))  # never granted again
+    requests: dict[int, float] = field(default_factory=dict)  # claim -> deadline of a valid request before its token
 
-    def host_appeared(self, claim: int) -> bool:
-        """A host's token appeared; True if that claim is now the owner (the robot was free)."""
+    def host_appeared(self, claim: int, now: float = 0.0) -> bool:
+        """A host's token appeared; True if that claim is now the owner (the robot was free and, with a lab
+        key, the claim's request had already arrived)."""
         self.hosts.add(claim)
-        if self.owner:
+        if self.key is not None and self.requests.pop(claim, 0.0) <= now:
             return False
-        self.owner = claim
+        return self._grant(claim)
+
+    def _grant(self, claim: int) -> bool:
+        if self.owner or claim in self.ended:
+            return False
+        self.owner, self.released = claim, 0
         self.sequence = SequenceCheck()
         self.applied = self.accepted = self.dropped = self.foreign = self.invalid = self.foreign_claim = 0  # per claim
         return True
@@ -89,40 +116,82 @@ class RobotClaim:
     def host_left(self, claim: int) -> bool:
         """A host's token went; True if it was the owner's (the claim ended: stop the wheels)."""
         self.hosts.discard(claim)
+        self.requests.pop(claim, None)
         if claim != self.owner:
             return False
         self.owner, self.released = 0, claim
+        self.ended.append(claim)
         return True
 
-    def check(self, payload: bytes, now: float, what: str) -> WheelCommand:
-        """The command in ``payload`` if the owner sent it in order and in time, else ``MessageError``
+    def check(self, payload: bytes, now: float, what: str) -> WheelCommand | None:
+        """The command in ``payload`` to apply: the owner's, in order and in time, or a stop of the owner's (or
+        of the claim that just ended); None for a claim request (granted if it can be); else ``MessageError``
         (counted here: ``invalid``, ``foreign`` or the owner's ``dropped``)."""
         try:
             command = decode_wheels(payload)
         except MessageError:
             self.invalid += 1
             raise
-        if command.claim == self.released and not self.owner:  # its last stop, overtaken by the token's going
-            raise MessageError(Drop.LATE, f"wheel command {command.seq} of claim {claim_text(command.claim)}: "
-                                          "arrived after its claim ended")
+        name = f"wheel command {command.seq} of claim {claim_text(command.claim)}"
+        if self.key is not None and not self.key.verify(self.command_key, payload[:WHEELS_BODY], payload[WHEELS_BODY:]):
+            self._refuse(command.claim)
+            raise MessageError(Drop.UNAUTHENTICATED, f"{name}: its MAC does not check with this robot side's lab key "
+                                                     f"{self.key.path} (not from a run of this lab); refused")
+        stop = command.left == 0.0 and command.right == 0.0
+        if command.seq == 0:
+            return self._request(command, now, what, name)
+        if command.claim == self.released and not self.owner:  # its last stops, overtaken by the token's going
+            if stop:
+                return command
+            raise MessageError(Drop.LATE, f"{name}: arrived after its claim ended")
         if not self.owner or command.claim != self.owner:
-            self.foreign += 1
-            self.foreign_claim = command.claim
+            self._refuse(command.claim)
             holder = f"claim {claim_text(self.owner)}" if self.owner else "no claim"
-            raise MessageError(Drop.FOREIGN, f"wheel command {command.seq} of claim {claim_text(command.claim)}: "
-                                             f"{what} obeys {holder}; refused")
+            raise MessageError(Drop.FOREIGN, f"{name}: {what} obeys {holder}; refused")
+        if stop and command.seq <= self.sequence.last:  # a stop whatever its number: never locked out
+            self.accepted += 1
+            return command
         try:
             self.sequence.check(command.seq, f"wheel command {command.seq}")
-            check_command_deadline(command, now)
+            if not stop:
+                check_command_deadline(command, now)
         except MessageError:
             self.dropped += 1
             raise
         self.accepted += 1
         return command
 
+    def _refuse(self, claim: int) -> None:
+        self.foreign += 1
+        self.foreign_claim = claim
+
+    def _request(self, command: WheelCommand, now: float, what: str, name: str) -> None:
+        """A claim request (authenticated): granted if its token is there and the robot free; remembered until
+        its deadline if the token has not arrived yet (Zenoh may deliver data ahead of a token)."""
+        if command.left != 0.0 or command.right != 0.0:
+            self.invalid += 1
+            raise MessageError(Drop.MALFORMED, f"{name}: a claim request (number 0) with speeds")
+        check_command_deadline(command, now)
+        if command.claim == self.owner:
+            return None
+        if command.claim in self.hosts and self._grant(command.claim):
+            return None
+        if self.owner or command.claim in self.ended:
+            self._refuse(command.claim)
+            holder = f"claim {claim_text(self.owner)}" if self.owner else "no claim (this one ended)"
+            raise MessageError(Drop.FOREIGN, f"claim request of claim {claim_text(command.claim)}: {what} obeys "
+                                             f"{holder}; refused")
+        if len(self.requests) >= ENDED_KEPT:
+            self.requests.pop(next(iter(self.requests)))
+        self.requests[command.claim] = command.deadline
+        return None
+
+    def record_applied(self, seq: int) -> None:
+        self.applied = max(self.applied, seq)
+
     def status(self, seq: int, now: float, flags: int = 0) -> Status:
         return Status(seq, self.owner, self.applied, self.accepted, self.dropped, self.foreign, self.invalid,
-                      self.foreign_claim, now, flags)
+                      self.foreign_claim, now, flags, 0 if self.owner else self.released)
 
 
 class NotDriving(Exception):
@@ -139,6 +208,8 @@ class HostClaim:
     status: Status | None = None  # the newest status naming this claim
     other_owner: int = 0  # the owner the newest status named, when not this claim
     foreign_poses: int = 0
+    release_seen: bool = False  # the robot side said (status) that this claim ended: the stop window is watched
+    request_refused: bool = False  # the robot side refused this run's claim request (another lab key?)
     _sequences: dict[int, SequenceCheck] = field(default_factory=dict)
 
     def source(self, pose: Pose) -> None:
@@ -164,18 +235,27 @@ class HostClaim:
     def robot_status(self, status: Status, sent: int) -> None:
         """Take a robot side's status: ``NotDriving`` if it obeyed or refused what it must not."""
         if status.owner != self.claim:
+            if status.owner == 0 and status.released == self.claim and self.granted:
+                self.release_seen, self.status = True, status  # its final counts: the stop window included
+                self._check_applied(status, sent)
+                return
             self.other_owner = status.owner
+            if status.foreign_claim == self.claim and not self.granted:
+                self.request_refused = True
             return
         self.granted, self.status, self.other_owner = True, status, 0
         if status.flags & STATUS_POSES:  # only the claimed robot side says how to tell its poses
             self.echoes = True
-        if status.applied > sent:
-            raise NotDriving(f"the robot side applied command {status.applied} of this run's claim, but the run sent "
-                             f"only {sent}: someone else drives it with this run's claim")
+        self._check_applied(status, sent)
         received = status.accepted + status.dropped
         if received >= REFUSED_VERDICT_AFTER and status.dropped > status.accepted:
             raise NotDriving(f"the robot side refused most of this run's commands: accepted {status.accepted}, dropped "
                              f"{status.dropped} of {received} received (late, duplicate or out of order: see its log)")
+
+    def _check_applied(self, status: Status, sent: int) -> None:
+        if status.applied > sent:
+            raise NotDriving(f"the robot side applied command {status.applied} of this run's claim, but the run sent "
+                             f"only {sent}: someone else drives it with this run's claim")
 
     def interference(self) -> str:
         """Who else tried to drive the robot, as the robot side reported it ("" if nobody)."""

@@ -15,9 +15,9 @@ motor lag, clipped to the wheel speed limit, and a unicycle body. It runs in wal
   command's deadline passes, when no valid command came for ``command_timeout``, or when the host's
   liveliness token disappears: a robot never keeps driving on a stale command;
 * a liveliness token on ``<prefix>/m3pi/<id>/alive`` says the robot is there;
-* a new claim (a host's token on ``<prefix>/m3pi/<id>/host/<claim>`` appears while the robot is free)
-  puts the robot back on its mark, at rest and waiting, so one emulator serves any number of runs one
-  after the other; the claim ends when that token goes.
+* a new claim (a host's token on ``<prefix>/m3pi/<id>/host/<claim>`` and its request with the lab key's
+  MAC, while the robot is free: ``bridge.claim``) puts the robot back on its mark, at rest and waiting,
+  so one emulator serves any number of runs one after the other; the claim ends when that token goes.
 
 Before its first command a robot stands at its config's initial pose. With ``flying_start`` (the
 default) its wheels are set to the config's initial speed at the first command, as the simulated
@@ -41,6 +41,7 @@ from fmus.model.dynamics import M3piDynamics
 from fmus.model.integrate import integrate
 
 from .claim import RobotClaim, claim_from_key, claim_text
+from .lab_key import LabKey
 from .protocol import (
     STATUS_POSES,
     LinkCounters,
@@ -68,6 +69,7 @@ class EmulatorSettings:
     command_timeout: float = 0.25  # s without a valid command: the wheels stop
     flying_start: bool = True
     seed: int | None = None
+    lab_key: LabKey | None = None  # the runs' commands must carry its MAC (bridge.lab_key); None: tokens claim
 
 
 @dataclass(frozen=True)
@@ -108,6 +110,7 @@ class EmulatedRobot:
     def __post_init__(self) -> None:
         spec = self.spec
         self.state = [spec.x, spec.y, spec.heading, 0.0, 0.0]
+        self.claim = RobotClaim(self.settings.lab_key, spec.keys.wheels)
         self.link = StateMachine(f"m3pi-emulator robot {spec.keys.robot}", self._announce)
         self._warned: set[str] = set()
 
@@ -149,27 +152,33 @@ class EmulatedRobot:
         self._move(now)
 
     def _apply(self, command: WheelCommand, at: float) -> None:
-        if command.deadline <= at:  # expired on the way (radio latency): never applied
+        stop = command.left == 0.0 and command.right == 0.0
+        if command.deadline <= at and not stop:  # expired on the way (radio latency): never applied; a stop always is
             return
-        if self.link.state == LinkState.CONFIGURED and self.settings.flying_start:
+        if self.link.state == LinkState.CONFIGURED and self.settings.flying_start and not stop:
             self.state[3] = self.state[4] = self.spec.speed
-        if command.left == 0.0 and command.right == 0.0 and self.link.state == LinkState.RUNNING:
+        if stop and self.link.state == LinkState.RUNNING:
             self.link.go(LinkState.STOPPED, "stop command")
         elif self.link.state != LinkState.RUNNING and (command.left != 0.0 or command.right != 0.0):
             self.link.go(LinkState.RUNNING, f"command {command.seq}")
         right, left = self.spec.dynamics.limit_wheels(command.right, command.left)
         self.command = (left, right)
-        self.command_seq = self.claim.applied = command.seq
-        self.deadline = command.deadline
+        self.command_seq = command.seq
+        self.claim.record_applied(command.seq)
+        self.deadline = float("inf") if stop else command.deadline
 
     def receive(self, payload: bytes, now: float) -> None:
         """A wheel command arrived: check it, then queue it for its application time."""
+        owner = self.claim.owner
         try:
             command = self.claim.check(payload, now, f"robot {self.spec.keys.robot}")
         except MessageError as error:
             self.refuse(error)
             return
-        self.queue(command, now)
+        if self.claim.owner != owner:  # a claim request granted
+            self._claimed(self.claim.owner, now)
+        if command is not None:
+            self.queue(command, now)
 
     def accept_unclaimed(self, left: float, right: float, now: float) -> None:
         """A command from a source that carries no claim (a ROS 2 topic: what guards it is Zenoh access control
@@ -197,13 +206,17 @@ class EmulatedRobot:
         self.advance(now)
 
     def host_arrived(self, claim: int, now: float) -> None:
-        """A host's token appeared: if the robot was free, that claim now owns it, and the robot goes back on
-        its mark, at rest, as before a first run."""
+        """A host's token appeared: if that makes a claim (the robot free and, with a lab key, the claim's request
+        already here), the robot goes back on its mark, at rest, as before a first run."""
+        if self.claim.host_appeared(claim, now):
+            self._claimed(claim, now)
+        elif self.claim.owner and claim != self.claim.owner:
+            self.say(f"m3pi-emulator robot {self.spec.keys.robot}: host of claim {claim_text(claim)} appeared while "
+                     f"claim {claim_text(self.claim.owner)} holds the robot; its commands are refused")
+
+    def _claimed(self, claim: int, now: float) -> None:
+        """A claim was granted: the robot goes back on its mark, at rest, as before a first run."""
         name = f"m3pi-emulator robot {self.spec.keys.robot}"
-        if not self.claim.host_appeared(claim):
-            self.say(f"{name}: host of claim {claim_text(claim)} appeared while claim {claim_text(self.claim.owner)} "
-                     "holds the robot; its commands are refused")
-            return
         self.claim_changed = True
         self._warned.clear()  # each run's log names the first drop of each kind during its claim
         self.say(f"{name}: claimed by {claim_text(claim)}")

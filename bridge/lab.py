@@ -4,8 +4,9 @@
 roles, everything mutual TLS and Zenoh's access control need (docs/hil.md, "A secure lab"):
 
 * ``ca.pem`` and ``ca.key``: the lab's own certificate authority (an EC P-256 key, self-signed). The
-  key signs host certificates; keep it off the lab's machines. Run the command again with the same
-  folder to add hosts: an existing CA is reused, so the certificates already handed out stay valid;
+  key signs host certificates; keep it off the lab's machines. Run the command again with ``--ca`` naming
+  it to add hosts: the certificates already handed out stay valid;
+* ``lab.key``: the lab key (``bridge.lab_key``) every run and robot side holds;
 * ``<host>.json5``: that host's Zenoh config, the only file the host needs: peer mode, scouting off,
   TLS with mutual authentication (the CA, the host's certificate and private key inline, base64), and
   an access control list that denies by default and allows, on the lab's key prefix:
@@ -23,7 +24,8 @@ roles, everything mutual TLS and Zenoh's access control need (docs/hil.md, "A se
 
 A host's certificate names it (common name = the host's name: Zenoh's ACL matches on it) and the
 addresses peers reach it at (DNS names or IPs; ``localhost``, 127.0.0.1 and ::1 always), which TLS
-checks when connecting. The certificates are made with the ``cryptography`` package.
+checks when connecting. The certificates are made with the ``cryptography`` package. This module
+makes the files' contents; ``orchestrator/cli/hil_certs.py`` writes them (the output rule, keys 0600).
 """
 
 from __future__ import annotations
@@ -32,7 +34,6 @@ import base64
 import datetime
 import ipaddress
 import json
-import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,6 +47,10 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from .protocol import DEFAULT_PREFIX, check_prefix
 
 HOST_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9.-]{0,62}$")
+DNS_LABEL = re.compile(r"^[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?$")
+MAX_ROBOT = 2**31 - 1  # the largest robot id a config takes (vehicles.K.robot)
+MAX_DAYS = 3650  # validity of a certificate at most: ten years
+LAB_KEY_FILE = "lab.key"  # the lab key (bridge.lab_key) every run and robot side of the lab holds
 ALWAYS = ("localhost", "127.0.0.1", "::1")  # every certificate names these: tests and one-machine labs
 CA_FILE, CA_KEY_FILE = "ca.pem", "ca.key"
 # what every lab member may do on the lab's keys (puts and tokens are per role and robot)
@@ -76,7 +81,9 @@ class Lab:
         if not self.run_hosts or not self.robot_sides:
             problems.append("a lab needs at least one --run-host and one --robot-side")
         problems += [f"host name {name!r}: letters, digits, '.' and '-' only" for name in hosts
-                     if not HOST_NAME.match(name)]
+                     if not HOST_NAME.match(name) or check_address(name)]
+        problems += [f"--address {name}={address}: {check_address(address)}" for name, addresses in self.addresses.items()
+                     for address in addresses if check_address(address)]
         problems += [f"--address {name}=...: no host {name!r} in the lab" for name in self.addresses
                      if name not in hosts]
         driven = set().union(*self.run_hosts.values()) if self.run_hosts else set()
@@ -185,48 +192,33 @@ def zenoh_lab_config(lab: Lab, host: str, ca_pem: bytes, certificate_pem: bytes,
             "transport": {"link": {"tls": tls}}, "access_control": access_control(lab, host)}
 
 
-def _write_private(path: Path, data: bytes) -> None:
-    """Write a file only its owner can read (private keys)."""
-    descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(descriptor, "wb") as stream:
-        stream.write(data)
+def load_ca(certificate_pem: bytes, key_pem: bytes, where: str) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
+    """A lab CA from its files' bytes, checked: a CA certificate and the EC key that goes with it."""
+    try:
+        key = serialization.load_pem_private_key(key_pem, password=None)
+        certificate = x509.load_pem_x509_certificate(certificate_pem)
+    except ValueError as error:
+        raise LabError(f"{where}: cannot read the lab CA ({error})") from None
+    if not isinstance(key, ec.EllipticCurvePrivateKey):
+        raise LabError(f"{where}: the CA key is not an EC private key")
+    if key.public_key() != certificate.public_key():
+        raise LabError(f"{where}: the CA key does not go with the CA certificate")
+    try:
+        is_ca = certificate.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
+    except x509.ExtensionNotFound:
+        is_ca = False
+    if not is_ca:
+        raise LabError(f"{where}: the certificate is not a CA's")
+    return key, certificate
 
 
-def _load_or_make_ca(folder: Path, days: int) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate, bool]:
-    ca_path, key_path = folder / CA_FILE, folder / CA_KEY_FILE
-    if ca_path.exists() != key_path.exists():
-        raise LabError(f"{folder}: {CA_FILE} and {CA_KEY_FILE} go together, found only one")
-    if ca_path.exists():
-        try:
-            key = serialization.load_pem_private_key(key_path.read_bytes(), password=None)
-            certificate = x509.load_pem_x509_certificate(ca_path.read_bytes())
-        except ValueError as error:
-            raise LabError(f"{folder}: cannot read the lab CA ({error})") from None
-        if not isinstance(key, ec.EllipticCurvePrivateKey):
-            raise LabError(f"{key_path}: not an EC private key")
-        return key, certificate, False
-    key, certificate = make_ca(days)
-    ca_path.write_bytes(_pem(certificate))
-    _write_private(key_path, _pem(key))
-    return key, certificate, True
-
-
-def write_lab(lab: Lab, folder: Path, days: int = 365) -> tuple[list[Path], bool]:
-    """Write the CA (or reuse the folder's) and every host's Zenoh config; returns the configs written and
-    whether the CA is new."""
-    lab.check()
-    folder.mkdir(parents=True, exist_ok=True)
-    ca_key, ca, new_ca = _load_or_make_ca(folder, days)
-    written = []
-    for host in lab.hosts():
-        key, certificate = make_host_certificate(ca_key, ca, host, lab.addresses.get(host, []), days)
-        config = zenoh_lab_config(lab, host, _pem(ca), _pem(certificate), _pem(key))
-        path = folder / f"{host}.json5"
-        header = (f"// Zenoh config of lab host {host!r} (platoon hil-certs): mutual TLS and access control.\n"
-                  "// Holds this host's private key: copy it to that host only. docs/hil.md, \"A secure lab\".\n")
-        _write_private(path, (header + json.dumps(config, indent=2) + "\n").encode())
-        written.append(path)
-    return written, new_ca
+def host_file(lab: Lab, host: str, ca_key: ec.EllipticCurvePrivateKey, ca: x509.Certificate, days: int) -> bytes:
+    """The whole ``<host>.json5``: a new key and certificate for ``host``, its Zenoh config around them."""
+    key, certificate = make_host_certificate(ca_key, ca, host, lab.addresses.get(host, []), days)
+    config = zenoh_lab_config(lab, host, _pem(ca), _pem(certificate), _pem(key))
+    header = (f"// Zenoh config of lab host {host!r} (platoon hil-certs): mutual TLS and access control.\n"
+              "// Holds this host's private key: copy it to that host only. docs/hil.md, \"A secure lab\".\n")
+    return (header + json.dumps(config, indent=2) + "\n").encode()
 
 
 def parse_assignment(text: str, option: str) -> tuple[str, set[int]]:
@@ -238,4 +230,20 @@ def parse_assignment(text: str, option: str) -> tuple[str, set[int]]:
         ids = set()
     if not name or not ids or any(robot < 0 for robot in ids):
         raise LabError(f"{option} {text!r}: expected HOST=ROBOT[,ROBOT...], e.g. laptop=3,4")
+    if any(robot > MAX_ROBOT for robot in ids):
+        raise LabError(f"{option} {text!r}: robot ids go from 0 to {MAX_ROBOT} (a config's vehicles.K.robot)")
     return name, ids
+
+
+def check_address(text: str) -> str | None:
+    """Why ``text`` cannot go into a certificate as an address peers reach a host at (None: it can): an IP,
+    or a DNS name of ASCII letters, digits and '-' in dot-separated labels (no wildcard, no spaces)."""
+    try:
+        ipaddress.ip_address(text)
+        return None
+    except ValueError:
+        pass
+    if not text.isascii() or len(text) > 253 or not all(DNS_LABEL.match(label) for label in text.split(".")):
+        return (f"{text!r} is neither an IP address nor a DNS name (labels of ASCII letters, digits and '-', "
+                "no wildcard, no spaces; an internationalized name in its xn-- form)")
+    return None

@@ -43,6 +43,7 @@ from fmus.model.vehicle import VEHICLE_INPUTS
 from fmus.component import ComponentError, LiveEvent, LiveRecord, percentile_summary
 
 from .claim import GRANT_GRACE, HostClaim, NotDriving, claim_text
+from .lab_key import LabKey, LabKeyError, load_lab_key
 from .protocol import (
     Drop,
     LinkCounters,
@@ -62,6 +63,11 @@ STOP_REPEATS = 3  # a stop command is sent this many times: one lost message mus
 # s between the last stop command and the claim's release: Zenoh may deliver the token's removal ahead of
 # the data sent just before it, and the robot side then counts the last stop as arriving after its claim
 RELEASE_DELAY = 0.02
+# s the run waits after releasing its claim for the robot side's status saying so, with the claim's final counts:
+# a command the run never sent, applied between its stops and the release, ends the run (exit 1) as mid-run
+RELEASE_WATCH = 1.0
+CLAIM_REQUEST_PERIOD = 0.1  # s between claim requests while the robot side has not granted the claim
+CLAIM_REQUEST_VALIDITY = 1.0  # s a claim request stays valid (its deadline)
 # the numbers of each raw message a link records (``LiveRecord``), in order: known before the link opens, so
 # a live view declares these streams before its first viewer connects (orchestrator/observers/hil_link.py)
 POSE_FIELDS = ("received", "stamp", "seq", "command_seq", "x", "y", "heading")
@@ -83,6 +89,7 @@ class LiveSettings:
     command_validity: float = 0.1  # s: each command's deadline is its send time plus this
     max_pose_age: float = 0.25  # s: an older pose is dropped as late
     allow_insecure: bool = False  # endpoints off this machine without TLS are allowed (bridge.session)
+    lab_key: str | None = None  # the lab key file (bridge.lab_key); None: $PLATOON_LAB_KEY or the user's own
 
     @property
     def keys(self) -> RobotKeys:
@@ -144,6 +151,9 @@ class LiveVehicle:
         self._publisher: Any = None
         self._stop_sent = False
         self._released = False
+        self._releasing = False
+        self._key: LabKey | None = None
+        self._token: Any = None  # the claim's liveliness token, released last
         self.on_wait: Callable[[str, float], None] | None = None  # (what the start waits for, s left), each second
 
     # -- events and records for the run (LiveComponent) -----------------------------------------
@@ -165,7 +175,7 @@ class LiveVehicle:
     # -- Zenoh callbacks (Zenoh's threads) -------------------------------------------------------
 
     def _on_pose(self, sample: zenoh.Sample) -> None:
-        if self._released:
+        if self._releasing:  # the claim is being released: the robot's next poses echo no claim
             return
         received = self.clock()
         try:
@@ -196,7 +206,7 @@ class LiveVehicle:
                                                          f"{error} (further drops of this kind are only counted)"))
 
     def _on_status(self, sample: zenoh.Sample) -> None:
-        if self._released:
+        if self._released:  # after the release was confirmed (or not): nothing more to learn
             return
         try:
             status = decode_status(sample.payload.to_bytes())
@@ -226,19 +236,24 @@ class LiveVehicle:
         self._time = start_time
         settings = self.settings
         try:
+            self._key = self._load_key()
             config = zenoh_config(settings.connect, settings.listen, settings.zenoh_config,
                                   allow_insecure=settings.allow_insecure)
             self._session = open_session(config, f"{self.name} ({self.what})")
-        except SessionError as error:
+        except (SessionError, LabKeyError) as error:
             raise ComponentError(self.name, start_time, str(error)) from None
         session = self._session
         self._open_commands(session)
         self._open_poses(session)
-        self._resources.append(session.liveliness().declare_token(self.keys.host(self.claim.claim)))  # the claim
+        self._token = session.liveliness().declare_token(self.keys.host(self.claim.claim))  # the claim
         claimed = time.monotonic()
         deadline = claimed + settings.connect_timeout
         shown = None  # the whole seconds left last reported to on_wait
+        requested = 0.0
         while not self._ready():
+            if time.monotonic() - requested >= CLAIM_REQUEST_PERIOD and not self.claim.granted:
+                requested = time.monotonic()
+                self._request_claim()
             left = deadline - time.monotonic()
             if self.on_wait is not None and left > 0 and math.ceil(left) != shown:
                 shown = math.ceil(left)
@@ -273,6 +288,8 @@ class LiveVehicle:
         for counters, key in ((self.pose_counters, self.keys.pose), (self.status_counters, self.keys.status)):
             if counters.dropped[Drop.VERSION.value] and not counters.accepted:
                 return f"{self.what}: the messages on {key} are of another protocol version ({counters.last_problem})"
+        if self.claim.request_refused and waited > GRANT_GRACE:
+            return self._not_found()
         return None
 
     # -- the link's seam: our wheel protocol here, ROS 2 topics in bridge.ros2.link.RosLiveVehicle ----------
@@ -293,7 +310,17 @@ class LiveVehicle:
         return decode_pose(sample.payload.to_bytes())
 
     def _publish_command(self, command: WheelCommand) -> None:
-        self._publisher.put(encode_wheels(command))
+        self._publisher.put(encode_wheels(command, self._key, self.keys.wheels))
+
+    def _load_key(self) -> LabKey | None:
+        """The lab key our commands carry the MAC of (a ROS topic carries none: ``RosLiveVehicle``)."""
+        return load_lab_key(self.settings.lab_key)
+
+    def _request_claim(self) -> None:
+        """Ask the robot side for the claim: a command numbered 0, both speeds 0, with the lab key's MAC."""
+        deadline = self.clock() + CLAIM_REQUEST_VALIDITY
+        self._publisher.put(encode_wheels(WheelCommand(0, deadline, 0.0, 0.0, self.claim.claim), self._key,
+                                          self.keys.wheels))
 
     def _holding(self) -> str:
         """How this run holds the robot, for the log."""
@@ -322,9 +349,15 @@ class LiveVehicle:
             return (f"{self.what} did not appear within {self.settings.connect_timeout:g} s: no liveliness token on "
                     f"{self.keys.alive} ({where}; is `platoon m3pi-emulator` or `platoon m3pi-serial` running?)")
         if not self.claim.granted:
+            key = f"lab key {self._key.path}" if self._key is not None else "no lab key"
+            if self.claim.request_refused:
+                return (f"{self.what}: its robot side refused this run's claim {claim_text(self.claim.claim)}: the MAC "
+                        f"of its requests does not check with the robot side's lab key (this run uses {key}; give "
+                        "both sides the same file: docs/hil.md, \"Who can start the robot\")")
             return (f"{self.what} is there but its robot side did not grant this run's claim "
                     f"{claim_text(self.claim.claim)} within {self.settings.connect_timeout:g} s: no status naming it on "
-                    f"{self.keys.status} (a robot side of protocol version 1 sends none: update it)")
+                    f"{self.keys.status} (this run uses {key}: the robot side needs the same; a robot side of another "
+                    "protocol version sends none: update it)")
         counters = self.pose_counters
         return (f"{self.what} is there but sent no valid pose on {self.keys.pose} within "
                 f"{self.settings.connect_timeout:g} s ({counters.received} received, {counters.dropped_total} dropped"
@@ -422,21 +455,51 @@ class LiveVehicle:
             pass
 
     def close(self) -> None:
-        """Stop the robot, then release the claim and leave Zenoh. Safe to call in any state, any number of times."""
+        """Stop the robot, release the claim and watch the robot until its side says the claim ended, then
+        leave Zenoh. Safe to call in any state, any number of times. A command the run never sent, applied
+        in that stop window, is a ``ComponentError`` (raised once all is closed), as it would be mid-run."""
         if self._session is None:
             return
         self._stop()
         interference = self.claim.interference()
         if interference:
             self._events.append(LiveEvent("Warning", f"{self.what}: {interference}"))
-        if self.state.state != LinkState.STOPPED:
-            self.state.go(LinkState.STOPPED, "run ended; stop command sent")
         time.sleep(RELEASE_DELAY)
-        self._released = True  # what arrives from now on is not counted: the claim is being released
+        self._release_and_watch()
+        self._released = True  # what arrives from now on is not counted: the claim is released
         undeclare_all(self._resources)
         self._publisher = None
         session, self._session = self._session, None
         session.close()
+        if self._not_driving is not None and self.state.state != LinkState.ERROR:
+            raise self._fail(self._time, f"{self.what} does not obey this run: {self._not_driving} (seen while "
+                                         "it stopped)")
+        if self.state.state != LinkState.STOPPED and self.state.state != LinkState.ERROR:
+            self.state.go(LinkState.STOPPED, "run ended; stop command sent")
+
+    def _release_and_watch(self) -> None:
+        """Undeclare the claim token and wait (``RELEASE_WATCH``) for the robot side's status naming the claim as
+        ended: its counts then cover everything applied under the claim, the stop window included."""
+        token, self._token = self._token, None
+        self._releasing = True
+        if token is None:
+            return
+        try:
+            token.undeclare()
+        except zenoh.ZError:
+            return
+        if not self.claim.granted or self._lost is not None:
+            return
+        deadline = time.monotonic() + RELEASE_WATCH
+        while time.monotonic() < deadline and self._lost is None:
+            with self._lock:
+                if self.claim.release_seen or self._not_driving is not None:
+                    return
+            time.sleep(0.005)
+        if self._lost is None:
+            self._events.append(LiveEvent("Warning", f"{self.what}: its robot side did not confirm the claim's "
+                                                     f"release within {RELEASE_WATCH:g} s: what it applied after the "
+                                                     "last status is not known"))
 
 
 def _link_statistics(robot: int, state: str, claim: HostClaim, command_seq: int, pose_counters: LinkCounters,

@@ -11,20 +11,24 @@ Keys (one namespace per run and robot, slash-separated so that zenoh-bridge-ros2
                                        the run's random 64-bit claim id, 16 hex digits (``bridge.claim``)
 
 Payloads are fixed-size little-endian structs, version byte first (docs/hil.md has the tables).
-Version 2 added the claim id to every pose and command and the status message; a version-1 peer's
-messages are dropped as ``version`` and named as such, never misread:
+Version 2 added the claim id to every pose and command and the status message; version 3 the MAC of
+every wheel command (``bridge.lab_key``), claim requests and the status's released claim. A peer of
+another version's messages are dropped as ``version`` and named as such, never misread:
 
 * pose, 52 bytes: version u8, kind u8 = 1, flags u16 = 0, seq u32, command_seq u32 (the last wheel
   command the robot had applied when the pose was taken; 0 = none), claim u64 (the claim that command
   belonged to; 0 = unknown, e.g. a motion capture), stamp f64 (s, the pose's own Unix time), x f64
   (m), y f64 (m), heading f64 (rad, counter-clockwise from x)
-* wheels, 40 bytes: version u8, kind u8 = 2, flags u16 = 0, seq u32 (from 1 per claim), claim u64,
-  deadline f64 (Unix time after which the robot stops by itself), left f64 (m/s), right f64 (m/s)
-* status, 52 bytes: version u8, kind u8 = 3, flags u16 (bit 0: this robot side publishes the poses,
+* wheels, 56 bytes: version u8, kind u8 = 2, flags u16 = 0, seq u32 (from 1 per claim; 0 = a claim
+  request, both speeds 0), claim u64, deadline f64 (Unix time after which the robot stops by itself),
+  left f64 (m/s), right f64 (m/s), then mac 16 bytes (HMAC-SHA256 with the lab key over the command key
+  and the 40 bytes before it, ``bridge.lab_key``)
+* status, 60 bytes: version u8, kind u8 = 3, flags u16 (bit 0: this robot side publishes the poses,
   so they echo the claim), seq u32, owner u64 (the claim it obeys; 0 = none), applied u32, accepted
   u32, dropped u32 (the owner's commands: last applied, accepted, dropped as late, duplicate ...),
-  foreign u32 (well-formed commands of another claim, refused), invalid u32 (undecodable commands),
-  foreign_claim u64 (the claim of the last refused one), stamp f64
+  foreign u32 (well-formed commands of another claim or without a valid MAC, refused), invalid u32
+  (undecodable commands), foreign_claim u64 (the claim of the last refused one), released u64 (the claim
+  that ended last, while none holds the robot: its counts are the ones above), stamp f64
 
 A receiver checks size, version, kind, flags, finite numbers, then the sequence number (a duplicate or
 an older number is dropped; a sender numbers its messages from 1) and the time stamp (a pose too old,
@@ -40,16 +44,19 @@ import re
 from dataclasses import dataclass, field
 from enum import Enum
 from struct import Struct
+from typing import Any
 
-VERSION = 2
+VERSION = 3
 DEFAULT_PREFIX = "platoon"
 MAX_PAYLOAD = 256  # bytes: anything larger is "oversized" and not even looked at
 
 _POSE = Struct("<BBHIIQdddd")
 _WHEELS = Struct("<BBHIQddd")
-_STATUS = Struct("<BBHIQIIIIIQd")
+_STATUS = Struct("<BBHIQIIIIIQQd")
+MAC_SIZE = 16  # bytes of HMAC-SHA256 after a wheel command's fields (bridge.lab_key)
 POSE_KIND, WHEELS_KIND, STATUS_KIND = 1, 2, 3
-POSE_SIZE, WHEELS_SIZE, STATUS_SIZE = _POSE.size, _WHEELS.size, _STATUS.size
+POSE_SIZE, WHEELS_BODY, STATUS_SIZE = _POSE.size, _WHEELS.size, _STATUS.size
+WHEELS_SIZE = WHEELS_BODY + MAC_SIZE
 _LAYOUTS = {POSE_KIND: _POSE, WHEELS_KIND: _WHEELS, STATUS_KIND: _STATUS}
 STATUS_POSES = 0x1  # status flag: this robot side publishes the robot's poses (they echo the claim)
 MAX_COMMAND_AHEAD = 6.0  # s: a command whose deadline is further ahead is refused (config: validity <= 5 s)
@@ -69,6 +76,7 @@ class Drop(Enum):
     LATE = "late"  # pose too old, or a command whose deadline has passed
     FUTURE = "future"  # stamped ahead of the receiver's clock (clocks not synchronized?), or a deadline too far
     FOREIGN = "foreign"  # not of this claim: another run's or a stranger's
+    UNAUTHENTICATED = "unauthenticated"  # a wheel command whose MAC does not check with the lab key
 
 
 class MessageError(ValueError):
@@ -113,6 +121,7 @@ class Status:
     foreign_claim: int  # the claim of the last foreign command, 0 = none
     stamp: float
     flags: int = 0
+    released: int = 0  # with owner 0: the claim that ended last (the counts above are still its own)
 
 
 def check_prefix(prefix: str) -> list[str]:
@@ -167,14 +176,18 @@ def encode_pose(pose: Pose) -> bytes:
                       pose.heading)
 
 
-def encode_wheels(command: WheelCommand) -> bytes:
-    return _WHEELS.pack(VERSION, WHEELS_KIND, 0, command.seq, command.claim, command.deadline, command.left,
+def encode_wheels(command: WheelCommand, key: Any = None, key_expr: str = "") -> bytes:
+    """The command's bytes, with the MAC the lab key ``key`` (a ``bridge.lab_key.LabKey``) makes for the
+    command key ``key_expr``; without a key the MAC is zeros (a stranger's, refused by every robot side)."""
+    body = _WHEELS.pack(VERSION, WHEELS_KIND, 0, command.seq, command.claim, command.deadline, command.left,
                         command.right)
+    return body + (key.mac(key_expr, body) if key is not None else bytes(MAC_SIZE))
 
 
 def encode_status(status: Status) -> bytes:
     return _STATUS.pack(VERSION, STATUS_KIND, status.flags, status.seq, status.owner, status.applied, status.accepted,
-                        status.dropped, status.foreign, status.invalid, status.foreign_claim, status.stamp)
+                        status.dropped, status.foreign, status.invalid, status.foreign_claim, status.released,
+                        status.stamp)
 
 
 def _header(payload: bytes, kind: int, size: int, what: str, flags: int = 0) -> tuple:
@@ -189,7 +202,7 @@ def _header(payload: bytes, kind: int, size: int, what: str, flags: int = 0) -> 
         raise MessageError(Drop.MALFORMED, f"{what}: not a version-{VERSION} message (first byte {payload[0]:#04x})")
     if len(payload) != size:
         raise MessageError(Drop.MALFORMED, f"{what}: {len(payload)} bytes, expected {size}")
-    fields = _LAYOUTS[kind].unpack(payload)
+    fields = _LAYOUTS[kind].unpack(payload[:_LAYOUTS[kind].size])  # a wheel command's MAC follows its fields
     if fields[1] != kind:
         raise MessageError(Drop.MALFORMED, f"{what}: message kind {fields[1]}, expected {kind}")
     if fields[2] & ~flags:
@@ -219,9 +232,9 @@ def decode_wheels(payload: bytes) -> WheelCommand:
 
 def decode_status(payload: bytes) -> Status:
     """A robot side's status from its bytes, or ``MessageError`` saying why not."""
-    _, _, flags, *numbers, stamp = _header(bytes(payload), STATUS_KIND, STATUS_SIZE, "status", STATUS_POSES)
+    _, _, flags, *numbers, released, stamp = _header(bytes(payload), STATUS_KIND, STATUS_SIZE, "status", STATUS_POSES)
     _finite("status", ("stamp",), (stamp,))
-    return Status(*numbers, stamp=stamp, flags=flags)
+    return Status(*numbers, stamp=stamp, flags=flags, released=released)
 
 
 class SequenceCheck:

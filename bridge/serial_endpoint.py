@@ -3,8 +3,8 @@
 The m3pi is a 3pi base running Pololu's 3pi serial slave program, reached through an XBee in
 transparent mode: whatever bytes this program writes to the XBee's serial port come out of the
 robot's XBee into the 3pi's UART (115200 baud, 8N1). This endpoint stands for the robot on Zenoh: it
-declares the robot's liveliness token, obeys the first run that claims it (``bridge.claim``) until that
-run's token goes, checks every wheel command (decode, claim, sequence, deadline) and writes the
+declares the robot's liveliness token, obeys the first run that claims it with the lab key
+(``bridge.claim``, ``bridge.lab_key``) until that run's token goes, checks every wheel command (decode, claim, sequence, deadline) and writes the
 owner's valid ones as motor bytes at once; it reports its claim and counts on the status key.
 
 Byte format (3pi serial slave, a TReX-like command set: an opcode 0x80..0xFF, then data bytes
@@ -52,6 +52,7 @@ import serial
 import zenoh
 
 from bridge.claim import RobotClaim, claim_from_key, claim_text
+from bridge.lab_key import LabKey, load_lab_key
 from bridge.protocol import (
     DEFAULT_PREFIX,
     Drop,
@@ -235,7 +236,7 @@ class SerialEndpoint:
     def __init__(self, port: str, robot: int, prefix: str = DEFAULT_PREFIX, connect: Sequence[str] = (),
                  listen: Sequence[str] = (), zenoh_config_file: str | None = None, scale: SpeedScale = SpeedScale(),
                  command_timeout: float = DEFAULT_COMMAND_TIMEOUT, baud: int = DEFAULT_BAUD,
-                 allow_insecure: bool = False) -> None:
+                 allow_insecure: bool = False, lab_key: LabKey | None = None) -> None:
         self.who = f"m3pi-serial robot {robot}"
         problems = check_prefix(prefix)
         if robot < 0:
@@ -258,7 +259,7 @@ class SerialEndpoint:
         self.watchdog_stops = 0
         self._lock = threading.Lock()
         self._machine = StateMachine(self.who, self._announce)
-        self._claim = RobotClaim()
+        self._claim = RobotClaim(lab_key or load_lab_key(), self.keys.wheels)
         self._claim_changed = False  # a status is due at once
         self._link: serial.Serial | None = None
         self._command: WheelCommand | None = None  # the command the motors are running now
@@ -309,19 +310,30 @@ class SerialEndpoint:
         with self._lock:
             if self._closing or self._fault is not None:
                 return
+            owner = self._claim.owner
             try:
                 command = self._claim.check(payload, arrival, f"robot {self.robot}")
             except MessageError as error:
                 self._drop(error)
                 return
+            if self._claim.owner != owner:
+                self._claimed(self._claim.owner, "claim request")
+            if command is None:
+                return
             self.counters.accept()
+            stop = command.left == 0.0 and command.right == 0.0
             try:
                 self._write(motor_bytes(command.left, command.right, self.scale))
             except SerialEndpointError:
                 return  # run() raises the fault in its thread
-            self._command = command
-            self._claim.applied = command.seq
+            self._claim.record_applied(command.seq)
             self._last_valid = time.monotonic()
+            if stop:  # always applied, whatever its number (bridge.claim)
+                self._command = None
+                if self._machine.state is LinkState.RUNNING:
+                    self._machine.go(LinkState.STOPPED, f"stop command {command.seq}")
+                return
+            self._command = command
             self._machine.go(LinkState.RUNNING, f"valid command {command.seq}")
 
     def _on_host(self, sample: zenoh.Sample) -> None:
@@ -334,14 +346,11 @@ class SerialEndpoint:
             if self._closing or self._fault is not None:
                 return
             if sample.kind == zenoh.SampleKind.PUT:
-                if not self._claim.host_appeared(claim):
+                if self._claim.host_appeared(claim, time.time()):
+                    self._claimed(claim, str(sample.key_expr))
+                elif self._claim.owner and claim != self._claim.owner:
                     self._say(f"host of claim {claim_text(claim)} appeared while claim "
                               f"{claim_text(self._claim.owner)} holds the robot; its commands are refused")
-                    return
-                self._claim_changed = True
-                self._say(f"claimed by {claim_text(claim)} ({sample.key_expr})")
-                if self._machine.state is LinkState.CONFIGURED:
-                    self._machine.go(LinkState.SYNCHRONIZED, "host present")
             elif self._claim.host_left(claim):
                 self._claim_changed = True
                 self._say(f"claim {claim_text(claim)} released ({sample.key_expr})")
@@ -349,6 +358,12 @@ class SerialEndpoint:
                     self._stop_motors("host gone")
                 except SerialEndpointError:
                     return
+
+    def _claimed(self, claim: int, how: str) -> None:
+        self._claim_changed = True
+        self._say(f"claimed by {claim_text(claim)} ({how})")
+        if self._machine.state is LinkState.CONFIGURED:
+            self._machine.go(LinkState.SYNCHRONIZED, "host present")
 
     def _watch_once(self) -> None:
         """Stop the motors if the running command expired or commands stopped coming."""
@@ -453,7 +468,7 @@ def run_serial_endpoint(port: str, robot: int, prefix: str = DEFAULT_PREFIX, con
                         listen: Sequence[str] = (), zenoh_config_file: str | None = None,
                         scale: SpeedScale = SpeedScale(), command_timeout: float = DEFAULT_COMMAND_TIMEOUT,
                         baud: int = DEFAULT_BAUD, stop_event: threading.Event | None = None,
-                        allow_insecure: bool = False) -> LinkCounters:
+                        allow_insecure: bool = False, lab_key: LabKey | None = None) -> LinkCounters:
     """Stand for robot ``robot`` on Zenoh and drive it through serial ``port`` (``platoon m3pi-serial``).
 
     Blocks until ``stop_event`` is set or ``KeyboardInterrupt`` (the CLI turns SIGINT/SIGTERM into
@@ -462,5 +477,5 @@ def run_serial_endpoint(port: str, robot: int, prefix: str = DEFAULT_PREFIX, con
     """
     endpoint = SerialEndpoint(port, robot, prefix=prefix, connect=connect, listen=listen,
                               zenoh_config_file=zenoh_config_file, scale=scale, command_timeout=command_timeout,
-                              baud=baud, allow_insecure=allow_insecure)
+                              baud=baud, allow_insecure=allow_insecure, lab_key=lab_key)
     return endpoint.run(stop_event)

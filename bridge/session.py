@@ -12,7 +12,10 @@ a program of ours opens, so its rules hold for all of them:
 * multicast and gossip scouting are off unless the config file turns them on;
 * an endpoint that leaves the machine (not loopback, not a Unix socket) must be TLS (``tls/`` or
   ``quic/``): anyone on a shared network could otherwise publish on the robot's keys. The refusal
-  names the recipe (``platoon hil-certs``, docs/hil.md "A secure lab"); ``allow_insecure`` lifts it.
+  names the recipe (``platoon hil-certs``, docs/hil.md "A secure lab"); ``allow_insecure`` lifts it;
+* a listener others can reach (not loopback) needs more than its scheme: the effective config must ask
+  every client for a certificate of the lab (mutual TLS) and deny by default (access control), checked
+  before the session opens; a server certificate alone lets any client in and drive.
 """
 
 from __future__ import annotations
@@ -103,7 +106,59 @@ def zenoh_config(connect: Sequence[str] = (), listen: Sequence[str] = (), config
         raise SessionError(f"endpoint {bad[0]} leaves this machine without TLS: anyone on that network could "
                            f"drive or fake the robot; {RECIPE}, or set allow_insecure = true ([hil] in the config, "
                            "--allow-insecure on the robot side) on a network you trust")
+    exposed = exposed_listeners(listen)
+    missing = listener_problems(config) if exposed and not allow_insecure else []
+    if missing:
+        where = f"zenoh config file {config_file}" if config_file else "the Zenoh config (no --zenoh-config file)"
+        raise SessionError(f"listening on {exposed[0]}, off this machine, needs {' and '.join(missing)} in {where}: "
+                           f"else anyone who reaches it connects; {RECIPE}, or allow_insecure on a network you trust")
     return config
+
+
+def exposed_listeners(listen: Sequence[str]) -> list[str]:
+    """The listen endpoints others can reach: not loopback, not a local socket (a wildcard address is exposed)."""
+    exposed = []
+    for endpoint in listen:
+        protocol, _, address = endpoint.partition("/")
+        if protocol not in LOCAL_PROTOCOLS and not is_loopback(_host(address)):
+            exposed.append(endpoint)
+    return exposed
+
+
+def listener_problems(config: zenoh.Config) -> list[str]:
+    """What the effective config lacks for a listener others can reach: mutual TLS (every client shows a
+    certificate of the lab's CA) and access control that denies by default (only the rules' hosts may put on
+    the robot's keys). A server certificate alone lets any client in."""
+    def value(key: str) -> Any:
+        return json.loads(config.get_json(key))
+
+    problems = []
+    if value("transport/link/tls/enable_mtls") is not True or not (
+            value("transport/link/tls/root_ca_certificate") or value("transport/link/tls/root_ca_certificate_base64")):
+        problems.append("mutual TLS (transport.link.tls.enable_mtls = true with the lab's root_ca_certificate)")
+    if value("access_control/enabled") is not True or value("access_control/default_permission") != "deny":
+        problems.append("access control that denies by default (access_control.enabled, default_permission \"deny\")")
+    else:
+        problems += _open_puts(value("access_control"))
+    return problems
+
+
+def _open_puts(acl: dict[str, Any]) -> list[str]:
+    """A policy of ``acl`` that allows puts or tokens in from sessions named by no certificate (or user): any
+    client could then drive the robot, deny by default or not."""
+    rules = {rule.get("id"): rule for rule in acl.get("rules") or []}
+    subjects = {subject.get("id"): subject for subject in acl.get("subjects") or []}
+    for policy in acl.get("policies") or []:
+        opening = [rules.get(name) or {} for name in policy.get("rules") or []]
+        opening = [rule for rule in opening if rule.get("permission") == "allow"
+                   and "ingress" in (rule.get("flows") or ["ingress"])
+                   and {"put", "liveliness_token"} & set(rule.get("messages") or [])]
+        anyone = [name for name in policy.get("subjects") or []
+                  if not ((subjects.get(name) or {}).get("cert_common_names") or (subjects.get(name) or {}).get("usernames"))]
+        if opening and anyone:
+            return [f"access control that lets only named hosts put (rule {opening[0].get('id')!r} lets subject "
+                    f"{anyone[0]!r}, which names no certificate, put)"]
+    return []
 
 
 def open_session(config: zenoh.Config, what: str) -> zenoh.Session:

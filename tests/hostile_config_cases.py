@@ -1,4 +1,4 @@
-"""Issue 18's hostile config and command-line cases, run as a user would; prints one line per case.
+"""The hostile config and command-line cases, run as a user would; prints one line per case.
 
     python tests/hostile_config_cases.py          # from the repository root; exit 1 if any is left
 

@@ -1,4 +1,4 @@
-"""Hostile FMI calls on our FMUs (issue 18, items 12, 13 and 15): each case in a host process of its own.
+"""Hostile FMI calls on our FMUs (calls out of order, refused values, states): each case in a host process of its own.
 
     python -m tests.hostile_fmus               # builds the FMUs in build/fmus if needed, runs every case
     python -m tests.hostile_fmus <FMU folder>  # the FMUs in that folder, as they are

@@ -70,8 +70,9 @@ class Expect:
     why: str
 
 
-INSTALL = ("python3 -m venv .venv && .venv/bin/pip install -e '.[test]' && .venv/bin/platoon run configs/paper/platoon.toml "
+INSTALL = ("python3 -m venv .venv && .venv/bin/pip install -e . && .venv/bin/platoon run configs/paper/platoon.toml "
            "--out runs/platoon.mcap && .venv/bin/platoon report runs/platoon.mcap --plots runs/platoon-plots")
+TEST_LINE = ".venv/bin/pip install -e '.[test]' && .venv/bin/python -m pytest -q"  # the README's second command
 LIVE3_EMULATOR_4 = (".venv/bin/platoon m3pi-emulator --config configs/hil/m3pi_live3.toml --set vehicles.4.endpoint=zenoh "
                     "--set 'vehicles.4.connect=[\"tcp/127.0.0.1:7447\"]' &")
 LIVE3_RUN_4 = (".venv/bin/platoon run configs/hil/m3pi_live3.toml --set vehicles.4.endpoint=zenoh "
@@ -98,9 +99,10 @@ SPECIAL: dict[tuple[str, str], Shorten | Parse | Skip | Expect] = {
         INSTALL.split(" && ", 2)[2],
         "the venv and `pip install -e` are the environment this test runs in (pip would need the network); "
         "the run and report of the install line run as written"),
-    ("README.md", ".venv/bin/python -m pytest -q"): Shorten(
+    ("README.md", TEST_LINE): Shorten(
         ".venv/bin/python -m pytest -q --collect-only",
-        "the whole suite takes minutes (and includes this test); collecting it imports every test module"),
+        "the test extra is the environment this test runs in (pip would need the network); the whole suite "
+        "takes minutes (and includes this test); collecting it imports every test module"),
     ("README.md", ".venv/bin/python -m pytest -q -m slow --dist loadfile"): Shorten(
         ".venv/bin/python -m pytest -q -m slow --dist loadfile --collect-only",
         "the slow tests take ~10 min (CI runs them); collecting them imports their modules and selects them"),
@@ -195,7 +197,7 @@ def _broken_traces(root: Path) -> None:
 
 SETUP = {("docs/reproduction.md", 54): _sweep_cut_short, ("docs/sweeps.md", 7): _sweep_cut_short,
          ("docs/model.md", 675): _stability_sweep_cut_short,
-         ("docs/trace-format.md", 227): _broken_traces}
+         ("docs/trace-format.md", 231): _broken_traces}
 
 
 @dataclass
@@ -403,6 +405,34 @@ def test_doc_block_runs(block: Block, tree: Path, tmp_path: Path, request: pytes
             assert how.text in output, output[-4000:]
     unannounced = [line for line in output.splitlines() if line.startswith("warning:")]
     assert not unannounced, f"{block.doc}:{block.line} warns where its doc does not say so: {unannounced}"
+
+
+def test_the_readme_first_block_is_ci_s_two_commands() -> None:
+    """CI (.ci/run) reads the README's first sh block with its own awk and runs line 1, then line 2: the
+    first installs only what a run needs (no extra: a newcomer's first run does not wait for the test
+    tools), the second adds the test extra and runs the tests."""
+    script = (REPO / ".ci" / "run").read_text()
+    reading = re.search(r"^commands=\$\((awk .*)\)$", script, re.MULTILINE)
+    assert reading and "sed -n 1p" in script and "sed -n 2p" in script, "how .ci/run reads the README changed"
+    lines = subprocess.run(["bash", "-c", reading.group(1)], cwd=REPO, capture_output=True, text=True,
+                           check=True).stdout.splitlines()
+    assert lines == [INSTALL, TEST_LINE]
+    assert "pip install -e . &&" in lines[0] and "[" not in lines[0].split("&&")[1]  # no extra on the first install
+    assert "pip install -e '.[test]'" in lines[1] and lines[1].endswith("pytest -q")
+
+
+def test_what_the_docs_commands_write_into_the_checkout_is_ignored_by_git() -> None:
+    """A newcomer following the docs in the repository's folder gets no untracked packages, traces or FMUs
+    in `git status` (docs/fmus.md writes platoon.ssp there); the figures docs/ shows are the exception."""
+    written = {match for block in BLOCKS for command in block.commands
+               for match in re.findall(r"--out[ =](\S+\.(?:ssp|mcap|fmu))\b", command)}
+    written |= {"platoon.ssp", "runs/x.mcap", "build/fmus/Vehicle.fmu"}  # export-ssp's default name, a run's, a build's
+    inside = sorted(path for path in written if not path.startswith(("/", "$")))
+    assert any(path.endswith(".ssp") for path in inside), inside
+    checked = subprocess.run(["git", "check-ignore", "--no-index", "--verbose", "--non-matching", *inside], cwd=REPO,
+                             capture_output=True, text=True)
+    not_ignored = [line.split("\t")[-1] for line in checked.stdout.splitlines() if line.startswith("::")]
+    assert not not_ignored, f"not ignored by .gitignore: {not_ignored}"
 
 
 def test_the_dask_extra_the_docs_install_exists() -> None:

@@ -26,9 +26,10 @@ ANYWHERE = {"tmp", "dev", "usr", "proc", "bin", "platoon"}
 # differential-drive base and of tf2, nodes, and a zenoh-bridge-ros2dds namespace
 ROS_NAMES = {"vrpn_mocap", "m3pi_3", "diff_drive_controller", "tf", "platoon_vehicle3", "m3pi_emulator_3",
              "m3pi_emulator_<id>", "bot3"}
-# the FMU cache the tool itself makes, and Zig's, which `platoon build --all-platforms` fills (docs/fmus.md); a
-# ROS node's private topic (``~`` is the node's namespace, not a home folder: diff_drive_controller's ``~/cmd_vel``)
-HOME_ALLOWED = ("~/.cache/platoon-cosim", "~/.cache/zig", "~/cmd_vel")
+# the FMU cache the tool itself makes, and Zig's, which `platoon build --all-platforms` fills (docs/fmus.md); the
+# lab key the tool itself makes (docs/hil.md); a ROS node's private topic (``~`` is the node's namespace, not a
+# home folder: diff_drive_controller's ``~/cmd_vel``)
+HOME_ALLOWED = ("~/.cache/platoon-cosim", "~/.cache/zig", "~/.config/platoon/lab.key", "~/cmd_vel")
 
 SEGMENT = r"[A-Za-z0-9_.*<>-]+"  # a file or folder name, wildcards and <placeholders> allowed
 # an absolute path: a slash not inside a word, a unit (m/s), a URL (ws://), a relative or home path

@@ -329,3 +329,27 @@ def test_live_options_are_checked_before_anything_is_written(tmp_path: Path) -> 
     assert result.returncode == 2
     assert result.stderr.startswith("error: --live-speed 5: ") and "live robot" in result.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_steps_time_leaves_out_the_wait_for_a_viewer(tmp_path: Path) -> None:
+    """--live-wait: "N steps in X s" counts the run's own work, not the seconds it waited for a viewer.
+    The viewer comes HOLD s after the run says it waits (a wait made on purpose: it is what is measured);
+    the run itself, 200 steps at --live-speed 0 (as fast as it runs), takes a fraction of a second, so X
+    stays under HOLD / 2 on a loaded machine, and would exceed it if the wait were counted."""
+    import re
+    import time
+
+    hold = 5.0
+    out, port = tmp_path / "waited.mcap", free_port()
+    run = start_run(out, port, "--set", "simulation.stop_time=2", "--live-wait", "--live-speed", "0")
+    stdout = out.with_suffix(".stdout")
+    deadline = time.monotonic() + GIVE_UP
+    while "waiting for a viewer" not in stdout.read_text():  # the run's announcement (rich flushes each line)
+        assert run.poll() is None and time.monotonic() < deadline, out.with_suffix(".stderr").read_text()
+        time.sleep(0.05)
+    time.sleep(hold)
+    watch(port, run)
+    assert run.returncode == 0, out.with_suffix(".stderr").read_text()
+    done = re.search(r"\((\d+) steps in ([\d.]+) s\)", stdout.read_text())
+    assert done and int(done.group(1)) == 200, stdout.read_text()
+    assert float(done.group(2)) < hold / 2, stdout.read_text()

@@ -19,12 +19,14 @@ import subprocess
 import sys
 import time
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
 import numpy as np
 import pytest
 
+from bridge.lab_key import LabKey
 from bridge.protocol import (
     MAX_PAYLOAD,
     STATUS_POSES,
@@ -62,9 +64,9 @@ def test_pose_wheel_and_status_messages_round_trip_exactly() -> None:
     assert decode_pose(encode_pose(pose)) == pose
     command = WheelCommand(9, 1.7e9 + 0.1, -0.2, 0.35, claim=0x0123456789ABCDEF)
     assert decode_wheels(encode_wheels(command)) == command
-    status = Status(3, 2**63, 9, 8, 1, 4, 2, 77, 1.7e9, STATUS_POSES)
+    status = Status(3, 2**63, 9, 8, 1, 4, 2, 77, 1.7e9, STATUS_POSES, released=2**64 - 2)
     assert decode_status(encode_status(status)) == status
-    assert (len(encode_pose(pose)), len(encode_wheels(command)), len(encode_status(status))) == (52, 40, 52)
+    assert (len(encode_pose(pose)), len(encode_wheels(command)), len(encode_status(status))) == (52, 56, 60)
 
 
 def test_a_version_1_peer_is_named_not_misread() -> None:
@@ -75,7 +77,7 @@ def test_a_version_1_peer_is_named_not_misread() -> None:
     old_pose = struct.pack("<BBHIIdddd", 1, 1, 0, 5, 4, 1.7e9, 0.5, 0.5, 0.0)
     old_command = struct.pack("<BBHIddd", 1, 2, 0, 5, 1.7e9, 0.3, 0.3)
     for decode, payload in ((decode_pose, old_pose), (decode_wheels, old_command)):
-        with pytest.raises(MessageError, match="protocol version 1, expected 2") as refused:
+        with pytest.raises(MessageError, match="protocol version 1, expected 3") as refused:
             decode(payload)
         assert refused.value.reason is Drop.VERSION
 
@@ -84,8 +86,8 @@ def test_a_version_1_peer_is_named_not_misread() -> None:
     (bytes(MAX_PAYLOAD + 1), Drop.OVERSIZED, "257 bytes, more than 256"),
     (b"", Drop.MALFORMED, "0 bytes, expected 52"),
     (encode_pose(Pose(1, 0, 1.0, 0.0, 0.0, 0.0))[:-1], Drop.MALFORMED, "51 bytes, expected 52"),
-    (b"\x03" + encode_pose(Pose(1, 0, 1.0, 0.0, 0.0, 0.0))[1:], Drop.VERSION, "protocol version 3, expected 2"),
-    (encode_wheels(WheelCommand(1, 1.0, 0.0, 0.0)) + bytes(12), Drop.MALFORMED, "message kind 2, expected 1"),
+    (b"\x02" + encode_pose(Pose(1, 0, 1.0, 0.0, 0.0, 0.0))[1:], Drop.VERSION, "protocol version 2, expected 3"),
+    (encode_wheels(WheelCommand(1, 1.0, 0.0, 0.0))[:-4], Drop.MALFORMED, "message kind 2, expected 1"),
     (encode_pose(Pose(1, 0, 1.0, math.nan, 0.0, math.inf)), Drop.NON_FINITE, "x = nan, heading = inf (not finite)"),
 ])
 def test_a_bad_pose_is_refused_with_its_reason(payload: bytes, reason: Drop, text: str) -> None:
@@ -124,17 +126,25 @@ def _robot(command_latency: float = 0.0, flying_start: bool = True):
     said: list[str] = []
     spec = RobotSpec(KEYS, 0.0, 0.0, 0.0, 0.3, M3piDynamics(0.5))
     settings = EmulatorSettings(command_latency=command_latency, command_timeout=0.25, flying_start=flying_start)
-    robot = EmulatedRobot(spec, settings, said.append)
+    robot = EmulatedRobot(spec, replace(settings, lab_key=LAB_KEY), said.append)
     robot.time = 100.0
-    robot.host_arrived(CLAIM, 100.0)
+    claim(robot, CLAIM, 100.0)
     return robot, said
 
 
 CLAIM, OTHER = 0x1234_5678_9ABC_DEF0, 0x0FED_CBA9_8765_4321
+LAB_KEY = LabKey(bytes(range(32)), Path("lab.key"))
 
 
-def wheels(seq: int, deadline: float, left: float, right: float, claim: int = CLAIM) -> bytes:
-    return encode_wheels(WheelCommand(seq, deadline, left, right, claim))
+def wheels(seq: int, deadline: float, left: float, right: float, claim: int = CLAIM, key: LabKey | None = LAB_KEY) -> bytes:
+    """A wheel command to robot 3, with the MAC of ``key`` (None: zeros, a stranger's who holds no key)."""
+    return encode_wheels(WheelCommand(seq, deadline, left, right, claim), key, KEYS.wheels)
+
+
+def claim(robot: Any, claim_id: int, now: float) -> None:
+    """A run's claim as the robot side sees it: its token, then its authenticated request."""
+    robot.host_arrived(claim_id, now)
+    robot.receive(wheels(0, now + 1.0, 0.0, 0.0, claim_id), now)
 
 
 def test_emulated_robot_stands_until_commanded_then_drives_and_stops_at_the_deadline() -> None:
@@ -175,8 +185,8 @@ def test_only_the_claim_holding_the_robot_moves_it_and_nothing_sent_before_a_cla
     robot, said = _robot()
     robot.claim.host_left(CLAIM)  # idle: nobody holds it
     robot.receive(wheels(2**32 - 1, 100.05, 0.0, 0.0, claim=OTHER), 100.0)
-    robot.host_arrived(OTHER + 1, 100.0)  # a run claims it
-    robot.host_arrived(OTHER, 100.0)  # a second one (or a stranger's token) while it is held: not the owner
+    claim(robot, OTHER + 1, 100.0)  # a run claims it
+    claim(robot, OTHER, 100.0)  # a second one while it is held: not the owner
     assert robot.claim.owner == OTHER + 1
     robot.receive(wheels(1, 100.1, 0.3, 0.3, claim=OTHER + 1), 100.01)
     robot.receive(wheels(2**32 - 1, 100.1, 0.9, -0.9, claim=OTHER), 100.02)  # the stranger, during the run
@@ -184,14 +194,58 @@ def test_only_the_claim_holding_the_robot_moves_it_and_nothing_sent_before_a_cla
     assert robot.command == (0.3, 0.3) and robot.command_seq == 2
     status = decode_status(robot.status(100.04))
     assert (status.owner, status.applied, status.accepted, status.dropped) == (OTHER + 1, 2, 2, 0)
-    assert (status.foreign, status.foreign_claim, status.flags) == (1, OTHER, STATUS_POSES)
+    assert (status.foreign, status.foreign_claim, status.flags) == (2, OTHER, STATUS_POSES)  # its request and command
     assert any(f"of claim {claim_text(OTHER)}" in line and "refused" in line for line in said)
     robot.host_gone(OTHER + 1, 100.05)  # the run released it: the wheels stop at once
     assert robot.command == (0.0, 0.0) and robot.claim.owner == 0
-    robot.host_arrived(CLAIM, 100.1)  # the next run numbers from 1 again
-    robot.receive(wheels(1, 100.2, 0.2, 0.2), 100.11)
+    claim(robot, OTHER + 2, 100.1)  # the next run numbers from 1 again
+    robot.receive(wheels(1, 100.2, 0.2, 0.2, claim=OTHER + 2), 100.11)
     assert robot.command == (0.2, 0.2) and robot.command_seq == 1
-    assert robot.sample(100.12, random.Random(0)).claim == CLAIM
+    assert robot.sample(100.12, random.Random(0)).claim == OTHER + 2
+
+
+def test_a_stranger_without_the_lab_key_neither_claims_nor_moves_nor_holds_an_idle_robot() -> None:
+    """A client of the robot side's port who reads nothing: its own token and full-speed commands under
+    its claim (with no MAC, with a MAC of another key, any numbers) leave the robot on its mark, and the
+    robot is still free for a run of the lab."""
+    robot, said = _robot()
+    robot.host_gone(CLAIM, 100.0)
+    stranger, other_key = OTHER, LabKey(bytes(32), Path("theirs.key"))
+    robot.host_arrived(stranger, 100.0)
+    for key in (None, other_key):
+        for seq in (0, 1, 2**31, 2**32 - 1):
+            robot.receive(wheels(seq, 100.5, 0.0 if seq == 0 else 1.0, 0.0 if seq == 0 else 1.0, stranger, key), 100.0)
+    robot.advance(102.0)
+    assert robot.claim.owner == 0 and robot.state[:3] == [0.0, 0.0, 0.0] and robot.command == (0.0, 0.0)
+    assert robot.counters.dropped["unauthenticated"] == 8 and robot.counters.accepted == 0
+    assert any("MAC does not check with this robot side's lab key" in line for line in said)
+    claim(robot, CLAIM + 1, 102.0)  # a run of the lab: its token and request claim the robot at once
+    assert robot.claim.owner == CLAIM + 1
+
+
+def test_a_stop_of_the_claim_is_applied_whatever_its_number_even_after_the_claim_ended() -> None:
+    """Someone who copied the claim sends a command numbered 2^31: the run's own stops (numbered lower)
+    still stop the robot; the status's ``applied`` keeps the highest number, so the run sees the copy;
+    a stop that arrives after the claim ended is applied, a drive is not; an ended claim never returns."""
+    robot, _ = _robot()
+    robot.receive(wheels(1, 100.1, 0.3, 0.3), 100.0)
+    robot.receive(wheels(2**31, 105.0, 1.0, 1.0), 100.01)  # the copy (with the key: the worst case)
+    robot.advance(100.02)
+    assert robot.command == (1.0, 1.0)
+    robot.receive(wheels(2, 100.02, 0.0, 0.0), 100.03)  # the run's stop, numbered lower, its deadline passed
+    robot.advance(100.04)
+    assert robot.command == (0.0, 0.0) and robot.link.state.value == "stopped"
+    assert decode_status(robot.status(100.2)).applied == 2**31
+    robot.host_gone(CLAIM, 100.3)
+    released = decode_status(robot.status(100.4))
+    assert (released.owner, released.released, released.applied) == (0, CLAIM, 2**31)
+    robot.command = (0.5, 0.5)  # as if still turning: a late stop of the ended claim stops it, a drive does not
+    robot.receive(wheels(3, 100.9, 0.0, 0.0), 100.5)
+    robot.receive(wheels(2**31 + 1, 100.9, 1.0, 1.0), 100.5)
+    robot.advance(100.6)
+    assert robot.command == (0.0, 0.0) and robot.counters.dropped["late"] == 1
+    claim(robot, CLAIM, 101.0)  # its token and request again (a copy): never granted again
+    assert robot.claim.owner == 0
 
 
 def test_the_run_tells_its_robots_poses_from_foreign_ones_and_notices_when_the_robot_obeys_someone_else() -> None:
@@ -674,12 +728,14 @@ def test_strangers_commands_never_move_the_robot_and_runs_back_to_back_drive_lis
             assert f"refused 12 commands of other claims (the last of claim {claim_text(stranger_claim)}) and 1 " \
                    "invalid" in said, said
             stranger_commands(stranger, stranger_claim)
-    assert "protocol version 1, expected 2" in log.read_text()
+    assert "protocol version 1, expected 3" in log.read_text()
 
 
 def test_a_robot_that_obeys_someone_else_ends_the_run_non_zero_and_stops(tmp_path: Path) -> None:
-    """A stranger who reads the run's claim off the wire and commands the robot with it: the robot's pose
-    echoes a command the run never sent, the run ends with exit 1 saying so, keeps the trace, stops."""
+    """Someone who holds the lab key (a lab member, a leaked key file) reads the run's claim off the wire and
+    commands the robot with it: the robot's pose echoes a command the run never sent, the run ends with
+    exit 1 saying so, keeps the trace, stops."""
+    from bridge.lab_key import load_lab_key
     from bridge.session import open_session, zenoh_config
 
     port, host_port = free_port(), free_port()
@@ -697,7 +753,8 @@ def test_a_robot_that_obeys_someone_else_ends_the_run_non_zero_and_stops(tmp_pat
                 time.sleep(0.01)
             claim = decode_wheels(commands[-1]).claim
             hijacked = time.time()
-            session.put(KEYS.wheels, encode_wheels(WheelCommand(2**31, hijacked + 1.0, 0.5, -0.5, claim)))
+            session.put(KEYS.wheels, encode_wheels(WheelCommand(2**31, hijacked + 1.0, 0.5, -0.5, claim), load_lab_key(),
+                                                   KEYS.wheels))
             code, _, err = finish(run, timeout=30)
             subscriber.undeclare()
         wait_for(lambda: "released" in log.read_text(), lambda: f"the robot side releases the claim: {log.read_text()}")
@@ -713,6 +770,76 @@ def test_a_robot_that_obeys_someone_else_ends_the_run_non_zero_and_stops(tmp_pat
     assert "released" in emulator_log and "-> stopped" in emulator_log.split("released")[-1] + emulator_log
 
 
+def test_a_command_applied_in_the_stop_window_ends_the_run_non_zero_and_the_stops_still_stop(tmp_path: Path) -> None:
+    """The hostile round's case: right after the run's first stop command, one command of the run's claim
+    numbered 2^31 at 1 m/s (by someone holding the lab key: without it the robot side refuses it). The
+    robot side applies the run's later stops anyway (a stop is applied whatever its number), the run
+    watches until its claim's release is confirmed and ends with exit 1 naming the command; the robot
+    stands at the end."""
+    from bridge.lab_key import load_lab_key
+    from bridge.session import open_session, zenoh_config
+
+    port, host_port = free_port(), free_port()
+    trace = tmp_path / "stop-window.mcap"
+    key = load_lab_key()
+    sent: list[float] = []
+    with emulator(port, tmp_path) as (_, log):
+        run = start_run(port, trace, 3.0, f'vehicles.3.listen=["{endpoint(host_port)}"]', *PATIENT)
+        with open_session(zenoh_config(connect=[endpoint(port), endpoint(host_port)]), "insider") as session:
+            def on_command(sample: Any) -> None:
+                command = decode_wheels(sample.payload.to_bytes())
+                if command.seq > 1 and command.left == command.right == 0.0 and not sent:  # the run's first stop
+                    session.put(KEYS.wheels, encode_wheels(WheelCommand(2**31, time.time() + 1.0, 1.0, 1.0,
+                                                                        command.claim), key, KEYS.wheels))
+                    sent.append(time.time())
+            subscriber = session.declare_subscriber(KEYS.wheels, on_command)
+            code, out, err = finish(run, timeout=60)
+            subscriber.undeclare()
+        wait_for(lambda: "released" in log.read_text(), lambda: f"the robot side releases the claim: {log.read_text()}")
+        emulator_log = log.read_text()
+    assert sent, "the insider saw no stop command"
+    assert code == 1, (out, err)
+    said = " ".join(err.split())
+    assert "does not obey this run: the robot" in said and "applied command 2147483648 of this run's claim" in said, said
+    assert "(seen while it stopped)" in said, said
+    assert load(trace).run["status"] == "failed"
+    assert "-> stopped" in emulator_log.split("claimed by")[-1]
+
+
+def test_a_stranger_who_reads_nothing_moves_an_idle_robot_0_m_and_a_run_then_drives_it(tmp_path: Path) -> None:
+    """The hostile round's first case, as the README's setup runs it (emulator and run of one user on
+    127.0.0.1, the default lab key): a client of the emulator's port declares its own host token, asks for
+    the claim and sends 2 s of full-speed commands at 200 Hz. The robot is never claimed and moves
+    0.000 m; a run then claims it and drives it the whole way."""
+    from bridge.session import open_session, zenoh_config
+
+    port = free_port()
+    stranger_claim = 0x5757_5757_5757_5757
+    poses: list[Pose] = []
+    with emulator(port, tmp_path) as (_, log), \
+            open_session(zenoh_config(connect=[endpoint(port)]), "stranger") as stranger:
+        watcher = stranger.declare_subscriber(KEYS.pose, lambda sample: poses.append(decode_pose(sample.payload.to_bytes())))
+        token = stranger.liveliness().declare_token(KEYS.host(stranger_claim))  # noqa: F841 (held)
+        reach = stranger.declare_publisher(KEYS.wheels)
+        wait_for(lambda: reach.matching_status.matching, "the robot side subscribes to what the stranger publishes")
+        for seq in range(1, 401):
+            now = time.time()
+            reach.put(encode_wheels(WheelCommand(0, now + 1.0, 0.0, 0.0, stranger_claim)))  # a request, no MAC
+            reach.put(encode_wheels(WheelCommand(seq, now + 0.5, 1.0, 1.0, stranger_claim)))
+            time.sleep(0.005)
+        wait_for(lambda: "MAC does not check" in log.read_text(), "the emulator refuses the stranger's commands")
+        first = len(poses)
+        wait_for(lambda: len(poses) > first + 20, "poses after the stranger's last command")
+        watcher.undeclare()
+        moved = max(math.hypot(pose.x - poses[0].x, pose.y - poses[0].y) for pose in poses)
+        assert moved == 0.0 and all(pose.claim == 0 for pose in poses), moved  # to the last bit: never claimed
+        assert "claimed by" not in log.read_text()
+        trace = tmp_path / "after.mcap"
+        code, _, err = finish(start_run(port, trace, 2.0, *PATIENT))
+    assert code == 0, err
+    assert drove(trace, 2.0) > 0.5
+
+
 def test_a_run_whose_commands_the_robot_side_mostly_refuses_ends_non_zero(tmp_path: Path) -> None:
     """Commands valid for 1 us reach the emulator after their deadline (encoding and the transport alone
     take tens of us): it drops them as late and says so on its status; after 50 the run ends with exit 1."""
@@ -723,3 +850,51 @@ def test_a_run_whose_commands_the_robot_side_mostly_refuses_ends_non_zero(tmp_pa
     assert code == 1, err
     assert "robot 3 (platoon/m3pi/3) does not obey this run: the robot side refused most of this run's commands" in err
     assert load(trace).run["status"] == "failed"
+
+
+def test_a_lab_key_file_others_can_read_or_a_link_is_refused_and_the_default_one_is_made_private(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from bridge.lab_key import LabKeyError, key_text, load_lab_key, new_secret
+
+    monkeypatch.setenv("PLATOON_LAB_KEY", str(tmp_path / "made" / "lab.key"))
+    made = load_lab_key()  # the default, missing: made 0600 in a folder of 0700
+    assert (tmp_path / "made" / "lab.key").stat().st_mode & 0o777 == 0o600
+    assert (tmp_path / "made").stat().st_mode & 0o777 == 0o700
+    assert load_lab_key().secret == made.secret and len(made.secret) == 32  # the next program takes the same
+    opened = tmp_path / "open.key"
+    opened.write_text(key_text(new_secret()))
+    opened.chmod(0o644)
+    with pytest.raises(LabKeyError, match="mode 0644, others can read it"):
+        load_lab_key(opened)
+    linked = tmp_path / "linked.key"
+    linked.symlink_to(tmp_path / "made" / "lab.key")
+    with pytest.raises(LabKeyError, match="a link is refused"):
+        load_lab_key(linked)
+    with pytest.raises(LabKeyError, match="no such file"):
+        load_lab_key(tmp_path / "missing.key")
+    garbage = tmp_path / "garbage.key"
+    garbage.write_text("not a key\n")
+    garbage.chmod(0o600)
+    with pytest.raises(LabKeyError, match="not a lab key file"):
+        load_lab_key(garbage)
+
+
+def test_a_run_and_a_robot_side_with_different_lab_keys_say_so_within_seconds(tmp_path: Path) -> None:
+    """The robot side given another key file than the run's: the run ends at its start (exit 1) naming the
+    lab key as the reason, not after connect_timeout; a key file others can read stops the emulator (exit 2)."""
+    from bridge.lab_key import key_text, new_secret
+
+    other = tmp_path / "other.key"
+    other.write_text(key_text(new_secret()))
+    other.chmod(0o600)
+    port = free_port()
+    with emulator(port, tmp_path, "--lab-key", str(other)):
+        # connect_timeout 120 s: the run must end on the refusal, long before (finish gives it 60 s)
+        code, _, err = finish(start_run(port, tmp_path / "keys.mcap", 2.0, "hil.connect_timeout=120"), timeout=60)
+    assert code == 1, err
+    assert "its robot side refused this run's claim" in err and "does not check with the robot side's lab key" in err
+    other.chmod(0o644)
+    refused = subprocess.run([str(PLATOON), "m3pi-emulator", "--config", str(LIVE3), "--lab-key", str(other),
+                              "--duration", "1"], cwd=REPO, env=_env(), capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 2 and "others can read it" in refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1

@@ -8,16 +8,20 @@ but not robot 3's role. The outsiders have no certificate of the lab at all.
 from __future__ import annotations
 
 import json
+import os
 import stat
 import subprocess
+import sys
 import time
 from pathlib import Path
+from typing import Any, Callable
 
 import pytest
 import zenoh
 from cryptography import x509
 
-from bridge.lab import Lab, make_ca, make_host_certificate, write_lab, zenoh_lab_config, _pem
+from bridge.lab import Lab, make_ca, make_host_certificate, zenoh_lab_config, _pem
+from orchestrator.cli.hil_certs import write_lab
 from bridge.session import SessionError, open_session, zenoh_config
 from orchestrator.bench.hil import free_port
 from orchestrator.trace import load
@@ -42,10 +46,16 @@ def test_hil_certs_writes_a_ca_and_host_configs_that_zenoh_takes_and_keeps_the_c
         assert stat.S_IMODE(path.stat().st_mode) == 0o600  # it holds the host's private key
         zenoh_config(connect=["tls/127.0.0.1:7447"], config_file=str(path))  # Zenoh parses it
     assert stat.S_IMODE((folder / "ca.key").stat().st_mode) == 0o600
+    assert stat.S_IMODE((folder / "lab.key").stat().st_mode) == 0o600 and stat.S_IMODE(folder.stat().st_mode) == 0o700
+    lab_key = (folder / "lab.key").read_bytes()
+    unasked = subprocess.run([str(PLATOON), "hil-certs", str(folder), "--run-host", "laptop=3", "--robot-side",
+                              "xbee-pc=3"], cwd=REPO, env=_env(), capture_output=True, text=True, timeout=60)
+    assert unasked.returncode == 2 and "a CA is already there" in unasked.stderr, unasked.stderr  # never used unasked
     added = subprocess.run([str(PLATOON), "hil-certs", str(folder), "--run-host", "laptop=3", "--run-host", "desk=5",
-                            "--robot-side", "xbee-pc=3,5"], cwd=REPO, env=_env(), capture_output=True, text=True,
-                           timeout=60)
-    assert added.returncode == 0 and "the lab CA already there" in added.stdout, added.stderr
+                            "--robot-side", "xbee-pc=3,5", "--ca", str(folder / "ca.pem")], cwd=REPO, env=_env(),
+                           capture_output=True, text=True, timeout=60)
+    assert added.returncode == 0 and f"lab CA {folder / 'ca.pem'}" in added.stdout, added.stderr
+    assert (folder / "lab.key").read_bytes() == lab_key  # the hosts already set up keep theirs
     assert (folder / "ca.pem").read_bytes() == ca.public_bytes(__import__("cryptography").hazmat.primitives
                                                                .serialization.Encoding.PEM)
     bad = subprocess.run([str(PLATOON), "hil-certs", str(folder), "--run-host", "laptop", "--robot-side", "x=3"],
@@ -174,3 +184,289 @@ def test_with_tls_and_acl_strangers_cannot_connect_or_drive_and_the_platoon_trac
     stats = json.loads(load(trace).metadata["platoon.hil"]["vehicle3"])
     assert stats["command.foreign"] == 0 and stats["command.invalid"] == 0 and stats["pose.dropped.foreign"] == 0
     assert_tracks_the_all_fmu_run(trace, tmp_path / "fmu.mcap")
+
+
+def hil_certs(folder: Path, *options: str) -> subprocess.CompletedProcess:
+    return subprocess.run([str(PLATOON), "hil-certs", str(folder), "--run-host", "laptop=3", "--robot-side", "xbee-pc=3",
+                           *options], cwd=REPO, env=_env(), capture_output=True, text=True, timeout=60)
+
+
+@pytest.mark.parametrize("options, problem", [
+    (("--address", "laptop=héllo.example"), "is neither an IP address nor a DNS name"),
+    (("--address", "laptop=bad name"), "is neither an IP address nor a DNS name"),
+    (("--address", "laptop=*"), "is neither an IP address nor a DNS name"),
+    (("--address", "laptop=*.lab.example"), "is neither an IP address nor a DNS name"),
+    (("--days", "4000000"), "--days 4000000: expected 1 to 3650"),
+    (("--days", "0"), "--days 0: expected 1 to 3650"),
+    (("--run-host", "desk=99999999999999999999"), "robot ids go from 0 to 2147483647"),
+])
+def test_hil_certs_bad_input_is_one_line_exit_2_and_leaves_nothing(tmp_path: Path, options: tuple, problem: str) -> None:
+    made = hil_certs(tmp_path / "lab", *options)
+    assert made.returncode == 2 and problem in made.stderr, made.stderr
+    assert len(made.stderr.strip().splitlines()) == 1 and "Traceback" not in made.stderr
+    assert not (tmp_path / "lab").exists()
+
+
+def test_hil_certs_never_writes_through_a_link_or_onto_a_fifo_or_folder(tmp_path: Path) -> None:
+    folder = tmp_path / "lab"
+    folder.mkdir(mode=0o700)
+    victim = tmp_path / "victim.txt"
+    victim.write_text("mine\n")
+    (folder / "laptop.json5").symlink_to(victim)
+    linked = hil_certs(folder)
+    assert linked.returncode == 2 and "is a symbolic link" in linked.stderr, linked.stderr
+    assert victim.read_text() == "mine\n" and sorted(p.name for p in folder.iterdir()) == ["laptop.json5"]
+    (folder / "laptop.json5").unlink()
+    os.mkfifo(folder / "laptop.json5")
+    fifo = hil_certs(folder)  # would hang if it opened the FIFO
+    assert fifo.returncode == 2 and "not a regular file" in fifo.stderr, fifo.stderr
+    (folder / "laptop.json5").unlink()
+    (folder / "laptop.json5").mkdir()
+    made = hil_certs(folder)
+    assert made.returncode == 2 and "not a regular file" in made.stderr and "Errno" not in made.stderr, made.stderr
+
+
+def test_hil_certs_refuses_a_folder_others_can_write_and_rewrites_an_open_key_file_0600(tmp_path: Path) -> None:
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)  # as /tmp/lab made by another user would let them swap the CA
+    made = hil_certs(shared)
+    assert made.returncode == 2 and "others may write in it" in made.stderr and list(shared.iterdir()) == []
+    from orchestrator.cli.hil_certs import _own_group
+
+    shared.chmod(0o770)  # group-writable: fine only if the group is the user's own private group (umask 002)
+    grouped = hil_certs(shared)
+    assert grouped.returncode == (0 if _own_group(shared.stat().st_gid) else 2), grouped.stderr
+    folder = tmp_path / "lab"
+    assert hil_certs(folder).returncode == 0
+    (folder / "laptop.json5").chmod(0o644)
+    again = hil_certs(folder, "--ca", str(folder / "ca.pem"))
+    assert again.returncode == 0, again.stderr
+    assert stat.S_IMODE((folder / "laptop.json5").stat().st_mode) == 0o600  # a new private key is never left 0644
+    (folder / "ca.key").chmod(0o644)
+    opened = hil_certs(folder, "--ca", str(folder / "ca.pem"))
+    assert opened.returncode == 2 and "only you can read (mode 0600)" in opened.stderr
+
+
+def test_hil_certs_on_a_full_disk_names_the_file_and_keeps_the_old_ones(tmp_path: Path) -> None:
+    """A 64 KiB tmpfs would need root; RLIMIT_FSIZE makes every write past the limit fail with EFBIG (the child
+    ignores SIGXFSZ), the same path through the code as ENOSPC: the error names the file, the old stays whole."""
+    import resource
+    import signal as signals
+
+    folder = tmp_path / "lab"
+    assert hil_certs(folder).returncode == 0
+    before = {path.name: path.read_bytes() for path in folder.iterdir()}
+
+    def small_files() -> None:
+        signals.signal(signals.SIGXFSZ, signals.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (2048, 2048))
+
+    full = subprocess.run([str(PLATOON), "hil-certs", str(folder), "--run-host", "laptop=3", "--robot-side",
+                           "xbee-pc=3", "--ca", str(folder / "ca.pem")], cwd=REPO, env=_env(), capture_output=True,
+                          text=True, timeout=60, preexec_fn=small_files)
+    assert full.returncode == 2 and "cannot write it" in full.stderr and ".json5" in full.stderr, full.stderr
+    assert {path.name: path.read_bytes() for path in folder.iterdir()} == before  # no half file, nothing cut
+    fresh = tmp_path / "fresh"
+    new = subprocess.run([str(PLATOON), "hil-certs", str(fresh), "--run-host", "laptop=3", "--robot-side", "xbee-pc=3"],
+                         cwd=REPO, env=_env(), capture_output=True, text=True, timeout=60, preexec_fn=small_files)
+    assert new.returncode == 2 and not fresh.exists(), new.stderr  # no lone ca.pem blocking the next try
+
+
+def _robot_side(folder: Path, listen: str, change: Callable[[dict], None] = lambda config: None):
+    """xbee-pc's session (robot 3's robot side) listening on ``listen``, its config changed by ``change``
+    (to show what a defence is worth: the same case with that defence off), and the commands it receives."""
+    text = (folder / "xbee-pc.json5").read_text()
+    config = json.loads(text[text.index("{"):])
+    change(config)
+    path = folder / "robot-side.json5"
+    path.write_text(json.dumps(config))
+    session = open_session(zenoh_config(listen=[listen], config_file=str(path)), "robot side")
+    received: list[bytes] = []
+    held = [session.declare_subscriber(KEYS.wheels, lambda sample: received.append(sample.payload.to_bytes())),
+            session.liveliness().declare_token(KEYS.alive)]
+    return session, received, held
+
+
+def _drives(session, received: list[bytes], seconds: float = 3.0) -> bool:
+    """Whether ``session``'s commands to robot 3 reach the robot side within ``seconds`` (it puts until they do)."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        stranger_commands(session, 0x5757_5757_5757_5757)
+        if received:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def _lab_client(folder: Path, tls: str, host: str | None, change: Callable[[dict], None]) -> Any:
+    """A session connecting to ``tls`` with the lab's CA, as ``host`` (its certificate) or none, changed by ``change``."""
+    text = (folder / f"{host or 'laptop'}.json5").read_text()
+    config = json.loads(text[text.index("{"):])
+    change(config)
+    path = folder / f"client-{host}.json5"
+    path.write_text(json.dumps(config))
+    return open_session(zenoh_config(connect=[tls], config_file=str(path)), f"client {host}")
+
+
+@pytest.mark.parametrize("mtls, acl", [(True, False), (False, True), (False, False)])
+def test_an_outsider_who_trusts_the_lab_ca_but_has_no_certificate_is_kept_out_by_mutual_tls_or_the_acl_alone(
+        tmp_path: Path, mtls: bool, acl: bool) -> None:
+    """The outsider trusts the lab's CA (it verifies the robot side and would connect) but shows no client
+    certificate and keeps no access list of its own. Either defence of the robot side alone keeps it out: its
+    demand for a client certificate (its access list off), or its access list (which names the lab's
+    hosts by their certificates; client certificates not asked for). With both off (a server certificate
+    only, which bridge.session refuses to listen off loopback with) the outsider's commands arrive."""
+    folder = tmp_path / "lab"
+    write_lab(LAB, folder, days=1)
+    tls = f"tls/127.0.0.1:{free_port()}"
+
+    def robot_side(config: dict) -> None:  # one defence on, the other off
+        config["transport"]["link"]["tls"]["enable_mtls"] = mtls
+        config["access_control"]["enabled"] = acl
+
+    def outsider(config: dict) -> None:
+        tls_config = config["transport"]["link"]["tls"]
+        for name in ("connect_certificate_base64", "connect_private_key_base64", "listen_certificate_base64",
+                     "listen_private_key_base64"):
+            del tls_config[name]
+        tls_config["enable_mtls"] = False
+        del config["access_control"]
+
+    side, received, _ = _robot_side(folder, tls, robot_side)
+    client = _lab_client(folder, tls, None, outsider)
+    try:
+        assert _drives(client, received) is not (mtls or acl)
+    finally:
+        client.close()
+        side.close()
+    if not mtls:
+        with pytest.raises(SessionError, match="needs mutual TLS"):
+            zenoh_config(listen=[tls.replace("127.0.0.1", "0.0.0.0")], config_file=str(folder / "robot-side.json5"))
+
+
+@pytest.mark.parametrize("robot_side_acl", [True, False])
+def test_a_lab_host_without_robot_3s_role_and_without_its_own_acl_is_stopped_by_the_robot_sides_acl_alone(
+        tmp_path: Path, robot_side_acl: bool) -> None:
+    """desk (a valid lab certificate, run host of robot 5 only) drops its own access list: its puts on robot 3's
+    keys leave it, and only the robot side's list refuses them. With the robot side's list off too, they arrive."""
+    folder = tmp_path / "lab"
+    write_lab(LAB, folder, days=1)
+    tls = f"tls/127.0.0.1:{free_port()}"
+
+    def robot_side(config: dict) -> None:
+        config["access_control"]["enabled"] = robot_side_acl
+
+    def insider(config: dict) -> None:
+        del config["access_control"]
+
+    side, received, _ = _robot_side(folder, tls, robot_side)
+    desk = _lab_client(folder, tls, "desk", insider)
+    try:
+        deadline = time.monotonic() + 10
+        while not _peers(desk):  # it does connect: TLS lets a lab host in
+            assert time.monotonic() < deadline, "desk, a lab host, could not connect"
+            time.sleep(0.05)
+        assert _drives(desk, received) is not robot_side_acl
+    finally:
+        desk.close()
+        side.close()
+
+
+def test_an_exposed_listener_needs_mutual_tls_and_a_deny_by_default_acl_before_the_session_opens(tmp_path: Path) -> None:
+    """TLS checked by more than its scheme: the lab's server certificate without client authentication, or
+    without access control, on tls/0.0.0.0 is refused before anything listens, one line naming the recipe;
+    the lab's own config is taken; loopback and allow_insecure are as before."""
+    folder = tmp_path / "lab"
+    write_lab(LAB, folder, days=1)
+    text = (folder / "xbee-pc.json5").read_text()
+    lab_config = json.loads(text[text.index("{"):])
+    anywhere = f"tls/0.0.0.0:{free_port()}"
+    for what, change in (("mutual TLS", lambda c: c["transport"]["link"]["tls"].update(enable_mtls=False)),
+                         ("access control", lambda c: c.pop("access_control")),
+                         ("access control", lambda c: c["access_control"].update(default_permission="allow")),
+                         ("access control that lets only named hosts put",  # a rule open to a subject of interfaces
+                          lambda c: c["access_control"]["subjects"].append({"id": "anyone", "interfaces": ["lo"]})
+                          or c["access_control"]["policies"].append({"rules": ["commands in 3"],
+                                                                      "subjects": ["anyone"]}))):
+        config = json.loads(json.dumps(lab_config))
+        change(config)
+        path = folder / "weak.json5"
+        path.write_text(json.dumps(config))
+        with pytest.raises(SessionError, match=f"listening on {anywhere}, off this machine, needs .*{what}") as refused:
+            zenoh_config(listen=[anywhere], config_file=str(path))
+        assert "platoon hil-certs" in str(refused.value) and "\n" not in str(refused.value)
+        zenoh_config(listen=[anywhere], config_file=str(path), allow_insecure=True)
+        zenoh_config(listen=["tls/127.0.0.1:7450"], config_file=str(path))
+    zenoh_config(listen=[anywhere], config_file=str(folder / "xbee-pc.json5"))
+    emulator = subprocess.run([str(PLATOON), "m3pi-emulator", "--config", str(LIVE3), "--listen", anywhere,
+                               "--zenoh-config", str(path), "--duration", "1"], cwd=REPO, env=_env(),
+                              capture_output=True, text=True, timeout=60)
+    assert emulator.returncode == 2 and "needs access control" in emulator.stderr, emulator.stderr
+    assert len(emulator.stderr.strip().splitlines()) == 1
+
+
+NAMESPACE_SCRIPT = '''
+import json, subprocess, sys, time
+from bridge.protocol import RobotKeys, WheelCommand, decode_pose, encode_wheels
+from bridge.session import open_session, zenoh_config
+platoon, config, address = sys.argv[1:4]
+keys = RobotKeys("platoon", 3)
+base = [platoon, "m3pi-emulator", "--config", config, "--set", f'vehicles.3.connect=["tcp/{address}"]']
+refused = subprocess.run(base + ["--duration", "1"], capture_output=True, text=True, timeout=60)
+robot = subprocess.Popen(base + ["--allow-insecure"], stderr=subprocess.PIPE, text=True)
+poses = []
+try:
+    with open_session(zenoh_config(connect=[f"tcp/{address}"], allow_insecure=True), "stranger") as stranger:
+        stranger.declare_subscriber(keys.pose, lambda sample: poses.append(decode_pose(sample.payload.to_bytes())))
+        token = stranger.liveliness().declare_token(keys.host(0x5757575757575757))
+        publisher = stranger.declare_publisher(keys.wheels)
+        deadline = time.monotonic() + 60
+        while not (publisher.matching_status.matching and poses):
+            assert time.monotonic() < deadline, "the stranger never reached the emulator"
+            time.sleep(0.02)
+        for seq in range(1, 201):
+            now = time.time()
+            publisher.put(encode_wheels(WheelCommand(0, now + 1.0, 0.0, 0.0, 0x5757575757575757)))
+            publisher.put(encode_wheels(WheelCommand(seq, now + 0.5, 1.0, 1.0, 0x5757575757575757)))
+            time.sleep(0.005)
+        seen = len(poses)
+        while len(poses) < seen + 40:
+            time.sleep(0.01)
+    run = subprocess.run([platoon, "run", config, "--set", "simulation.stop_time=2", "--set",
+                          f'vehicles.3.connect=["tcp/{address}"]', "--set", "hil.allow_insecure=true", "--out",
+                          sys.argv[4]], capture_output=True, text=True, timeout=120)
+finally:
+    robot.terminate()
+    log = robot.communicate(timeout=30)[1]
+moved = max(((p.x - poses[0].x) ** 2 + (p.y - poses[0].y) ** 2) ** 0.5 for p in poses)
+print(json.dumps({"refused": [refused.returncode, refused.stderr], "moved": moved,
+                  "claims": sorted({p.claim for p in poses}), "run": [run.returncode, run.stderr], "log": log}))
+'''
+
+
+def test_on_a_trusted_network_a_stranger_without_the_lab_key_moves_the_robot_0_m(tmp_path: Path) -> None:
+    """The trusted-network setup, on a real non-loopback address (10.200.0.1 in a private network namespace,
+    ``unshare -rn``): the emulator refuses to listen there without TLS unless allow_insecure; with it, a
+    stranger who reads nothing (its own token, claim requests, 1 s of full-speed commands, no lab key) moves
+    the robot 0.000 m, and a run with the key then drives it."""
+    import shutil
+
+    if shutil.which("unshare") is None or shutil.which("ip") is None:
+        pytest.skip("needs unshare and ip (util-linux, iproute2) for a private network namespace")
+    probe = subprocess.run(["unshare", "-rn", "true"], capture_output=True, text=True)
+    if probe.returncode != 0:
+        pytest.skip(f"no private network namespace here (unshare -rn: {probe.stderr.strip()})")
+    script = tmp_path / "namespace.py"
+    script.write_text(NAMESPACE_SCRIPT)
+    address = f"10.200.0.1:{free_port()}"
+    done = subprocess.run(["unshare", "-rn", "sh", "-c", "ip link set lo up && ip addr add 10.200.0.1/32 dev lo && "
+                           f'exec "$0" "$@"', sys.executable, str(script), str(PLATOON), str(LIVE3), address,
+                           str(tmp_path / "after.mcap")], cwd=REPO, env=_env(), capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    assert result["refused"][0] == 2 and "leaves this machine without TLS" in result["refused"][1], result["refused"]
+    assert result["moved"] == 0.0 and result["claims"] == [0], result
+    assert "claimed by 5757575757575757" not in result["log"] and "MAC does not check" in result["log"]
+    assert result["run"][0] == 0, result["run"][1]

@@ -1,4 +1,4 @@
-"""Issue 18, configs and command line under hostile input: exit 2 and one clear line, never a
+"""Configs and command line under hostile input: exit 2 and one clear line, never a
 traceback, a hang, a write outside runs/ or a temp folder left behind.
 
 Where the user meets a case it is a real ``platoon`` subprocess (with PYTHONPATH set to this
@@ -309,7 +309,7 @@ def test_a_sweep_point_above_the_size_limits_is_invalid_not_run(tmp_path: Path) 
 
 
 def test_analyze_refuses_a_platoon_too_big_to_linearize(workdir: Path, tmp_path: Path) -> None:
-    result = platoon("analyze", PAPER, "--no-string-stability", "--set", "platoon.count=1000",
+    result = platoon("analyze", PAPER, "--no-measure", "--set", "platoon.count=1000",
                      "--set", "path.radius=20000.0", cwd=workdir, timeout=60)
     refused(result, "platoon.count = 1000: analyze linearizes at most 100 vehicles", "--allow-long")
 
@@ -388,7 +388,7 @@ def test_control_characters_in_free_text_exit_2(key: str, text: str, workdir: Pa
     refused(platoon("run", config, *SHORT, "-q", cwd=workdir), f"{key} = ", "must be text without control characters")
 
 
-@pytest.mark.parametrize("extra", [[], ["--no-string-stability"]])
+@pytest.mark.parametrize("extra", [[], ["--no-measure"]])
 def test_analyze_at_d_star_equal_to_the_diameter_exits_2_with_the_reason(extra: list[str], workdir: Path) -> None:
     result = platoon("analyze", PAPER, *extra, "--set", "platoon.d_star=100.0", cwd=workdir)
     refused(result, "platoon.d_star = 100.0: expected less than 2 * path.radius = 100.0", "equilibrium is degenerate")
@@ -410,7 +410,7 @@ def test_analyze_reports_at_the_corners_of_the_ranges(corner: dict[str, Any]) ->
 
 
 def test_analyze_just_inside_the_diameter_reports(workdir: Path) -> None:
-    result = platoon("analyze", PAPER, "--no-string-stability", "--set", "platoon.d_star=99.9", cwd=workdir)
+    result = platoon("analyze", PAPER, "--no-measure", "--set", "platoon.d_star=99.9", cwd=workdir)
     assert result.returncode == 0, result.stderr
     assert "verdict:" in result.stdout and "speed chain" in result.stdout
 

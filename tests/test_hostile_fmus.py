@@ -1,4 +1,4 @@
-"""The FMUs keep any host alive (issue 18, items 12 to 16).
+"""The FMUs keep any host alive, whatever it calls in whatever order.
 
 Hosts: FMPy's FMU2Slave, in a process per case (tests/hostile_fmu_host.py), so that a segfault is a
 failed case, not a dead test run; libcosim through libcosimpy, also in a process per case (fmusim

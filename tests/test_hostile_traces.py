@@ -1,4 +1,4 @@
-"""Issue 18, the trace part: traces are never lost or corrupted, whatever the user or the machine does.
+"""Traces are never lost or corrupted, whatever the user or the machine does.
 
 Every case runs the `platoon` command of this checkout in a real subprocess (``python -c "from
 orchestrator.cli import main; main()"`` with this checkout first on PYTHONPATH, so the worktree's code

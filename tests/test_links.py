@@ -4,6 +4,7 @@ reference, exported to SSP and run by libcosim to our numbers."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -236,3 +237,71 @@ def test_the_layout_of_a_run_with_links_plots_each_links_age(link_fmus, run, tmp
     assert all("age" in trace.channels[value.split("/")[2].split(".")[0]] for value in series)
     plain = config_from_mapping({**lossy(stop_time=0.5), "links": {}})
     assert "Plot!links" not in run_layout(plain, 3)["configById"]
+
+
+def link_table_rows(stdout: str) -> dict[str, list[str]]:
+    """The links table `platoon run` / `platoon report` print: cells by link."""
+    return {cells[0]: cells[1:] for line in stdout.splitlines() if line.startswith("│ link_")
+            for cells in [[cell.strip() for cell in line.strip("│").split("│")]]}
+
+
+def test_a_lossy_runs_summary_says_what_its_links_did(link_fmus, tmp_path):
+    """The header names the imperfect links (not a perfect-link run's header), and a table gives each link's
+    sent, delivered and lost messages and its mean age of information: what the trace's link channels hold
+    (the counters at the end, the mean of the recorded ages), and what `report --json` gives."""
+    config = REPO / "configs" / "paper" / "platoon_lossy.toml"
+    trace = tmp_path / "lossy.mcap"
+    run = platoon("run", str(config), "--set", "simulation.stop_time=5", "--out", str(trace))
+    assert run.returncode == 0, run.stderr
+    header = "platoon_lossy: sine law, 8 imperfect links (delay 0.1-0.12 s, 10% lost, beacons every 0.1 s on 4)"
+    assert " ".join(run.stdout.split()).startswith(header), run.stdout  # the title may wrap at 80 columns
+    rows = link_table_rows(run.stdout)
+    loaded = load(trace)
+    links = [name for name in loaded.channels if name.startswith("link_")]
+    assert sorted(rows) == sorted(links) and len(links) == 8
+    as_json = {link["name"]: link for link in json.loads(platoon("report", str(trace), "--json").stdout)["links"]}
+    for name in links:
+        channel = loaded.component(name)
+        sent, delivered, lost = (int(channel[key][-1]) for key in ("sent", "delivered", "lost"))
+        mean_age = float(np.mean(channel["age"]))
+        assert sent > 0 and lost > 0 and mean_age > 0.1  # a 0.1 s delay at least, some losses in 500 steps
+        assert rows[name] == [str(sent), str(delivered), str(lost), f"{100 * lost / sent:.1f}", f"{mean_age:.4f}"]
+        assert (as_json[name]["sent"], as_json[name]["lost"]) == (sent, lost)
+        assert as_json[name]["mean_age"] == pytest.approx(mean_age, rel=1e-12)  # summed in another order
+    assert link_table_rows(platoon("report", str(trace)).stdout) == rows
+    assert "imperfect links" in loaded.log[0].message  # the trace's first log line says it too
+
+
+def test_a_perfect_link_run_has_no_links_table(tmp_path):
+    run = platoon("run", str(REPO / "configs" / "paper" / "platoon.toml"), "--set", "simulation.stop_time=1",
+                  "--out", str(tmp_path / "perfect.mcap"))
+    assert run.returncode == 0, run.stderr
+    assert "imperfect" not in run.stdout and not link_table_rows(run.stdout) and "links (" not in run.stdout
+
+
+@pytest.mark.parametrize("stop, lines", [
+    (40.0, ["disturbance starts: +35 m/s² lateral acceleration on vehicle 1 at 35 s for 1 s",
+            "disturbance ends: +35 m/s² lateral acceleration on vehicle 1"]),
+    (35.5, ["disturbance starts: +35 m/s² lateral acceleration on vehicle 1 at 35 s for 1 s"]),  # stopped inside it
+    (30.0, []),
+])
+@pytest.mark.parametrize("engine", ["native", "python"])
+def test_the_run_log_says_when_a_disturbance_starts_and_ends(tmp_path, engine, stop, lines):
+    trace = tmp_path / "front.mcap"
+    run = platoon("run", str(REPO / "configs" / "paper" / "platoon_front_lateral.toml"), "-q", "--engine", engine,
+                  "--set", f"simulation.stop_time={stop}", "--out", str(trace))
+    assert run.returncode == 0, run.stderr
+    log = load(trace).log
+    logged = [(line.t, line.message) for line in log if line.message.startswith("disturbance")]
+    assert logged == list(zip([35.0, 36.0][:len(lines)], lines))
+    assert [line.t for line in log] == sorted(line.t for line in log)  # in time order, between start and end
+
+
+def test_a_link_that_sent_nothing_reports_null_not_nan():
+    """`report --json` stays valid JSON (no NaN) for a link with nothing sent or recorded."""
+    from orchestrator.analysis.link_stats import LinkStats, link_rows
+
+    rows = link_rows([LinkStats("link_forward1", 0, 0, 0, float("nan")), LinkStats("link_backward1", 4, 3, 1, 0.25)])
+    assert json.loads(json.dumps(rows, allow_nan=False)) == [
+        {"name": "link_forward1", "sent": 0, "delivered": 0, "lost": 0, "lost_share": None, "mean_age": None},
+        {"name": "link_backward1", "sent": 4, "delivered": 3, "lost": 1, "lost_share": 0.25, "mean_age": 0.25}]

@@ -12,12 +12,14 @@ import socket
 import threading
 import time
 import tty
+from pathlib import Path
 from contextlib import contextmanager
 from typing import Iterator
 
 import pytest
 import zenoh
 
+from bridge.lab_key import LabKey
 from bridge.protocol import LinkCounters, RobotKeys, WheelCommand, decode_status, encode_wheels
 from bridge.serial_endpoint import (
     SEND_SIGNATURE,
@@ -232,6 +234,12 @@ class StderrLog:
 
 
 CLAIM = 0x00C0_FFEE_0000_0003
+LAB_KEY = LabKey(bytes(range(32)), Path("lab.key"))
+
+
+def request_claim(publisher, keys: RobotKeys, claim: int, key: LabKey | None = LAB_KEY) -> None:
+    """A run's claim request (command 0, speeds 0), with the MAC of ``key``."""
+    publisher.put(encode_wheels(WheelCommand(0, time.time() + 1.0, 0.0, 0.0, claim), key, keys.wheels))
 
 
 def test_serial_endpoint_end_to_end(pty: Pty, capsys: pytest.CaptureFixture[str]) -> None:
@@ -244,7 +252,7 @@ def test_serial_endpoint_end_to_end(pty: Pty, capsys: pytest.CaptureFixture[str]
     keys = RobotKeys("e2e", 3)
     log = StderrLog(capsys)
     endpoint = Endpoint(port=pty.path, robot=3, prefix="e2e", listen=[f"tcp/127.0.0.1:{port}"], scale=scale,
-                        command_timeout=timeout)
+                        command_timeout=timeout, lab_key=LAB_KEY)
     try:
         # Start-up: the signature query (the pty answers nothing), then a stop.
         assert pty.read(1) == bytes((SEND_SIGNATURE,))
@@ -255,7 +263,6 @@ def test_serial_endpoint_end_to_end(pty: Pty, capsys: pytest.CaptureFixture[str]
             host_token = session.liveliness().declare_token(keys.host(CLAIM))
             statuses: queue.Queue[bytes] = queue.Queue()
             status_subscriber = session.declare_subscriber(keys.status, lambda s: statuses.put(s.payload.to_bytes()))
-            log.wait_for("configured -> synchronized (host present)")
             publisher = session.declare_publisher(keys.wheels, congestion_control=zenoh.CongestionControl.BLOCK)
             seq = 0
 
@@ -263,8 +270,11 @@ def test_serial_endpoint_end_to_end(pty: Pty, capsys: pytest.CaptureFixture[str]
                 nonlocal seq
                 seq += 1
                 sent = time.time()
-                publisher.put(encode_wheels(WheelCommand(seq, sent + deadline_in, left, right, CLAIM)))
+                publisher.put(encode_wheels(WheelCommand(seq, sent + deadline_in, left, right, CLAIM), LAB_KEY, keys.wheels))
                 return sent
+
+            request_claim(publisher, keys, CLAIM)
+            log.wait_for("configured -> synchronized (host present)")
 
             def expect(left: float, right: float) -> float:
                 """The next frame on the wire is this command (speeds clipped to max_speed)."""
@@ -286,8 +296,9 @@ def test_serial_endpoint_end_to_end(pty: Pty, capsys: pytest.CaptureFixture[str]
 
             # Malformed, duplicate, late and foreign commands are dropped: the next frame is the next valid command.
             publisher.put(b"\x01\x02garbage")
-            publisher.put(encode_wheels(WheelCommand(seq, time.time() + 2.0, -0.8, -0.8, CLAIM)))  # seq again
-            publisher.put(encode_wheels(WheelCommand(2**32 - 1, time.time() + 2.0, 0.8, 0.8, CLAIM + 1)))  # a stranger
+            publisher.put(encode_wheels(WheelCommand(seq, time.time() + 2.0, -0.8, -0.8, CLAIM), LAB_KEY,
+                                        keys.wheels))  # seq again
+            publisher.put(encode_wheels(WheelCommand(2**32 - 1, time.time() + 2.0, 0.8, 0.8, CLAIM + 1)))  # no key
             command(0.7, 0.7, deadline_in=-1.0)  # deadline already passed
             command(-0.2, 0.2)
             expect(-0.2, 0.2)  # the next frame, so the three before it wrote none
@@ -331,11 +342,11 @@ def test_serial_endpoint_end_to_end(pty: Pty, capsys: pytest.CaptureFixture[str]
     assert counters.dropped["malformed"] == 1
     assert counters.dropped["duplicate"] == 1
     assert counters.dropped["late"] == 1
-    assert counters.dropped["foreign"] == 1
+    assert counters.dropped["unauthenticated"] == 1
     assert counters.received == counters.accepted + 4
     text = log.read()
     assert "no answer to the signature query (0x81)" in text
-    assert "wheel commands received" in text and "dropped 4 (malformed 1, duplicate 1, late 1, foreign 1)" in text
+    assert "wheel commands received" in text and "dropped 4 (malformed 1, duplicate 1, late 1, unauthenticated 1)" in text
 
 
 def test_motors_zeroed_when_zenoh_fails(pty: Pty) -> None:
@@ -347,3 +358,41 @@ def test_motors_zeroed_when_zenoh_fails(pty: Pty) -> None:
         with pytest.raises(SessionError, match="m3pi-serial robot 2: cannot open a Zenoh session"):
             run_serial_endpoint(pty.path, 2, listen=[f"tcp/127.0.0.1:{port}"])
     assert pty.pending(0.2) == bytes((SEND_SIGNATURE,)) + STOP_FRAME + STOP_FRAME
+
+
+def test_a_stranger_without_the_lab_key_writes_no_motor_frame(pty: Pty, capsys: pytest.CaptureFixture[str]) -> None:
+    """The hostile round's case: a client of m3pi-serial's port that reads nothing declares its own host token,
+    asks for the claim and sends 1 s of full-speed commands at 200 Hz (no MAC, and a MAC of another key).
+    Not one motor frame reaches the serial port after the start-up stop; a run of the lab then claims it."""
+    port = free_port()
+    keys = RobotKeys("e2e", 3)
+    log = StderrLog(capsys)
+    endpoint = Endpoint(port=pty.path, robot=3, prefix="e2e", listen=[f"tcp/127.0.0.1:{port}"], lab_key=LAB_KEY)
+    try:
+        assert pty.read(1) == bytes((SEND_SIGNATURE,)) and pty.read(4) == STOP_FRAME
+        with host_session(port) as session:
+            wait_for_token(session, keys.alive)
+            token = session.liveliness().declare_token(keys.host(CLAIM + 1))  # noqa: F841 (held)
+            publisher = session.declare_publisher(keys.wheels, congestion_control=zenoh.CongestionControl.BLOCK)
+            deadline = time.monotonic() + WAIT
+            while not publisher.matching_status.matching:  # the stranger's commands do reach the robot side
+                assert time.monotonic() < deadline, "the robot side does not subscribe to the stranger's key"
+                time.sleep(0.01)
+            theirs = LabKey(bytes(32), Path("theirs.key"))
+            for seq in range(1, 201):
+                key = None if seq % 2 else theirs
+                request_claim(publisher, keys, CLAIM + 1, key)
+                publisher.put(encode_wheels(WheelCommand(seq * 2**22, time.time() + 2.0, 1.0, 1.0, CLAIM + 1), key,
+                                            keys.wheels))
+                time.sleep(0.005)
+            log.wait_for("(first 'unauthenticated' drop")
+            assert pty.pending(0.5) == b"", "a motor frame of the stranger reached the robot"
+            request_claim(publisher, keys, CLAIM)  # a run of the lab, meanwhile: its request before its token
+            run_token = session.liveliness().declare_token(keys.host(CLAIM))  # noqa: F841 (held)
+            log.wait_for(f"claimed by {CLAIM:016x}")
+        counters = endpoint.stop()
+    finally:
+        endpoint.stop_event.set()
+        endpoint.thread.join(WAIT)
+    assert counters.dropped["unauthenticated"] == 400 and counters.accepted == 0
+    assert "claimed by 00c0ffee00000004" not in log.read()

@@ -30,7 +30,7 @@ from orchestrator.execution.python_master import Master
 from orchestrator.scenario.scenario import build_scenario, step_count
 
 NAMES = ("Vehicle", "VirtualTarget")
-TOLERANCE = 1e-9  # what issue 21 asks; the trajectories are identical here (0.0)
+TOLERANCE = 1e-9  # far below any physical meaning; the trajectories are identical here (0.0)
 
 
 def _root(path) -> ElementTree.Element:
@@ -146,7 +146,7 @@ def test_standalone_trajectory_equals_the_python_fmus(fmu_dir, native_fmu_dir, n
 @pytest.mark.parametrize("name, start_values", [("Vehicle", {"law": "regular", "dynamics": "m3pi"}),
                                                   ("Vehicle", {}), ("VirtualTarget", {})], ids=repr)
 def test_identical_to_the_last_bit(fmu_dir, native_fmu_dir, name, start_values):
-    """Stronger than issue 21's 1e-9: the C does Python's operations in Python's order, calls the
+    """Stronger than the 1e-9 above: the C does Python's operations in Python's order, calls the
     same libm, and computes math.hypot with CPython's own algorithm (glibc's hypot differs in the
     last bit for 0.19 % of arguments: fmus/native/pymath.h), so every output is the same double.
     A reordered sum or glibc's hypot anywhere in the C shows up here first."""

@@ -1,4 +1,4 @@
-"""Issue 30, part 1: every command that writes follows the one output rule (orchestrator/support/output.py).
+"""Every command that writes follows the one output rule (orchestrator/support/output.py).
 
 For each writer (run, layout, figure, export-ssp, trace recover, report --plots, export --csv,
 sweep-plot), with the real command in a subprocess on real files: it never replaces one of its inputs

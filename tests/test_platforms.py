@@ -1,4 +1,4 @@
-"""Native FMUs for every platform an importer runs on (issue 33): `platoon build --all-platforms`.
+"""Native FMUs for every platform an importer runs on: `platoon build --all-platforms`.
 
 The release FMUs carry binaries for x86_64 and aarch64 Linux, x86_64 Windows and x86_64 and aarch64
 macOS, cross-compiled on this Linux machine with Zig (``ziglang``). They are run, not just built:

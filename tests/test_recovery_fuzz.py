@@ -1,4 +1,4 @@
-"""Issue 30, part 2: `trace recover` keeps every intact chunk, wherever the damage is.
+"""`trace recover` keeps every intact chunk, wherever the damage is.
 
 A seeded campaign over a real 20 s trace written by `platoon run`, finished and unfinished (cut before
 its summary, as a killed run leaves it): files cut at a random offset, with random bytes replaced,

@@ -299,9 +299,22 @@ def test_both_fmu_kinds_refuse_bad_speed_law_parameters_with_the_same_reasons(fm
     assert any(REFUSAL in line for line in logged), logged
 
 
-def test_the_run_header_names_the_speed_laws() -> None:
+def test_the_run_header_names_the_speed_laws(tmp_path: Path) -> None:
     """The table's title and the trace's first log line say which speed law each vehicle runs when it is
     not the paper's: a user comparing runs must not mistake an acc run for a paper one."""
+    from tests.test_viewer import platoon
+
+    mixed = "sine law, speed laws paper (1), acc (2-3), cacc (4)"
+    trace = tmp_path / "mixed.mcap"
+    run = platoon("run", PAPER / "platoon.toml", "--set", "simulation.stop_time=1", "--set", "platoon.time_gap=1.0",
+                  "--set", "vehicles.2.speed_law=acc", "--set", "vehicles.3.speed_law=acc",
+                  "--set", "vehicles.4.speed_law=cacc", "--out", trace, cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    title = run.stdout.splitlines()[0]  # the summary table's title, as `platoon run` prints it
+    assert title.startswith(f"platoon: {mixed}, "), run.stdout
+    first = load(trace).log[0]
+    assert first.t == 0.0 and f", {mixed}, " in first.message, first.message  # "run started: ..."
+
     def laws(platoon: dict, vehicles: dict | None = None) -> str:
         mapping = {"name": "h", "platoon": {"count": 4, "time_gap": 1.0, **platoon}}
         if vehicles:

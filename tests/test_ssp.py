@@ -156,8 +156,8 @@ def paper_20s(tmp_path_factory) -> tuple[Path, Path]:
 def test_canary_fmpy_simulate_ssp_still_needs_our_workaround(paper_20s) -> None:
     """A canary on FMPy, not a test of ours: FMPy 0.3.32's SSP runner ignores the ParameterBindings and
     starts every connector at 0.0, so the VirtualTarget's first step divides by its lead's gap of 0 m.
-    docs/fmus.md ("In FMPy") says so and gives tests/fmpy_ssp.py as the workaround. When an FMPy runs
-    our package as is, this fails, saying what to change. FMPy runs in a child process: its SSP runner
+    docs/fmus.md ("In FMPy") says so and gives orchestrator/interop/fmpy_ssp.py as the workaround. When an
+    FMPy runs our package as is, this fails, saying what to change. FMPy runs in a child process: its SSP runner
     loads the pythonfmu FMUs into the interpreter that calls it, and once crashed a parallel test
     worker that had loaded them before (a segmentation fault in fmi2DoStep)."""
     import fmpy
@@ -165,7 +165,7 @@ def test_canary_fmpy_simulate_ssp_still_needs_our_workaround(paper_20s) -> None:
     package, _ = paper_20s
     fixed = (f"FMPy {fmpy.__version__}'s simulate_ssp now runs our SSP package as is. Update docs/fmus.md, "
              "section 'In FMPy' (it says FMPy 0.3.32 fails at the first step and lists the three limitations: "
-             "check which remain), drop what tests/fmpy_ssp.py patches that FMPy now does (all of it: remove "
+             "check which remain), drop what orchestrator/interop/fmpy_ssp.py patches that FMPy now does (all of it: remove "
              "the file and its quote in docs/fmus.md), run the next test on FMPy's own simulate_ssp, and "
              "delete or invert this canary")
     script = ("import sys\n"
@@ -183,14 +183,14 @@ def test_canary_fmpy_simulate_ssp_still_needs_our_workaround(paper_20s) -> None:
     assert output != "RAN", fixed
     assert child.returncode == 0 and output.startswith("FMICallException:") and "fmi2DoStep failed" in output, (
         f"FMPy {fmpy.__version__}'s simulate_ssp fails on our package otherwise than docs/fmus.md ('In FMPy') "
-        f"says (exit {child.returncode}): {output or child.stderr[-2000:]}; update that section and tests/fmpy_ssp.py")
+        f"says (exit {child.returncode}): {output or child.stderr[-2000:]}; update that section and orchestrator/interop/fmpy_ssp.py")
 
 
 def test_fmpy_simulate_ssp_with_the_workaround_runs_the_package_to_our_numbers(paper_20s) -> None:
-    """tests/fmpy_ssp.py (the workaround docs/fmus.md quotes) makes FMPy's runner apply the bindings,
-    keep only the declared connections and start from the initial outputs: our Jacobi run's final
+    """orchestrator/interop/fmpy_ssp.py (the workaround docs/fmus.md quotes) makes FMPy's runner apply the
+    bindings, keep only the declared connections and start from the initial outputs: our Jacobi run's final
     positions within 1e-6 m (measured 8e-13 m: FMPy's clock adds up the step, ours is k h)."""
-    from tests.fmpy_ssp import simulate_ssp
+    from orchestrator.interop.fmpy_ssp import simulate_ssp
 
     package, trace = paper_20s
     result = simulate_ssp(str(package), stop_time=20.0, step_size=0.01)

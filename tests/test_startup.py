@@ -1,4 +1,4 @@
-"""What `platoon run` loads before its first step (issue 22, docs/performance.md "Whole runs").
+"""What `platoon run` loads before its first step (docs/performance.md "Whole runs").
 
 Start-up was ~0.5 s against libcosim's ~0.25 s; part of it were libraries a run never needed. These
 tests keep them out: a run imports no plotting, sweep or analysis code, and the 3D scene's colours of
@@ -163,7 +163,8 @@ def test_the_fmi_platform_is_fmpys() -> None:
 
 def test_a_run_whose_trace_a_worker_writes_loads_no_mcap_writer(tmp_path: Path, fmu_dir: Path) -> None:
     """With the trace encoded in the worker process, the stepping process imports neither the MCAP
-    writer (mcap, zstandard, lz4) nor the Foxglove SDK: they are the worker's (issue 31's start-up)."""
+    writer (mcap, zstandard, lz4) nor the Foxglove SDK: they are the worker's (a run's start-up
+    counts every import)."""
     modules = imported_by(*quiet_run(tmp_path), "--trace-writer", "process", cwd=REPO)
     assert "orchestrator.trace.worker" in modules  # the worker did write it
     assert [name for name in modules if name.split(".")[0] in ("mcap", "zstandard", "lz4", "foxglove")

@@ -1,4 +1,4 @@
-"""The trace encoded in C (orchestrator/trace/native_encoder.c) writes what the Python encoder writes (issue 31).
+"""The trace encoded in C (orchestrator/trace/native_encoder.c) writes what the Python encoder writes.
 
 The Python encoder (``ComponentMessages``, ``FoxgloveChannels``) is the reference. The same float64
 rows go through both and the files are compared byte for byte and, read back by the ``mcap``
@@ -21,6 +21,7 @@ import orjson
 import pytest
 
 from fmus.errors import ComponentError
+from orchestrator.components.kinds import native_buildable
 from orchestrator.scenario.config import load_config
 from orchestrator.execution.run import run_scenario
 from orchestrator.trace import TraceWriter, load
@@ -31,7 +32,30 @@ from tests.conftest import SPEED_TO_ZERO
 REPO = Path(__file__).resolve().parents[1]
 PAPER = REPO / "configs" / "paper" / "platoon.toml"
 
-pytestmark = pytest.mark.skipif(not available(), reason="the C trace encoder is not built (no C compiler)")
+
+
+def why_not_built() -> str:
+    """Why ``orchestrator.trace._native`` does not import (native_rows swallows the ImportError)."""
+    import importlib
+
+    try:
+        importlib.import_module("orchestrator.trace._native")
+    except ImportError as error:
+        return str(error)
+    return "it imports now, though native_rows found it missing"
+
+
+@pytest.fixture(autouse=True)
+def the_c_encoder() -> None:
+    """Every test here needs the C encoder: without a C compiler it cannot be built (the Python encoder
+    writes every row) and the tests skip; with one, an encoder that did not build is a failure, whatever
+    the reason (a compile error in native_encoder.c, a broken install), not a skip."""
+    if available():
+        return
+    if not native_buildable():
+        pytest.skip("no C compiler: the C trace encoder is not built (the Python encoder writes every row)")
+    pytest.fail(f"a C compiler is here, but the C trace encoder is not built ({why_not_built()}); "
+                "`pip install -e .` shows why", pytrace=False)
 
 
 def paper(*overrides: str):
@@ -279,3 +303,21 @@ def test_the_non_finite_check_finds_the_first_bad_row_as_numpy_does() -> None:
         assert native_rows.first_non_finite(view.values, view.width) == expected
     with pytest.raises(ValueError, match="not whole rows of 4"):
         native_rows.first_non_finite(np.zeros(6).tobytes(), 4)
+
+
+def test_an_encoder_that_did_not_build_fails_these_tests_where_a_compiler_exists() -> None:
+    """The rule above, applied: a pytest process in which the extension cannot be imported (as after a
+    failed build) fails this file's tests where a compiler exists, and skips them only where none does."""
+    import subprocess
+    import sys
+
+    hide = ("import sys; sys.modules['orchestrator.trace._native'] = None; import pytest; "
+            "sys.exit(pytest.main(['-q', '-n', '0', '-p', 'no:cacheprovider', sys.argv[1], '-k', "
+            "'test_numbers_are_written_as_orjson_writes_them']))")
+    result = subprocess.run([sys.executable, "-c", hide, __file__], cwd=REPO, capture_output=True, text=True,
+                            timeout=300)
+    if native_buildable():
+        assert result.returncode == 1, result.stdout[-3000:]
+        assert "a C compiler is here, but the C trace encoder is not built" in result.stdout, result.stdout[-3000:]
+    else:
+        assert result.returncode == 0 and "1 skipped" in result.stdout, result.stdout[-3000:]

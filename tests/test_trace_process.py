@@ -112,7 +112,16 @@ def test_a_run_that_writes_in_process_ends_the_early_worker_before_it_steps(tmp_
     early = worker._prestarted
     assert early is not None
     config, text = load_config(PAPER, ["simulation.stop_time=1.0"])
-    result = run_scenario(config, text, tmp_path / "run.mcap", fmu_dir=fmu_dir, trace_writer="inline")
+    at_first_tick: list[int | None] = []
+
+    def tick(steps_done: int) -> None:  # called by the run after its first steps: the worker must be gone by then
+        if not at_first_tick:
+            try:
+                at_first_tick.append(early.process.wait(timeout=30))  # ends at once once told; never if not told
+            except subprocess.TimeoutExpired:
+                at_first_tick.append(None)
+
+    result = run_scenario(config, text, tmp_path / "run.mcap", fmu_dir=fmu_dir, trace_writer="inline", tick=tick)
     assert result.status == "completed"
+    assert at_first_tick == [0], "the early worker was still running when the run stepped"  # saw its inbox close
     assert worker.take_prestarted() is None
-    assert early.process.wait(timeout=30) == 0  # it saw its inbox close and ended

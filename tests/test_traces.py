@@ -1,4 +1,4 @@
-"""Traces as a product (issue 4): Foxglove channels, read-back, CSV export, an independent reader,
+"""Traces as a product: Foxglove channels, read-back, CSV export, an independent reader,
 nothing lost on SIGINT / SIGTERM / SIGKILL / FMU failure, decimation.
 
 The signal tests run the installed ``platoon`` console script in a real subprocess on a long

@@ -26,6 +26,7 @@ from orchestrator.trace.foxglove import SCENE_TOPIC
 REPO = Path(__file__).resolve().parents[1]
 PAPER = REPO / "configs" / "paper" / "platoon.toml"
 M3PI = REPO / "configs" / "paper" / "m3pi.toml"
+FRONT_LATERAL = REPO / "configs" / "paper" / "platoon_front_lateral.toml"  # a disturbance: its legend entry is long
 SHORT = ("--set", "simulation.stop_time=1.0", "-q")
 
 
@@ -46,11 +47,13 @@ def error_line(result: subprocess.CompletedProcess[str]) -> str:
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory: pytest.TempPathFactory, fmu_dir: Path) -> dict[str, Path]:
-    """Short real runs: the paper's 50 m circle (both laws), the m3pi's 1 m circle, a line, 14 vehicles."""
+    """Short real runs: the paper's 50 m circle (both laws), the m3pi's 1 m circle, a line, 14 vehicles, a
+    disturbance (both laws; 1 s, before it strikes: the figure names it all the same)."""
     folder = tmp_path_factory.mktemp("viewer")
     cases = {
         "paper": (PAPER,), "regular": (PAPER, "--set", "platoon.law=regular"), "m3pi": (M3PI,),
         "line": (PAPER, "--set", "path.kind=line"), "many": (PAPER, "--set", "platoon.count=14"),
+        "front": (FRONT_LATERAL,), "front-regular": (FRONT_LATERAL, "--set", "platoon.law=regular"),
     }
     traces = {}
     for name, (config, *overrides) in cases.items():
@@ -181,6 +184,65 @@ def test_figure_draws_both_laws_side_by_side(runs: dict[str, Path]) -> None:
             track = column[3].get_lines()[1 + 2 * k]
             assert np.array_equal(track.get_xdata(), trace.component(vehicle)["x"]), (config.platoon.law, vehicle)
             assert np.array_equal(track.get_ydata(), trace.component(vehicle)["y"]), (config.platoon.law, vehicle)
+
+
+def pair_of(runs: dict[str, Path], *names: str) -> list:
+    return [(load(runs[name]), config_from_mapping(load(runs[name]).config)) for name in names]
+
+
+def test_each_row_of_the_figure_has_one_y_range(runs: dict[str, Path]) -> None:
+    """Regular beside sine: the same height is the same error in both columns (the eye compares them),
+    and the range holds both columns' data."""
+    from orchestrator.analysis.figure import draw_pair
+
+    figure = draw_pair(pair_of(runs, "regular", "paper"))
+    axes = [a for a in figure.axes if a.get_label() != "<colorbar>"]
+    for row in range(3):
+        left, right = axes[2 * row], axes[2 * row + 1]
+        assert left.get_ylim() == right.get_ylim(), (row, left.get_ylim(), right.get_ylim())
+        low, high = left.get_ylim()
+        for panel in (left, right):
+            for line in panel.get_lines():
+                assert low <= np.min(line.get_ydata()) and np.max(line.get_ydata()) <= high
+    spans = [np.ptp(np.concatenate([line.get_ydata() for line in axes[k].get_lines()])) for k in (0, 1)]
+    assert spans[0] != spans[1]  # the two columns' own ranges differ: the shared one is not a coincidence
+
+
+def test_the_column_headers_name_the_traces_when_the_laws_are_the_same(runs: dict[str, Path]) -> None:
+    from orchestrator.analysis.figure import draw_pair
+
+    def headers(*names: str) -> list[str]:
+        figure = draw_pair(pair_of(runs, *names))
+        return [a.get_title() for a in figure.axes[:2]]
+
+    same = headers("paper", "front")  # both sine law, 4 vehicles, R = 50 m: the laws alone read alike
+    assert same[0] != same[1] and "paper.mcap" in same[0] and "front.mcap" in same[1], same
+    differ = headers("regular", "paper")
+    assert "regular law" in differ[0] and "sine law" in differ[1] and ".mcap" not in " ".join(differ), differ
+
+
+def test_the_figures_legends_stay_inside_it_at_a_low_dpi(runs: dict[str, Path], tmp_path: Path) -> None:
+    """A disturbance's long legend entry in both columns, at --dpi 80: each legend is whole inside the
+    figure and beside, not over, the other; the PNG has a background margin on every side."""
+    import matplotlib.image as image
+
+    from orchestrator.analysis.figure import draw_pair
+
+    figure = draw_pair(pair_of(runs, "front-regular", "front"))
+    figure.set_dpi(80)
+    figure.canvas.draw()  # the constrained layout is made at drawing
+    renderer = figure.canvas.get_renderer()
+    page = figure.bbox
+    boxes = [a.get_legend().get_window_extent(renderer) for a in figure.axes[-2:]]
+    for box in boxes:
+        assert page.x0 <= box.x0 and box.x1 <= page.x1 and page.y0 <= box.y0 and box.y1 <= page.y1, (box, page)
+    assert boxes[0].x1 < boxes[1].x0, boxes
+    out = tmp_path / "pair.png"
+    result = platoon("figure", runs["front-regular"], runs["front"], "--out", out, "--dpi", 80, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    ink = (image.imread(out)[..., :3] < 0.95).any(axis=2)
+    for edge in (ink[:2], ink[-2:], ink[:, :2], ink[:, -2:]):  # two pixels of white on each side
+        assert not edge.any()
 
 
 def test_a_figure_of_several_orbits_draws_the_last_one_over_faded_tracks(tmp_path: Path, fmu_dir: Path) -> None:

@@ -38,6 +38,8 @@ class RosEmulator(Emulator):
         self.links = list(links)
         for robot, link in zip(self.robots, self.links):
             robot.echoes_poses = link is None or not link.pose_topic
+            if link is not None and link.command_topic:  # a ROS command carries no MAC: its token claims the robot
+                robot.claim.key = None
 
     def _declare_robot(self, session: zenoh.Session, index: int, resources: list) -> tuple[Any, Any]:
         link = self.links[index]

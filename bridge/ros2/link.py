@@ -132,6 +132,15 @@ class RosLiveVehicle(LiveVehicle):
         stamp = self.clock() if self.ros.command_stamp == "now" else 0.0
         self._ros_publisher.put(messages.encode_twist(self.ros.command_type, linear, angular, stamp, self.ros.frame_id))
 
+    def _load_key(self):
+        if not self.ros.command_topic:
+            return super()._load_key()
+        return None  # a ROS command carries no MAC: Zenoh's access control on its key is what guards it
+
+    def _request_claim(self) -> None:
+        if not self.ros.command_topic:
+            super()._request_claim()
+
     def _ready(self) -> bool:
         if not self.ros.command_topic:
             return super()._ready()

@@ -159,7 +159,7 @@ class NativeBuilder(Builder):
         modules, FMI's headers, the compiler flags and pythonfmu's version (it numbers the variables).
 
         No slave is instantiated and no compiler is asked: a run checks its FMUs with this before every
-        start (issue 22), and FMUs built elsewhere are usable on a machine without a compiler. The
+        start (so it must be cheap: a sweep is made of short runs), and FMUs built elsewhere are usable on a machine without a compiler. The
         compiler's identity is not part of it: with -ffp-contract=off every compiler gives the numbers of
         fmus/model (tests/test_native_fmus.py), so the GUID names the model, not the compiler's bytes."""
         digest = hashlib.sha256(importlib.metadata.version("pythonfmu").encode())

@@ -35,7 +35,7 @@ BUILDER_MODULES = ("builders/base.py", "builders/pythonfmu.py", "modeldescriptio
 # (bridge.live and what it imports), the component interface and the pacer, so it needs nothing but zenoh installed.
 _ONLY_IN = {"LiveVehicle.py": LIVE_FMU, "Link.py": LINK_FMU}
 _EXTRA_SOURCES = {
-    LIVE_FMU: ("bridge/__init__.py", "bridge/claim.py", "bridge/live.py", "bridge/protocol.py", "bridge/session.py",
+    LIVE_FMU: ("bridge/__init__.py", "bridge/claim.py", "bridge/lab_key.py", "bridge/live.py", "bridge/protocol.py", "bridge/session.py",
                "bridge/states.py",
                "fmus/component.py", "fmus/errors.py", "fmus/realtime.py"),
 }

@@ -638,7 +638,8 @@ FwStatus fw_do_step(Instance *instance, double t, double h)
  *
  * A state holds everything that evolves and every variable's value, parameters included: setting
  * it reconfigures the model from the state's own parameters (fmus.slaves.base: a state restored
- * into an instance created with other parameters replays with the state's, issue 18 item 15).
+ * into an instance created with other parameters replays with the state's, not the
+ * old trajectory with the new parameters).
  *
  * Serialized: the tag "platoon-cosim native FMU state", a format version, the model identifier,
  * the variable count and a digest of the variable table (names and types), then mode, start time,

@@ -62,6 +62,8 @@ def _hil_parameters() -> tuple[VariableInfo, ...]:
              start=d.max_pose_age, min=0.0),
         VariableInfo("hil.allow_insecure", "Boolean", "parameter", "Allow Zenoh endpoints off this machine without "
                      "TLS (docs/hil.md, \"A secure lab\")", start=d.allow_insecure),
+        VariableInfo("hil.lab_key", "String", "parameter", "The lab key file the robot side shares (docs/hil.md, "
+                     "\"Who can start the robot\"); empty: $PLATOON_LAB_KEY, else ~/.config/platoon/lab.key", start=""),
     )
 
 
@@ -75,6 +77,7 @@ def hil_parameters(settings: LiveSettings) -> dict[str, Any]:
     values["hil.connect"] = ",".join(settings.connect)
     values["hil.listen"] = ",".join(settings.listen)
     values["hil.zenoh_config"] = settings.zenoh_config or ""
+    values["hil.lab_key"] = settings.lab_key or ""
     return values
 
 
@@ -86,6 +89,7 @@ def live_settings(values: dict[str, Any]) -> LiveSettings:
     fields["zenoh_config"] = values["hil.zenoh_config"] or None
     fields["robot"] = int(values["hil.robot"])
     fields["allow_insecure"] = bool(values["hil.allow_insecure"])
+    fields["lab_key"] = values["hil.lab_key"] or None
     return LiveSettings(**fields)
 
 
@@ -185,7 +189,11 @@ class LiveVehicle(PlatoonSlave):
         if self.link is None:
             return
         link, self.link = self.link, None
-        link.close()
+        try:
+            link.close()
+        except ComponentError as error:  # a command it never sent, applied while it stopped: said at Error level
+            self._forward_link_log(link)  # (pythonfmu 0.7 drops the log of a call that raises)
+            self.log(str(error), Fmi2Status.error)
         self._forward_link_log(link)
         statistics = link.link_statistics()
         pacing = self.pacer.summary() if self.pacer is not None else {}

@@ -368,7 +368,7 @@ class PlatoonSlave(Fmi2Slave):
     # A state carries the parameter values it was taken with, and setting it rebuilds the stepper
     # from them: the stepper caches its model (law, d*, dynamics) when built, so copying only the
     # evolving numbers into an instance created with other parameters would replay the old
-    # trajectory with the new parameters (issue 18, item 15).
+    # trajectory with the new parameters (tests/test_hostile_fmus.py holds it).
 
     @fmi_call
     def _get_fmu_state(self) -> dict[str, Any]:

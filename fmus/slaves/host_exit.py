@@ -7,8 +7,8 @@ glibc then runs the C++ exit handlers first (destroying the shared pointer, free
 library destructor afterwards, which releases the freed block a second time. valgrind shows it as
 "Invalid read of size 4 in finalizePythonInterpreter ... inside a block free'd by __run_exit_handlers";
 glibc sometimes notices and aborts the host ("free(): corrupted unsorted chunks", exit 134) after
-the simulation's results were already printed, e.g. a plain ``fmpy.simulate_fmu`` script (pythonfmu
-issue #228 reports the same message).
+the simulation's results were already printed, e.g. a plain ``fmpy.simulate_fmu`` script (pythonfmu's
+https://github.com/NTNU-IHB/PythonFMU/issues/228 reports the same message).
 
 The fix from inside the FMU: when the host's own interpreter runs us, register a Python exit handler
 that calls the library's exported ``finalizePythonInterpreter`` while everything is still alive.

@@ -4,7 +4,7 @@ pythonfmu 0.7.0's binary (``PySlaveInstance.cpp``) turns a Python exception from
 into fmi2Fatal, and on the way (``handle_py_exception`` -> ``cleanPyObject``) it drops its references
 to the slave instance, the slave class and the log queue without forgetting the pointers. Once our
 instance was its last owner, the next call (the host's fmi2GetReal, fmi2FreeInstance) runs on freed
-memory: the host segfaults (issue 18, item 12).
+memory: the host segfaults (tests/test_hostile_fmus.py calls them so).
 
 The binary reports a failure in no other way. It ignores what ``exit_initialization_mode``, the
 getters, the setters and the state methods return, so only an exception can fail them; only

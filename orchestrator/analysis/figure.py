@@ -8,8 +8,8 @@ and adds one legend per column
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
-
 from typing import Any
 
 import matplotlib
@@ -22,30 +22,51 @@ from orchestrator.scenario.config import Config  # noqa: E402
 from orchestrator.analysis.plots import TIME_PANELS, colorbar, draw_time_panel, draw_xy, many, time_legend_handles  # noqa: E402
 from orchestrator.trace import Trace  # noqa: E402
 
+# characters per line of a legend entry: three columns of entries fit under a 6.2 in column in "small" type
+LEGEND_LABEL_WIDTH = 28
+
 
 def column_title(config: Config, vehicles: int) -> str:
-    """What tells the two columns apart: the law first, then the platoon and its path."""
+    """What tells the two columns apart: the laws first, then the platoon and its path."""
     path = f"R = {config.path.radius:g} m circle" if config.path.kind == "circle" else "line"
-    return f"{config.platoon.law} law: {vehicles} vehicles, {path}, d* = {config.platoon.d_star:g} m"
+    return f"{config.laws_text()}: {vehicles} vehicles, {path}, d* = {config.platoon.d_star:g} m"
+
+
+def column_titles(runs: list[tuple[Trace, Config]]) -> list[str]:
+    """Each column's header; when the runs' laws are the same (two traces of one law: a parameter or a
+    disturbance compared), the laws no longer tell the columns apart, so each header names its trace."""
+    titles = [column_title(config, len(trace.vehicles())) for trace, config in runs]
+    if len(runs) > 1 and len({config.laws_text() for _, config in runs}) == 1:
+        names = [trace.path.name for trace, _ in runs]
+        if len(set(names)) < len(names):  # the same file name in two folders: the paths tell them apart
+            names = [str(trace.path) for trace, _ in runs]
+        titles = [f"{name}\n{title}" for name, title in zip(names, titles)]
+    return titles
 
 
 def draw_pair(runs: list[tuple[Trace, Config]]) -> Figure:
-    """A figure with one column per run (two for the paper's pairs), four panels each."""
+    """A figure with one column per run (two for the paper's pairs), four panels each; each row of error
+    panels over one y range, so that the columns compare at a glance (the same height is the same error)."""
     columns = len(runs)
     figure, grid = plt.subplots(len(TIME_PANELS) + 1, columns, figsize=(6.2 * columns, 15.0), squeeze=False,
                                 gridspec_kw={"height_ratios": [1.0] * len(TIME_PANELS) + [1.7]},
                                 layout="constrained")
-    for column, (trace, config) in enumerate(runs):
+    for row in range(len(TIME_PANELS)):
+        for column in range(1, columns):
+            grid[row, column].sharey(grid[row, 0])  # autoscaled to the union of the row's data
+    for column, ((trace, config), header) in enumerate(zip(runs, column_titles(runs))):
         vehicles = trace.vehicles()
         axes_column = grid[:, column]
         for row, (_, ylabel, title, series) in enumerate(TIME_PANELS):
             draw_time_panel(axes_column[row], trace, config, series, ylabel,
-                            f"{column_title(config, len(vehicles))}\n{title}" if row == 0 else title)
+                            f"{header}\n{title}" if row == 0 else title)
         handles = time_legend_handles(axes_column[0], config, vehicles)
         xy_handles = draw_xy(axes_column[-1], trace, config, "X-Y positions")
         # one legend per column, under its X-Y panel, off the data: vehicles, disturbance band, marks
         seen = {handle.get_label() for handle in xy_handles}
         entries = xy_handles + [h for h in handles if h.get_label() not in seen]
+        for entry in entries:  # a long label (what a disturbance struck) would widen the legend past its column
+            entry.set_label(textwrap.fill(entry.get_label(), LEGEND_LABEL_WIDTH))
         axes_column[-1].legend(handles=entries, loc="upper center", bbox_to_anchor=(0.5, -0.12),
                                ncol=3, fontsize="small", frameon=False)
         if many(vehicles):

@@ -1,4 +1,4 @@
-"""Every benchmark of the project (issues 4 and 10), in one place: inside the installed package, since
+"""Every benchmark of the project, in one place: inside the installed package, since
 ``platoon bench`` is an installed command. Run them from the repository: configs, the FMUs
 (``build/fmus``) and the results (``runs/bench/``) are found relative to the current folder.
 
@@ -13,12 +13,14 @@
 * ``callgrind``: instructions and simulated cache misses per FMU-step, the master's own apart (``flatness.py``);
 * ``hil``: Zenoh round trip and step jitter of live runs on loopback (``hil.py``);
 * ``sweep``: wall time of a sweep with 1, 2, ... local workers and on Dask; the speed-up (``sweep.py``);
+* ``readback``: each trace reader (load, report, stability, stability-map) against the run that wrote the
+  trace, whole processes in one sitting; load's peak memory against its arrays (``readback.py``);
 * ``cores LABEL=PATH LABEL=PATH``: the native engine with two or more builds of _core.c (``flatness.py``).
 
 ``python -m orchestrator.bench.<name>`` (each module's docstring has its options):
 
 * ``trace_overhead``: what tracing every step costs, untraced / in process / second process;
-* ``trace_encoder``: CPU per component and row of the Python and the C trace encoder, zstd levels (issue 31);
+* ``trace_encoder``: CPU per component and row of the Python and the C trace encoder, zstd levels;
 * ``trace_memory``: RSS and wall time of the 100-vehicle, 1-hour traced run, sampled from inside;
 * ``paper_scenarios``: every paper scenario with both laws: summaries, peaks, wall times (docs/reproduction.md);
 * ``coupling_accuracy [--master gauss-seidel]``: the coupling error table of docs/coupling.md;

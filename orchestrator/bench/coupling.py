@@ -1,4 +1,5 @@
-"""Suite ``coupling``: cost per FMU-step with coupling "hold" against "extrapolate" (issue 10).
+"""Suite ``coupling``: cost per FMU-step with coupling "hold" against "extrapolate" (what the
+second-order coupling costs).
 
 The same platoon and measurement as the ``steps`` suite, run once with every FMU's ``coupling``
 parameter (config key ``simulation.coupling``) set to "extrapolate" (the default: the receiver moves

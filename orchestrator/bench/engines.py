@@ -13,7 +13,7 @@
                          <osp:FixedStepAlgorithm numWorkerThreads="0">; no observer while timed (libcosim
                          records nothing, as our engines with tracing off)
   libcosim-0threads-lastvalue  the same with libcosim's last-value observer while timed (reads every
-                         variable after each step): the baseline before issue 22, kept to show its cost
+                         variable after each step): the baseline this suite used first, kept to show its cost
   slaves             (g) the floor: fmus.slaves.Vehicle / VirtualTarget called directly, no FMI at all
 
 Timed: the communication steps after initialization (libcosim initializes on its first step, so it

@@ -1,4 +1,5 @@
-"""Suite ``flatness``: why the cost per FMU-step grows with N, with evidence (issue 10's flatness floor).
+"""Suite ``flatness``: why the cost per FMU-step grows with N, with evidence (a
+platoon twice as long should cost twice as much per step, not more).
 
 Three experiments, each N in a fresh interpreter:
 

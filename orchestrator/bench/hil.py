@@ -125,7 +125,8 @@ def _keys() -> Any:
 
 def make_lab(scratch: Path) -> Path:
     """A secure lab (``platoon hil-certs``) of a run host and a robot side for robots 1 and 3; its folder."""
-    from bridge.lab import Lab, write_lab
+    from bridge.lab import Lab
+    from orchestrator.cli.hil_certs import write_lab
 
     folder = scratch / "lab"
     if not (folder / f"{LAB_HOST}.json5").exists():
@@ -261,14 +262,18 @@ def check_costs(count: int = CHECKED_MESSAGES) -> dict[str, float]:
     """Seconds per message: a pose through the host's checks and a command through the robot side's, each
     beside decoding alone (the reference, timed in the same run)."""
     from bridge.claim import HostClaim, RobotClaim
-    from bridge.protocol import Pose, WheelCommand, check_pose_time, decode_pose, decode_wheels, encode_pose, \
-        encode_wheels
+    from bridge.lab_key import LabKey, new_secret
+    from bridge.protocol import Pose, RobotKeys, WheelCommand, check_pose_time, decode_pose, decode_wheels, \
+        encode_pose, encode_wheels
 
     now = time.time()
     host = HostClaim()
-    robot = RobotClaim()
+    key, wheels = LabKey(new_secret(), Path("bench.key")), RobotKeys("platoon", 3).wheels
+    robot = RobotClaim(key, wheels)  # the MAC check included, as every robot side does it
     poses = [encode_pose(Pose(seq, seq, now, 0.5, 0.5, 1.0, host.claim)) for seq in range(1, count + 1)]
-    commands = [encode_wheels(WheelCommand(seq, now + 3.0, 0.3, 0.3, host.claim)) for seq in range(1, count + 1)]
+    commands = [encode_wheels(WheelCommand(seq, now + 3.0, 0.3, 0.3, host.claim), key, wheels)
+                for seq in range(1, count + 1)]
+    request = encode_wheels(WheelCommand(0, now + 3.0, 0.0, 0.0, host.claim), key, wheels)
 
     def host_checks(payload: bytes) -> None:  # as LiveVehicle._on_pose
         pose = decode_pose(payload)
@@ -279,9 +284,10 @@ def check_costs(count: int = CHECKED_MESSAGES) -> dict[str, float]:
     def new_host() -> None:
         host.__init__(claim=host.claim)  # type: ignore[misc]  (a fresh claim state: sequences from 1)
 
-    def new_claim() -> None:
-        robot.host_left(host.claim)
-        robot.host_appeared(host.claim)
+    def new_claim() -> None:  # a fresh robot side granting the claim (an ended claim is never granted again)
+        robot.__init__(key, wheels)  # type: ignore[misc]
+        robot.host_appeared(host.claim, now)
+        robot.check(request, now, "robot")
 
     def nothing() -> None:
         pass

@@ -1,4 +1,5 @@
-"""Suite ``instances``: instantiation time and RSS per vehicle instance (issue 10).
+"""Suite ``instances``: instantiation time and RSS per vehicle instance (what a big
+platoon costs before its first step).
 
 In a fresh interpreter, with the FMUs unpacked, the child collects garbage and reads VmRSS, then
 creates the components and the master of the N-vehicle platoon (1 target + N vehicles) and

@@ -1,6 +1,6 @@
 """libcosim (libcosimpy, the C++ Open Simulation Platform master) on our own FMUs and wiring.
 
-Two set-ups, as issue 10 asks: ``CosimExecution.from_step_size`` with libcosim's default worker
+Two set-ups, libcosim as it is usually run and libcosim stepping as ours does: ``CosimExecution.from_step_size`` with libcosim's default worker
 threads, and an SSP package written at run time by ``orchestrator.interop.ssp.write_ssp`` (the exporter of
 ``platoon export-ssp``) with ``<osp:FixedStepAlgorithm numWorkerThreads="0">`` (every FMU stepped on
 the calling thread, as ours).
@@ -33,7 +33,7 @@ def run_libcosim(n: int, steps: int, from_ssp: bool, coupling: str = "extrapolat
 
     ``observer`` during the timed steps: "none", as our engines with tracing off (the fair baseline),
     or "last-value", libcosim's observer that reads every variable of every slave after each step
-    (what this benchmark attached until issue 22: 1.27-1.32x slower by the issue's measurement). Either
+    (what this benchmark first attached: it made libcosim 1.27-1.32x slower, not a fair reference). Either
     way a last-value observer is added for the last, untimed step, to read the final positions.
     """
     if observer not in ("none", "last-value"):

@@ -1,4 +1,5 @@
-"""Suite ``scenarios``: whole-run wall times of the paper's scenarios, start-up included (issue 10).
+"""Suite ``scenarios``: whole-run wall times of the paper's scenarios, start-up included (a
+user waits for the whole process, not only its steps).
 
 Every run is a whole process, timed from outside from its start to its exit (``os.wait4``, which also
 gives its CPU time and peak RSS), for each engine (native, python) and variant:

@@ -1,9 +1,9 @@
-"""Suite ``steps``: microseconds per FMU-step of our engines and the peers, N = 4 .. 256 (issue 10).
+"""Suite ``steps``: microseconds per FMU-step of our engines and the peers, N = 4 .. 256.
 
 The platoon of ``platoon.scenario_for`` (1 target + N vehicles), Jacobi, steps of 0.01 s, run by
 every engine of ``engines.ENGINES``, each measurement in a fresh interpreter, rounds interleaved
 (every engine and N once per round, the engine order rotated each round). The result is the median
-over rounds of wall time / (steps x (N + 1)), with the issue's ratios taken from the same run, and
+over rounds of wall time / (steps x (N + 1)), with the ratios against the peers taken from the same run, and
 each engine's final positions compared with the native engine's (``agreement``): all masters must
 be simulating the same system.
 """
@@ -25,7 +25,7 @@ from orchestrator.components.kinds import FMU_KINDS, fmu_folder, native_buildabl
 
 DEFAULT_ENGINES = ("native", "python", "fmpy-bare", "libcosim", "libcosim-0threads", "libcosim-0threads-lastvalue", "slaves")
 DEFAULT_N = (4, 16, 64, 256)
-NATIVE_FMUS = " + native FMUs"  # suffix of an engine's key when it steps the native FMUs (issue 21)
+NATIVE_FMUS = " + native FMUs"  # suffix of an engine's key when it steps the native FMUs
 FMU_LESS_ENGINES = ("slaves",)  # engines that call the pythonfmu slave classes directly: no native twin
 AGREEMENT = 1e-6  # m: libcosim's nanosecond grid differs from t_k = k h by ulps, nothing else may differ
 RATIOS = (  # (name, numerator, denominator)

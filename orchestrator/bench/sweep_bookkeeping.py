@@ -5,7 +5,7 @@ N/2 random draws of platoon.k_v: the sweep file is the same size for every N) go
 point, trace moved into place, result file written and synced, row appended to results.csv, tables
 rebuilt at start and end), with an executor that answers each run at once, leaving a small placeholder
 trace (``TRACE_BYTES``), instead of simulating it. The wall time divided by the points is the per-run
-bookkeeping; flat means it does not grow with the sweep (issue 30: it grew with the square of the runs).
+bookkeeping; flat means it does not grow with the sweep (it once grew with the square of the runs).
 
 Each measurement is a fresh interpreter (orchestrator/bench/child.py) that first runs a 10-point sweep
 (imports, the first config validation: start-up, not bookkeeping), then resets its peak resident set

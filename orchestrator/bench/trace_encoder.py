@@ -1,4 +1,5 @@
-"""What encoding a trace costs per component and row: the Python encoder, the C encoder, zstd levels (issue 31).
+"""What encoding a trace costs per component and row: the Python encoder, the C encoder, zstd levels
+(encoding is most of what tracing every step costs).
 
     python -m orchestrator.bench.trace_encoder                   # paper platoon, N = 16, 10 000 rows, 5 rounds
     python -m orchestrator.bench.trace_encoder --vehicles 64 --steps 2000 --rounds 3

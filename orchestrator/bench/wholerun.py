@@ -1,4 +1,5 @@
-"""Suite ``wholerun``: what a whole ``platoon run`` costs against libcosim running the same system (issue 22).
+"""Suite ``wholerun``: what a whole ``platoon run`` costs against libcosim running the same system (what a
+user waits for, start-up and trace included, against the reference co-simulation tool).
 
 Every sample is a whole process timed from outside (``timed_process``: start-up, stepping, tracing,
 finalization, exit), on the paper platoon (configs/paper/platoon.toml, Jacobi) with N vehicles:
@@ -22,7 +23,7 @@ finalization, exit), on the paper platoon (configs/paper/platoon.toml, Jacobi) w
   every component after each step; the baseline the earlier per-step benchmark used (docs/performance.md
   says why that was not a fair reference);
 * ``libcosim-file``: the same with libcosim's file observer (a CSV of every variable, every step): what
-  libcosim does to keep a run on disk, the second baseline of a traced run (issue 31);
+  libcosim does to keep a run on disk, the second baseline of a traced run;
 * ``platoon-hour``: ``platoon run configs/bench/platoon100-1h.toml --out TRACE``, 100 vehicles for one
   simulated hour with its trace (the config's own size: measured once per round, whatever N).
 
@@ -55,16 +56,16 @@ VARIANTS = ("platoon", "platoon-q", "platoon-start", "libcosim", "libcosim-outpu
 DEFAULT_VARIANTS = ("platoon", "platoon-q", "platoon-start", "libcosim", "libcosim-file", "platoon-hour")
 HOUR = "platoon-hour"  # its own config, measured once per round
 HOUR_CONFIG = Path("configs") / "bench" / "platoon100-1h.toml"
-HOUR_LIMIT = 5.0  # s of wall time the 100-vehicle hour with its trace may take (issue 31)
+HOUR_LIMIT = 5.0  # s of wall time the 100-vehicle hour with its trace may take (docs/performance.md's target: a long study stays at hand)
 START_VARIANTS = ("platoon-start", "platoon-first", "python", "libcosim-start")  # 10-step runs: the start-up
 START_STEPS = 10  # the start-up variants' run
 OBSERVER = {"libcosim": "none", "libcosim-outputs": "outputs", "libcosim-last-value": "last-value",
             "libcosim-file": "file", "libcosim-start": "none"}
 FIRST_STEP = re.compile(r"the first step began (\d+\.\d+) s after the process started")  # platoon run -v
-START_TARGET = 0.2  # s: a run reaches its first step this soon (issue 31)
+START_TARGET = 0.2  # s: a run reaches its first step this soon (docs/performance.md, "Start-up": a sweep is made of short runs)
 CONFIG = PAPER_CONFIGS / "platoon.toml"
 SPARSE_TRACE = 100  # platoon-q records every 100th communication point
-# the ratios issue 31 bounds: (name, numerator, denominator, upper bound)
+# the ratios docs/performance.md's targets bound: (name, numerator, denominator, upper bound)
 FLOORS = (
     ("platoon / libcosim", "platoon", "libcosim", 1.5),
     ("platoon / libcosim-file", "platoon", "libcosim-file", 0.3),

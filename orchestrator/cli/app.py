@@ -59,9 +59,23 @@ def main() -> None:
     run_and_exit(app)
 
 
-class _PlainFlags:
-    """``--help`` without a ``<bool>`` after each flag: a flag takes no value, and a newcomer reading
-    ``--quiet <bool>`` would type ``--quiet true``."""
+class _PlainHelp:
+    """``--help`` as its source says it: flags without a ``<bool>`` after them (a flag takes no value, and a
+    newcomer reading ``--quiet <bool>`` would type ``--quiet true``), and square brackets kept. typer reads
+    help texts as rich markup, which drops ``[release]`` from ``pip install 'platoon-cosim[release]'`` and
+    ``[[disturbance]]`` from a config key; our help texts are plain text, so their brackets are escaped once,
+    when the command is made (the group's list of commands shows the escaped text too)."""
+
+    def __init__(self, *args, **kwargs):  # type: ignore[no-untyped-def]
+        super().__init__(*args, **kwargs)  # type: ignore[call-arg]
+        if getattr(self, "rich_markup_mode", None) == "rich":  # rich renders the help (else click, plainly)
+            from rich.markup import escape
+
+            for owner in (self, *self.params):  # type: ignore[attr-defined]
+                for name in ("help", "short_help", "epilog"):
+                    text = getattr(owner, name, None)
+                    if isinstance(text, str):
+                        setattr(owner, name, escape(text))
 
     def get_params(self, ctx):  # type: ignore[no-untyped-def]
         params = super().get_params(ctx)  # type: ignore[misc]
@@ -71,30 +85,30 @@ class _PlainFlags:
         return params
 
 
-class _PlainFlagsCommand(_PlainFlags, typer.core.TyperCommand):
+class _PlainHelpCommand(_PlainHelp, typer.core.TyperCommand):
     pass
 
 
-class _PlainFlagsGroup(_PlainFlags, typer.core.TyperGroup):
+class _PlainHelpGroup(_PlainHelp, typer.core.TyperGroup):
     pass
 
 
-def _plain_flags(typer_app: typer.Typer) -> None:
-    """Every command and group of ``typer_app`` (and its sub-apps) shows its flags plainly."""
+def _plain_help(typer_app: typer.Typer) -> None:
+    """Every command and group of ``typer_app`` (and its sub-apps) shows its help plainly (``_PlainHelp``)."""
     def default(cls: object, base: type) -> bool:  # not chosen by whoever declared it: typer's default
         return cls is None or cls is base or isinstance(cls, typer.models.DefaultPlaceholder)
 
     if default(typer_app.info.cls, typer.core.TyperGroup):
-        typer_app.info.cls = _PlainFlagsGroup
+        typer_app.info.cls = _PlainHelpGroup
     for command in typer_app.registered_commands:
         if default(command.cls, typer.core.TyperCommand):
-            command.cls = _PlainFlagsCommand
+            command.cls = _PlainHelpCommand
     for group in typer_app.registered_groups:
         if default(group.cls, typer.core.TyperGroup):
-            group.cls = _PlainFlagsGroup
+            group.cls = _PlainHelpGroup
         if group.typer_instance is not None:
-            _plain_flags(group.typer_instance)
+            _plain_help(group.typer_instance)
 
 
-_plain_flags(app)
+_plain_help(app)
 

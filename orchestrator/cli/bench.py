@@ -328,6 +328,19 @@ def bench_sweep_bookkeeping(
     run_bench("sweep-bookkeeping", lambda progress: suite.run(sizes, first_run, progress), suite.render, out_dir, quiet)
 
 
+def bench_readback(
+    rounds: Annotated[int, typer.Option(min=1, help="interleaved repetitions; medians")] = 3,
+    with_map: Annotated[bool, typer.Option("--map/--no-map", help="also the 75-run study sweep against its "
+                                           "stability-map (about a minute a round)")] = False,
+    out_dir: Annotated[Path, typer.Option("--out-dir", help="folder for the JSON results")] = DEFAULT_OUT_DIR,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only the table and the result file")] = False,
+) -> None:
+    """Each trace reader (load, report, stability, stability-map) against the run that wrote the trace."""
+    from orchestrator.bench import readback as suite
+
+    run_bench("readback", lambda progress: suite.run(rounds, with_map, progress), suite.render, out_dir, quiet)
+
+
 def register(app: typer.Typer) -> None:
     """``platoon bench`` and its suites."""
     bench_app.command("steps")(bench_steps)
@@ -342,4 +355,5 @@ def register(app: typer.Typer) -> None:
     bench_app.command("hil")(bench_hil)
     bench_app.command("sweep")(bench_sweep)
     bench_app.command("sweep-bookkeeping")(bench_sweep_bookkeeping)
+    bench_app.command("readback")(bench_readback)
     app.add_typer(bench_app, name="bench")

@@ -69,13 +69,17 @@ def note_recovery(loaded, note) -> None:
          highlight=False, soft_wrap=True)
 
 
-def load_trace(trace: Path):
+def load_trace(trace: Path, **selection):
+    """The trace read back (``selection``: ``load``'s components, start, end, errors), with a progress bar
+    or lines on stderr when reading takes more than a second; exit 2 with one line when it cannot be read."""
+    from orchestrator.observers.progress import late_progress
     from orchestrator.trace import TraceError, load
 
     if not trace.is_file():
         fail(2, f"trace {trace}: no such file")
     try:
-        return load(trace)
+        with late_progress(f"reading {trace.name}", err, "chunks") as shown:
+            return load(trace, progress=shown, **selection)
     except TraceError as error:  # says what is wrong and what to do (e.g. `platoon trace recover`)
         fail(2, f"trace {trace}: not a readable MCAP trace: {error}")
     except Exception as error:  # any other reader failure means the file is not a usable trace

@@ -22,6 +22,9 @@ if TYPE_CHECKING:  # imported where used: registering these commands must not sl
     from rich.table import Table
 
 Endpoints = Annotated[list[str], typer.Option(metavar="ENDPOINT", help="Zenoh endpoint, e.g. tcp/127.0.0.1:7447 (repeatable)")]
+LabKeyOption = Annotated[Optional[Path], typer.Option("--lab-key", metavar="FILE", help="the lab key file the runs "
+                                                     "share (default: $PLATOON_LAB_KEY, else ~/.config/platoon/lab.key, "
+                                                     "made if missing; docs/hil.md, \"Who can start the robot\")")]
 AllowInsecure = Annotated[bool, typer.Option("--allow-insecure", help="allow endpoints off this machine without TLS "
                                                                       "(docs/hil.md, \"A secure lab\")")]
 
@@ -34,6 +37,16 @@ def stop_on_signals(stop: threading.Event) -> None:
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, handler)
 
+
+
+def robot_side_key(named: Any) -> Any:
+    """The lab key a robot side checks the runs' commands with (``bridge.lab_key``), or exit 2 naming the file."""
+    from bridge.lab_key import LabKeyError, load_lab_key
+
+    try:
+        return load_lab_key(named)
+    except LabKeyError as error:
+        fail(2, str(error))
 
 
 def live_table(summary: dict[str, dict[str, Any]]) -> Table:
@@ -151,6 +164,7 @@ def m3pi_emulator(
     ros2: Annotated[Optional[str], typer.Option("--ros2", metavar="CONVENTION", help="speak ROS 2 on the topics of "
                     "each [vehicles.K.ros2] table through rmw_zenoh or bridge_dds (default: the tables' convention)")] = None,
     allow_insecure: AllowInsecure = False,
+    lab_key: LabKeyOption = None,
 ) -> None:
     """Emulate the live robots of a config and their motion capture on Zenoh (stands in for the m3pi)."""
     from bridge.emulator import EmulatorSettings, run_emulator
@@ -181,7 +195,7 @@ def m3pi_emulator(
             return RosEmulator(robots, settings, zenoh_config, links)
     default_listen, default_connect = emulator_endpoints(parsed)
     settings = EmulatorSettings(rate, noise_position, math.radians(noise_heading), latency, command_latency,
-                                command_timeout, not standing_start, seed)
+                                command_timeout, not standing_start, seed, robot_side_key(lab_key or parsed.hil.lab_key))
     stop = threading.Event()
     stop_on_signals(stop)
     try:
@@ -206,6 +220,7 @@ def m3pi_serial(
     baud: Annotated[int, typer.Option(min=1200, help="serial speed of the XBee link")] = 115200,
     command_timeout: Annotated[float, typer.Option(help="s without a valid command before the motors stop")] = 0.25,
     allow_insecure: AllowInsecure = False,
+    lab_key: LabKeyOption = None,
 ) -> None:
     """Forward one robot's wheel commands from Zenoh to a Pololu 3pi serial slave over an XBee."""
     from bridge.protocol import check_prefix
@@ -227,50 +242,15 @@ def m3pi_serial(
         run_serial_endpoint(port, robot, prefix=prefix, connect=connect, listen=listen,
                             zenoh_config_file=str(zenoh_config) if zenoh_config else None, scale=scale,
                             command_timeout=command_timeout, baud=baud, stop_event=stop,
-                            allow_insecure=allow_insecure)
+                            allow_insecure=allow_insecure, lab_key=robot_side_key(lab_key))
     except (SerialEndpointError, SessionError, OSError, ValueError) as error:
         fail(2, str(error))
-
-
-def hil_certs(
-    folder: Annotated[Path, typer.Argument(metavar="DIR", help="where the lab CA and the hosts' Zenoh configs go")],
-    run_hosts: Annotated[list[str], typer.Option("--run-host", metavar="HOST=ROBOTS",
-                                                 help="a host that runs `platoon run` and may drive these robots, "
-                                                      "e.g. laptop=3,4 (repeatable)")] = [],
-    robot_sides: Annotated[list[str], typer.Option("--robot-side", metavar="HOST=ROBOTS",
-                                                   help="a host with the emulator, m3pi-serial or motion capture of "
-                                                        "these robots, e.g. xbee-pc=3,4 (repeatable)")] = [],
-    addresses: Annotated[list[str], typer.Option("--address", metavar="HOST=ADDRESS",
-                                                 help="a DNS name or IP peers reach HOST at (repeatable; localhost "
-                                                      "and 127.0.0.1 are always in)")] = [],
-    prefix: Annotated[str, typer.Option(metavar="PREFIX", help="the lab's Zenoh key prefix (hil.prefix)")] = "platoon",
-    days: Annotated[int, typer.Option(min=1, help="validity of new certificates")] = 365,
-) -> None:
-    """Create a lab CA, a certificate per host and each host's Zenoh config (mutual TLS, access control)."""
-    from bridge.lab import Lab, LabError, parse_assignment, write_lab
-
-    try:
-        lab = Lab(prefix=prefix)
-        for option, texts, table in (("--run-host", run_hosts, lab.run_hosts), ("--robot-side", robot_sides, lab.robot_sides)):
-            for text in texts:
-                name, robots = parse_assignment(text, option)
-                table.setdefault(name, set()).update(robots)
-        for text in addresses:
-            name, _, address = text.partition("=")
-            if not name or not address:
-                raise LabError(f"--address {text!r}: expected HOST=ADDRESS, e.g. xbee-pc=192.168.1.20")
-            lab.addresses.setdefault(name, []).append(address)
-        written, new_ca = write_lab(lab, folder, days)
-    except (LabError, OSError) as error:
-        fail(2, str(error))
-    ca = "new lab CA" if new_ca else "the lab CA already there"
-    print(f"{ca}: {folder / 'ca.pem'} (its key {folder / 'ca.key'} signs hosts: keep it off the lab's machines)")
-    for path in written:
-        print(f"{path.stem}: {path}")
 
 
 def register(app: typer.Typer) -> None:
     """Add the hardware-in-the-loop commands to ``platoon``."""
     app.command("m3pi-emulator")(m3pi_emulator)
     app.command("m3pi-serial")(m3pi_serial)
+    from orchestrator.cli.hil_certs import hil_certs
+
     app.command("hil-certs")(hil_certs)

@@ -51,6 +51,10 @@ def _build_native(out_dir: Path, force: bool, all_platforms: bool = False, rule:
     from orchestrator.cli.common import output_rule
 
     names = FMU_NAMES + (LINK_FMU,)
+    if all_platforms:  # said before it starts: a cold Zig cache makes the first such build take minutes
+        err.print("note: --all-platforms cross-compiles with Zig for 5 platforms; on a machine whose Zig cache is cold "
+                  "Zig first compiles its C runtimes for each target (several minutes on 2 cores, docs/fmus.md); "
+                  "later builds reuse its cache", highlight=False, soft_wrap=True)
     try:
         with output_rule():
             built_fmus = NativeBuilder(2, all_platforms).build(out_dir / "native", force=force, names=names, output=rule)
@@ -70,7 +74,7 @@ def _build_native(out_dir: Path, force: bool, all_platforms: bool = False, rule:
 
 def run(
     config: Annotated[Path, typer.Argument(help="scenario TOML file, e.g. configs/paper/platoon.toml")],
-    trace: Annotated[Optional[Path], typer.Option("--out", help="trace file (default runs/<name>-<time>.mcap)")] = None,
+    trace: Annotated[Optional[Path], typer.Option("--out", help="trace file (default: runs/ NAME-TIME.mcap, named after the config's name and the start time)")] = None,
     overrides: Annotated[list[str], typer.Option("--set", metavar=SET_METAVAR, help="override a key, e.g. --set platoon.law=regular")] = [],
     monolithic: Annotated[bool, typer.Option("--monolithic", help="integrate the whole platoon as one system (reference)")] = False,
     compare: Annotated[bool, typer.Option("--compare-monolithic", help="also run the monolithic reference and print the largest deviations")] = False,
@@ -99,15 +103,21 @@ def run(
 def analyze(
     config: Annotated[Path, typer.Argument(help="scenario TOML file")],
     overrides: Annotated[list[str], typer.Option("--set", metavar=SET_METAVAR, help="override a key, as for platoon run")] = [],
-    string_stability: Annotated[bool, typer.Option(help="also run the scenario and report peak-error ratios")] = True,
+    measure: Annotated[bool, typer.Option("--measure/--no-measure", help="with a [[disturbance]]: run the scenario with and without it, report the peak deviations and the l2 and l_inf gains from vehicle to vehicle")] = True,
+    old_measure: Annotated[Optional[bool], typer.Option("--string-stability/--no-string-stability", hidden=True,
+                                                        help="the old name of --measure/--no-measure")] = None,
     allow_long: AllowLong = False,
 ) -> None:
-    """Linearize about the circular equilibrium; eigenvalues next to the paper's eq. 9; string stability."""
+    """Analyze a config: on a circle with the paper's law, the linearization about the circular equilibrium,
+    its eigenvalues next to the paper's eq. 9; for every law, on a circle or a line, the speed chain's G(jw)
+    (peak gain, the time gap and delay that keep it string stable); with a [[disturbance]], the l2 and l_inf
+    gains measured from vehicle to vehicle."""
     from orchestrator.analysis.error_gains import string_stability_report
     from orchestrator.analysis.linear import eigen_report
     from orchestrator.analysis.string_stability import chain_report
     from orchestrator.scenario.limits import check_analyze_size, check_run_size
 
+    string_stability = measure if old_measure is None else old_measure
     parsed, text = load_config(config, overrides)
     if not allow_long:
         try:

@@ -201,8 +201,12 @@ def _report_run(result: "RunResult", trace: Path, parsed: Config, engine: str, q
 
         # accumulated while stepping; the trace is read again only if the run's end was not the planned one
         summaries = result.summary if result.summary is not None else summarize(load(result.trace), parsed)
-        console().print(summary_table(summaries, parsed, f"{parsed.name}: {parsed.laws_text()}, {engine} engine, {result.fmus} FMUs, {parsed.simulation.stop_time:g} s"))
-    say(f"trace: {result.trace}  ({result.steps} steps in {result.wall_time:.2f} s)")
+        console().print(summary_table(summaries, parsed, f"{parsed.name}: {parsed.header_text()}, {engine} engine, {result.fmus} FMUs, {parsed.simulation.stop_time:g} s"))
+        if result.links:
+            from orchestrator.cli.tables import link_table
+
+            console().print(link_table(result.links))
+    say(f"trace: {result.trace}  ({result.steps} steps in {result.working_time:.2f} s)")  # waits for a viewer or robot left out
     if written.path is not None:
         say(f"layout: {written.path}  (open both in Foxglove: docs/foxglove.md)")  # one line in a log
 

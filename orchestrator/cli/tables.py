@@ -34,3 +34,20 @@ def summary_table(summaries, config: Config, title: str) -> Table:
         table.add_row(str(row["name"]), *(f"{row[c.key]:.3e}" if c.key == "path_error_max" else f"{row[c.key]:+.3e}"
                                            for c in SUMMARY_COLUMNS))
     return table
+
+
+def link_table(stats) -> Table:
+    """What each link did (orchestrator/analysis/link_stats.py): `platoon run` and `platoon report` print it
+    under the summary of a run with imperfect links; the same numbers as `platoon report --json`'s "links"."""
+    from rich.table import Table
+
+    table = Table(title="links (docs/links.md)", title_justify="left", caption_justify="left",
+                  caption="mean age: of the message in use at the receiver (its time minus the message's "
+                          "sending time), over the recorded rows")
+    table.add_column("link", justify="left")
+    for header in ("sent", "delivered", "lost", "lost %", "mean age [s]"):
+        table.add_column(header, justify="right")
+    for link in stats:
+        share = "-" if link.sent == 0 else f"{100.0 * link.lost_share:.1f}"
+        table.add_row(link.name, str(link.sent), str(link.delivered), str(link.lost), share, f"{link.mean_age:.4f}")
+    return table

@@ -18,11 +18,12 @@ from orchestrator.cli.common import (Overwrite, err, fail, load_trace, note_reco
                                      summary_table)
 from orchestrator.support.output import check_folder
 
-def _trace_and_config(trace: Path):
-    """The trace read back, its config and the keys that were not finite; exit 2 naming what is wrong."""
+def _trace_and_config(trace: Path, **selection):
+    """The trace read back (``selection``: what ``load`` reads of it), its config and the keys that were
+    not finite; exit 2 naming what is wrong."""
     from orchestrator.scenario.stored_config import stored_config
 
-    loaded = load_trace(trace)
+    loaded = load_trace(trace, **selection)
     if loaded.config is None:
         fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
     try:
@@ -39,6 +40,7 @@ def report(
     overwrite: Overwrite = False,
 ) -> None:
     """Summarize a trace (path offset, gap, speed, max path error) and draw the paper's panels."""
+    from orchestrator.analysis.link_stats import link_rows, link_stats_of_trace
     from orchestrator.analysis.metrics import report_json, summarize
 
     if plots is not None:  # every panel's target checked before the trace is read
@@ -66,11 +68,16 @@ def report(
         return
     with quiet_nan(bool(non_finite)):  # nan figures were announced above
         summaries = summarize(loaded, config)
+        links = link_stats_of_trace(loaded)
         if as_json:
             out.print_json(json.dumps({"trace": str(trace), "law": config.platoon.law, "status": status,
-                                        **report_json(summaries, config)}))
+                                        **report_json(summaries, config), "links": link_rows(links)}))
         else:
-            out.print(summary_table(summaries, config, f"{trace.name}: {config.laws_text()} ({status})"))
+            out.print(summary_table(summaries, config, f"{trace.name}: {config.header_text()} ({status})"))
+            if links:
+                from orchestrator.cli.tables import link_table
+
+                out.print(link_table(links))
         if plots is not None:
             from orchestrator.analysis.plots import write_plots
 
@@ -159,11 +166,13 @@ def stability(
 ) -> None:
     """String stability measured: l2 and l_inf gains of the speed and gap errors from vehicle to vehicle."""
     from orchestrator.analysis.error_gains import stability_report, window_of
+    from orchestrator.trace.format import is_link
 
-    loaded, config, _ = _trace_and_config(trace)
+    bodies = {"components": lambda name: not is_link(name), "errors": False}  # the gains need the bodies' motion only
+    loaded, config, _ = _trace_and_config(trace, **bodies)
     if not loaded.vehicles() or any(len(loaded.component(v)["t"]) < 2 for v in loaded.vehicles()):
         fail(2, f"trace {trace}: fewer than two recorded points, no gains to measure")
-    base = load_trace(reference) if reference is not None else None
+    base = load_trace(reference, **bodies) if reference is not None else None
     if base is not None and base.vehicles() != loaded.vehicles():
         fail(2, f"reference {reference}: its vehicles ({', '.join(base.vehicles())}) are not the trace's")
     try:

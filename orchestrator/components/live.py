@@ -55,6 +55,7 @@ def live_settings(config: Config, vehicle: int):
         command_validity=hil.command_validity,
         max_pose_age=hil.max_pose_age,
         allow_insecure=hil.allow_insecure,
+        lab_key=hil.lab_key,
     )
 
 

@@ -23,7 +23,7 @@ from orchestrator.components.kinds import ensure_fmus, resolve_fmu_kind, run_fmu
 from orchestrator.components.live import check_live_options, live_names
 from orchestrator.execution.engine import EngineSetup, default_engine, engine_class
 from orchestrator.execution.signals import StopRequest
-from orchestrator.observers.base import Observers
+from orchestrator.observers.base import Observers, WaitClock
 from orchestrator.observers.progress import ProgressDisplay
 from orchestrator.observers.trace import TraceObserver, choose_trace_writer, open_trace_writer, signal_text
 from orchestrator.scenario.config import Config
@@ -37,9 +37,11 @@ from orchestrator.trace.worker import WORKER_BLOCK, TraceProcess, TraceWorkerErr
 from orchestrator.trace.writer_base import NullTraceWriter, TraceWriteError
 
 if TYPE_CHECKING:
+    from orchestrator.analysis.link_stats import LinkStats
     from orchestrator.analysis.metrics import VehicleSummary
     from orchestrator.observers.foxglove_view import FoxgloveView
     from orchestrator.observers.hil_link import LinkReporter
+    from orchestrator.observers.link_stats import LinkStatsObserver
     from orchestrator.observers.summary import SummaryObserver
 
 Tick = Callable[[int], None]
@@ -63,6 +65,15 @@ class RunResult:
     # `platoon report` computes it from the trace (None otherwise)
     summary: "list[VehicleSummary] | None" = None
     fmus: str = ""  # the FMU kind stepped: "native" or "python" (orchestrator/components/kinds.py)
+
+    @property
+    def working_time(self) -> float:
+        """Wall seconds of the run without its waits for a viewer or a robot: what "N steps in X s" says."""
+        return self.wall_time - self.waited
+    # run_scenario(..., summarize=True): what each link did (sent, delivered, lost, mean age of information)
+    links: "list[LinkStats]" = field(default_factory=list)
+    # of wall_time, the seconds the start waited for a viewer (--live-wait) or a live robot: not the run's work
+    waited: float = 0.0
 
 
 @dataclass
@@ -185,6 +196,8 @@ class Execution:
         self.engine: Any = None
         self.reporter: "LinkReporter | None" = None
         self.summary_feed: "SummaryObserver | None" = None
+        self.link_feed: "LinkStatsObserver | None" = None
+        self.wait_clock = WaitClock()  # a robot's wait; the viewer's the view measures itself
         try:
             stop.install()
             setup = self._observe(observers, stop)
@@ -222,7 +235,9 @@ class Execution:
         summary = feed.result() if feed is not None and outcome.status == "completed" else None
         return RunResult(self.target.where() if self.target is not None else None, self.steps, marks["finish"] - started,
                          outcome.status, outcome.error, outcome.signum, {"open": opened, **_phase_durations(marks)},
-                         live_summary, summary, self.fmu_kind)
+                         live_summary, summary, self.fmu_kind,
+                         self.link_feed.result() if self.link_feed is not None else [],
+                         self.wait_clock.waited + (self.live_view.waited if self.live_view is not None else 0.0))
 
     def _observe(self, observers: Observers, stop: StopRequest) -> EngineSetup:
         """Open the trace and the other observers, write the run's metadata; what the engine is built from."""
@@ -240,6 +255,7 @@ class Execution:
                                        native=self.engine_name == "native")
         self.trace = trace = TraceObserver(writer)
         observers.add(trace)  # first: every other observer sees a point once the trace holds it
+        observers.add(self.wait_clock)
         if self.live_view is not None:  # the view sees what the trace records; a live robot's run is paced already
             from orchestrator.observers.hil_link import live_streams
 
@@ -247,12 +263,21 @@ class Execution:
                                 on_wall_clock=bool(self.live), check=stop.check, streams=live_streams(sorted(self.live)))
             observers.add(self.live_view)
         self._write_start(observers, trace)
+        if config.disturbance:  # a log line when each starts and ends
+            from orchestrator.observers.disturbance_log import DisturbanceLog
+
+            observers.add(DisturbanceLog(config, observers.log))
         if self.summarize:
             from orchestrator.observers.summary import SummaryObserver
 
             self.summary_feed = SummaryObserver(config, components, self.steps, sim.trace_every,
                                                 on_thread=trace.in_a_process)
             observers.add(self.summary_feed)
+            if config.linked():  # what the links did, beside the summary (docs/links.md)
+                from orchestrator.observers.link_stats import LinkStatsObserver
+
+                self.link_feed = LinkStatsObserver(components, sim.trace_every)
+                observers.add(self.link_feed)
         if config.ros2.publish:  # every vehicle's pose to ROS 2 (docs/hil.md, "Publishing the run to ROS 2")
             from orchestrator.observers.ros2 import ros2_publisher
 
@@ -277,7 +302,7 @@ class Execution:
                                          "trace_encoder": trace.encoder,
                                          "scene_rate": repr(float(self.scene_rate)) if self.foxglove else "",
                                          "started": clock.strftime("%Y-%m-%dT%H:%M:%S%z")})
-        observers.log(0.0, "Info", f"run started: {config.name}, {config.platoon.count} vehicles, {config.laws_text()}, "
+        observers.log(0.0, "Info", f"run started: {config.name}, {config.platoon.count} vehicles, {config.header_text()}, "
                                    f"{self.engine_name} engine ({sim.master}), {self.fmu_kind} FMUs, step {sim.step:g} s, "
                                    f"stop {sim.stop_time:g} s")
 
@@ -300,6 +325,9 @@ class Execution:
         if engine is not None:
             try:
                 engine.close()
+            except ComponentError as closing:  # a live robot that obeyed someone else while it stopped
+                if outcome.status == "completed":
+                    outcome.fail(str(closing), closing.time)
             except Exception as closing:  # still finalize the trace; say what went wrong
                 if outcome.status == "completed":
                     outcome.fail(f"closing the FMUs failed: {closing}")

@@ -252,5 +252,13 @@ class Master:
                 tick(k + 1)
 
     def close(self) -> None:
+        """Close every component, even after one failed to (a live robot's stop must always go out); the first
+        failure is raised once all are closed."""
+        failure: Exception | None = None
         for component in self.components:
-            component.close()
+            try:
+                component.close()
+            except Exception as error:
+                failure = failure or error
+        if failure is not None:
+            raise failure

@@ -62,6 +62,26 @@ class Observer:
         return interval, call_steps
 
 
+class WaitClock(Observer):
+    """How long the start waited for a robot: from the first ``waiting`` to ``stepping`` (0 if it never
+    waited), the time a run's "N steps in X s" leaves out with a viewer's wait (``--live-wait``)."""
+
+    def __init__(self, clock: Any = None) -> None:
+        import time
+
+        self.clock = clock or time.perf_counter
+        self.since: float | None = None
+        self.waited = 0.0
+
+    def waiting(self, what: str, left: float) -> None:
+        if self.since is None:
+            self.since = self.clock()
+
+    def stepping(self) -> None:
+        if self.since is not None:
+            self.waited, self.since = self.clock() - self.since, None
+
+
 class Observers(Observer):
     """The observers of one run, in order; an engine calls the list as it would call one observer."""
 

@@ -97,6 +97,7 @@ class FoxgloveView(Observer):
         self.wait = wait
         self.watched = threading.Event()  # set once a viewer subscribed to the scene
         self.subscribed_at = 0.0  # monotonic time of the latest subscription
+        self.waited = 0.0  # s the run waited for a viewer before its first step (--live-wait)
 
         view = self
 
@@ -161,8 +162,10 @@ class FoxgloveView(Observer):
         self.relay.start(self.server.port)
         # a viewer subscribes to its panels' channels one after the other: once it has the scene, the
         # run starts when no subscription came for SETTLE seconds, so the first frame reaches them all
+        waiting_since = clock.perf_counter()
         while self.wait and not (self.watched.wait(0.05) and clock.monotonic() - self.subscribed_at >= SETTLE):
             check()
+        self.waited = clock.perf_counter() - waiting_since if self.wait else 0.0
 
     def _advertise(self, spec: ChannelSpec) -> int:
         channel = self._foxglove.Channel(

@@ -182,6 +182,39 @@ def progress(total: int, label: str, console, quiet: bool = False,
         bar.close()
 
 
+class LateProgress:
+    """``tick(done, total)`` for work whose size is known only once it starts (a trace's chunks): shows
+    nothing while the work is done within ``after`` seconds (most reads), then what ``progress`` shows."""
+
+    def __init__(self, label: str, console, unit: str, after: float = 1.0) -> None:
+        self.label, self.console, self.unit, self.after = label, console, unit, after
+        self.started = time.perf_counter()
+        self.display: Tick | None = None
+        self.shown: Any = None
+
+    def __call__(self, done: int, total: int) -> None:
+        if self.display is None:
+            if time.perf_counter() - self.started < self.after or done >= total:
+                return
+            self.shown = progress(total, self.label, self.console, unit=self.unit)
+            self.display = self.shown.__enter__()
+        self.display(done)
+
+    def close(self) -> None:
+        if self.shown is not None:
+            self.shown.__exit__(None, None, None)
+            self.shown = self.display = None
+
+
+@contextmanager
+def late_progress(label: str, console, unit: str, after: float = 1.0) -> Iterator[LateProgress]:
+    late = LateProgress(label, console, unit, after)
+    try:
+        yield late
+    finally:
+        late.close()
+
+
 class ProgressObserver(Observer):
     """A run's progress as one of its observers: ``tick(k)`` as steps complete; with a
     ``ProgressDisplay``, also what the start waits for and when stepping starts."""

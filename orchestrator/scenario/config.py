@@ -223,6 +223,8 @@ class Hil(_Strict):
     max_pose_age: Annotated[float, Unit("s")] = Field(0.25, gt=0.0, le=5.0, description="s: an older pose is dropped as late")
     allow_insecure: bool = Field(False, description="allow Zenoh endpoints off this machine without TLS "
                                                     "(docs/hil.md, \"A secure lab\")")
+    lab_key: Text | None = Field(None, description="the lab key file runs and robot sides share (default: "
+                                                   "$PLATOON_LAB_KEY or ~/.config/platoon/lab.key; docs/hil.md)")
 
     @model_validator(mode="after")
     def _prefix_is_a_key(self) -> "Hil":
@@ -367,6 +369,33 @@ class Config(_Strict):
     def speed_law_of(self, vehicle: int) -> str:
         """Vehicle ``vehicle``'s speed law: its [vehicles.K] override, else platoon.speed_law."""
         return self.override(vehicle).speed_law or self.platoon.speed_law
+
+    def header_text(self) -> str:
+        """The laws, then the imperfect links if any: what a run's header says of the platoon."""
+        links = self.links_text()
+        return f"{self.laws_text()}, {links}" if links else self.laws_text()
+
+    def links_text(self) -> str:
+        """The run's imperfect links in a few words, "" when every link is perfect (run headers and the
+        trace's first log line, beside the laws): "8 imperfect links (delay 0.1-0.12 s, 10% lost, beacons
+        every 0.1 s on 4)", so that a lossy run's header does not read as a perfect-link run's."""
+        links = [self.resolve_link(direction, vehicle) for direction, vehicle in self.linked()]
+        if not links:
+            return ""
+
+        def span(values: list[float], unit: str = " s", form: str = "g") -> str:
+            low, high = min(values), max(values)
+            return f"{low:{form}}{unit}" if low == high else f"{low:{form}}-{high:{form}}{unit}"
+
+        parts = []
+        if any(link.delay + link.jitter > 0.0 for link in links):
+            parts.append("delay " + span([link.delay for link in links] + [link.delay + link.jitter for link in links]))
+        if any(link.loss > 0.0 for link in links):
+            parts.append(span([link.loss for link in links], "", ".0%") + " lost")
+        beacons = [link.period for link in links if link.period > 0.0]
+        if beacons:
+            parts.append("beacons every " + span(beacons) + ("" if len(beacons) == len(links) else f" on {len(beacons)}"))
+        return f"{len(links)} imperfect link{'s' if len(links) > 1 else ''} ({', '.join(parts)})"
 
     def laws_text(self) -> str:
         """The guidance law and, when not the paper's alone, the speed laws: "sine law", "sine law, acc
@@ -637,6 +666,9 @@ def resolve_named_files(raw: dict[str, Any], folder: Path) -> None:
     """Make the files a config file names relative to that file's ``folder`` (not to the current folder:
     a config runs the same from anywhere). Values given with ``--set`` stay relative to the current
     folder, as every path typed on a command line."""
+    hil = raw.get("hil")
+    if isinstance(hil, dict) and isinstance(hil.get("lab_key"), str) and hil["lab_key"]:
+        hil["lab_key"] = str(folder / Path(hil["lab_key"]).expanduser())  # an absolute one stays as it is
     vehicles = raw.get("vehicles")
     if not isinstance(vehicles, dict):
         return  # validation names the problem

@@ -144,18 +144,19 @@ def fail_line(what: str, final: Path, error: OSError) -> OutputError:
 
 
 @contextmanager
-def replacing(final: Path, what: str = "--out") -> Iterator[Path]:
+def replacing(final: Path, what: str = "--out", private: bool = False) -> Iterator[Path]:
     """Yield a temporary path beside ``final`` to write; on success sync it and rename it onto ``final``.
 
     On any exception the temporary file is removed and ``final`` is untouched; an ``OSError`` (full
     disk, permission ...) becomes an ``OutputError`` naming ``final``. Check the target first
-    (``check_target``): this only writes.
+    (``check_target``): this only writes. ``private``: the file stays 0600 from its creation on (a key).
     """
     final = Path(final)
     try:
         final.parent.mkdir(parents=True, exist_ok=True)
         fd, name = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
-        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600; the file gets the mode open() would give it
+        if not private:
+            os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600; the file gets the mode open() would give it
         os.close(fd)
     except OSError as error:
         raise fail_line(what, final, error) from None
@@ -180,9 +181,9 @@ def sync_file(path: Path) -> None:
         os.close(fd)
 
 
-def write_bytes(final: Path, data: bytes, what: str = "--out") -> Path:
+def write_bytes(final: Path, data: bytes, what: str = "--out", private: bool = False) -> Path:
     """Write ``data`` to ``final`` by the rule (temporary name, sync, rename). Check the target first."""
-    with replacing(final, what) as aside:
+    with replacing(final, what, private) as aside:
         with open(aside, "wb") as stream:
             stream.write(data)
     return final

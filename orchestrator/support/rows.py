@@ -1,8 +1,8 @@
 """Blocks of flat float64 rows ``[t, outputs...]`` without numpy: what the native engine hands its observers.
 
 A plain `platoon run` of native FMUs steps in C and ships its rows to the trace worker as bytes; numpy
-was imported only to hold those rows, and importing it was a quarter of the run's start-up (issue 31:
-a run should reach its first step in 0.2 s). A ``RowBlock`` is a view of the engine's reused buffer
+was imported only to hold those rows, and importing it was a quarter of the run's start-up (a run
+should reach its first step in 0.2 s: docs/performance.md, "Start-up"). A ``RowBlock`` is a view of the engine's reused buffer
 (a ``memoryview`` of C doubles) with the row width; consumers that compute on the rows (the live
 view, the running summary, ROS 2 publishing) ask for ``array()``, which imports numpy then and wraps
 the same memory without a copy.

@@ -13,8 +13,12 @@ the probes can see: near the boundary a chain's peak sits at low frequencies, be
 from __future__ import annotations
 
 import math
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import nullcontext
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import matplotlib
 
@@ -27,6 +31,7 @@ from orchestrator.analysis.error_gains import (clean_order, frequency_gains, pro
                                                vehicle_errors)
 from orchestrator.analysis.string_stability import chain_of, peak_gain  # noqa: E402
 from orchestrator.scenario.config import Config, config_from_mapping  # noqa: E402
+from orchestrator.scenario.wiring import TARGET  # noqa: E402
 from orchestrator.support.output import IMAGE, check_target, replacing  # noqa: E402
 from orchestrator.sweep.plot import PlotError  # noqa: E402
 from orchestrator.sweep.results import lookup, read_records  # noqa: E402  (the sweep folder's reading)
@@ -38,7 +43,11 @@ def measured_gain(config: Config, trace_path: Path) -> float:
     """The run's largest gain per link over its probe frequencies (geometric mean over the clean links)."""
     from orchestrator.trace import load
 
-    trace = load(trace_path)
+    # what the gains need: the vehicles and the target (gaps from positions), not the links or the errors, from
+    # a second before the first disturbance (the state recorded before it is the errors' baseline) on
+    first = min((d.start for d in config.disturbance), default=None)
+    trace = load(trace_path, components=[TARGET] + [f"vehicle{k}" for k in range(1, config.platoon.count + 1)],
+                 errors=False, start=None if first is None else max(0.0, first - 1.0))
     frequencies = probe_frequencies(config)
     order = clean_order(config, trace.vehicles())
     if not frequencies or len(order) < 2:
@@ -57,6 +66,7 @@ def _analytic(config: Config, delay: float, loss: float) -> tuple[float, float]:
 
 
 def _points(folder: Path) -> list[dict[str, Any]]:
+    """The sweep's runs (not the invalid ones) with where they sit, their config, and the trace to measure."""
     points = []
     for record in read_records(folder):
         if record["status"] == "invalid":
@@ -65,30 +75,91 @@ def _points(folder: Path) -> list[dict[str, Any]]:
         if any(value is None for value in where.values()):
             raise PlotError(f"run {record['id']}: no {', '.join(k for k, v in where.items() if v is None)} (not a "
                             "string-stability sweep: configs/sweeps/string_stability.toml)")
-        config = config_from_mapping(record["config"])
-        gain = math.nan
-        if record["status"] == "completed":
-            gain = measured_gain(config, folder / record["trace"])
-        points.append({**where, "gain": gain, "config": config})
+        trace = folder / record["trace"] if record["status"] == "completed" else None
+        points.append({**where, "gain": math.nan, "config": config_from_mapping(record["config"]),
+                       "raw": record["config"], "trace": trace})
     return points
 
 
-def draw_stability_map(folder: Path, png: Path, overwrite: bool = False, resolution: int = 11) -> Path:
+def _measure(raw: dict[str, Any], trace: Path) -> float:
+    """``measured_gain`` in a worker process (the config travels as its mapping)."""
+    return measured_gain(config_from_mapping(raw), trace)
+
+
+def _analytic_row(raw: dict[str, Any], delays: np.ndarray, loss: float) -> np.ndarray:
+    """``_analytic`` along the delays at one loss: rows (peaks, probes)."""
+    config = config_from_mapping(raw)
+    return np.array([_analytic(config, float(delay), loss) for delay in delays]).T
+
+
+def _grid(rows: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(peaks, probes) of one law, rows by loss, from its ``_analytic_row``s."""
+    stacked = np.array(rows)
+    return stacked[:, 0, :], stacked[:, 1, :]
+
+
+def _compute(points: list[dict[str, Any]], laws: list[str], delays: np.ndarray, losses: np.ndarray,
+             tick: Callable[[int], None] | None, workers: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Every point's measured gain (into the points) and each law's analytic grid, on ``workers`` processes:
+    the grids' rows (the longest tasks) first, then the traces, each a task; ``tick(done)`` counts both
+    as they finish (``tasks(points, laws, losses)`` of them)."""
+    first = {law: next(p for p in points if p[LAW] == law)["raw"] for law in laws}
+    measured = [p for p in points if p["trace"] is not None]
+    done = 0
+
+    def finished() -> None:
+        nonlocal done
+        done += 1
+        if tick is not None:
+            tick(done)
+
+    rows: dict[str, list[Any]] = {law: [] for law in laws}
+    if workers <= 1:
+        for law in laws:
+            for loss in losses:
+                rows[law].append(_analytic_row(first[law], delays, float(loss)))
+                finished()
+        for p in measured:
+            p["gain"] = measured_gain(p["config"], p["trace"])
+            finished()
+        return {law: _grid(rows[law]) for law in laws}
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
+        grid_tasks = {law: [pool.submit(_analytic_row, first[law], delays, float(loss)) for loss in losses] for law in laws}
+        tasks = {pool.submit(_measure, p["raw"], p["trace"]): p for p in measured}
+        for task in as_completed([*tasks, *(t for law_tasks in grid_tasks.values() for t in law_tasks)]):
+            if task in tasks:
+                tasks[task]["gain"] = task.result()
+            finished()
+        return {law: _grid([task.result() for task in law_tasks]) for law, law_tasks in grid_tasks.items()}
+
+
+def tasks(points: list[dict[str, Any]], laws: list[str], losses: np.ndarray) -> int:
+    """How many tasks ``_compute`` counts: a trace each, and a row of the analytic grid per law and loss."""
+    return sum(p["trace"] is not None for p in points) + len(laws) * len(losses)
+
+
+def draw_stability_map(folder: Path, png: Path, overwrite: bool = False, resolution: int = 11,
+                       progress: Callable[[int, int], Any] | None = None, workers: int | None = None) -> Path:
+    """Measure every trace of the sweep in ``folder`` and draw the map into ``png``. ``progress(traces, total)``
+    gives a context manager whose ``tick(done)`` counts the tasks done (a trace measured, a row of an
+    analytic grid: the CLI's bar or lines); ``workers`` processes share them (default: the usable CPUs)."""
     check_target(png, overwrite, [folder / "results.csv"], kind=IMAGE)  # before minutes of reading traces
     points = _points(folder)
     laws = list(dict.fromkeys(p[LAW] for p in points))
     delays = np.linspace(0.0, max(p[DELAY] for p in points), resolution)
     losses = np.linspace(0.0, max(p[LOSS] for p in points), resolution)
+    workers = workers if workers is not None else len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") \
+        else (os.cpu_count() or 1)
+    traces = sum(p["trace"] is not None for p in points)
+    with (progress(traces, tasks(points, laws, losses)) if progress is not None else nullcontext()) as tick:
+        grids = _compute(points, laws, delays, losses, tick, workers)
     figure, axes = plt.subplots(1, len(laws), figsize=(4.2 * len(laws) + 1.0, 4.2), dpi=120, squeeze=False,
                                 sharey=True, layout="constrained")
     norm = TwoSlopeNorm(vcenter=1.0, vmin=0.8, vmax=1.6)
     image = None
     for axis, law in zip(axes[0], laws):
         mine = [p for p in points if p[LAW] == law]
-        peaks, probes = np.empty((len(losses), len(delays))), np.empty((len(losses), len(delays)))
-        for i, loss in enumerate(losses):
-            for j, delay in enumerate(delays):
-                peaks[i, j], probes[i, j] = _analytic(mine[0]["config"], float(delay), float(loss))
+        peaks, probes = grids[law]
         image = axis.pcolormesh(delays, losses, np.clip(peaks, norm.vmin, norm.vmax), norm=norm, cmap="RdBu_r",
                                 shading="gouraud")
         if peaks.min() < 1.0 + 1e-12 < peaks.max():

@@ -4,16 +4,15 @@ from __future__ import annotations
 
 import csv
 import json
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 import numpy as np
-from mcap.data_stream import ReadDataStream
-from mcap.exceptions import McapError
 from mcap.reader import make_reader
-from mcap.records import Chunk, Message
-from mcap.stream_reader import breakup_chunk
+
+from .columns import NO_LIMIT, ChunkDecoder, JsonColumns, RawMessages, Slot, decode_chunks, message_counts
 
 from .format import (
     CHANNEL_PREFIX,
@@ -61,6 +60,8 @@ class Trace:
     topics: dict[str, TopicInfo] = field(default_factory=dict)
     # a live vehicle's raw link messages, by stream: "vehicle3/pose", "vehicle3/command", "vehicle3/link"
     live: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    # (start, end) in s when only that window was read (``load(start=, end=)``; None: an open end)
+    window: tuple[float | None, float | None] | None = None
 
     @property
     def config(self) -> dict[str, Any] | None:
@@ -78,36 +79,21 @@ class Trace:
         return vehicle_names(self.channels)
 
 
-def _flatten(record: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    flat: dict[str, Any] = {}
-    for key, value in record.items():
-        if isinstance(value, dict):
-            flat.update(_flatten(value, f"{prefix}{key}."))
-        else:
-            flat[prefix + key] = value
-    return flat
+def load(path: str | Path, *, components: Iterable[str] | Callable[[str], bool] | None = None, start: float | None = None,
+         end: float | None = None, errors: bool = True,
+         progress: Callable[[int, int], None] | None = None) -> Trace:
+    """Read a finished trace (CRCs checked) into numpy arrays, with its metadata, errors and log.
 
-
-def _columns(keys: list[str], rows: list[list[float]]) -> dict[str, np.ndarray]:
-    if not rows:
-        return {key: np.zeros(0) for key in keys}
-    array = np.asarray(rows, dtype=float)
-    return {key: array[:, i].copy() for i, key in enumerate(keys)}
-
-
-def load(path: str | Path) -> Trace:
-    """Read a finished trace (CRCs checked) into numpy arrays, with its metadata, errors and log."""
+    ``components`` (names such as ``vehicle3``, ``target``, or a test of a name; a live vehicle's streams
+    come with it) and ``errors=False`` leave channels out; ``start`` / ``end`` (s, inclusive) keep the messages logged in
+    that window, and only the chunks that hold them are read: a slice costs in proportion to the slice.
+    ``progress(done, total)`` is called after each chunk. The arrays are bit for bit what Python's json
+    reads from the messages (orchestrator/trace/columns.py says how they are read fast).
+    """
     path = Path(path)
+    window = _window(start, end)
     with open(path, "rb") as stream:
-        head = stream.read(len(MAGIC))
-        stream.seek(max(0, path.stat().st_size - len(MAGIC)))
-        tail = stream.read(len(MAGIC))
-        stream.seek(0)
-        if head != MAGIC:
-            raise TraceError("not an MCAP file (no MCAP magic at its start)")
-        if tail != MAGIC or path.stat().st_size < 2 * len(MAGIC) + FOOTER_LENGTH:
-            raise TraceError(f"unfinished MCAP file (no footer: the writing process was killed?); "
-                             f"recover its complete chunks with `platoon trace recover {path}`")
+        _check_ends(path, stream)
         reader = make_reader(stream, validate_crcs=True)
         try:
             summary = reader.get_summary()
@@ -122,89 +108,120 @@ def load(path: str | Path) -> Trace:
                                 ch.message_encoding, kinds[cid], counts.get(cid, 0))
             for cid, ch in summary.channels.items()
         }
-        wanted = [ch.topic for cid, ch in summary.channels.items() if kinds[cid] in ("component", "errors", "live") or ch.topic == LOG_TOPIC]
-        rows: dict[str, list[list[float]]] = {}
-        keys: dict[str, list[str]] = {}
-        error_rows: list[list[float]] = []
-        error_keys: list[str] = []
-        log: list[LogLine] = []
+        slots = _slots(summary, kinds, _chosen(summary, kinds, components), errors)
         try:
-            _read_messages(_in_file_order(reader, stream, summary, wanted), kinds, rows, keys, error_rows, error_keys, log)
-        except TraceError:
-            raise
-        except Exception as error:  # a chunk fails its CRC, cannot be decompressed, or a record is damaged
+            _decode_file(path, reader, summary, slots, window, progress)
+        except (TraceError, ValueError, TypeError, KeyError, OverflowError, struct.error) as error:  # a bad CRC, chunk, record or message
             raise TraceError(f"damaged MCAP file: a chunk does not check ({error}); recover every intact chunk "
                              f"with `platoon trace recover {path}`") from None
         metadata = {item.name: dict(item.metadata) for item in reader.iter_metadata()}
-    for cid, ch in summary.channels.items():  # a component with no message yet still appears, empty
-        if kinds[cid] == "component":
-            name = ch.topic[len(CHANNEL_PREFIX):]
-            if name not in rows:
-                schema = summary.schemas.get(ch.schema_id)
-                keys[name] = list(json.loads(schema.data)["properties"]) if schema is not None else ["t"]
-                rows[name] = []
-    channels = {name: _columns(keys[name], rows[name]) for name in rows if not name.startswith(LIVE_KEY)}
-    live = {name[len(LIVE_KEY):]: _columns(keys[name], rows[name]) for name in rows if name.startswith(LIVE_KEY)}
-    errors = _columns(error_keys, error_rows) if error_keys else {}
-    return Trace(path, channels, metadata, errors, log, topics, live)
+    return _assemble(path, summary, kinds, slots, metadata, topics, start, end)
 
 
-def _in_file_order(reader: Any, stream: Any, summary: Any, wanted: list[str]) -> Iterable[tuple[Any, Message]]:
-    """(channel, message) of the ``wanted`` topics, chunk by chunk in file order, each chunk's CRC checked.
+def _window(start: float | None, end: float | None) -> tuple[int, int]:
+    """The log-time window in ns (the writer's ``round(t * 1e9)``)."""
+    lo = 0 if start is None else max(0, round(start * 1e9))
+    hi = NO_LIMIT[1] if end is None else round(end * 1e9)
+    if hi < lo:
+        raise TraceError(f"the time window is empty: start {start} s is after end {end} s")
+    return lo, hi
 
-    Not mcap's ``iter_messages(log_time_order=True)``: its priority queue over every message was 40 % of
-    reading a trace, and a channel's messages are in time order in the file already (the writer, the trace
-    worker and recovery write them so); ``_read_messages`` puts any channel that is not back in order."""
+
+def _check_ends(path: Path, stream: Any) -> None:
+    size = path.stat().st_size
+    head = stream.read(len(MAGIC))
+    stream.seek(max(0, size - len(MAGIC)))
+    tail = stream.read(len(MAGIC))
+    stream.seek(0)
+    if head != MAGIC:
+        raise TraceError("not an MCAP file (no MCAP magic at its start)")
+    if tail != MAGIC or size < 2 * len(MAGIC) + FOOTER_LENGTH:
+        raise TraceError(f"unfinished MCAP file (no footer: the writing process was killed?); "
+                         f"recover its complete chunks with `platoon trace recover {path}`")
+
+
+def _component_of(topic: str) -> str:
+    """The component a channel belongs to: ``/platoon/vehicle3/pose`` -> ``vehicle3``."""
+    name = topic[len(CHANNEL_PREFIX):] if topic.startswith(CHANNEL_PREFIX) else topic
+    return name.split("/", 1)[0]
+
+
+def _chosen(summary: Any, kinds: dict[int, str],
+            components: Iterable[str] | Callable[[str], bool] | None) -> set[str] | None:
+    if components is None:
+        return None
+    present = {_component_of(ch.topic) for cid, ch in summary.channels.items() if kinds[cid] == "component"}
+    if callable(components):
+        return {name for name in present if components(name)}
+    chosen = set(components)
+    missing = sorted(chosen - present)
+    if missing:
+        raise TraceError(f"no component {', '.join(missing)} in this trace (it has {', '.join(sorted(present))})")
+    return chosen
+
+
+def _slots(summary: Any, kinds: dict[int, str], chosen: set[str] | None, errors: bool) -> dict[int, Slot]:
+    """The channels to read, each with where its messages go."""
+    slots: dict[int, Slot] = {}
+    capacities = summary.statistics.channel_message_counts if summary.statistics else {}
+    for cid, ch in summary.channels.items():
+        kind = kinds[cid]
+        if kind in ("component", "live") and (chosen is None or _component_of(ch.topic) in chosen):
+            name = ch.topic[len(CHANNEL_PREFIX):] if ch.topic.startswith(CHANNEL_PREFIX) else ch.topic
+            slots[cid] = JsonColumns(LIVE_KEY + name if kind == "live" else name, False, capacities.get(cid, 1024))
+        elif kind == "errors" and errors:
+            slots[cid] = JsonColumns(ch.topic, True, capacities.get(cid, 1024))
+        elif ch.topic == LOG_TOPIC:
+            slots[cid] = RawMessages(ch.topic)
+    return slots
+
+
+def _decode_file(path: Path, reader: Any, summary: Any, slots: dict[int, Slot], window: tuple[int, int],
+                 progress: Callable[[int, int], None] | None) -> None:
+    decoder = ChunkDecoder(slots, window)
     if not summary.chunk_indexes:  # messages outside chunks (another writer's file): mcap reads them linearly
-        yield from ((channel, message) for _, channel, message in reader.iter_messages(topics=wanted))
+        topics = [summary.channels[cid].topic for cid in slots]
+        for _, channel, message in reader.iter_messages(topics=topics, log_time_order=False):
+            decoder.message(channel.id, message.log_time, message.data)
         return
-    topics = set(wanted)
-    for index in sorted(summary.chunk_indexes, key=lambda chunk: chunk.chunk_start_offset):
-        stream.seek(index.chunk_start_offset + 1 + 8)  # past the record's opcode and length
-        for record in breakup_chunk(Chunk.read(ReadDataStream(stream)), validate_crc=True):
-            if isinstance(record, Message):
-                channel = summary.channels[record.channel_id]
-                if channel.topic in topics:
-                    yield channel, record
+    chunks = [chunk for chunk in sorted(summary.chunk_indexes, key=lambda chunk: chunk.chunk_start_offset)
+              if chunk.message_end_time >= window[0] and chunk.message_start_time <= window[1]
+              and (not chunk.message_index_offsets or any(c in slots for c in chunk.message_index_offsets))]
+    if window != NO_LIMIT and all(chunk.message_index_offsets for chunk in chunks):
+        wanted = [cid for cid, slot in slots.items() if isinstance(slot, JsonColumns)]
+        for cid, count in message_counts(str(path), chunks, wanted).items():
+            slots[cid].capacity = count
+    decode_chunks(str(path), [chunk.chunk_start_offset for chunk in chunks], decoder, progress)
 
 
-def _read_messages(messages: Iterable[tuple[Any, Message]], kinds: dict[int, str], rows: dict[str, list[list[float]]],
-                   keys: dict[str, list[str]], error_rows: list[list[float]], error_keys: list[str],
-                   log: list[LogLine]) -> None:
-    """Decode the wanted channels' messages into the row and log lists, each channel's in log-time order
-    (ties in file order: what mcap's log-time order gives)."""
-    times: dict[int, list[int]] = {}  # per channel, its messages' log times, in the order read
-    lists: dict[int, list[Any]] = {}  # per channel, the list its messages went to
-    for channel, message in messages:
-        times.setdefault(channel.id, []).append(message.log_time)
-        kind = kinds[channel.id]
-        if kind in ("component", "live"):
-            name = channel.topic[len(CHANNEL_PREFIX):] if channel.topic.startswith(CHANNEL_PREFIX) else channel.topic
-            if kind == "live":
-                name = LIVE_KEY + name
-            record = json.loads(message.data)
-            if name not in keys:
-                keys[name] = list(record)
-                rows[name] = []
-            lists[channel.id] = rows[name]
-            rows[name].append([record[k] for k in keys[name]])
-        elif kind == "errors":
-            record = _flatten(json.loads(message.data))
-            if not error_keys:
-                error_keys.extend(record)
-            lists[channel.id] = error_rows
-            error_rows.append([record[k] for k in error_keys])
-        elif channel.topic == LOG_TOPIC:
-            lists[channel.id] = log
-            log.append(decode_log(message.data))
-    for channel_id, read in times.items():
-        if any(later < earlier for earlier, later in zip(read, read[1:])):
-            order = np.argsort(np.asarray(read), kind="stable")
-            lists[channel_id][:] = [lists[channel_id][i] for i in order]
+def _assemble(path: Path, summary: Any, kinds: dict[int, str], slots: dict[int, Slot],
+              metadata: dict[str, dict[str, str]], topics: dict[str, TopicInfo],
+              start: float | None, end: float | None) -> Trace:
+    channels: dict[str, dict[str, np.ndarray]] = {}
+    live: dict[str, dict[str, np.ndarray]] = {}
+    errors: dict[str, np.ndarray] = {}
+    log: list[LogLine] = []
+    json_slots = sorted((slot for slot in slots.values() if isinstance(slot, JsonColumns) and slot.values is not None),
+                        key=lambda slot: slot.order)
+    for slot in json_slots:
+        if slot.nested:
+            errors = slot.columns()
+        elif slot.name.startswith(LIVE_KEY):
+            live[slot.name[len(LIVE_KEY):]] = slot.columns()
+        else:
+            channels[slot.name] = slot.columns()
+    for cid, slot in slots.items():  # a component with no message (in the window) still appears, empty
+        if isinstance(slot, JsonColumns) and slot.values is None and kinds[cid] == "component":
+            schema = summary.schemas.get(summary.channels[cid].schema_id)
+            keys = list(json.loads(schema.data)["properties"]) if schema is not None else ["t"]
+            channels[slot.name] = {key: np.zeros(0) for key in keys}
+        elif isinstance(slot, RawMessages):
+            log = [decode_log(data) for _, data in slot.ordered()]
+    window = None if start is None and end is None else (start, end)
+    return Trace(path, channels, metadata, errors, log, topics, live, window)
 
 
 LIVE_KEY = "\0live:"  # keeps live streams apart from components while reading (no topic holds a NUL)
-
 
 _LEVELS = {0: "Unknown", 1: "Debug", 2: "Info", 3: "Warning", 4: "Error", 5: "Fatal"}
 

@@ -2,7 +2,8 @@
 writer raises, the error for a non-finite output, and the writer that records nothing.
 
 A run whose trace is encoded in a worker process (orchestrator/trace/worker.py) never imports
-``writer`` (mcap, zstandard) in the stepping process: start-up (issue 31) counts every import.
+``writer`` (mcap, zstandard) in the stepping process: a run's start-up counts every import
+(a sweep is made of short runs: docs/performance.md, "Start-up").
 ``writer`` re-exports these names.
 """
 

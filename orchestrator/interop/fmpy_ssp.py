@@ -1,5 +1,9 @@
-"""FMPy's SSP runner (``fmpy.ssp.simulation.simulate_ssp``, FMPy 0.3.32) on an exported package, with the
-two fixes it needs (docs/fmus.md, "Run the whole platoon in another tool", quotes this file).
+"""Run an exported SSP package (`platoon export-ssp`) in FMPy's own SSP runner
+(``fmpy.ssp.simulation.simulate_ssp``, FMPy 0.3.32), with the fixes it needs: ``simulate_ssp`` here.
+
+A supported helper of the package, not a test aid: FMPy is what a user most likely has at hand to run
+an SSP, and as is its runner cannot run ours (docs/fmus.md, "Run the whole platoon in another tool",
+"In FMPy"; tests/test_ssp.py checks this against our own run, and notices when FMPy fixes it itself).
 
 As is, simulate_ssp cannot run the platoon:
 

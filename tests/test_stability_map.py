@@ -1,0 +1,82 @@
+"""`platoon stability-map` on several processes draws what one process draws, and says what it does while
+it works (it reads every trace of a sweep and solves the analysis on a grid: long enough to look hung)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from orchestrator.observers.progress import late_progress
+from orchestrator.sweep.stability_map import draw_stability_map
+
+REPO = Path(__file__).resolve().parents[1]
+PLATOON = Path(sys.executable).parent / "platoon"
+
+
+def env() -> dict[str, str]:
+    out = {**os.environ, "COLUMNS": "120", "NO_COLOR": "1", "TERM": "dumb", "PLATOON_PROGRESS_SECONDS": "0"}
+    out.pop("FORCE_COLOR", None)
+    return out
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory: pytest.TempPathFactory, fmu_dir: Path) -> Path:
+    """Four runs of the study (paper and cacc, delays 0 and 0.3 s, no loss), as the docs' cut-short sweep."""
+    folder = tmp_path_factory.mktemp("map")
+    spec = folder / "sweep.toml"
+    spec.write_text(f'base = "{REPO / "configs" / "study" / "string_stability.toml"}"\n[set]\n'
+                    '"simulation.trace_every" = 5\n[grid]\n"platoon.speed_law" = ["paper", "cacc"]\n'
+                    '"links.delay" = [0.0, 0.3]\n"links.loss" = [0.0]\n')
+    done = subprocess.run([str(PLATOON), "sweep", str(spec), "--out", str(folder / "out"), "-q"], cwd=REPO, env=env(),
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    return folder / "out"
+
+
+def test_the_map_on_two_processes_is_the_map_on_one(sweep: Path, tmp_path: Path) -> None:
+    ticks: dict[int, list[int]] = {}
+
+    def progress(workers: int):
+        def shown(traces: int, total: int):
+            assert traces == 4 and total == 4 + 2 * 3  # 4 traces; 2 laws x 3 losses (the grid's resolution)
+            ticks[workers] = []
+            from contextlib import nullcontext
+            return nullcontext(ticks[workers].append)
+        return shown
+
+    one = draw_stability_map(sweep, tmp_path / "one.png", resolution=3, progress=progress(1), workers=1)
+    two = draw_stability_map(sweep, tmp_path / "two.png", resolution=3, progress=progress(2), workers=2)
+    assert one.read_bytes() == two.read_bytes()
+    assert ticks[1] == ticks[2] == list(range(1, 11))
+
+
+def test_the_command_says_what_it_measures_as_it_goes(sweep: Path, tmp_path: Path) -> None:
+    done = subprocess.run([str(PLATOON), "stability-map", str(sweep), "--out", str(tmp_path / "map.png")], cwd=REPO,
+                          env=env(), capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    lines = done.stderr.splitlines()
+    assert lines[0].startswith(f"stability-map: measuring 4 traces of {sweep} and computing the analytic maps ("), lines
+    assert lines[-1].startswith("stability-map: 100% (") and "tasks)" in lines[-1], lines
+    assert done.stdout.strip() == f"wrote {tmp_path / 'map.png'}"
+
+
+def test_a_late_progress_shows_only_work_that_takes_long(tmp_path: Path, monkeypatch) -> None:
+    """A read done within its delay prints nothing; one that takes longer prints its progress lines."""
+    from rich.console import Console
+
+    monkeypatch.setenv("PLATOON_PROGRESS_SECONDS", "0")
+    quick = tmp_path / "quick.txt"
+    with open(quick, "w") as stream, late_progress("reading x.mcap", Console(file=stream), "chunks", after=3600.0) as tick:
+        for done in range(1, 11):
+            tick(done, 10)
+    assert quick.read_text() == ""
+    slow = tmp_path / "slow.txt"
+    with open(slow, "w") as stream, late_progress("reading x.mcap", Console(file=stream), "chunks", after=0.0) as tick:
+        for done in range(1, 11):
+            tick(done, 10)
+    lines = slow.read_text().splitlines()
+    assert lines[0].startswith("reading x.mcap: 10% (1/10 chunks)") and lines[-1].startswith("reading x.mcap: 100% (10/10")
