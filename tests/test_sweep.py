@@ -445,6 +445,7 @@ def test_bench_sweep_bookkeeping_measures_each_size_and_the_first_run(tmp_path: 
     data = written(result, tmp_path, "sweep-bookkeeping")
     assert [r["points"] for r in data["sizes"]] == [10, 30] and [r["points"] for r in data["references"]] == [10, 10]
     assert all(r["per_run"] > 0 and r["cpu_per_run"] > 0 and r["peak_rss_mib"] > 0 for r in data["sizes"])
+    assert all(0 < r["runs_peak_rss_mib"] <= r["peak_rss_mib"] for r in data["sizes"])  # the runs', then the end's
     assert data["first_run_points"] == 1000 and data["first_run_after"] > 0
     assert "ratio largest/smallest" in result.stdout and "first run of a 1,000-point sweep" in result.stdout
 

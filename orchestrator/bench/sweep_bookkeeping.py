@@ -42,6 +42,7 @@ class _Instant:
         self.first: float | None = None
         self.stop_after = stop_after
         self.stopped = False
+        self.runs_peak_kib: int | None = None  # peak RSS once every run is committed, before the end's tables
 
     def outcomes(self, jobs: Iterator[Any]) -> Iterator[tuple[Any, dict[str, Any]]]:
         placeholder = bytes(TRACE_BYTES)
@@ -52,7 +53,8 @@ class _Instant:
                 trace.write(placeholder)
             yield job, {"status": "completed", "wall_time": 0.0, "metrics": {"last.path_offset": 0.0}}
             if self.stopped or (self.stop_after is not None and number >= self.stop_after):
-                return
+                break
+        self.runs_peak_kib = _peak_rss_kib()  # the runner asked for more: the last run is committed
 
     def stop(self) -> None:  # SIGINT or SIGTERM (run_sweep's handler): no more runs
         self.stopped = True
@@ -81,8 +83,9 @@ def _sweep_file(folder: Path, points: int, random_draws: bool) -> Path:
     return path
 
 
-def _sweep(folder: Path, points: int, stop_after: int | None = None) -> tuple[float, float]:
-    """(wall time of the whole sweep, time from reading its file to its first run handed out)."""
+def _sweep(folder: Path, points: int, stop_after: int | None = None) -> tuple[float, float, int | None]:
+    """(wall time of the whole sweep, time from reading its file to its first run handed out, peak RSS in
+    KiB once every run was committed: before the tables are rebuilt at the end)."""
     from orchestrator.sweep.plan import count, runs, value_columns
     from orchestrator.sweep.runner import run_sweep
     from orchestrator.sweep.spec import load_sweep
@@ -95,7 +98,7 @@ def _sweep(folder: Path, points: int, stop_after: int | None = None) -> tuple[fl
     # allow_full_disk: 10^6 runs' traces would not fit on most disks; the estimate is made all the same
     run_sweep(runs(spec), count(spec), OutputFolder(folder / f"out-{points}"), executor, folder, _Quiet(),
               varied=value_columns(spec), allow_full_disk=True)
-    return time.perf_counter() - started, (executor.first or started) - started
+    return time.perf_counter() - started, (executor.first or started) - started, executor.runs_peak_kib
 
 
 def _peak_rss_kib() -> int:
@@ -128,10 +131,11 @@ def measure(points: int, first_run_only: bool = False) -> dict[str, Any]:
         cpu = time.process_time()
         folder = Path(scratch) / "measured"
         folder.mkdir()
-        wall, first = _sweep(folder, points, stop_after=1 if first_run_only else None)
+        wall, first, runs_peak = _sweep(folder, points, stop_after=1 if first_run_only else None)
         cpu = time.process_time() - cpu
     return {"points": points, "wall_time": wall, "per_run": wall / points, "cpu_per_run": cpu / points,
-            "first_run_after": first, "rss_before_mib": before_rss / 1024, "peak_rss_mib": _peak_rss_kib() / 1024}
+            "first_run_after": first, "rss_before_mib": before_rss / 1024, "peak_rss_mib": _peak_rss_kib() / 1024,
+            "runs_peak_rss_mib": runs_peak / 1024 if runs_peak is not None else None}
 
 
 def run(sizes: list[int], first_run_points: int, progress: Progress | None = None) -> dict[str, Any]:
@@ -161,12 +165,17 @@ def run(sizes: list[int], first_run_points: int, progress: Progress | None = Non
             "first_run_peak_rss_mib": first["peak_rss_mib"] if first else None}
 
 
+def _mib(value: float | None) -> str:
+    return "" if value is None else f"{value:.0f}"
+
+
 def render(result: dict[str, Any]) -> str:
     base = result["sizes"][0]
-    table = markdown_table(("points", "wall s", "ms per run", "vs smallest", "CPU ms per run", "peak RSS MiB"),
+    table = markdown_table(("points", "wall s", "ms per run", "vs smallest", "CPU ms per run", "peak RSS MiB",
+                            "of which the runs"),
                            [(f"{r['points']:,}", f"{r['wall_time']:.2f}", f"{1e3 * r['per_run']:.3f}",
                              f"{r['per_run'] / base['per_run']:.2f}", f"{1e3 * r['cpu_per_run']:.3f}",
-                             f"{r['peak_rss_mib']:.0f}") for r in result["sizes"]])
+                             f"{r['peak_rss_mib']:.0f}", _mib(r.get("runs_peak_rss_mib"))) for r in result["sizes"]])
     repeats = ", ".join(f"{1e3 * r['per_run']:.3f}" for r in result["references"])
     first = (f"\nfirst run of a {result['first_run_points']:,}-point sweep handed out after "
              f"{result['first_run_after']:.3f} s (peak RSS {result['first_run_peak_rss_mib']:.0f} MiB)"
