@@ -81,13 +81,19 @@ def check_inputs_outside(root: Path, inputs: Iterable[Path], what: str = "--out"
     """Refuse the sweep folder ``root`` when one of the sweep's ``inputs`` (its sweep file, its base config)
     is one of the files the sweep writes there (results.csv, .lock, a result or a trace): by name, hard
     link or symlink. The sweep would write over what it reads."""
-    files = {identity(path): str(path.relative_to(root)) for path in folder_files(root)}
-    files.pop(None, None)
+    inputs = [Path(given) for given in inputs]
     for given in inputs:
-        own = _own_name(given, root) or files.get(identity(Path(given)))
+        own = _own_name(given, root)
         if own is not None:
             raise OutputError(f"{what} {root}: its {own} would be {given}, which this command reads; choose another "
                               f"folder")
+    wanted = {identity(given): given for given in inputs}
+    wanted.pop(None, None)
+    for path in folder_files(root):  # streamed: a folder of 10^5 runs is as cheap in memory as an empty one
+        given = wanted.get(identity(path))
+        if given is not None:
+            raise OutputError(f"{what} {root}: its {path.relative_to(root)} would be {given}, which this command "
+                              f"reads; choose another folder")
 
 
 def _own_name(path: Path, root: Path) -> str | None:
