@@ -73,7 +73,7 @@ def loss_weights(loss: float, burst: float) -> tuple[float, ...]:
         r = 1.0 / burst
         q = loss * r / (1.0 - loss)
         norm = 1.0 + q / r
-        head, first, ratio = [1.0 / norm], q * r / norm, 1.0 - r
+        head, first, ratio = [1.0 / norm], q / norm, 1.0 - r
     weights, term = list(head), first
     while term > _TAIL or len(weights) < 2:
         weights.append(term)
@@ -150,6 +150,7 @@ class Lifted:
     def __init__(self, w: np.ndarray, step: float, period: int) -> None:
         self.w, self.h, self.p = np.asarray(w, dtype=float), step, period
         self.zeta = np.exp(1j * self.w * period * step)
+        self._memo: dict[tuple, list[np.ndarray]] = {}
 
     def zero(self) -> np.ndarray:
         return np.zeros((len(self.w), 6 * self.p), dtype=complex)
@@ -167,9 +168,25 @@ class Lifted:
         return [(p, newest - j * timing.every, (k - newest + j * timing.every) * self.h)
                 for j, p in enumerate(timing.weights)]
 
+    def _shifted(self, build, owner: str, timing: Timing, k: int, extrapolate: bool) -> list[np.ndarray]:
+        """``build``'s rows for step k from those of step k mod P: one period later every sample is one
+        period later, so the rows are the same times e^{j w P h} (computed once per step of the period)."""
+        turns, first = divmod(k, self.p)
+        key = (build.__name__, owner, timing, first, extrapolate)
+        if key not in self._memo:
+            self._memo[key] = build(owner, timing, first, extrapolate)
+        return [row * self.zeta[:, None] ** turns for row in self._memo[key]]
+
     def position(self, owner: str, timing: Timing, k: int, extrapolate: bool) -> list[np.ndarray]:
         """The sender's position as seen over step k, as rows of tau^0, tau^1, tau^2 (along its speed and
         speed rate when extrapolating: x + V (D + tau) + V' (D + tau)^2 / 2, D the sample's age at t_k)."""
+        return self._shifted(self._position, owner, timing, k, extrapolate)
+
+    def speed(self, owner: str, timing: Timing, k: int, extrapolate: bool) -> list[np.ndarray]:
+        """The sender's speed as seen over step k: rows of tau^0, tau^1 (V + V' (D + tau), or V held)."""
+        return self._shifted(self._speed, owner, timing, k, extrapolate)
+
+    def _position(self, owner: str, timing: Timing, k: int, extrapolate: bool) -> list[np.ndarray]:
         rows = [self.zero(), self.zero(), self.zero()]
         for p, b, age in self.samples(timing, k):
             x, v, a = (self.unit(owner, kind, b) for kind in KINDS)
@@ -181,8 +198,7 @@ class Lifted:
             rows[2] += p * 0.5 * a
         return rows
 
-    def speed(self, owner: str, timing: Timing, k: int, extrapolate: bool) -> list[np.ndarray]:
-        """The sender's speed as seen over step k: rows of tau^0, tau^1 (V + V' (D + tau), or V held)."""
+    def _speed(self, owner: str, timing: Timing, k: int, extrapolate: bool) -> list[np.ndarray]:
         rows = [self.zero(), self.zero()]
         for p, b, age in self.samples(timing, k):
             v, a = self.unit(owner, "speed", b), self.unit(owner, "rate", b)
