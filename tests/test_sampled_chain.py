@@ -106,3 +106,18 @@ def test_the_cacc_delay_boundary_is_where_runs_start_to_grow(native_fmu_dir, tmp
         result = run_scenario(run, "", tmp_path / f"{delay}.mcap", foxglove=False)
         assert result.status == "completed", result.error
         assert (_largest_clean_gain(run, load(result.trace)) > 1.0) == grows
+
+
+def test_the_maps_scale_spends_its_range_above_1_and_its_axis_gives_the_age_of_information():
+    """docs/string_stability.png: no peak is below 1 (every chain passes w -> 0 unchanged), so the colour
+    scale gives 1 to the highest peak nearly all its colours; a tick names the delay and the ages it gives
+    the receiver (a Link is one more hop under Jacobi: 0.02 s at delay 0, plus a 0.1 s beacon period)."""
+    from orchestrator.sweep.stability_map import age_label, colour_scale
+
+    norm, cmap = colour_scale(1.5)
+    below = [cmap(norm(g)) for g in np.linspace(0.98, 0.999, 5)]
+    above = [cmap(norm(g)) for g in np.linspace(1.001, 1.5, 50)]
+    assert norm(1.0) < 0.05  # under 5 % of the scale below 1
+    assert all(c[2] > c[0] for c in below) and all(c[0] >= c[2] for c in above)  # blue below 1, red above
+    config, _ = load_config(STUDY, [])
+    assert age_label(config, 0.0) == "0\n0.02-0.12" and age_label(config, 0.3) == "0.3\n0.3-0.4"
