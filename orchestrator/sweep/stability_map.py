@@ -145,7 +145,8 @@ def _panel(axis, mine: list[dict[str, Any]], grid: tuple[np.ndarray, np.ndarray,
         colour = "white" if math.isnan(gain) else cmap(norm(min(max(gain, norm.vmin), norm.vmax)))
         axis.scatter(p[DELAY], p[LOSS], s=70, color=colour, edgecolors="black", zorder=3)
         label = "failed" if math.isnan(gain) else f"{gain:.3f}"
-        axis.annotate(label, (p[DELAY], p[LOSS]), textcoords="offset points", xytext=(0, 7), ha="center", fontsize=6)
+        axis.annotate(label, (p[DELAY], p[LOSS]), textcoords="offset points", xytext=(0, 8), ha="center", fontsize=6,
+                      bbox={"boxstyle": "round,pad=0.1", "facecolor": "white", "alpha": 0.8, "linewidth": 0})
     ticks = sorted({p[DELAY] for p in mine})
     axis.set_xticks(ticks, [age_label(mine[0]["config"], t) for t in ticks], fontsize=6)
     return image
