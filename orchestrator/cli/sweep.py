@@ -178,9 +178,11 @@ def stability_map(
 
     try:
         with output_rule():
-            path = draw_stability_map(out_dir, png or out_dir / "stability.png", overwrite, progress=shown)
+            path, agreement = draw_stability_map(out_dir, png or out_dir / "stability.png", overwrite, progress=shown)
     except ValueError as error:  # a PlotError, a ResultsError, a config the analysis refuses
         fail(2, str(error))
+    for line in agreement:
+        out.print(line, highlight=False, soft_wrap=True)
     out.print(f"wrote {path}", highlight=False, soft_wrap=True)
 
 
