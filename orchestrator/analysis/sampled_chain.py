@@ -151,16 +151,24 @@ class Lifted:
         self.w, self.h, self.p = np.asarray(w, dtype=float), step, period
         self.zeta = np.exp(1j * self.w * period * step)
         self._memo: dict[tuple, list[np.ndarray]] = {}
+        self._powers: dict[int, np.ndarray] = {}  # zeta**turns, by turns (read only)
 
     def zero(self) -> np.ndarray:
         return np.zeros((len(self.w), 6 * self.p), dtype=complex)
 
     def unit(self, owner: str, kind: str, m: int) -> np.ndarray:
         row = self.zero()
-        turns, instant = divmod(m, self.p)
-        column = (0 if owner == "sender" else 3 * self.p) + 3 * instant + KINDS.index(kind)
-        row[:, column] = self.zeta**turns
+        column, phase = self.place(owner, kind, m)
+        row[:, column] = phase
         return row
+
+    def place(self, owner: str, kind: str, m: int) -> tuple[int, np.ndarray]:
+        """Where ``unit``'s one non-zero column is, and its value: rows are built column by column from
+        these (a whole row per sample cost most of a map's analysis), to the same bits."""
+        turns, instant = divmod(m, self.p)
+        if turns not in self._powers:
+            self._powers[turns] = self.zeta**turns
+        return (0 if owner == "sender" else 3 * self.p) + 3 * instant + KINDS.index(kind), self._powers[turns]
 
     def samples(self, timing: Timing, k: int) -> list[tuple[float, int, float]]:
         """(probability, beacon instant, its age at t_k) of the sample a receiver uses over step k."""
@@ -175,7 +183,8 @@ class Lifted:
         key = (build.__name__, owner, timing, first, extrapolate)
         if key not in self._memo:
             self._memo[key] = build(owner, timing, first, extrapolate)
-        return [row * self.zeta[:, None] ** turns for row in self._memo[key]]
+        factor = self.zeta[:, None] ** turns
+        return [row * factor for row in self._memo[key]]
 
     def position(self, owner: str, timing: Timing, k: int, extrapolate: bool) -> list[np.ndarray]:
         """The sender's position as seen over step k, as rows of tau^0, tau^1, tau^2 (along its speed and
@@ -187,24 +196,29 @@ class Lifted:
         return self._shifted(self._speed, owner, timing, k, extrapolate)
 
     def _position(self, owner: str, timing: Timing, k: int, extrapolate: bool) -> list[np.ndarray]:
+        # per sample: p (x + age v + age^2/2 a), p (v + age a), p a/2 over unit rows x, v, a
         rows = [self.zero(), self.zero(), self.zero()]
         for p, b, age in self.samples(timing, k):
-            x, v, a = (self.unit(owner, kind, b) for kind in KINDS)
+            (x, phase), (v, _), (a, _) = (self.place(owner, kind, b) for kind in KINDS)
+            rows[0][:, x] += p * phase
             if not extrapolate:
-                rows[0] += p * x
                 continue
-            rows[0] += p * (x + age * v + 0.5 * age * age * a)
-            rows[1] += p * (v + age * a)
-            rows[2] += p * 0.5 * a
+            rows[0][:, v] += p * (age * phase)
+            rows[0][:, a] += p * (0.5 * age * age * phase)
+            rows[1][:, v] += p * phase
+            rows[1][:, a] += p * (age * phase)
+            rows[2][:, a] += p * 0.5 * phase
         return rows
 
     def _speed(self, owner: str, timing: Timing, k: int, extrapolate: bool) -> list[np.ndarray]:
+        # per sample: p (v + age a) (or p v, held), p a over unit rows v, a
         rows = [self.zero(), self.zero()]
         for p, b, age in self.samples(timing, k):
-            v, a = self.unit(owner, "speed", b), self.unit(owner, "rate", b)
-            rows[0] += p * (v + age * a if extrapolate else v)
+            (v, phase), (a, _) = self.place(owner, "speed", b), self.place(owner, "rate", b)
+            rows[0][:, v] += p * phase
             if extrapolate:
-                rows[1] += p * a
+                rows[0][:, a] += p * (age * phase)
+                rows[1][:, a] += p * phase
         return rows
 
 
@@ -217,15 +231,29 @@ def _gap_message(lift: Lifted, v: Vehicle, k: int) -> list[np.ndarray]:
     (``comm``) and extrapolates them linearly, or holds them."""
     rows = [lift.zero(), lift.zero()]
     for p, b, age in lift.samples(v.comm, k):
-        seen = lift.position("self", v.gap_link, b - 1, v.extrapolate)
-        seen_speed = lift.speed("self", v.gap_link, b - 1, v.extrapolate)
-        h = lift.h
-        gap = seen[0] + h * seen[1] + h * h * seen[2] - lift.unit("sender", "x", b)
-        rate = seen_speed[0] + h * seen_speed[1] - lift.unit("sender", "speed", b)
+        gap, rate = _sent_gap(lift, v, b)
         rows[0] += p * (gap + age * rate if v.extrapolate else gap)
         if v.extrapolate:
             rows[1] += p * rate
     return rows
+
+
+def _sent_gap(lift: Lifted, v: Vehicle, b: int) -> tuple[np.ndarray, np.ndarray]:
+    """The gap and its rate the follower sends at beacon instant b (rows; not to be changed in place).
+    Computed once per instant: every step whose sample is beacon b uses the same rows."""
+    key = ("sent gap", v.gap_link, b, v.extrapolate)
+    if key not in lift._memo:
+        seen = lift.position("self", v.gap_link, b - 1, v.extrapolate)
+        seen_speed = lift.speed("self", v.gap_link, b - 1, v.extrapolate)
+        h = lift.h
+        gap = seen[0] + h * seen[1] + h * h * seen[2]
+        rate = seen_speed[0] + h * seen_speed[1]
+        (x_column, phase), (speed_column, _) = lift.place("sender", "x", b), lift.place("sender", "speed", b)
+        gap[:, x_column] -= phase  # minus the sender's unit rows x and speed at b
+        rate[:, speed_column] -= phase
+        lift._memo[key] = [gap, rate]
+    gap, rate = lift._memo[key]
+    return gap, rate
 
 
 def forcing(lift: Lifted, v: Vehicle) -> dict[int, list[np.ndarray]]:
