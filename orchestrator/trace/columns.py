@@ -4,7 +4,8 @@
 which chunks hold the wanted channels in the wanted time window (the chunk indexes), how many messages
 each channel will give (the statistics, or for a window the message indexes of the chunks it touches),
 so every column is allocated once at its final size and each value is written into it where it belongs.
-Then each chunk is decompressed (on a second thread, ahead of the decoding: zstd releases the GIL) and
+Then each chunk is read and decompressed (the next two on threads of their own, ahead of the decoding:
+zstd releases the GIL) and
 its records walked by the C decoder (orchestrator/trace/native_decoder.c), which writes every number of
 a message straight into its column; whatever it cannot read exactly as Python's json does it hands back,
 and Python's json reads that. Without the C decoder (no C compiler at install time) the same plan is
