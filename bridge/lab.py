@@ -145,7 +145,7 @@ def make_host_certificate(ca_key: ec.EllipticCurvePrivateKey, ca: x509.Certifica
     return key, certificate
 
 
-def _pem(item: Any) -> bytes:
+def pem(item: Any) -> bytes:
     if isinstance(item, x509.Certificate):
         return item.public_bytes(serialization.Encoding.PEM)
     return item.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
@@ -215,7 +215,7 @@ def load_ca(certificate_pem: bytes, key_pem: bytes, where: str) -> tuple[ec.Elli
 def host_file(lab: Lab, host: str, ca_key: ec.EllipticCurvePrivateKey, ca: x509.Certificate, days: int) -> bytes:
     """The whole ``<host>.json5``: a new key and certificate for ``host``, its Zenoh config around them."""
     key, certificate = make_host_certificate(ca_key, ca, host, lab.addresses.get(host, []), days)
-    config = zenoh_lab_config(lab, host, _pem(ca), _pem(certificate), _pem(key))
+    config = zenoh_lab_config(lab, host, pem(ca), pem(certificate), pem(key))
     header = (f"// Zenoh config of lab host {host!r} (platoon hil-certs): mutual TLS and access control.\n"
               "// Holds this host's private key: copy it to that host only. docs/hil.md, \"A secure lab\".\n")
     return (header + json.dumps(config, indent=2) + "\n").encode()

@@ -180,7 +180,9 @@ def test_report_json(completed_run, workdir: Path) -> None:
     result = platoon("report", trace, "--json", cwd=workdir)
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
-    assert list(report) == ["trace", "law", "status", "units", "steady_window", "path_error_max_interval", "vehicles"]
+    assert list(report) == ["trace", "law", "status", "units", "steady_window", "path_error_max_interval", "vehicles",
+                            "links"]
+    assert report["links"] == []  # the paper's platoon has no communication links
     assert [v["name"] for v in report["vehicles"]] == VEHICLES
     for vehicle in report["vehicles"]:
         assert set(vehicle) == SUMMARY_KEYS

@@ -20,8 +20,8 @@ import pytest
 import zenoh
 from cryptography import x509
 
-from bridge.lab import Lab, make_ca, make_host_certificate, zenoh_lab_config, _pem
-from orchestrator.cli.hil_certs import write_lab
+from bridge.lab import Lab, make_ca, make_host_certificate, pem, zenoh_lab_config
+from orchestrator.support.lab_files import write_lab
 from bridge.session import SessionError, open_session, zenoh_config
 from orchestrator.bench.hil import free_port
 from orchestrator.trace import load
@@ -122,7 +122,7 @@ def _outsiders(folder: Path, tls: str) -> list[tuple[str, object]]:
     foreign_key, foreign_ca = make_ca(1, "not the lab")
     key, certificate = make_host_certificate(foreign_key, foreign_ca, "laptop", [], 1)
     impostor = folder / "impostor.json5"
-    impostor.write_text(json.dumps(zenoh_lab_config(LAB, "laptop", _pem(foreign_ca), _pem(certificate), _pem(key))))
+    impostor.write_text(json.dumps(zenoh_lab_config(LAB, "laptop", pem(foreign_ca), pem(certificate), pem(key))))
     port = tls.rsplit(":", 1)[1]
     return [("plain tcp", zenoh_config(connect=[f"tcp/127.0.0.1:{port}"])),
             ("tls without a certificate", zenoh_config(connect=[tls])),
@@ -232,11 +232,11 @@ def test_hil_certs_refuses_a_folder_others_can_write_and_rewrites_an_open_key_fi
     shared.chmod(0o777)  # as /tmp/lab made by another user would let them swap the CA
     made = hil_certs(shared)
     assert made.returncode == 2 and "others may write in it" in made.stderr and list(shared.iterdir()) == []
-    from orchestrator.cli.hil_certs import _own_group
+    from orchestrator.support.lab_files import own_group
 
     shared.chmod(0o770)  # group-writable: fine only if the group is the user's own private group (umask 002)
     grouped = hil_certs(shared)
-    assert grouped.returncode == (0 if _own_group(shared.stat().st_gid) else 2), grouped.stderr
+    assert grouped.returncode == (0 if own_group(shared.stat().st_gid) else 2), grouped.stderr
     folder = tmp_path / "lab"
     assert hil_certs(folder).returncode == 0
     (folder / "laptop.json5").chmod(0o644)

@@ -133,13 +133,14 @@ def amplitude_ratios(errors: dict[str, dict[str, np.ndarray]], order: list[str],
     return [ratio(b, a) for a, b in zip(amplitudes, amplitudes[1:])]
 
 
-def gains_lines(gains: list[LinkGains]) -> list[str]:
-    """The gains as a table, one line per link, and the verdict of the largest l2 gain."""
+def gains_lines(gains: list[LinkGains], clean: list[str] | None = None) -> list[str]:
+    """The gains as a table, one line per link; then, without ``clean``, the verdict of the largest l2 gain
+    past the disturbed vehicle (with ``clean``, the caller states the verdict from those links)."""
     lines = [f"  {'from -> to':22s} {'speed l2':>9s} {'speed l_inf':>11s} {'gap l2':>9s} {'gap l_inf':>9s}"]
     for g in gains:
         lines.append(f"  {g.sender + ' -> ' + g.receiver:22s} {g.l2['speed']:9.4f} {g.linf['speed']:11.4f} "
                      f"{g.l2['gap']:9.4f} {g.linf['gap']:9.4f}")
-    if gains:
+    if gains and clean is None:
         worst = max(g.l2["speed"] for g in gains[1:] or gains)
         word = "grows" if worst > 1.0 else "does not grow"
         lines.append(f"  largest speed l2 gain past the disturbed vehicle: {worst:.4f}: this disturbance {word} along "
@@ -266,15 +267,75 @@ def frequency_gains(errors: dict[str, dict[str, np.ndarray]], order: list[str], 
     return [[ratio(b[k], a[k]) for a, b in zip(amplitudes, amplitudes[1:])] for k in range(len(frequencies))]
 
 
-def stability_report(trace: "Trace", config: Config, reference: "Trace | None", window: tuple[float, float]) -> str:
-    """`platoon stability TRACE`: the measured gains, and the closed form of the trace's config beside them."""
-    from orchestrator.analysis.string_stability import chain_of, peak_gain
+def _closed_form_line(config: Config, chain_vehicle: int) -> tuple[str, bool]:
+    """The closed form's verdict for the trace's config: the sampled-data cascade's where it applies, else
+    the phase-averaged model's; (the line, string stable)."""
+    from orchestrator.analysis.sampled_chain import exact_applies, peak_growth
+    from orchestrator.analysis.string_stability import chain_of, interior_vehicle, peak_gain
 
+    if exact_applies(config) is None:
+        growth = peak_growth(config, interior_vehicle(config))
+        where = f"at {growth.frequency:.4g} rad/s" if growth.frequency > 0 else "as w -> 0"
+        word = "string stable" if growth.string_stable else "NOT string stable"
+        return (f"closed form (platoon analyze, the sampled-data cascade): growth per link far down the string "
+                f"peaks at {growth.gain:.4f} {where}: {word}", growth.string_stable)
+    peak = peak_gain(chain_of(config, chain_vehicle))
+    where = f"at {peak.frequency:.4g} rad/s" if peak.frequency > 0 else "as w -> 0"
+    word = "string stable" if peak.string_stable else "NOT string stable"
+    return f"closed form (platoon analyze, phase-averaged): peak |G(jw)| = {peak.gain:.4f} {where}: {word}", peak.string_stable
+
+
+def predicted_gains(config: Config, names: list[str], clean: list[str], frequencies: list[float]) -> list[list[float]] | None:
+    """Per frequency, per link along ``clean``: the gain the sampled-data cascade predicts for this run
+    (its pushes, its links, its records); None where the cascade does not apply."""
+    from orchestrator.analysis.sampled_chain import cascade_speeds, exact_applies
+
+    if exact_applies(config) is not None:
+        return None
+    source = source_vehicle(config)
+    order = [names.index(name) + 1 for name in propagation(config, names, source)]
+    order = order if config.speed_law_of(source) != "paper" else list(range(config.platoon.count, order[-1] - 1, -1))
+    result = []
+    for w in frequencies:
+        speeds = dict(zip(order, cascade_speeds(config, order, w, config.simulation.trace_every)))
+        amplitudes = [abs(speeds[names.index(name) + 1]) for name in clean]
+        result.append([ratio(b, a) for a, b in zip(amplitudes, amplitudes[1:])])
+    return result
+
+
+def _frequency_lines(config: Config, errors: dict[str, dict[str, np.ndarray]], names: list[str], clean: list[str],
+                     window: tuple[float, float]) -> tuple[list[str], float | None]:
+    """Per probe frequency, the measured gains along the clean links beside the cascade's prediction;
+    and the largest measured gain (None without sinusoids or clean links)."""
+    frequencies = probe_frequencies(config)
+    if not frequencies or len(clean) < 2:
+        return [], None
+    try:
+        steady = steady_window(config, window[1])
+    except ValueError as error:
+        return [f"  (no gains per frequency: {error})"], None
+    measured = frequency_gains(errors, clean, frequencies, steady)
+    predicted = predicted_gains(config, names, clean, frequencies)
+    lines = [f"  per frequency, {' -> '.join(clean)} (fitted over {steady[0]:g} to {steady[1]:g} s):"]
+    for k, w in enumerate(frequencies):
+        expected = "" if predicted is None else "predicted " + ", ".join(f"{g:.4f}" for g in predicted[k]) + "; "
+        lines.append(f"    {w:g} rad/s: {expected}measured " + ", ".join(f"{g:.4f}" for g in measured[k]))
+    return lines, max(max(row) for row in measured)
+
+
+def stability_report(trace: "Trace", config: Config, reference: "Trace | None", window: tuple[float, float]) -> str:
+    """`platoon stability TRACE`: the measured gains, and the closed form of the trace's config beside them.
+
+    The headline verdict uses only the links that measure propagation (``clean_order``): a link that
+    starts or ends at a pushed vehicle measures the push, and the first receivers of one carry what the
+    pushed vehicle's own law made of its push. With sinusoids, it is the largest gain at any probe
+    frequency over those links (one l2 gain over all of them would be the largest probe's alone)."""
     if not config.disturbance:
         raise ValueError("its config has no [[disturbance]]: the gains need a disturbance run")
     errors = vehicle_errors(trace, config, reference)
+    names = trace.vehicles()
     source = source_vehicle(config)
-    order = propagation(config, trace.vehicles(), source)
+    order = propagation(config, names, source)
     law = config.speed_law_of(source)
     start = min(d.start for d in config.disturbance)
     against = "the reference trace" if reference is not None else f"the state recorded last before t = {start:g} s"
@@ -282,22 +343,20 @@ def stability_report(trace: "Trace", config: Config, reference: "Trace | None", 
     lines = [f"string stability measured: {law} law, carried from vehicle {source} (pushed: {pushed}), errors against "
              f"{against}, window {window[0]:g} to {window[1]:g} s; a link that starts or ends at a pushed vehicle "
              "measures the push too"]
-    lines += gains_lines(link_gains(errors, order, window))
-    chain = chain_of(config, source if law == "paper" else min(source + 1, config.platoon.count))
-    peak = peak_gain(chain)
-    where = f"at {peak.frequency:.4g} rad/s" if peak.frequency > 0 else "as w -> 0"
-    lines.append(f"closed form (platoon analyze): peak |G(jw)| = {peak.gain:.4f} {where}: "
-                 f"{'string stable' if peak.string_stable else 'NOT string stable'}")
-    frequencies = probe_frequencies(config)
-    clean = clean_order(config, trace.vehicles())
-    if frequencies and len(clean) > 1:
-        try:
-            steady = steady_window(config, window[1])
-        except ValueError as error:
-            lines.append(f"  (no gains per frequency: {error})")
-            return "\n".join(lines)
-        analytic = np.abs(chain.transfer(np.array(frequencies)))
-        lines.append(f"  per frequency, {' -> '.join(clean)} (fitted over {steady[0]:g} to {steady[1]:g} s):")
-        for w, expected, measured in zip(frequencies, analytic, frequency_gains(errors, clean, frequencies, steady)):
-            lines.append(f"    {w:g} rad/s: |G(jw)| = {expected:.4f}, measured " + ", ".join(f"{g:.4f}" for g in measured))
-    return "\n".join(lines)
+    gains = link_gains(errors, order, window)
+    lines += gains_lines(gains)[:-1] if gains else gains_lines(gains)
+    clean = clean_order(config, names)
+    chain_vehicle = source if law == "paper" else min(source + 1, config.platoon.count)
+    closed_line, stable = _closed_form_line(config, chain_vehicle)
+    per_frequency, worst = _frequency_lines(config, errors, names, clean, window)
+    if worst is None and len(clean) > 1:
+        worst = max(g.l2["speed"] for g in link_gains(errors, clean, window))
+    if worst is None:
+        lines.append("  no link measures propagation here (too few vehicles past the pushed ones)")
+    else:
+        kind = "gain at the probe frequencies" if per_frequency and len(per_frequency) > 1 else "speed l2 gain"
+        word = "grows" if worst > 1.0 else "does not grow"
+        lines.append(f"  largest {kind} over the links that measure propagation ({' -> '.join(clean)}): {worst:.4f}: "
+                     f"this disturbance {word} along the platoon")
+    lines.append(closed_line)
+    return "\n".join(lines + per_frequency)

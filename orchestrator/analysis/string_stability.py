@@ -33,6 +33,8 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
+from orchestrator.analysis.sampled_chain import exact_applies, exact_lines
+
 if TYPE_CHECKING:
     from orchestrator.scenario.config import Config, Simulation
 
@@ -134,7 +136,8 @@ class Chain:
 
     ``alpha`` = cos(asin(d*/2R)) on a circle (the gap's rate per unit speed difference), 1 on a line.
     ``forward``: the follower's speed and gap as the vehicle ahead sees them (the paper's law);
-    ``backward``: the predecessor's communicated speed (cacc); ``sensor``: the predecessor's position as
+    ``backward``: the predecessor's communicated speed (cacc), or, under the paper's law, the vehicle
+    ahead's position as the follower sees it when it computes the gap it sends; ``sensor``: the predecessor's position as
     the on-board sensor sees it (acc, cacc; a direct wire, only the co-simulation's step).
     """
 
@@ -158,11 +161,13 @@ class Chain:
         """(numerator, denominator) of G(jw); the denominator is the vehicle's own loop."""
         s = 1j * np.asarray(w, dtype=float)
         if self.law == "paper":
-            # V_i (s^2 + k_v s + k P) = P (k_v s + k) V_(i+1), k = k_v V_c alpha/d*: the follower's speed
-            # and gap both come through the forward link, so its delay is inside vehicle i's loop
+            # V_i (s^2 + k_v s + k F Q) = F (k_v s + k) V_(i+1), k = k_v V_c alpha/d*: the follower's speed
+            # and gap both come through the forward link F, and the gap it sends is the distance to vehicle
+            # i as the follower sees it, through its backward link (Q: that link for a position), so both
+            # links are inside vehicle i's loop
             k = self.k_v * self.speed * self.alpha / self.d_star
             p = _response(self.forward, w)
-            return p * (self.k_v * s + k), s * s + self.k_v * s + k * p
+            return p * (self.k_v * s + k), s * s + self.k_v * s + k * p * _response(self.backward, w)
         sensed = _response(self.sensor, w)
         h = self.time_gap
         if self.law == "acc":
@@ -193,8 +198,7 @@ class Chain:
         if self.law == "cacc":
             coefficients = [self.time_gap, 1.0 + self.cacc_gain * self.time_gap, self.cacc_gain * self.alpha]
             return int(np.sum(np.roots(coefficients).real > 0))
-        c = self.forward
-        latest = abs(c.min_age) + c.period * (1 + 30 * c.loss) + c.jitter
+        latest = sum(abs(c.min_age) + c.period * (1 + 30 * c.loss) + c.jitter for c in (self.forward, self.backward))
         k = self.k_v * self.speed * self.alpha / self.d_star
         top = 20.0 * (1.0 + self.k_v + math.sqrt(k) + k * latest)
         # fine enough that e^{-jw a} turns by at most 0.05 rad between two points
@@ -321,7 +325,8 @@ def chain_of(config: "Config", vehicle: int = 2, ideal: bool = False) -> Chain:
     # The receiver extrapolates the follower's speed and gap, and the target's speed, linearly (order 1),
     # and the sensed position along an arc with the speed rate (order 2); "hold" uses the sample as is.
     forward = message_channel(config, "forward", vehicle, 1 if extrapolate else 0)
-    backward = message_channel(config, "backward", vehicle, 1 if extrapolate else 0)
+    position = law == "paper"  # the paper's law uses the backward message's position (arc, order 2)
+    backward = message_channel(config, "backward", vehicle, (2 if position else 1) if extrapolate else 0)
     step = config.simulation.step
     sensor = Channel(-step if config.simulation.master == "gauss-seidel" else 0.0, step, 2 if extrapolate else 0)
     if ideal:
@@ -342,9 +347,10 @@ def _describe(channel: Channel, what: str) -> str:
 def _law_lines(chain: Chain) -> list[str]:
     if chain.law == "paper":
         k = chain.k_v * chain.speed * chain.alpha / chain.d_star
-        return [f"  G(s) = P(s) (k_v s + k) / (s^2 + k_v s + k P(s)), k = k_v V_c alpha/d* = {k:.6g} 1/s^2; "
-                "P: the follower's speed and gap through the forward link",
-                _describe(chain.forward, "P (forward)")]
+        return [f"  G(s) = F(s) (k_v s + k) / (s^2 + k_v s + k F(s) Q(s)), k = k_v V_c alpha/d* = {k:.6g} 1/s^2; "
+                "F: the follower's speed and gap through the forward link, Q: this vehicle's position through "
+                "the follower's backward link (the gap the follower sends)",
+                _describe(chain.forward, "F (forward)"), _describe(chain.backward, "Q (backward)")]
     if chain.law == "acc":
         return ["  G(s) = k_v alpha S(s) / (h s^2 + k_v h s + k_v alpha); S: the sensed position (no communication)",
                 _describe(chain.sensor, "S (sensor)")]
@@ -356,24 +362,24 @@ def _law_lines(chain: Chain) -> list[str]:
 def _condition_lines(config: "Config", chain: Chain) -> list[str]:
     """Where the chain is string stable: the smallest time gap (acc, cacc), the largest link delay (cacc)."""
     if chain.law == "paper":
-        return ["  above 1 at low frequency for any k_v (|G|^2 > 1 for w^2 < 2k without links): the paper's constant "
+        return ["  (phase-averaged) above 1 at low frequency for any k_v (|G|^2 > 1 for w^2 < 2k without links): the paper's constant "
                 "spacing is never string stable; a link only raises the peak"]
     if chain.law == "acc":
         h_min = smallest_time_gap(chain)
-        return [f"  string stable for time_gap >= {h_min:.4g} s (with an ideal sensor 2 alpha/k_v = "
+        return [f"  (phase-averaged) string stable for time_gap >= {h_min:.4g} s (with an ideal sensor 2 alpha/k_v = "
                 f"{2 * chain.alpha / chain.k_v:.4g} s); acc communicates nothing, so link delays and losses do not enter"]
     h_min = smallest_time_gap(chain)
-    lines = [f"  string stable for time_gap >= {h_min:.4g} s with these links" if h_min is not None
-             else "  not string stable for any time_gap up to 100 s with these links"]
+    lines = [f"  (phase-averaged) string stable for time_gap >= {h_min:.4g} s with these links" if h_min is not None
+             else "  (phase-averaged) not string stable for any time_gap up to 100 s with these links"]
 
     def with_delay(delay: float) -> Chain:
         return replace(chain, backward=replace(chain.backward, min_age=minimum_age(config.simulation, "backward", delay)))
 
     most = largest_delay(chain, with_delay)
     if most is None:
-        lines.append(f"  with time_gap = {chain.time_gap:g} s not string stable even without a link delay")
+        lines.append(f"  (phase-averaged) with time_gap = {chain.time_gap:g} s not string stable even without a link delay")
     else:
-        lines.append(f"  with time_gap = {chain.time_gap:g} s string stable for backward link delays up to "
+        lines.append(f"  (phase-averaged) with time_gap = {chain.time_gap:g} s string stable for backward link delays up to "
                      f"{most:.4g} s (on the {config.simulation.step:g} s step grid)")
     return lines
 
@@ -389,11 +395,23 @@ def chain_report(config: "Config") -> str:
              + f", {config.simulation.master}, {config.simulation.coupling}, step {config.simulation.step:g} s"]
     lines += _law_lines(chain)
     peak = peak_gain(chain)
-    if peak.unstable_roots:
+    exact = exact_applies(config) is None
+    if peak.unstable_roots and not exact:
         lines.append(f"  the vehicle's own loop has {peak.unstable_roots} root(s) in the right half plane: the platoon "
                      "itself is unstable (a link delay inside the paper's loop), string stability is moot")
-    verdict = "string stable" if peak.string_stable else "NOT string stable"
+    # with the cascade beside it, the averaged verdict leaves out the loop's roots: the averaged model of
+    # extrapolated samples grows without bound at high frequency, where it counts roots no run shows
+    stable = peak.gain <= 1.0 + GAIN_TOLERANCE if exact else peak.string_stable
+    verdict = "string stable" if stable else "NOT string stable"
     where = f"at {peak.frequency:.4g} rad/s" if peak.frequency > 0 else "as w -> 0 (|G(jw)| <= 1 everywhere)"
     links = f"; over this platoon's {n - 1} link(s) up to {peak.gain ** (n - 1):.3g}" if n > 1 else ""
-    lines.append(f"  peak |G(jw)| = {peak.gain:.4f} {where}, {arrow}: {verdict}{links}")
-    return "\n".join(lines + _condition_lines(config, chain))
+    lines.append(f"  peak |G(jw)| = {peak.gain:.4f} {where}, {arrow}: {verdict}{links} (phase-averaged)")
+    lines += _condition_lines(config, chain)
+    return "\n".join(lines + exact_lines(config, interior_vehicle(config)))
+
+
+def interior_vehicle(config: "Config") -> int:
+    """A receiver inside the string, whose links are the chain's (the paper's law: vehicle 1, fed through
+    vehicle 2's links, as ``chain_of(config, 2)``; acc, cacc: vehicle 2)."""
+    n = config.platoon.count
+    return 1 if config.speed_law_of(min(2, n)) == "paper" and n > 1 else min(2, n)

@@ -126,7 +126,7 @@ def _keys() -> Any:
 def make_lab(scratch: Path) -> Path:
     """A secure lab (``platoon hil-certs``) of a run host and a robot side for robots 1 and 3; its folder."""
     from bridge.lab import Lab
-    from orchestrator.cli.hil_certs import write_lab
+    from orchestrator.support.lab_files import write_lab
 
     folder = scratch / "lab"
     if not (folder / f"{LAB_HOST}.json5").exists():

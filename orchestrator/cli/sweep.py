@@ -186,9 +186,11 @@ def stability_map(
     try:
         with output_rule():
             check_not_in_folder(target, out_dir)  # its results, traces, tables and lock: every file it reads
-            path = draw_stability_map(out_dir, target, overwrite, progress=shown)
+            path, agreement = draw_stability_map(out_dir, target, overwrite, progress=shown)
     except ValueError as error:  # a PlotError, a ResultsError, a config the analysis refuses
         fail(2, str(error))
+    for line in agreement:
+        out.print(line, highlight=False, soft_wrap=True)
     out.print(f"wrote {path}", highlight=False, soft_wrap=True)
 
 

@@ -1,13 +1,15 @@
 """``platoon stability-map``: a string-stability sweep as maps, the analytic boundary over the measured points.
 
-One panel per speed law, link delay across, loss rate up. Each run of the sweep (configs/sweeps/
-string_stability.toml) is measured from its trace: per probe frequency (the config's sinusoids), the
-speed error's amplitude ratio over the chain's clean links (``error_gains.clean_order``), as one gain
-per link (the geometric mean over those links); the point's gain is the largest over the probes. A
-point is filled green when that gain is at most 1, red above. Under it, the analysis of each (delay,
-loss) on a finer grid: its peak |G(jw)| in colour, the line where it is 1 (the analytic boundary of
-string stability) solid, and the line where the largest |G| at the probe frequencies is 1 dashed (what
-the probes can see: near the boundary a chain's peak sits at low frequencies, below the probes).
+One panel per speed law, the age of information the receiver works with across (each link delay's
+ages, from the step or the delay on its grid to one beacon period more), the loss rate up. Each run of
+the sweep (configs/sweeps/string_stability.toml) is measured from its trace: the largest gain per link at
+the probe frequencies (the config's sinusoids) over the links that measure propagation
+(``error_gains.clean_order``), the number `platoon stability`'s headline gives. That one number is each
+dot's fill (on the colour scale) and its label; a lossy dot is one run of one seed. Under the dots, the
+sampled-data cascade (orchestrator/analysis/sampled_chain.py) of each (delay, loss) on a finer grid: its
+peak growth per link in colour (never below 1: every chain passes w -> 0 unchanged), the line where it
+leaves 1 (the analytic boundary of string stability) solid, and the line where its largest growth at the
+probe frequencies is 1 dashed (what the probes can see).
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from __future__ import annotations
 import math
 import multiprocessing
 import os
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from contextlib import nullcontext
 from pathlib import Path
 from typing import Any, Callable
@@ -25,11 +27,12 @@ import matplotlib
 matplotlib.use("Agg")  # files only; never needs a display
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.colors import TwoSlopeNorm  # noqa: E402
+from matplotlib.colors import ListedColormap, Normalize  # noqa: E402
 
-from orchestrator.analysis.error_gains import (clean_order, frequency_gains, probe_frequencies, steady_window,  # noqa: E402
-                                               vehicle_errors)
-from orchestrator.analysis.string_stability import chain_of, peak_gain  # noqa: E402
+from orchestrator.analysis.error_gains import (clean_order, frequency_gains, predicted_gains, probe_frequencies,  # noqa: E402
+                                               steady_window, vehicle_errors)
+from orchestrator.analysis.sampled_chain import exact_applies, growth_per_link, peak_growth  # noqa: E402
+from orchestrator.analysis.string_stability import interior_vehicle  # noqa: E402
 from orchestrator.scenario.config import Config, config_from_mapping  # noqa: E402
 from orchestrator.scenario.wiring import TARGET  # noqa: E402
 from orchestrator.support.output import IMAGE, check_target, replacing  # noqa: E402
@@ -39,8 +42,9 @@ from orchestrator.sweep.results import lookup, read_records  # noqa: E402  (the 
 LAW, DELAY, LOSS = "platoon.speed_law", "links.delay", "links.loss"
 
 
-def measured_gain(config: Config, trace_path: Path) -> float:
-    """The run's largest gain per link over its probe frequencies (geometric mean over the clean links)."""
+def measured_gains(config: Config, trace_path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Per probe frequency, per link that measures propagation: the run's gains, and the sampled-data
+    cascade's prediction for the same links of the same run (None where it does not apply)."""
     from orchestrator.trace import load
 
     # what the gains need: the vehicles and the target (gaps from positions), not the links or the errors, from
@@ -49,24 +53,29 @@ def measured_gain(config: Config, trace_path: Path) -> float:
     trace = load(trace_path, components=[TARGET] + [f"vehicle{k}" for k in range(1, config.platoon.count + 1)],
                  errors=False, start=None if first is None else max(0.0, first - 1.0))
     frequencies = probe_frequencies(config)
-    order = clean_order(config, trace.vehicles())
+    names = trace.vehicles()
+    order = clean_order(config, names)
     if not frequencies or len(order) < 2:
         raise PlotError(f"{trace_path}: its config has no sinusoid, or too few vehicles past the pushed ones")
     window = steady_window(config, float(trace.component(order[0])["t"][-1]))
-    gains = frequency_gains(vehicle_errors(trace, config), order, frequencies, window)
-    return max(math.prod(per_link) ** (1.0 / len(per_link)) for per_link in gains)
+    measured = np.array(frequency_gains(vehicle_errors(trace, config), order, frequencies, window))
+    predicted = predicted_gains(config, names, order, frequencies)
+    return measured, None if predicted is None else np.array(predicted)
 
 
 def _analytic(config: Config, delay: float, loss: float) -> tuple[float, float]:
-    """(peak |G(jw)|, largest |G| at the probe frequencies) of ``config`` with every link's delay and loss set."""
+    """(peak growth per link, largest growth at the probe frequencies) of the sampled-data cascade of
+    ``config`` with every link's delay and loss set."""
     links = config.links.model_copy(update={"delay": delay, "loss": loss})
-    chain = chain_of(config.model_copy(update={"links": links}))
-    probes = np.abs(chain.transfer(np.array(probe_frequencies(config)))).max()
-    return peak_gain(chain).gain, float(probes)
+    changed = config.model_copy(update={"links": links})
+    vehicle = interior_vehicle(changed)
+    probes = growth_per_link(changed, vehicle, np.array(probe_frequencies(config))).max()
+    return peak_growth(changed, vehicle).gain, float(probes)
 
 
 def _points(folder: Path) -> list[dict[str, Any]]:
-    """The sweep's runs (not the invalid ones) with where they sit, their config, and the trace to measure."""
+    """The sweep's runs (not the invalid ones): where they sit, their config (and its mapping, for a worker
+    process), the trace to measure (None for a failed run)."""
     points = []
     for record in read_records(folder):
         if record["status"] == "invalid":
@@ -75,114 +84,164 @@ def _points(folder: Path) -> list[dict[str, Any]]:
         if any(value is None for value in where.values()):
             raise PlotError(f"run {record['id']}: no {', '.join(k for k, v in where.items() if v is None)} (not a "
                             "string-stability sweep: configs/sweeps/string_stability.toml)")
+        config = config_from_mapping(record["config"])
+        missing = exact_applies(config)
+        if missing is not None:
+            raise PlotError(f"run {record['id']}: the sampled-data cascade does not model {missing}")
         trace = folder / record["trace"] if record["status"] == "completed" else None
-        points.append({**where, "gain": math.nan, "config": config_from_mapping(record["config"]),
-                       "raw": record["config"], "trace": trace})
+        points.append({**where, "gain": math.nan, "deviation": math.nan, "config": config, "raw": record["config"],
+                       "trace": trace})
     return points
 
 
-def _measure(raw: dict[str, Any], trace: Path) -> float:
-    """``measured_gain`` in a worker process (the config travels as its mapping)."""
-    return measured_gain(config_from_mapping(raw), trace)
+def _point(raw: dict[str, Any], trace: Path | None) -> tuple[float, float, bool]:
+    """One run's (largest measured gain, worst deviation from the cascade's prediction, the closed form's
+    verdict), from its config's mapping (a task of a worker process)."""
+    config = config_from_mapping(raw)
+    stable = peak_growth(config, interior_vehicle(config)).string_stable
+    if trace is None:
+        return math.nan, math.nan, stable
+    measured, predicted = measured_gains(config, trace)
+    return float(measured.max()), float(np.abs(measured / predicted - 1.0).max()), stable
+
+
+def agreement_lines(points: list[dict[str, Any]], stable: dict[str, dict[tuple[float, float], bool]]) -> list[str]:
+    """Per law: how far the measured gains are from the cascade's prediction for the same links (worst over
+    links and probes, by loss rate), and in how many runs the headline verdict (largest measured gain above 1)
+    is the closed form's."""
+    lines = []
+    for law, verdicts in stable.items():
+        mine = [p for p in points if p[LAW] == law and not math.isnan(p["gain"])]
+        worst = {loss: max(p["deviation"] for p in mine if p[LOSS] == loss) for loss in sorted({p[LOSS] for p in mine})}
+        agree = sum((p["gain"] > 1.0) == (not verdicts[(p[DELAY], p[LOSS])]) for p in mine)
+        by_loss = ", ".join(f"{100 * deviation:.2f} % at loss {loss:g}" for loss, deviation in worst.items())
+        lines.append(f"{law}: measured vs the cascade, worst over links and probes: {by_loss}; headline verdict = "
+                     f"closed form's in {agree} of {len(mine)} runs")
+    return lines
+
+
+def colour_scale(highest: float) -> tuple[Normalize, ListedColormap]:
+    """A linear scale from 0.98 to ``highest``: 1 to ``highest`` in reds (where peaks are), the sliver below 1
+    in blues (only measured gains of stable chains fall there)."""
+    top = max(highest, 1.05)
+    below = max(1, round(256 * 0.02 / (top - 0.98)))
+    colours = np.vstack([plt.get_cmap("Blues_r")(np.linspace(0.35, 0.9, below)),
+                         plt.get_cmap("Reds")(np.linspace(0.05, 1.0, 256 - below))])
+    return Normalize(vmin=0.98, vmax=top), ListedColormap(colours)
+
+
+def age_label(config: Config, delay: float) -> str:
+    """The delay and the ages of information it gives the receiver: from a0 = max(step, delay on the step
+    grid) (Jacobi: a Link is one more hop) to a0 + the beacon period."""
+    step = config.simulation.step
+    first = max(step, math.ceil(delay / step - 1e-9) * step)
+    period = max(config.links.period, step)
+    return f"{delay:g}\n{first:.2g}-{first + period:.2g}"
 
 
 def _analytic_row(raw: dict[str, Any], delays: np.ndarray, loss: float) -> np.ndarray:
-    """``_analytic`` along the delays at one loss: rows (peaks, probes)."""
+    """``_analytic`` along the delays at one loss (a task of a worker process): rows (peaks, probes)."""
     config = config_from_mapping(raw)
     return np.array([_analytic(config, float(delay), loss) for delay in delays]).T
 
 
-def _grid(rows: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """(peaks, probes) of one law, rows by loss, from its ``_analytic_row``s."""
-    stacked = np.array(rows)
-    return stacked[:, 0, :], stacked[:, 1, :]
+def tasks(points: list[dict[str, Any]], laws: list[str], losses: np.ndarray) -> int:
+    """How many tasks ``_compute`` counts: a run each, and a row of the analytic grid per law and loss."""
+    return len(points) + len(laws) * len(losses)
 
 
 def _compute(points: list[dict[str, Any]], laws: list[str], delays: np.ndarray, losses: np.ndarray,
-             tick: Callable[[int], None] | None, workers: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Every point's measured gain (into the points) and each law's analytic grid, on ``workers`` processes:
-    the grids' rows (the longest tasks) first, then the traces, each a task; ``tick(done)`` counts both
-    as they finish (``tasks(points, laws, losses)`` of them)."""
+             tick: Callable[[int], None] | None, workers: int) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]],
+                                                                          dict[str, dict[tuple[float, float], bool]]]:
+    """Every run's measured gain and deviation (into the points), each law's analytic grid and the closed
+    form's verdict per run, on ``workers`` processes: the grid's rows first, then the runs, each a task;
+    ``tick(done)`` counts them as they finish."""
     first = {law: next(p for p in points if p[LAW] == law)["raw"] for law in laws}
-    measured = [p for p in points if p["trace"] is not None]
     done = 0
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) if workers > 1 else None
 
-    def finished() -> None:
-        nonlocal done
-        done += 1
-        if tick is not None:
-            tick(done)
+    def submit(function: Callable[..., Any], *args: Any) -> Future:
+        if pool is not None:
+            return pool.submit(function, *args)
+        future: Future = Future()
+        future.set_result(function(*args))
+        return future
 
-    rows: dict[str, list[Any]] = {law: [] for law in laws}
-    if workers <= 1:
-        for law in laws:
-            for loss in losses:
-                rows[law].append(_analytic_row(first[law], delays, float(loss)))
-                finished()
-        for p in measured:
-            p["gain"] = measured_gain(p["config"], p["trace"])
-            finished()
-        return {law: _grid(rows[law]) for law in laws}
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
-        grid_tasks = {law: [pool.submit(_analytic_row, first[law], delays, float(loss)) for loss in losses] for law in laws}
-        tasks = {pool.submit(_measure, p["raw"], p["trace"]): p for p in measured}
-        for task in as_completed([*tasks, *(t for law_tasks in grid_tasks.values() for t in law_tasks)]):
-            if task in tasks:
-                tasks[task]["gain"] = task.result()
-            finished()
-        return {law: _grid([task.result() for task in law_tasks]) for law, law_tasks in grid_tasks.items()}
+    with pool if pool is not None else nullcontext():
+        rows = {law: [submit(_analytic_row, first[law], delays, float(loss)) for loss in losses] for law in laws}
+        runs = {submit(_point, p["raw"], p["trace"]): p for p in points}
+        stable: dict[str, dict[tuple[float, float], bool]] = {law: {} for law in laws}
+        for task in as_completed([*(t for law_rows in rows.values() for t in law_rows), *runs]):
+            if task in runs:
+                p = runs[task]
+                p["gain"], p["deviation"], stable[p[LAW]][(p[DELAY], p[LOSS])] = task.result()
+            done += 1
+            if tick is not None:
+                tick(done)
+        grids = {}
+        for law, law_rows in rows.items():
+            stacked = np.array([task.result() for task in law_rows])  # loss x (peaks, probes) x delay
+            grids[law] = (stacked[:, 0, :], stacked[:, 1, :])
+    return grids, stable
 
 
-def tasks(points: list[dict[str, Any]], laws: list[str], losses: np.ndarray) -> int:
-    """How many tasks ``_compute`` counts: a trace each, and a row of the analytic grid per law and loss."""
-    return sum(p["trace"] is not None for p in points) + len(laws) * len(losses)
+def _panel(axis, mine: list[dict[str, Any]], grid: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], norm, cmap):
+    delays, losses, peaks, probes = grid
+    image = axis.pcolormesh(delays, losses, np.clip(peaks, norm.vmin, norm.vmax), norm=norm, cmap=cmap, shading="nearest")
+    if peaks.min() < 1.0 + 1e-9 < peaks.max():
+        axis.contour(delays, losses, peaks, levels=[1.0 + 1e-9], colors="black", linewidths=1.6)
+    if probes.min() < 1.0 < probes.max():
+        axis.contour(delays, losses, probes, levels=[1.0], colors="black", linewidths=1.0, linestyles="dashed")
+    for p in mine:
+        gain = p["gain"]
+        colour = "white" if math.isnan(gain) else cmap(norm(min(max(gain, norm.vmin), norm.vmax)))
+        axis.scatter(p[DELAY], p[LOSS], s=70, color=colour, edgecolors="black", zorder=3)
+        label = "failed" if math.isnan(gain) else f"{gain:.3f}"
+        axis.annotate(label, (p[DELAY], p[LOSS]), textcoords="offset points", xytext=(0, 8), ha="center", fontsize=6,
+                      bbox={"boxstyle": "round,pad=0.1", "facecolor": "white", "alpha": 0.8, "linewidth": 0})
+    ticks = sorted({p[DELAY] for p in mine})
+    axis.set_xticks(ticks, [age_label(mine[0]["config"], t) for t in ticks], fontsize=6)
+    return image
 
 
 def draw_stability_map(folder: Path, png: Path, overwrite: bool = False, resolution: int = 11,
-                       progress: Callable[[int, int], Any] | None = None, workers: int | None = None) -> Path:
-    """Measure every trace of the sweep in ``folder`` and draw the map into ``png``. ``progress(traces, total)``
-    gives a context manager whose ``tick(done)`` counts the tasks done (a trace measured, a row of an
-    analytic grid: the CLI's bar or lines); ``workers`` processes share them (default: the usable CPUs)."""
+                       progress: Callable[[int, int], Any] | None = None,
+                       workers: int | None = None) -> tuple[Path, list[str]]:
+    """Draw the map; return its path and ``agreement_lines`` (what the figure cannot show to 0.01 %).
+    ``progress(runs, total)`` gives a context manager whose ``tick(done)`` counts the tasks done (a run
+    measured, a row of an analytic grid: the CLI's bar or lines); ``workers`` processes share them
+    (default: the usable CPUs)."""
     check_target(png, overwrite, [folder / "results.csv"], kind=IMAGE)  # before minutes of reading traces
     points = _points(folder)
     laws = list(dict.fromkeys(p[LAW] for p in points))
     delays = np.linspace(0.0, max(p[DELAY] for p in points), resolution)
     losses = np.linspace(0.0, max(p[LOSS] for p in points), resolution)
-    workers = workers if workers is not None else len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") \
-        else (os.cpu_count() or 1)
-    traces = sum(p["trace"] is not None for p in points)
-    with (progress(traces, tasks(points, laws, losses)) if progress is not None else nullcontext()) as tick:
-        grids = _compute(points, laws, delays, losses, tick, workers)
-    figure, axes = plt.subplots(1, len(laws), figsize=(4.2 * len(laws) + 1.0, 4.2), dpi=120, squeeze=False,
+    if workers is None:
+        workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    runs = sum(p["trace"] is not None for p in points)
+    with (progress(runs, tasks(points, laws, losses)) if progress is not None else nullcontext()) as tick:
+        grids, stable = _compute(points, laws, delays, losses, tick, workers)
+    # the scale ends at the analysis's highest peak: a lossy run's single-seed gain beyond it shows in its
+    # label, its dot at the scale's end
+    norm, cmap = colour_scale(max(float(peaks.max()) for peaks, _ in grids.values()))
+    figure, axes = plt.subplots(1, len(laws), figsize=(4.2 * len(laws) + 1.0, 4.6), dpi=120, squeeze=False,
                                 sharey=True, layout="constrained")
-    norm = TwoSlopeNorm(vcenter=1.0, vmin=0.8, vmax=1.6)
     image = None
     for axis, law in zip(axes[0], laws):
-        mine = [p for p in points if p[LAW] == law]
-        peaks, probes = grids[law]
-        image = axis.pcolormesh(delays, losses, np.clip(peaks, norm.vmin, norm.vmax), norm=norm, cmap="RdBu_r",
-                                shading="gouraud")
-        if peaks.min() < 1.0 + 1e-12 < peaks.max():
-            axis.contour(delays, losses, peaks, levels=[1.0 + 1e-9], colors="black", linewidths=1.6)
-        if probes.min() < 1.0 < probes.max():
-            axis.contour(delays, losses, probes, levels=[1.0], colors="black", linewidths=1.0, linestyles="dashed")
-        for p in mine:
-            unstable = not p["gain"] <= 1.0
-            axis.scatter(p[DELAY], p[LOSS], s=70, c="#d62728" if unstable else "#2ca02c", edgecolors="black", zorder=3)
-            label = "failed" if math.isnan(p["gain"]) else f"{p['gain']:.3f}"
-            axis.annotate(label, (p[DELAY], p[LOSS]), textcoords="offset points", xytext=(0, 7), ha="center", fontsize=6)
+        image = _panel(axis, [p for p in points if p[LAW] == law], (delays, losses, *grids[law]), norm, cmap)
         axis.set_title(f"speed_law = {law}")
         pad_x, pad_y = 0.06 * (delays[-1] or 1.0), 0.08 * (losses[-1] or 1.0)
         axis.set_xlim(-pad_x, delays[-1] + pad_x)
         axis.set_ylim(-pad_y, losses[-1] + pad_y)
-        axis.set_xlabel("links.delay [s]")
+        axis.set_xlabel("links.delay [s]\nage of information at the receiver [s]", fontsize=8)
     axes[0][0].set_ylabel("links.loss")
-    figure.suptitle("String stability: analytic peak |G(jw)| (colour; solid line = 1, dashed = 1 at the probes)\n"
-                    "over the measured gain per link (green <= 1, red > 1)", fontsize=9)
-    figure.colorbar(image, ax=axes[0].tolist(), label="analytic peak |G(jw)|", shrink=0.9)
+    figure.suptitle("String stability: the sampled-data cascade's peak growth per link (colour; solid line: 1, "
+                    "dashed: 1 at the probes)\nunder each run's measured largest gain per link at the probes (dot "
+                    "and label; a lossy dot is one run of one seed)", fontsize=8)
+    figure.colorbar(image, ax=axes[0].tolist(), label="gain per link", shrink=0.9, extend="max")
     try:  # the output rule (support/output.py): drawn aside, synced, renamed
         with replacing(png) as aside:
             figure.savefig(aside, format="png")
     finally:
         plt.close(figure)
-    return png
+    return png, agreement_lines(points, stable)

@@ -4,7 +4,8 @@
 which chunks hold the wanted channels in the wanted time window (the chunk indexes), how many messages
 each channel will give (the statistics, or for a window the message indexes of the chunks it touches),
 so every column is allocated once at its final size and each value is written into it where it belongs.
-Then each chunk is decompressed (on a second thread, ahead of the decoding: zstd releases the GIL) and
+Then each chunk is read and decompressed (the next two on threads of their own, ahead of the decoding:
+zstd releases the GIL) and
 its records walked by the C decoder (orchestrator/trace/native_decoder.c), which writes every number of
 a message straight into its column; whatever it cannot read exactly as Python's json does it hands back,
 and Python's json reads that. Without the C decoder (no C compiler at install time) the same plan is
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import os
 import struct
 import zlib
 from concurrent.futures import ThreadPoolExecutor
@@ -226,15 +228,21 @@ def python_messages(records: bytes) -> Iterator[tuple[int, int, memoryview]]:
 
 
 def read_chunk(stream: Any, offset: int) -> bytes:
-    """The decompressed records of the chunk at ``offset``, its CRC checked."""
-    stream.seek(offset)
-    head = stream.read(9 + _CHUNK_HEAD.size)
+    """The decompressed records of the chunk at ``offset``, its CRC checked (``stream``: a file open for
+    reading, or its descriptor: read with ``os.pread``, so threads can read one file at once)."""
+    descriptor = stream if isinstance(stream, int) else stream.fileno()
+    head = os.pread(descriptor, 9 + _CHUNK_HEAD.size, offset)
     if len(head) < 9 + _CHUNK_HEAD.size or head[0] != 0x06:
         raise TraceError(f"no chunk at byte {offset}")
     _, _, size, crc, compression_length = _CHUNK_HEAD.unpack_from(head, 9)
-    compression = stream.read(compression_length).decode("utf-8", "replace")
-    (data_length,) = struct.unpack("<Q", stream.read(8))
-    data = stream.read(data_length)
+    at = offset + len(head)
+    compression = os.pread(descriptor, compression_length, at).decode("utf-8", "replace")
+    at += compression_length
+    length_bytes = os.pread(descriptor, 8, at)
+    if len(length_bytes) != 8:
+        raise TraceError(f"the chunk at byte {offset} is cut short")
+    (data_length,) = struct.unpack("<Q", length_bytes)
+    data = os.pread(descriptor, data_length, at + 8)
     if len(data) != data_length:
         raise TraceError(f"the chunk at byte {offset} is cut short")
     records = _decompress(data, compression, size, offset)
@@ -278,17 +286,23 @@ def message_counts(path: str, chunks: Iterable[Any], channels: Iterable[int]) ->
     return counts
 
 
+READ_AHEAD = 2  # chunks read and decompressed ahead of the decoding, each on a thread of its own
+
+
 def decode_chunks(path: str, offsets: list[int], decoder: ChunkDecoder,
                   progress: Callable[[int, int], None] | None = None) -> None:
-    """Decode the chunks at ``offsets`` in order, each decompressed on a second thread ahead of it."""
+    """Decode the chunks at ``offsets`` in order; the next ``READ_AHEAD`` are read and decompressed on
+    threads meanwhile (zstd and zlib's CRC release the GIL: on two cores a read that only picks a few
+    channels costs about what decompressing costs, shared by both)."""
     if not offsets:
         return
-    with open(path, "rb") as stream, ThreadPoolExecutor(1) as pool:
-        pending = pool.submit(read_chunk, stream, offsets[0])
+    with open(path, "rb") as stream, ThreadPoolExecutor(READ_AHEAD) as pool:
+        descriptor = stream.fileno()
+        pending = [pool.submit(read_chunk, descriptor, offset) for offset in offsets[:READ_AHEAD]]
         for k in range(len(offsets)):
-            records = pending.result()
-            if k + 1 < len(offsets):
-                pending = pool.submit(read_chunk, stream, offsets[k + 1])
+            records = pending.pop(0).result()
+            if k + READ_AHEAD < len(offsets):
+                pending.append(pool.submit(read_chunk, descriptor, offsets[k + READ_AHEAD]))
             decoder.chunk(records)
             if progress is not None:
                 progress(k + 1, len(offsets))

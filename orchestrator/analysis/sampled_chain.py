@@ -1,0 +1,472 @@
+"""The speed chain as the co-simulation runs it: a sampled-data cascade, lifted over the beacon period.
+
+``string_stability.Channel`` averages a link over its sampling phase: exact for one link, not for a
+string. Synchronized beacons sample every vehicle at the same instants, so what a vehicle passes on
+carries, beside the disturbance's frequency w, its aliases at w + 2 pi m/T, and the next link folds
+them back onto w in a phase set by the delay against the beacon grid. This module computes the
+periodic steady state exactly instead (the lifting of Öncü, van de Wouw, Heemels, Nijmeijer, "String
+stability of interconnected vehicles under communication constraints", IEEE T-ITS 2014, on the
+co-simulation's own step grid), for the semantics the FMUs and links run:
+
+- Jacobi master, step h: outputs at t_k are computed from the state at t_k and the inputs of the step
+  before; inputs set at t_k are used over [t_k, t_k + h), extrapolated from their sample's output_time
+  (coupling "extrapolate": positions to order 2, speeds and gaps to order 1) or held ("hold");
+- a Link with delay d and beacon period T = n h hands the receiver, at t_k, the newest beacon (sent at a
+  multiple of T) with output_time <= t_k - a0, a0 = max(h, ceil(d/h) h); a lost beacon leaves the older
+  one in use (losses: independent or Gilbert-Elliott; the result is the mean over them, a product of
+  means since every link draws its own stream); a perfect link or the sensor is a plain connection, a0 = 0;
+- a speed push is the disturbance's value at t_k held over the step (docs/model.md, section 7).
+
+Each vehicle is linear on a straight line (kinematic: position x and loop speed V_s, deviations from the
+steady state). A vehicle's *broadcast*, the (x, speed, speed_rate) it outputs at the P instants of one
+lifting period, is a linear function of its sender's broadcast (the vehicle ahead under acc and cacc,
+the one behind under the paper's law) and of its own push: b_i = T(w) b_(i-1) + U(w) p_i. Values
+outside the period follow from the steady state's phase: x(t_k + P h) = e^{j w P h} x(t_k). The
+spectral radius of T(w) is the growth per link far down a long string; the cascade from the config's
+own pushes is what a run measures, link by link.
+
+Pure computation (numpy), no I/O. The limits: a line, kinematic vehicles, the Jacobi master, no
+jitter, beacon periods that are whole multiples of the step; ``exact_applies`` says which is missing.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from orchestrator.scenario.config import Config
+
+KINDS = ("x", "speed", "rate")  # a broadcast's signals: position, speed over ground, speed rate
+_TAIL = 1e-15  # loss weights are summed until what is left is below this
+
+
+@dataclass(frozen=True)
+class Timing:
+    """When a receiver's sample of a sender is taken and how it is used (steps of h).
+
+    ``lag`` a0/h (0 for a plain connection), ``every`` n = T/h (beacon period in steps), ``weights`` the
+    probabilities that the beacon in use is the newest deliverable one, the one before, ... (1.0 alone
+    without losses)."""
+
+    lag: int
+    every: int
+    weights: tuple[float, ...] = (1.0,)
+
+
+PLAIN = Timing(0, 1)
+
+
+def loss_weights(loss: float, burst: float) -> tuple[float, ...]:
+    """P(the newest delivered beacon is j beacons old), j = 0, 1, ...: geometric for independent losses;
+    for Gilbert-Elliott with mean burst b the renewal law of ``string_stability.Channel`` (the first
+    beacon back lost with q = p r/(1 - p), each one before with 1 - r, r = 1/b)."""
+    if loss <= 0.0:
+        return (1.0,)
+    if burst <= 1.0:
+        first, ratio = 1.0 - loss, loss
+        head: list[float] = []
+    else:
+        r = 1.0 / burst
+        q = loss * r / (1.0 - loss)
+        norm = 1.0 + q / r
+        head, first, ratio = [1.0 / norm], q / norm, 1.0 - r
+    weights, term = list(head), first
+    while term > _TAIL or len(weights) < 2:
+        weights.append(term)
+        term *= ratio
+    return tuple(weights)
+
+
+@dataclass(frozen=True)
+class Vehicle:
+    """One vehicle of the cascade, linearized on a line.
+
+    ``law``: paper, acc, cacc; ``last``: the paper law's last vehicle (commands V_c); ``c`` = V_c/d*
+    (paper); ``time_gap``, ``cacc_gain`` (acc, cacc); ``extrapolate``: the coupling mode; ``sensor``,
+    ``comm``: the timing of the sensed position (acc, cacc) and of the communicated message (cacc: the
+    backward link; paper: the forward link its follower's speed and gap come through); ``gap_link``:
+    the paper's law only, the follower's own backward link, through which the follower sees this vehicle
+    when it computes the gap it sends."""
+
+    law: str
+    k_v: float
+    time_gap: float = 1.0
+    cacc_gain: float = 0.2
+    c: float = 0.0
+    last: bool = False
+    extrapolate: bool = True
+    sensor: Timing = PLAIN
+    comm: Timing = PLAIN
+    gap_link: Timing = PLAIN
+
+    def loop(self) -> tuple[np.ndarray, dict[str, float], np.ndarray]:
+        """(A, the input gains on dV_s/dt, the push's vector): x' = V_s + p, V_s' = A[1] s + inputs."""
+        h, k_v = self.time_gap, self.k_v
+        if self.law == "acc":
+            return np.array([[0.0, 1.0], [-k_v / h, -k_v]]), {"sensor": k_v / h}, np.array([1.0, 0.0])
+        if self.law == "cacc":
+            kp = self.cacc_gain
+            damping = (1.0 + kp * h) / h
+            return (np.array([[0.0, 1.0], [-kp / h, -damping]]), {"sensor": kp / h, "speed": 1.0 / h},
+                    np.array([1.0, -damping]))
+        gains = {} if self.last else {"speed": k_v, "gap": -k_v * self.c}
+        return np.array([[0.0, 1.0], [0.0, -k_v]]), gains, np.array([1.0, 0.0])
+
+
+def _expm(a: np.ndarray) -> np.ndarray:
+    """e^a for a small real matrix: Taylor series after scaling to norm <= 1/2, then squaring."""
+    squarings = max(0, math.ceil(math.log2(max(np.abs(a).sum(axis=1).max(), 1e-300) / 0.5)))
+    scaled = a / 2.0**squarings
+    result, term = np.eye(len(a)), np.eye(len(a))
+    for n in range(1, 20):
+        term = term @ scaled / n
+        result = result + term
+    for _ in range(squarings):
+        result = result @ result
+    return result
+
+
+def step_maps(a: np.ndarray, h: float) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(e^{Ah}, [Gamma_q]) with Gamma_q = integral over [0, h] of e^{A(h - tau)} tau^q dtau, q = 0, 1, 2:
+    the exact step of s' = A s + sum_q f_q tau^q (Gauss-Legendre, exact to rounding for these smooth
+    integrands over one step)."""
+    nodes, weights = np.polynomial.legendre.leggauss(12)
+    taus = 0.5 * h * (nodes + 1.0)
+    flows = [_expm(a * (h - tau)) for tau in taus]
+    gammas = [sum(0.5 * h * wt * tau**q * flow for wt, tau, flow in zip(weights, taus, flows)) for q in range(3)]
+    return _expm(a * h), gammas
+
+
+class Lifted:
+    """Linear functionals over the lifted broadcasts of a sender and a receiver ("self"), per frequency.
+
+    A row is an array (frequencies, 6 P): the sender's (x, speed, rate) at instants 0..P-1, then the
+    receiver's. ``unit`` places instant m (any integer) with its period's phase e^{j w P h floor(m/P)}."""
+
+    def __init__(self, w: np.ndarray, step: float, period: int) -> None:
+        self.w, self.h, self.p = np.asarray(w, dtype=float), step, period
+        self.zeta = np.exp(1j * self.w * period * step)
+        self._memo: dict[tuple, list[np.ndarray]] = {}
+        self._powers: dict[int, np.ndarray] = {}  # zeta**turns, by turns (read only)
+
+    def zero(self) -> np.ndarray:
+        return np.zeros((len(self.w), 6 * self.p), dtype=complex)
+
+    def unit(self, owner: str, kind: str, m: int) -> np.ndarray:
+        row = self.zero()
+        column, phase = self.place(owner, kind, m)
+        row[:, column] = phase
+        return row
+
+    def place(self, owner: str, kind: str, m: int) -> tuple[int, np.ndarray]:
+        """Where ``unit``'s one non-zero column is, and its value: rows are built column by column from
+        these (a whole row per sample cost most of a map's analysis), to the same bits."""
+        turns, instant = divmod(m, self.p)
+        if turns not in self._powers:
+            self._powers[turns] = self.zeta**turns
+        return (0 if owner == "sender" else 3 * self.p) + 3 * instant + KINDS.index(kind), self._powers[turns]
+
+    def samples(self, timing: Timing, k: int) -> list[tuple[float, int, float]]:
+        """(probability, beacon instant, its age at t_k) of the sample a receiver uses over step k."""
+        newest = ((k - timing.lag) // timing.every) * timing.every
+        return [(p, newest - j * timing.every, (k - newest + j * timing.every) * self.h)
+                for j, p in enumerate(timing.weights)]
+
+    def _shifted(self, build, owner: str, timing: Timing, k: int, extrapolate: bool) -> list[np.ndarray]:
+        """``build``'s rows for step k from those of step k mod P: one period later every sample is one
+        period later, so the rows are the same times e^{j w P h} (computed once per step of the period)."""
+        turns, first = divmod(k, self.p)
+        key = (build.__name__, owner, timing, first, extrapolate)
+        if key not in self._memo:
+            self._memo[key] = build(owner, timing, first, extrapolate)
+        factor = self.zeta[:, None] ** turns
+        return [row * factor for row in self._memo[key]]
+
+    def position(self, owner: str, timing: Timing, k: int, extrapolate: bool) -> list[np.ndarray]:
+        """The sender's position as seen over step k, as rows of tau^0, tau^1, tau^2 (along its speed and
+        speed rate when extrapolating: x + V (D + tau) + V' (D + tau)^2 / 2, D the sample's age at t_k)."""
+        return self._shifted(self._position, owner, timing, k, extrapolate)
+
+    def speed(self, owner: str, timing: Timing, k: int, extrapolate: bool) -> list[np.ndarray]:
+        """The sender's speed as seen over step k: rows of tau^0, tau^1 (V + V' (D + tau), or V held)."""
+        return self._shifted(self._speed, owner, timing, k, extrapolate)
+
+    def _position(self, owner: str, timing: Timing, k: int, extrapolate: bool) -> list[np.ndarray]:
+        # per sample: p (x + age v + age^2/2 a), p (v + age a), p a/2 over unit rows x, v, a
+        rows = [self.zero(), self.zero(), self.zero()]
+        for p, b, age in self.samples(timing, k):
+            (x, phase), (v, _), (a, _) = (self.place(owner, kind, b) for kind in KINDS)
+            rows[0][:, x] += p * phase
+            if not extrapolate:
+                continue
+            rows[0][:, v] += p * (age * phase)
+            rows[0][:, a] += p * (0.5 * age * age * phase)
+            rows[1][:, v] += p * phase
+            rows[1][:, a] += p * (age * phase)
+            rows[2][:, a] += p * 0.5 * phase
+        return rows
+
+    def _speed(self, owner: str, timing: Timing, k: int, extrapolate: bool) -> list[np.ndarray]:
+        # per sample: p (v + age a) (or p v, held), p a over unit rows v, a
+        rows = [self.zero(), self.zero()]
+        for p, b, age in self.samples(timing, k):
+            (v, phase), (a, _) = self.place(owner, "speed", b), self.place(owner, "rate", b)
+            rows[0][:, v] += p * phase
+            if extrapolate:
+                rows[0][:, a] += p * (age * phase)
+                rows[1][:, a] += p * phase
+        return rows
+
+
+def _gap_message(lift: Lifted, v: Vehicle, k: int) -> list[np.ndarray]:
+    """The paper's law: the follower's gap as this vehicle uses it over step k, rows of tau^0, tau^1.
+
+    The follower (the sender) outputs at beacon instant b the distance to this vehicle as *it* sees it,
+    through its own backward link (``gap_link``, its inputs of the step before b, extrapolated to t_b),
+    minus its own position; and the rate of that. This vehicle receives both through the forward link
+    (``comm``) and extrapolates them linearly, or holds them."""
+    rows = [lift.zero(), lift.zero()]
+    for p, b, age in lift.samples(v.comm, k):
+        gap, rate = _sent_gap(lift, v, b)
+        rows[0] += p * (gap + age * rate if v.extrapolate else gap)
+        if v.extrapolate:
+            rows[1] += p * rate
+    return rows
+
+
+def _sent_gap(lift: Lifted, v: Vehicle, b: int) -> tuple[np.ndarray, np.ndarray]:
+    """The gap and its rate the follower sends at beacon instant b (rows; not to be changed in place).
+    Computed once per instant: every step whose sample is beacon b uses the same rows."""
+    key = ("sent gap", v.gap_link, b, v.extrapolate)
+    if key not in lift._memo:
+        seen = lift.position("self", v.gap_link, b - 1, v.extrapolate)
+        seen_speed = lift.speed("self", v.gap_link, b - 1, v.extrapolate)
+        h = lift.h
+        gap = seen[0] + h * seen[1] + h * h * seen[2]
+        rate = seen_speed[0] + h * seen_speed[1]
+        (x_column, phase), (speed_column, _) = lift.place("sender", "x", b), lift.place("sender", "speed", b)
+        gap[:, x_column] -= phase  # minus the sender's unit rows x and speed at b
+        rate[:, speed_column] -= phase
+        lift._memo[key] = [gap, rate]
+    gap, rate = lift._memo[key]
+    return gap, rate
+
+
+def forcing(lift: Lifted, v: Vehicle) -> dict[int, list[np.ndarray]]:
+    """Per step k of the period (and k = -1): the rows of tau^q (q = 0, 1, 2) of what drives dV_s/dt
+    besides the vehicle's own state and push."""
+    _, gains, _ = v.loop()
+    result = {}
+    for k in range(-1, lift.p):
+        rows = [lift.zero(), lift.zero(), lift.zero()]
+        parts = []
+        if "sensor" in gains:
+            parts.append((gains["sensor"], lift.position("sender", v.sensor, k, v.extrapolate)))
+        if "speed" in gains:
+            parts.append((gains["speed"], lift.speed("sender", v.comm, k, v.extrapolate)))
+        if "gap" in gains:
+            parts.append((gains["gap"], _gap_message(lift, v, k)))
+        for gain, polynomial in parts:
+            for q, row in enumerate(polynomial):
+                rows[q] += gain * row
+        result[k] = rows
+    return result
+
+
+def receiver_maps(lift: Lifted, v: Vehicle) -> tuple[np.ndarray, np.ndarray]:
+    """(T, U): the receiver's broadcast = T @ the sender's broadcast + U * its push (a unit phasor held
+    over each step, e^{j w t_k} from t_k), per frequency; shapes (W, 3P, 3P) and (W, 3P).
+
+    Unknowns: the state s(k) = (x, V_s) and the broadcast r(k) = (x, V_s + p(k-1), V_s'(t_k)) at the
+    P instants; equations: the exact step s(k+1) = E s(k) + sum_q Gamma_q (0, f_q(k)) + Gamma_0 pi p(k)
+    (s(P) = e^{j w P h} s(0)), and the outputs at t_k from s(k) and the inputs of step k - 1."""
+    p, w = lift.p, lift.w
+    a, _, push = v.loop()
+    flow, gammas = step_maps(a, lift.h)
+    f = forcing(lift, v)
+    size = 5 * p
+    m = np.zeros((len(w), size, size), dtype=complex)
+    n = np.zeros((len(w), size, 3 * p), dtype=complex)
+    rhs = np.zeros((len(w), size), dtype=complex)
+    phase = np.exp(1j * np.outer(w, np.arange(-1, p) * lift.h))  # p(k) for k = -1 .. P-1
+    for k in range(p):
+        here, following = slice(2 * k, 2 * k + 2), slice(2 * ((k + 1) % p), 2 * ((k + 1) % p) + 2)
+        m[:, following, following] += np.eye(2) * (lift.zeta[:, None, None] if k + 1 == p else 1.0)
+        m[:, following, here] -= flow
+        for q in range(3):
+            column = gammas[q][:, 1]
+            m[:, following, 2 * p:] -= column[None, :, None] * f[k][q][:, None, 3 * p:]
+            n[:, following, :] += column[None, :, None] * f[k][q][:, None, :3 * p]
+        rhs[:, following] += (gammas[0] @ push)[None, :] * phase[:, k + 1, None]
+        x, speed, rate = (2 * p + 3 * k + i for i in range(3))
+        m[:, x, x] += 1.0
+        m[:, x, 2 * k] -= 1.0
+        m[:, speed, speed] += 1.0
+        m[:, speed, 2 * k + 1] -= 1.0
+        rhs[:, speed] += phase[:, k]
+        m[:, rate, rate] += 1.0
+        m[:, rate, here] -= a[1]
+        before = sum(lift.h**q * f[k - 1][q] for q in range(3))
+        m[:, rate, 2 * p:] -= before[:, 3 * p:]
+        n[:, rate, :] += before[:, :3 * p]
+        rhs[:, rate] += push[1] * phase[:, k]
+    solved_n = np.linalg.solve(m, n)
+    solved_push = np.linalg.solve(m, rhs[..., None])[..., 0]
+    return solved_n[:, 2 * p:, :], solved_push[:, 2 * p:]
+
+
+def exact_applies(config: "Config") -> str | None:
+    """None when the lifting models this config's co-simulation exactly, else what it leaves out."""
+    sim, p = config.simulation, config.platoon
+    if config.path.kind != "line":
+        return "a circle (the lifting is linearized on a straight line)"
+    if sim.master != "jacobi":
+        return "the Gauss-Seidel master (the lifting follows the Jacobi master's exchange)"
+    if any((config.override(i).dynamics or p.dynamics) != "kinematic" for i in range(1, p.count + 1)):
+        return "m3pi dynamics (the lifting knows the kinematic vehicle)"
+    for i in range(1, p.count + 1):
+        for direction in ("backward", "forward"):
+            link = config.resolve_link(direction, i)
+            if link.jitter > 0.0:
+                return f"jitter on the {direction} link of vehicle {i}"
+            beacons = link.period / sim.step
+            if link.period > sim.step and abs(beacons - round(beacons)) > 1e-9:
+                return f"the {direction} link of vehicle {i}: period {link.period:g} s is not a multiple of the step"
+    return None
+
+
+def timing_of(config: "Config", direction: str, vehicle: int) -> Timing:
+    """How the receiver at the end of ``vehicle``'s ``direction`` link samples its sender (Jacobi)."""
+    link, step = config.resolve_link(direction, vehicle), config.simulation.step
+    if link.perfect:
+        return PLAIN
+    lag = max(1, math.ceil(link.delay / step - 1e-9))
+    every = max(1, round(link.period / step))
+    return Timing(lag, every, loss_weights(link.loss, link.burst))
+
+
+def vehicle_of(config: "Config", index: int) -> Vehicle:
+    """Vehicle ``index`` of the config as a receiver of the speed chain."""
+    p, n = config.platoon, config.platoon.count
+    law = config.speed_law_of(index)
+    k_v = config.override(index).k_v or p.k_v
+    extrapolate = config.simulation.coupling == "extrapolate"
+    if law == "paper":
+        if index == n:
+            return Vehicle(law, k_v, c=p.speed / p.d_star, last=True, extrapolate=extrapolate)
+        return Vehicle(law, k_v, c=p.speed / p.d_star, extrapolate=extrapolate,
+                       comm=timing_of(config, "forward", index + 1), gap_link=timing_of(config, "backward", index + 1))
+    return Vehicle(law, k_v, p.time_gap, p.cacc_gain, extrapolate=extrapolate,
+                   comm=timing_of(config, "backward", index))
+
+
+def lifting_period(config: "Config", record_every: int = 1) -> int:
+    """P: the steps after which the beacons of every link (and the records) repeat."""
+    period = record_every
+    for i in range(1, config.platoon.count + 1):
+        for direction in ("backward", "forward"):
+            period = math.lcm(period, timing_of(config, direction, i).every)
+    return period
+
+
+def push_phasors(config: "Config", w: float) -> dict[int, complex]:
+    """Per vehicle, the complex amplitude of its speed pushes at frequency ``w``: value sin(w (t - start))
+    is the imaginary part of value e^{-j w start} e^{j w t}."""
+    pushes: dict[int, complex] = {}
+    for d in config.disturbance:
+        if d.kind == "speed" and abs(d.frequency - w) < 1e-12:
+            pushes[d.vehicle] = pushes.get(d.vehicle, 0.0) + d.value * complex(math.cos(w * d.start), -math.sin(w * d.start))
+    return pushes
+
+
+def cascade_speeds(config: "Config", order: list[int], w: float, record_every: int) -> list[complex]:
+    """The component at ``w`` of each vehicle's speed (along ``order``, the way the law carries a
+    disturbance from ``order[0]``), driven by the config's sinusoidal pushes, as a least-squares fit over
+    records every ``record_every`` steps measures it (the mean of the recorded instants' phasors)."""
+    period = lifting_period(config, record_every)
+    lift = Lifted(np.array([w]), config.simulation.step, period)
+    pushes = push_phasors(config, w)
+    broadcast = np.zeros(3 * period, dtype=complex)
+    recorded = np.arange(0, period, record_every)
+    demodulate = np.exp(-1j * w * recorded * config.simulation.step)
+    components = []
+    for index in order:
+        t, u = receiver_maps(lift, vehicle_of(config, index))
+        broadcast = t[0] @ broadcast + u[0] * pushes.get(index, 0.0)
+        components.append(complex(np.mean(broadcast[3 * recorded + 1] * demodulate)))
+    return components
+
+
+def growth_per_link(config: "Config", vehicle: int, w: np.ndarray) -> np.ndarray:
+    """The spectral radius of ``vehicle``'s T(w): how much a disturbance at w grows per link far down a
+    long string of vehicles like it (whatever the string's first links do)."""
+    lift = Lifted(np.asarray(w, dtype=float), config.simulation.step, lifting_period(config))
+    t, _ = receiver_maps(lift, vehicle_of(config, vehicle))
+    return np.abs(np.linalg.eigvals(t)).max(axis=-1)
+
+
+# Growth per link above 1 by less than this is 1: rho(w) -> 1 as w -> 0 for every law (the lifting is
+# computed to ~1e-12); a real excess near the boundary is 1e-4 or more on the frequency grid below.
+GROWTH_TOLERANCE = 1e-9
+
+
+@dataclass(frozen=True)
+class Growth:
+    gain: float  # max over w of the growth per link (spectral radius of T(w))
+    frequency: float  # rad/s where it is reached (0: the supremum is the limit w -> 0, where it is 1)
+
+    @property
+    def string_stable(self) -> bool:
+        return self.gain <= 1.0 + GROWTH_TOLERANCE
+
+
+def peak_growth(config: "Config", vehicle: int) -> Growth:
+    """The largest growth per link over w. T depends on w only through e^{j w P h}, so w in (0, pi/(P h)]
+    covers every frequency; 600 log-spaced points from 1e-3 rad/s, refined twice around the best."""
+    top = math.pi / (lifting_period(config) * config.simulation.step)
+    w = np.geomspace(1e-3, top, 600)
+    for _ in range(3):
+        gain = growth_per_link(config, vehicle, w)
+        best = int(np.argmax(gain))
+        if best == 0 and gain[0] <= 1.0 + GROWTH_TOLERANCE:
+            return Growth(1.0, 0.0)
+        top_w, top_gain = w[best], gain[best]
+        w = np.linspace(w[max(best - 1, 0)], w[min(best + 1, len(w) - 1)], 41)
+    return Growth(float(top_gain), float(top_w))
+
+
+def largest_stable_delay(config: "Config", vehicle: int, longest: float = 2.0) -> float | None:
+    """The delay (s, on the step grid) of every link up to which the string is stable at every delay of the
+    grid, scanning from 0 up to ``longest`` (not a bisection: the growth jumps as the delay crosses the
+    beacon grid); None if unstable even without delay, ``longest`` if stable up to there."""
+    step = config.simulation.step
+    stable = None
+    for steps in range(0, int(round(longest / step)) + 1):
+        delay = steps * step
+        links = config.links.model_copy(update={"delay": delay})
+        if not peak_growth(config.model_copy(update={"links": links}), vehicle).string_stable:
+            return stable
+        stable = delay
+    return longest
+
+
+def exact_lines(config: "Config", vehicle: int) -> list[str]:
+    """`platoon analyze`'s lines for the sampled-data cascade, or the reason it does not apply."""
+    missing = exact_applies(config)
+    if missing is not None:
+        return [f"  sampled-data cascade: not computed for {missing}; the verdict is the phase-averaged model's"]
+    period = lifting_period(config)
+    growth = peak_growth(config, vehicle)
+    where = f"at {growth.frequency:.4g} rad/s" if growth.frequency > 0 else "as w -> 0 (<= 1 everywhere)"
+    verdict = "string stable" if growth.string_stable else "NOT string stable"
+    lines = [f"  sampled-data cascade, exact on the {config.simulation.step:g} s step grid (lifted over "
+             f"{period} step(s)): growth per link far down the string peaks at {growth.gain:.4f} {where}: {verdict}"]
+    if config.speed_law_of(vehicle) == "cacc":
+        most = largest_stable_delay(config, vehicle)
+        lines.append("  (cascade) not string stable even without a link delay" if most is None else
+                     f"  (cascade) string stable for every link delay on the step grid up to {most:.4g} s")
+    return lines

@@ -1,0 +1,123 @@
+"""The sampled-data cascade (orchestrator/analysis/sampled_chain.py) against the co-simulation it models.
+
+* its loss weights are the age law the phase-averaged channel uses (one law of the beacons in use);
+* on the study's platoon (configs/study/string_stability.toml: seven vehicles on a line, 10 Hz beacons,
+  four sinusoids on both end vehicles), the component at each probe frequency of every vehicle's speed,
+  as a least-squares fit over the run measures it, is the cascade's, link by link: the paper's law with
+  held coupling (where the backward link sits inside the speed loop), cacc with extrapolated 0.3 s links,
+  acc;
+* the cacc delay boundary `platoon analyze` gives is where runs of the co-simulation start to grow.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from orchestrator.analysis.error_gains import (clean_order, frequency_gains, probe_frequencies, propagation,
+                                               source_vehicle, steady_window, vehicle_errors)
+from orchestrator.analysis.sampled_chain import cascade_speeds, largest_stable_delay, loss_weights
+from orchestrator.analysis.string_stability import Channel, _hold, interior_vehicle
+from orchestrator.execution.run import run_scenario
+from orchestrator.scenario.config import load_config
+from orchestrator.trace import load
+
+STUDY = Path(__file__).resolve().parent.parent / "configs" / "study" / "string_stability.toml"
+
+
+@pytest.mark.parametrize("loss, burst", [(0.4, 1.0), (0.8, 1.0), (0.5, 4.0)])
+def test_the_loss_weights_are_the_channels_law_of_the_beacon_in_use(loss, burst):
+    """sum_j w_j z^j is the factor L(z) of Channel.age_transform (the renewal law of the beacons since the
+    last delivery): the two models agree on which beacon is in use, they differ in what they do with it."""
+    weights = loss_weights(loss, burst)
+    assert sum(weights) == pytest.approx(1.0, abs=1e-13)
+    s = 1j * np.array([0.3, 3.0, 20.0])
+    z = np.exp(-0.1 * s)
+    ours = sum(w * z**j for j, w in enumerate(weights))
+    channel = Channel(0.0, 0.1, 0, loss, burst)
+    assert np.abs(ours - channel.age_transform(s) / _hold(s, 0.1)).max() < 1e-12
+
+
+def _measured_and_predicted(overrides: list[str], tmp_path: Path):
+    """Per probe frequency, every link's gain along the way the law carries a disturbance: measured on a run
+    of the study, and the cascade's."""
+    config, _ = load_config(STUDY, overrides)
+    result = run_scenario(config, "", tmp_path / "run.mcap", foxglove=False)
+    assert result.status == "completed", result.error
+    trace = load(result.trace)
+    names = trace.vehicles()
+    order = propagation(config, names, source_vehicle(config))
+    frequencies = probe_frequencies(config)
+    window = steady_window(config, float(trace.component(names[0])["t"][-1]))
+    measured = np.array(frequency_gains(vehicle_errors(trace, config), order, frequencies, window))
+    numbers = [names.index(name) + 1 for name in order]
+    predicted = []
+    for w in frequencies:
+        amplitudes = np.abs(cascade_speeds(config, numbers, w, config.simulation.trace_every))
+        predicted.append(amplitudes[1:] / amplitudes[:-1])
+    return config, trace, measured, np.array(predicted)
+
+
+# The study's laws are linear on a line but for the paper's V d*/d, whose second-order terms mix the
+# 0.03 m/s push at 0.1 rad/s into the 3 rad/s component, which has fallen to 0.3^5 of its 1 mm/s push at the
+# far links (measured: 0.24 % there, 4 digits on every other link and law). 5e-3 holds that and is far
+# below the 7 % the phase-averaged model is off by at 3 rad/s.
+TOLERANCE = 5e-3
+
+
+@pytest.mark.parametrize("overrides", [
+    ["platoon.speed_law=paper", "links.delay=0.3", "simulation.coupling=hold"],
+    ["platoon.speed_law=cacc", "links.delay=0.3"],
+    ["platoon.speed_law=acc", "links.delay=0.2", "links.loss=0.6"],
+], ids=["paper-hold", "cacc-extrapolate", "acc"])
+def test_the_cascade_is_what_every_link_of_a_run_measures(overrides, native_fmu_dir, tmp_path):
+    _, _, measured, predicted = _measured_and_predicted(overrides, tmp_path)
+    assert np.abs(measured / predicted - 1.0).max() < TOLERANCE, (measured, predicted)
+
+
+def test_the_papers_law_with_held_links_has_the_backward_link_in_its_loop(native_fmu_dir, tmp_path):
+    """0.3 s links, held: the gap a follower sends is its distance to the vehicle ahead as its backward link
+    shows it, so both links delay vehicle i's own position in its loop; the measured gain per link at
+    0.3 rad/s is 1.3769 (the forward link alone gave 1.2506)."""
+    config, _, measured, predicted = _measured_and_predicted(
+        ["platoon.speed_law=paper", "links.delay=0.3", "simulation.coupling=hold"], tmp_path)
+    k = probe_frequencies(config).index(0.3)
+    assert predicted[k][2:5] == pytest.approx(1.3769, abs=1e-4)
+    assert measured[k][2:5] == pytest.approx(1.3769, abs=1e-3)
+
+
+def _largest_clean_gain(config, trace) -> float:
+    names = trace.vehicles()
+    clean = clean_order(config, names)
+    window = steady_window(config, float(trace.component(names[0])["t"][-1]))
+    return float(np.max(frequency_gains(vehicle_errors(trace, config), clean, probe_frequencies(config), window)))
+
+
+def test_the_cacc_delay_boundary_is_where_runs_start_to_grow(native_fmu_dir, tmp_path):
+    """The study under cacc, no loss: `platoon analyze`'s cascade is string stable for link delays up to
+    0.38 s; the co-simulation at 0.38 s does not grow on the links that measure propagation, at 0.39 s
+    (0.40 s on the step grid) it does (at the 3 rad/s probe, near the cascade's peak at 2.8 rad/s)."""
+    config, _ = load_config(STUDY, ["platoon.speed_law=cacc"])
+    assert largest_stable_delay(config, interior_vehicle(config), longest=0.6) == pytest.approx(0.38)
+    for delay, grows in ((0.38, False), (0.39, True)):
+        run, _ = load_config(STUDY, ["platoon.speed_law=cacc", f"links.delay={delay}"])
+        result = run_scenario(run, "", tmp_path / f"{delay}.mcap", foxglove=False)
+        assert result.status == "completed", result.error
+        assert (_largest_clean_gain(run, load(result.trace)) > 1.0) == grows
+
+
+def test_the_maps_scale_spends_its_range_above_1_and_its_axis_gives_the_age_of_information():
+    """docs/string_stability.png: no peak is below 1 (every chain passes w -> 0 unchanged), so the colour
+    scale gives 1 to the highest peak nearly all its colours; a tick names the delay and the ages it gives
+    the receiver (a Link is one more hop under Jacobi: 0.02 s at delay 0, plus a 0.1 s beacon period)."""
+    from orchestrator.sweep.stability_map import age_label, colour_scale
+
+    norm, cmap = colour_scale(1.5)
+    below = [cmap(norm(g)) for g in np.linspace(0.98, 0.999, 5)]
+    above = [cmap(norm(g)) for g in np.linspace(1.001, 1.5, 50)]
+    assert norm(1.0) < 0.05  # under 5 % of the scale below 1
+    assert all(c[2] > c[0] for c in below) and all(c[0] >= c[2] for c in above)  # blue below 1, red above
+    config, _ = load_config(STUDY, [])
+    assert age_label(config, 0.0) == "0\n0.02-0.12" and age_label(config, 0.3) == "0.3\n0.3-0.4"
