@@ -93,7 +93,10 @@ def test_the_acl_lets_only_robot_3s_run_host_command_it_and_only_its_robot_side_
     ("tcp/[::1]:7447", True), ("tls/192.168.1.20:7447", True), ("quic/192.168.1.20:7447", True),
 ])
 def test_an_endpoint_off_this_machine_without_tls_is_refused_naming_the_recipe(endpoint: str, allowed: bool) -> None:
-    if allowed:
+    if allowed and endpoint.startswith(("tls/", "quic/")):  # allowed, once a zenoh_config gives the certificates
+        with pytest.raises(SessionError, match=f"endpoint {endpoint} is TLS but no zenoh_config gives its certificates"):
+            zenoh_config(connect=[endpoint])
+    elif allowed:
         zenoh_config(connect=[endpoint])
     else:
         with pytest.raises(SessionError, match=f"endpoint {endpoint.replace('[', '.').replace(']', '.')} leaves this "
@@ -112,8 +115,34 @@ def test_a_run_refuses_an_insecure_endpoint_unless_the_config_allows_it(tmp_path
     assert code == 1 and "did not appear within 0.5 s" in err, err
 
 
+def test_a_tls_endpoint_needs_a_zenoh_config_and_a_tls_robot_that_does_not_appear_names_the_certificates(
+        tmp_path: Path) -> None:
+    """A tls/ endpoint without certificates cannot work: refused before connecting (not a 10 s wait asking
+    whether the emulator runs). With the lab's certificates and nobody (or a robot side that refuses them)
+    at the other end, the failure names TLS and the certificates as the likely cause."""
+    tls = f"tls/127.0.0.1:{free_port()}"
+    started = time.monotonic()
+    code, _, err = finish(start_run(free_port(), tmp_path / "bare.mcap", 1.0, f'vehicles.3.connect=["{tls}"]'), 60)
+    assert code == 1 and f"endpoint {tls} is TLS but no zenoh_config gives its certificates" in err, err
+    assert "platoon hil-certs" in err and time.monotonic() - started < 10.0  # refused, not waited for
+    folder = tmp_path / "lab"
+    write_lab(LAB, folder, days=1)
+    code, _, err = finish(start_run(free_port(), tmp_path / "absent.mcap", 1.0, f'vehicles.3.connect=["{tls}"]',
+                                    f'vehicles.3.zenoh_config="{folder / "laptop.json5"}"', "hil.connect_timeout=1"), 60)
+    assert code == 1 and "did not appear within 1 s" in err, err
+    assert "over TLS the likely cause is the certificates" in err, err
+
+
 def _peers(session) -> list:
     return list(session.info.peers_zid())
+
+
+def _without_certificates(tls: str):
+    """A session config that connects to ``tls`` with no certificate at all (``zenoh_config`` refuses to build
+    one: this is an outsider's own config)."""
+    config = zenoh_config(connect=["tcp/127.0.0.1:" + tls.rsplit(":", 1)[1]])
+    config.insert_json5("connect/endpoints", json.dumps([tls]))
+    return config
 
 
 def _outsiders(folder: Path, tls: str) -> list[tuple[str, object]]:
@@ -125,7 +154,7 @@ def _outsiders(folder: Path, tls: str) -> list[tuple[str, object]]:
     impostor.write_text(json.dumps(zenoh_lab_config(LAB, "laptop", _pem(foreign_ca), _pem(certificate), _pem(key))))
     port = tls.rsplit(":", 1)[1]
     return [("plain tcp", zenoh_config(connect=[f"tcp/127.0.0.1:{port}"])),
-            ("tls without a certificate", zenoh_config(connect=[tls])),
+            ("tls without a certificate", _without_certificates(tls)),
             ("a certificate of another CA", zenoh_config(connect=[tls], config_file=str(impostor)))]
 
 

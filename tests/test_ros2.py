@@ -641,6 +641,47 @@ def test_a_robot_subscribed_with_another_type_refuses_the_run(tmp_path: Path) ->
     assert "commands received 0" in log
 
 
+def test_a_command_topic_nobody_subscribes_to_under_rmw_zenoh_refuses_the_start(tmp_path: Path) -> None:
+    """A misspelled command topic would drive nothing: under rmw_zenoh the graph says nobody subscribes to it,
+    and the run refuses to start within connect_timeout, naming the topic and what is subscribed nearby (the
+    robot's own, not the run's pose subscription)."""
+    port = free_port()
+    robot = Emulator(port, tmp_path, "rmw_zenoh")
+    try:
+        run = _run(tmp_path / "unheard.mcap", 5.0, f'vehicles.3.connect=["{endpoint(port)}"]',
+                   "vehicles.3.ros2.command_topic=/m3pi3/cmd_vel", "hil.connect_timeout=3")
+        _, err = run.communicate(timeout=60)
+    finally:
+        log = robot.stop()
+    assert run.returncode == 1, err
+    assert ("nobody subscribes to /m3pi3/cmd_vel in ROS domain 0 within 3 s, so no command would reach the robot "
+            "(subscribed nearby: /m3pi_3/cmd_vel); set vehicles.3.ros2.command_topic") in err, err
+    assert "commands received 0" in log
+
+
+def test_a_robot_that_does_not_move_when_commanded_ends_the_run_non_zero(tmp_path: Path) -> None:
+    """Behind zenoh-bridge-ros2dds the graph does not tell who subscribes: commands on a misspelled topic go
+    nowhere while the robot's poses keep coming. The run sees the robot stand still while it commands it to
+    move, stops, and exits 1 saying so, within about a second (bridge/motion_watch.py)."""
+    port = free_port()
+    trace = tmp_path / "still.mcap"
+    robot = Emulator(port, tmp_path, "bridge_dds", "vehicles.3.ros2.convention=bridge_dds")
+    try:
+        run = _run(trace, 10.0, f'vehicles.3.connect=["{endpoint(port)}"]', "vehicles.3.ros2.convention=bridge_dds",
+                   "vehicles.3.ros2.command_topic=/m3pi_3/cmd_vell")
+        _, err = run.communicate(timeout=60)
+    finally:
+        log = robot.stop()
+    assert run.returncode == 1, err
+    assert "is not moving: commanded to move" in err and "it does not answer this run's commands" in err, err
+    assert "commands on /m3pi_3/cmd_vell via bridge_dds" in err and "commands received 0" in log
+    from orchestrator.trace import load
+
+    loaded = load(trace)
+    assert loaded.component("vehicle3")["t"][-1] < 2.5  # judged over the first second's window, not at the end
+    assert any("is not moving" in line.message for line in loaded.log)
+
+
 def test_bad_ros_poses_are_counted_and_ignored(tmp_path: Path) -> None:
     """A third session publishes bad PoseStamped messages on the robot's pose key (the bridge's bare key)
     during a run: each is dropped and counted by reason, a pose stamped in the future does not lock the

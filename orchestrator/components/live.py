@@ -42,14 +42,18 @@ def check_live_options(config: Config, engine: str, trace_writer: str) -> None:
 def live_settings(config: Config, vehicle: int):
     """Where vehicle ``vehicle``'s robot is and how patient the host is with it (a ``bridge.live.LiveSettings``)."""
     from bridge.live import LiveSettings  # Zenoh is imported only by runs that need it
+    from bridge.session import session_mode
 
     override, hil = config.override(vehicle), config.hil
+    connect, listen = tuple(override.connect or ()), tuple(override.listen or ())
     return LiveSettings(
         robot=config.robot_id(vehicle),
         prefix=override.prefix or hil.prefix,
-        connect=tuple(override.connect or ()),
-        listen=tuple(override.listen or ()),
+        connect=connect,
+        listen=listen,
         zenoh_config=override.zenoh_config,
+        # a ROS 2 graph's Zenoh is a router (rmw_zenohd, zenoh-bridge-ros2dds): join it as a client
+        mode=session_mode(connect, listen) if override.ros2 is not None else "peer",
         pose_timeout=hil.pose_timeout,
         connect_timeout=hil.connect_timeout,
         command_validity=hil.command_validity,

@@ -55,10 +55,11 @@ class Ros2RunPublisher(Observer):
         """Open the Zenoh session (``bridge.session``) and declare the node, its publishers and tokens."""
         from bridge.ros2.messages import POSE_STAMPED, TF_MESSAGE
         from bridge.ros2.node import RosGraph, RosNode
-        from bridge.session import open_session, zenoh_config
+        from bridge.session import open_session, session_mode, zenoh_config
 
         table = self.table
         self._session = open_session(zenoh_config(table.connect, table.listen, table.zenoh_config,
+                                                  mode=session_mode(table.connect, table.listen),
                                                   allow_insecure=self.allow_insecure), "[ros2] publish")
         graph = RosGraph(table.convention, table.domain, table.namespace, table.node or "platoon")
         self._node = RosNode(self._session, graph)
