@@ -150,6 +150,9 @@ class LiveVehicle:
         self.round_trips: list[float] = []  # s, command sent -> first pose taken after the robot applied it
         self.pose_ages: list[float] = []  # s, age of the pose each step used
         self.motion = MotionWatch()  # commanded to move, not moving: the run ends (bridge.motion_watch)
+        self._last_sent: float | None = None  # when the last command went out (its deadline guards the robot)
+        self.safety_stops = 0  # commands that expired before the next was sent: the robot side stopped its wheels
+        self.longest_gap = 0.0  # s, the longest time without a command (robot-side stops)
         self._time = 0.0
         self._warned: set[str] = set()
         self._session: zenoh.Session | None = None
@@ -176,7 +179,8 @@ class LiveVehicle:
 
     def link_statistics(self) -> dict[str, Any]:
         return _link_statistics(self.settings.robot, self.state.state.value, self.claim, self._command_seq,
-                                self.pose_counters, self.round_trips, self.pose_ages, self.motion.ratio_min)
+                                self.pose_counters, self.round_trips, self.pose_ages, self.motion.ratio_min,
+                                self.safety_stops, self.longest_gap)
 
     # -- Zenoh callbacks (Zenoh's threads) -------------------------------------------------------
 
@@ -244,10 +248,14 @@ class LiveVehicle:
         try:
             self._key = self._load_key()
             config = zenoh_config(settings.connect, settings.listen, settings.zenoh_config, mode=settings.mode,
-                                  allow_insecure=settings.allow_insecure)
+                                  allow_insecure=settings.allow_insecure, connect_wait=settings.connect_timeout)
             self._session = open_session(config, f"{self.name} ({self.what})")
         except (SessionError, LabKeyError) as error:
-            raise ComponentError(self.name, start_time, str(error)) from None
+            unreached = settings.mode == "client" and not settings.zenoh_config and isinstance(error, SessionError)
+            hint = (f" (client mode: the router at {list(settings.connect)}, rmw_zenohd, zenoh-bridge-ros2dds or the "
+                    f"emulator, did not answer within connect_timeout {settings.connect_timeout:g} s: is it running?)"
+                    if unreached else "")
+            raise ComponentError(self.name, start_time, str(error) + hint) from None
         session = self._session
         self._open_commands(session)
         self._open_poses(session)
@@ -448,6 +456,7 @@ class LiveVehicle:
     def _send(self, left: float, right: float, validity: float) -> None:
         self._command_seq += 1
         now = self.clock()
+        self._note_safety_stop(now)
         command = WheelCommand(self._command_seq, now + validity, left, right, self.claim.claim)
         self._publish_command(command)
         with self._lock:
@@ -457,6 +466,24 @@ class LiveVehicle:
                     del self._sent[seq]
         self._records.append(LiveRecord("command", dict(zip(COMMAND_FIELDS, (
             now, command.seq, command.deadline, left, right)))))
+
+    def _note_safety_stop(self, now: float) -> None:
+        """A command sent after the previous one's deadline: the robot side stopped its wheels meanwhile (a
+        stall of this run). Said in the log once per stall, counted for the summary and the terminal."""
+        validity = self._robot_timeout()
+        last, self._last_sent = self._last_sent, now
+        if last is None or validity is None or now - last <= validity or self._stop_sent:
+            return
+        gap = now - last
+        self.safety_stops += 1
+        self.longest_gap = max(self.longest_gap, gap)
+        self._events.append(LiveEvent("Warning", f"{self.what}: robot-side safety stop: no command for {gap * 1e3:.0f} ms, "
+                                                 f"past its deadline ({validity * 1e3:.0f} ms): the robot stopped its "
+                                                 "wheels until this command (the run stalled)"))
+
+    def _robot_timeout(self) -> float | None:
+        """How long a command holds on the robot side (None: unknown, a ROS robot's own timeout)."""
+        return self.settings.command_validity
 
     def _fail(self, t: float, reason: str) -> ComponentError:
         """Enter the error state, stop the robot, and return the error to raise."""
@@ -535,8 +562,10 @@ def tls_hint(settings: LiveSettings) -> str:
 
 
 def _link_statistics(robot: int, state: str, claim: HostClaim, command_seq: int, pose_counters: LinkCounters,
-                     round_trips: Sequence[float], pose_ages: Sequence[float], ratio_min: float) -> dict[str, Any]:
+                     round_trips: Sequence[float], pose_ages: Sequence[float], ratio_min: float, safety_stops: int,
+                     longest_gap: float) -> dict[str, Any]:
     values: dict[str, Any] = {"robot": robot, "state": state, "claim": claim_text(claim.claim), "command.sent": command_seq}
+    values["command.safety_stops"], values["command.longest_gap"] = safety_stops, longest_gap
     # the lowest moved / commanded over a judged window (bridge.motion_watch); 0 until one was judged
     values["motion.ratio_min"] = ratio_min if math.isfinite(ratio_min) else 0.0
     values.update(pose_counters.as_dict("pose"))
@@ -549,7 +578,7 @@ def _link_statistics(robot: int, state: str, claim: HostClaim, command_seq: int,
 
 def initial_link_statistics() -> dict[str, Any]:
     """``LiveVehicle.link_statistics`` before the link opened: the keys of every later call, in order."""
-    return _link_statistics(0, LinkState.CONFIGURED.value, HostClaim(), 0, LinkCounters(), [], [], math.inf)
+    return _link_statistics(0, LinkState.CONFIGURED.value, HostClaim(), 0, LinkCounters(), [], [], math.inf, 0, 0.0)
 
 
 def robot_side_counts(claim: HostClaim) -> dict[str, Any]:

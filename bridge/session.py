@@ -83,10 +83,12 @@ def _named_endpoints(config: zenoh.Config, section: str) -> list[str]:
 
 
 def zenoh_config(connect: Sequence[str] = (), listen: Sequence[str] = (), config_file: str | None = None,
-                 mode: str = "peer", allow_insecure: bool = False) -> zenoh.Config:
+                 mode: str = "peer", allow_insecure: bool = False, connect_wait: float = 0.0) -> zenoh.Config:
     """A Zenoh config that opens only the sockets named here or in ``config_file`` (module docstring).
 
-    ``config_file``'s settings win, except the endpoints named here; without a file: peer mode."""
+    ``config_file``'s settings win, except the endpoints named here; without a file: peer mode. A client
+    cannot open without its router: ``connect_wait`` s is how long opening keeps trying (a peer opens at once
+    and finds the others later)."""
     secure = [endpoint for endpoint in (*connect, *listen) if endpoint.partition("/")[0] in SECURE_PROTOCOLS]
     if secure and not config_file:  # without certificates the handshake fails, and the session waits in silence
         raise SessionError(f"endpoint {secure[0]} is TLS but no zenoh_config gives its certificates: a TLS session "
@@ -96,6 +98,8 @@ def zenoh_config(connect: Sequence[str] = (), listen: Sequence[str] = (), config
         config = zenoh.Config.from_file(str(Path(config_file))) if config_file else zenoh.Config()
         if not config_file:
             config.insert_json5("mode", json.dumps(mode))
+        if not config_file and mode == "client" and connect_wait > 0.0:
+            config.insert_json5("connect/timeout_ms", json.dumps(round(connect_wait * 1000)))
         connect = list(connect) or _named_endpoints(config, "connect")
         listen = list(listen) or _named_endpoints(config, "listen")
         config.insert_json5("connect/endpoints", json.dumps(connect))

@@ -898,3 +898,25 @@ def test_a_run_and_a_robot_side_with_different_lab_keys_say_so_within_seconds(tm
                               "--duration", "1"], cwd=REPO, env=_env(), capture_output=True, text=True, timeout=60)
     assert refused.returncode == 2 and "others can read it" in refused.stderr
     assert len(refused.stderr.strip().splitlines()) == 1
+
+
+def test_a_robot_side_safety_stop_shows_in_the_terminal_the_summary_and_the_log(tmp_path: Path) -> None:
+    """The run stalls (SIGSTOP) past its command's deadline: the robot side stops the wheels, as it must. The
+    run, resumed, says so: a warning in its log, the count in the trace's link summary and a note under the
+    terminal's live table; the platoon goes on and the run completes."""
+    port = free_port()
+    trace = tmp_path / "stalled.mcap"
+    with emulator(port, tmp_path) as (_, log):
+        run = start_run(port, trace, 6.0, *PATIENT)
+        wait_for_running(log, run)
+        os.kill(run.pid, signal.SIGSTOP)
+        try:
+            wait_for(lambda: "stopped (command deadline passed)" in log.read_text(), "the robot side's safety stop")
+        finally:
+            os.kill(run.pid, signal.SIGCONT)
+        code, out, err = finish(run)
+    assert code == 0, err
+    assert "robot-side safety stops" in out and "(no command for up to" in out, out  # more if the machine stalls too
+    loaded = load(trace)
+    assert json.loads(loaded.metadata["platoon.hil"]["vehicle3"])["command.safety_stops"] >= 1
+    assert any("robot-side safety stop: no command for" in line.message for line in loaded.log)

@@ -155,6 +155,9 @@ def test_pose_stamped_and_odometry_read_back_by_pycdr2() -> None:
     assert (odometry.pose.pose.position.x, odometry.pose.pose.position.y) == (-2.0, 3.0)
     assert _heading(odometry.pose.pose.orientation) == pytest.approx(-3.0, abs=1e-15)
     assert list(odometry.pose.covariance) == [0.0] * 36
+    moving = Odometry.deserialize(messages.encode_pose(messages.ODOMETRY, stamp, 0.0, 0.0, 0.0, linear=0.3, angular=-0.2))
+    assert moving.child_frame_id == "base_link"  # the body frame its twist is in (REP-105)
+    assert (moving.twist.twist.linear.x, moving.twist.twist.angular.z) == (0.3, -0.2)
 
 
 def test_twist_twist_stamped_and_tf_read_back_by_pycdr2() -> None:
@@ -741,6 +744,50 @@ def test_bad_ros_poses_are_counted_and_ignored(tmp_path: Path) -> None:
     assert np.abs(path_errors(config, vehicle["x"], vehicle["y"])).max() < 0.035  # never steered off (0.029 at start)
 
 
+@pytest.mark.parametrize("assignment, problem", [
+    ("vehicles.3.ros2.namespace=/bot3", "namespace = '/bot3' is zenoh-bridge-ros2dds' key prefix (convention = "
+                                        "\"bridge_dds\" only); under rmw_zenoh a namespace is part of each topic"),
+    ("vehicles.3.ros2.command_topic=/m3pi__3/cmd_vel", "command_topic = '/m3pi__3/cmd_vel': ROS 2 forbids repeated "
+                                                       "underscores"),
+    ("vehicles.3.ros2.node_namespace=/a__b", "node_namespace = '/a__b': ROS 2 forbids repeated underscores"),
+    ("ros2.namespace=/bot3", "namespace = '/bot3' is zenoh-bridge-ros2dds' key prefix"),
+])
+def test_ros_names_the_graph_would_ignore_or_refuse_are_refused(tmp_path: Path, assignment: str, problem: str) -> None:
+    """A namespace under rmw_zenoh would be silently ignored, and ROS 2 refuses names with "__": both are usage
+    errors of the config, one line, before anything connects."""
+    run = _run(tmp_path / "refused.mcap", 1.0, assignment)
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == 2 and problem in err and err.count("\n") == 1, err
+
+
+def test_the_runs_node_namespace_and_command_frame_reach_the_graph() -> None:
+    """``node_namespace`` puts the run's node in a namespace (its rmw_zenoh tokens say so, as ``ros2 node list``
+    shows /lab/platoon_vehicle3); a TwistStamped is in ``command_frame_id``, base_link by default; the default
+    command type is Twist."""
+    from orchestrator.components.live import ros_link
+    from orchestrator.scenario.config import config_from_mapping
+    import tomllib
+
+    table = tomllib.loads(ROS3.read_text())
+    table["vehicles"]["3"]["ros2"].pop("command_type")
+    table["vehicles"]["3"]["ros2"]["node_namespace"] = "/lab"
+    link = ros_link(config_from_mapping(table), 3)
+    assert (link.command_type, link.frame_id, link.graph.node_namespace) == (messages.TWIST, "base_link", "/lab")
+    port = free_port()
+    with open_session(zenoh_config(listen=[endpoint(port)]), "node") as ours, \
+            open_session(zenoh_config(connect=[endpoint(port)]), "tool") as tool:
+        node = RosNode(ours, link.graph)
+        node.publisher("/m3pi_3/cmd_vel", messages.TWIST_STAMPED)
+        zid = str(ours.zid())
+        _wait(lambda: f"@ros2_lv/0/{zid}/0/0/NN/%/%lab/platoon_vehicle3" in _tokens(tool, "@ros2_lv/0/**"),
+              what="the node's token in /lab")
+        node.close()
+    stamped = TwistStamped.deserialize(messages.encode_twist(messages.TWIST_STAMPED, 0.2, 0.1, 0.0, link.frame_id))
+    assert stamped.header.frame_id == "base_link"
+    table["vehicles"]["3"]["ros2"]["command_frame_id"] = "m3pi_3/base_footprint"
+    assert ros_link(config_from_mapping(table), 3).frame_id == "m3pi_3/base_footprint"
+
+
 def test_export_ssp_refuses_a_vehicle_on_ros2_topics(tmp_path: Path) -> None:
     """The LiveVehicle FMU speaks our protocol only: a ROS 2 vehicle exported as it would never reach its robot."""
     result = subprocess.run([str(PLATOON), "export-ssp", str(ROS3), "--out", str(tmp_path / "x.ssp")], cwd=REPO,
@@ -762,12 +809,19 @@ def test_an_odometry_pose_in_a_rotated_frame_with_our_wheel_protocol(tmp_path: P
     table = ('vehicles.3.ros2={convention="bridge_dds", pose_topic="/odom", pose_type="Odometry", '
              'frame={x=0.5, y=-0.3, yaw=0.4}}')
     robot = Emulator(port, tmp_path, "bridge_dds", table)
+    odometry: list[bytes] = []
     try:
-        run = _run(tmp_path / "mixed.mcap", 3.0, f'vehicles.3.connect=["{endpoint(port)}"]', table)
-        _, err = run.communicate(timeout=60)
+        with open_session(zenoh_config(connect=[endpoint(port)]), "viewer") as viewer:
+            viewer.declare_subscriber("odom", lambda sample: odometry.append(sample.payload.to_bytes()))
+            run = _run(tmp_path / "mixed.mcap", 3.0, f'vehicles.3.connect=["{endpoint(port)}"]', table)
+            _, err = run.communicate(timeout=60)
     finally:
         log = robot.stop()
     assert run.returncode == 0, err
+    # the emulator's Odometry says what it is of and how fast it goes: the body frame, the wheels' twist
+    decoded = [Odometry.deserialize(payload) for payload in odometry]
+    assert decoded and all(message.child_frame_id == "base_link" for message in decoded)
+    assert max(message.twist.twist.linear.x for message in decoded) > 0.2  # the platoon's 0.35 m/s, started at 0.28
     assert "pose on /odom at 200 Hz, commands on platoon/m3pi/3/cmd/wheels" in log, log
     assert "m3pi-emulator robot 3: claimed by " in log, log  # our commands: the claim holds as without ROS
     assert "running -> stopped (stop command)" in log

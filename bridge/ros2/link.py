@@ -68,10 +68,10 @@ class RosLink:
     pose_topic: str | None = None
     pose_type: str = messages.POSE_STAMPED
     command_topic: str | None = None
-    command_type: str = messages.TWIST_STAMPED
+    command_type: str = messages.TWIST
     command_stamp: Literal["zero", "now"] = "zero"
     frame: FrameTransform = field(default_factory=FrameTransform)
-    frame_id: str = ""  # TwistStamped's header.frame_id
+    frame_id: str = "base_link"  # a TwistStamped's header.frame_id (diff_drive_controller users expect the base's)
 
     def describe(self) -> str:
         parts = []
@@ -170,6 +170,11 @@ class RosLiveVehicle(LiveVehicle):
             return super()._unanswered_hint()
         return (f" (commands on {self.ros.command_topic} via {self.ros.graph.convention}: is that the topic the robot "
                 "subscribes to, with that type? ros2 topic info -v on the robot's side)")
+
+    def _robot_timeout(self) -> float | None:
+        if not self.ros.command_topic:
+            return super()._robot_timeout()
+        return None  # a ROS robot's own cmd_vel_timeout, not known here
 
     def _load_key(self):
         if not self.ros.command_topic:

@@ -71,6 +71,9 @@ def live_table(summary: dict[str, dict[str, Any]]) -> Table:
                                         str(stats.get("command.foreign_claim", "")))
         if refused:
             notes.append(f"{name}: {refused}")
+        if stats.get("command.safety_stops"):
+            notes.append(f"{name}: robot-side safety stops {stats['command.safety_stops']} (no command for up to "
+                         f"{ms_text(stats.get('command.longest_gap'))} ms, past the deadline: the run stalled)")
         trip = "-/-"  # a pose source that does not echo command numbers (a motion capture, ROS) measures none
         if stats.get("round_trip.count", 0):
             trip = f"{ms_text(stats.get('round_trip.median'))}/{ms_text(stats.get('round_trip.p99'))}"

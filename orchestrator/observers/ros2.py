@@ -61,7 +61,8 @@ class Ros2RunPublisher(Observer):
         self._session = open_session(zenoh_config(table.connect, table.listen, table.zenoh_config,
                                                   mode=session_mode(table.connect, table.listen),
                                                   allow_insecure=self.allow_insecure), "[ros2] publish")
-        graph = RosGraph(table.convention, table.domain, table.namespace, table.node or "platoon")
+        graph = RosGraph(table.convention, table.domain, table.namespace, table.node or "platoon",
+                         table.node_namespace or "/")
         self._node = RosNode(self._session, graph)
         for name, *_ in self.columns:
             self._poses[name] = self._node.publisher(f"{table.topic_prefix}/{name}/pose", POSE_STAMPED)
