@@ -422,15 +422,34 @@ def tracking_bound(live: Any) -> float:
     return TRACKING + speed * (float(pacing.get("behind.total") or 0.0) + robot_late)
 
 
-def assert_tracks_the_all_fmu_run(live: Path, simulated: Path) -> Any:
-    """Run the 10 s all-FMU reference into ``simulated``; every vehicle of the live trace within
-    ``tracking_bound`` of it (3 mm when paced on time). Returns the live trace, loaded."""
-    reference = subprocess.run([str(PLATOON), "run", str(LIVE3), "-q", "--engine", "python", "--out", str(simulated),
+# m: the largest bound a run may claim. Above it the run fell so far behind (3 mm + V d > 9 mm: d > 17 ms at
+# V = 0.35 m/s) that it did not test tracking, and a pose 1 cm off would pass (under load the uncapped bound
+# reached 64-70 mm): such a run is tried again (FellBehind), and a test whose every try fell behind fails.
+TRACKING_CAP = 9e-3
+TRACKING_TRIES = 3
+
+
+class FellBehind(Exception):
+    """The run fell too far behind for its comparison to test tracking (its bound exceeds ``TRACKING_CAP``)."""
+
+
+def all_fmu_reference(config: Path, simulated: Path) -> Path:
+    """The 10 s all-FMU run of ``config`` (vehicle 3 simulated) into ``simulated``."""
+    reference = subprocess.run([str(PLATOON), "run", str(config), "-q", "--engine", "python", "--out", str(simulated),
                                 "--set", "simulation.stop_time=10.0", "--set", "vehicles.3.endpoint=fmu"],
                                cwd=REPO, env=_env(), capture_output=True, text=True, timeout=120)
     assert reference.returncode == 0, reference.stderr
-    a, b = load(live), load(simulated)
+    return simulated
+
+
+def check_tracking(live: Path, reference: Path) -> Any:
+    """Every vehicle of the live trace within ``tracking_bound`` of the all-FMU ``reference``, the bound capped
+    at ``TRACKING_CAP`` (``FellBehind`` above it). Returns the live trace, loaded."""
+    a, b = load(live), load(reference)
     bound = tracking_bound(a)
+    if bound > TRACKING_CAP:
+        raise FellBehind(f"{live.name}: the run fell behind (bound {bound * 1e3:.1f} mm over the cap "
+                         f"{TRACKING_CAP * 1e3:.0f} mm; pacing {a.metadata['platoon.hil']['pacing']})")
     distances = {}
     for vehicle in a.vehicles():
         x, y = a.component(vehicle)["x"], a.component(vehicle)["y"]
@@ -440,8 +459,26 @@ def assert_tracks_the_all_fmu_run(live: Path, simulated: Path) -> Any:
         assert distance.max() < bound, (f"{vehicle}: {distance.max():.2e} m at t = {np.argmax(distance) * 0.01:.2f} s "
                                         f"(bound {bound:.2e} m)", a.metadata["platoon.hil"]["pacing"])
     print(f"\n[{live.name} vs all-FMU] largest distance: "
-          + ", ".join(f"{name} {value * 1e3:.2f} mm" for name, value in distances.items()))
+          + ", ".join(f"{name} {value * 1e3:.2f} mm" for name, value in distances.items()) + f" (bound {bound * 1e3:.2f} mm)")
     return a
+
+
+def tracked(attempt: Callable[[int], Path], reference: Path) -> Any:
+    """``attempt(i)`` makes a live trace; the first of ``TRACKING_TRIES`` that did not fall behind is checked
+    (``check_tracking``) and returned, loaded. Every try fell behind: the test fails, saying so."""
+    behind = []
+    for index in range(TRACKING_TRIES):
+        try:
+            return check_tracking(attempt(index), reference)
+        except FellBehind as error:
+            behind.append(str(error))
+    pytest.fail(f"every try fell too far behind to test tracking: {behind}")
+
+
+def assert_tracks_the_all_fmu_run(live: Path, simulated: Path) -> Any:
+    """Run the 10 s all-FMU reference into ``simulated``; every vehicle of the live trace within
+    ``tracking_bound`` of it (3 mm when paced on time), capped (``check_tracking``). Returns the live trace."""
+    return check_tracking(live, all_fmu_reference(LIVE3, simulated))
 
 
 def test_live_robot_tracks_the_all_fmu_run(tmp_path: Path) -> None:
@@ -457,7 +494,16 @@ def test_live_robot_tracks_the_all_fmu_run(tmp_path: Path) -> None:
     32 mm, each within its bound).
     """
     port = free_port()
-    live, simulated = tmp_path / "live.mcap", tmp_path / "fmu.mcap"
+    live, simulated = tmp_path / "live.mcap", all_fmu_reference(LIVE3, tmp_path / "fmu.mcap")
+    outputs = []
+
+    def attempt(index: int) -> Path:  # another 10 s run on the same emulator, if the one before fell behind
+        trace = live.with_name(f"live-{index}.mcap")
+        code, out, err = finish(start_run(port, trace, 10.0))
+        assert code == 0, err
+        outputs.append(out)
+        return trace
+
     with emulator(port, tmp_path) as (_, log):
         first = start_run(port, live, 10.0)
         wait_for_running(log, first)
@@ -468,8 +514,10 @@ def test_live_robot_tracks_the_all_fmu_run(tmp_path: Path) -> None:
         again, _, err_again = finish(start_run(port, tmp_path / "again.mcap", 2.0))  # the same emulator, a new run
         assert again == 0, err_again
         assert "back on the initial pose" in log.read_text()
+        outputs.append(out)
+        a = tracked(lambda index: live if index == 0 else attempt(index), simulated)
+        out = outputs[-1]
     assert "running -> stopped (stop command)" in log.read_text() or "host's liveliness token dropped" in log.read_text()
-    a = assert_tracks_the_all_fmu_run(live, simulated)
     # the live vehicle's raw link, its statistics and its states are in the same trace
     assert {"vehicle3/pose", "vehicle3/command", "vehicle3/link"} <= set(a.live)
     assert len(a.live["vehicle3/command"]["seq"]) >= 1000
