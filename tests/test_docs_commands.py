@@ -76,16 +76,15 @@ LIVE3_EMULATOR_4 = (".venv/bin/platoon m3pi-emulator --config configs/hil/m3pi_l
 LIVE3_RUN_4 = (".venv/bin/platoon run configs/hil/m3pi_live3.toml --set vehicles.4.endpoint=zenoh "
                "--set 'vehicles.4.connect=[\"tcp/127.0.0.1:7447\"]'")
 ROS2_LAB_RUN = (".venv/bin/platoon run configs/hil/ros2_live3.toml --set 'vehicles.3.connect=[\"tcp/192.168.1.20:7447\"]' "
-                "--set vehicles.3.zenoh_config=configs/hil/zenoh-client.json5 "
                 "--set vehicles.3.ros2.command_topic=/diff_drive_controller/cmd_vel --set vehicles.3.ros2.command_type=TwistStamped "
                 "--set hil.allow_insecure=true")
 ROS2_DDS_LAB_RUN = (".venv/bin/platoon run configs/hil/ros2_live3.toml --set 'vehicles.3.connect=[\"tcp/192.168.1.20:7447\"]' "
-                    "--set vehicles.3.zenoh_config=configs/hil/zenoh-client.json5 --set vehicles.3.ros2.convention=bridge_dds "
+                    "--set vehicles.3.ros2.convention=bridge_dds "
                     "--set hil.allow_insecure=true")
 ROS2_DDS_EMULATED_RUN = (".venv/bin/platoon run configs/hil/ros2_live3.toml --set vehicles.3.ros2.convention=bridge_dds "
                          "--set simulation.stop_time=10")
 ROS2_PUBLISH_RUN = (".venv/bin/platoon run configs/paper/m3pi.toml --set ros2.publish=true "
-                    "--set 'ros2.connect=[\"tcp/192.168.1.20:7447\"]' --set ros2.zenoh_config=configs/hil/zenoh-client.json5 "
+                    "--set 'ros2.connect=[\"tcp/192.168.1.20:7447\"]' "
                     "--set hil.allow_insecure=true")
 LAB_RUN = (".venv/bin/platoon run configs/hil/m3pi_live3.toml --set simulation.stop_time=10 --set "
            "'vehicles.3.connect=[\"tls/127.0.0.1:7450\"]' --set 'vehicles.3.zenoh_config=\"/tmp/lab/laptop.json5\"'")
