@@ -611,8 +611,9 @@ def test_a_body_that_disappears_stops_being_published() -> None:
 
 def test_client_mode_through_a_router(tmp_path: Path) -> None:
     """The lab's topology (docs/hil.md, "Recipe: ROS 2 with rmw_zenoh"): a router stands where rmw_zenohd
-    (or zenoh-bridge-ros2dds) listens, the robot side and the run are its clients
-    (configs/hil/zenoh-client.json5); a 2 s run goes through it end to end."""
+    (or zenoh-bridge-ros2dds) listens, the robot side is its client (configs/hil/zenoh-client.json5) and the
+    run, with the shipped config's defaults, too (a ROS 2 vehicle that only connects joins in client mode);
+    a 2 s run goes through it end to end. tests/test_zenoh_router.py does it with the real zenohd."""
     port = free_port()
     client = str(REPO / "configs" / "hil" / "zenoh-client.json5")
     trace = tmp_path / "routed.mcap"
@@ -625,7 +626,7 @@ def test_client_mode_through_a_router(tmp_path: Path) -> None:
                                      cwd=REPO, env=_env(), stdout=stream, stderr=subprocess.STDOUT)
         try:
             _wait(lambda: "configured, pose on" in log.read_text() or robot.poll() is not None, 30.0, "the emulator")
-            run = _run(trace, 2.0, f'vehicles.3.connect=["{endpoint(port)}"]', f"vehicles.3.zenoh_config={client}")
+            run = _run(trace, 2.0, f'vehicles.3.connect=["{endpoint(port)}"]')
             out, err = run.communicate(timeout=60)
         finally:
             robot.terminate()
