@@ -977,3 +977,27 @@ def test_a_robot_side_safety_stop_shows_in_the_terminal_the_summary_and_the_log(
     assert fields == ["pose_age.median", "pose_age.max", "command.safety_stops"]
     assert all(field in loaded.live["vehicle3/link"] for field in fields)
     assert loaded.live["vehicle3/link"]["command.safety_stops"][-1] >= 1
+
+
+def test_the_motion_watch_blames_a_still_robot_not_a_stalled_run() -> None:
+    """bridge/motion_watch.py without a network: a robot that moves as commanded (even 40 ms behind) is never
+    judged; one that stands still is, after about a second; a run that stalls 0.9 s between two commands (the
+    robot rightly stopped at the deadline) is not blamed on the robot."""
+    from bridge.motion_watch import MotionWatch
+
+    speed, step, validity = 0.35, 0.01, 0.1
+    follows, still, stalled = MotionWatch(), MotionWatch(), MotionWatch()
+    said = []
+    for k in range(300):
+        t = 100.0 + k * step
+        assert follows.observe(t, speed * max(0.0, k * step - 0.04), 0.0, speed, validity) is None
+        said.append(still.observe(t, 0.0, 0.0, speed, validity))
+    assert follows.ratio_min > 0.9
+    first = next(k for k, problem in enumerate(said) if problem)
+    assert 100 <= first <= 101 and "its poses moved 0.000 m" in said[first], said[first]
+    x, t = 0.0, 100.0
+    for k in range(300):  # steps of 10 ms, and one stall of 0.9 s: the robot moved 0.1 s of it, then stood
+        gap = 0.9 if k == 150 else step
+        x += speed * min(gap, validity)
+        t += gap
+        assert stalled.observe(t, x, 0.0, speed, validity) is None, k
