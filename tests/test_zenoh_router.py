@@ -119,6 +119,27 @@ def test_a_run_in_client_mode_through_zenohd_tracks_as_against_the_emulator(tmp_
     assert "running -> stopped (stop command)" in logs[-1], logs[-1]
 
 
+def test_behind_zenohd_a_peer_run_gets_no_pose_and_the_hint_names_client_mode(tmp_path: Path) -> None:
+    """What a lab met: the robot's nodes as rmw_zenoh makes them (peers listening on loopback, connected to the
+    router), the run in peer mode (a zenoh_config saying so): the robot's graph is there, no pose arrives, and
+    the failure says a run behind a router must be a client. The same run with the defaults starts."""
+    _needs(ZENOHD)
+    peer = tmp_path / "peer.json5"
+    peer.write_text('{ mode: "peer" }')
+    with _router(tmp_path) as router:
+        robot = Emulator(free_port(), tmp_path, "rmw_zenoh", f'vehicles.3.listen=["{endpoint(router.port)}"]')
+        try:
+            runs = [_run(tmp_path / f"{name}.mcap", 1.0, f'vehicles.3.connect=["{endpoint(router.port)}"]',
+                         "hil.connect_timeout=3", *sets)
+                    for name, sets in (("peer", [f'vehicles.3.zenoh_config="{peer}"']), ("client", []))]
+            (_, peer_err), (_, client_err) = [run.communicate(timeout=60) for run in runs]
+        finally:
+            robot.stop()
+    assert runs[0].returncode == 1 and "no valid pose on /vrpn_mocap/m3pi_3/pose" in peer_err, peer_err
+    assert "(0 received, 0 dropped" in peer_err and "the run must join in client mode" in peer_err, peer_err
+    assert runs[1].returncode == 0, client_err
+
+
 def _dds_robot(domain: int, folder: Path) -> subprocess.Popen:
     log = folder / "dds-robot.log"
     env = {**_env(), "CYCLONEDDS_URI": LOOPBACK_ONLY}
