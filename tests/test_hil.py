@@ -408,18 +408,29 @@ def tracking_bound(live: Any) -> float:
     ``behind.total``: beside a CPU-bound process and a busy test suite, 26 late points, the worst 0.14 s
     late, left a robot 12 cm from the all-FMU run, over the 6.3 cm that the worst stall alone allows). The robot's side (the emulator, its own
     process) late by d' delivers poses d' older than usual and applies commands d' late: d' is the largest pose
-    age beyond the median one (``pose_age.max - pose_age.median`` of each live vehicle; beside a CPU-bound
-    process: 13.3 mm with d = 23 ms and d' = 54 ms, over the 11.2 mm the run's side alone allowed). A link
-    that loses or misreads poses or commands errs by centimetres."""
+    age beyond the median one, over the poses taken once the robot was commanded (the trace's
+    ``vehicleK/pose`` records; beside a CPU-bound process: 13.3 mm with d = 23 ms and d' = 54 ms, over the
+    11.2 mm the run's side alone allowed). A pose that waited while the robot stood on its mark, before the
+    first command, moved nothing (under bridge_dds the one between the start's first pose and the first step
+    was 50 ms old, every run). A link that loses or misreads poses or commands errs by centimetres."""
     hil = live.metadata["platoon.hil"]
     pacing = json.loads(hil["pacing"])
     robot_late = 0.0
-    for key, text in hil.items():
-        if key.startswith("vehicle"):
-            link = json.loads(text)
-            robot_late = max(robot_late, float(link.get("pose_age.max") or 0.0) - float(link.get("pose_age.median") or 0.0))
+    for name in live.vehicles():
+        poses, commands = live.live.get(f"{name}/pose"), live.live.get(f"{name}/command")
+        if not poses or not commands or not len(commands["sent"]):
+            continue
+        stamps = np.asarray(poses["stamp"])  # taken once the robot was commanded: it may have moved
+        ages = (np.asarray(poses["received"]) - stamps)[stamps > np.asarray(commands["sent"])[0]]
+        if len(ages):
+            robot_late = max(robot_late, float(ages.max() - np.median(ages)))
     speed = config_from_mapping(live.config).platoon.speed
-    return TRACKING + speed * (float(pacing.get("behind.total") or 0.0) + robot_late)
+    # a run without an overrun finished every point's work before its deadline and only woke up late, by at most
+    # jitter.max, none of it carried to the next point; behind.total, the sum of each rise of the lateness, counts
+    # that jitter again at every rise (32 ms over 1000 points with jitter.max 3.9 ms and no overrun, beside two
+    # cargo builds): the robot was never that far behind. With overruns, the run fell behind: the sum it is.
+    behind = float(pacing.get("behind.total") or 0.0) if pacing.get("overruns") else float(pacing.get("jitter.max") or 0.0)
+    return TRACKING + speed * (behind + robot_late)
 
 
 # m: the largest bound a run may claim. Above it the run fell so far behind (3 mm + V d > 9 mm: d > 17 ms at
@@ -473,12 +484,6 @@ def tracked(attempt: Callable[[int], Path], reference: Path) -> Any:
         except FellBehind as error:
             behind.append(str(error))
     pytest.fail(f"every try fell too far behind to test tracking: {behind}")
-
-
-def assert_tracks_the_all_fmu_run(live: Path, simulated: Path) -> Any:
-    """Run the 10 s all-FMU reference into ``simulated``; every vehicle of the live trace within
-    ``tracking_bound`` of it (3 mm when paced on time), capped (``check_tracking``). Returns the live trace."""
-    return check_tracking(live, all_fmu_reference(LIVE3, simulated))
 
 
 def test_live_robot_tracks_the_all_fmu_run(tmp_path: Path) -> None:
@@ -671,7 +676,8 @@ def test_missing_robot_fails_the_run_with_a_clear_message(tmp_path: Path) -> Non
     assert code == 1
     assert "robot 3 (platoon/m3pi/3) did not appear within 2 s: no liveliness token on platoon/m3pi/3/alive" in err
     # before giving up it said what it waits for, where, with a countdown (one line a second: PLATOON_PROGRESS_SECONDS=0)
-    waited = f"waiting for robot 3 (platoon/m3pi/3): its liveliness token platoon/m3pi/3/alive (connect=['{endpoint(port)}'] listen=[]): "
+    waited = (f"waiting for robot 3 (platoon/m3pi/3): its liveliness token platoon/m3pi/3/alive (connect=['{endpoint(port)}'] "
+              "listen=[], peer mode): ")
     countdown = [int(line[len(waited):].split()[0]) for line in err.splitlines() if line.startswith(waited)]
     assert countdown and countdown[0] <= 2 and countdown == list(range(countdown[0], 0, -1)), err
     assert "simulating" not in err.split("did not appear")[0]  # no progress while nothing steps
