@@ -822,6 +822,25 @@ def test_the_runs_node_namespace_and_command_frame_reach_the_graph() -> None:
     assert ros_link(config_from_mapping(table), 3).frame_id == "m3pi_3/base_footprint"
 
 
+def test_a_run_says_where_to_put_each_live_robot_in_both_frames(tmp_path: Path) -> None:
+    """Before it waits for the robots, a run prints each live vehicle's start pose in the config's frame and,
+    for a pose from a ROS topic, in the tracker's (``frame`` undone): the numbers the run itself starts from."""
+    from orchestrator.scenario.config import config_from_mapping
+    from orchestrator.scenario.scenario import initial_states
+    import tomllib
+
+    frame = "vehicles.3.ros2.frame={x=0.5, y=-0.3, yaw=0.4}"
+    run = _run(tmp_path / "placed.mcap", 1.0, frame, "hil.connect_timeout=0.5")
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == 1, err  # nobody there: the line came first all the same
+    x, y, heading, _ = initial_states(config_from_mapping(tomllib.loads(ROS3.read_text())))[2]
+    tx, ty, th = FrameTransform(0.5, -0.3, 0.4).invert(x, y, heading)
+    assert err.splitlines()[0] == (
+        f"vehicle3 (robot 3) starts at x = {x:.3f} m, y = {y:.3f} m, heading {math.degrees(heading):.1f} deg in the "
+        f"config's frame; x = {tx:.3f} m, y = {ty:.3f} m, heading {math.degrees(th):.1f} deg in the tracker's "
+        "(/vrpn_mocap/m3pi_3/pose): place it there"), err
+
+
 def test_export_ssp_refuses_a_vehicle_on_ros2_topics(tmp_path: Path) -> None:
     """The LiveVehicle FMU speaks our protocol only: a ROS 2 vehicle exported as it would never reach its robot."""
     result = subprocess.run([str(PLATOON), "export-ssp", str(ROS3), "--out", str(tmp_path / "x.ssp")], cwd=REPO,
