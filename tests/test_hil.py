@@ -424,13 +424,15 @@ def tracking_bound(live: Any) -> float:
         ages = (np.asarray(poses["received"]) - stamps)[stamps > np.asarray(commands["sent"])[0]]
         if len(ages):
             robot_late = max(robot_late, float(ages.max() - np.median(ages)))
-    speed = config_from_mapping(live.config).platoon.speed
-    # a run without an overrun finished every point's work before its deadline and only woke up late, by at most
+    config = config_from_mapping(live.config)
+    # a run that was never a whole step late sent every command within its step and only woke up late, by at most
     # jitter.max, none of it carried to the next point; behind.total, the sum of each rise of the lateness, counts
-    # that jitter again at every rise (32 ms over 1000 points with jitter.max 3.9 ms and no overrun, beside two
-    # cargo builds): the robot was never that far behind. With overruns, the run fell behind: the sum it is.
-    behind = float(pacing.get("behind.total") or 0.0) if pacing.get("overruns") else float(pacing.get("jitter.max") or 0.0)
-    return TRACKING + speed * (behind + robot_late)
+    # that jitter again at every rise (32 ms over 1000 points with jitter.max 3.9 ms and no overrun, 30 ms with
+    # two overruns of at most 2.8 ms, beside two cargo builds): the robot was never that far behind. A run that
+    # overran by a step or more fell behind, and its stalls add up: the sum it is.
+    stalled = float(pacing.get("overrun.max") or 0.0) >= config.simulation.step
+    behind = float(pacing.get("behind.total") or 0.0) if stalled else float(pacing.get("jitter.max") or 0.0)
+    return TRACKING + config.platoon.speed * (behind + robot_late)
 
 
 # m: the largest bound a run may claim. Above it the run fell so far behind (3 mm + V d > 9 mm: d > 17 ms at
