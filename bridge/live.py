@@ -44,6 +44,7 @@ from fmus.component import ComponentError, LiveEvent, LiveRecord, percentile_sum
 
 from .claim import GRANT_GRACE, HostClaim, NotDriving, claim_text
 from .lab_key import LabKey, LabKeyError, load_lab_key
+from .motion_watch import MotionWatch
 from .protocol import (
     Drop,
     LinkCounters,
@@ -84,6 +85,10 @@ class LiveSettings:
     connect: tuple[str, ...] = ()
     listen: tuple[str, ...] = ()
     zenoh_config: str | None = None
+    # the session's Zenoh mode without a zenoh_config: "client" joins a router (rmw_zenohd, zenoh-bridge-ros2dds),
+    # which routes everything to it; a peer that listens nowhere, beside a router, is offered the robot's
+    # session directly, cannot reach it, and gets nothing (bridge.session.session_mode)
+    mode: str = "peer"
     pose_timeout: float = 0.5  # s without a valid pose: the robot is lost
     connect_timeout: float = 10.0  # s to wait at start for the robot's token and first pose
     command_validity: float = 0.1  # s: each command's deadline is its send time plus this
@@ -144,6 +149,10 @@ class LiveVehicle:
         self._sent: dict[int, float] = {}  # send time of commands not yet reflected in a pose
         self.round_trips: list[float] = []  # s, command sent -> first pose taken after the robot applied it
         self.pose_ages: list[float] = []  # s, age of the pose each step used
+        self.motion = MotionWatch()  # commanded to move, not moving: the run ends (bridge.motion_watch)
+        self._last_sent: float | None = None  # when the last command went out (its deadline guards the robot)
+        self.safety_stops = 0  # commands that expired before the next was sent: the robot side stopped its wheels
+        self.longest_gap = 0.0  # s, the longest time without a command (robot-side stops)
         self._time = 0.0
         self._warned: set[str] = set()
         self._session: zenoh.Session | None = None
@@ -170,7 +179,8 @@ class LiveVehicle:
 
     def link_statistics(self) -> dict[str, Any]:
         return _link_statistics(self.settings.robot, self.state.state.value, self.claim, self._command_seq,
-                                self.pose_counters, self.round_trips, self.pose_ages)
+                                self.pose_counters, self.round_trips, self.pose_ages, self.motion.ratio_min,
+                                self.safety_stops, self.longest_gap)
 
     # -- Zenoh callbacks (Zenoh's threads) -------------------------------------------------------
 
@@ -237,11 +247,15 @@ class LiveVehicle:
         settings = self.settings
         try:
             self._key = self._load_key()
-            config = zenoh_config(settings.connect, settings.listen, settings.zenoh_config,
-                                  allow_insecure=settings.allow_insecure)
+            config = zenoh_config(settings.connect, settings.listen, settings.zenoh_config, mode=settings.mode,
+                                  allow_insecure=settings.allow_insecure, connect_wait=settings.connect_timeout)
             self._session = open_session(config, f"{self.name} ({self.what})")
         except (SessionError, LabKeyError) as error:
-            raise ComponentError(self.name, start_time, str(error)) from None
+            unreached = settings.mode == "client" and not settings.zenoh_config and isinstance(error, SessionError)
+            hint = (f" (client mode: the router at {list(settings.connect)}, rmw_zenohd, zenoh-bridge-ros2dds or the "
+                    f"emulator, did not answer within connect_timeout {settings.connect_timeout:g} s: is it running?)"
+                    if unreached else "")
+            raise ComponentError(self.name, start_time, str(error) + hint) from None
         session = self._session
         self._open_commands(session)
         self._open_poses(session)
@@ -332,8 +346,9 @@ class LiveVehicle:
         return None
 
     def _endpoints(self) -> str:
-        connect, listen = list(self.settings.connect), list(self.settings.listen)
-        return f"connect={connect} listen={listen}"
+        settings = self.settings
+        mode = f"zenoh_config {settings.zenoh_config}" if settings.zenoh_config else f"{settings.mode} mode"
+        return f"connect={list(settings.connect)} listen={list(settings.listen)}, {mode}"
 
     def _awaited(self) -> str:
         """What initialize still waits for, and where (for a countdown the run shows)."""
@@ -347,7 +362,8 @@ class LiveVehicle:
         where = self._endpoints()
         if not self._alive:
             return (f"{self.what} did not appear within {self.settings.connect_timeout:g} s: no liveliness token on "
-                    f"{self.keys.alive} ({where}; is `platoon m3pi-emulator` or `platoon m3pi-serial` running?)")
+                    f"{self.keys.alive} ({where}; is `platoon m3pi-emulator` or `platoon m3pi-serial` running?"
+                    + tls_hint(self.settings) + ")")
         if not self.claim.granted:
             key = f"lab key {self._key.path}" if self._key is not None else "no lab key"
             if self.claim.request_refused:
@@ -410,11 +426,25 @@ class LiveVehicle:
         right, left = self.dynamics.wheel_commands(stepper.state[5], acceleration)
         push = stepper.added_speed  # a speed disturbance moves the robot faster; its speed loop does not see it
         right, left = self.dynamics.limit_wheels(right + push, left + push)
+        self._watch_motion(time_, left, right)
         self._send(left, right, self.settings.command_validity)
         try:
             stepper.step(time_, step)
         except ValueError as error:
             raise self._fail(time_, str(error)) from None
+
+    def _watch_motion(self, t: float, left: float, right: float) -> None:
+        """End the run if the robot's poses do not answer the commands (``bridge.motion_watch``)."""
+        with self._lock:
+            pose = self._latest
+        assert pose is not None
+        problem = self.motion.observe(self.clock(), pose.x, pose.y, 0.5 * (left + right), self.settings.command_validity)
+        if problem is not None:
+            raise self._fail(t, f"{self.what} is not moving: {problem}{self._unanswered_hint()}")
+
+    def _unanswered_hint(self) -> str:
+        """Where the commands went, for the message of a robot that does not move."""
+        return f" (commands on {self.keys.wheels})"
 
     def get_outputs(self) -> list[float]:
         if self.state.state == LinkState.RUNNING:
@@ -426,6 +456,7 @@ class LiveVehicle:
     def _send(self, left: float, right: float, validity: float) -> None:
         self._command_seq += 1
         now = self.clock()
+        self._note_safety_stop(now)
         command = WheelCommand(self._command_seq, now + validity, left, right, self.claim.claim)
         self._publish_command(command)
         with self._lock:
@@ -435,6 +466,24 @@ class LiveVehicle:
                     del self._sent[seq]
         self._records.append(LiveRecord("command", dict(zip(COMMAND_FIELDS, (
             now, command.seq, command.deadline, left, right)))))
+
+    def _note_safety_stop(self, now: float) -> None:
+        """A command sent after the previous one's deadline: the robot side stopped its wheels meanwhile (a
+        stall of this run). Said in the log once per stall, counted for the summary and the terminal."""
+        validity = self._robot_timeout()
+        last, self._last_sent = self._last_sent, now
+        if last is None or validity is None or now - last <= validity or self._stop_sent:
+            return
+        gap = now - last
+        self.safety_stops += 1
+        self.longest_gap = max(self.longest_gap, gap)
+        self._events.append(LiveEvent("Warning", f"{self.what}: robot-side safety stop: no command for {gap * 1e3:.0f} ms, "
+                                                 f"past its deadline ({validity * 1e3:.0f} ms): the robot stopped its "
+                                                 "wheels until this command (the run stalled)"))
+
+    def _robot_timeout(self) -> float | None:
+        """How long a command holds on the robot side (None: unknown, a ROS robot's own timeout)."""
+        return self.settings.command_validity
 
     def _fail(self, t: float, reason: str) -> ComponentError:
         """Enter the error state, stop the robot, and return the error to raise."""
@@ -502,9 +551,23 @@ class LiveVehicle:
                                                      "last status is not known"))
 
 
+def tls_hint(settings: LiveSettings) -> str:
+    """For a robot that did not appear over TLS: the likely cause, a certificate the other side refuses (the
+    handshake fails quietly on Zenoh's side, so the run only sees nothing arrive)."""
+    if not any(endpoint.startswith(("tls/", "quic/")) for endpoint in (*settings.connect, *settings.listen)):
+        return ""
+    return ("; over TLS the likely cause is the certificates: both sides need ones signed by the lab's CA, each "
+            "naming its host, and the robot side's must name the host this run connects to (docs/hil.md, "
+            "\"A secure lab\"; RUST_LOG=zenoh_link_tls=debug shows the handshake)")
+
+
 def _link_statistics(robot: int, state: str, claim: HostClaim, command_seq: int, pose_counters: LinkCounters,
-                     round_trips: Sequence[float], pose_ages: Sequence[float]) -> dict[str, Any]:
+                     round_trips: Sequence[float], pose_ages: Sequence[float], ratio_min: float, safety_stops: int,
+                     longest_gap: float) -> dict[str, Any]:
     values: dict[str, Any] = {"robot": robot, "state": state, "claim": claim_text(claim.claim), "command.sent": command_seq}
+    values["command.safety_stops"], values["command.longest_gap"] = safety_stops, longest_gap
+    # the lowest moved / commanded over a judged window (bridge.motion_watch); 0 until one was judged
+    values["motion.ratio_min"] = ratio_min if math.isfinite(ratio_min) else 0.0
     values.update(pose_counters.as_dict("pose"))
     values.update(robot_side_counts(claim))
     # every key from the first call on (0 with count 0 until measured): the trace's link stream keeps its fields
@@ -515,7 +578,7 @@ def _link_statistics(robot: int, state: str, claim: HostClaim, command_seq: int,
 
 def initial_link_statistics() -> dict[str, Any]:
     """``LiveVehicle.link_statistics`` before the link opened: the keys of every later call, in order."""
-    return _link_statistics(0, LinkState.CONFIGURED.value, HostClaim(), 0, LinkCounters(), [], [])
+    return _link_statistics(0, LinkState.CONFIGURED.value, HostClaim(), 0, LinkCounters(), [], [], math.inf, 0, 0.0)
 
 
 def robot_side_counts(claim: HostClaim) -> dict[str, Any]:

@@ -83,14 +83,23 @@ def _named_endpoints(config: zenoh.Config, section: str) -> list[str]:
 
 
 def zenoh_config(connect: Sequence[str] = (), listen: Sequence[str] = (), config_file: str | None = None,
-                 mode: str = "peer", allow_insecure: bool = False) -> zenoh.Config:
+                 mode: str = "peer", allow_insecure: bool = False, connect_wait: float = 0.0) -> zenoh.Config:
     """A Zenoh config that opens only the sockets named here or in ``config_file`` (module docstring).
 
-    ``config_file``'s settings win, except the endpoints named here; without a file: peer mode."""
+    ``config_file``'s settings win, except the endpoints named here; without a file: peer mode. A client
+    cannot open without its router: ``connect_wait`` s is how long opening keeps trying (a peer opens at once
+    and finds the others later)."""
+    secure = [endpoint for endpoint in (*connect, *listen) if endpoint.partition("/")[0] in SECURE_PROTOCOLS]
+    if secure and not config_file:  # without certificates the handshake fails, and the session waits in silence
+        raise SessionError(f"endpoint {secure[0]} is TLS but no zenoh_config gives its certificates: a TLS session "
+                           "needs the lab's CA and this host's certificate and key (run `platoon hil-certs` and pass "
+                           "the host's file as zenoh_config / --zenoh-config; docs/hil.md, \"A secure lab\")")
     try:
         config = zenoh.Config.from_file(str(Path(config_file))) if config_file else zenoh.Config()
         if not config_file:
             config.insert_json5("mode", json.dumps(mode))
+        if not config_file and mode == "client" and connect_wait > 0.0:
+            config.insert_json5("connect/timeout_ms", json.dumps(round(connect_wait * 1000)))
         connect = list(connect) or _named_endpoints(config, "connect")
         listen = list(listen) or _named_endpoints(config, "listen")
         config.insert_json5("connect/endpoints", json.dumps(connect))
@@ -113,6 +122,15 @@ def zenoh_config(connect: Sequence[str] = (), listen: Sequence[str] = (), config
         raise SessionError(f"listening on {exposed[0]}, off this machine, needs {' and '.join(missing)} in {where}: "
                            f"else anyone who reaches it connects; {RECIPE}, or allow_insecure on a network you trust")
     return config
+
+
+def session_mode(connect: Sequence[str], listen: Sequence[str]) -> str:
+    """The mode of a session that meets a ROS 2 graph: "client" where it only connects, as rmw_zenoh's nodes
+    connect to rmw_zenohd and a lab's programs to zenoh-bridge-ros2dds (both Zenoh routers). A peer that
+    listens nowhere, connected to a router, is told of the robot's peer session and expects to reach it
+    directly, so the router routes it nothing: the run saw the graph but got no pose. A client gets all
+    the router routes, and reaches a peer (the emulator) as well. A session that listens is a peer."""
+    return "client" if connect and not listen else "peer"
 
 
 def exposed_listeners(listen: Sequence[str]) -> list[str]:

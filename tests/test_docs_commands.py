@@ -78,20 +78,33 @@ LIVE3_EMULATOR_4 = (".venv/bin/platoon m3pi-emulator --config configs/hil/m3pi_l
 LIVE3_RUN_4 = (".venv/bin/platoon run configs/hil/m3pi_live3.toml --set vehicles.4.endpoint=zenoh "
                "--set 'vehicles.4.connect=[\"tcp/127.0.0.1:7447\"]'")
 ROS2_LAB_RUN = (".venv/bin/platoon run configs/hil/ros2_live3.toml --set 'vehicles.3.connect=[\"tcp/192.168.1.20:7447\"]' "
-                "--set vehicles.3.zenoh_config=configs/hil/zenoh-client.json5 "
                 "--set vehicles.3.ros2.command_topic=/diff_drive_controller/cmd_vel --set vehicles.3.ros2.command_type=TwistStamped "
                 "--set hil.allow_insecure=true")
 ROS2_DDS_LAB_RUN = (".venv/bin/platoon run configs/hil/ros2_live3.toml --set 'vehicles.3.connect=[\"tcp/192.168.1.20:7447\"]' "
-                    "--set vehicles.3.zenoh_config=configs/hil/zenoh-client.json5 --set vehicles.3.ros2.convention=bridge_dds "
+                    "--set vehicles.3.ros2.convention=bridge_dds "
                     "--set hil.allow_insecure=true")
 ROS2_DDS_EMULATED_RUN = (".venv/bin/platoon run configs/hil/ros2_live3.toml --set vehicles.3.ros2.convention=bridge_dds "
                          "--set simulation.stop_time=10")
 ROS2_PUBLISH_RUN = (".venv/bin/platoon run configs/paper/m3pi.toml --set ros2.publish=true "
-                    "--set 'ros2.connect=[\"tcp/192.168.1.20:7447\"]' --set ros2.zenoh_config=configs/hil/zenoh-client.json5 "
+                    "--set 'ros2.connect=[\"tcp/192.168.1.20:7447\"]' "
                     "--set hil.allow_insecure=true")
 LAB_RUN = (".venv/bin/platoon run configs/hil/m3pi_live3.toml --set simulation.stop_time=10 --set "
            "'vehicles.3.connect=[\"tls/127.0.0.1:7450\"]' --set 'vehicles.3.zenoh_config=\"/tmp/lab/laptop.json5\"'")
 REAL_ROBOT_RUN = ".venv/bin/platoon run configs/hil/m3pi_live3.toml --set 'vehicles.3.connect=[\"tcp/127.0.0.1:7448\", \"tcp/127.0.0.1:7449\"]'"
+
+ZENOHD = "~/.cache/platoon-cosim/zenoh-1.10.2/bin/zenohd -c configs/hil/zenohd-local.json5"
+ROUTER_BLOCKS = (  # docs/hil.md, "A real router and DDS bridge"
+    ZENOHD + " &",
+    ".venv/bin/platoon m3pi-emulator --config configs/hil/ros2_live3.toml --ros2 rmw_zenoh --set "
+    "'vehicles.3.listen=[\"tcp/127.0.0.1:7447\"]' --set 'vehicles.3.connect=[\"tcp/127.0.0.1:7448\"]' &",
+    ".venv/bin/platoon run configs/hil/ros2_live3.toml --set simulation.stop_time=10 --out /tmp/ros2-router.mcap",
+    "kill %2 %1",
+    "export CYCLONEDDS_URI=\"$(.venv/bin/python -c 'from tests.dds_robot import LOOPBACK_ONLY; print(LOOPBACK_ONLY)')\"",
+    ZENOHD + " --plugin-search-dir ~/.cache/platoon-cosim/zenoh-1.10.2/lib -P ros2dds &",
+    ".venv/bin/python -m tests.dds_robot configs/hil/ros2_live3.toml 0 &",
+    ".venv/bin/platoon run configs/hil/ros2_live3.toml --set vehicles.3.ros2.convention=bridge_dds "
+    "--set simulation.stop_time=10 --out /tmp/ros2-dds.mcap",
+)
 
 # (doc, command as written, without a trailing comment) -> how it is run instead, and why
 SPECIAL: dict[tuple[str, str], Shorten | Parse | Skip | Expect] = {
@@ -130,6 +143,10 @@ SPECIAL: dict[tuple[str, str], Shorten | Parse | Skip | Expect] = {
                 "a live run is paced to the wall clock: 10 s as written"),
     ("docs/hil.md", ROS2_DDS_EMULATED_RUN): Shorten(ROS2_DDS_EMULATED_RUN + SHORT,
                                                    "a live run is paced to the wall clock: 10 s as written"),
+    ("docs/hil.md", "tools/build-zenoh-cache.sh"): Skip("builds zenohd and the ros2dds plugin with cargo: most of an "
+                                                        "hour (docs/hil.md, \"A real router and DDS bridge\")"),
+    **{("docs/hil.md", command): Skip("needs zenohd (and its ros2dds plugin) from tools/build-zenoh-cache.sh; "
+                                      "tests/test_zenoh_router.py runs the same chains (slow)") for command in ROUTER_BLOCKS},
     ("docs/hil.md", REAL_ROBOT_RUN): Parse("needs the real robot and motion capture of the two lines above"),
     ("docs/hil.md", ".venv/bin/platoon bench hil"): Shorten(
         ".venv/bin/platoon bench hil --seconds 0.5", "about 40 s as written; the same measurements, 0.5 s each"),

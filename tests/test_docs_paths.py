@@ -25,7 +25,8 @@ ANYWHERE = {"tmp", "dev", "usr", "proc", "bin", "platoon"}
 # ROS 2 names of docs/hil.md's "Your lab" and configs/hil/ros2_live3.toml: topics of vrpn_mocap, of a
 # differential-drive base and of tf2, nodes, and a zenoh-bridge-ros2dds namespace
 ROS_NAMES = {"vrpn_mocap", "m3pi_3", "diff_drive_controller", "tf", "platoon_vehicle3", "m3pi_emulator_3",
-             "m3pi_emulator_<id>", "bot3"}
+             "m3pi_emulator_<id>", "bot3",
+             "lab", "a__b", "m3pi3", "m3pi_3_base"}  # a node namespace, a refused name, a misspelling, a DDS node
 # the FMU cache the tool itself makes, and Zig's, which `platoon build --all-platforms` fills (docs/fmus.md); the
 # lab key the tool itself makes (docs/hil.md); a ROS node's private topic (``~`` is the node's namespace, not a
 # home folder: diff_drive_controller's ``~/cmd_vel``)

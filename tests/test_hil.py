@@ -408,29 +408,61 @@ def tracking_bound(live: Any) -> float:
     ``behind.total``: beside a CPU-bound process and a busy test suite, 26 late points, the worst 0.14 s
     late, left a robot 12 cm from the all-FMU run, over the 6.3 cm that the worst stall alone allows). The robot's side (the emulator, its own
     process) late by d' delivers poses d' older than usual and applies commands d' late: d' is the largest pose
-    age beyond the median one (``pose_age.max - pose_age.median`` of each live vehicle; beside a CPU-bound
-    process: 13.3 mm with d = 23 ms and d' = 54 ms, over the 11.2 mm the run's side alone allowed). A link
-    that loses or misreads poses or commands errs by centimetres."""
+    age beyond the median one, over the poses taken once the robot was commanded (the trace's
+    ``vehicleK/pose`` records; beside a CPU-bound process: 13.3 mm with d = 23 ms and d' = 54 ms, over the
+    11.2 mm the run's side alone allowed). A pose that waited while the robot stood on its mark, before the
+    first command, moved nothing (under bridge_dds the one between the start's first pose and the first step
+    was 50 ms old, every run). A link that loses or misreads poses or commands errs by centimetres."""
     hil = live.metadata["platoon.hil"]
     pacing = json.loads(hil["pacing"])
     robot_late = 0.0
-    for key, text in hil.items():
-        if key.startswith("vehicle"):
-            link = json.loads(text)
-            robot_late = max(robot_late, float(link.get("pose_age.max") or 0.0) - float(link.get("pose_age.median") or 0.0))
-    speed = config_from_mapping(live.config).platoon.speed
-    return TRACKING + speed * (float(pacing.get("behind.total") or 0.0) + robot_late)
+    for name in live.vehicles():
+        poses, commands = live.live.get(f"{name}/pose"), live.live.get(f"{name}/command")
+        if not poses or not commands or not len(commands["sent"]):
+            continue
+        stamps = np.asarray(poses["stamp"])  # taken once the robot was commanded: it may have moved
+        ages = (np.asarray(poses["received"]) - stamps)[stamps > np.asarray(commands["sent"])[0]]
+        if len(ages):
+            robot_late = max(robot_late, float(ages.max() - np.median(ages)))
+    config = config_from_mapping(live.config)
+    # a run that was never a whole step late sent every command within its step and only woke up late, by at most
+    # jitter.max, none of it carried to the next point; behind.total, the sum of each rise of the lateness, counts
+    # that jitter again at every rise (32 ms over 1000 points with jitter.max 3.9 ms and no overrun, 30 ms with
+    # two overruns of at most 2.8 ms, beside two cargo builds): the robot was never that far behind. A run that
+    # overran by a step or more fell behind, and its stalls add up: the sum it is.
+    stalled = float(pacing.get("overrun.max") or 0.0) >= config.simulation.step
+    behind = float(pacing.get("behind.total") or 0.0) if stalled else float(pacing.get("jitter.max") or 0.0)
+    return TRACKING + config.platoon.speed * (behind + robot_late)
 
 
-def assert_tracks_the_all_fmu_run(live: Path, simulated: Path) -> Any:
-    """Run the 10 s all-FMU reference into ``simulated``; every vehicle of the live trace within
-    ``tracking_bound`` of it (3 mm when paced on time). Returns the live trace, loaded."""
-    reference = subprocess.run([str(PLATOON), "run", str(LIVE3), "-q", "--engine", "python", "--out", str(simulated),
+# m: the largest bound a run may claim. Above it the run fell so far behind (3 mm + V d > 9 mm: d > 17 ms at
+# V = 0.35 m/s) that it did not test tracking, and a pose 1 cm off would pass (under load the uncapped bound
+# reached 64-70 mm): such a run is tried again (FellBehind), and a test whose every try fell behind fails.
+TRACKING_CAP = 9e-3
+TRACKING_TRIES = 3
+
+
+class FellBehind(Exception):
+    """The run fell too far behind for its comparison to test tracking (its bound exceeds ``TRACKING_CAP``)."""
+
+
+def all_fmu_reference(config: Path, simulated: Path) -> Path:
+    """The 10 s all-FMU run of ``config`` (vehicle 3 simulated) into ``simulated``."""
+    reference = subprocess.run([str(PLATOON), "run", str(config), "-q", "--engine", "python", "--out", str(simulated),
                                 "--set", "simulation.stop_time=10.0", "--set", "vehicles.3.endpoint=fmu"],
                                cwd=REPO, env=_env(), capture_output=True, text=True, timeout=120)
     assert reference.returncode == 0, reference.stderr
-    a, b = load(live), load(simulated)
+    return simulated
+
+
+def check_tracking(live: Path, reference: Path) -> Any:
+    """Every vehicle of the live trace within ``tracking_bound`` of the all-FMU ``reference``, the bound capped
+    at ``TRACKING_CAP`` (``FellBehind`` above it). Returns the live trace, loaded."""
+    a, b = load(live), load(reference)
     bound = tracking_bound(a)
+    if bound > TRACKING_CAP:
+        raise FellBehind(f"{live.name}: the run fell behind (bound {bound * 1e3:.1f} mm over the cap "
+                         f"{TRACKING_CAP * 1e3:.0f} mm; pacing {a.metadata['platoon.hil']['pacing']})")
     distances = {}
     for vehicle in a.vehicles():
         x, y = a.component(vehicle)["x"], a.component(vehicle)["y"]
@@ -440,8 +472,20 @@ def assert_tracks_the_all_fmu_run(live: Path, simulated: Path) -> Any:
         assert distance.max() < bound, (f"{vehicle}: {distance.max():.2e} m at t = {np.argmax(distance) * 0.01:.2f} s "
                                         f"(bound {bound:.2e} m)", a.metadata["platoon.hil"]["pacing"])
     print(f"\n[{live.name} vs all-FMU] largest distance: "
-          + ", ".join(f"{name} {value * 1e3:.2f} mm" for name, value in distances.items()))
+          + ", ".join(f"{name} {value * 1e3:.2f} mm" for name, value in distances.items()) + f" (bound {bound * 1e3:.2f} mm)")
     return a
+
+
+def tracked(attempt: Callable[[int], Path], reference: Path) -> Any:
+    """``attempt(i)`` makes a live trace; the first of ``TRACKING_TRIES`` that did not fall behind is checked
+    (``check_tracking``) and returned, loaded. Every try fell behind: the test fails, saying so."""
+    behind = []
+    for index in range(TRACKING_TRIES):
+        try:
+            return check_tracking(attempt(index), reference)
+        except FellBehind as error:
+            behind.append(str(error))
+    pytest.fail(f"every try fell too far behind to test tracking: {behind}")
 
 
 def test_live_robot_tracks_the_all_fmu_run(tmp_path: Path) -> None:
@@ -457,7 +501,16 @@ def test_live_robot_tracks_the_all_fmu_run(tmp_path: Path) -> None:
     32 mm, each within its bound).
     """
     port = free_port()
-    live, simulated = tmp_path / "live.mcap", tmp_path / "fmu.mcap"
+    live, simulated = tmp_path / "live.mcap", all_fmu_reference(LIVE3, tmp_path / "fmu.mcap")
+    outputs = []
+
+    def attempt(index: int) -> Path:  # another 10 s run on the same emulator, if the one before fell behind
+        trace = live.with_name(f"live-{index}.mcap")
+        code, out, err = finish(start_run(port, trace, 10.0))
+        assert code == 0, err
+        outputs.append(out)
+        return trace
+
     with emulator(port, tmp_path) as (_, log):
         first = start_run(port, live, 10.0)
         wait_for_running(log, first)
@@ -468,8 +521,10 @@ def test_live_robot_tracks_the_all_fmu_run(tmp_path: Path) -> None:
         again, _, err_again = finish(start_run(port, tmp_path / "again.mcap", 2.0))  # the same emulator, a new run
         assert again == 0, err_again
         assert "back on the initial pose" in log.read_text()
+        outputs.append(out)
+        a = tracked(lambda index: live if index == 0 else attempt(index), simulated)
+        out = outputs[-1]
     assert "running -> stopped (stop command)" in log.read_text() or "host's liveliness token dropped" in log.read_text()
-    a = assert_tracks_the_all_fmu_run(live, simulated)
     # the live vehicle's raw link, its statistics and its states are in the same trace
     assert {"vehicle3/pose", "vehicle3/command", "vehicle3/link"} <= set(a.live)
     assert len(a.live["vehicle3/command"]["seq"]) >= 1000
@@ -623,7 +678,8 @@ def test_missing_robot_fails_the_run_with_a_clear_message(tmp_path: Path) -> Non
     assert code == 1
     assert "robot 3 (platoon/m3pi/3) did not appear within 2 s: no liveliness token on platoon/m3pi/3/alive" in err
     # before giving up it said what it waits for, where, with a countdown (one line a second: PLATOON_PROGRESS_SECONDS=0)
-    waited = f"waiting for robot 3 (platoon/m3pi/3): its liveliness token platoon/m3pi/3/alive (connect=['{endpoint(port)}'] listen=[]): "
+    waited = (f"waiting for robot 3 (platoon/m3pi/3): its liveliness token platoon/m3pi/3/alive (connect=['{endpoint(port)}'] "
+              "listen=[], peer mode): ")
     countdown = [int(line[len(waited):].split()[0]) for line in err.splitlines() if line.startswith(waited)]
     assert countdown and countdown[0] <= 2 and countdown == list(range(countdown[0], 0, -1)), err
     assert "simulating" not in err.split("did not appear")[0]  # no progress while nothing steps
@@ -898,3 +954,58 @@ def test_a_run_and_a_robot_side_with_different_lab_keys_say_so_within_seconds(tm
                               "--duration", "1"], cwd=REPO, env=_env(), capture_output=True, text=True, timeout=60)
     assert refused.returncode == 2 and "others can read it" in refused.stderr
     assert len(refused.stderr.strip().splitlines()) == 1
+
+
+def test_a_robot_side_safety_stop_shows_in_the_terminal_the_summary_and_the_log(tmp_path: Path) -> None:
+    """The run stalls (SIGSTOP) past its command's deadline: the robot side stops the wheels, as it must. The
+    run, resumed, says so: a warning in its log, the count in the trace's link summary and a note under the
+    terminal's live table; the platoon goes on and the run completes."""
+    port = free_port()
+    trace = tmp_path / "stalled.mcap"
+    with emulator(port, tmp_path) as (_, log):
+        run = start_run(port, trace, 6.0, *PATIENT)
+        wait_for_running(log, run)
+        os.kill(run.pid, signal.SIGSTOP)
+        try:
+            wait_for(lambda: "stopped (command deadline passed)" in log.read_text(), "the robot side's safety stop")
+        finally:
+            os.kill(run.pid, signal.SIGCONT)
+        code, out, err = finish(run)
+    assert code == 0, err
+    assert "robot-side safety stops" in out and "(no command for up to" in out, out  # more if the machine stalls too
+    loaded = load(trace)
+    assert json.loads(loaded.metadata["platoon.hil"]["vehicle3"])["command.safety_stops"] >= 1
+    assert any("robot-side safety stop: no command for" in line.message for line in loaded.log)
+    # the run's layout has a panel for the live link, each series a field of the trace's vehicle3/link stream
+    from orchestrator.trace.layout import layout_path
+
+    panel = json.loads(layout_path(trace).read_text())["configById"]["Plot!live"]
+    fields = [path["value"].split(".", 1)[1].strip('"') for path in panel["paths"]]
+    assert [path["value"].split(".", 1)[0] for path in panel["paths"]] == ["/platoon/vehicle3/link"] * 3
+    assert fields == ["pose_age.median", "pose_age.max", "command.safety_stops"]
+    assert all(field in loaded.live["vehicle3/link"] for field in fields)
+    assert loaded.live["vehicle3/link"]["command.safety_stops"][-1] >= 1
+
+
+def test_the_motion_watch_blames_a_still_robot_not_a_stalled_run() -> None:
+    """bridge/motion_watch.py without a network: a robot that moves as commanded (even 40 ms behind) is never
+    judged; one that stands still is, after about a second; a run that stalls 0.9 s between two commands (the
+    robot rightly stopped at the deadline) is not blamed on the robot."""
+    from bridge.motion_watch import MotionWatch
+
+    speed, step, validity = 0.35, 0.01, 0.1
+    follows, still, stalled = MotionWatch(), MotionWatch(), MotionWatch()
+    said = []
+    for k in range(300):
+        t = 100.0 + k * step
+        assert follows.observe(t, speed * max(0.0, k * step - 0.04), 0.0, speed, validity) is None
+        said.append(still.observe(t, 0.0, 0.0, speed, validity))
+    assert follows.ratio_min > 0.9
+    first = next(k for k, problem in enumerate(said) if problem)
+    assert 100 <= first <= 101 and "its poses moved 0.000 m" in said[first], said[first]
+    x, t = 0.0, 100.0
+    for k in range(300):  # steps of 10 ms, and one stall of 0.9 s: the robot moved 0.1 s of it, then stood
+        gap = 0.9 if k == 150 else step
+        x += speed * min(gap, validity)
+        t += gap
+        assert stalled.observe(t, x, 0.0, speed, validity) is None, k

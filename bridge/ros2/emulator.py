@@ -72,7 +72,9 @@ class RosEmulator(Emulator):
         if link is None or not link.pose_topic:
             return super()._encode_pose(index, pose)
         x, y, heading = link.frame.invert(pose.x, pose.y, pose.heading)
-        return messages.encode_pose(link.pose_type, pose.stamp, x, y, heading)
+        robot = self.robots[index]  # sampled just now: its wheel speeds (right, left) are the pose's
+        linear, angular = messages.wheels_to_twist(robot.state[4], robot.state[3], robot.spec.dynamics.track)
+        return messages.encode_pose(link.pose_type, pose.stamp, x, y, heading, linear=linear, angular=angular)
 
     def _on_twist(self, index: int) -> Callable[[zenoh.Sample], None]:
         link, robot = self.links[index], self.robots[index]

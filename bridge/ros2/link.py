@@ -35,9 +35,7 @@ from typing import Literal
 
 import zenoh
 
-from fmus.component import LiveEvent
-
-from ..live import LiveVehicle
+from ..live import LiveVehicle, tls_hint
 from ..protocol import Pose, WheelCommand
 from . import messages, rmw_zenoh
 from .node import RosGraph, RosNode
@@ -70,10 +68,10 @@ class RosLink:
     pose_topic: str | None = None
     pose_type: str = messages.POSE_STAMPED
     command_topic: str | None = None
-    command_type: str = messages.TWIST_STAMPED
+    command_type: str = messages.TWIST
     command_stamp: Literal["zero", "now"] = "zero"
     frame: FrameTransform = field(default_factory=FrameTransform)
-    frame_id: str = ""  # TwistStamped's header.frame_id
+    frame_id: str = "base_link"  # a TwistStamped's header.frame_id (diff_drive_controller users expect the base's)
 
     def describe(self) -> str:
         parts = []
@@ -94,6 +92,8 @@ class RosLiveVehicle(LiveVehicle):
         self.state.who = f"{self.what}"
         self._node: RosNode | None = None
         self._ros_publisher = None
+        self._graph: dict[str, dict[str, str]] = {}  # rmw_zenoh: the graph's subscriptions, by liveliness key
+        self._zid = ""  # our session's Zenoh id
 
     def _ros_node(self, session: zenoh.Session) -> RosNode:
         if self._node is None:
@@ -108,6 +108,39 @@ class RosLiveVehicle(LiveVehicle):
         self._ros_publisher = self._ros_node(session).publisher(self.ros.command_topic, self.ros.command_type)
         self._publisher = self._ros_publisher
         self._alive = True  # no token of ours on a ROS robot: its first pose says it is there
+        if self.ros.graph.convention == "rmw_zenoh":  # the graph says who subscribes, as `ros2 topic info` reads it
+            self._zid = str(session.zid())  # our own node's subscriptions are not the robot's
+            self._resources.append(session.liveliness().declare_subscriber(
+                f"{rmw_zenoh.ADMIN_SPACE}/{self.ros.graph.domain}/**", self._on_graph, history=True))
+
+    def _on_graph(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        fields = rmw_zenoh.parse_entity_token(key)
+        if fields is None or fields["kind"] != rmw_zenoh.SUBSCRIPTION or fields["zid"] == self._zid:
+            return
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._graph[key] = fields
+            else:
+                self._graph.pop(key, None)
+
+    def _subscriptions(self, topic: str | None = None) -> list[dict[str, str]]:
+        with self._lock:
+            return [fields for fields in self._graph.values() if topic is None or fields["topic"] == topic]
+
+    def _unheard(self) -> bool:
+        """Under rmw_zenoh, nobody subscribes to the command topic yet (the graph says so; a DDS graph behind
+        zenoh-bridge-ros2dds does not: there, a robot that does not move says it, ``LiveVehicle``)."""
+        return (bool(self.ros.command_topic) and self.ros.graph.convention == "rmw_zenoh"
+                and not self._subscriptions(self.ros.command_topic))
+
+    def _nearby(self) -> str:
+        """The subscribed topics of the domain, those most like the command topic first (a misspelling shows)."""
+        import difflib
+
+        topics = sorted({fields["topic"] for fields in self._subscriptions()})
+        close = difflib.get_close_matches(self.ros.command_topic or "", topics, n=5, cutoff=0.0)
+        return ", ".join(close) if close else "nothing"
 
     def _open_poses(self, session: zenoh.Session) -> None:
         if not self.ros.pose_topic:
@@ -132,6 +165,17 @@ class RosLiveVehicle(LiveVehicle):
         stamp = self.clock() if self.ros.command_stamp == "now" else 0.0
         self._ros_publisher.put(messages.encode_twist(self.ros.command_type, linear, angular, stamp, self.ros.frame_id))
 
+    def _unanswered_hint(self) -> str:
+        if not self.ros.command_topic:
+            return super()._unanswered_hint()
+        return (f" (commands on {self.ros.command_topic} via {self.ros.graph.convention}: is that the topic the robot "
+                "subscribes to, with that type? ros2 topic info -v on the robot's side)")
+
+    def _robot_timeout(self) -> float | None:
+        if not self.ros.command_topic:
+            return super()._robot_timeout()
+        return None  # a ROS robot's own cmd_vel_timeout, not known here
+
     def _load_key(self):
         if not self.ros.command_topic:
             return super()._load_key()
@@ -144,7 +188,8 @@ class RosLiveVehicle(LiveVehicle):
     def _ready(self) -> bool:
         if not self.ros.command_topic:
             return super()._ready()
-        return self._alive and self._latest is not None  # no claim on a ROS topic: nothing grants one
+        # no claim on a ROS topic: nothing grants one; under rmw_zenoh someone must subscribe to its commands
+        return self._alive and self._latest is not None and not self._unheard()
 
     def _holding(self) -> str:
         if not self.ros.command_topic:
@@ -153,18 +198,13 @@ class RosLiveVehicle(LiveVehicle):
 
     def _refusal(self, session: zenoh.Session) -> str | None:
         """Under rmw_zenoh, the robot's subscription to the command topic must take our type: a different
-        type (or type hash) is another key, where commands would vanish. No subscription yet: a warning."""
+        type (or type hash) is another key, where commands would vanish (that someone subscribes, ``_ready`` waited for)."""
         if not self.ros.command_topic:
             return super()._refusal(session)
         if self.ros.graph.convention != "rmw_zenoh":
             return None
         topic, typename = self.ros.command_topic, self.ros.command_type
-        found = rmw_zenoh.subscriptions(session, self.ros.graph.domain, topic)
-        if not found:
-            self._events.append(LiveEvent("Warning", f"{self.what}: no subscription to {topic} in ROS domain "
-                                                     f"{self.ros.graph.domain} yet: commands reach the robot only once "
-                                                     "it subscribes"))
-            return None
+        found = self._subscriptions(topic)
         ours = (messages.dds_type_name(typename), messages.type_hash(typename))
         if any((fields["type"], fields["hash"]) == ours for fields in found):
             return None
@@ -174,15 +214,25 @@ class RosLiveVehicle(LiveVehicle):
                 f"set vehicles.{self.name.removeprefix('vehicle')}.ros2.command_type to the robot's type (ros2 topic info {topic})")
 
     def _awaited(self) -> str:
+        if self._latest is not None and self._unheard():
+            return (f"{self.what}: a subscriber to {self.ros.command_topic} in ROS domain {self.ros.graph.domain} "
+                    f"({self._endpoints()})")
         if not self.ros.pose_topic:
             return super()._awaited()
         return f"{self.what}: a first valid pose on {self.ros.pose_topic} (key {self.pose_key}; {self._endpoints()})"
 
     def _not_found(self) -> str:
+        if self._latest is not None and self._unheard():
+            return (f"{self.what}: nobody subscribes to {self.ros.command_topic} in ROS domain {self.ros.graph.domain} "
+                    f"within {self.settings.connect_timeout:g} s, so no command would reach the robot (subscribed "
+                    f"nearby: {self._nearby()}); set vehicles.{self.name.removeprefix('vehicle')}.ros2.command_topic "
+                    "to the robot's (ros2 topic list -t)")
         if not self.ros.pose_topic:
             return super()._not_found()
         counters = self.pose_counters
         return (f"{self.what}: no valid pose on {self.ros.pose_topic} (key {self.pose_key}) within "
                 f"{self.settings.connect_timeout:g} s ({counters.received} received, {counters.dropped_total} dropped"
                 + (f"; last problem: {counters.last_problem}" if counters.last_problem else "")
-                + f"; connect={list(self.settings.connect)}: is the robot's ROS graph or the emulator (--ros2) reachable?)")
+                + f"; {self._endpoints()}: is the robot's ROS graph or the emulator (--ros2) reachable? Behind a "
+                "Zenoh router (rmw_zenohd, zenoh-bridge-ros2dds) the run must join in client mode: it does when it "
+                "only connects, else set mode: \"client\" in its zenoh_config" + tls_hint(self.settings) + ")")

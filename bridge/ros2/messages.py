@@ -81,8 +81,10 @@ def _pose(x: float, y: float, heading: float) -> Any:
 
 
 def encode_pose(typename: str, stamp: float, x: float, y: float, heading: float, frame_id: str = "world",
-                child_frame_id: str = "") -> bytes:
-    """A PoseStamped or an Odometry (zero twist, zero covariance) of a planar pose, as CDR bytes."""
+                child_frame_id: str = "base_link", linear: float = 0.0, angular: float = 0.0) -> bytes:
+    """A PoseStamped or an Odometry of a planar pose, as CDR bytes; an Odometry's twist (``linear`` m/s along
+    the body's x, ``angular`` rad/s about z) is in ``child_frame_id``, the body's frame, as REP-105 has it;
+    covariances zero (unknown)."""
     store, types = typestore(), typestore().types
     header, pose = _header(stamp, frame_id), _pose(x, y, heading)
     if typename == POSE_STAMPED:
@@ -91,7 +93,8 @@ def encode_pose(typename: str, stamp: float, x: float, y: float, heading: float,
         import numpy as np
 
         vector = types["geometry_msgs/msg/Vector3"]
-        twist = types["geometry_msgs/msg/Twist"](linear=vector(x=0.0, y=0.0, z=0.0), angular=vector(x=0.0, y=0.0, z=0.0))
+        twist = types["geometry_msgs/msg/Twist"](linear=vector(x=linear, y=0.0, z=0.0),
+                                                 angular=vector(x=0.0, y=0.0, z=angular))
         message = types[ODOMETRY](
             header=header, child_frame_id=child_frame_id,
             pose=types["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),

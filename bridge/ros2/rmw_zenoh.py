@@ -116,14 +116,3 @@ def parse_entity_token(key: str) -> dict[str, str] | None:
     for name in ("enclave", "namespace", "node", "topic", "type", "hash"):
         fields[name] = fields[name].replace("%", "/")
     return fields
-
-
-def subscriptions(session: zenoh.Session, domain: int, topic: str, timeout: float = 0.5) -> list[dict[str, str]]:
-    """The subscriptions to ``topic`` in ``domain`` the graph holds now (a liveliness query, as ``ros2 topic
-    info`` makes one)."""
-    found = []
-    for reply in session.liveliness().get(f"{ADMIN_SPACE}/{domain}/**", timeout=timeout):
-        fields = parse_entity_token(str(reply.ok.key_expr)) if reply.ok else None
-        if fields is not None and fields["kind"] == SUBSCRIPTION and fields["topic"] == topic:
-            found.append(fields)
-    return found

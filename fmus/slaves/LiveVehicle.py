@@ -64,6 +64,8 @@ def _hil_parameters() -> tuple[VariableInfo, ...]:
                      "TLS (docs/hil.md, \"A secure lab\")", start=d.allow_insecure),
         VariableInfo("hil.lab_key", "String", "parameter", "The lab key file the robot side shares (docs/hil.md, "
                      "\"Who can start the robot\"); empty: $PLATOON_LAB_KEY, else ~/.config/platoon/lab.key", start=""),
+        VariableInfo("hil.mode", "String", "parameter", "The Zenoh session's mode without a zenoh_config: peer, or "
+                     "client of a router (docs/hil.md, \"Recipe: ROS 2 with rmw_zenoh\")", start=d.mode),
     )
 
 

@@ -71,6 +71,9 @@ def live_table(summary: dict[str, dict[str, Any]]) -> Table:
                                         str(stats.get("command.foreign_claim", "")))
         if refused:
             notes.append(f"{name}: {refused}")
+        if stats.get("command.safety_stops"):
+            notes.append(f"{name}: robot-side safety stops {stats['command.safety_stops']} (no command for up to "
+                         f"{ms_text(stats.get('command.longest_gap'))} ms, past the deadline: the run stalled)")
         trip = "-/-"  # a pose source that does not echo command numbers (a motion capture, ROS) measures none
         if stats.get("round_trip.count", 0):
             trip = f"{ms_text(stats.get('round_trip.median'))}/{ms_text(stats.get('round_trip.p99'))}"
@@ -155,7 +158,7 @@ def m3pi_emulator(
     latency: Annotated[float, typer.Option(metavar="SECONDS", help="s from taking a pose to publishing it")] = 0.0,
     command_latency: Annotated[float, typer.Option(metavar="SECONDS", help="s from receiving a command to applying it (the radio)")] = 0.0,
     command_timeout: Annotated[float, typer.Option(metavar="SECONDS", help="s without a valid command before the wheels stop")] = 0.25,
-    standing_start: Annotated[bool, typer.Option(help="start from rest, not at the config's initial speed")] = False,
+    standing_start: Annotated[bool, typer.Option("--standing-start", help="start from rest, not at the config's initial speed")] = False,
     seed: Annotated[Optional[int], typer.Option(help="noise seed (default: different every run)")] = None,
     listen: Endpoints = [],
     connect: Endpoints = [],
@@ -213,12 +216,12 @@ def m3pi_serial(
     connect: Endpoints = [],
     listen: Endpoints = [],
     zenoh_config: Annotated[Optional[Path], typer.Option(help="Zenoh config file (JSON5)")] = None,
-    max_speed: Annotated[float, typer.Option(help="wheel speed (m/s) that speed byte 127 drives: measure it")] = 1.0,
-    swap_motors: Annotated[bool, typer.Option(help="M1 is the right motor (default: M1 left, M2 right)")] = False,
-    invert_left: Annotated[bool, typer.Option(help="the left motor is wired backwards")] = False,
-    invert_right: Annotated[bool, typer.Option(help="the right motor is wired backwards")] = False,
-    baud: Annotated[int, typer.Option(min=1200, help="serial speed of the XBee link")] = 115200,
-    command_timeout: Annotated[float, typer.Option(help="s without a valid command before the motors stop")] = 0.25,
+    max_speed: Annotated[float, typer.Option(metavar="M/S", help="wheel speed (m/s) that speed byte 127 drives: measure it")] = 1.0,
+    swap_motors: Annotated[bool, typer.Option("--swap-motors", help="M1 is the right motor (default: M1 left, M2 right)")] = False,
+    invert_left: Annotated[bool, typer.Option("--invert-left", help="the left motor is wired backwards")] = False,
+    invert_right: Annotated[bool, typer.Option("--invert-right", help="the right motor is wired backwards")] = False,
+    baud: Annotated[int, typer.Option(min=1200, metavar="BAUD", help="serial speed of the XBee link")] = 115200,
+    command_timeout: Annotated[float, typer.Option(metavar="SECONDS", help="s without a valid command before the motors stop")] = 0.25,
     allow_insecure: AllowInsecure = False,
     lab_key: LabKeyOption = None,
 ) -> None:

@@ -54,6 +54,11 @@ def run_command(options: RunOptions) -> None:
     reference_path = trace.with_name(trace.stem + "-monolithic.mcap")
     if options.compare:  # checked now, claimed when its turn comes (no empty aside file if the run fails)
         check_output(reference_path, options.overwrite, inputs)
+    if parsed.live_vehicles():  # where to put each robot, before the run waits for it
+        from orchestrator.components.live import start_pose_lines
+
+        for line in start_pose_lines(parsed):
+            say(line, stderr=True)
     result = _run_with_view(config, parsed, text, target, engine, options.quiet, options.trace_writer, view)
     first_step = _first_step(entered, entered_at, result, clock.perf_counter())
     _report_run(result, trace, parsed, engine, options.quiet)

@@ -42,14 +42,18 @@ def check_live_options(config: Config, engine: str, trace_writer: str) -> None:
 def live_settings(config: Config, vehicle: int):
     """Where vehicle ``vehicle``'s robot is and how patient the host is with it (a ``bridge.live.LiveSettings``)."""
     from bridge.live import LiveSettings  # Zenoh is imported only by runs that need it
+    from bridge.session import session_mode
 
     override, hil = config.override(vehicle), config.hil
+    connect, listen = tuple(override.connect or ()), tuple(override.listen or ())
     return LiveSettings(
         robot=config.robot_id(vehicle),
         prefix=override.prefix or hil.prefix,
-        connect=tuple(override.connect or ()),
-        listen=tuple(override.listen or ()),
+        connect=connect,
+        listen=listen,
         zenoh_config=override.zenoh_config,
+        # a ROS 2 graph's Zenoh is a router (rmw_zenohd, zenoh-bridge-ros2dds): join it as a client
+        mode=session_mode(connect, listen) if override.ros2 is not None else "peer",
         pose_timeout=hil.pose_timeout,
         connect_timeout=hil.connect_timeout,
         command_validity=hil.command_validity,
@@ -68,10 +72,31 @@ def ros_link(config: Config, vehicle: int):
     from bridge.ros2.messages import COMMAND_TYPES, POSE_TYPES
     from bridge.ros2.node import RosGraph
 
-    graph = RosGraph(table.convention, table.domain, table.namespace, table.node or f"platoon_{vehicle_name(vehicle)}")
+    graph = RosGraph(table.convention, table.domain, table.namespace, table.node or f"platoon_{vehicle_name(vehicle)}",
+                     table.node_namespace or "/")
     return RosLink(graph, table.pose_topic, POSE_TYPES[table.pose_type], table.command_topic,
                    COMMAND_TYPES[table.command_type], table.command_stamp,
-                   FrameTransform(table.frame.x, table.frame.y, table.frame.yaw))
+                   FrameTransform(table.frame.x, table.frame.y, table.frame.yaw), table.command_frame_id)
+
+
+def start_pose_lines(config: Config) -> list[str]:
+    """Where to put each live robot before the run: its start pose in the config's (the path's) frame and,
+    for a pose from a ROS 2 topic, in the tracker's frame the motion capture reports (``frame`` undone)."""
+    import math
+
+    from orchestrator.scenario.scenario import initial_states
+
+    states, lines = initial_states(config), []
+    for vehicle in config.live_vehicles():
+        x, y, heading, _ = states[vehicle - 1]
+        line = (f"{vehicle_name(vehicle)} (robot {config.robot_id(vehicle)}) starts at x = {x:.3f} m, y = {y:.3f} m, "
+                f"heading {math.degrees(heading):.1f} deg in the config's frame")
+        ros = ros_link(config, vehicle)
+        if ros is not None and ros.pose_topic:
+            tx, ty, th = ros.frame.invert(x, y, heading)
+            line += f"; x = {tx:.3f} m, y = {ty:.3f} m, heading {math.degrees(th):.1f} deg in the tracker's ({ros.pose_topic})"
+        lines.append(line + ": place it there")
+    return lines
 
 
 def live_component(spec: ComponentSpec, fmu: UnpackedFmu, config: Config, vehicle: int) -> Component:

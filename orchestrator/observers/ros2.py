@@ -35,6 +35,7 @@ class Ros2RunPublisher(Observer):
                  clock: Callable[[], float] = time.time) -> None:
         self.table, self.clock = config.ros2, clock
         self.allow_insecure = config.hil.allow_insecure  # endpoints off this machine: TLS unless the lab says not
+        self.connect_wait = config.hil.connect_timeout  # s a client waits for its router at the start
         self.columns: list[tuple[str, int, int, int]] = []  # (vehicle, column of x, of y, of heading) in a flat row
         column = 1
         vehicles = {vehicle_name(k) for k in range(1, config.platoon.count + 1)}
@@ -55,12 +56,15 @@ class Ros2RunPublisher(Observer):
         """Open the Zenoh session (``bridge.session``) and declare the node, its publishers and tokens."""
         from bridge.ros2.messages import POSE_STAMPED, TF_MESSAGE
         from bridge.ros2.node import RosGraph, RosNode
-        from bridge.session import open_session, zenoh_config
+        from bridge.session import open_session, session_mode, zenoh_config
 
         table = self.table
         self._session = open_session(zenoh_config(table.connect, table.listen, table.zenoh_config,
-                                                  allow_insecure=self.allow_insecure), "[ros2] publish")
-        graph = RosGraph(table.convention, table.domain, table.namespace, table.node or "platoon")
+                                                  mode=session_mode(table.connect, table.listen),
+                                                  allow_insecure=self.allow_insecure, connect_wait=self.connect_wait),
+                                     "[ros2] publish")
+        graph = RosGraph(table.convention, table.domain, table.namespace, table.node or "platoon",
+                         table.node_namespace or "/")
         self._node = RosNode(self._session, graph)
         for name, *_ in self.columns:
             self._poses[name] = self._node.publisher(f"{table.topic_prefix}/{name}/pose", POSE_STAMPED)
@@ -126,7 +130,7 @@ def ros2_publisher(config: Config, components: Sequence[tuple[str, Sequence[str]
     """An open publisher when the config says ``[ros2] publish = true``, else None."""
     if not config.ros2.publish:
         return None
-    from bridge.session import SessionError
+    from bridge.session import SessionError, session_mode
 
     from fmus.errors import ComponentError
 
@@ -135,5 +139,10 @@ def ros2_publisher(config: Config, components: Sequence[tuple[str, Sequence[str]
         publisher.open()
     except SessionError as error:  # the run fails cleanly, its trace finalized, the message naming the endpoint
         publisher.close()
-        raise ComponentError("ros2", 0.0, f"[ros2] publish: {error}") from None
+        text = str(error) if str(error).startswith("[ros2] publish") else f"[ros2] publish: {error}"
+        table = config.ros2
+        if "cannot open" in text and session_mode(table.connect, table.listen) == "client" and not table.zenoh_config:
+            text += (f" (client mode: the ROS 2 graph's router at {list(table.connect)} did not answer within "
+                     f"hil.connect_timeout {config.hil.connect_timeout:g} s: is it running?)")
+        raise ComponentError("ros2", 0.0, text) from None
     return publisher

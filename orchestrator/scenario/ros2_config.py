@@ -29,6 +29,8 @@ class _Rule(ValueError):
 def _check(pattern: re.Pattern, value: str | None, key: str, expected: str) -> None:
     if value is not None and not pattern.match(value):
         raise _Rule(f"{key} = {value!r}: expected {expected}")
+    if value is not None and "__" in value:  # ROS 2 reserves repeated underscores (rcl_validate_topic_name)
+        raise _Rule(f"{key} = {value!r}: ROS 2 forbids repeated underscores (\"__\") in names")
 
 
 TOPIC_RULE = 'a fully qualified ROS 2 topic such as "/vrpn_mocap/m3pi_3/pose" (segments of letters, digits, "_")'
@@ -48,11 +50,17 @@ class _Graph(_Strict):
     domain: int = Field(0, ge=0, le=232, description="ROS_DOMAIN_ID (rmw_zenoh)")
     namespace: str = Field("", description="zenoh-bridge-ros2dds namespace (bridge_dds)")
     node: str | None = Field(None, description="our ROS node's name")
+    node_namespace: str = Field("", description="our ROS node's namespace (rmw_zenoh's graph); \"\": the root")
 
     @model_validator(mode="after")
     def _names(self) -> "_Graph":
         _check(_NAMESPACE, self.namespace, "namespace", NAMESPACE_RULE)
+        _check(_NAMESPACE, self.node_namespace, "node_namespace", NAMESPACE_RULE)
         _check(_NODE, self.node, "node", "a ROS 2 node name (letters, digits, '_', not starting with a digit)")
+        if self.namespace and self.convention == "rmw_zenoh":  # it would be ignored: say so rather than drop it
+            raise _Rule(f"namespace = {self.namespace!r} is zenoh-bridge-ros2dds' key prefix (convention = "
+                        "\"bridge_dds\" only); under rmw_zenoh a namespace is part of each topic: write it into "
+                        f"the topics ({self.namespace.rstrip('/')}/cmd_vel), and node_namespace puts the run's node in it")
         return self
 
 
@@ -62,8 +70,12 @@ class VehicleRos2(_Graph):
     pose_topic: str | None = None
     pose_type: Literal["PoseStamped", "Odometry"] = "PoseStamped"
     command_topic: str | None = None
-    command_type: Literal["Twist", "TwistStamped"] = "TwistStamped"
+    # Twist: what most differential-drive bases take on cmd_vel (TurtleBot, Gazebo's diff drive, Nav2's output
+    # before Jazzy, Humble's diff_drive_controller unstamped); TwistStamped for diff_drive_controller from Jazzy on
+    command_type: Literal["Twist", "TwistStamped"] = "Twist"
     command_stamp: Literal["zero", "now"] = "zero"
+    command_frame_id: str = Field("base_link", pattern=r"^[A-Za-z_][A-Za-z0-9_/]*$",
+                                  description="a TwistStamped's header.frame_id (the robot's base frame)")
     frame: Ros2Frame = Ros2Frame()
 
     @model_validator(mode="after")

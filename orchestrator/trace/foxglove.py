@@ -501,6 +501,19 @@ def _link_plot(links: Sequence[str]) -> dict[str, Any]:
     return plot
 
 
+def _live_plot(live: Sequence[str]) -> dict[str, Any]:
+    """Each live robot's link (docs/hil.md, "The live view"): the age of the poses the run used (median and
+    largest so far, from its ``<vehicle>/link`` statistics) and the robot-side safety stops, one series each."""
+    plot = _plot("live link: pose age [s], safety stops", "link", [], [])
+    plot["paths"] = [{"value": message_path(f"{CHANNEL_PREFIX}{name}/link", field), "enabled": True,
+                      "timestampMethod": "receiveTime", "label": f"{name} {label}"}
+                     for name in live for field, label in (("pose_age.median", "age median"),
+                                                           ("pose_age.max", "age max"),
+                                                           ("command.safety_stops", "safety stops"))]
+    plot["showLegend"], plot["legendDisplay"] = True, "left"
+    return plot
+
+
 def _nice_step(length: float) -> float:
     """1, 2 or 5 times a power of ten, about a fifth of ``length``: the grid's cell."""
     raw = length / 5.0
@@ -538,9 +551,11 @@ def default_settings() -> SceneSettings:
     return SceneSettings(None, "circle", (0.0, 0.0), 50.0, 0.0, 75.0, 25.0)
 
 
-def layout(vehicles: int = 6, settings: SceneSettings | None = None, links: Sequence[str] = ()) -> dict[str, Any]:
+def layout(vehicles: int = 6, settings: SceneSettings | None = None, links: Sequence[str] = (),
+           live: Sequence[str] = ()) -> dict[str, Any]:
     """A Foxglove layout: a 3D panel (fitted to ``settings``' path) beside plots of path, gap and speed errors,
-    and, for a run with ``links`` (their component names), of the age of each link's message.
+    and, for a run with ``links`` (their component names), of the age of each link's message, and for a run
+    with ``live`` robots (their vehicles' names), of each live link.
 
     ``platoon layout TRACE`` and ``platoon run`` pass the run's settings and vehicle count (one series
     per vehicle, the camera fitted to its path); without them, the paper's circle.
@@ -567,11 +582,14 @@ def layout(vehicles: int = 6, settings: SceneSettings | None = None, links: Sequ
         "imageMode": {},
     }
     scale_note = "" if vehicles <= LEGEND_UP_TO else f" (colour: vehicle 1 purple to {vehicles} yellow)"
-    lower: Any = "Plot!speed"
     extra = {}
     if links:
-        lower = {"first": "Plot!speed", "second": "Plot!links", "direction": "column"}
         extra["Plot!links"] = _link_plot(links)
+    if live:
+        extra["Plot!live"] = _live_plot(live)
+    lower: Any = "Plot!speed"
+    for panel in extra:  # each extra plot below the speed error's
+        lower = {"first": lower, "second": panel, "direction": "column"}
     return {
         "configById": {
             "3D!platoon": three_d,

@@ -37,7 +37,7 @@ def run_layout(config: "Config", vehicles: int) -> dict[str, Any]:
     from orchestrator.trace.format import link_name
 
     links = [link_name(direction, vehicle) for direction, vehicle in config.linked()]
-    return layout(vehicles, SceneSettings.of(config), links)
+    return layout(vehicles, SceneSettings.of(config), links, [f"vehicle{k}" for k in config.live_vehicles()])
 
 
 @dataclass(frozen=True)
