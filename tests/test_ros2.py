@@ -395,13 +395,18 @@ class Emulator:
         assert self.process.poll() is None, self.log.read_text()
 
     def stop(self) -> str:
-        self.process.terminate()
-        try:
-            self.process.wait(10)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            self.process.wait()
-        return self.log.read_text()
+        return stop_process(self.process, self.log)
+
+
+def stop_process(process: subprocess.Popen, log: Path) -> str:
+    """End a helper process (SIGTERM, then SIGKILL after 10 s) and return what it logged."""
+    process.terminate()
+    try:
+        process.wait(10)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+    return log.read_text()
 
 
 def _run(trace: Path, stop_time: float, *sets: str) -> subprocess.Popen:

@@ -24,7 +24,7 @@ from bridge.session import SessionError, open_session, zenoh_config
 from orchestrator.bench.hil import free_port
 from tests.dds_robot import LOOPBACK_ONLY
 from tests.test_hil import all_fmu_reference, tracked, wait_for
-from tests.test_ros2 import ROS3, Emulator, _env, _run, endpoint
+from tests.test_ros2 import ROS3, Emulator, _env, _run, endpoint, stop_process
 
 VERSION = "1.10.2"
 CACHE = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "platoon-cosim" / f"zenoh-{VERSION}"
@@ -71,13 +71,7 @@ class Router:
             return False
 
     def stop(self) -> str:
-        self.process.terminate()
-        try:
-            self.process.wait(10)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            self.process.wait()
-        return self.log.read_text()
+        return stop_process(self.process, self.log)
 
 
 @contextmanager
