@@ -342,13 +342,18 @@ def emulator(port: int, tmp_path: Path, *options: str) -> Iterator[tuple[subproc
         yield process, log
     finally:
         if process.poll() is None:
-            os.kill(process.pid, signal.SIGCONT)
-            process.terminate()
-            try:
-                process.wait(10)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+            os.kill(process.pid, signal.SIGCONT)  # a test may have frozen it
+            end_process(process)
+
+
+def end_process(process: subprocess.Popen) -> None:
+    """End a helper process: SIGTERM, then SIGKILL after 10 s."""
+    process.terminate()
+    try:
+        process.wait(10)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
 
 
 def start_run(port: int, trace: Path, stop_time: float, *sets: str) -> subprocess.Popen:

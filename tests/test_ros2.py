@@ -29,7 +29,7 @@ from bridge.ros2.node import RosGraph, RosNode
 from bridge.session import open_session, zenoh_config
 from orchestrator.bench.hil import free_port
 from orchestrator.trace import load
-from tests.test_hil import TRACKING_CAP, FellBehind, check_tracking, tracked
+from tests.test_hil import TRACKING_CAP, FellBehind, check_tracking, end_process, tracked
 
 CHATTER_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"  # design.md's String hash
 
@@ -399,13 +399,8 @@ class Emulator:
 
 
 def stop_process(process: subprocess.Popen, log: Path) -> str:
-    """End a helper process (SIGTERM, then SIGKILL after 10 s) and return what it logged."""
-    process.terminate()
-    try:
-        process.wait(10)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
+    """End a helper process (``end_process``) and return what it logged."""
+    end_process(process)
     return log.read_text()
 
 
