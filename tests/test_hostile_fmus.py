@@ -285,12 +285,16 @@ def test_a_live_vehicle_refuses_state_calls_and_keeps_the_host_alive(fmu_dir, tm
     """LiveVehicle raises on fmi2GetFMUstate (a robot cannot be rolled back). Raw, that exception made
     pythonfmu free the instance and the next call crash the host; every PlatoonSlave subclass's FMI
     methods are now guarded like the base's. No robot is needed: initialization ends without one
-    (LiveVehicle reports it at the first step)."""
+    (LiveVehicle reports it at the first step). It connects to a free port, not the default
+    tcp/127.0.0.1:7447: a documented HIL block run by a parallel worker has a robot 3 there (seen in CI,
+    where this FMU met it and stepped)."""
     from fmus.builders import LIVE_FMU, PYTHONFMU
+    from orchestrator.bench.hil import free_port
 
     PYTHONFMU.build(fmu_dir, names=(LIVE_FMU,))
     unzipped = unzip(fmu_dir / f"{LIVE_FMU}.fmu", tmp_path / LIVE_FMU)
-    case = Case(LIVE_FMU, "fmi2GetFMUstate twice", {"hil.connect_timeout": 0.3},
+    nowhere = {"hil.connect_timeout": 0.3, "hil.connect": f"tcp/127.0.0.1:{free_port()}"}
+    case = Case(LIVE_FMU, "fmi2GetFMUstate twice", nowhere,
                 [["exit"], ["get_state"], ["get"], ["step", 0.0, 0.01], ["get_state"]],
                 lambda outcome: [] if [c["status"] for c in outcome.calls if "args" in c] == [0, FATAL, 0, DISCARD, FATAL]
                 and outcome.logged("a live robot has no FMU state") else [f"unexpected: {outcome.calls}"])
