@@ -31,7 +31,8 @@ from matplotlib.colors import ListedColormap, Normalize  # noqa: E402
 
 from orchestrator.analysis.error_gains import (clean_order, frequency_gains, predicted_gains, probe_frequencies,  # noqa: E402
                                                steady_window, vehicle_errors)
-from orchestrator.analysis.sampled_chain import exact_applies, growth_per_link, peak_growth  # noqa: E402
+from orchestrator.analysis.sampled_chain import (GROWTH_TOLERANCE, exact_applies, growth_per_link,  # noqa: E402
+                                                 lifting_period, peak_growth, vehicle_of)
 from orchestrator.analysis.string_stability import interior_vehicle  # noqa: E402
 from orchestrator.scenario.config import Config, config_from_mapping  # noqa: E402
 from orchestrator.scenario.wiring import TARGET  # noqa: E402
@@ -47,17 +48,22 @@ def measured_gains(config: Config, trace_path: Path) -> tuple[np.ndarray, np.nda
     cascade's prediction for the same links of the same run (None where it does not apply)."""
     from orchestrator.trace import load
 
-    # what the gains need: the vehicles and the target (gaps from positions), not the links or the errors, from
-    # a second before the first disturbance (the state recorded before it is the errors' baseline) on
-    first = min((d.start for d in config.disturbance), default=None)
-    trace = load(trace_path, components=[TARGET] + [f"vehicle{k}" for k in range(1, config.platoon.count + 1)],
-                 errors=False, start=None if first is None else max(0.0, first - 1.0))
     frequencies = probe_frequencies(config)
+    if not frequencies:
+        raise PlotError(f"{trace_path}: its config has no sinusoid to measure gains at")
+    # what the gains need: the vehicles and the target (gaps from positions), not the links or the errors,
+    # over the window they are fitted in (with an offset: no baseline from before the disturbance is needed),
+    # that of a run to its stop time; read again from the start if the run ended early
+    components = [TARGET] + [f"vehicle{k}" for k in range(1, config.platoon.count + 1)]
+    expected = steady_window(config, config.simulation.stop_time)
+    trace = load(trace_path, components=components, errors=False, start=expected[0])
     names = trace.vehicles()
     order = clean_order(config, names)
-    if not frequencies or len(order) < 2:
-        raise PlotError(f"{trace_path}: its config has no sinusoid, or too few vehicles past the pushed ones")
+    if len(order) < 2:
+        raise PlotError(f"{trace_path}: too few vehicles past the pushed ones to measure a link")
     window = steady_window(config, float(trace.component(order[0])["t"][-1]))
+    if window[0] < expected[0] - 1e-9:
+        trace = load(trace_path, components=components, errors=False)
     measured = np.array(frequency_gains(vehicle_errors(trace, config), order, frequencies, window))
     predicted = predicted_gains(config, names, order, frequencies)
     return measured, None if predicted is None else np.array(predicted)
@@ -66,8 +72,7 @@ def measured_gains(config: Config, trace_path: Path) -> tuple[np.ndarray, np.nda
 def _analytic(config: Config, delay: float, loss: float) -> tuple[float, float]:
     """(peak growth per link, largest growth at the probe frequencies) of the sampled-data cascade of
     ``config`` with every link's delay and loss set."""
-    links = config.links.model_copy(update={"delay": delay, "loss": loss})
-    changed = config.model_copy(update={"links": links})
+    changed = _with_link(config, delay, loss)
     vehicle = interior_vehicle(changed)
     probes = growth_per_link(changed, vehicle, np.array(probe_frequencies(config))).max()
     return peak_growth(changed, vehicle).gain, float(probes)
@@ -94,15 +99,38 @@ def _points(folder: Path) -> list[dict[str, Any]]:
     return points
 
 
-def _point(raw: dict[str, Any], trace: Path | None) -> tuple[float, float, bool]:
+def _point(raw: dict[str, Any], trace: Path | None, verdict: bool) -> tuple[float, float, bool | None]:
     """One run's (largest measured gain, worst deviation from the cascade's prediction, the closed form's
-    verdict), from its config's mapping (a task of a worker process)."""
+    verdict if ``verdict``, else None: the analytic grid has it), from its config's mapping (a task of a
+    worker process)."""
     config = config_from_mapping(raw)
-    stable = peak_growth(config, interior_vehicle(config)).string_stable
+    stable = peak_growth(config, interior_vehicle(config)).string_stable if verdict else None
     if trace is None:
         return math.nan, math.nan, stable
     measured, predicted = measured_gains(config, trace)
     return float(measured.max()), float(np.abs(measured / predicted - 1.0).max()), stable
+
+
+def grid_axis(values: list[float], most: int) -> np.ndarray:
+    """The analytic grid along one axis, 0 to the largest run's value: the most points up to ``most``
+    (evenly spaced) on which every run's value lies, so that each run's closed-form verdict is a grid
+    cell's (the study's delays 0 ... 0.4 by 0.1: 9 points, 0.05 apart), else ``most`` points."""
+    top = max(values)
+    for count in range(most, 1, -1):
+        axis = np.linspace(0.0, top, count)
+        if all(np.abs(axis - value).min() <= 1e-9 for value in values):
+            return axis
+    return np.linspace(0.0, top, most)
+
+
+def _chain_key(config: Config) -> tuple:
+    """What the closed form's peak depends on: the interior vehicle as the cascade sees it, the step and
+    the lifting period (runs and grid cells with the same key have the same verdict)."""
+    return (vehicle_of(config, interior_vehicle(config)), config.simulation.step, lifting_period(config))
+
+
+def _with_link(config: Config, delay: float, loss: float) -> Config:
+    return config.model_copy(update={"links": config.links.model_copy(update={"delay": delay, "loss": loss})})
 
 
 def agreement_lines(points: list[dict[str, Any]], stable: dict[str, dict[tuple[float, float], bool]]) -> list[str]:
@@ -167,9 +195,14 @@ def _compute(points: list[dict[str, Any]], laws: list[str], delays: np.ndarray, 
         future.set_result(function(*args))
         return future
 
+    # each grid cell's key, for the runs whose verdict a cell already computes (the cell's peak)
+    configs = {law: config_from_mapping(raw) for law, raw in first.items()}
+    cells = {_chain_key(_with_link(configs[law], float(delay), float(loss))): (law, i, j)
+             for law in laws for i, loss in enumerate(losses) for j, delay in enumerate(delays)}
+    from_grid = {id(p): cells.get(_chain_key(p["config"])) for p in points}
     with pool if pool is not None else nullcontext():
         rows = {law: [submit(_analytic_row, first[law], delays, float(loss)) for loss in losses] for law in laws}
-        runs = {submit(_point, p["raw"], p["trace"]): p for p in points}
+        runs = {submit(_point, p["raw"], p["trace"], from_grid[id(p)] is None): p for p in points}
         stable: dict[str, dict[tuple[float, float], bool]] = {law: {} for law in laws}
         for task in as_completed([*(t for law_rows in rows.values() for t in law_rows), *runs]):
             if task in runs:
@@ -182,6 +215,10 @@ def _compute(points: list[dict[str, Any]], laws: list[str], delays: np.ndarray, 
         for law, law_rows in rows.items():
             stacked = np.array([task.result() for task in law_rows])  # loss x (peaks, probes) x delay
             grids[law] = (stacked[:, 0, :], stacked[:, 1, :])
+    for p in points:
+        if from_grid[id(p)] is not None:
+            law, i, j = from_grid[id(p)]
+            stable[p[LAW]][(p[DELAY], p[LOSS])] = bool(grids[law][0][i, j] <= 1.0 + GROWTH_TOLERANCE)
     return grids, stable
 
 
@@ -214,8 +251,8 @@ def draw_stability_map(folder: Path, png: Path, overwrite: bool = False, resolut
     check_target(png, overwrite, [folder / "results.csv"], kind=IMAGE)  # before minutes of reading traces
     points = _points(folder)
     laws = list(dict.fromkeys(p[LAW] for p in points))
-    delays = np.linspace(0.0, max(p[DELAY] for p in points), resolution)
-    losses = np.linspace(0.0, max(p[LOSS] for p in points), resolution)
+    delays = grid_axis([p[DELAY] for p in points], resolution)
+    losses = grid_axis([p[LOSS] for p in points], resolution)
     if workers is None:
         workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     runs = sum(p["trace"] is not None for p in points)
