@@ -257,13 +257,19 @@ def frequency_gains(errors: dict[str, dict[str, np.ndarray]], order: list[str], 
                     window: tuple[float, float]) -> list[list[float]]:
     """Per frequency, per link along ``order``: the speed error's amplitude ratio at that frequency (all
     frequencies and an offset fitted jointly by least squares over ``window``)."""
-    amplitudes = []
-    for name in order:
-        t, e = errors[name]["t"], errors[name]["speed"]
+    fits: dict[str, np.ndarray] = {}
+    for name in order:  # vehicles recorded at the same instants share one design: one solve for all of them
+        if name in fits:
+            continue
+        t = errors[name]["t"]
+        alike = [other for other in order if other not in fits and np.array_equal(errors[other]["t"], t)]
         inside = (t >= window[0] - 1e-9) & (t <= window[1] + 1e-9)
         columns = [f(w * t[inside]) for w in frequencies for f in (np.cos, np.sin)] + [np.ones(int(inside.sum()))]
-        fit, *_ = np.linalg.lstsq(np.column_stack(columns), e[inside], rcond=None)
-        amplitudes.append([math.hypot(fit[2 * k], fit[2 * k + 1]) for k in range(len(frequencies))])
+        speeds = np.column_stack([errors[other]["speed"][inside] for other in alike])
+        solved, *_ = np.linalg.lstsq(np.column_stack(columns), speeds, rcond=None)
+        fits.update(zip(alike, solved.T))
+    amplitudes = [[math.hypot(fits[name][2 * k], fits[name][2 * k + 1]) for k in range(len(frequencies))]
+                  for name in order]
     return [[ratio(b[k], a[k]) for a, b in zip(amplitudes, amplitudes[1:])] for k in range(len(frequencies))]
 
 
