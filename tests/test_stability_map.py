@@ -80,3 +80,23 @@ def test_a_late_progress_shows_only_work_that_takes_long(tmp_path: Path, monkeyp
             tick(done, 10)
     lines = slow.read_text().splitlines()
     assert lines[0].startswith("reading x.mcap: 10% (1/10 chunks)") and lines[-1].startswith("reading x.mcap: 100% (10/10")
+
+
+def test_the_grid_holds_the_runs_values_and_gives_their_verdicts(sweep: Path) -> None:
+    """Each run's closed-form verdict is read off the analytic grid's cell at its (delay, loss) when the
+    grid holds it: the same verdict as the run's own peak growth."""
+    from orchestrator.analysis.sampled_chain import peak_growth
+    from orchestrator.analysis.string_stability import interior_vehicle
+    from orchestrator.sweep.stability_map import LAW, DELAY, LOSS, _compute, _points, grid_axis
+
+    assert list(grid_axis([0.0, 0.1, 0.2, 0.3, 0.4], 11)) == pytest.approx([0.05 * k for k in range(9)], abs=1e-12)
+    assert list(grid_axis([0.0, 0.05, 0.13], 4)) == pytest.approx([0.0, 0.13 / 3, 0.26 / 3, 0.13])  # on none: 4 points
+    points = _points(sweep)
+    laws = list(dict.fromkeys(p[LAW] for p in points))
+    delays, losses = grid_axis([p[DELAY] for p in points], 3), grid_axis([p[LOSS] for p in points], 3)
+    assert 0.3 in delays
+    _, stable = _compute(points, laws, delays, losses, None, 1)
+    for p in points:
+        config = p["config"]
+        assert stable[p[LAW]][(p[DELAY], p[LOSS])] == peak_growth(config, interior_vehicle(config)).string_stable
+    assert {stable[p[LAW]][(p[DELAY], p[LOSS])] for p in points} == {True, False}  # both verdicts are checked
