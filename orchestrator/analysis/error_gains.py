@@ -378,7 +378,7 @@ def stability_report(trace: "Trace", config: Config, reference: "Trace | None", 
     start = min(d.start for d in config.disturbance)
     against = "the reference trace" if reference is not None else f"the state recorded last before t = {start:g} s"
     pushed = ", ".join(str(v) if v else "the target" for v in sorted(disturbed(config)))
-    lines = [f"string stability measured: {law} law, carried from {component_name(source).replace('vehicle', 'vehicle ')} "
+    lines = [f"string stability measured: {law} law, carried from {'the target' if source == TARGET_VEHICLE else f'vehicle {source}'} "
              f"(pushed: {pushed}), errors against "
              f"{against}, window {window[0]:g} to {window[1]:g} s; a link that starts or ends at a pushed vehicle "
              "measures the push too"]
