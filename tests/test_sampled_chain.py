@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 from orchestrator.analysis.error_gains import (clean_order, component_index, frequency_gains, probe_frequencies,
-                                               propagation, source_vehicle, steady_window, vehicle_errors)
+                                               propagation, source_vehicle, steady_window, stretch_growth,
+                                               vehicle_errors)
 from orchestrator.analysis.sampled_chain import cascade_speeds, largest_stable_delay, loss_weights
 from orchestrator.analysis.string_stability import Channel, _hold, interior_vehicle
 from orchestrator.execution.run import run_scenario
@@ -88,11 +89,12 @@ def test_the_papers_law_with_held_links_has_the_backward_link_in_its_loop(native
     assert measured[k][2:5] == pytest.approx(1.3769, abs=1e-3)
 
 
-def _largest_clean_gain(config, trace) -> float:
+def _clean_growth(config, trace) -> float:
+    """The headline's number: the largest growth per link at the probes over the clean links."""
     names = trace.vehicles()
     clean = clean_order(config, names)
     window = steady_window(config, float(trace.component(names[0])["t"][-1]))
-    return float(np.max(frequency_gains(vehicle_errors(trace, config), clean, probe_frequencies(config), window)))
+    return stretch_growth(frequency_gains(vehicle_errors(trace, config), clean, probe_frequencies(config), window))
 
 
 def test_the_cacc_delay_boundary_is_where_runs_start_to_grow(native_fmu_dir, tmp_path):
@@ -105,7 +107,7 @@ def test_the_cacc_delay_boundary_is_where_runs_start_to_grow(native_fmu_dir, tmp
         run, _ = load_config(STUDY, ["platoon.speed_law=cacc", f"links.delay={delay}"])
         result = run_scenario(run, "", tmp_path / f"{delay}.mcap", foxglove=False)
         assert result.status == "completed", result.error
-        assert (_largest_clean_gain(run, load(result.trace)) > 1.0) == grows
+        assert (_clean_growth(run, load(result.trace)) > 1.0) == grows
 
 
 def test_the_maps_scale_spends_its_range_above_1_and_its_axis_gives_the_age_of_information():
@@ -121,3 +123,13 @@ def test_the_maps_scale_spends_its_range_above_1_and_its_axis_gives_the_age_of_i
     assert all(c[2] > c[0] for c in below) and all(c[0] >= c[2] for c in above)  # blue below 1, red above
     config, _ = load_config(STUDY, [])
     assert age_label(config, 0.0) == "0\n0.02-0.12" and age_label(config, 0.3) == "0.3\n0.3-0.4"
+
+
+def test_the_headlines_growth_per_link_is_the_stretchs_amplitude_ratio_per_link():
+    """At each probe the geometric mean of the clean links' gains, the last vehicle's amplitude over the
+    first's to the power 1/links: one link's noise does not decide the verdict. The largest over the probes."""
+    amplitudes = np.array([[1.0, 0.999, 0.9992, 0.997], [0.01, 0.0102, 0.0101, 0.0103]])  # probes x vehicles
+    gains = amplitudes[:, 1:] / amplitudes[:, :-1]
+    expected = (amplitudes[:, -1] / amplitudes[:, 0]) ** (1.0 / 3.0)
+    assert stretch_growth(gains) == pytest.approx(expected.max(), rel=1e-14)
+    assert gains[0].max() > 1.0 > stretch_growth(gains[:1])  # a single link above 1, the stretch below

@@ -341,10 +341,19 @@ def predicted_gains(config: Config, names: list[str], clean: list[str], frequenc
     return result
 
 
+def stretch_growth(gains: "list[list[float]] | np.ndarray") -> float:
+    """The headline number of gains per probe frequency, per link along the clean links: at each probe the
+    geometric mean of the links' gains, i.e. the last vehicle's amplitude over the first's, per link (the
+    growth per link of the whole stretch, what the cascade's growth per link far down the string predicts);
+    the largest over the probes. One link's gain carries the noise that link adds; over the stretch the
+    links' noises average (the largest single gain of a lossy run is the noisiest, biased up)."""
+    return max(math.prod(row) ** (1.0 / len(row)) for row in gains)
+
+
 def _frequency_lines(config: Config, errors: dict[str, dict[str, np.ndarray]], names: list[str], clean: list[str],
                      window: tuple[float, float]) -> tuple[list[str], float | None]:
     """Per probe frequency, the measured gains along the clean links beside the cascade's prediction;
-    and the largest measured gain (None without sinusoids or clean links)."""
+    and their growth per link (``stretch_growth``; None without sinusoids or clean links)."""
     frequencies = probe_frequencies(config)
     if not frequencies or len(clean) < 2:
         return [], None
@@ -358,7 +367,7 @@ def _frequency_lines(config: Config, errors: dict[str, dict[str, np.ndarray]], n
     for k, w in enumerate(frequencies):
         expected = "" if predicted is None else "predicted " + ", ".join(f"{g:.4f}" for g in predicted[k]) + "; "
         lines.append(f"    {w:g} rad/s: {expected}measured " + ", ".join(f"{g:.4f}" for g in measured[k]))
-    return lines, max(max(row) for row in measured)
+    return lines, stretch_growth(measured)
 
 
 def stability_report(trace: "Trace", config: Config, reference: "Trace | None", window: tuple[float, float]) -> str:
@@ -366,8 +375,9 @@ def stability_report(trace: "Trace", config: Config, reference: "Trace | None", 
 
     The headline verdict uses only the links that measure propagation (``clean_order``): a link that
     starts or ends at a pushed vehicle measures the push, and the first receivers of one carry what the
-    pushed vehicle's own law made of its push. With sinusoids, it is the largest gain at any probe
-    frequency over those links (one l2 gain over all of them would be the largest probe's alone)."""
+    pushed vehicle's own law made of its push. With sinusoids, it is the largest growth per link at any
+    probe frequency over those links (``stretch_growth``; one l2 gain over all of them would be the
+    largest probe's alone)."""
     if not config.disturbance:
         raise ValueError("its config has no [[disturbance]]: the gains need a disturbance run")
     errors = vehicle_errors(trace, config, reference)
@@ -393,7 +403,8 @@ def stability_report(trace: "Trace", config: Config, reference: "Trace | None", 
     if worst is None:
         lines.append("  no link measures propagation here (too few vehicles past the pushed ones)")
     else:
-        kind = "gain at the probe frequencies" if per_frequency and len(per_frequency) > 1 else "speed l2 gain"
+        kind = ("growth per link at the probe frequencies" if per_frequency and len(per_frequency) > 1
+                else "speed l2 gain")
         word = "grows" if worst > 1.0 else "does not grow"
         lines.append(f"  largest {kind} over the links that measure propagation ({' -> '.join(clean)}): {worst:.4f}: "
                      f"this disturbance {word} along the platoon")
