@@ -3,7 +3,8 @@
  *
  * The point on the path (circle or line) the lead vehicle chases, moving at V_0 = V_1 d* / d_1
  * (paper eq. 3; acc, cacc: v_c), plus a speed push (disturbance.speed). Each function names the
- * Python function it mirrors, with its arithmetic in the same order. Variables and value references come from the generated "variables.h".
+ * Python function it mirrors, with its arithmetic in the same order. Variables and value references
+ * come from the generated "variables.h".
  */
 #include <math.h>
 #include <string.h>

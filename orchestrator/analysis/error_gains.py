@@ -283,8 +283,9 @@ def clean_order(config: Config, names: list[str]) -> list[str]:
     """The vehicles along the way a disturbance travels that measure the chain itself: not pushed, and not
     the first two receivers of the pushed one. A push is held over each step, a staircase whose jumps the
     sender's rates do not carry: the first receiver's extrapolation turns it into ripple at multiples of
-    2 pi/step, which beacons at a multiple of the step fold back exactly onto the push's frequencies (3 %
-    at the second receiver in the study's runs, 0.3 % at the third)."""
+    2 pi/step, which beacons at a multiple of the step fold back exactly onto the push's frequencies (the
+    study's cacc with 0.3 s links at 0.1 rad/s: the target -> vehicle 1 gain is 1.4 % above the chain's,
+    vehicle 1 -> 2 0.14 %, 2 -> 3 0.01 %)."""
     order = propagation(config, names, source_vehicle(config))
     pushed = {component_name(v) for v in disturbed(config)}
     clean = [name for name in order if name not in pushed]
