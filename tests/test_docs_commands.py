@@ -184,7 +184,7 @@ def _sweep_cut_short(root: Path) -> None:
 
 def _stability_sweep_cut_short(root: Path) -> None:
     """The study as written is 75 runs (a minute or five on 2 cores): in the copy, 4 of them (2 laws x 2 delays,
-    no loss), each the full 205 s its gains need."""
+    no loss), each the full 391 s its gains need."""
     path = root / "configs" / "sweeps" / "string_stability.toml"
     text = (REPO / path.relative_to(root)).read_text()
     cut = (text.replace('"platoon.speed_law" = ["paper", "acc", "cacc"]', '"platoon.speed_law" = ["paper", "cacc"]')
@@ -213,7 +213,7 @@ def _broken_traces(root: Path) -> None:
 
 
 SETUP = {("docs/reproduction.md", 54): _sweep_cut_short, ("docs/sweeps.md", 7): _sweep_cut_short,
-         ("docs/model.md", 759): _stability_sweep_cut_short,
+         ("docs/model.md", 795): _stability_sweep_cut_short,
          ("docs/trace-format.md", 231): _broken_traces}
 
 

@@ -119,6 +119,8 @@ TARGET_CASES = [
     {"path.direction": -1, "path.radius": 80.0, "path.x0": 3.0, "path.heading": 0.7, "initial.arc_length": 5.0},
     {"path.kind": "line", "path.heading": -2.0, "path.y0": -4.0},
     {"speed_law": "acc", "v_c": 20.0},  # under acc and cacc the target moves at v_c
+    {"speed_law": "cacc", "disturbance.speed": 0.7},  # plus its push
+    {"path.kind": "line", "disturbance.speed": -0.4},  # the paper's target: V_1 d*/d_1 plus its push
 ]
 
 
@@ -158,7 +160,7 @@ def test_identical_to_the_last_bit(fmu_dir, native_fmu_dir, name, start_values):
 
 @pytest.mark.parametrize("name, signals", [
     ("Vehicle", {"disturbance.lateral_acceleration": 3.0, "disturbance.speed": -2.0, "target.turn_rate": 0.1}),
-    ("VirtualTarget", {"lead.speed": 30.0, "lead.gap": 70.0, "lead.gap_rate": 0.5}),
+    ("VirtualTarget", {"lead.speed": 30.0, "lead.gap": 70.0, "lead.gap_rate": 0.5, "disturbance.speed": 1.5}),
 ])
 def test_standalone_with_input_pulses_equals_the_python_fmus(fmu_dir, native_fmu_dir, name, signals):
     """Inputs that change during the run (a pulse on each from 10 s to 12 s)."""
@@ -213,13 +215,15 @@ def _run_platoon(scenario, folder) -> list[list[list[float]]]:
                                                     "m3pi-paper-then-cacc-hold-gs"])
 def test_platoon_through_our_master_equals_the_python_fmus(fmu_dir, native_fmu_dir, sections):
     """A virtual target and three vehicles, wired as Fig. 2 (orchestrator.scenario.wiring), a lateral pulse on
-    vehicle 2 and a speed pulse on vehicle 3, 20 s: every output of every component at every
+    vehicle 2, a speed pulse on vehicle 3 and a speed sinusoid on the target, 20 s: every output of every component at every
     communication point agrees."""
     raw = {"name": "native", "simulation": {"stop_time": 20.0, "step": 0.01}, "initial": {
         "radial_offset": 0.1 if "radius" in sections.get("path", {}) else 5.0, "heading_error": 0.1,
         "speed_factor": 0.8},
         "disturbance": [{"vehicle": 2, "kind": "lateral_acceleration", "start": 5.0, "duration": 1.0, "value": 0.5},
-                        {"vehicle": 3, "kind": "speed", "start": 8.0, "duration": 1.0, "value": 0.05}]}
+                        {"vehicle": 3, "kind": "speed", "start": 8.0, "duration": 1.0, "value": 0.05},
+                        {"vehicle": 0, "kind": "speed", "start": 3.0, "duration": 10.0, "value": 0.05,
+                         "frequency": 1.0}]}
     for key, value in sections.items():
         raw[key] = {**raw.get(key, {}), **value}
     scenario = build_scenario(config_from_mapping(raw))

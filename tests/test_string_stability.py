@@ -162,9 +162,9 @@ def _platoon(*args, cwd):
 
 
 def test_platoon_stability_prints_the_gains_and_the_closed_form_beside_them(native_fmu_dir, tmp_path):
-    """The study's platoon under cacc with a 0.3 s link: each probe frequency's measured gain per clean link
-    beside the sampled-data cascade's prediction for this run (4 digits apart: tests/test_sampled_chain.py),
-    and a headline verdict from those links only, which is the closed form's."""
+    """The study's platoon under cacc with a 0.3 s link, its head (the target) pushed: each probe frequency's
+    measured gain per clean link beside the sampled-data cascade's prediction for this run (4 digits apart:
+    tests/test_sampled_chain.py), and a headline verdict from those links only, which is the closed form's."""
     from pathlib import Path
 
     study = Path(__file__).resolve().parent.parent / "configs" / "study" / "string_stability.toml"
@@ -174,8 +174,9 @@ def test_platoon_stability_prints_the_gains_and_the_closed_form_beside_them(nati
     assert ran.returncode == 0, ran.stderr
     shown = _platoon("stability", trace, cwd=tmp_path)
     assert shown.returncode == 0, shown.stderr
-    assert "vehicle6 -> vehicle7" in shown.stdout  # the table still shows every link, the pushed one too
-    assert ("over the links that measure propagation (vehicle4 -> vehicle5 -> vehicle6)" in shown.stdout
+    # the table shows every link: from the pushed target (the head of the chain), to the pushed vehicle 7
+    assert "target -> vehicle1" in shown.stdout and "vehicle6 -> vehicle7" in shown.stdout
+    assert ("over the links that measure propagation (vehicle3 -> vehicle4 -> vehicle5 -> vehicle6)" in shown.stdout
             and "does not grow along the platoon" in shown.stdout), shown.stdout
     assert "the sampled-data cascade): growth per link far down the string peaks at 1.0000 as w -> 0: string stable" in shown.stdout
     rows = [line.split(":", 1)[1] for line in shown.stdout.splitlines() if line.strip().startswith(("0.1 rad/s", "3 rad/s"))]

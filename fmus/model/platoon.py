@@ -12,7 +12,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from .guidance import spacing_speed
 from .integrate import integrate
 from .target import VirtualTargetStepper
 from .vehicle import VehicleStepper
@@ -62,10 +61,7 @@ class PlatoonSystem:
             gaps.append(math.hypot(ahead[0] - pose[0], ahead[1] - pose[1]))
             ahead = pose
         target.lead_speed, target.lead_gap, target.lead_time = speeds[0], gaps[0], t
-        if target.constant_speed:  # acc, cacc: the target moves at V_c
-            target_speed = target.speed_command
-        else:
-            target_speed = spacing_speed(speeds[0], gaps[0], target.d_star)
+        target_speed = target.speed_of(speeds[0], gaps[0])  # acc, cacc: V_c (plus a push on the target)
         ahead_pose, ahead_speed = (tx, ty, th), target_speed
         n = len(self.vehicles)
         for i, vehicle in enumerate(self.vehicles):
@@ -101,8 +97,10 @@ class PlatoonSystem:
         self.target.lead_gap_rate = vehicle_outputs[0]["gap_rate"]
         return [self.target.outputs()] + vehicle_outputs
 
-    def set_disturbances(self, disturbances: list[tuple[float, float]]) -> None:
-        """(added lateral acceleration, added speed) per vehicle, held until changed."""
+    def set_disturbances(self, disturbances: list[tuple[float, float]], target_speed: float = 0.0) -> None:
+        """(added lateral acceleration, added speed) per vehicle, and the speed added to the target's, held
+        until changed."""
+        self.target.added_speed = target_speed
         for vehicle, (acceleration, speed) in zip(self.vehicles, disturbances):
             vehicle.added_acceleration, vehicle.added_speed = acceleration, speed
 

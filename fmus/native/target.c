@@ -2,8 +2,9 @@
  * target.c - the VirtualTarget FMU's model: fmus/model/target.py on fmus/model/paths.py, in C.
  *
  * The point on the path (circle or line) the lead vehicle chases, moving at V_0 = V_1 d* / d_1
- * (paper eq. 3). Each function names the Python function it mirrors, with its arithmetic in the
- * same order. Variables and value references come from the generated "variables.h".
+ * (paper eq. 3; acc, cacc: v_c), plus a speed push (disturbance.speed). Each function names the
+ * Python function it mirrors, with its arithmetic in the same order. Variables and value references
+ * come from the generated "variables.h".
  */
 #include <math.h>
 #include <string.h>
@@ -124,6 +125,14 @@ static void lead_at(const Instance *instance, double t, double out[4])
     out[3] = r[VR_LEAD_GAP_RATE];
 }
 
+/* VirtualTargetStepper.speed_of: the law's speed plus the push (disturbance.speed) */
+static double speed_of(const Instance *instance, double lead_speed, double lead_gap)
+{
+    const TargetConfig *config = config_of(instance);
+    double law_speed = config->constant_speed ? config->speed_command : spacing_speed(lead_speed, lead_gap, config->d_star);
+    return law_speed + instance->reals[VR_DISTURBANCE_SPEED];
+}
+
 /* VirtualTargetStepper.derivative (speed_at) */
 static void derivative_of(void *context, double t, const double *state, double *derivative)
 {
@@ -131,11 +140,11 @@ static void derivative_of(void *context, double t, const double *state, double *
     double lead[4];
     (void)state;
     if (config_of(instance)->constant_speed) { /* VirtualTargetStepper.speed_at */
-        derivative[0] = config_of(instance)->speed_command;
+        derivative[0] = speed_of(instance, 0.0, 0.0);
         return;
     }
     lead_at(instance, t, lead);
-    derivative[0] = spacing_speed(lead[0], lead[1], config_of(instance)->d_star);
+    derivative[0] = speed_of(instance, lead[0], lead[1]);
 }
 
 /* VirtualTargetStepper.step */
@@ -162,12 +171,12 @@ static void target_outputs(const Instance *instance, const FwStepMemo *memo, dou
     double s = instance->state[0];
     double target_speed, target_speed_rate;
     if (config->constant_speed) {
-        target_speed = config->speed_command;
+        target_speed = speed_of(instance, 0.0, 0.0);
         target_speed_rate = 0.0;
     } else {
         double lead[4];
         lead_at(instance, t, lead);
-        target_speed = spacing_speed(lead[0], lead[1], config->d_star);
+        target_speed = speed_of(instance, lead[0], lead[1]);
         target_speed_rate = spacing_speed_rate(lead[0], lead[2], lead[1], lead[3], config->d_star);
     }
     double x, y, heading;

@@ -1,7 +1,8 @@
 """The VirtualTarget FMU: the point on the path that the lead vehicle chases.
 
 It knows the path and moves along it at V_0 = V_1 d*/d_1 (paper eq. 3), from the lead vehicle's
-speed V_1 and distance d_1 (velocity information flowing forward).
+speed V_1 and distance d_1 (velocity information flowing forward); under acc and cacc at V_c. A
+``disturbance.speed`` input adds a push to that speed.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ _INPUT_ATTRIBUTES = {
     "lead.speed_rate": "lead_speed_rate",
     "lead.gap_rate": "lead_gap_rate",
     "lead.time": "lead_time",
+    "disturbance.speed": "added_speed",
 }
 
 STATE_OUTPUT = ()
@@ -54,7 +56,7 @@ class VirtualTarget(PlatoonSlave):
              parameter_dependencies=PATH),
         real("heading", "output", "Path tangent heading at the target", "rad", depends_on=STATE_OUTPUT,
              initial_depends_on=PLACE, parameter_dependencies=PATH),
-        real("speed", "output", "Target speed V_0 = V_1 d*/d_1 (acc, cacc: v_c)", "m/s"),
+        real("speed", "output", "Target speed V_0 = V_1 d*/d_1 (acc, cacc: v_c), plus disturbance.speed", "m/s"),
         real("speed_rate", "output", "Rate of the target speed", "m/s2"),
         real("turn_rate", "output", "Heading rate V_0 times curvature", "rad/s"),
         real("curvature", "output", "Signed path curvature at the target", "1/m", depends_on=STATE_OUTPUT,
@@ -66,6 +68,9 @@ class VirtualTarget(PlatoonSlave):
         # the speed laws beyond the paper's, last: every earlier variable keeps its value reference
         VariableInfo("speed_law", "String", "parameter", 'The lead vehicle\'s speed law: "paper" (the target moves at V_1 d*/d_1) or "acc"/"cacc" (it moves at the constant v_c)', start="paper"),
         real("v_c", "parameter", "Commanded speed V_c: the target's speed under acc and cacc", "m/s", start=d.SPEED, min=0.0),
+        # a speed push on the platoon's head (after the laws' variables: every earlier one keeps its reference)
+        real("disturbance.speed", "input", "Speed added to the target's (a prescribed push on the platoon's head)", "m/s",
+             start=0.0),
     )
     input_attributes = _INPUT_ATTRIBUTES
     default_experiment = DefaultExperiment(start_time=0.0, stop_time=d.STOP_TIME, step_size=d.STEP)

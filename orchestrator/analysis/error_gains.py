@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from orchestrator.scenario.config import Config
+from orchestrator.scenario.config import TARGET_VEHICLE, Config
 from orchestrator.scenario.wiring import TARGET
 
 if TYPE_CHECKING:
@@ -58,12 +58,13 @@ def vehicle_errors(trace: "Trace", config: Config, reference: "Trace | None" = N
     """Per vehicle: ``t`` and its ``speed`` and ``gap`` errors: against ``reference``, else against the
     state recorded last before the first disturbance (a settled run: its steady state as the
     co-simulation has it, which "hold" coupling or a link's sampling shift a little from V_c and the
-    law's gap), else, with no disturbance, against V_c and the law's equilibrium gap."""
+    law's gap), else, with no disturbance, against V_c and the law's equilibrium gap. The target's
+    speed error too (the head of the chain under acc and cacc), with no gap (NaN: nothing is ahead)."""
     names = trace.vehicles()
     gaps = _gaps(trace, names)
     base_gaps = _gaps(reference, names) if reference is not None else None
     first = min((d.start for d in config.disturbance), default=None)
-    errors = {}
+    errors = {TARGET: _target_errors(trace, reference, first, config.platoon.speed)}
     for index, name in enumerate(names, start=1):
         run = trace.component(name)
         if reference is not None:
@@ -80,12 +81,40 @@ def vehicle_errors(trace: "Trace", config: Config, reference: "Trace | None" = N
     return errors
 
 
+def _target_errors(trace: "Trace", reference: "Trace | None", first: float | None, speed: float) -> dict[str, np.ndarray]:
+    """The target's speed error, as ``vehicle_errors`` takes a vehicle's; its gap error NaN."""
+    run = trace.component(TARGET)
+    if reference is not None:
+        base = reference.component(TARGET)["speed"]
+    elif first is not None and run["t"][0] <= first + 1e-9:
+        base = run["speed"][int(np.searchsorted(run["t"], first + 1e-9)) - 1]
+    else:
+        base = speed
+    return {"t": run["t"], "speed": run["speed"] - base, "gap": np.full(len(run["t"]), math.nan)}
+
+
+def law_of(config: Config, component: int) -> str:
+    """The speed law of vehicle ``component``; for 0, the target, its lead's (what decides how it moves)."""
+    return config.speed_law_of(max(component, 1))
+
+
+def component_name(component: int) -> str:
+    """Vehicle ``component``'s name, or the target's for 0."""
+    return TARGET if component == TARGET_VEHICLE else f"vehicle{component}"
+
+
+def component_index(name: str, names: list[str]) -> int:
+    """The inverse of ``component_name`` over the trace's vehicle ``names``: 0 for the target."""
+    return TARGET_VEHICLE if name == TARGET else names.index(name) + 1
+
+
 def propagation(config: Config, names: list[str], source: int) -> list[str]:
-    """The vehicles in the order a disturbance on vehicle ``source`` travels: toward the front under the
-    paper's law, toward the back under acc and cacc."""
-    if config.speed_law_of(source) == "paper":
-        return names[:source][::-1]
-    return names[source - 1:]
+    """The components in the order a disturbance on vehicle ``source`` travels: toward the front under the
+    paper's law, toward the back under acc and cacc, from the target itself (``source`` 0) when it is
+    pushed. Under the paper's law a push on the target reaches no vehicle."""
+    if law_of(config, source) == "paper":
+        return names[:source][::-1] if source > 0 else [TARGET]
+    return [TARGET] + names if source == TARGET_VEHICLE else names[source - 1:]
 
 
 def norms(t: np.ndarray, error: np.ndarray, window: tuple[float, float]) -> tuple[float, float]:
@@ -98,6 +127,9 @@ def norms(t: np.ndarray, error: np.ndarray, window: tuple[float, float]) -> tupl
 
 
 def ratio(b: float, a: float) -> float:
+    """b / a; inf where a is 0, NaN where either is (the target's gap, which does not exist)."""
+    if math.isnan(a) or math.isnan(b):
+        return math.nan
     return b / a if a > 0 else math.inf
 
 
@@ -139,13 +171,18 @@ def gains_lines(gains: list[LinkGains], clean: list[str] | None = None) -> list[
     lines = [f"  {'from -> to':22s} {'speed l2':>9s} {'speed l_inf':>11s} {'gap l2':>9s} {'gap l_inf':>9s}"]
     for g in gains:
         lines.append(f"  {g.sender + ' -> ' + g.receiver:22s} {g.l2['speed']:9.4f} {g.linf['speed']:11.4f} "
-                     f"{g.l2['gap']:9.4f} {g.linf['gap']:9.4f}")
+                     f"{_cell(g.l2['gap'], 9)} {_cell(g.linf['gap'], 9)}")
     if gains and clean is None:
         worst = max(g.l2["speed"] for g in gains[1:] or gains)
         word = "grows" if worst > 1.0 else "does not grow"
         lines.append(f"  largest speed l2 gain past the disturbed vehicle: {worst:.4f}: this disturbance {word} along "
                      "the platoon (string stability asks it of every disturbance: platoon analyze has the bound)")
     return lines
+
+
+def _cell(gain: float, width: int) -> str:
+    """A gain in a table column; "-" where there is none (NaN: the target has no gap)."""
+    return f"{'-':>{width}s}" if math.isnan(gain) else f"{gain:{width}.4f}"
 
 
 def first_disturbance_vehicle(config: Config) -> int:
@@ -198,10 +235,11 @@ def string_stability_report(config: Config, config_text: str, progress: Progress
         peaks = [norms(errors[name]["t"], errors[name][kind], window)[1] for kind in ("gap", "speed")]
         lines.append(f"  {name:10s} {paths[-1]:12.4e} {peaks[0]:12.4e} {peaks[1]:12.4e}")
     first = first_disturbance_vehicle(config)
-    ratios = ", ".join(f"{ratio(b, a):.3f}" for a, b in zip(paths[first - 1:], paths[first:]))
-    lines.append(f"  path peak ratios behind vehicle {first}, vehicle i+1 / i: {ratios or 'none (last vehicle)'}")
+    behind = max(first, 1)  # a push on the target: the path ratios from vehicle 1
+    ratios = ", ".join(f"{ratio(b, a):.3f}" for a, b in zip(paths[behind - 1:], paths[behind:]))
+    lines.append(f"  path peak ratios behind vehicle {behind}, vehicle i+1 / i: {ratios or 'none (last vehicle)'}")
     order = propagation(config, trace.vehicles(), first)
-    lines.append(f"  gains of the errors from vehicle to vehicle, the way the {config.speed_law_of(first)} law carries "
+    lines.append(f"  gains of the errors from vehicle to vehicle, the way the {law_of(config, first)} law carries "
                  f"them (l2, and l_inf = peak ratio):")
     lines += gains_lines(link_gains(errors, order, window))
     return "\n".join(lines)
@@ -236,19 +274,20 @@ def disturbed(config: Config) -> set[int]:
 
 def source_vehicle(config: Config) -> int:
     """The pushed vehicle the law carries a disturbance from: the last pushed under the paper's law (it
-    carries toward the front), the first under acc and cacc."""
+    carries toward the front), the first under acc and cacc (0: the target)."""
     pushed = sorted(disturbed(config))
-    return pushed[-1] if config.speed_law_of(pushed[-1]) == "paper" else pushed[0]
+    return pushed[-1] if law_of(config, pushed[-1]) == "paper" else pushed[0]
 
 
 def clean_order(config: Config, names: list[str]) -> list[str]:
     """The vehicles along the way a disturbance travels that measure the chain itself: not pushed, and not
     the first two receivers of the pushed one. A push is held over each step, a staircase whose jumps the
     sender's rates do not carry: the first receiver's extrapolation turns it into ripple at multiples of
-    2 pi/step, which beacons at a multiple of the step fold back exactly onto the push's frequencies (3 %
-    at the second receiver in the study's runs, 0.3 % at the third)."""
+    2 pi/step, which beacons at a multiple of the step fold back exactly onto the push's frequencies (the
+    study's cacc with 0.3 s links at 0.1 rad/s: the target -> vehicle 1 gain is 1.4 % above the chain's,
+    vehicle 1 -> 2 0.14 %, 2 -> 3 0.01 %)."""
     order = propagation(config, names, source_vehicle(config))
-    pushed = {f"vehicle{v}" for v in disturbed(config)}
+    pushed = {component_name(v) for v in disturbed(config)}
     clean = [name for name in order if name not in pushed]
     return clean[2:]
 
@@ -299,20 +338,29 @@ def predicted_gains(config: Config, names: list[str], clean: list[str], frequenc
     if exact_applies(config) is not None:
         return None
     source = source_vehicle(config)
-    order = [names.index(name) + 1 for name in propagation(config, names, source)]
-    order = order if config.speed_law_of(source) != "paper" else list(range(config.platoon.count, order[-1] - 1, -1))
+    order = [component_index(name, names) for name in propagation(config, names, source)]
+    order = order if law_of(config, source) != "paper" else list(range(config.platoon.count, order[-1] - 1, -1))
     result = []
     for w in frequencies:
         speeds = dict(zip(order, cascade_speeds(config, order, w, config.simulation.trace_every)))
-        amplitudes = [abs(speeds[names.index(name) + 1]) for name in clean]
+        amplitudes = [abs(speeds[component_index(name, names)]) for name in clean]
         result.append([ratio(b, a) for a, b in zip(amplitudes, amplitudes[1:])])
     return result
+
+
+def stretch_growth(gains: "list[list[float]] | np.ndarray") -> float:
+    """The headline number of gains per probe frequency, per link along the clean links: at each probe the
+    geometric mean of the links' gains, i.e. the last vehicle's amplitude over the first's, per link (the
+    growth per link of the whole stretch, what the cascade's growth per link far down the string predicts);
+    the largest over the probes. One link's gain carries the noise that link adds; over the stretch the
+    links' noises average (the largest single gain of a lossy run is the noisiest, biased up)."""
+    return max(math.prod(row) ** (1.0 / len(row)) for row in gains)
 
 
 def _frequency_lines(config: Config, errors: dict[str, dict[str, np.ndarray]], names: list[str], clean: list[str],
                      window: tuple[float, float]) -> tuple[list[str], float | None]:
     """Per probe frequency, the measured gains along the clean links beside the cascade's prediction;
-    and the largest measured gain (None without sinusoids or clean links)."""
+    and their growth per link (``stretch_growth``; None without sinusoids or clean links)."""
     frequencies = probe_frequencies(config)
     if not frequencies or len(clean) < 2:
         return [], None
@@ -326,7 +374,7 @@ def _frequency_lines(config: Config, errors: dict[str, dict[str, np.ndarray]], n
     for k, w in enumerate(frequencies):
         expected = "" if predicted is None else "predicted " + ", ".join(f"{g:.4f}" for g in predicted[k]) + "; "
         lines.append(f"    {w:g} rad/s: {expected}measured " + ", ".join(f"{g:.4f}" for g in measured[k]))
-    return lines, max(max(row) for row in measured)
+    return lines, stretch_growth(measured)
 
 
 def stability_report(trace: "Trace", config: Config, reference: "Trace | None", window: tuple[float, float]) -> str:
@@ -334,25 +382,27 @@ def stability_report(trace: "Trace", config: Config, reference: "Trace | None", 
 
     The headline verdict uses only the links that measure propagation (``clean_order``): a link that
     starts or ends at a pushed vehicle measures the push, and the first receivers of one carry what the
-    pushed vehicle's own law made of its push. With sinusoids, it is the largest gain at any probe
-    frequency over those links (one l2 gain over all of them would be the largest probe's alone)."""
+    pushed vehicle's own law made of its push. With sinusoids, it is the largest growth per link at any
+    probe frequency over those links (``stretch_growth``; one l2 gain over all of them would be the
+    largest probe's alone)."""
     if not config.disturbance:
         raise ValueError("its config has no [[disturbance]]: the gains need a disturbance run")
     errors = vehicle_errors(trace, config, reference)
     names = trace.vehicles()
     source = source_vehicle(config)
     order = propagation(config, names, source)
-    law = config.speed_law_of(source)
+    law = law_of(config, source)
     start = min(d.start for d in config.disturbance)
     against = "the reference trace" if reference is not None else f"the state recorded last before t = {start:g} s"
-    pushed = ", ".join(str(v) for v in sorted(disturbed(config)))
-    lines = [f"string stability measured: {law} law, carried from vehicle {source} (pushed: {pushed}), errors against "
+    pushed = ", ".join(str(v) if v else "the target" for v in sorted(disturbed(config)))
+    lines = [f"string stability measured: {law} law, carried from {'the target' if source == TARGET_VEHICLE else f'vehicle {source}'} "
+             f"(pushed: {pushed}), errors against "
              f"{against}, window {window[0]:g} to {window[1]:g} s; a link that starts or ends at a pushed vehicle "
              "measures the push too"]
     gains = link_gains(errors, order, window)
     lines += gains_lines(gains)[:-1] if gains else gains_lines(gains)
     clean = clean_order(config, names)
-    chain_vehicle = source if law == "paper" else min(source + 1, config.platoon.count)
+    chain_vehicle = max(source, 1) if law == "paper" else min(source + 1, config.platoon.count)
     closed_line, stable = _closed_form_line(config, chain_vehicle)
     per_frequency, worst = _frequency_lines(config, errors, names, clean, window)
     if worst is None and len(clean) > 1:
@@ -360,7 +410,8 @@ def stability_report(trace: "Trace", config: Config, reference: "Trace | None", 
     if worst is None:
         lines.append("  no link measures propagation here (too few vehicles past the pushed ones)")
     else:
-        kind = "gain at the probe frequencies" if per_frequency and len(per_frequency) > 1 else "speed l2 gain"
+        kind = ("growth per link at the probe frequencies" if per_frequency and len(per_frequency) > 1
+                else "speed l2 gain")
         word = "grows" if worst > 1.0 else "does not grow"
         lines.append(f"  largest {kind} over the links that measure propagation ({' -> '.join(clean)}): {worst:.4f}: "
                      f"this disturbance {word} along the platoon")

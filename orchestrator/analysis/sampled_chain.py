@@ -425,8 +425,8 @@ def lifting_period(config: "Config", record_every: int = 1) -> int:
 
 
 def push_phasors(config: "Config", w: float) -> dict[int, complex]:
-    """Per vehicle, the complex amplitude of its speed pushes at frequency ``w``: value sin(w (t - start))
-    is the imaginary part of value e^{-j w start} e^{j w t}."""
+    """Per vehicle (0: the virtual target), the complex amplitude of its speed pushes at frequency ``w``:
+    value sin(w (t - start)) is the imaginary part of value e^{-j w start} e^{j w t}."""
     pushes: dict[int, complex] = {}
     for d in config.disturbance:
         if d.kind == "speed" and abs(d.frequency - w) < 1e-12:
@@ -434,10 +434,24 @@ def push_phasors(config: "Config", w: float) -> dict[int, complex]:
     return pushes
 
 
+def target_broadcast(lift: Lifted, push: complex) -> np.ndarray:
+    """The virtual target's broadcast under acc and cacc (it moves at V_c plus its push): a push p(k) =
+    push e^{j w t_k} held over step k gives, at t_k, the speed p(k - 1) (the output follows the inputs of
+    the step before), the position x(k) with x(k + 1) = x(k) + h p(k), i.e. h p(k)/(e^{j w h} - 1) in
+    the steady state, and no speed rate (a push's rate is not in ``speed_rate``). Shape (3P,)."""
+    (w,), h = lift.w, lift.h
+    instants = np.arange(lift.p)
+    broadcast = np.zeros(3 * lift.p, dtype=complex)
+    broadcast[0::3] = push * h * np.exp(1j * w * instants * h) / (np.exp(1j * w * h) - 1.0)
+    broadcast[1::3] = push * np.exp(1j * w * (instants - 1) * h)
+    return broadcast
+
+
 def cascade_speeds(config: "Config", order: list[int], w: float, record_every: int) -> list[complex]:
     """The component at ``w`` of each vehicle's speed (along ``order``, the way the law carries a
     disturbance from ``order[0]``), driven by the config's sinusoidal pushes, as a least-squares fit over
-    records every ``record_every`` steps measures it (the mean of the recorded instants' phasors)."""
+    records every ``record_every`` steps measures it (the mean of the recorded instants' phasors).
+    ``order`` may start at 0, the virtual target (acc, cacc: its speed is V_c plus its own pushes)."""
     period = lifting_period(config, record_every)
     lift = Lifted(np.array([w]), config.simulation.step, period)
     pushes = push_phasors(config, w)
@@ -445,6 +459,10 @@ def cascade_speeds(config: "Config", order: list[int], w: float, record_every: i
     recorded = np.arange(0, period, record_every)
     demodulate = np.exp(-1j * w * recorded * config.simulation.step)
     components = []
+    if order and order[0] == 0:
+        broadcast = target_broadcast(lift, pushes.get(0, 0.0))
+        components.append(complex(np.mean(broadcast[3 * recorded + 1] * demodulate)))
+        order = order[1:]
     for index in order:
         t, u = lifted_maps(vehicle_of(config, index), lift.w.tobytes(), lift.h, period)
         broadcast = t[0] @ broadcast + u[0] * pushes.get(index, 0.0)

@@ -234,8 +234,12 @@ class Hil(_Strict):
         return self
 
 
+TARGET_VEHICLE = 0  # a disturbance's ``vehicle`` naming the virtual target, the platoon's head
+
+
 class Disturbance(_Strict):
-    vehicle: int = Field(ge=1)
+    # 1 .. platoon.count, or 0: the virtual target (a speed push only: the head's speed, prescribed)
+    vehicle: int = Field(ge=TARGET_VEHICLE)
     kind: Literal["lateral_acceleration", "speed"]
     start: Annotated[float, Field(ge=0.0), Unit("s")]
     duration: Duration
@@ -249,9 +253,15 @@ class Disturbance(_Strict):
         """The unit of ``value``: m/s² for a lateral acceleration, m/s for a speed."""
         return PULSE_UNITS[self.kind]
 
+    @property
+    def on_target(self) -> bool:
+        """A push on the virtual target (vehicle 0), not on a vehicle."""
+        return self.vehicle == TARGET_VEHICLE
+
     def what(self) -> str:
-        """The pulse's size and target in words, with its unit: "+5 m/s speed on vehicle 2"."""
-        return f"{self.value:+g} {self.unit} {self.kind.replace('_', ' ')} on vehicle {self.vehicle}"
+        """The pulse's size and target in words, with its unit: "+5 m/s speed on vehicle 2" ("on the target")."""
+        where = "the target" if self.on_target else f"vehicle {self.vehicle}"
+        return f"{self.value:+g} {self.unit} {self.kind.replace('_', ' ')} on {where}"
 
     def text(self) -> str:
         """The whole pulse in words: "+5 m/s speed on vehicle 2 at 30 s for 1 s"."""
@@ -338,7 +348,11 @@ class Config(_Strict):
                         "(a chord of the circle shorter than its diameter: at d* = 2R the equilibrium is degenerate)")
         for index, item in enumerate(self.disturbance):
             if item.vehicle > count:
-                raise _rule(f"disturbance[{index}].vehicle", item.vehicle, f"a vehicle number from 1 to platoon.count = {count}")
+                raise _rule(f"disturbance[{index}].vehicle", item.vehicle, f"a vehicle number from 1 to platoon.count = {count} "
+                            "(or 0, the virtual target)")
+            if item.on_target and item.kind != "speed":
+                raise _rule(f"disturbance[{index}].kind", item.kind, '"speed" on vehicle 0 (the virtual target has no '
+                            'guidance to push sideways: push vehicle 1 instead)')
         for key, vehicle in self.vehicles.items():
             if not key.isdigit() or key != str(int(key)) or not 1 <= int(key) <= count:
                 raise _rule(f"vehicles.{key}", key, f"a vehicle number from 1 to platoon.count = {count}")

@@ -158,7 +158,8 @@ def build_scenario(config: Config) -> Scenario:
             )
         )
     schedules = [
-        ScheduledInput(vehicle_name(d.vehicle), DISTURBANCE_INPUTS[d.kind], d.start, d.duration, d.value, d.frequency)
+        ScheduledInput(TARGET if d.on_target else vehicle_name(d.vehicle), DISTURBANCE_INPUTS[d.kind], d.start,
+                       d.duration, d.value, d.frequency)
         for d in config.disturbance
     ]
     links = link_specs(config)

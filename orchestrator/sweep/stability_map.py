@@ -2,9 +2,10 @@
 
 One panel per speed law, the age of information the receiver works with across (each link delay's
 ages, from the step or the delay on its grid to one beacon period more), the loss rate up. Each run of
-the sweep (configs/sweeps/string_stability.toml) is measured from its trace: the largest gain per link at
+the sweep (configs/sweeps/string_stability.toml) is measured from its trace: the largest growth per link at
 the probe frequencies (the config's sinusoids) over the links that measure propagation
-(``error_gains.clean_order``), the number `platoon stability`'s headline gives. That one number is each
+(``error_gains.clean_order``, ``error_gains.stretch_growth``), the number `platoon stability`'s headline
+gives. That one number is each
 dot's fill (on the colour scale) and its label; a lossy dot is one run of one seed. Under the dots, the
 sampled-data cascade (orchestrator/analysis/sampled_chain.py) of each (delay, loss) on a finer grid: its
 peak growth per link in colour (never below 1: every chain passes w -> 0 unchanged), the line where it
@@ -30,7 +31,7 @@ import numpy as np  # noqa: E402
 from matplotlib.colors import ListedColormap, Normalize  # noqa: E402
 
 from orchestrator.analysis.error_gains import (clean_order, frequency_gains, predicted_gains, probe_frequencies,  # noqa: E402
-                                               steady_window, vehicle_errors)
+                                               steady_window, stretch_growth, vehicle_errors)
 from orchestrator.analysis.sampled_chain import (GROWTH_TOLERANCE, exact_applies, growth_per_link,  # noqa: E402
                                                  lifting_period, peak_growth, vehicle_of)
 from orchestrator.analysis.string_stability import interior_vehicle  # noqa: E402
@@ -100,15 +101,15 @@ def _points(folder: Path) -> list[dict[str, Any]]:
 
 
 def _point(raw: dict[str, Any], trace: Path | None, verdict: bool) -> tuple[float, float, bool | None]:
-    """One run's (largest measured gain, worst deviation from the cascade's prediction, the closed form's
-    verdict if ``verdict``, else None: the analytic grid has it), from its config's mapping (a task of a
-    worker process)."""
+    """One run's (measured growth per link, the headline's; worst deviation from the cascade's prediction;
+    the closed form's verdict if ``verdict``, else None: the analytic grid has it), from its config's
+    mapping (a task of a worker process)."""
     config = config_from_mapping(raw)
     stable = peak_growth(config, interior_vehicle(config)).string_stable if verdict else None
     if trace is None:
         return math.nan, math.nan, stable
     measured, predicted = measured_gains(config, trace)
-    return float(measured.max()), float(np.abs(measured / predicted - 1.0).max()), stable
+    return stretch_growth(measured), float(np.abs(measured / predicted - 1.0).max()), stable
 
 
 def grid_axis(values: list[float], most: int) -> np.ndarray:
@@ -135,7 +136,7 @@ def _with_link(config: Config, delay: float, loss: float) -> Config:
 
 def agreement_lines(points: list[dict[str, Any]], stable: dict[str, dict[tuple[float, float], bool]]) -> list[str]:
     """Per law: how far the measured gains are from the cascade's prediction for the same links (worst over
-    links and probes, by loss rate), and in how many runs the headline verdict (largest measured gain above 1)
+    links and probes, by loss rate), and in how many runs the headline verdict (measured growth per link above 1)
     is the closed form's."""
     lines = []
     for law, verdicts in stable.items():
@@ -273,7 +274,7 @@ def draw_stability_map(folder: Path, png: Path, overwrite: bool = False, resolut
         axis.set_xlabel("links.delay [s]\nage of information at the receiver [s]", fontsize=8)
     axes[0][0].set_ylabel("links.loss")
     figure.suptitle("String stability: the sampled-data cascade's peak growth per link (colour; solid line: 1, "
-                    "dashed: 1 at the probes)\nunder each run's measured largest gain per link at the probes (dot "
+                    "dashed: 1 at the probes)\nunder each run's measured largest growth per link at the probes (dot "
                     "and label; a lossy dot is one run of one seed)", fontsize=8)
     figure.colorbar(image, ax=axes[0].tolist(), label="gain per link", shrink=0.9, extend="max")
     try:  # the output rule (support/output.py): drawn aside, synced, renamed

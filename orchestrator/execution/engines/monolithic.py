@@ -37,17 +37,18 @@ class Engine:
         self.schedules = setup.scenario.schedules
         names = [spec.name for spec in setup.scenario.components]
         self.order = [setup.outputs[name] for name in names]
-        self.vehicles = names[1:]
+        self.target, self.vehicles = names[0], names[1:]
         self.system = monolithic_system(setup)
         self.state: list[float] = []
         self.time = 0.0
 
-    def _disturbances(self, t: float) -> list[tuple[float, float]]:
-        values = {name: [0.0, 0.0] for name in self.vehicles}
+    def _set_disturbances(self, t: float) -> None:
+        """Every component's pushes at t (summed where several hit one input), held over the step."""
+        values = {name: [0.0, 0.0] for name in [self.target] + self.vehicles}
         for schedule in self.schedules:
             slot = 0 if schedule.input.endswith("lateral_acceleration") else 1
             values[schedule.component][slot] += schedule.value_at(t)
-        return [tuple(values[name]) for name in self.vehicles]
+        self.system.set_disturbances([tuple(values[name]) for name in self.vehicles], values[self.target][1])
 
     def _record(self, observers: Observers) -> None:
         rows = self.system.outputs(self.time, self.state)
@@ -56,7 +57,7 @@ class Engine:
     def start(self, observers: Observers, check: Check) -> None:
         try:
             self.state = self.system.initial_state()
-            self.system.set_disturbances(self._disturbances(0.0))
+            self._set_disturbances(0.0)
             self._record(observers)
         except (ValueError, ZeroDivisionError, OverflowError) as failure:
             raise ComponentError(NAME, self.time, str(failure)) from None
@@ -68,7 +69,7 @@ class Engine:
         try:
             for k in range(steps):
                 t, t_next = k * step, (k + 1) * step
-                system.set_disturbances(self._disturbances(t))
+                self._set_disturbances(t)
                 self.state = system.advance(t, self.state, t_next - t, self.sim.max_substep)
                 self.time = t_next
                 self._record(observers)
