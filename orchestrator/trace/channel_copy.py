@@ -3,16 +3,21 @@
 MCAP writes a schema and a channel record once, in the chunk that first uses them (the first chunk, for
 every channel registered at the start), and once more in the summary at the end. A killed run has no
 summary; so one damaged byte in its first chunk would leave every later chunk without channels, and
-recovery could keep none of their messages. The copy is one metadata record, ``platoon.channels``,
+recovery could keep none of their messages. The copy is a metadata record, ``platoon.channels``,
 written before the first chunk (metadata records are not chunked): JSON lists of the schemas (data in
-base64) and channels, ids as in the file. Recovery takes channels and schemas from wherever they
-survive: the chunks, the summary, this copy (docs/trace-format.md, "Recovering").
+base64) and channels, ids as in the file, and the CRC-32 of both lists. It is written twice, one record
+after the other: a metadata record has no CRC of its own, and one damaged byte in a single copy and
+another in the first chunk left a killed run's intact chunks with no channels (the recovery fuzz
+campaign, tests/test_recovery_fuzz.py); the CRC keeps a damaged copy from defining a wrong channel.
+Recovery takes channels and schemas from wherever they survive: the chunks, the summary, a copy whose
+CRC checks (docs/trace-format.md, "Recovering").
 """
 
 from __future__ import annotations
 
 import base64
 import json
+import zlib
 from typing import Any, Iterable
 
 from mcap.records import Channel, Metadata, Schema
@@ -29,22 +34,36 @@ def write_copy(writer: Any) -> None:
     channels = getattr(writer, "_Writer__channels", None)
     if schemas is None or channels is None:
         return
-    writer.add_metadata(NAME, encode(schemas.values(), channels.values()))
+    copy = encode(schemas.values(), channels.values())
+    for _ in range(COPIES):
+        writer.add_metadata(NAME, copy)
+
+
+COPIES = 2
+
+
+def _crc(schemas: str, channels: str) -> str:
+    return str(zlib.crc32(f"{schemas}\0{channels}".encode()))
 
 
 def encode(schemas: Iterable[Schema], channels: Iterable[Channel]) -> dict[str, str]:
-    return {
+    listed = {
         "schemas": json.dumps([{"id": s.id, "name": s.name, "encoding": s.encoding,
                                 "data": base64.b64encode(s.data).decode()} for s in schemas]),
         "channels": json.dumps([{"id": c.id, "schema_id": c.schema_id, "topic": c.topic,
                                  "message_encoding": c.message_encoding, "metadata": dict(c.metadata)}
                                 for c in channels]),
     }
+    return {**listed, "crc32": _crc(listed["schemas"], listed["channels"])}
 
 
 def decode(record: Metadata) -> tuple[list[Schema], list[Channel]]:
-    """The schemas and channels of a ``platoon.channels`` record; ([], []) if it does not decode."""
+    """The schemas and channels of a ``platoon.channels`` record; ([], []) if it does not decode, or its
+    CRC-32 does not check (a copy written before the CRC has none: taken as it decodes)."""
     try:
+        crc = record.metadata.get("crc32")
+        if crc is not None and crc != _crc(record.metadata["schemas"], record.metadata["channels"]):
+            return [], []
         schemas = [Schema(id=int(s["id"]), name=str(s["name"]), encoding=str(s["encoding"]),
                           data=base64.b64decode(s["data"], validate=True)) for s in json.loads(record.metadata["schemas"])]
         channels = [Channel(id=int(c["id"]), schema_id=int(c["schema_id"]), topic=str(c["topic"]),
