@@ -433,7 +433,7 @@ class _Encoder:
     def close(self) -> None:
         try:
             self._drain()
-            for builder in self._builders[1:]:  # the other groups' open chunks; finish writes the bodies'
+            for builder in self._builders:  # every group's open chunk, in group order, as a full set
                 self._finalize(builder)
             self._writer.finish()
         except OSError:
