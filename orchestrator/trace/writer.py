@@ -298,16 +298,23 @@ class _Encoder:
 
     def _chunks_full(self) -> None:
         """A group's open chunk is full: compress every group's on the pipeline's thread (or here), in
-        group order, and start the next ones. The groups close together and their chunks are written
+        ``_set_order``, and start the next ones. The groups close together and their chunks are written
         back to back, so each chunk of a group ends at the row where the others' end: a killed run's
         last chunks end at one row, as one chunk of every channel did (recovery keeps them all), and
         a time slice reads the same rows of each group."""
         if self._pipeline is not None:
-            self._pipeline.submit(*self._builders)
+            self._pipeline.submit(*self._set_order())
         else:
-            for builder in self._builders:
+            for builder in self._set_order():
                 self._finalize(builder)
         self._pack_indexes()
+
+    def _set_order(self) -> list[Any]:
+        """The groups' builders in the order their chunks are written: the bodies' last. A file cut inside
+        a set (a run killed while it is written) then holds the set's bodies only if it holds the
+        rest of it, so the rows recovery keeps (up to the last the components reached) have their
+        errors and their scene too."""
+        return self._builders[::-1]
 
     def _finalize(self, builder: Any) -> None:
         """Have the ``mcap`` writer write ``builder``'s chunk (a group's, or one compressed on the pipeline's
@@ -402,7 +409,7 @@ class _Encoder:
         if now - self._last_chunk >= self.flush_interval:
             self._drain()
             if self._fast is not None:  # every group's open chunk
-                for builder in self._builders:
+                for builder in self._set_order():
                     self._finalize(builder)
                 self._file.flush()
             elif (flush := getattr(self._writer, "flush", None)) is not None:  # mcap >= 1.3: the chunk, the stream
@@ -433,7 +440,7 @@ class _Encoder:
     def close(self) -> None:
         try:
             self._drain()
-            for builder in self._builders:  # every group's open chunk, in group order, as a full set
+            for builder in self._set_order():  # every group's open chunk, as a full set
                 self._finalize(builder)
             self._writer.finish()
         except OSError:
