@@ -156,17 +156,22 @@ COMPONENTS = {"target": ["x", "y", "heading", "speed", "curvature"],
               "vehicle": ["x", "y", "heading", "speed", "gap", "wheel.right", "50%", 'say "hi"']}
 
 
-@pytest.mark.parametrize("overrides, count, chunk_size, block", [
-    ((), 800, 1 << 20, 500),  # the paper's circle, four vehicles
-    (("platoon.count=12", "path.kind=line", "path.heading=0.7", "path.center=[3.0, -2.0]"), 300, 1 << 14, 64),
-    (("platoon.count=3", "path.direction=cw", "simulation.trace_every=7", "path.radius=20.0", "platoon.d_star=15.0"), 400, 1 << 16, 33),
+@pytest.mark.parametrize("overrides, count, chunk_size, block, links", [
+    ((), 800, 1 << 20, 500, False),  # the paper's circle, four vehicles
+    (("platoon.count=12", "path.kind=line", "path.heading=0.7", "path.center=[3.0, -2.0]"), 300, 1 << 14, 64, False),
+    (("platoon.count=3", "path.direction=cw", "simulation.trace_every=7", "path.radius=20.0", "platoon.d_star=15.0"), 400, 1 << 16, 33, False),
+    ((), 700, 1 << 15, 90, True),  # links between the vehicles: every chunk group, each in its chunks
 ])
 def test_native_and_python_encoders_write_the_same_file(tmp_path: Path, overrides, count: int, chunk_size: int,
-                                                        block: int) -> None:
-    """Byte for byte (many chunks, odd blocks, keys to escape), hence message by message."""
+                                                        block: int, links: bool) -> None:
+    """Byte for byte (many chunks, odd blocks, keys to escape, the chunk groups), hence message by message."""
     config = paper(*overrides)
     vehicles = [f"vehicle{k}" for k in range(1, config.platoon.count + 1)]
     components = [("target", COMPONENTS["target"])] + [(name, COMPONENTS["vehicle"]) for name in vehicles]
+    if links:  # as a run orders them: each link after the vehicle it feeds
+        components = [entry for name, outputs in components
+                      for entry in [(name, outputs)] + ([(f"link_backward{name[7:]}", ["gap", "speed"])]
+                                                         if name.startswith("vehicle") else [])]
     rows = _rows(config, components, count, seed=count)
     files = {}
     for native in (False, True):
@@ -180,6 +185,16 @@ def test_native_and_python_encoders_write_the_same_file(tmp_path: Path, override
     assert topics["/platoon/tf"].messages == scenes
     assert abs(scenes - rows[-1, 0] * 7.0) <= 2  # 7 Hz of simulated time, from t = 0
     assert messages == count * (len(components) + 1) + 2 + 2 * scenes  # + the errors; two log lines
+    if links:
+        from mcap.reader import make_reader
+
+        from orchestrator.trace.format import LINKS, chunk_group
+
+        with open(files[True], "rb") as stream:
+            summary = make_reader(stream).get_summary()
+        groups = [{chunk_group(summary.channels[cid].topic) for cid in chunk.message_index_offsets}
+                  for chunk in summary.chunk_indexes]
+        assert all(len(group) == 1 for group in groups) and len(groups) > 6 and {LINKS} in groups
 
 
 @pytest.mark.parametrize("flush_interval", [1e9, 0.0])  # chunks closed by size only, or by a flush after every block

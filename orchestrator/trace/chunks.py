@@ -8,7 +8,9 @@ core the compression leaves the run's critical path.
 Nothing about the file changes: the chunk is written by the ``mcap`` writer's own code, in the order
 the chunks were filled, with the bytes it would have compressed itself and their CRC-32, both computed
 here (writer.py hands them to it).
-At most ``PENDING`` chunks wait, so memory stays bounded. The writer waits for every pending chunk
+The writer hands over its chunk groups' full chunks together (trace/writer.py), and they are written
+together, back to back: a killed run's file ends after a whole set, or inside the one being written.
+At most ``PENDING`` sets wait, so memory stays bounded. The writer waits for every pending chunk
 before anything else touches the file (the flush at least every ``FLUSH_INTERVAL``, metadata, a new
 channel, the end), so a killed run still loses at most that interval's rows, as before; a worker
 whose runner died writes everything it received, as before.
@@ -22,7 +24,7 @@ import zlib
 from collections import deque
 from typing import Any, Callable
 
-PENDING = 2  # full chunks that may wait for their compression; the writer waits for the oldest beyond
+PENDING = 2  # sets of full chunks that may wait for their compression; the writer waits for the oldest beyond
 _SENTINEL = None
 
 
@@ -69,21 +71,23 @@ class ChunkPipeline:
     def __init__(self, compressor: Callable[[], Callable[[bytes], bytes]], finalize: Callable[[CompressedChunk], None]) -> None:
         self._make = compressor
         self._finalize = finalize
-        self._pending: deque[CompressedChunk] = deque()
+        self._pending: deque[list[CompressedChunk]] = deque()
         self._jobs: queue.SimpleQueue[CompressedChunk | None] = queue.SimpleQueue()
         self._thread: threading.Thread | None = None
 
-    def submit(self, builder: Any) -> None:
-        """Take the full chunk out of ``builder`` (which goes on with an empty one) and compress it;
-        write the chunks whose compression is done, waiting for the oldest beyond ``PENDING``."""
-        if builder.num_messages == 0:
+    def submit(self, *builders: Any) -> None:
+        """Take the full chunks out of ``builders`` (each goes on with an empty one; those with no message
+        are left alone) and compress them, to be written together in this order; write the sets whose
+        compression is done, waiting for the oldest beyond ``PENDING``."""
+        chunks = [CompressedChunk(builder) for builder in builders if builder.num_messages]
+        if not chunks:
             return
         if self._thread is None:
             self._thread = threading.Thread(target=self._serve, name="trace-compress", daemon=True)
             self._thread.start()
-        chunk = CompressedChunk(builder)
-        self._pending.append(chunk)
-        self._jobs.put(chunk)
+        self._pending.append(chunks)
+        for chunk in chunks:
+            self._jobs.put(chunk)
         self._write(keep=PENDING)
 
     def drain(self) -> None:
@@ -91,14 +95,16 @@ class ChunkPipeline:
         self._write(keep=0)
 
     def _write(self, keep: int) -> None:
-        """Write the compressed chunks in order, waiting for the oldest while more than ``keep`` are pending."""
+        """Write the compressed sets in order, waiting for the oldest while more than ``keep`` are pending."""
         pending = self._pending
-        while pending and (len(pending) > keep or pending[0].done.is_set()):
-            chunk = pending.popleft()
-            chunk.done.wait()
-            if chunk.error is not None:
-                raise chunk.error
-            self._finalize(chunk)
+        while pending and (len(pending) > keep or all(chunk.done.is_set() for chunk in pending[0])):
+            chunks = pending.popleft()
+            for chunk in chunks:
+                chunk.done.wait()
+                if chunk.error is not None:
+                    raise chunk.error
+            for chunk in chunks:
+                self._finalize(chunk)
 
     def close(self) -> None:
         """Stop the thread (pending chunks are dropped: call ``drain`` first to keep them)."""

@@ -54,6 +54,25 @@ def channel_name(component: str) -> str:
     return CHANNEL_PREFIX + component
 
 
+# Chunk groups: which channels share chunks. A reader decompresses whole chunks, so channels read
+# together share them and channels read apart do not (docs/trace-format.md, "Chunks"): the bodies (the
+# vehicles', the target's and every other component's rows, the live streams, the log), what the links
+# and the errors say, and the Foxglove view (the scene, 4.7 KB a row, and the transforms).
+BODIES, LINKS, VIEW = 0, 1, 2
+CHUNK_GROUPS = 3
+SCENE_TOPIC = CHANNEL_PREFIX + "scene"
+TF_TOPIC = CHANNEL_PREFIX + "tf"
+
+
+def chunk_group(topic: str) -> int:
+    """The chunk group of the channel ``topic``: BODIES, LINKS or VIEW."""
+    if topic in (SCENE_TOPIC, TF_TOPIC):
+        return VIEW
+    if topic == ERRORS_TOPIC or (topic.startswith(CHANNEL_PREFIX) and is_link(topic[len(CHANNEL_PREFIX):])):
+        return LINKS
+    return BODIES
+
+
 def channel_kind(channel: Channel, schema: Schema | None) -> str:
     """"component", "errors", "foxglove" or "other": what a channel of a trace holds."""
     if KIND_KEY in channel.metadata:

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from .encoding import ChannelSpec, register_mcap, template_of
-from .format import CHANNEL_PREFIX, LINK_PREFIX, is_link, number_texts
+from .format import CHANNEL_PREFIX, LINK_PREFIX, SCENE_TOPIC, TF_TOPIC, is_link, number_texts
 
 
 class _FoxgloveMessages:
@@ -47,8 +47,6 @@ if TYPE_CHECKING:
     from orchestrator.scenario.config import Config
 
 ERRORS_TOPIC = "/platoon/errors"
-SCENE_TOPIC = "/platoon/scene"
-TF_TOPIC = "/platoon/tf"
 LOG_TOPIC = "/platoon/log"
 ROOT_FRAME = "world"
 ERROR_FIELDS = ("path_error", "gap_error", "speed_error")

@@ -11,6 +11,10 @@
  *   empty strings left out, every present sub-message written (even empty);
  * - the MCAP Message records framing them, and the message index entries of the chunk.
  *
+ * Channels come in chunk groups (orchestrator/trace/format.py: chunk_group): each group's messages go
+ * to a records buffer of their own, framed for that group's chunk, so a reader of one group never
+ * decompresses the others.
+ *
  * Numbers are written as orjson writes them (orchestrator/trace/format.py: number_texts): the
  * shortest text that reads back as the same double, the closest such text when several, fixed
  * notation for decimal exponents -5 ... 15 (".0" for an integer), else d.ddde+E / d.ddde-E. The
@@ -19,7 +23,7 @@
  *
  * Rows arrive as one buffer of float64 (the native engine's block, or the bytes the trace worker
  * received): no Python object per value. The caller finalizes chunks (compression, chunk index);
- * encode() stops after the row that takes the chunk past its size.
+ * encode() stops after the row that takes a group's chunk past its size.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -444,6 +448,15 @@ typedef struct {
     Py_ssize_t count;
 } ChannelOut;
 
+#define MAX_GROUPS 4 /* chunk groups (format.py: CHUNK_GROUPS) */
+
+typedef struct {
+    Buf records;           /* Message records of one encode() call, for this group's chunk */
+    uint64_t position;     /* where in the group's chunk they start */
+    int64_t first, last;   /* least and greatest log time written */
+    Py_ssize_t messages;
+} GroupOut;
+
 typedef struct {
     PyObject_HEAD
     Py_ssize_t width;
@@ -471,7 +484,11 @@ typedef struct {
     ChannelOut *out;
     uint16_t *order;       /* channels in the order of their first message in the call (the Python writer's) */
     Py_ssize_t norder;
-    Buf records, scratch;
+    uint8_t *group_of;     /* each channel's chunk group */
+    Py_ssize_t ngroups;
+    GroupOut groups[MAX_GROUPS];
+    Buf *records;          /* the open message's group buffer */
+    Buf scratch;
     Buf texts;
     Py_ssize_t *text_at;
 } Encoder;
@@ -495,7 +512,8 @@ static void free_encoder(Encoder *self)
     for (Py_ssize_t i = 0; i < self->nchannels && self->out; i++) PyMem_Free(self->out[i].index.data);
     PyMem_Free(self->out);
     PyMem_Free(self->order);
-    PyMem_Free(self->records.data);
+    PyMem_Free(self->group_of);
+    for (int i = 0; i < MAX_GROUPS; i++) PyMem_Free(self->groups[i].records.data);
     PyMem_Free(self->scratch.data);
     PyMem_Free(self->texts.data);
     PyMem_Free(self->text_at);
@@ -692,15 +710,41 @@ static int init_components(Encoder *self, PyObject *components)
     return 0;
 }
 
+/* groups: each channel id's chunk group (0 for ids past its end) */
+static int init_groups(Encoder *self, PyObject *groups)
+{
+    PyObject *fast = PySequence_Fast(groups, "groups must be a sequence of chunk groups, one per channel id");
+    if (fast == NULL) return -1;
+    Py_ssize_t n = PySequence_Fast_GET_SIZE(fast);
+    for (Py_ssize_t i = 0; i < n && i < self->nchannels; i++) {
+        long group = PyLong_AsLong(PySequence_Fast_GET_ITEM(fast, i));
+        if (group == -1 && PyErr_Occurred()) {
+            Py_DECREF(fast);
+            return -1;
+        }
+        if (group < 0 || group >= MAX_GROUPS) {
+            Py_DECREF(fast);
+            PyErr_Format(PyExc_ValueError, "a chunk group must be 0 ... %d", MAX_GROUPS - 1);
+            return -1;
+        }
+        self->group_of[i] = (uint8_t)group;
+        if (group + 1 > self->ngroups) self->ngroups = group + 1;
+    }
+    Py_DECREF(fast);
+    return 0;
+}
+
 static int Encoder_init(Encoder *self, PyObject *args, PyObject *kwargs)
 {
-    PyObject *components, *foxglove;
-    static char *keywords[] = {"width", "components", "foxglove", NULL};
+    PyObject *components, *foxglove, *groups = NULL;
+    static char *keywords[] = {"width", "components", "foxglove", "groups", NULL};
     if (self->components != NULL) {
         PyErr_SetString(PyExc_RuntimeError, "an Encoder is set up once");
         return -1;
     }
-    if (!PyArg_ParseTupleAndKeywords(args, kwargs, "nOO", keywords, &self->width, &components, &foxglove)) return -1;
+    if (!PyArg_ParseTupleAndKeywords(args, kwargs, "nOO|O", keywords, &self->width, &components, &foxglove,
+                                     &groups))
+        return -1;
     if (self->width < 1) {
         PyErr_SetString(PyExc_ValueError, "width must be at least 1");
         return -1;
@@ -717,11 +761,13 @@ static int Encoder_init(Encoder *self, PyObject *args, PyObject *kwargs)
     self->out = PyMem_Calloc((size_t)self->nchannels, sizeof(ChannelOut));
     self->order = PyMem_Calloc((size_t)self->nchannels, sizeof(uint16_t));
     self->text_at = PyMem_Malloc(sizeof(Py_ssize_t) * (size_t)(self->width + 3 * self->nbodies + 2));
-    if (self->out == NULL || self->order == NULL || self->text_at == NULL) {
+    self->group_of = PyMem_Calloc((size_t)self->nchannels, 1);
+    if (self->out == NULL || self->order == NULL || self->text_at == NULL || self->group_of == NULL) {
         PyErr_NoMemory();
         return -1;
     }
-    return 0;
+    self->ngroups = 1;
+    return groups == NULL || groups == Py_None ? 0 : init_groups(self, groups);
 }
 
 /* --- one row's messages ------------------------------------------------------------------------- */
@@ -730,7 +776,7 @@ static int Encoder_init(Encoder *self, PyObject *args, PyObject *kwargs)
 
 static int begin_message(Encoder *self, uint16_t channel, uint32_t sequence, int64_t stamp, size_t *at)
 {
-    Buf *b = &self->records;
+    Buf *b = self->records = &self->groups[self->group_of[channel]].records;
     if (buf_reserve(b, HEADER) < 0) return -1;
     char *p = b->data + b->len;
     p[0] = 0x05;
@@ -743,13 +789,16 @@ static int begin_message(Encoder *self, uint16_t channel, uint32_t sequence, int
     return 0;
 }
 
-static int end_message(Encoder *self, uint16_t channel, int64_t stamp, size_t at, uint64_t base)
+static int end_message(Encoder *self, uint16_t channel, int64_t stamp, size_t at)
 {
-    put_u64(self->records.data + at + 1, (uint64_t)(self->records.len - at - 9));
+    GroupOut *group = &self->groups[self->group_of[channel]];
+    put_u64(group->records.data + at + 1, (uint64_t)(group->records.len - at - 9));
+    if (group->messages++ == 0 || stamp < group->first) group->first = stamp;
+    if (group->messages == 1 || stamp > group->last) group->last = stamp;
     ChannelOut *out = &self->out[channel];
     if (buf_reserve(&out->index, 16) < 0) return -1;
     put_u64(out->index.data + out->index.len, (uint64_t)stamp);
-    put_u64(out->index.data + out->index.len + 8, base + at);
+    put_u64(out->index.data + out->index.len + 8, group->position + at);
     out->index.len += 16;
     if (out->count++ == 0) self->order[self->norder++] = channel;
     return 0;
@@ -764,7 +813,7 @@ static double signed_distance(const Encoder *self, double x, double y)
 }
 
 /* FoxgloveChannels.errors_message; 1 when a value is not finite (the row is not written) */
-static int errors_message(Encoder *self, const double *row, uint32_t sequence, int64_t stamp, uint64_t base)
+static int errors_message(Encoder *self, const double *row, uint32_t sequence, int64_t stamp)
 {
     Py_ssize_t vehicles = 0;
     double values[3];
@@ -793,15 +842,15 @@ static int errors_message(Encoder *self, const double *row, uint32_t sequence, i
     if (begin_message(self, self->errors_channel, sequence, stamp, &start) < 0) return -1;
     Py_ssize_t count = 3 * vehicles + 1;
     for (Py_ssize_t i = 0; i < count; i++) {
-        if (buf_put(&self->records, self->errors_pieces + self->errors_at[i],
+        if (buf_put(self->records, self->errors_pieces + self->errors_at[i],
                     (size_t)(self->errors_at[i + 1] - self->errors_at[i])) < 0
-            || buf_put(&self->records, texts->data + at[i], (size_t)(at[i + 1] - at[i])) < 0)
+            || buf_put(self->records, texts->data + at[i], (size_t)(at[i + 1] - at[i])) < 0)
             return -1;
     }
-    if (buf_put(&self->records, self->errors_pieces + self->errors_at[count],
+    if (buf_put(self->records, self->errors_pieces + self->errors_at[count],
                 (size_t)(self->errors_at[count + 1] - self->errors_at[count])) < 0)
         return -1;
-    return end_message(self, self->errors_channel, stamp, start, base);
+    return end_message(self, self->errors_channel, stamp, start);
 }
 
 /* FoxgloveChannels.advance: at a scene tick, the vehicles' positions join their trails; 1 then */
@@ -821,11 +870,11 @@ static int advance(Encoder *self, double time, const double *row)
     return 1;
 }
 
-static int transforms_message(Encoder *self, const double *row, uint32_t sequence, int64_t stamp, uint64_t base)
+static int transforms_message(Encoder *self, const double *row, uint32_t sequence, int64_t stamp)
 {
     size_t start;
-    Buf *b = &self->records;
     if (begin_message(self, self->tf_channel, sequence, stamp, &start) < 0) return -1;
+    Buf *b = self->records;
     for (Py_ssize_t i = 0; i < self->nbodies; i++) {
         const Body *body = &self->bodies[i];
         double x = row[body->ix], y = row[body->iy], heading = row[body->ih];
@@ -835,7 +884,7 @@ static int transforms_message(Encoder *self, const double *row, uint32_t sequenc
             || pb_yaw(b, 5, heading) < 0 || pb_end(b, 1, transform) < 0)
             return -1;
     }
-    return end_message(self, self->tf_channel, stamp, start, base);
+    return end_message(self, self->tf_channel, stamp, start);
 }
 
 static int line_primitive(Buf *b, int type, double thickness, const double *xy, Py_ssize_t n, Py_ssize_t head,
@@ -854,7 +903,7 @@ static int line_primitive(Buf *b, int type, double thickness, const double *xy, 
 /* the path entity: FoxgloveChannels._scene's first entity (_circle_points or _line_points) */
 static int path_entity(Encoder *self, const double *row, int64_t stamp)
 {
-    Buf *b = &self->records;
+    Buf *b = self->records;
     size_t entity = pb_begin(b);
     if (pb_timestamp(b, 1, stamp) < 0 || pb_text(b, 2, ROOT_FRAME, 5) < 0 || pb_text(b, 3, "path", 4) < 0) return -1;
     if (self->circle_scene) {
@@ -879,7 +928,7 @@ static int path_entity(Encoder *self, const double *row, int64_t stamp)
 
 static int body_entity(Encoder *self, const Body *body, const double *row, int64_t stamp)
 {
-    Buf *b = &self->records;
+    Buf *b = self->records;
     double x = row[body->ix], y = row[body->iy], heading = row[body->ih], size = self->size;
     double nx = -sin(heading), ny = cos(heading); /* FoxgloveChannels._outward */
     if (self->circle_scene) {
@@ -929,7 +978,7 @@ static int body_entity(Encoder *self, const Body *body, const double *row, int64
     return pb_end(b, 2, entity);
 }
 
-static int scene_message(Encoder *self, const double *row, uint32_t sequence, int64_t stamp, uint64_t base)
+static int scene_message(Encoder *self, const double *row, uint32_t sequence, int64_t stamp)
 {
     size_t start;
     if (begin_message(self, self->scene_channel, sequence, stamp, &start) < 0 || path_entity(self, row, stamp) < 0)
@@ -937,7 +986,7 @@ static int scene_message(Encoder *self, const double *row, uint32_t sequence, in
     for (Py_ssize_t i = 0; i < self->nbodies; i++)
         if (body_entity(self, &self->bodies[i], row, stamp) < 0) return -1;
     self->scenes++;
-    return end_message(self, self->scene_channel, stamp, start, base);
+    return end_message(self, self->scene_channel, stamp, start);
 }
 
 enum { REFUSED_ROW = 1, REFUSED_ERRORS = 2 };
@@ -945,7 +994,7 @@ enum { REFUSED_ROW = 1, REFUSED_ERRORS = 2 };
 /* One row's messages; REFUSED_ROW (a value is not finite: TraceWriter.flush's test, the sum of the
  * row) or REFUSED_ERRORS (an errors value is not finite) when the row cannot be written: nothing is
  * added then. */
-static int encode_row(Encoder *self, const double *row, uint32_t sequence, uint64_t base)
+static int encode_row(Encoder *self, const double *row, uint32_t sequence)
 {
     double time = row[0], sum = 0.0;
     for (Py_ssize_t i = 0; i < self->width; i++) sum += row[i];
@@ -959,12 +1008,13 @@ static int encode_row(Encoder *self, const double *row, uint32_t sequence, uint6
         if (put_number(texts, row[i]) < 0) return -1;
     }
     at[self->width] = (Py_ssize_t)texts->len;
-    size_t row_start = self->records.len;
+    GroupOut saved[MAX_GROUPS]; /* the groups as the row found them, to take its messages back out */
+    memcpy(saved, self->groups, sizeof saved);
     for (Py_ssize_t i = 0; i < self->ncomponents; i++) {
         const Component *c = &self->components[i];
         size_t start;
         if (begin_message(self, c->channel, sequence, stamp, &start) < 0) return -1;
-        Buf *b = &self->records;
+        Buf *b = self->records;
         if (buf_put(b, c->pieces, (size_t)c->piece_at[1]) < 0 || buf_put(b, texts->data, (size_t)at[1]) < 0) return -1;
         for (Py_ssize_t j = 0; j < c->count; j++) {
             Py_ssize_t k = c->start + j;
@@ -973,15 +1023,20 @@ static int encode_row(Encoder *self, const double *row, uint32_t sequence, uint6
                 return -1;
         }
         if (buf_put(b, c->pieces + c->piece_at[c->count + 1], (size_t)(c->piece_at[c->count + 2] - c->piece_at[c->count + 1])) < 0
-            || end_message(self, c->channel, stamp, start, base) < 0)
+            || end_message(self, c->channel, stamp, start) < 0)
             return -1;
     }
     if (!self->foxglove) return 0;
-    int refused = errors_message(self, row, sequence, stamp, base);
+    int refused = errors_message(self, row, sequence, stamp);
     if (refused != 0) {
         if (refused > 0) {
             refused = REFUSED_ERRORS; /* take the row's component messages back out */
-            self->records.len = row_start;
+            for (Py_ssize_t g = 0; g < self->ngroups; g++) { /* the buffers may have moved: keep them */
+                self->groups[g].records.len = saved[g].records.len;
+                self->groups[g].first = saved[g].first;
+                self->groups[g].last = saved[g].last;
+                self->groups[g].messages = saved[g].messages;
+            }
             for (Py_ssize_t i = 0; i < self->ncomponents; i++) {
                 ChannelOut *out = &self->out[self->components[i].channel];
                 out->index.len -= 16;
@@ -991,7 +1046,7 @@ static int encode_row(Encoder *self, const double *row, uint32_t sequence, uint6
         return refused;
     }
     if (advance(self, time, row)
-        && (transforms_message(self, row, sequence, stamp, base) < 0 || scene_message(self, row, sequence, stamp, base) < 0))
+        && (transforms_message(self, row, sequence, stamp) < 0 || scene_message(self, row, sequence, stamp) < 0))
         return -1;
     return 0;
 }
@@ -1017,26 +1072,76 @@ static PyObject *take_indexes(Encoder *self)
 }
 
 PyDoc_STRVAR(encode_doc,
-"encode(rows, first, position, limit, sequence)\n"
-"    -> (next, records, first_stamp, last_stamp, last_time, written, indexes, refused)\n\n"
+"encode(rows, first, positions, limit, sequence) -> (next, groups, last_time, written, indexes, refused)\n\n"
 "Encode the rows of ``rows`` (float64 values, ``width`` per row: a C-contiguous array or raw bytes) from\n"
-"row ``first`` on, each row's messages numbered ``sequence``, ``sequence + 1``, ...; ``position``: where\n"
-"in the chunk the records start. Stops after the row that takes the chunk past ``limit`` bytes, or\n"
-"at a row that cannot be written (``refused``: 1 a value is not finite, 2 an errors value is not;\n"
-"``next`` is that row). ``records``: the Message records of ``written`` rows; ``indexes``: (channel,\n"
-"packed little-endian (log time, offset) pairs, count) of each channel written; ``first_stamp``,\n"
-"``last_stamp``: the least and greatest log time written; ``last_time``: the time of the last row.");
+"row ``first`` on, each row's messages numbered ``sequence``, ``sequence + 1``, ...; ``positions``: where\n"
+"in each chunk group's open chunk the records start. Stops after the row that takes a group's chunk past\n"
+"``limit`` bytes, or at a row that cannot be written (``refused``: 1 a value is not finite, 2 an errors\n"
+"value is not; ``next`` is that row). ``groups``: per chunk group (records, first_stamp, last_stamp,\n"
+"messages): the Message records of the ``written`` rows' messages of that group, their least and greatest\n"
+"log time and their number; ``indexes``: (channel, packed little-endian (log time, offset) pairs, count) of\n"
+"each channel written, offsets in its group's chunk; ``last_time``: the time of the last row.");
+
+static PyObject *take_groups(Encoder *self)
+{
+    PyObject *groups = PyTuple_New(self->ngroups);
+    if (groups == NULL) return NULL;
+    for (Py_ssize_t g = 0; g < self->ngroups; g++) {
+        GroupOut *group = &self->groups[g];
+        PyObject *entry = Py_BuildValue("(y#LLn)", group->records.data, (Py_ssize_t)group->records.len,
+                                        (long long)group->first, (long long)group->last, group->messages);
+        if (entry == NULL) {
+            Py_DECREF(groups);
+            return NULL;
+        }
+        PyTuple_SET_ITEM(groups, g, entry);
+    }
+    return groups;
+}
+
+/* positions: one chunk position per group; 0 when taken */
+static int take_positions(Encoder *self, PyObject *positions)
+{
+    PyObject *fast = PySequence_Fast(positions, "positions must be a sequence, one per chunk group");
+    if (fast == NULL) return -1;
+    if (PySequence_Fast_GET_SIZE(fast) < self->ngroups) {
+        Py_DECREF(fast);
+        PyErr_Format(PyExc_ValueError, "positions must hold one position per chunk group (%zd)", self->ngroups);
+        return -1;
+    }
+    for (Py_ssize_t g = 0; g < self->ngroups; g++) {
+        GroupOut *group = &self->groups[g];
+        group->position = PyLong_AsUnsignedLongLong(PySequence_Fast_GET_ITEM(fast, g));
+        if (PyErr_Occurred()) {
+            Py_DECREF(fast);
+            return -1;
+        }
+        group->records.len = 0;
+        group->messages = 0;
+        group->first = group->last = 0;
+    }
+    Py_DECREF(fast);
+    return 0;
+}
+
+static int any_group_full(const Encoder *self, unsigned long long limit)
+{
+    for (Py_ssize_t g = 0; g < self->ngroups; g++)
+        if (self->groups[g].position + self->groups[g].records.len > limit) return 1;
+    return 0;
+}
 
 static PyObject *Encoder_encode(Encoder *self, PyObject *args)
 {
-    PyObject *rows;
+    PyObject *rows, *positions;
     Py_ssize_t first;
-    unsigned long long position, limit, sequence;
+    unsigned long long limit, sequence;
     if (self->components == NULL) {
         PyErr_SetString(PyExc_RuntimeError, "the Encoder is not set up");
         return NULL;
     }
-    if (!PyArg_ParseTuple(args, "OnKKK", &rows, &first, &position, &limit, &sequence)) return NULL;
+    if (!PyArg_ParseTuple(args, "OnOKK", &rows, &first, &positions, &limit, &sequence)) return NULL;
+    if (take_positions(self, positions) < 0) return NULL;
     Py_buffer view;
     if (PyObject_GetBuffer(rows, &view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) return NULL;
     int raw = view.itemsize == 1, doubles = view.itemsize == 8 && view.format != NULL
@@ -1049,36 +1154,34 @@ static PyObject *Encoder_encode(Encoder *self, PyObject *args)
         return NULL;
     }
     Py_ssize_t count = view.len / row_bytes, row = first < 0 ? 0 : first;
-    self->records.len = 0;
     for (Py_ssize_t i = 0; i < self->nchannels; i++) {
         self->out[i].index.len = 0;
         self->out[i].count = 0;
     }
     self->norder = 0;
     int refused = 0, failed = 0;
-    int64_t first_stamp = 0, last_stamp = 0;
     double last_time = 0.0;
     Py_ssize_t written = 0;
     while (row < count) {
         const double *values = (const double *)((const char *)view.buf + row * row_bytes);
-        int result = encode_row(self, values, (uint32_t)(sequence + (unsigned long long)written), position);
+        int result = encode_row(self, values, (uint32_t)(sequence + (unsigned long long)written));
         if (result < 0) { failed = 1; break; }
         if (result > 0) { refused = result; break; }
-        int64_t stamp = (int64_t)nearbyint(values[0] * 1e9);
-        if (written == 0 || stamp < first_stamp) first_stamp = stamp;
-        if (written == 0 || stamp > last_stamp) last_stamp = stamp;
         last_time = values[0];
         written++;
         row++;
-        if (position + self->records.len > limit) break;
+        if (any_group_full(self, limit)) break;
     }
     PyBuffer_Release(&view);
     if (failed) return NULL;
     PyObject *indexes = take_indexes(self);
     if (indexes == NULL) return NULL;
-    PyObject *result = Py_BuildValue("(ny#LLdnNi)", row, self->records.data, (Py_ssize_t)self->records.len, first_stamp,
-                                     last_stamp, last_time, written, indexes, refused);
-    return result;
+    PyObject *groups = take_groups(self);
+    if (groups == NULL) {
+        Py_DECREF(indexes);
+        return NULL;
+    }
+    return Py_BuildValue("(nNdnNi)", row, groups, last_time, written, indexes, refused);
 }
 
 static PyObject *Encoder_get_scenes(Encoder *self, void *closure)

@@ -38,10 +38,11 @@ def available() -> bool:
 
 
 def native_encoder(messages: ComponentMessages, channels: Sequence[int],
-                   foxglove: "FoxgloveChannels | None") -> Any | None:
+                   foxglove: "FoxgloveChannels | None", groups: dict[int, int] | None = None) -> Any | None:
     """A C encoder of ``messages``' rows on ``channels`` (their ids, in order) and of ``foxglove``'s
-    errors, scene and transforms; None when the extension is not built or the run's path is one the C
-    encoder cannot measure (then the Python encoder writes the rows)."""
+    errors, scene and transforms, each channel's messages into its chunk group's records (``groups``:
+    channel id -> group; absent: group 0); None when the extension is not built or the run's path is
+    one the C encoder cannot measure (then the Python encoder writes the rows)."""
     if _native is None:
         return None
     starts = [start for start, _ in messages.spans]
@@ -53,7 +54,10 @@ def native_encoder(messages: ComponentMessages, channels: Sequence[int],
         if arguments is None:
             return None
     width = 1 + sum(len(outputs) for _, outputs in messages.components)
-    return _native.Encoder(width, components, arguments)
+    group_of = [0] * (1 + max(groups, default=0)) if groups else None
+    for channel, group in (groups or {}).items():
+        group_of[channel] = group  # type: ignore[index]
+    return _native.Encoder(width, components, arguments, group_of)
 
 
 def row_values(data: Any, width: int, row: int) -> list[float]:

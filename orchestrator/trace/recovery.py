@@ -23,7 +23,7 @@ from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, Writer
 
 from . import channel_copy
-from .format import CHUNK_SIZE, MAGIC, TraceError, channel_kind
+from .format import CHUNK_SIZE, MAGIC, TraceError, channel_kind, chunk_group
 
 _HEADER = struct.Struct("<BQ")  # a record's opcode and content length
 _CHUNK, _METADATA, _SCHEMA, _CHANNEL, _MESSAGE = 0x06, 0x0C, 0x03, 0x04, 0x05
@@ -62,6 +62,7 @@ class _Scan:
     chunks: list[int] = field(default_factory=list)  # offsets of intact chunks
     last: dict[int, int] = field(default_factory=dict)  # per channel: latest log time
     lost: list[tuple[int | None, int | None]] = field(default_factory=list)  # ns
+    awaited: set[int] = field(default_factory=set)  # chunk groups not seen since the last damage (_ANY: any)
     damaged: int = 0
     finished: bool = False
     cut: bool = False  # the file ends inside a record (a killed run's last chunk)
@@ -143,7 +144,9 @@ def _records(stream: BinaryIO, size: int, scan: _Scan) -> Iterator[tuple[int, in
                 scan.cut = not scan.finished
                 return
             scan.damaged += 1
-            scan.lost.append((max(scan.last.values(), default=None), None))
+            latest = _group_latest(scan)
+            scan.lost.append((min(latest.values(), default=None), None))
+            scan.awaited = set(latest) or {_ANY}
             position, parsed = found
         opcode, end, content = parsed
         if opcode == _FOOTER:
@@ -154,6 +157,40 @@ def _records(stream: BinaryIO, size: int, scan: _Scan) -> Iterator[tuple[int, in
             yield position, opcode, content
             resume = end
         position = end
+
+
+_ANY = -2  # awaited: the damage is before any message; the first intact one after it ends the stretch
+
+
+def _group_of(scan: _Scan, channel: int) -> int:
+    known = scan.channels.get(channel)
+    return -1 if known is None else chunk_group(known.topic)
+
+
+def _group_latest(scan: _Scan) -> dict[int, int]:
+    """Per chunk group (trace/format.py: chunk_group), the latest log time read so far.
+
+    Each group has chunks of its own, closed together at one row and written back to back; a damaged
+    chunk is one group's, and which one cannot be told. So a damaged stretch starts where the group
+    that reached least far stopped, and ends where the group that resumes last resumes (for a file
+    written with one chunk for every channel: the last message before it, the first after it)."""
+    latest: dict[int, int] = {}
+    for channel, stamp in scan.last.items():
+        group = _group_of(scan, channel)
+        latest[group] = max(latest.get(group, stamp), stamp)
+    return latest
+
+
+def _resumed(scan: _Scan, firsts: dict[int, int]) -> None:
+    """An intact chunk after a damaged stretch (``firsts``: its groups' first log times) may end the stretch."""
+    if not scan.awaited or not firsts:
+        return
+    for group, first in firsts.items():
+        if group in scan.awaited or _ANY in scan.awaited:
+            start, end = scan.lost[-1]
+            scan.lost[-1] = (start, first if end is None else max(end, first))
+            scan.awaited.discard(group)
+    scan.awaited.discard(_ANY)
 
 
 def _keep_definition(scan: _Scan, item: Schema | Channel) -> None:
@@ -168,7 +205,7 @@ def _scan(stream: BinaryIO, size: int) -> _Scan:
         items = content if opcode == _CHUNK else [content]
         if opcode == _CHUNK:
             scan.chunks.append(position)
-        first: int | None = None
+        firsts: dict[int, int] = {}  # per chunk group
         for item in items:
             if isinstance(item, (Schema, Channel)):
                 _keep_definition(scan, item)
@@ -178,10 +215,10 @@ def _scan(stream: BinaryIO, size: int) -> _Scan:
             elif isinstance(item, Metadata):
                 scan.metadata.append(item)
             elif isinstance(item, Message):
-                first = item.log_time if first is None else min(first, item.log_time)
+                group = _group_of(scan, item.channel_id)
+                firsts[group] = min(firsts.get(group, item.log_time), item.log_time)
                 scan.last[item.channel_id] = max(scan.last.get(item.channel_id, item.log_time), item.log_time)
-        if first is not None and scan.lost and scan.lost[-1][1] is None:
-            scan.lost[-1] = (scan.lost[-1][0], first)  # the damage ends where intact messages resume
+        _resumed(scan, firsts)  # the damage ends where intact messages resume
     return scan
 
 

@@ -4,7 +4,9 @@ One JSON channel per component (``/platoon/<component>``: ``t`` and every output
 its FMU variable name, one message per recorded communication point), the Foxglove channels of a
 ``FoxgloveChannels`` (orchestrator/trace/foxglove.py), and metadata; log_time and publish_time are the
 simulation time in nanoseconds. Files are chunked, zstd-compressed and indexed; a chunk is closed at
-least every ``flush_interval`` seconds of wall time, so a killed run loses at most that much.
+least every ``flush_interval`` seconds of wall time, so a killed run loses at most that much. Channels
+come in chunk groups (format.chunk_group: the bodies, the links and errors, the Foxglove view), each
+group in chunks of its own, so a reader of the bodies decompresses none of the scene's bytes.
 
 Rows are buffered and encoded in blocks, so a run's hot loop only appends the outputs to a list (or
 fills a float64 block, in the native engine). This module imports neither numpy nor the config: the
@@ -31,7 +33,7 @@ from orchestrator.support.rows import RowBlock
 from .channel_copy import write_copy
 from .chunks import ChunkPipeline, CompressedChunk
 from .encoding import ComponentMessages, LiveStream, register_mcap
-from .format import CHUNK_SIZE, FLUSH_INTERVAL, BLOCK
+from .format import BODIES, CHUNK_GROUPS, CHUNK_SIZE, FLUSH_INTERVAL, BLOCK, chunk_group
 from .writer_base import NullTraceWriter, TraceWriteError, non_finite_error  # noqa: F401  (re-exported)
 from .native_rows import REFUSED_ROW, native_encoder, row_values, rows_of
 
@@ -160,14 +162,17 @@ def _fast_path(writer: Writer):
     """The open chunk of an ``mcap`` Writer, to append Message records without a Python object each.
 
     ``Writer.add_message`` costs about as much per message as encoding its JSON; the records written
-    here are byte for byte what it writes (tests/test_traces.py compares the files), with the same
-    message indexes and statistics. Relies on the writer's private chunk builder: if a future
-    ``mcap`` release changes it, this returns None and the public ``add_message`` is used.
+    here are framed as it frames them (tests/test_traces.py holds the two paths to the same messages),
+    with the same message indexes and statistics, but in a chunk of their chunk group's (which the
+    public path cannot do: it has one chunk open). Relies on the writer's private chunk builder and
+    tables: if a future ``mcap`` release changes them, this returns None and the public
+    ``add_message`` is used (one chunk for every channel, as before chunk groups).
     """
     try:
         builder = writer._Writer__chunk_builder  # type: ignore[attr-defined]
         statistics = writer._Writer__statistics  # type: ignore[attr-defined]
         finalize = writer._Writer__finalize_chunk  # type: ignore[attr-defined]
+        writer._Writer__channels.values, writer._Writer__schemas.get  # type: ignore[attr-defined]
         builder.record_writer._buffer.tell
         builder.message_indices, builder.num_messages, builder.message_start_time, builder.message_end_time
         statistics.channel_message_counts, statistics.message_count
@@ -208,11 +213,14 @@ class _Encoder:
         write_copy(self._writer)  # schemas and channels outside the chunks, for recovery (trace/channel_copy.py)
         self._chunk_size = chunk_size
         self._fast = _fast_path(self._writer) if fast else None
+        self._group_of: dict[int, int] = {}  # channel id -> chunk group (BODIES when absent: live streams)
+        self._builders = self._group_builders() if self._fast else []
         # full chunks compressed on a thread (orchestrator/trace/chunks.py), on the fast path only
         self._pipeline = ChunkPipeline(zstd.compressor, self._write_chunk) if self._fast and zstd else None
         self._zstd = zstd
         # the C encoder for rows given as float64 values (orchestrator/trace/native_rows.py), on the fast path only
-        self.native = native_encoder(self.messages, self._channels, foxglove) if native and self._fast else None
+        self.native = (native_encoder(self.messages, self._channels, foxglove, self._group_of)
+                       if native and self._fast else None)
         self.width = 1 + sum(len(outputs) for _, outputs in self.components)
         self._chunk_indexes = getattr(self._writer, "_Writer__chunk_indices", None)
         self._packed = 0
@@ -232,48 +240,98 @@ class _Encoder:
             for channel, data in messages:
                 write(channel_id=channel, log_time=stamp, publish_time=stamp, sequence=sequence, data=data)
             return
-        builder, statistics, _ = fast
-        buffer = builder.record_writer._buffer  # a new one after every chunk
-        indexes = builder.message_indices
-        counts = statistics.channel_message_counts
+        statistics = fast[1]
+        counts, group_of, builders = statistics.channel_message_counts, self._group_of, self._builders
         pack = _MESSAGE_HEADER_START.pack
         tail = _MESSAGE_HEADER_TAIL.pack(sequence, stamp, stamp)  # shared by the row's messages
-        position = buffer.tell()
-        parts = []
         entry = _INDEX_ENTRY.pack
+        parts: dict[int, list[bytes]] = {}  # per chunk group: its messages of the row, one write each
+        positions: dict[int, int] = {}
         for channel, data in messages:
+            group = group_of.get(channel, BODIES)
+            part = parts.get(group)
+            if part is None:
+                part = parts[group] = []
+                positions[group] = builders[group].record_writer._buffer.tell()  # a new buffer after every chunk
+            indexes = builders[group].message_indices
             index = indexes.get(channel)
             if index is None:
                 index = indexes[channel] = _MessageIndex(channel_id=channel, records=[])
-            index.records.append(entry(stamp, position))
-            parts += (pack(_MESSAGE_OPCODE, 22 + len(data), channel), tail, data)
-            position += _MESSAGE_HEADER_SIZE + len(data)
+            index.records.append(entry(stamp, positions[group]))
+            part += (pack(_MESSAGE_OPCODE, 22 + len(data), channel), tail, data)
+            positions[group] += _MESSAGE_HEADER_SIZE + len(data)
             counts[channel] += 1
-        buffer.write(b"".join(parts))  # one write per row
-        _cover(builder, stamp, builder.num_messages == 0)  # the chunk's time bounds
-        builder.num_messages += len(messages)
+        for group, part in parts.items():
+            builder = builders[group]
+            builder.record_writer._buffer.write(b"".join(part))
+            _cover(builder, stamp, builder.num_messages == 0)  # the chunk's time bounds
+            builder.num_messages += len(part) // 3
         _cover(statistics, stamp, statistics.message_count == 0)  # the file's
         statistics.message_count += len(messages)
-        if buffer.tell() > self._chunk_size:
-            self._chunk_full()
+        self._close_full()
 
-    def _chunk_full(self) -> None:
-        """The open chunk is full: compress it on the pipeline's thread (or here) and start the next."""
-        if self._pipeline is None:
-            self._fast[2]()
+    def _group_builders(self) -> list[Any]:
+        """One chunk builder per chunk group, the writer's own for the bodies (whose first chunk holds every
+        schema and channel registered so far, as MCAP writes them). Another group's first chunk starts with
+        the schemas and channels of its own channels: a reader going through the file in order meets a
+        channel before its messages, whichever group's chunk is written first."""
+        own = self._fast[0]
+        builders = [own] + [type(own)() for _ in range(1, CHUNK_GROUPS)]
+        schemas = self._writer._Writer__schemas  # type: ignore[attr-defined]
+        copied: set[tuple[int, int]] = set()
+        for channel in list(self._writer._Writer__channels.values()):  # type: ignore[attr-defined]
+            group = self._group_of[channel.id] = chunk_group(channel.topic)
+            if group == BODIES:
+                continue
+            schema = schemas.get(channel.schema_id)
+            if schema is not None and (group, schema.id) not in copied:
+                copied.add((group, schema.id))
+                builders[group].add_schema(schema)
+            builders[group].add_channel(channel)
+        return builders
+
+    def _close_full(self) -> None:
+        """When a chunk group's open chunk is past the chunk size, close every group's (``_chunks_full``)."""
+        size = self._chunk_size
+        if any(builder.record_writer._buffer.tell() > size for builder in self._builders):
+            self._chunks_full()
+
+    def _chunks_full(self) -> None:
+        """A group's open chunk is full: compress every group's on the pipeline's thread (or here), in
+        ``_set_order``, and start the next ones. The groups close together and their chunks are written
+        back to back, so each chunk of a group ends at the row where the others' end: a killed run's
+        last chunks end at one row, as one chunk of every channel did (recovery keeps them all), and
+        a time slice reads the same rows of each group."""
+        if self._pipeline is not None:
+            self._pipeline.submit(*self._set_order())
         else:
-            self._pipeline.submit(self._fast[0])
+            for builder in self._set_order():
+                self._finalize(builder)
         self._pack_indexes()
 
-    def _write_chunk(self, chunk: CompressedChunk) -> None:
-        """Have the ``mcap`` writer write a chunk compressed on the pipeline's thread, as its own."""
-        builder, _, finalize = self._fast
-        self._zstd.prepared = (chunk.data, chunk.compressed, chunk.crc)
-        self._writer._Writer__chunk_builder = chunk  # type: ignore[attr-defined]
+    def _set_order(self) -> list[Any]:
+        """The groups' builders in the order their chunks are written: the bodies' last. A file cut inside
+        a set (a run killed while it is written) then holds the set's bodies only if it holds the
+        rest of it, so the rows recovery keeps (up to the last the components reached) have their
+        errors and their scene too."""
+        return self._builders[::-1]
+
+    def _finalize(self, builder: Any) -> None:
+        """Have the ``mcap`` writer write ``builder``'s chunk (a group's, or one compressed on the pipeline's
+        thread) as its own: it finalizes whichever builder is in place (none when it holds no message)."""
+        own, _, finalize = self._fast
+        self._writer._Writer__chunk_builder = builder  # type: ignore[attr-defined]
         try:
             finalize()
         finally:
-            self._writer._Writer__chunk_builder = builder  # type: ignore[attr-defined]
+            self._writer._Writer__chunk_builder = own  # type: ignore[attr-defined]
+
+    def _write_chunk(self, chunk: CompressedChunk) -> None:
+        """Have the ``mcap`` writer write a chunk compressed on the pipeline's thread, as its own."""
+        self._zstd.prepared = (chunk.data, chunk.compressed, chunk.crc)
+        try:
+            self._finalize(chunk)
+        finally:
             self._zstd.prepared = None
 
     def _drain(self) -> None:
@@ -285,37 +343,39 @@ class _Encoder:
         """Write rows of float64 values (``data``: a C-contiguous array or raw bytes, ``width`` per row) with
         the C encoder; close chunks as they fill. Returns (rows written, time of the last, the row it
         refused or None, why: ``native_rows.REFUSED_ROW`` or ``REFUSED_ERRORS``)."""
-        builder, statistics, _ = self._fast
+        statistics, builders = self._fast[1], self._builders
         encode = self.native.encode
         total = memoryview(data).nbytes // (8 * self.width)
         row, written_here, last_time = 0, 0, None
         while row < total:
-            buffer = builder.record_writer._buffer  # a new one after every chunk
-            row, records, least, greatest, time, written, indexes, refused = encode(
-                data, row, buffer.tell(), self._chunk_size, self.recorded)
+            buffers = [builder.record_writer._buffer for builder in builders]  # a new one after every chunk
+            row, groups, time, written, indexes, refused = encode(
+                data, row, [buffer.tell() for buffer in buffers], self._chunk_size, self.recorded)
             if written:
-                buffer.write(records)
-                self._indexed(indexes, builder.message_indices, statistics.channel_message_counts)
-                count = sum(entries for _, _, entries in indexes)
-                _cover(builder, least, builder.num_messages == 0)
-                _cover(builder, greatest, False)
-                builder.num_messages += count
-                _cover(statistics, least, statistics.message_count == 0)
-                _cover(statistics, greatest, False)
-                statistics.message_count += count
+                for builder, buffer, (records, least, greatest, count) in zip(builders, buffers, groups):
+                    if count:
+                        buffer.write(records)
+                        _cover(builder, least, builder.num_messages == 0)
+                        _cover(builder, greatest, False)
+                        builder.num_messages += count
+                        _cover(statistics, least, statistics.message_count == 0)
+                        _cover(statistics, greatest, False)
+                        statistics.message_count += count
+                self._indexed(indexes, statistics.channel_message_counts)
                 self.recorded += written
                 self.last_time = last_time = time
                 written_here += written
-            if buffer.tell() > self._chunk_size:
-                self._chunk_full()
+            self._close_full()
             if refused:
                 return written_here, last_time, row, refused
         self.tick()
         return written_here, last_time, None, 0
 
-    @staticmethod
-    def _indexed(indexes: Sequence[tuple[int, bytes, int]], chunk: dict[int, Any], counts: dict[int, int]) -> None:
+    def _indexed(self, indexes: Sequence[tuple[int, bytes, int]], counts: dict[int, int]) -> None:
+        """The C encoder's message index entries, each channel's into its group's open chunk."""
+        group_of, builders = self._group_of, self._builders
         for channel, entries, count in indexes:
+            chunk = builders[group_of.get(channel, BODIES)].message_indices
             index = chunk.get(channel)
             if index is None:
                 index = chunk[channel] = _MessageIndex(channel_id=channel, records=[])
@@ -348,8 +408,11 @@ class _Encoder:
         now = clock.monotonic()
         if now - self._last_chunk >= self.flush_interval:
             self._drain()
-            flush = getattr(self._writer, "flush", None)
-            if flush is not None:  # mcap >= 1.3: finishes the chunk and flushes the stream
+            if self._fast is not None:  # every group's open chunk
+                for builder in self._set_order():
+                    self._finalize(builder)
+                self._file.flush()
+            elif (flush := getattr(self._writer, "flush", None)) is not None:  # mcap >= 1.3: the chunk, the stream
                 flush()
             else:
                 self._writer._Writer__finalize_chunk()  # type: ignore[attr-defined]
@@ -377,6 +440,8 @@ class _Encoder:
     def close(self) -> None:
         try:
             self._drain()
+            for builder in self._set_order():  # every group's open chunk, as a full set
+                self._finalize(builder)
             self._writer.finish()
         except OSError:
             self.abandon()
