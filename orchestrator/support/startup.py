@@ -33,7 +33,9 @@ def single_threaded_blas() -> None:
 
     A run does no linear algebra, yet OpenBLAS starts a thread per core when numpy is imported: ~0.04 s
     of CPU and up to ~0.1 s of wall time in every run's start-up on a 2-core machine (docs/performance.md,
-    "Whole runs"). The trace writer process inherits the setting.
+    "Whole runs"). The trace writer process inherits the setting. The analysis commands' matrices are
+    small too (least squares over a few thousand rows, 15 x 15 eigenproblems): `platoon` sets it for
+    every command (orchestrator/cli/launch.py).
     """
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
