@@ -26,10 +26,12 @@ from orchestrator.scenario.raw_config import recorded_rows
 from .spec import SweepError
 
 TRACE_BYTES_PER_ROW = 200  # compressed bytes per component per recorded row (measured: 195 B per vehicle)
-# a link FMU's channel ([links]: two per vehicle) records fewer, more regular values: measured 41 B per
-# link-row (paper platoon, 20 s, 2001 rows: 4 vehicles 1,806,415 B without links, 2,463,167 B with their
-# 8 links; 12 vehicles 4,949,809 B and 6,905,423 B with 24)
-LINK_BYTES_PER_ROW = 48
+# a link FMU's channel ([links]: two per vehicle): measured 72-75 B per link-row with a new beacon every
+# step (paper platoon, 20 s, 2001 rows, links.delay = 0.05: 4 vehicles 1,762,136 B without links,
+# 2,954,782 B with their 8 links; 12 vehicles 4,645,346 B and 8,127,701 B with 24). The links sit in
+# chunks of their own (docs/trace-format.md, "Chunk groups"), away from the vehicles whose numbers they
+# repeat: interleaved with them they had compressed to 41 B. Held beacons (a period) repeat and take less.
+LINK_BYTES_PER_ROW = 80
 BLOCK = 4096  # a file takes whole blocks of the filesystem (ext4, tmpfs: 4 KiB)
 RESULT_OVERHEAD = 2048  # bytes of a result file besides its resolved config (values, metrics, overrides)
 ROW_BYTES = 512  # a results.csv row with a dozen vehicles' metrics, and its share of results.parquet
