@@ -155,7 +155,7 @@ class Lifted:
     """Linear functionals over the lifted broadcasts of a sender and a receiver ("self"), per frequency.
 
     A row is an array (frequencies, 6 P): the sender's (x, speed, rate) at instants 0..P-1, then the
-    receiver's. ``unit`` places instant m (any integer) with its period's phase e^{j w P h floor(m/P)}."""
+    receiver's. ``place`` puts instant m (any integer) there with its period's phase e^{j w P h floor(m/P)}."""
 
     def __init__(self, w: np.ndarray, step: float, period: int) -> None:
         self.w, self.h, self.p = np.asarray(w, dtype=float), step, period
@@ -168,15 +168,8 @@ class Lifted:
     def zero(self) -> np.ndarray:
         return np.zeros((len(self.w), 6 * self.p), dtype=complex)
 
-    def unit(self, owner: str, kind: str, m: int) -> np.ndarray:
-        row = self.zero()
-        column, phase = self.place(owner, kind, m)
-        row[:, column] = phase
-        return row
-
     def place(self, owner: str, kind: str, m: int) -> tuple[int, np.ndarray]:
-        """Where ``unit``'s one non-zero column is, and its value: rows are built column by column from
-        these (a whole row per sample cost most of a map's analysis), to the same bits."""
+        """The column of (owner, kind) at instant m (any integer) and its phase e^{j w P h floor(m/P)}."""
         turns, instant = divmod(m, self.p)
         if turns not in self._powers:
             self._powers[turns] = self.zeta**turns
@@ -222,11 +215,12 @@ class Lifted:
         """Per dict of ``terms``, the row summing over the samples of step k probability x phase x
         terms[kind] at the sample's (owner, kind) column."""
         first = 0 if owner == "sender" else 3 * self.p
+        sums = iter(self.by_instant(timing, k, [factor for row_terms in terms for factor in row_terms.values()]))
         rows = []
         for row_terms in terms:
             row = self.zero()
-            for kind, summed in zip(row_terms, self.by_instant(timing, k, list(row_terms.values()))):
-                row[:, first + KINDS.index(kind):first + 3 * self.p:3] += summed
+            for kind in row_terms:
+                row[:, first + KINDS.index(kind):first + 3 * self.p:3] += next(sums)
             rows.append(row)
         return rows
 
@@ -273,10 +267,10 @@ def _gap_message(lift: Lifted, v: Vehicle, k: int) -> list[np.ndarray]:
     minus its own position; and the rate of that. This vehicle receives both through the forward link
     (``comm``) and extrapolates them linearly, or holds them. What is sent at b + m P is what is sent at b
     times e^{j w P h m}: the samples are summed per instant of the period, then times its rows."""
-    ages = lift.samples(v.comm, k)[2]
+    _, beacons, ages = lift.samples(v.comm, k)
     held, aged = lift.by_instant(v.comm, k, [1.0, ages])
     rows = [lift.zero(), lift.zero()]
-    for instant in np.unique(np.mod(lift.samples(v.comm, k)[1], lift.p)):
+    for instant in np.unique(np.mod(beacons, lift.p)):
         gap, rate = _sent_gap(lift, v, int(instant))
         rows[0] += held[:, instant, None] * gap
         if v.extrapolate:
@@ -485,7 +479,7 @@ def _growth(vehicle: Vehicle, w: np.ndarray, step: float, period: int) -> np.nda
 @functools.lru_cache(maxsize=64)  # a few frequencies each (a cascade's probes): small
 def lifted_maps(vehicle: Vehicle, frequencies: bytes, step: float, period: int) -> tuple[np.ndarray, np.ndarray]:
     """``receiver_maps`` of ``vehicle`` at the float64 frequencies packed in ``frequencies``, remembered
-    (read-only): a cascade's interior vehicles are alike, and a map's runs and grid repeat vehicles."""
+    (read-only): a cascade's interior vehicles are alike, and a map's runs repeat them."""
     lift = Lifted(np.frombuffer(frequencies, dtype=float), step, period)
     t, u = receiver_maps(lift, vehicle)
     t.flags.writeable = u.flags.writeable = False
