@@ -32,8 +32,8 @@ from matplotlib.colors import ListedColormap, Normalize  # noqa: E402
 
 from orchestrator.analysis.error_gains import (clean_order, frequency_gains, predicted_gains, probe_frequencies,  # noqa: E402
                                                steady_window, stretch_growth, vehicle_errors)
-from orchestrator.analysis.sampled_chain import (GROWTH_TOLERANCE, exact_applies, growth_per_link,  # noqa: E402
-                                                 lifting_period, peak_growth, vehicle_of)
+from orchestrator.analysis.sampled_chain import (GROWTH_TOLERANCE, Growth, exact_applies,  # noqa: E402
+                                                 growth_per_link, lifting_period, peak_growth, vehicle_of)
 from orchestrator.analysis.string_stability import interior_vehicle  # noqa: E402
 from orchestrator.scenario.config import Config, config_from_mapping  # noqa: E402
 from orchestrator.scenario.wiring import TARGET  # noqa: E402
@@ -185,7 +185,7 @@ def _compute(points: list[dict[str, Any]], laws: list[str], delays: np.ndarray, 
     """Every run's measured gain and deviation (into the points), each law's analytic grid and the closed
     form's verdict per run, on ``workers`` processes: the grid's rows first, then the runs, each a task;
     ``tick(done)`` counts them as they finish."""
-    first = {law: next(p for p in points if p[LAW] == law)["raw"] for law in laws}
+    first = {law: next(p for p in points if p[LAW] == law) for law in laws}  # each law's grid is its first run's
     done = 0
     pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) if workers > 1 else None
 
@@ -197,12 +197,11 @@ def _compute(points: list[dict[str, Any]], laws: list[str], delays: np.ndarray, 
         return future
 
     # each grid cell's key, for the runs whose verdict a cell already computes (the cell's peak)
-    configs = {law: config_from_mapping(raw) for law, raw in first.items()}
-    cells = {_chain_key(_with_link(configs[law], float(delay), float(loss))): (law, i, j)
+    cells = {_chain_key(_with_link(first[law]["config"], float(delay), float(loss))): (law, i, j)
              for law in laws for i, loss in enumerate(losses) for j, delay in enumerate(delays)}
     from_grid = {id(p): cells.get(_chain_key(p["config"])) for p in points}
     with pool if pool is not None else nullcontext():
-        rows = {law: [submit(_analytic_row, first[law], delays, float(loss)) for loss in losses] for law in laws}
+        rows = {law: [submit(_analytic_row, first[law]["raw"], delays, float(loss)) for loss in losses] for law in laws}
         runs = {submit(_point, p["raw"], p["trace"], from_grid[id(p)] is None): p for p in points}
         stable: dict[str, dict[tuple[float, float], bool]] = {law: {} for law in laws}
         for task in as_completed([*(t for law_rows in rows.values() for t in law_rows), *runs]):
@@ -219,15 +218,15 @@ def _compute(points: list[dict[str, Any]], laws: list[str], delays: np.ndarray, 
     for p in points:
         if from_grid[id(p)] is not None:
             law, i, j = from_grid[id(p)]
-            stable[p[LAW]][(p[DELAY], p[LOSS])] = bool(grids[law][0][i, j] <= 1.0 + GROWTH_TOLERANCE)
+            stable[p[LAW]][(p[DELAY], p[LOSS])] = Growth(float(grids[law][0][i, j]), 0.0).string_stable
     return grids, stable
 
 
 def _panel(axis, mine: list[dict[str, Any]], grid: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], norm, cmap):
     delays, losses, peaks, probes = grid
     image = axis.pcolormesh(delays, losses, np.clip(peaks, norm.vmin, norm.vmax), norm=norm, cmap=cmap, shading="nearest")
-    if peaks.min() < 1.0 + 1e-9 < peaks.max():
-        axis.contour(delays, losses, peaks, levels=[1.0 + 1e-9], colors="black", linewidths=1.6)
+    if peaks.min() < 1.0 + GROWTH_TOLERANCE < peaks.max():  # the peak's verdict: string stable up to it
+        axis.contour(delays, losses, peaks, levels=[1.0 + GROWTH_TOLERANCE], colors="black", linewidths=1.6)
     if probes.min() < 1.0 < probes.max():
         axis.contour(delays, losses, probes, levels=[1.0], colors="black", linewidths=1.0, linestyles="dashed")
     for p in mine:
