@@ -305,8 +305,7 @@ class _Encoder:
         if self._pipeline is not None:
             self._pipeline.submit(*self._set_order())
         else:
-            for builder in self._set_order():
-                self._finalize(builder)
+            self._finalize_set()
         self._pack_indexes()
 
     def _set_order(self) -> list[Any]:
@@ -315,6 +314,11 @@ class _Encoder:
         rest of it, so the rows recovery keeps (up to the last the components reached) have their
         errors and their scene too."""
         return self._builders[::-1]
+
+    def _finalize_set(self) -> None:
+        """Write every group's open chunk here, in ``_set_order`` (a full set, a flush, the end)."""
+        for builder in self._set_order():
+            self._finalize(builder)
 
     def _finalize(self, builder: Any) -> None:
         """Have the ``mcap`` writer write ``builder``'s chunk (a group's, or one compressed on the pipeline's
@@ -409,8 +413,7 @@ class _Encoder:
         if now - self._last_chunk >= self.flush_interval:
             self._drain()
             if self._fast is not None:  # every group's open chunk
-                for builder in self._set_order():
-                    self._finalize(builder)
+                self._finalize_set()
                 self._file.flush()
             elif (flush := getattr(self._writer, "flush", None)) is not None:  # mcap >= 1.3: the chunk, the stream
                 flush()
@@ -440,8 +443,7 @@ class _Encoder:
     def close(self) -> None:
         try:
             self._drain()
-            for builder in self._set_order():  # every group's open chunk, as a full set
-                self._finalize(builder)
+            self._finalize_set()  # every group's open chunk, as a full set
             self._writer.finish()
         except OSError:
             self.abandon()
