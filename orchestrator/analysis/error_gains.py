@@ -319,7 +319,13 @@ def _closed_form_line(config: Config, chain_vehicle: int) -> tuple[str, bool]:
     from orchestrator.analysis.string_stability import chain_of, interior_vehicle, peak_gain
 
     if exact_applies(config) is None:
-        growth = peak_growth(config, interior_vehicle(config))
+        from orchestrator.analysis.loop_moments import settles
+
+        vehicle = interior_vehicle(config)
+        if not settles(config, vehicle):
+            return ("closed form (platoon analyze): the vehicle's own loop through its links grows: the platoon is "
+                    "unstable, NOT string stable", False)
+        growth = peak_growth(config, vehicle)
         where = f"at {growth.frequency:.4g} rad/s" if growth.frequency > 0 else "as w -> 0"
         word = "string stable" if growth.string_stable else "NOT string stable"
         return (f"closed form (platoon analyze, the sampled-data cascade): growth per link far down the string "

@@ -407,7 +407,11 @@ def chain_report(config: "Config") -> str:
     links = f"; over this platoon's {n - 1} link(s) up to {peak.gain ** (n - 1):.3g}" if n > 1 else ""
     lines.append(f"  peak |G(jw)| = {peak.gain:.4f} {where}, {arrow}: {verdict}{links} (phase-averaged)")
     lines += _condition_lines(config, chain)
-    return "\n".join(lines + exact_lines(config, interior_vehicle(config)))
+    if not exact:
+        return "\n".join(lines + exact_lines(config, interior_vehicle(config)))
+    from orchestrator.analysis.loop_moments import loop_lines  # it builds on the cascade's step maps
+
+    return "\n".join(lines + exact_lines(config, interior_vehicle(config)) + loop_lines(config, interior_vehicle(config)))
 
 
 def interior_vehicle(config: "Config") -> int:

@@ -32,6 +32,7 @@ from matplotlib.colors import ListedColormap, Normalize  # noqa: E402
 
 from orchestrator.analysis.error_gains import (clean_order, frequency_gains, predicted_gains, probe_frequencies,  # noqa: E402
                                                steady_window, stretch_growth, vehicle_errors)
+from orchestrator.analysis.loop_moments import settles  # noqa: E402
 from orchestrator.analysis.sampled_chain import (GROWTH_TOLERANCE, Growth, exact_applies,  # noqa: E402
                                                  growth_per_link, lifting_period, peak_growth, vehicle_of)
 from orchestrator.analysis.string_stability import interior_vehicle  # noqa: E402
@@ -105,7 +106,8 @@ def _point(raw: dict[str, Any], trace: Path | None, verdict: bool) -> tuple[floa
     the closed form's verdict if ``verdict``, else None: the analytic grid has it), from its config's
     mapping (a task of a worker process)."""
     config = config_from_mapping(raw)
-    stable = peak_growth(config, interior_vehicle(config)).string_stable if verdict else None
+    vehicle = interior_vehicle(config)
+    stable = (peak_growth(config, vehicle).string_stable and settles(config, vehicle)) if verdict else None
     if trace is None:
         return math.nan, math.nan, stable
     measured, predicted = measured_gains(config, trace)
@@ -218,7 +220,8 @@ def _compute(points: list[dict[str, Any]], laws: list[str], delays: np.ndarray, 
     for p in points:
         if from_grid[id(p)] is not None:
             law, i, j = from_grid[id(p)]
-            stable[p[LAW]][(p[DELAY], p[LOSS])] = Growth(float(grids[law][0][i, j]), 0.0).string_stable
+            stable[p[LAW]][(p[DELAY], p[LOSS])] = (Growth(float(grids[law][0][i, j]), 0.0).string_stable
+                                                   and settles(p["config"], interior_vehicle(p["config"])))
     return grids, stable
 
 
