@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from orchestrator.analysis.sampled_chain import step_maps, timing_of, vehicle_of
+from orchestrator.analysis.sampled_chain import Growth, step_maps, timing_of, vehicle_of
 
 if TYPE_CHECKING:
     from orchestrator.scenario.config import Config
@@ -126,16 +126,16 @@ def period_maps(k_v: float, c: float, h: float, extrapolate: bool, q: LoopLink, 
     link (this vehicle hears the follower's gap through it); ``c`` = V_c/d*, the law's gap gain over k_v.
     Raises ValueError if the period holds more than ``MOST_PATTERNS`` patterns."""
     layout = _Layout(q, f)
+    loss = {"q": q.loss, "f": f.loss}
     arrivals = [("q", k) for k in range(period) if (k - q.lag) % q.every == 0]
     arrivals += [("f", k) for k in range(period) if (k - f.lag) % f.every == 0]
-    lossy = [arrival for arrival in arrivals if (q.loss if arrival[0] == "q" else f.loss) > 0.0]
+    lossy = [arrival for arrival in arrivals if loss[arrival[0]] > 0.0]
     if 2 ** len(lossy) > MOST_PATTERNS:
         raise ValueError(f"{len(lossy)} lossy deliveries a period: too many patterns to enumerate")
     maps = []
     for pattern in itertools.product((True, False), repeat=len(lossy)):
         delivered = dict(zip(lossy, pattern))
-        probability = math.prod((1.0 - (q.loss if a[0] == "q" else f.loss)) if ok else (q.loss if a[0] == "q" else f.loss)
-                                for a, ok in delivered.items())
+        probability = math.prod(1.0 - loss[a[0]] if ok else loss[a[0]] for a, ok in delivered.items())
         maps.append((probability, _one_period(k_v, c, h, extrapolate, q, f, period, layout,
                                               lambda arrival: delivered.get(arrival, True))))
     return maps
@@ -194,11 +194,13 @@ def loop_growth(config: "Config", vehicle: int, square: bool = True) -> LoopGrow
     if v.law != "paper" or v.last:
         return None
     step = config.simulation.step
+    directions = ("backward", "forward")  # the follower's: it sees this vehicle, this vehicle hears its gap
+    links = [config.resolve_link(d, vehicle + 1) for d in directions]
+    timings = [timing_of(config, d, vehicle + 1) for d in directions]
     q, f = (LoopLink(timing.lag, timing.every, 0.0 if link.perfect else link.loss)
-            for timing, link in ((timing_of(config, d, vehicle + 1), config.resolve_link(d, vehicle + 1))
-                                 for d in ("backward", "forward")))
+            for timing, link in zip(timings, links))
     period = math.lcm(q.every, f.every)
-    if any(config.resolve_link(d, vehicle + 1).burst > 1.0 and link.loss > 0.0 for d, link in (("backward", q), ("forward", f))):
+    if any(not link.perfect and link.loss > 0.0 and link.burst > 1.0 for link in links):
         return LoopGrowth(math.nan, None, period, step, "burst losses (a beacon's loss depends on the one before)")
     try:
         return _growth(v.k_v, v.c, step, v.extrapolate, q, f, period, square)
@@ -223,9 +225,16 @@ def _growth(k_v: float, c: float, step: float, extrapolate: bool, q: LoopLink, f
 
 def settles(config: "Config", vehicle: int) -> bool:
     """False when ``vehicle``'s loop through its links grows on average: the platoon has no steady state
-    (the cascade's gains are then of one that is never reached). True where no link is in the loop."""
+    (the cascade's gains are then of one that is never reached). True where no link is in the loop, and
+    where the loop is not computed (burst losses)."""
     growth = loop_growth(config, vehicle, square=False)
-    return growth is None or not growth.mean >= 1.0
+    return growth is None or math.isnan(growth.mean) or growth.mean_stable
+
+
+def closed_form_stable(config: "Config", vehicle: int, growth: Growth) -> bool:
+    """The closed form's verdict, given the cascade's peak ``growth`` for ``vehicle``: string stable when the
+    growth per link stays at 1 and the loop through the links settles (no steady state, no string stability)."""
+    return growth.string_stable and settles(config, vehicle)
 
 
 def loop_lines(config: "Config", vehicle: int) -> list[str]:

@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
+from orchestrator.analysis.loop_moments import loop_lines
 from orchestrator.analysis.sampled_chain import exact_applies, exact_lines
 
 if TYPE_CHECKING:
@@ -407,11 +408,11 @@ def chain_report(config: "Config") -> str:
     links = f"; over this platoon's {n - 1} link(s) up to {peak.gain ** (n - 1):.3g}" if n > 1 else ""
     lines.append(f"  peak |G(jw)| = {peak.gain:.4f} {where}, {arrow}: {verdict}{links} (phase-averaged)")
     lines += _condition_lines(config, chain)
-    if not exact:
-        return "\n".join(lines + exact_lines(config, interior_vehicle(config)))
-    from orchestrator.analysis.loop_moments import loop_lines  # it builds on the cascade's step maps
-
-    return "\n".join(lines + exact_lines(config, interior_vehicle(config)) + loop_lines(config, interior_vehicle(config)))
+    vehicle = interior_vehicle(config)
+    lines += exact_lines(config, vehicle)
+    if exact:  # the loop is stepped on the cascade's terms: where it applies only
+        lines += loop_lines(config, vehicle)
+    return "\n".join(lines)
 
 
 def interior_vehicle(config: "Config") -> int:

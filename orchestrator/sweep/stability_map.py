@@ -32,7 +32,7 @@ from matplotlib.colors import ListedColormap, Normalize  # noqa: E402
 
 from orchestrator.analysis.error_gains import (clean_order, frequency_gains, predicted_gains, probe_frequencies,  # noqa: E402
                                                steady_window, stretch_growth, vehicle_errors)
-from orchestrator.analysis.loop_moments import settles  # noqa: E402
+from orchestrator.analysis.loop_moments import closed_form_stable  # noqa: E402
 from orchestrator.analysis.sampled_chain import (GROWTH_TOLERANCE, Growth, exact_applies,  # noqa: E402
                                                  growth_per_link, lifting_period, peak_growth, vehicle_of)
 from orchestrator.analysis.string_stability import interior_vehicle  # noqa: E402
@@ -107,7 +107,7 @@ def _point(raw: dict[str, Any], trace: Path | None, verdict: bool) -> tuple[floa
     mapping (a task of a worker process)."""
     config = config_from_mapping(raw)
     vehicle = interior_vehicle(config)
-    stable = (peak_growth(config, vehicle).string_stable and settles(config, vehicle)) if verdict else None
+    stable = closed_form_stable(config, vehicle, peak_growth(config, vehicle)) if verdict else None
     if trace is None:
         return math.nan, math.nan, stable
     measured, predicted = measured_gains(config, trace)
@@ -220,8 +220,8 @@ def _compute(points: list[dict[str, Any]], laws: list[str], delays: np.ndarray, 
     for p in points:
         if from_grid[id(p)] is not None:
             law, i, j = from_grid[id(p)]
-            stable[p[LAW]][(p[DELAY], p[LOSS])] = (Growth(float(grids[law][0][i, j]), 0.0).string_stable
-                                                   and settles(p["config"], interior_vehicle(p["config"])))
+            stable[p[LAW]][(p[DELAY], p[LOSS])] = closed_form_stable(p["config"], interior_vehicle(p["config"]),
+                                                                     Growth(float(grids[law][0][i, j]), 0.0))
     return grids, stable
 
 
