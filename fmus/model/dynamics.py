@@ -33,6 +33,11 @@ DYNAMICS_KINDS = ("kinematic", "m3pi")
 M3PI_TRACK = 0.084
 M3PI_WHEEL_SPEED_MAX = 1.0
 M3PI_MOTOR_TIME_CONSTANT = 0.05
+# A real robot is not its nominal model: each wheel answers a command with its own gain (wheel speed per
+# commanded speed; motor and gearbox spread), and a command below the dead-band does not turn the wheel at
+# all (static friction). The nominal robot has gains of 1 and no dead-band; `platoon calibrate` identifies them.
+M3PI_WHEEL_GAIN = 1.0
+M3PI_WHEEL_DEADBAND = 0.0
 
 
 def differential_wheel_speeds(speed: float, lateral_acceleration: float, track: float) -> tuple[float, float]:
@@ -101,6 +106,9 @@ class M3piDynamics:
     track: float = M3PI_TRACK
     wheel_speed_max: float = M3PI_WHEEL_SPEED_MAX
     motor_time_constant: float = M3PI_MOTOR_TIME_CONSTANT
+    wheel_gain_right: float = M3PI_WHEEL_GAIN
+    wheel_gain_left: float = M3PI_WHEEL_GAIN
+    wheel_deadband: float = M3PI_WHEEL_DEADBAND
 
     kind = "m3pi"
     state_names = ("x", "y", "heading", "wheel_right", "wheel_left", "speed_setpoint")
@@ -129,23 +137,38 @@ class M3piDynamics:
         limit = self.wheel_speed_max
         return min(max(right, -limit), limit), min(max(left, -limit), limit)
 
+    def wheel_target(self, command: float, gain: float) -> float:
+        """The speed a wheel heads for under a speed command: none inside the dead-band, else the wheel's
+        gain times the command, and never beyond the motor's limit.
+
+        With the nominal gain of 1 and no dead-band this is the command clipped to +-wheel_speed_max,
+        exactly (1.0 * c == c), so a nominal robot moves as it always has, to the bit.
+        """
+        if abs(command) < self.wheel_deadband:
+            return 0.0
+        limit = self.wheel_speed_max
+        return min(max(gain * command, -limit), limit)
+
     def drive(
         self, heading: float, right: float, left: float, right_cmd: float, left_cmd: float, speed_offset: float
     ) -> list[float]:
         """The robot's own physics: derivative of (x, y, heading, v_right, v_left) under wheel commands.
 
-        The wheels follow their commands with the first-order motor lag; the body moves as a unicycle
-        driven by the two wheels. The FMU's model and the m3pi emulator (bridge/emulator.py) both move
-        a robot with this one function: the emulator with the commands it receives over Zenoh.
+        Each wheel heads for its target (``wheel_target``: dead-band, gain, limit) with the first-order
+        motor lag; the body moves as a unicycle driven by the two wheels. The FMU's model and the m3pi
+        emulator (bridge/emulator.py) both move a robot with this one function: the emulator with the
+        commands it receives over Zenoh, and its robot's own truth in place of the nominal constants.
         """
         v = 0.5 * (right + left) + speed_offset
         lag = 1.0 / self.motor_time_constant
+        right_target = self.wheel_target(right_cmd, self.wheel_gain_right)
+        left_target = self.wheel_target(left_cmd, self.wheel_gain_left)
         return [
             v * math.cos(heading),
             v * math.sin(heading),
             (right - left) / self.track,
-            (right_cmd - right) * lag,
-            (left_cmd - left) * lag,
+            (right_target - right) * lag,
+            (left_target - left) * lag,
         ]
 
     def derivative(
