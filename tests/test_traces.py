@@ -222,33 +222,57 @@ def same_arrays(a: Trace, b: Trace) -> bool:
             and bits(a.errors) == bits(b.errors) and a.log == b.log)
 
 
-def test_fast_message_path_writes_the_messages_mcap_add_message_writes(tmp_path: Path, monkeypatch,
-                                                                         short: Trace) -> None:
-    """The encoder appends Message records to its chunk groups' chunks itself: the library's public
-    ``add_message`` (one chunk open, every channel in it) writes the same messages, and both files load
-    to the same arrays, bit for bit; the fast file's chunks each hold one chunk group's channels."""
-    import orchestrator.trace.writer as trace_module
+def test_the_encoder_writes_the_messages_mcap_add_message_writes(tmp_path: Path, short: Trace) -> None:
+    """The encoder frames Message records into its chunk groups' chunks itself (trace/mcap_file.py): the
+    ``mcap`` library's public ``Writer.add_message`` given the same rows' messages (one chunk open, every
+    channel in it) writes the same messages, and both files load to the same arrays, bit for bit; the
+    encoder's chunks each hold one chunk group's channels."""
+    from mcap.writer import Writer
+
+    from orchestrator.trace.encoding import ComponentMessages, register_mcap
+    from orchestrator.trace.foxglove import FoxgloveChannels
     from orchestrator.trace.format import chunk_group
 
     config = paper(f"simulation.stop_time={SHORT_STOP}")
     components = [(name, [k for k in short.component(name) if k != "t"]) for name in COMPONENTS]
-    rows = [(t, [[short.component(n)[k][i] for k in outputs] for n, outputs in components])
+    rows = [(t, [[float(short.component(n)[k][i]) for k in outputs] for n, outputs in components])
             for i, t in enumerate(short.component("target")["t"].tolist())]
 
     def write(path: Path, chunk_size: int = 1 << 30) -> Path:
-        from orchestrator.trace.foxglove import FoxgloveChannels
-
         writer = TraceWriter(path, components, every=1, foxglove=FoxgloveChannels(config, components),
                              flush_interval=1e9, chunk_size=chunk_size)
         writer.metadata("m", {"k": "v"})
         for t, outputs in rows:
-            writer.record(t, [[float(v) for v in values] for values in outputs])
+            writer.record(t, outputs)
+        writer.flush()  # the log line after every row (its sequence number: the rows before it)
         writer.log(SHORT_STOP, "Info", "done")
         writer.close()
         return path
 
-    fast = write(tmp_path / "fast.mcap")
-    write(tmp_path / "chunked.mcap", chunk_size=1 << 16)  # many chunks: indexes kept packed in memory
+    def reference(path: Path) -> Path:
+        """The same rows' messages through the library's own Writer, message by message."""
+        foxglove, messages = FoxgloveChannels(config, components), ComponentMessages(components, None)
+        with open(path, "wb") as stream:
+            writer = Writer(stream, chunk_size=1 << 30)
+            writer.start(profile="", library="reference")
+            channels = [register_mcap(writer, spec) for spec in messages.specs]
+            foxglove.register(writer)
+            writer.add_metadata("m", {"k": "v"})
+            for sequence, (t, outputs) in enumerate(rows):
+                stamp = int(round(t * 1e9))
+                flat = [t] + [value for values in outputs for value in values]
+                row = list(zip(channels, messages.encode(flat))) + list(foxglove.row(t, stamp, messages.outputs(flat)))
+                for channel, data in row:
+                    writer.add_message(channel_id=channel, log_time=stamp, publish_time=stamp, sequence=sequence,
+                                       data=data)
+            foxglove.log(lambda channel, stamp, data: writer.add_message(
+                channel_id=channel, log_time=stamp, publish_time=stamp, sequence=len(rows), data=data),
+                SHORT_STOP, "Info", "done")
+            writer.finish()
+        return path
+
+    ours = write(tmp_path / "ours.mcap")
+    write(tmp_path / "chunked.mcap", chunk_size=1 << 16)  # many chunks
     chunked = load(tmp_path / "chunked.mcap")
     assert {t: i.messages for t, i in chunked.topics.items()} == {t: i.messages for t, i in short.topics.items() if t != LOG_TOPIC} | {LOG_TOPIC: 1}
     assert chunked.component("vehicle4")["gap"].tolist() == short.component("vehicle4")["gap"].tolist()
@@ -256,16 +280,53 @@ def test_fast_message_path_writes_the_messages_mcap_add_message_writes(tmp_path:
     assert len(groups) > 5
     assert all(len({chunk_group(topic) for topic in topics}) == 1 for topics in groups)  # one group a chunk
     assert {SCENE_TOPIC, TF_TOPIC} in groups and any(ERRORS_TOPIC in topics for topics in groups)
-    monkeypatch.setattr(trace_module, "_fast_path", lambda writer: None)
-    slow = write(tmp_path / "slow.mcap")
-    assert len(chunk_channels(slow)) == 1 and len(chunk_channels(fast)) == 3  # one chunk, or one per group
-    fast_messages, fast_metadata = raw_messages(fast)
-    slow_messages, slow_metadata = raw_messages(slow)
-    assert sorted(fast_messages) == sorted(slow_messages) and fast_metadata == slow_metadata
-    for topic in {topic for topic, *_ in slow_messages}:  # each channel's messages in the same order
-        assert [m for m in fast_messages if m[0] == topic] == [m for m in slow_messages if m[0] == topic]
-    assert same_arrays(load(fast), load(slow))
-    assert load(fast).component("vehicle3")["x"].tolist() == short.component("vehicle3")["x"].tolist()
+    library = reference(tmp_path / "library.mcap")
+    assert len(chunk_channels(library)) == 1 and len(chunk_channels(ours)) == 3  # one chunk, or one per group
+    our_messages, our_metadata = raw_messages(ours)
+    library_messages, library_metadata = raw_messages(library)
+    assert sorted(our_messages) == sorted(library_messages)
+    assert our_metadata["m"] == library_metadata["m"]
+    for topic in {topic for topic, *_ in library_messages}:  # each channel's messages in the same order
+        assert [m for m in our_messages if m[0] == topic] == [m for m in library_messages if m[0] == topic]
+    assert same_arrays(load(ours), load(library))
+    assert load(ours).component("vehicle3")["x"].tolist() == short.component("vehicle3")["x"].tolist()
+
+
+def test_the_file_layer_frames_a_file_as_the_mcap_writer_does(tmp_path: Path) -> None:
+    """trace/mcap_file.py decides the records' order, the indexes and the summary as ``mcap.writer.Writer``
+    does: given the Writer's compressor and the same calls (schemas, channels, metadata in the middle,
+    messages filling many chunks), the two files are the same, byte for byte."""
+    import io
+    import random
+
+    import zstandard
+    from mcap.writer import Writer
+
+    from orchestrator.trace.mcap_file import McapFile
+
+    def fill(writer, finish) -> None:
+        writer.start(profile="", library="either")
+        schema = writer.register_schema(name="s", encoding="jsonschema", data=b"{}")
+        first = writer.register_channel(topic="/a", message_encoding="json", schema_id=schema, metadata={"k": "v"})
+        second = writer.register_channel(topic="/b", message_encoding="json", schema_id=0)
+        writer.add_metadata("before", {"x": "1"})
+        draw = random.Random(7)
+        for index in range(4000):
+            if index == 2000:
+                writer.add_metadata("between", {"y": "2"})
+                writer.register_channel(topic="/late", message_encoding="json", schema_id=schema)
+            writer.add_message(channel_id=draw.choice((first, second, 3 if index > 2000 else first)),
+                               log_time=index * 1000 + draw.randrange(500), publish_time=index,
+                               data=b"x" * draw.randrange(1, 90), sequence=index)
+        finish()
+
+    library, ours = io.BytesIO(), io.BytesIO()
+    writer = Writer(library, chunk_size=4096)
+    fill(writer, writer.finish)
+    layer = McapFile(ours, 4096, zstandard.compress)
+    fill(layer, lambda: (layer.write_open_chunk(), layer.finish()))
+    assert len(library.getvalue()) > 100_000
+    assert ours.getvalue() == library.getvalue()
 
 
 def test_a_grouped_trace_cut_anywhere_recovers_whole_rows(tmp_path: Path, short: Trace) -> None:

@@ -2,20 +2,34 @@
 
 The format is in docs/trace-format.md. The package's modules, each with one job:
 
-* ``format``: topics, channel kinds, chunking constants, how numbers become JSON text;
+Writing
+* ``format``: topics, channel kinds, chunk groups and sizes, how numbers become JSON text;
 * ``encoding``: each channel as a ``ChannelSpec`` and the components' messages, made once for the
   trace file and the live view (``platoon run --live``, orchestrator/observers/foxglove_view.py);
-* ``writer``: ``TraceWriter``, encoding in the stepping process;
+* ``foxglove``: the derived Foxglove channels (scene, transforms, errors, log); ``viridis`` their colours;
+* ``writer``: ``TraceWriter``, encoding rows in the stepping process into chunk groups;
+  ``writer_base``: what a run needs of a writer without loading it (errors, the null writer);
+* ``native_rows`` (+ ``native_encoder.c``): the per-row messages encoded in C from float64 rows;
+* ``mcap_file``: the MCAP file layer (records framed with the ``mcap`` package's public record classes,
+  chunk and message indexes, statistics, summary), with the compressor passed in;
+* ``chunks``: full chunks compressed on a second thread while the next ones fill;
+* ``channel_copy``: the second copy of the schemas and channels, outside the chunks, for recovery;
 * ``worker`` + ``serve``: ``TraceWorker``, the same writer in a second process (``serve`` is its
   entry point, ``python -m orchestrator.trace.serve``);
-* ``foxglove``: the derived Foxglove channels (scene, transforms, errors, log) and the layout;
+* ``output``: the trace's aside file, put in place only once finalized.
+
+Reading
 * ``reader``: ``load(path)`` returns a ``Trace`` with each component's signals as numpy arrays, the
   config, metadata, errors and log; ``export_csv`` writes one CSV per component;
-* ``recovery``: ``recover`` rewrites the complete chunks of an unfinished file.
+* ``columns`` (+ ``native_decoder.c``): the JSON channels decoded into float64 columns, only the chunks
+  and channels asked for;
+* ``recovery``: ``recover`` rewrites the complete chunks of an unfinished or damaged file;
+* ``layout``: a Foxglove/Lichtblick layout fitted to one run.
 
-Imports go one way: ``format`` <- ``encoding`` <- ``writer``, ``foxglove``; ``writer`` <-
-``worker``/``serve``; ``format`` <- ``reader``, ``recovery``. The names below are loaded on first use, so that the writer process
-(``serve``), which imports this package on its way, does not pay for numpy and the reader.
+Imports go one way: ``format`` <- ``encoding`` <- ``writer``, ``foxglove``; ``mcap_file``, ``chunks``
+<- ``writer`` <- ``worker``/``serve``; ``format`` <- ``reader``, ``recovery``. The names below are loaded
+on first use, so that the writer process (``serve``), which imports this package on its way, does not
+pay for numpy and the reader.
 """
 
 from __future__ import annotations

@@ -25,16 +25,10 @@ from mcap.records import Channel, Metadata, Schema
 NAME = "platoon.channels"
 
 
-def write_copy(writer: Any) -> None:
-    """Add the ``platoon.channels`` record of what ``writer`` (an ``mcap`` Writer) registered so far.
-
-    Uses the writer's private tables (as trace/writer.py's fast path does); if a future ``mcap`` has
-    none, no copy is written and recovery relies on the chunks and the summary alone."""
-    schemas = getattr(writer, "_Writer__schemas", None)
-    channels = getattr(writer, "_Writer__channels", None)
-    if schemas is None or channels is None:
-        return
-    copy = encode(schemas.values(), channels.values())
+def write_copy(writer: Any, schemas: Iterable[Schema], channels: Iterable[Channel]) -> None:
+    """Add the ``platoon.channels`` records (``COPIES`` of them) of ``schemas`` and ``channels``, the ones
+    ``writer`` (anything with ``add_metadata``: trace/mcap_file.py's file, an ``mcap`` Writer) registered."""
+    copy = encode(schemas, channels)
     for _ in range(COPIES):
         writer.add_metadata(NAME, copy)
 

@@ -5,9 +5,8 @@ run's time goes"). ``zstandard`` releases the GIL while it compresses, so a seco
 while the writer's thread encodes the next chunk (or steps the next block, in process): on an idle
 core the compression leaves the run's critical path.
 
-Nothing about the file changes: the chunk is written by the ``mcap`` writer's own code, in the order
-the chunks were filled, with the bytes it would have compressed itself and their CRC-32, both computed
-here (writer.py hands them to it).
+Nothing about the file changes: the chunk is written by ``McapFile.write_chunk`` (trace/mcap_file.py) in
+the order the chunks were filled, with its compressed bytes and CRC-32 computed here.
 The writer hands over its chunk groups' full chunks together (trace/writer.py), and they are written
 together, back to back: a killed run's file ends after a whole set, or inside the one being written.
 At most ``PENDING`` sets wait, so memory stays bounded. The writer waits for every pending chunk
@@ -29,40 +28,47 @@ _SENTINEL = None
 
 
 class CompressedChunk:
-    """A full chunk's records and bookkeeping, compressed on the thread; stands in for the ``mcap``
-    writer's chunk builder while that writer writes the chunk (it reads exactly these attributes)."""
+    """A full chunk's records and bookkeeping, taken out of its ``ChunkBuilder`` (trace/mcap_file.py), which
+    goes on empty; compressed on the thread, then written by ``McapFile.write_chunk``."""
 
-    __slots__ = ("data", "message_indices", "message_start_time", "message_end_time", "num_messages", "compressed",
-                 "crc", "error", "done")
+    __slots__ = ("data", "message_indices", "message_start_time", "message_end_time", "compressed", "crc", "error",
+                 "done")
 
     def __init__(self, builder: Any) -> None:
         self.message_indices = builder.message_indices
         self.message_start_time = builder.message_start_time
         self.message_end_time = builder.message_end_time
-        self.num_messages = builder.num_messages
-        self.data: bytes = builder.end()  # the records; the builder's buffer starts afresh
-        builder.message_indices = {}
-        builder.num_messages = 0
-        builder.message_start_time = builder.message_end_time = 0
+        self.data: bytes = builder.end()  # the records; the builder starts afresh
         self.compressed: bytes | None = None
         self.crc = 0  # CRC-32 of ``data`` (the chunk record's uncompressed_crc)
         self.error: BaseException | None = None
         self.done = threading.Event()
 
-    @property
-    def count(self) -> int:
-        return len(self.data)
 
-    def end(self) -> bytes:
-        return self.data
+class ThreadCompressors:
+    """zstd at one level, a compressor per thread: a ``ZstdCompressor`` used by two threads at once crashes,
+    and the writer's thread and the pipeline's both compress."""
 
-    def reset(self) -> None:
-        """The writer resets the builder it wrote; this one is simply dropped."""
+    def __init__(self, level: int) -> None:
+        self._level = level
+        self._local = threading.local()
+
+    def compressor(self) -> Callable[[bytes], bytes]:
+        """This thread's compress function."""
+        compress = getattr(self._local, "compress", None)
+        if compress is None:
+            import zstandard
+
+            compress = self._local.compress = zstandard.ZstdCompressor(level=self._level).compress
+        return compress
+
+    def compress(self, data: bytes) -> bytes:
+        return self.compressor()(data)
 
 
 class ChunkPipeline:
     """Compresses full chunks on one daemon thread, in order; ``write`` hands each, once compressed, to
-    ``finalize`` (the ``mcap`` writer's chunk writing, told the compression and CRC-32 computed here).
+    ``finalize`` (which writes it into the file).
 
     ``compressor``: makes the thread's compress function (one ``ZstdCompressor`` per thread: they are
     not thread-safe).

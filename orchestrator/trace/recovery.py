@@ -258,7 +258,12 @@ def recover(source: str | Path, destination: str | Path) -> Recovery:
             channel_ids = {cid: writer.register_channel(c.topic, c.message_encoding, schema_ids.get(c.schema_id, 0),
                                                         dict(c.metadata))
                            for cid, c in sorted(channels.items())}
-            channel_copy.write_copy(writer)  # the recovered file keeps a second copy too
+            channel_copy.write_copy(  # the recovered file keeps a second copy too, with its own ids
+                writer, [Schema(id=new, name=schemas[old].name, encoding=schemas[old].encoding, data=schemas[old].data)
+                         for old, new in schema_ids.items()],
+                [Channel(id=new, schema_id=schema_ids.get(channels[old].schema_id, 0), topic=channels[old].topic,
+                         message_encoding=channels[old].message_encoding, metadata=dict(channels[old].metadata))
+                 for old, new in channel_ids.items()])
             first = min(components) if components else None
             kept = dropped = steps = 0
             for position in scan.chunks:  # second pass: one chunk in memory at a time

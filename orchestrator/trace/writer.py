@@ -20,21 +20,21 @@ import math
 import os
 import struct
 import time as clock
+import zlib
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
-from mcap.data_stream import RecordBuilder
-from mcap.records import Message, MessageIndex, Metadata, Schema
-from mcap.writer import CompressionType, Writer
+from mcap.records import MessageIndex
 
 from orchestrator.support.output import rename_into_place
 from orchestrator.support.rows import RowBlock
 
 from .channel_copy import write_copy
-from .chunks import ChunkPipeline, CompressedChunk
+from .chunks import ChunkPipeline, CompressedChunk, ThreadCompressors
 from .encoding import ComponentMessages, LiveStream, register_mcap
 from .format import BODIES, CHUNK_GROUPS, CHUNK_SIZE, FLUSH_INTERVAL, BLOCK, chunk_group
 from .writer_base import NullTraceWriter, TraceWriteError, non_finite_error  # noqa: F401  (re-exported)
+from .mcap_file import ChunkBuilder, McapFile
 from .native_rows import REFUSED_ROW, native_encoder, row_values, rows_of
 
 if TYPE_CHECKING:
@@ -53,21 +53,6 @@ class _MessageIndex(MessageIndex):
         stream.finish_record()
 
 
-class _PackedRecord:
-    """A summary record kept as its bytes: a ChunkIndex object with its offsets dict costs ~10 KB of
-    memory for a hundred channels, its record ~1 KB, and the writer keeps one per chunk until the end."""
-
-    __slots__ = ("data",)
-
-    def __init__(self, record: Any) -> None:
-        builder = RecordBuilder()
-        record.write(builder)
-        self.data = builder.end()
-
-    def write(self, stream: Any) -> None:
-        stream.write(self.data)
-
-
 _MESSAGE_INDEX_OPCODE = 0x07
 _MESSAGE_OPCODE = 0x05
 # a Message record's header: opcode, record length, channel id | sequence, log time, publish time
@@ -76,77 +61,6 @@ _MESSAGE_HEADER_TAIL = struct.Struct("<IQQ")
 _MESSAGE_HEADER_SIZE = _MESSAGE_HEADER_START.size + _MESSAGE_HEADER_TAIL.size
 _INDEX_ENTRY = struct.Struct("<QQ")
 ZSTD_LEVEL = 1  # zstd's fastest regular level: 2-3x faster than the default 3 on traces, and smaller (docs/performance.md)
-
-
-def _fast_compression() -> "_LeveledZstd | None":
-    """Make the ``mcap`` writer compress chunks at ``ZSTD_LEVEL`` (it calls ``zstandard.compress``, level 3),
-    and take a chunk's CRC from the pipeline's thread (it calls ``zlib.crc32`` on the records).
-
-    Compressing took half of the encoding time of a trace at level 3; any zstd reader reads either.
-    If a future ``mcap`` release no longer compresses through a module-level ``zstandard``, its default
-    stays (and returns None: chunks are then compressed in the writer's thread, by the writer).
-    """
-    import mcap.writer
-
-    library = getattr(mcap.writer, "zstandard", None)
-    checksums = getattr(mcap.writer, "zlib", None)
-    if library is None or checksums is None:
-        return None
-    if not isinstance(library, _LeveledZstd):
-        library = mcap.writer.zstandard = _LeveledZstd(library)
-    if not isinstance(checksums, _PreparedCrc):
-        mcap.writer.zlib = _PreparedCrc(checksums, library)
-    return library
-
-
-class _LeveledZstd:
-    """The ``zstandard`` module as ``mcap.writer`` uses it, with ``compress`` at ``ZSTD_LEVEL``.
-
-    ``prepared``: a chunk's records, their compression and their CRC-32, done on the pipeline's thread
-    (orchestrator/trace/chunks.py); ``compress`` of those very records returns it. One compressor
-    per thread: a ``ZstdCompressor`` used by two threads at once crashes.
-    """
-
-    def __init__(self, library: Any) -> None:
-        import threading
-
-        self._library = library
-        self._local = threading.local()
-        self.prepared: tuple[bytes, bytes, int] | None = None
-
-    def compressor(self) -> Any:
-        """This thread's compress function at ``ZSTD_LEVEL``."""
-        compress = getattr(self._local, "compress", None)
-        if compress is None:
-            compress = self._local.compress = self._library.ZstdCompressor(level=ZSTD_LEVEL).compress
-        return compress
-
-    def compress(self, data: bytes) -> bytes:
-        prepared = self.prepared
-        if prepared is not None and prepared[0] is data:
-            return prepared[1]
-        return self.compressor()(data)
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._library, name)
-
-
-class _PreparedCrc:
-    """The ``zlib`` module as ``mcap.writer`` uses it: ``crc32`` of the prepared chunk's very records is
-    the one computed on the pipeline's thread (the same function, on the same bytes)."""
-
-    def __init__(self, library: Any, zstd: _LeveledZstd) -> None:
-        self._library = library
-        self._zstd = zstd
-
-    def crc32(self, data: Any, value: int = 0) -> int:
-        prepared = self._zstd.prepared
-        if prepared is not None and prepared[0] is data and value == 0:
-            return prepared[2]
-        return self._library.crc32(data, value)
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._library, name)
 
 
 def _cover(holder: Any, stamp: int, first: bool) -> None:
@@ -158,34 +72,8 @@ def _cover(holder: Any, stamp: int, first: bool) -> None:
         holder.message_end_time = max(holder.message_end_time, stamp)
 
 
-def _fast_path(writer: Writer):
-    """The open chunk of an ``mcap`` Writer, to append Message records without a Python object each.
-
-    ``Writer.add_message`` costs about as much per message as encoding its JSON; the records written
-    here are framed as it frames them (tests/test_traces.py holds the two paths to the same messages),
-    with the same message indexes and statistics, but in a chunk of their chunk group's (which the
-    public path cannot do: it has one chunk open). Relies on the writer's private chunk builder and
-    tables: if a future ``mcap`` release changes them, this returns None and the public
-    ``add_message`` is used (one chunk for every channel, as before chunk groups).
-    """
-    try:
-        builder = writer._Writer__chunk_builder  # type: ignore[attr-defined]
-        statistics = writer._Writer__statistics  # type: ignore[attr-defined]
-        finalize = writer._Writer__finalize_chunk  # type: ignore[attr-defined]
-        writer._Writer__channels.values, writer._Writer__schemas.get  # type: ignore[attr-defined]
-        builder.record_writer._buffer.tell
-        builder.message_indices, builder.num_messages, builder.message_start_time, builder.message_end_time
-        statistics.channel_message_counts, statistics.message_count
-        statistics.message_start_time, statistics.message_end_time
-    except AttributeError:
-        return None
-    if builder is None:
-        return None
-    return builder, statistics, finalize
-
-
 class _Encoder:
-    """Encodes rows into the MCAP file."""
+    """Encodes rows into the MCAP file (trace/mcap_file.py frames the records and writes the summary)."""
 
     def __init__(
         self,
@@ -195,14 +83,13 @@ class _Encoder:
         foxglove: "FoxgloveChannels | None",
         flush_interval: float,
         chunk_size: int,
-        fast: bool = True,
         native: bool = False,
     ) -> None:
-        zstd = _fast_compression()
+        compressors = ThreadCompressors(ZSTD_LEVEL)
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(self.path, "wb")
-        self._writer = Writer(self._file, compression=CompressionType.ZSTD, chunk_size=chunk_size)
+        self._writer = McapFile(self._file, chunk_size, compressors.compress)
         self._writer.start(profile="", library="platoon-cosim")
         self.messages = ComponentMessages(components, descriptions)
         self.components = self.messages.components
@@ -210,20 +97,16 @@ class _Encoder:
         self.foxglove = foxglove
         if foxglove is not None:
             foxglove.register(self._writer)
-        write_copy(self._writer)  # schemas and channels outside the chunks, for recovery (trace/channel_copy.py)
+        write_copy(self._writer, self._writer.schemas.values(), self._writer.channels.values())  # for recovery
         self._chunk_size = chunk_size
-        self._fast = _fast_path(self._writer) if fast else None
         self._group_of: dict[int, int] = {}  # channel id -> chunk group (BODIES when absent: live streams)
-        self._builders = self._group_builders() if self._fast else []
-        # full chunks compressed on a thread (orchestrator/trace/chunks.py), on the fast path only
-        self._pipeline = ChunkPipeline(zstd.compressor, self._write_chunk) if self._fast and zstd else None
-        self._zstd = zstd
-        # the C encoder for rows given as float64 values (orchestrator/trace/native_rows.py), on the fast path only
-        self.native = (native_encoder(self.messages, self._channels, foxglove, self._group_of)
-                       if native and self._fast else None)
+        self._builders = self._group_builders()
+        # full chunks compressed on a thread (orchestrator/trace/chunks.py); None: here, by the writer's thread
+        self._pipeline: ChunkPipeline | None = ChunkPipeline(compressors.compressor, self._write_chunk)
+        self._compress = compressors.compress
+        # the C encoder for rows given as float64 values (orchestrator/trace/native_rows.py)
+        self.native = native_encoder(self.messages, self._channels, foxglove, self._group_of) if native else None
         self.width = 1 + sum(len(outputs) for _, outputs in self.components)
-        self._chunk_indexes = getattr(self._writer, "_Writer__chunk_indices", None)
-        self._packed = 0
         self.flush_interval = flush_interval
         self.recorded = 0
         self.last_time: float | None = None
@@ -233,14 +116,10 @@ class _Encoder:
         self._add(stamp, self.recorded, ((channel, data),))
 
     def _add(self, stamp: int, sequence: int, messages: Sequence[tuple[int, bytes]]) -> None:
-        """Add messages that share one log time (= publish time) and sequence number."""
-        fast = self._fast
-        if fast is None:
-            write = self._writer.add_message
-            for channel, data in messages:
-                write(channel_id=channel, log_time=stamp, publish_time=stamp, sequence=sequence, data=data)
-            return
-        statistics = fast[1]
+        """Add messages that share one log time (= publish time) and sequence number, each to its chunk
+        group's open chunk, framed here as ``mcap.records.Message`` frames itself (without an object each:
+        ``Message.write`` costs about as much per message as encoding its JSON)."""
+        statistics = self._writer.statistics
         counts, group_of, builders = statistics.channel_message_counts, self._group_of, self._builders
         pack = _MESSAGE_HEADER_START.pack
         tail = _MESSAGE_HEADER_TAIL.pack(sequence, stamp, stamp)  # shared by the row's messages
@@ -252,7 +131,7 @@ class _Encoder:
             part = parts.get(group)
             if part is None:
                 part = parts[group] = []
-                positions[group] = builders[group].record_writer._buffer.tell()  # a new buffer after every chunk
+                positions[group] = builders[group].size
             indexes = builders[group].message_indices
             index = indexes.get(channel)
             if index is None:
@@ -263,52 +142,50 @@ class _Encoder:
             counts[channel] += 1
         for group, part in parts.items():
             builder = builders[group]
-            builder.record_writer._buffer.write(b"".join(part))
+            builder.records.write(b"".join(part))
             _cover(builder, stamp, builder.num_messages == 0)  # the chunk's time bounds
             builder.num_messages += len(part) // 3
         _cover(statistics, stamp, statistics.message_count == 0)  # the file's
         statistics.message_count += len(messages)
         self._close_full()
 
-    def _group_builders(self) -> list[Any]:
-        """One chunk builder per chunk group, the writer's own for the bodies (whose first chunk holds every
-        schema and channel registered so far, as MCAP writes them). Another group's first chunk starts with
-        the schemas and channels of its own channels: a reader going through the file in order meets a
-        channel before its messages, whichever group's chunk is written first."""
-        own = self._fast[0]
-        builders = [own] + [type(own)() for _ in range(1, CHUNK_GROUPS)]
-        schemas = self._writer._Writer__schemas  # type: ignore[attr-defined]
+    def _group_builders(self) -> list[ChunkBuilder]:
+        """One chunk builder per chunk group, the file's open chunk for the bodies (whose first chunk holds
+        every schema and channel registered so far, as MCAP writers write them). Another group's first chunk
+        starts with the schemas and channels of its own channels: a reader going through the file in order
+        meets a channel before its messages, whichever group's chunk is written first."""
+        builders = [self._writer.chunk] + [ChunkBuilder() for _ in range(1, CHUNK_GROUPS)]
+        schemas = self._writer.schemas
         copied: set[tuple[int, int]] = set()
-        for channel in list(self._writer._Writer__channels.values()):  # type: ignore[attr-defined]
+        for channel in list(self._writer.channels.values()):
             group = self._group_of[channel.id] = chunk_group(channel.topic)
             if group == BODIES:
                 continue
             schema = schemas.get(channel.schema_id)
             if schema is not None and (group, schema.id) not in copied:
                 copied.add((group, schema.id))
-                builders[group].add_schema(schema)
-            builders[group].add_channel(channel)
+                builders[group].add(schema)
+            builders[group].add(channel)
         return builders
 
     def _close_full(self) -> None:
         """When a chunk group's open chunk is past the chunk size, close every group's (``_chunks_full``)."""
         size = self._chunk_size
-        if any(builder.record_writer._buffer.tell() > size for builder in self._builders):
+        if any(builder.size > size for builder in self._builders):
             self._chunks_full()
 
     def _chunks_full(self) -> None:
-        """A group's open chunk is full: compress every group's on the pipeline's thread (or here), in
-        ``_set_order``, and start the next ones. The groups close together and their chunks are written
-        back to back, so each chunk of a group ends at the row where the others' end: a killed run's
-        last chunks end at one row, as one chunk of every channel did (recovery keeps them all), and
-        a time slice reads the same rows of each group."""
+        """A group's open chunk is full: compress every group's on the pipeline's thread, in ``_set_order``,
+        and start the next ones. The groups close together and their chunks are written back to back, so
+        each chunk of a group ends at the row where the others' end: a killed run's last chunks end at one
+        row, as one chunk of every channel did (recovery keeps them all), and a time slice reads the same
+        rows of each group."""
         if self._pipeline is not None:
             self._pipeline.submit(*self._set_order())
         else:
             self._finalize_set()
-        self._pack_indexes()
 
-    def _set_order(self) -> list[Any]:
+    def _set_order(self) -> list[ChunkBuilder]:
         """The groups' builders in the order their chunks are written: the bodies' last. A file cut inside
         a set (a run killed while it is written) then holds the set's bodies only if it holds the
         rest of it, so the rows recovery keeps (up to the last the components reached) have their
@@ -316,27 +193,19 @@ class _Encoder:
         return self._builders[::-1]
 
     def _finalize_set(self) -> None:
-        """Write every group's open chunk here, in ``_set_order`` (a full set, a flush, the end)."""
+        """Write every group's open chunk here, in ``_set_order`` (a flush, the end)."""
         for builder in self._set_order():
-            self._finalize(builder)
-
-    def _finalize(self, builder: Any) -> None:
-        """Have the ``mcap`` writer write ``builder``'s chunk (a group's, or one compressed on the pipeline's
-        thread) as its own: it finalizes whichever builder is in place (none when it holds no message)."""
-        own, _, finalize = self._fast
-        self._writer._Writer__chunk_builder = builder  # type: ignore[attr-defined]
-        try:
-            finalize()
-        finally:
-            self._writer._Writer__chunk_builder = own  # type: ignore[attr-defined]
+            if builder.num_messages:
+                chunk = CompressedChunk(builder)
+                chunk.compressed = self._compress(chunk.data)
+                chunk.crc = zlib.crc32(chunk.data)
+                self._write_chunk(chunk)
 
     def _write_chunk(self, chunk: CompressedChunk) -> None:
-        """Have the ``mcap`` writer write a chunk compressed on the pipeline's thread, as its own."""
-        self._zstd.prepared = (chunk.data, chunk.compressed, chunk.crc)
-        try:
-            self._finalize(chunk)
-        finally:
-            self._zstd.prepared = None
+        """Write a compressed chunk (the pipeline's, or one of ``_finalize_set``'s) with its message indexes."""
+        assert chunk.compressed is not None
+        self._writer.write_chunk(chunk.data, chunk.compressed, chunk.crc, chunk.message_indices,
+                                 chunk.message_start_time, chunk.message_end_time)
 
     def _drain(self) -> None:
         """Write the chunks still being compressed: before anything else goes to the file."""
@@ -347,18 +216,17 @@ class _Encoder:
         """Write rows of float64 values (``data``: a C-contiguous array or raw bytes, ``width`` per row) with
         the C encoder; close chunks as they fill. Returns (rows written, time of the last, the row it
         refused or None, why: ``native_rows.REFUSED_ROW`` or ``REFUSED_ERRORS``)."""
-        statistics, builders = self._fast[1], self._builders
+        statistics, builders = self._writer.statistics, self._builders
         encode = self.native.encode
         total = memoryview(data).nbytes // (8 * self.width)
         row, written_here, last_time = 0, 0, None
         while row < total:
-            buffers = [builder.record_writer._buffer for builder in builders]  # a new one after every chunk
             row, groups, time, written, indexes, refused = encode(
-                data, row, [buffer.tell() for buffer in buffers], self._chunk_size, self.recorded)
+                data, row, [builder.size for builder in builders], self._chunk_size, self.recorded)
             if written:
-                for builder, buffer, (records, least, greatest, count) in zip(builders, buffers, groups):
+                for builder, (records, least, greatest, count) in zip(builders, groups):
                     if count:
-                        buffer.write(records)
+                        builder.records.write(records)
                         _cover(builder, least, builder.num_messages == 0)
                         _cover(builder, greatest, False)
                         builder.num_messages += count
@@ -386,13 +254,6 @@ class _Encoder:
             index.records.append(entries)
             counts[channel] += count
 
-    def _pack_indexes(self) -> None:
-        indexes = self._chunk_indexes
-        if isinstance(indexes, list):
-            for position in range(self._packed, len(indexes)):
-                indexes[position] = _PackedRecord(indexes[position])
-            self._packed = len(indexes)
-
     def rows(self, rows: Sequence[Sequence[float]]) -> None:
         """Write flat rows ``[t, outputs of component 0, ...]`` (all finite); close the chunk if due."""
         channels, foxglove = self._channels, self.foxglove
@@ -409,19 +270,13 @@ class _Encoder:
         self.tick()
 
     def tick(self) -> None:
+        """Every ``flush_interval`` of wall time: every group's open chunk written and the file flushed."""
         now = clock.monotonic()
         if now - self._last_chunk >= self.flush_interval:
             self._drain()
-            if self._fast is not None:  # every group's open chunk
-                self._finalize_set()
-                self._file.flush()
-            elif (flush := getattr(self._writer, "flush", None)) is not None:  # mcap >= 1.3: the chunk, the stream
-                flush()
-            else:
-                self._writer._Writer__finalize_chunk()  # type: ignore[attr-defined]
-                self._file.flush()
+            self._finalize_set()
+            self._file.flush()
             self._last_chunk = now
-        self._pack_indexes()
 
     def log(self, time: float, level: str, message: str) -> None:
         if self.foxglove is not None:
@@ -429,7 +284,7 @@ class _Encoder:
 
     def live_channel(self, stream: LiveStream) -> int:
         """Register a live link's raw message channel (``LiveStream``); returns its channel id."""
-        self._drain()  # the writer may close the open chunk: after the pending ones
+        self._drain()  # the file may write the open chunk: after the pending ones
         return register_mcap(self._writer, stream.spec)
 
     def live_message(self, channel: int, stream: LiveStream, time: float, values: Sequence[float]) -> None:
