@@ -3,7 +3,7 @@
 The suite runs in parallel (pytest-xdist, pyproject's addopts): each worker has its own session, so a
 session fixture runs once per worker. What workers share (the repository's build/ folder) is built
 under ``shared_build``'s lock: the first worker builds, the others wait and find it up to date. A test
-that must listen on a fixed port holds ``fixed_ports``; any other takes a free port (orchestrator.bench.hil.free_port).
+that must listen on a fixed port holds ``fixed_ports``; any other takes a free port (``free_port``).
 """
 
 from __future__ import annotations
@@ -102,6 +102,15 @@ def fixed_ports() -> Iterator[None]:
     test runs of other checkouts on this machine."""
     with machine_lock("fixed-ports"):
         yield
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nobody listens on right now (the kernel's pick; a test binds it soon after)."""
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
 
 
 @pytest.fixture(scope="session")

@@ -1,5 +1,5 @@
 """``platoon bench`` works end to end: tiny runs write their JSON, bad options exit 2 with one line;
-the benchmarks run as ``python -m orchestrator.bench.<name>`` start (``--help``) from any folder.
+the benchmarks run as ``python -m benchmarks.<name>`` start (``--help``) from any folder.
 
 Functional checks only, on runs a few steps long: what the benchmarks measure is reported by
 ``platoon bench`` itself (docs/performance.md), never asserted here, since timing on a shared machine
@@ -226,7 +226,7 @@ def test_scenarios_without_configs_here_says_where_it_looked(tmp_path: Path) -> 
 def test_callgrind_split_counts_each_fmu_call_once() -> None:
     """The master's own instructions are the total minus pythonfmu's SetReal / Step / GetReal, each
     counted once: not again through the std::function helpers listed under the method's name."""
-    from orchestrator.bench.flatness import inside_fmu_from_annotation
+    from benchmarks.flatness import inside_fmu_from_annotation
 
     listing = """\
 107,816,428 (100.0%)  PROGRAM TOTALS
@@ -250,15 +250,18 @@ def test_callgrind_split_counts_each_fmu_call_once() -> None:
 
 @pytest.mark.parametrize("module", MODULES)
 def test_benchmark_modules_start_from_any_folder(module: str, tmp_path: Path) -> None:
-    """Each runs as ``python -m orchestrator.bench.<name>``, its usage naming that command."""
-    done = subprocess.run([sys.executable, "-m", f"orchestrator.bench.{module}", "--help"], cwd=tmp_path,
-                          capture_output=True, text=True, timeout=120)
+    """Each runs as ``python -m benchmarks.<name>``, its usage naming that command: from the checkout, or from
+    any folder with the checkout on PYTHONPATH (as the benchmarks start their own children)."""
+    import os
+
+    done = subprocess.run([sys.executable, "-m", f"benchmarks.{module}", "--help"], cwd=tmp_path,
+                          env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
-    assert done.stdout.startswith(f"usage: python -m orchestrator.bench.{module} ")
+    assert done.stdout.startswith(f"usage: python -m benchmarks.{module} ")
 
 
 def test_trace_overhead_times_every_variant(fmu_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from orchestrator.bench import trace_overhead
+    from benchmarks import trace_overhead
 
     monkeypatch.chdir(REPO)  # the paper's config, as a user runs it
     result = trace_overhead.run([1], steps=5, rounds=1, fmu_dir=fmu_dir)
@@ -271,7 +274,7 @@ def test_trace_overhead_times_every_variant(fmu_dir: Path, monkeypatch: pytest.M
 
 def test_trace_memory_samples_rss_and_checks_the_platoon(tmp_path: Path, fmu_dir: Path) -> None:
     target = tmp_path / "memory.json"
-    done = subprocess.run([sys.executable, "-m", "orchestrator.bench.trace_memory", "--set", "platoon.count=2",
+    done = subprocess.run([sys.executable, "-m", "benchmarks.trace_memory", "--set", "platoon.count=2",
                            "--set", "simulation.stop_time=3.0", "--sample", "5", "--json", target],
                           cwd=REPO, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
@@ -282,7 +285,7 @@ def test_trace_memory_samples_rss_and_checks_the_platoon(tmp_path: Path, fmu_dir
 
 
 def test_paper_scenarios_refuses_a_json_target_it_must_not_replace_before_running(tmp_path: Path) -> None:
-    """The output rule for ``python -m orchestrator.bench.paper_scenarios --json``: a FIFO (opening it to
+    """The output rule for ``python -m benchmarks.paper_scenarios --json``: a FIFO (opening it to
     write used to block forever, after minutes of runs) or a file that is not JSON is refused at once, in
     one line naming it, and left as it was."""
     import os
@@ -294,7 +297,7 @@ def test_paper_scenarios_refuses_a_json_target_it_must_not_replace_before_runnin
     os.mkfifo(fifo)
     foreign.write_text("my notes\n")
     for target, kind in ((fifo, "is a FIFO, not a regular file"), (foreign, "exists and is not a JSON file")):
-        done = subprocess.run([sys.executable, "-m", "orchestrator.bench.paper_scenarios", "--json", str(target)],
+        done = subprocess.run([sys.executable, "-m", "benchmarks.paper_scenarios", "--json", str(target)],
                               cwd=REPO, capture_output=True, text=True, timeout=120)
         assert done.returncode == 1, (done.stdout, done.stderr)
         one_line_error(done, f"--json {target}", kind)
@@ -311,7 +314,7 @@ def test_a_hil_helpers_log_is_a_new_file_never_what_is_in_its_place(tmp_path: Pa
     import stat
 
     os.mkfifo(tmp_path / "echo.stderr")
-    script = ("import sys\nfrom pathlib import Path\nfrom orchestrator.bench.hil import Helper\n"
+    script = ("import sys\nfrom pathlib import Path\nfrom benchmarks.hil import Helper\n"
               "child = [sys.executable, '-c', 'import sys; print(\"ready\", file=sys.stderr, flush=True); sys.stdin.read()']\n"
               "for _ in range(2):\n"
               f"    with Helper(child, 'ready', Path({str(tmp_path)!r}), 'echo') as helper:\n"
@@ -322,3 +325,34 @@ def test_a_hil_helpers_log_is_a_new_file_never_what_is_in_its_place(tmp_path: Pa
     assert len(set(logs)) == 2 and "echo.stderr" not in logs, logs
     assert all((tmp_path / log).read_text() == "ready\n" for log in logs)
     assert stat.S_ISFIFO(os.lstat(tmp_path / "echo.stderr").st_mode)
+
+
+def test_the_installed_package_holds_no_benchmark() -> None:
+    """The wheel's packages are what pyproject's ``packages.find`` picks: the benchmarks are not among them
+    (they stay in the checkout, benchmarks/), the package's own folders are."""
+    import tomllib
+
+    from setuptools import find_packages
+
+    find = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]
+    installed = find_packages(str(REPO), include=find["include"], exclude=find.get("exclude", ()))
+    assert {"orchestrator", "orchestrator.cli", "fmus", "bridge"} <= set(installed)
+    assert not [name for name in installed if "bench" in name.split(".")[-1] or name.startswith("benchmarks")]
+
+
+def test_platoon_bench_outside_a_checkout_says_where_the_benchmarks_are(tmp_path: Path, monkeypatch, capsys) -> None:
+    """An installed wheel has no benchmarks/ beside it: ``platoon bench`` says so in one line (exit 2), and
+    from a checkout it finds them; the engines its help lists are the benchmarks' own."""
+    import orchestrator
+    from benchmarks.engines import ENGINES
+    from orchestrator.cli import bench
+
+    assert bench.BENCH_ENGINES == ENGINES
+    assert bench.checkout_with_benchmarks() == REPO and bench.suite("common").DEFAULT_OUT_DIR == bench.DEFAULT_OUT_DIR
+    monkeypatch.setattr(orchestrator, "__file__", str(tmp_path / "site-packages" / "orchestrator" / "__init__.py"))
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_:
+        bench.suite("steps")
+    assert exit_.value.code == 2
+    message = capsys.readouterr().err.strip()
+    assert message.count("\n") == 0 and "benchmarks/" in message and "checkout" in message

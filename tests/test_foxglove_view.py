@@ -35,11 +35,7 @@ PAPER = REPO / "configs" / "paper" / "platoon.toml"
 VEHICLES = ["vehicle1", "vehicle2", "vehicle3", "vehicle4"]
 GIVE_UP = 120.0  # s: only a guard against a hung run, never a measurement
 
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
+from tests.conftest import free_port
 
 
 def start_run(out: Path, port: int, *args: str, config: Path = PAPER) -> subprocess.Popen[str]:

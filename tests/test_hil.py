@@ -45,7 +45,7 @@ from bridge.protocol import (
     encode_status,
     encode_wheels,
 )
-from orchestrator.bench.hil import free_port
+from tests.conftest import free_port
 from orchestrator.scenario.config import config_from_mapping
 from orchestrator.analysis.metrics import path_errors
 from fmus.realtime import Pacer

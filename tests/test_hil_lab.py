@@ -23,7 +23,7 @@ from cryptography import x509
 from bridge.lab import Lab, make_ca, make_host_certificate, pem, zenoh_lab_config
 from orchestrator.support.lab_files import write_lab
 from bridge.session import SessionError, open_session, zenoh_config
-from orchestrator.bench.hil import free_port
+from tests.conftest import free_port
 from orchestrator.trace import load
 from tests.test_hil import (KEYS, LIVE3, PATIENT, PLATOON, REPO, _env, all_fmu_reference, finish, tracked,
                             start_run, stranger_commands, wait_for_running)

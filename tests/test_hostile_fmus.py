@@ -289,7 +289,7 @@ def test_a_live_vehicle_refuses_state_calls_and_keeps_the_host_alive(fmu_dir, tm
     tcp/127.0.0.1:7447: a documented HIL block run by a parallel worker has a robot 3 there (seen in CI,
     where this FMU met it and stepped)."""
     from fmus.builders import LIVE_FMU, PYTHONFMU
-    from orchestrator.bench.hil import free_port
+    from tests.conftest import free_port
 
     PYTHONFMU.build(fmu_dir, names=(LIVE_FMU,))
     unzipped = unzip(fmu_dir / f"{LIVE_FMU}.fmu", tmp_path / LIVE_FMU)

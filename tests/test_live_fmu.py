@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from bridge.protocol import decode_wheels
-from orchestrator.bench.hil import free_port
+from tests.conftest import free_port
 from orchestrator.scenario.config import load_config
 from orchestrator.analysis.metrics import path_errors
 from tests.test_hil import KEYS, LIVE3, PATIENT, emulator, endpoint, listening_sockets, wait_for

@@ -37,6 +37,8 @@ from bridge.session import SessionError, open_session, zenoh_config
 
 WAIT = 5.0  # s: the most any single expected event may take (it normally takes milliseconds)
 
+from tests.conftest import free_port
+
 
 # ---------------------------------------------------------------- encoder
 
@@ -170,12 +172,6 @@ def test_signature_query(pty: Pty) -> None:
 
 
 # ---------------------------------------------------------------- end to end
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 class Endpoint:

@@ -1,4 +1,4 @@
-"""``python -m MODULE --help`` of every runnable module under orchestrator/, bridge/ and fmus/: a usage
+"""``python -m MODULE --help`` of every runnable module under orchestrator/, bridge/, fmus/ and benchmarks/: a usage
 text and exit 0, never a traceback, even for the processes the tool starts itself (real subprocesses).
 
 Runnable: a package with a ``__main__.py``, or a module with an ``if __name__ == "__main__"`` block.
@@ -20,7 +20,7 @@ MAIN_BLOCK = re.compile(r'^if __name__ == "__main__"', re.MULTILINE)
 
 def runnable_modules() -> list[str]:
     found = []
-    for package in ("orchestrator", "bridge", "fmus"):
+    for package in ("orchestrator", "bridge", "fmus", "benchmarks"):
         for path in sorted((REPO / package).rglob("*.py")):
             parts = path.relative_to(REPO).with_suffix("").parts
             if path.name == "__main__.py":
@@ -33,7 +33,7 @@ def runnable_modules() -> list[str]:
 def test_the_walk_finds_the_runnable_modules() -> None:
     modules = runnable_modules()
     for expected in ("orchestrator", "orchestrator.cli", "orchestrator.sweep.worker", "orchestrator.trace.serve",
-                     "orchestrator.bench.child", "orchestrator.bench.trace_memory"):
+                     "benchmarks.child", "benchmarks.trace_memory"):
         assert expected in modules
 
 

@@ -27,7 +27,7 @@ from bridge.ros2 import bridge_dds, messages, rmw_zenoh
 from bridge.ros2.link import FrameTransform
 from bridge.ros2.node import RosGraph, RosNode
 from bridge.session import open_session, zenoh_config
-from orchestrator.bench.hil import free_port
+from tests.conftest import free_port
 from orchestrator.trace import load
 from tests.test_hil import TRACKING_CAP, FellBehind, check_tracking, end_process, tracked
 

@@ -10,7 +10,7 @@ import subprocess
 import time
 from pathlib import Path
 
-from orchestrator.bench.hil import free_port
+from tests.conftest import free_port
 from tests.test_hil import LIVE3, PLATOON, REPO, _env, emulator, endpoint, wait_for
 
 

@@ -21,7 +21,7 @@ from typing import Iterator
 import pytest
 
 from bridge.session import SessionError, open_session, zenoh_config
-from orchestrator.bench.hil import free_port
+from tests.conftest import free_port
 from tests.dds_robot import LOOPBACK_ONLY
 from tests.test_hil import all_fmu_reference, tracked, wait_for
 from tests.test_ros2 import ROS3, Emulator, _env, _run, endpoint, stop_process

@@ -1,6 +1,6 @@
 """Coupling accuracy: a co-simulation measured against the monolithic reference of the same config.
 
-Used by the tests of coupling order and by ``python -m orchestrator.bench.coupling_accuracy``, which prints
+Used by the tests of coupling order and by ``python -m benchmarks.coupling_accuracy``, which prints
 the table in docs/coupling.md.
 """
 

@@ -1,5 +1,6 @@
 """`platoon bench ...`: the benchmarks' command line (options, progress, tables, the JSON result). The
-measurements themselves live in orchestrator/bench/, which knows nothing of the CLI."""
+measurements themselves live beside the package, in the repository's benchmarks/ folder (not installed:
+benchmarks/__init__.py says why), which knows nothing of the CLI; ``suite`` finds them in a checkout."""
 
 from __future__ import annotations
 
@@ -13,10 +14,41 @@ import typer
 if TYPE_CHECKING:  # rich's table is imported where used: `platoon run -q` needs none
     pass
 
-from orchestrator.bench import ENGINES as BENCH_ENGINES
-from orchestrator.bench.common import DEFAULT_OUT_DIR
 from orchestrator.cli.common import (SET_METAVAR, err, fail,
                                      out, output_rule)
+
+# The engines the per-FMU-step suites know (benchmarks/engines.py describes them), listed here so that the
+# help can name them without the benchmarks at hand.
+BENCH_ENGINES = ("native", "native-buffer", "native-traced", "native-offload", "python", "fmpy-bare", "libcosim",
+                 "libcosim-0threads", "libcosim-0threads-lastvalue", "slaves")
+DEFAULT_OUT_DIR = Path("runs") / "bench"  # as benchmarks/common.py writes by default
+NO_BENCHMARKS = ("the benchmarks are not part of the installed package: they live in the repository's benchmarks/ "
+                 "folder; run `platoon bench` in a checkout (git clone, then pip install -e . there; "
+                 "docs/performance.md)")
+
+
+def checkout_with_benchmarks() -> Path | None:
+    """The checkout whose benchmarks/ `platoon bench` runs: the one this package is installed from in place
+    (pip install -e .), else the current folder if it holds them; None for an installed wheel elsewhere."""
+    import orchestrator
+
+    for root in (Path(orchestrator.__file__).resolve().parent.parent, Path.cwd()):
+        if (root / "benchmarks" / "__init__.py").is_file():
+            return root
+    return None
+
+
+def suite(name: str):
+    """The module ``benchmarks.<name>`` of the checkout; exit 2 with ``NO_BENCHMARKS`` where there is none."""
+    from importlib import import_module
+
+    root = checkout_with_benchmarks()
+    if root is None:
+        fail(2, f"platoon bench: {NO_BENCHMARKS}")
+    if str(root) not in sys.path:
+        sys.path.append(str(root))
+    return import_module(f"benchmarks.{name}")
+
 
 bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks: what steps and whole runs cost against FMPy and libcosim, memory per vehicle, HIL latency (JSON under runs/bench/; not pass/fail tests; docs/performance.md).")
 
@@ -100,9 +132,10 @@ class _BenchProgress:
         err.print(line, highlight=False, soft_wrap=True)
 
 
-def run_bench(suite: str, measure, render, out_dir: Path, quiet: bool) -> None:
+def run_bench(name: str, measure, render, out_dir: Path, quiet: bool) -> None:
     """Run one suite with progress, print its tables, write its JSON; bad options exit 2, failures 1."""
-    from orchestrator.bench.common import BenchError, BenchUsageError, write_result
+    common = suite("common")
+    BenchError, BenchUsageError, write_result = common.BenchError, common.BenchUsageError, common.write_result
 
     try:
         with _BenchProgress(quiet) as progress:
@@ -110,23 +143,21 @@ def run_bench(suite: str, measure, render, out_dir: Path, quiet: bool) -> None:
     except BenchUsageError as error:
         fail(2, str(error))
     except BenchError as error:
-        fail(1, f"bench {suite}: {error}")
+        fail(1, f"bench {name}: {error}")
     result["command"] = " ".join(["platoon", *sys.argv[1:]])
     out.print(render(result), highlight=False, soft_wrap=True)
     with output_rule():  # a folder it cannot write: one line
-        written = write_result(out_dir, suite, result)
+        written = write_result(out_dir, name, result)
     out.print(f"results: {written}", highlight=False, soft_wrap=True)
 
 
 def _per_fmu_step(suite_name: str, engines: str, n: str, steps: int, rounds: int, out_dir: Path, quiet: bool,
                   **options) -> None:
     """The two suites of FMU-step costs (``steps``, ``coupling``): same options, same checks."""
-    from importlib import import_module
-
-    suite = import_module(f"orchestrator.bench.{suite_name}")
+    measured = suite(suite_name)
     chosen, counts = _csv("--engines", engines, BENCH_ENGINES), _counts(n)
-    run_bench(suite_name, lambda progress: suite.run(chosen, counts, steps, rounds, progress=progress, **options),
-           suite.markdown, out_dir, quiet)
+    run_bench(suite_name, lambda progress: measured.run(chosen, counts, steps, rounds, progress=progress, **options),
+           measured.markdown, out_dir, quiet)
 
 
 def bench_steps(engines: Engines = "native,python,fmpy-bare,libcosim,libcosim-0threads,libcosim-0threads-lastvalue,slaves",
@@ -157,12 +188,12 @@ def bench_scenarios(
     quiet: Quiet = False,
 ) -> None:
     """Whole-run wall times of the paper's scenarios, start-up included, traced and untraced."""
-    from orchestrator.bench import scenarios as suite
+    measured = suite("scenarios")
 
-    chosen = _csv("--engines", engines, suite.ENGINES)
-    kinds = _csv("--variants", variants, suite.VARIANTS)
-    run_bench("scenarios", lambda progress: suite.run(configs or None, chosen, kinds, rounds, overrides, progress=progress),
-           suite.markdown, out_dir, quiet)
+    chosen = _csv("--engines", engines, measured.ENGINES)
+    kinds = _csv("--variants", variants, measured.VARIANTS)
+    run_bench("scenarios", lambda progress: measured.run(configs or None, chosen, kinds, rounds, overrides, progress=progress),
+           measured.markdown, out_dir, quiet)
 
 
 def bench_wholerun(
@@ -177,12 +208,12 @@ def bench_wholerun(
     hour_config: Annotated[Path, typer.Option("--hour-config", metavar="CONFIG", help="the config platoon-hour runs")] = Path("configs/bench/platoon100-1h.toml"),
 ) -> None:
     """Whole `platoon run` processes against libcosim running the same system from an SSP (0 threads)."""
-    from orchestrator.bench import wholerun as suite
+    measured = suite("wholerun")
     from orchestrator.components.kinds import FMU_KINDS
 
     if fmus not in FMU_KINDS:
         fail(2, f"--fmus {fmus!r}: expected one of {', '.join(FMU_KINDS)}")
-    kinds, counts = _csv("--variants", variants, suite.VARIANTS), _counts(n)
+    kinds, counts = _csv("--variants", variants, measured.VARIANTS), _counts(n)
     try:
         per_n = [int(part) for part in steps.split(",")]
     except ValueError:
@@ -193,9 +224,9 @@ def bench_wholerun(
         fail(2, f"--before {before}: no such file")
     if "platoon-hour" in kinds and not hour_config.is_file():
         fail(2, f"--hour-config {hour_config}: no such file")
-    run_bench("wholerun", lambda progress: suite.run(counts, per_n if len(per_n) > 1 else per_n[0], rounds, kinds,
+    run_bench("wholerun", lambda progress: measured.run(counts, per_n if len(per_n) > 1 else per_n[0], rounds, kinds,
                                                   progress=progress, fmus=fmus, before=before, hour=hour_config),
-           suite.markdown, out_dir, quiet)
+           measured.markdown, out_dir, quiet)
 
 
 def bench_instances(
@@ -207,11 +238,11 @@ def bench_instances(
     quiet: Quiet = False,
 ) -> None:
     """Instantiation time and RSS per vehicle instance (slope over N), native engine and FMPy."""
-    from orchestrator.bench import instances as suite
+    measured = suite("instances")
 
-    chosen, counts = _csv("--engines", engines, suite.ENGINES), _counts(n)
-    kinds = _csv("--wirings", wirings, suite.WIRINGS)
-    run_bench("instances", lambda progress: suite.run(chosen, counts, rounds, kinds, progress=progress), suite.markdown,
+    chosen, counts = _csv("--engines", engines, measured.ENGINES), _counts(n)
+    kinds = _csv("--wirings", wirings, measured.WIRINGS)
+    run_bench("instances", lambda progress: measured.run(chosen, counts, rounds, kinds, progress=progress), measured.markdown,
            out_dir, quiet)
 
 
@@ -223,10 +254,10 @@ def bench_profile(
     quiet: Quiet = False,
 ) -> None:
     """Where the native engine's time goes: native loop against the floor in one process, perf split."""
-    from orchestrator.bench import profile as suite
+    measured = suite("profile")
 
     counts = _counts(n)
-    run_bench("profile", lambda progress: suite.run(counts, steps, rounds, progress=progress), suite.markdown, out_dir, quiet)
+    run_bench("profile", lambda progress: measured.run(counts, steps, rounds, progress=progress), measured.markdown, out_dir, quiet)
 
 
 def bench_flatness(
@@ -239,11 +270,11 @@ def bench_flatness(
     quiet: Quiet = False,
 ) -> None:
     """Why the cost per FMU-step grows with N: stepping order, idle instances, object sizes, cache misses."""
-    from orchestrator.bench import flatness as suite
+    measured = suite("flatness")
 
     counts = _counts(n)
-    run_bench("flatness", lambda progress: suite.run_suite(counts, steps, rounds, repeats, callgrind, progress=progress),
-           suite.suite_markdown, out_dir, quiet)
+    run_bench("flatness", lambda progress: measured.run_suite(counts, steps, rounds, repeats, callgrind, progress=progress),
+           measured.suite_markdown, out_dir, quiet)
 
 
 CORE_BUILD_HELP = "LABEL=PATH of a built orchestrator/execution/native/_core .so (copy it aside before rebuilding _core.c)"
@@ -260,13 +291,13 @@ def bench_callgrind(
     quiet: Quiet = False,
 ) -> None:
     """Instructions and cache misses per FMU-step of an engine's stepping (valgrind), the master's own apart."""
-    from orchestrator.bench import flatness as suite
+    measured = suite("flatness")
 
-    counts, chosen = _counts(n), _csv("--engines", engines, suite.CALLGRIND_ENGINES)
-    levels = [suite.LAST_LEVELS[name] for name in _csv("--ll", ll, tuple(suite.LAST_LEVELS))]
-    run_bench("callgrind", lambda progress: suite.callgrind_series(counts, fmu_steps, levels, suite.core_builds(cores) or None,
+    counts, chosen = _counts(n), _csv("--engines", engines, measured.CALLGRIND_ENGINES)
+    levels = [measured.LAST_LEVELS[name] for name in _csv("--ll", ll, tuple(measured.LAST_LEVELS))]
+    run_bench("callgrind", lambda progress: measured.callgrind_series(counts, fmu_steps, levels, measured.core_builds(cores) or None,
                                                                 progress=progress, engines=chosen),
-           suite.callgrind_markdown, out_dir, quiet)
+           measured.callgrind_markdown, out_dir, quiet)
 
 
 def bench_cores(
@@ -278,11 +309,11 @@ def bench_cores(
     quiet: Quiet = False,
 ) -> None:
     """The native engine with two or more builds of _core.c: µs per FMU-step, interleaved in fresh interpreters."""
-    from orchestrator.bench import flatness as suite
+    measured = suite("flatness")
 
     counts = _counts(n)
-    run_bench("cores", lambda progress: suite.compare_cores(suite.core_builds(builds), counts, steps, rounds, progress=progress),
-           suite.cores_markdown, out_dir, quiet)
+    run_bench("cores", lambda progress: measured.compare_cores(measured.core_builds(builds), counts, steps, rounds, progress=progress),
+           measured.cores_markdown, out_dir, quiet)
 
 
 
@@ -293,9 +324,9 @@ def bench_hil(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only the tables and the result file")] = False,
 ) -> None:
     """Hardware in the loop on loopback: Zenoh round trip (bare and in live runs) and step jitter at 100 and 200 Hz."""
-    from orchestrator.bench import hil as suite
+    measured = suite("hil")
 
-    run_bench("hil", lambda progress: suite.run(seconds, rounds, progress), suite.render, out_dir, quiet)
+    run_bench("hil", lambda progress: measured.run(seconds, rounds, progress), measured.render, out_dir, quiet)
 
 
 def bench_sweep(
@@ -308,10 +339,10 @@ def bench_sweep(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only the table and the result file")] = False,
 ) -> None:
     """Speed-up of a sweep with more local workers (and on Dask): wall time of real platoon sweep runs."""
-    from orchestrator.bench import sweep as suite
+    measured = suite("sweep")
 
     counts = sorted(_integers("--workers", workers, 1, "worker counts", "1,2"))
-    run_bench("sweep", lambda progress: suite.run(counts, runs, stop_time, rounds, dask, progress), suite.render, out_dir, quiet)
+    run_bench("sweep", lambda progress: measured.run(counts, runs, stop_time, rounds, dask, progress), measured.render, out_dir, quiet)
 
 
 def bench_sweep_bookkeeping(
@@ -322,10 +353,10 @@ def bench_sweep_bookkeeping(
 ) -> None:
     """A sweep's bookkeeping per run (plan, result file, results.csv row) against its size; and how soon a
     sweep of --first-run points starts its first run."""
-    from orchestrator.bench import sweep_bookkeeping as suite
+    measured = suite("sweep_bookkeeping")
 
     sizes = sorted(_integers("--points", points, 10, "sweep sizes", "100,1000"))
-    run_bench("sweep-bookkeeping", lambda progress: suite.run(sizes, first_run, progress), suite.render, out_dir, quiet)
+    run_bench("sweep-bookkeeping", lambda progress: measured.run(sizes, first_run, progress), measured.render, out_dir, quiet)
 
 
 def bench_readback(
@@ -336,9 +367,9 @@ def bench_readback(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress, only the table and the result file")] = False,
 ) -> None:
     """Each trace reader (load, report, stability, stability-map) against the run that wrote the trace."""
-    from orchestrator.bench import readback as suite
+    measured = suite("readback")
 
-    run_bench("readback", lambda progress: suite.run(rounds, with_map, progress), suite.render, out_dir, quiet)
+    run_bench("readback", lambda progress: measured.run(rounds, with_map, progress), measured.render, out_dir, quiet)
 
 
 def register(app: typer.Typer) -> None:

@@ -29,7 +29,7 @@ finalization, exit), on the paper platoon (configs/paper/platoon.toml, Jacobi) w
 
 Every process runs without ``PYTHONDONTWRITEBYTECODE``, so that it reads the bytecode cache that the
 untimed first runs wrote, as an installed tool does (compiling the modules from source each time
-would be measured otherwise). The SSP is written once, before timing (orchestrator/bench/libcosim.py). Variants run interleaved and
+would be measured otherwise). The SSP is written once, before timing (benchmarks/libcosim.py). Variants run interleaved and
 rotated, ``rounds`` times; ratios are taken within a round (paired) and their median is reported.
 """
 

@@ -16,7 +16,7 @@ run it is compared with:
   disk: the baseline of a traced run that writes its file; the folder is removed after the run).
 
 Prints one ``RESULT {json}`` line (the time reached, which the benchmark checks) and leaves with ``os._exit``
-(pythonfmu FMUs live in this interpreter; see orchestrator/bench/child.py).
+(pythonfmu FMUs live in this interpreter; see benchmarks/child.py).
 """
 
 from __future__ import annotations

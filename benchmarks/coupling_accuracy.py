@@ -4,7 +4,7 @@ For each paper scenario (platoon, m3pi), law (sine, regular), coupling mode (hol
 communication step h, run the FMU co-simulation and the monolithic reference of the same config and
 print the largest position, gap and speed deviation over the whole run, as a Markdown table.
 
-    python -m orchestrator.bench.coupling_accuracy [--master jacobi|gauss-seidel]
+    python -m benchmarks.coupling_accuracy [--master jacobi|gauss-seidel]
 
 Run it from the repository: it reads configs/paper/platoon.toml and m3pi.toml.
 
@@ -26,7 +26,7 @@ STEPS = (0.02, 0.01, 0.005)
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(prog="python -m orchestrator.bench.coupling_accuracy",
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.coupling_accuracy",
                                      description=__doc__.splitlines()[0])
     parser.add_argument("--master", default="jacobi", choices=("jacobi", "gauss-seidel"))
     args = parser.parse_args()

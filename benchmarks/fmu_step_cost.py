@@ -1,6 +1,6 @@
 """Cost of one doStep of each FMU under FMPy, alone (inputs held at their start values).
 
-    python -m orchestrator.bench.fmu_step_cost [--steps 5000] [--repeat 5]
+    python -m benchmarks.fmu_step_cost [--steps 5000] [--repeat 5]
 
 Prints the median over repetitions of the µs per doStep (plus a setReal of all inputs and a getReal
 of all outputs, as a master does each step), for each FMU and coupling mode, and, as the reference
@@ -50,7 +50,7 @@ def direct_cost(fmu: UnpackedFmu, coupling: str, steps: int) -> float:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(prog="python -m orchestrator.bench.fmu_step_cost",
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.fmu_step_cost",
                                      description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=5000)
     parser.add_argument("--repeat", type=int, default=5)

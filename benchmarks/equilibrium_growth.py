@@ -4,7 +4,7 @@
         --set initial.radial_offset=0.0 --set initial.heading_error=0.0 --set initial.speed_factor=1.0 \\
         --set simulation.step=0.1 --set simulation.max_substep=0.1 --set simulation.stop_time=400 \\
         --trace-every 10 --out runs/long.mcap
-    python -m orchestrator.bench.equilibrium_growth runs/long.mcap
+    python -m benchmarks.equilibrium_growth runs/long.mcap
 
 For each trace: how the run ended, then at a few simulated times the largest |V - V_c|, |d - d*| and
 |path error| seen so far over every vehicle (and the vehicle with the largest speed deviation), and
@@ -66,7 +66,7 @@ def growth_table(path: Path) -> str:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(prog="python -m orchestrator.bench.equilibrium_growth", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.equilibrium_growth", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("traces", type=Path, nargs="+", help="traces written by platoon run")
     paths = parser.parse_args().traces

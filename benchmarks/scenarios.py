@@ -7,7 +7,7 @@ gives its CPU time and peak RSS), for each engine (native, python) and variant:
 * ``cli-traced``: ``platoon run CONFIG --out TRACE -q``, exactly what a user runs;
 * ``traced``: a fresh interpreter that loads the config and calls ``run_scenario(config, text, TRACE)``;
 * ``untraced``: the same with ``out=None`` (nothing recorded). ``platoon run`` has no option to run
-  without a trace, hence this entry point (``orchestrator.bench.child``, task ``wholerun``).
+  without a trace, hence this entry point (``benchmarks.child``, task ``wholerun``).
 
 ``traced`` against ``cli-traced`` shows what the CLI's own imports add; ``traced`` against
 ``untraced`` what the trace costs the whole run. Start-up is the process's wall time minus the run's
@@ -102,7 +102,7 @@ def measure(config: Path, engine: str, variant: str, overrides: list[str], fmu_d
     else:
         task = {"kind": "wholerun", "config": str(config), "engine": engine, "overrides": overrides,
                 "out": str(trace) if variant == "traced" else None, "fmu_dir": str(fmu_dir)}
-        command = [sys.executable, "-m", "orchestrator.bench.child", json.dumps(task)]
+        command = [sys.executable, "-m", "benchmarks.child", json.dumps(task)]
     wall, usage, stdout, stderr = timed_process(command, scratch)
     if usage["exit"] != 0:
         raise BenchError(f"{' '.join(command)} exited {usage['exit']}:\n{stdout[-2000:]}\n{stderr[-2000:]}")

@@ -1,4 +1,4 @@
-"""One measurement in a fresh interpreter: ``python -m orchestrator.bench.child '<task as JSON>'``.
+"""One measurement in a fresh interpreter: ``python -m benchmarks.child '<task as JSON>'``.
 
 Prints one ``RESULT <json>`` line and leaves with ``os._exit`` (pythonfmu leaves objects in the
 interpreter whose teardown can corrupt the heap, see orchestrator/cli/app.py: main). Nothing is imported
@@ -82,7 +82,7 @@ def perform(task: dict[str, Any]) -> dict[str, Any]:
 def main() -> None:
     from orchestrator.support.internal_entry import check_arguments
 
-    check_arguments(sys.argv[1:], "python -m orchestrator.bench.child '<task as JSON>'", __doc__, count=1)
+    check_arguments(sys.argv[1:], "python -m benchmarks.child '<task as JSON>'", __doc__, count=1)
     code = 0
     try:
         result = perform(json.loads(sys.argv[1]))

@@ -7,7 +7,7 @@ rebuilt at start and end), with an executor that answers each run at once, leavi
 trace (``TRACE_BYTES``), instead of simulating it. The wall time divided by the points is the per-run
 bookkeeping; flat means it does not grow with the sweep (it once grew with the square of the runs).
 
-Each measurement is a fresh interpreter (orchestrator/bench/child.py) that first runs a 10-point sweep
+Each measurement is a fresh interpreter (benchmarks/child.py) that first runs a 10-point sweep
 (imports, the first config validation: start-up, not bookkeeping), then resets its peak resident set
 size (Linux ``/proc/self/clear_refs``) and times the sweep: the peak RSS is the sweep's own. Most of a
 run's bookkeeping is waiting for fsync, which other work on the disk slows down: the smallest size is

@@ -1,8 +1,8 @@
 """Memory and wall time of a long, big traced run: RSS sampled from inside while 100 vehicles run an hour.
 
-    python -m orchestrator.bench.trace_memory                          # configs/bench/platoon100-1h.toml
-    python -m orchestrator.bench.trace_memory --trace-every 1 --set simulation.stop_time=300   # every point
-    python -m orchestrator.bench.trace_memory --set simulation.stop_time=600   # a shorter look
+    python -m benchmarks.trace_memory                          # configs/bench/platoon100-1h.toml
+    python -m benchmarks.trace_memory --trace-every 1 --set simulation.stop_time=300   # every point
+    python -m benchmarks.trace_memory --set simulation.stop_time=600   # a shorter look
 
 Two promises are measured: RSS stays flat over a long run (the trace is written as the run goes, never
 held in memory), and the wall time of a whole 100-vehicle, 1-hour simulated run with ``--trace-every``
@@ -103,7 +103,7 @@ def equilibrium_deviation(path: Path, config: Config) -> dict[str, object]:
 
 
 def _arguments() -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m orchestrator.bench.trace_memory", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.trace_memory", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="scenario TOML (default: %(default)s)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], help="config override KEY=VALUE")

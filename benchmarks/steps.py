@@ -18,8 +18,7 @@ from typing import Any, Sequence
 from fmus.builders import DEFAULT_OUT
 
 from .common import BenchUsageError, Progress, interleaved, markdown_table, run_child
-from . import ENGINES
-from .engines import LABELS, LIBCOSIM_ENGINES
+from .engines import ENGINES, LABELS, LIBCOSIM_ENGINES
 from .platoon import STEP, fmu_files
 from orchestrator.components.kinds import FMU_KINDS, fmu_folder, native_buildable
 

@@ -1,6 +1,8 @@
-"""Every benchmark of the project, in one place: inside the installed package, since
-``platoon bench`` is an installed command. Run them from the repository: configs, the FMUs
-(``build/fmus``) and the results (``runs/bench/``) are found relative to the current folder.
+"""Every benchmark of the project, in one place: beside the package, not in it (as libcosim and FMPy keep
+theirs). The installed wheel holds none of them: they need the repository anyway (configs, the FMUs in
+``build/fmus``, the results under ``runs/bench/``, all relative to the current folder), and carry harnesses
+(libcosimpy, perf, callgrind) no user of the tool needs. Run them from a checkout: ``platoon bench ...``
+finds this folder there (orchestrator/cli/bench.py), or ``python -m benchmarks.<name>``.
 
 ``platoon bench <suite>`` (orchestrator/cli/bench.py; JSON under ``runs/bench/<suite>-<time>.json``):
 
@@ -17,7 +19,7 @@
   trace, whole processes in one sitting; load's peak memory against its arrays (``readback.py``);
 * ``cores LABEL=PATH LABEL=PATH``: the native engine with two or more builds of _core.c (``flatness.py``).
 
-``python -m orchestrator.bench.<name>`` (each module's docstring has its options):
+``python -m benchmarks.<name>`` (each module's docstring has its options):
 
 * ``trace_overhead``: what tracing every step costs, untraced / in process / second process;
 * ``trace_encoder``: CPU per component and row of the Python and the C trace encoder, zstd levels;
@@ -27,7 +29,7 @@
 * ``fmu_step_cost``: one doStep of each FMU under FMPy, against its stepper called directly;
 * ``equilibrium_growth TRACE``: how far a platoon started on its equilibrium strays from it (docs/model.md).
 
-Every timed measurement runs in a fresh interpreter (``orchestrator.bench.child``), so libraries,
+Every timed measurement runs in a fresh interpreter (``benchmarks.child``), so libraries,
 caches and the heap never carry over from one measurement to the next and a pythonfmu or libcosim
 teardown cannot disturb the next one. Repetitions are interleaved (every variant once per round, the
 order rotated each round) and results are medians, so that drift of this shared machine hits every
@@ -35,7 +37,11 @@ variant alike. ``common.py`` holds what they share (child processes, interleavin
 ``platoon.py``, ``engines.py``, ``floor.py`` and ``libcosim.py`` the platoon and the engines measured.
 """
 
-# The engines the per-FMU-step suites know (described in engines.py); here so that the CLI can list
-# them without importing FMPy.
-ENGINES = ("native", "native-buffer", "native-traced", "native-offload", "python", "fmpy-bare", "libcosim",
-           "libcosim-0threads", "libcosim-0threads-lastvalue", "slaves")
+import os
+from pathlib import Path
+
+# Measurements run in fresh interpreters (``python -m benchmarks.child`` ...): they find this folder through
+# PYTHONPATH wherever they start, as this process found it.
+CHECKOUT = Path(__file__).resolve().parent.parent
+if str(CHECKOUT) not in os.environ.get("PYTHONPATH", "").split(os.pathsep):
+    os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, (str(CHECKOUT), os.environ.get("PYTHONPATH"))))

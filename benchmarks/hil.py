@@ -3,7 +3,7 @@
 Everything runs on 127.0.0.1, each peer a separate process on a free port:
 
 * ``transport``: a bare Zenoh ping-pong between this process and a tiny echo process
-  (``python -m orchestrator.bench.hil echo ENDPOINT [ZENOH_CONFIG]``): a wheel-command-sized ping out
+  (``python -m benchmarks.hil echo ENDPOINT [ZENOH_CONFIG]``): a wheel-command-sized ping out
   on a robot's command key, a pose-sized pong back on its pose key, one every 5 ms, with the
   publishers the bridge uses (express, BLOCK). This is the transport's share of a round trip; once
   over TCP, once over mutual TLS with the access control of ``platoon hil-certs`` (``transport
@@ -177,7 +177,7 @@ def ping_pong(seconds: float, scratch: Path, secure: bool = False) -> dict[str, 
 
     count = PING_WARMUP + max(1, round(seconds / PING_INTERVAL))
     config = zenoh_config(connect=[endpoint], config_file=str(lab / f"{LAB_HOST}.json5") if lab else None)
-    with Helper([sys.executable, "-m", "orchestrator.bench.hil", "echo", endpoint, *echo_config], "echo ready", scratch,
+    with Helper([sys.executable, "-m", "benchmarks.hil", "echo", endpoint, *echo_config], "echo ready", scratch,
                 "echo") as helper, open_session(config, "bench ping") as session:
         answers = session.declare_subscriber(keys.pose, on_pong)  # noqa: F841
         ping = session.declare_publisher(keys.wheels, congestion_control=zenoh.CongestionControl.BLOCK, express=True)
@@ -390,7 +390,7 @@ def render(result: dict[str, Any]) -> Any:
 if __name__ == "__main__":  # the echo side of the ping-pong, started by `platoon bench hil`
     from orchestrator.support.internal_entry import check_arguments
 
-    check_arguments(sys.argv[1:], "python -m orchestrator.bench.hil echo ENDPOINT [ZENOH_CONFIG] (the benchmark: "
+    check_arguments(sys.argv[1:], "python -m benchmarks.hil echo ENDPOINT [ZENOH_CONFIG] (the benchmark: "
                     "platoon bench hil)", "The echo process of `platoon bench hil`'s Zenoh ping-pong; the benchmark "
                     "starts it.", fits=lambda args: len(args) in (2, 3) and args[0] == "echo")
     echo(sys.argv[2], sys.argv[3] if len(sys.argv) > 3 else None)

@@ -1,8 +1,8 @@
 """What encoding a trace costs per component and row: the Python encoder, the C encoder, zstd levels
 (encoding is most of what tracing every step costs).
 
-    python -m orchestrator.bench.trace_encoder                   # paper platoon, N = 16, 10 000 rows, 5 rounds
-    python -m orchestrator.bench.trace_encoder --vehicles 64 --steps 2000 --rounds 3
+    python -m benchmarks.trace_encoder                   # paper platoon, N = 16, 10 000 rows, 5 rounds
+    python -m benchmarks.trace_encoder --vehicles 64 --steps 2000 --rounds 3
 
 One native-engine run of the paper platoon (untimed) gives the rows; the same rows then go, in this
 process, rounds interleaved, through:
@@ -101,7 +101,7 @@ def compression(path: Path) -> list[list[Any]]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m orchestrator.bench.trace_encoder", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.trace_encoder", description=__doc__.split("\n")[0])
     parser.add_argument("--vehicles", type=int, default=16)
     parser.add_argument("--steps", type=int, default=10_000)
     parser.add_argument("--rounds", type=int, default=5)

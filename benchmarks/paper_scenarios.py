@@ -1,6 +1,6 @@
 """Run every paper scenario (configs/paper/*.toml) with both laws: summaries, peaks and wall times.
 
-    python -m orchestrator.bench.paper_scenarios [--json runs/bench/paper_scenarios.json]
+    python -m benchmarks.paper_scenarios [--json runs/bench/paper_scenarios.json]
 
 The numbers in docs/reproduction.md come from this benchmark. Wall time is the whole run_scenario call
 (FMUs already built): instantiation, initialization, stepping and trace writing. Run it from the
@@ -24,7 +24,7 @@ from .scenarios import find_configs, run_config
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(prog="python -m orchestrator.bench.paper_scenarios",
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.paper_scenarios",
                                      description=__doc__.splitlines()[0])
     parser.add_argument("--json", type=Path, default=DEFAULT_OUT_DIR / "paper_scenarios.json")
     args = parser.parse_args()

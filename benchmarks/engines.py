@@ -47,6 +47,9 @@ LABELS = {
     "libcosim-0threads-lastvalue": "libcosim from SSP, 0 threads, last-value observer",
     "slaves": "(g) floor: slave classes called directly",
 }
+# every engine the per-FMU-step suites know (`platoon bench steps --engines`; the CLI lists the same names)
+ENGINES = ("native", "native-buffer", "native-traced", "native-offload", "python", "fmpy-bare", "libcosim",
+           "libcosim-0threads", "libcosim-0threads-lastvalue", "slaves")
 LIBCOSIM_ENGINES = ("libcosim", "libcosim-0threads", "libcosim-0threads-lastvalue")
 
 

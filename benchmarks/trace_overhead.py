@@ -1,10 +1,10 @@
 """What tracing every step costs a run: the same scenario untraced, traced in process, traced by a second process.
 
-    python -m orchestrator.bench.trace_overhead         # paper platoon, N = 4 16 64, 1000 steps, 5 rounds
-    python -m orchestrator.bench.trace_overhead --vehicles 16 --steps 5000 --rounds 3
-    python -m orchestrator.bench.trace_overhead --engine python --vehicles 4
+    python -m benchmarks.trace_overhead         # paper platoon, N = 4 16 64, 1000 steps, 5 rounds
+    python -m benchmarks.trace_overhead --vehicles 16 --steps 5000 --rounds 3
+    python -m benchmarks.trace_overhead --engine python --vehicles 4
 
-Every measurement is a fresh interpreter (``orchestrator.bench.child``, task ``trace-overhead``)
+Every measurement is a fresh interpreter (``benchmarks.child``, task ``trace-overhead``)
 running ``run_scenario`` once (as ``platoon run`` does, ``scenarios.run_config``), so no
 run warms the next; rounds are interleaved (every variant once per round, the order rotating) and
 medians are compared. The cost of a variant is what a user waits for once the FMUs are initialized:
@@ -111,7 +111,7 @@ def table(result: dict[str, Any]) -> str:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(prog="python -m orchestrator.bench.trace_overhead", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.trace_overhead", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--vehicles", type=int, nargs="+", default=[4, 16, 64])
     parser.add_argument("--steps", type=int, default=1000, help="steps of 0.01 s")

@@ -292,7 +292,7 @@ def callgrind(n: int, steps: int, last_level: str | None, core: str | None = Non
                 "fmu_dir": str(Path(fmu_dir).resolve())}
         command = ["valgrind", "--tool=callgrind", "--instr-atstart=no", "--cache-sim=yes",
                    f"--callgrind-out-file={out}", *([f"--LL={last_level}"] if last_level else []),
-                   sys.executable, "-m", "orchestrator.bench.child", json.dumps(task)]
+                   sys.executable, "-m", "benchmarks.child", json.dumps(task)]
         done = subprocess.run(command, capture_output=True, text=True, env={**os.environ, "PYTHONMALLOC": "pymalloc"})
         if done.returncode != 0 or not out.exists():
             raise RuntimeError(f"callgrind N={n} failed:\n{done.stdout[-2000:]}\n{done.stderr[-3000:]}")

@@ -29,12 +29,12 @@ class BenchUsageError(BenchError):
 
 
 def run_child(task: dict[str, Any], timeout: float = 3600.0) -> dict[str, Any]:
-    """Run ``task`` in a fresh interpreter (``python -m orchestrator.bench.child``) and return its result.
+    """Run ``task`` in a fresh interpreter (``python -m benchmarks.child``) and return its result.
 
     A fresh process per measurement: no library, cache or heap state carries over, and the child
     leaves with ``os._exit`` so pythonfmu's interpreter teardown cannot crash or delay it.
     """
-    process = subprocess.run([sys.executable, "-m", "orchestrator.bench.child", json.dumps(task)],
+    process = subprocess.run([sys.executable, "-m", "benchmarks.child", json.dumps(task)],
                              capture_output=True, text=True, timeout=timeout)
     for line in process.stdout.splitlines():
         if line.startswith(RESULT):
