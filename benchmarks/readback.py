@@ -80,7 +80,7 @@ class _Sitting:
         sample: dict[str, Any] = {"group": group, "variant": variant}
         if variant == "run":
             out = {"study": self.study, "readme": self.readme}[group]
-            # the study's run as the issue times it (-q), the README's as the README writes it (progress, table)
+            # the study's run as a sweep runs it (-q), the README's as the README writes it (progress, table)
             config, sets = (STUDY, [*STUDY_SETS, "-q"]) if group == "study" else (README, [])
             sample["wall"], _ = _timed(_platoon("run", str(config), *sets, "--out", str(out)), f"{group} run")
         elif variant == "load":

@@ -163,8 +163,8 @@ def run(ns: Sequence[int] = (16,), steps: int | Sequence[int] = 10_000, rounds: 
         variants: Sequence[str] = DEFAULT_VARIANTS,
         fmu_dir: Path = DEFAULT_OUT, progress: Progress | None = None, fmus: str = "python",
         before: Path | None = None, hour: Path = HOUR_CONFIG) -> dict[str, Any]:
-    """Every variant steps the same FMUs, ``fmus`` ("python": the pythonfmu FMUs, the system the issue's
-    floors were set on; "native": the C twins), ours through ``platoon run --fmus`` and libcosim's
+    """Every variant steps the same FMUs, ``fmus`` ("python": the pythonfmu FMUs, the system whose cost
+    against libcosim was asked for first; "native": the C twins), ours through ``platoon run --fmus`` and libcosim's
     from an SSP of the same files. ``steps``: one count for every N, or one per N (the paper platoon
     at N = 64 leaves its circle at t = 28 s, so it runs fewer steps than N = 16 in the same sitting).
     ``hour``: the config of ``platoon-hour`` (the 100-vehicle hour)."""

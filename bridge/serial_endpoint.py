@@ -15,8 +15,8 @@ Byte format (3pi serial slave, a TReX-like command set: an opcode 0x80..0xFF, th
   speed byte is 0..127 (the 3pi maps 127 to full PWM)
 * speed byte = round(|v| / max_speed * 127), clipped to 127; the sign of v picks the opcode; a byte
   of 0 always uses the forward opcode, so the stop frame is exactly ``C1 00 C5 00``
-* ``0x81`` is the serial slave's "send signature" query (the issue's "0x81 and a zero command stop"
-  mixed the two up): it is not a stop. It is sent once at start-up, and the answer (6 ASCII bytes
+* ``0x81`` is the serial slave's "send signature" query, not a stop (a stop is a zero speed command,
+  above). It is sent once at start-up, and the answer (6 ASCII bytes
   such as ``3pi1.0``) is logged, which tells that the robot is on the air and runs the slave
   program. No answer is logged, not fatal: a pseudo-terminal in the tests answers nothing, and the
   XBee may still be associating.

@@ -49,7 +49,7 @@ def test_the_sensed_gap_keeps_each_couplings_order(fmu_dir, speed_law, coupling,
 
 @pytest.mark.parametrize("law", ["sine", "regular"])
 def test_extrapolating_fmus_stay_within_a_millimetre_of_the_monolithic_run(fmu_dir, law):
-    """configs/paper/platoon.toml starts as the issue's measurement did: vehicle 1 5 m off the path and
+    """configs/paper/platoon.toml starts as the paper's Fig. 4 run does: vehicle 1 5 m off the path and
     0.1 rad off its heading, everyone at 80 % of V_c. Over the whole 100 s transient at h = 0.01 s the
     co-simulation stays within 1 mm; its steady state matches the monolithic one to 1e-5."""
     config = _paper("platoon", f"platoon.law={law}")

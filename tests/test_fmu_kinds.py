@@ -3,7 +3,7 @@ FMUs as with the pythonfmu ones, and a user picks the kind with ``--fmus`` or ``
 
 The native C files mirror fmus/model operation by operation (fmus/native/*.c name the Python function
 each one mirrors; fmus/native/pymath.h reproduces CPython's hypot), so the runs are expected to agree to
-the last bit; the test allows 1e-9 m (and 1e-9 in every other output), the issue's bound, so that a
+the last bit; the test allows 1e-9 m (and 1e-9 in every other output), the bound users were promised, so that a
 compiler that reorders floating-point operations differently (it may not: -ffp-contract=off) would
 still pass while any modelling difference (orders of magnitude larger) fails.
 """

@@ -178,7 +178,7 @@ def test_emulated_robot_applies_a_command_after_the_radio_latency_and_refuses_la
 
 
 def test_only_the_claim_holding_the_robot_moves_it_and_nothing_sent_before_a_claim_counts() -> None:
-    """The issue's lock: a stop with sequence number 2^32 - 1 sent to an idle robot, then commands of
+    """The lock a stranger tried: a stop with sequence number 2^32 - 1 sent to an idle robot, then commands of
     another claim (any number) during a run: refused and counted; the next claim drives from 1."""
     from bridge.claim import claim_text
 

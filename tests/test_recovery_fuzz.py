@@ -109,7 +109,7 @@ def test_recover_keeps_every_intact_chunk_of_randomly_damaged_traces(reference: 
     first = chunks[0]
     for case in range(campaign):
         name = "finished" if case % 2 == 0 else "unfinished"
-        if case < 2:  # the example: one byte of the first chunk (which holds its chunk group's channels) flipped
+        if case < 2:  # the worst single flip: one byte of the first chunk (which holds its chunk group's channels) flipped
             damaged, how = bytearray(sources[name]), "flip in the first chunk"
             damaged[(first.start + first.end) // 2] ^= 0x10
             damaged = bytes(damaged)

@@ -1,4 +1,4 @@
-"""``platoon sweep`` and ``platoon sweep-plot`` end to end (issue 20), as real subprocesses.
+"""``platoon sweep`` and ``platoon sweep-plot`` end to end, as real subprocesses.
 
 What a user relies on: every point of the sweep gets exactly one row in results.csv, whatever stopped
 the sweep before (SIGKILL included), and a restart redoes nothing finished; a failing or rejected run
@@ -451,7 +451,7 @@ def test_bench_sweep_bookkeeping_measures_each_size_and_the_first_run(tmp_path: 
 
 
 def test_the_plan_is_streamed_memory_flat_in_the_number_of_points(tmp_path: Path) -> None:
-    """Issue 30: a 10^6-point plan hands out its first runs without making the others (the same memory as
+    """A 10^6-point plan hands out its first runs without making the others (the same memory as
     a 10^3-point one), and its points are the ones the whole plan has, in order."""
     import tracemalloc
 
@@ -471,7 +471,7 @@ def test_the_plan_is_streamed_memory_flat_in_the_number_of_points(tmp_path: Path
         peaks[samples] = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
         assert count(spec) == 2 * samples and [r.values["sample"] for r in first] == list(range(50))
-    assert peaks[500_000] < 1.5 * peaks[500], peaks  # a list of 10^6 runs would be ~7 GB (issue 30)
+    assert peaks[500_000] < 1.5 * peaks[500], peaks  # a list of 10^6 runs would be ~7 GB
     small = spec_of(3)
     assert [r.values for r in runs(small)] == [r.values for r in plan(small)]
     sine = [r.values["platoon.k_v"] for r in runs(small) if r.values["platoon.law"] == "sine"]
@@ -494,7 +494,7 @@ def test_a_map_axis_names_its_key_with_the_unit() -> None:
 # --- a sweep that cannot fit on its disk -------------------------------------------------------------------
 
 def test_a_sweep_that_cannot_fit_on_its_disk_is_refused_before_its_first_run(tmp_path: Path, fmu_dir: Path) -> None:
-    """Issue 30: on a real 2 MB tmpfs (a private mount namespace), 1000 runs of ~0.2 MB each are refused in
+    """On a real 2 MB tmpfs (a private mount namespace), 1000 runs of ~0.2 MB each are refused in
     one line with the estimate and the free space, before any run; --allow-full-disk starts them, and when
     the disk is full the sweep stops with every committed run whole (its result readable, its trace there)."""
     from tests.test_hostile_traces import one_line_error, platoon as platoon_with

@@ -5,7 +5,7 @@ When the trace is written by a worker process, the folding runs on a thread of i
 (``on_thread``), fed copies of the recorded blocks through a short queue. Folding needs numpy (0.06 s
 to import) and about 2.6 µs per row of 16 vehicles; done in the stepping thread at the first block,
 it held up the trace writer process, which then waited for the next block (docs/performance.md,
-"Round 4"). The stepping thread spends most of such a run waiting for that process to take its
+"Start-up: what a run loads before its first step", the trace writer ready before the first step). The stepping thread spends most of such a run waiting for that process to take its
 blocks, with the GIL released; the folding thread uses that time. The queue is short, so a folding
 thread that falls behind holds the run back rather than its memory growing; ``finish`` waits for it
 to fold every block. A run that encodes its trace itself (a sweep's) never waits like that: there
