@@ -1,6 +1,6 @@
 """A secure lab: a certificate authority, one certificate per host, and each host's Zenoh config.
 
-``platoon hil-certs`` (orchestrator/cli/hil.py) writes, for a lab described by its hosts and their
+``platoon hil-certs`` (its command: orchestrator/cli/hil_certs.py) writes, for a lab described by its hosts and their
 roles, everything mutual TLS and Zenoh's access control need (docs/hil.md, "A secure lab"):
 
 * ``ca.pem`` and ``ca.key``: the lab's own certificate authority (an EC P-256 key, self-signed). The
@@ -25,7 +25,9 @@ roles, everything mutual TLS and Zenoh's access control need (docs/hil.md, "A se
 A host's certificate names it (common name = the host's name: Zenoh's ACL matches on it) and the
 addresses peers reach it at (DNS names or IPs; ``localhost``, 127.0.0.1 and ::1 always), which TLS
 checks when connecting. The certificates are made with the ``cryptography`` package. This module
-makes the files' contents; ``orchestrator/cli/hil_certs.py`` writes them (the output rule, keys 0600).
+makes the files' contents; orchestrator/support/lab_files.py writes them (the output rule, keys 0600 from
+their creation on, the lab's folder its owner's alone), reading a secret file back through
+``bridge.lab_key.read_private``, the one check of a key file named by the user.
 """
 
 from __future__ import annotations

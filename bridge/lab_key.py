@@ -86,26 +86,36 @@ def _parse(path: Path, text: str) -> bytes:
                       "`platoon hil-certs` or the first run writes it)")
 
 
-def read_key(path: Path) -> LabKey:
-    """The key in ``path``, checked: a regular file, not a link, this user's, readable by no one else."""
+def read_private(path: Path, what: str, error: type[ValueError] = LabKeyError, missing: str = "",
+                 limit: int = 4096) -> bytes:
+    """The bytes of a secret file the user named (a lab key, a CA's private key): a regular file, not a link,
+    this user's, readable by no one else; whoever else can read it can drive the robots (or sign anyone into
+    the lab). The one check of such a file: every refusal is one ``error`` naming ``what``, the file and what to
+    do (``missing``: the hint for a file that is not there)."""
     try:
         descriptor = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
     except FileNotFoundError:
-        raise LabKeyError(f"lab key {path}: no such file (`platoon hil-certs DIR ...` writes DIR/lab.key; copy "
-                          "it to every run host and robot side)") from None
-    except OSError as error:
-        raise LabKeyError(f"lab key {path}: cannot open it ({error.strerror or error}; a link is refused)") from None
+        raise error(f"{what} {path}: no such file{missing}") from None
+    except OSError as failure:
+        raise error(f"{what} {path}: cannot open it ({failure.strerror or failure}; a link is refused)") from None
     with os.fdopen(descriptor, "rb") as stream:
         info = os.fstat(stream.fileno())
         if not stat.S_ISREG(info.st_mode):
-            raise LabKeyError(f"lab key {path}: not a regular file")
+            raise error(f"{what} {path}: not a regular file")
         if info.st_uid != os.geteuid():
-            raise LabKeyError(f"lab key {path}: owned by user {info.st_uid}, not by this user ({os.geteuid()}): "
-                              "its owner can drive the robot; use a key of your own")
+            raise error(f"{what} {path}: owned by user {info.st_uid}, not by this user ({os.geteuid()}): "
+                        "whoever owns it can use it as theirs; use one of your own")
         if info.st_mode & 0o077:
-            raise LabKeyError(f"lab key {path}: mode {stat.S_IMODE(info.st_mode):04o}, others can read it; "
-                              f"`chmod 600 {path}` once you know no one else copied it (else make a new one)")
-        data = stream.read(4096)
+            raise error(f"{what} {path}: mode {stat.S_IMODE(info.st_mode):04o}, others can read it: it must be a "
+                        f"file only you can read (mode 0600); `chmod 600 {path}` once you know no one else copied "
+                        "it (else make a new one)")
+        return stream.read(limit)
+
+
+def read_key(path: Path) -> LabKey:
+    """The key in ``path``, checked (``read_private``)."""
+    data = read_private(path, "lab key", missing=" (`platoon hil-certs DIR ...` writes DIR/lab.key; copy it to "
+                        "every run host and robot side)")
     try:
         return LabKey(_parse(path, data.decode("ascii")), path)
     except UnicodeDecodeError:

@@ -70,26 +70,10 @@ def check_new_file(path: Path) -> None:
         raise LabError(f"{path}: is not a regular file (a folder, FIFO or device); refusing to replace it")
 
 
-def read_private(path: Path) -> bytes:
-    """A key file named by the user: a regular file (not a link) of theirs that no one else can read."""
-    from bridge.lab import LabError
-
-    try:
-        descriptor = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
-    except OSError as error:
-        raise LabError(f"{path}: cannot read it ({error.strerror or error}; a link is refused)") from None
-    with os.fdopen(descriptor, "rb") as stream:
-        info = os.fstat(stream.fileno())
-        if not stat.S_ISREG(info.st_mode) or info.st_uid != os.geteuid() or info.st_mode & 0o077:
-            raise LabError(f"{path}: must be a regular file of yours that only you can read (mode 0600): "
-                           "a CA key others could read signs anyone into the lab")
-        return stream.read(1 << 20)
-
-
 def _lab_files(lab, folder: Path, days: int, ca: Path | None) -> tuple[dict[Path, tuple[bytes, bool]], bool]:
     """Every file to write (path -> (bytes, private)) and whether the CA is new; nothing written yet."""
     from bridge.lab import CA_FILE, CA_KEY_FILE, LAB_KEY_FILE, LabError, pem, host_file, load_ca, make_ca
-    from bridge.lab_key import key_text, new_secret, read_key
+    from bridge.lab_key import key_text, new_secret, read_key, read_private
 
     files: dict[Path, tuple[bytes, bool]] = {}
     if ca is None:
@@ -106,7 +90,7 @@ def _lab_files(lab, folder: Path, days: int, ca: Path | None) -> tuple[dict[Path
             ca_bytes = ca.read_bytes()
         except OSError as error:
             raise LabError(f"--ca {ca}: cannot read it ({error.strerror or error})") from None
-        ca_key, certificate = load_ca(ca_bytes, read_private(key_path), f"--ca {ca}")
+        ca_key, certificate = load_ca(ca_bytes, read_private(key_path, "CA key", LabError, limit=1 << 20), f"--ca {ca}")
         if folder.resolve() != ca.parent.resolve():
             files[folder / CA_FILE] = (pem(certificate), False)
     old_key = (ca.parent if ca is not None else folder) / LAB_KEY_FILE
