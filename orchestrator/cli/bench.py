@@ -341,6 +341,19 @@ def bench_readback(
     run_bench("readback", lambda progress: suite.run(rounds, with_map, progress), suite.render, out_dir, quiet)
 
 
+def bench_remote(
+    n: Counts = "1,4,16",
+    steps: Annotated[int, typer.Option(min=1, help="macro steps per measurement")] = 500,
+    rounds: Rounds = 3,
+    out_dir: OutDir = DEFAULT_OUT_DIR,
+    quiet: Quiet = False,
+) -> None:
+    """Remote vehicles on loopback: a macro step in lockstep against one by one, local, and the Zenoh round trip."""
+    from orchestrator.bench import remote as suite
+
+    run_bench("remote", lambda progress: suite.run(_counts(n), steps, rounds, progress), suite.render, out_dir, quiet)
+
+
 def register(app: typer.Typer) -> None:
     """``platoon bench`` and its suites."""
     bench_app.command("steps")(bench_steps)
@@ -356,4 +369,5 @@ def register(app: typer.Typer) -> None:
     bench_app.command("sweep")(bench_sweep)
     bench_app.command("sweep-bookkeeping")(bench_sweep_bookkeeping)
     bench_app.command("readback")(bench_readback)
+    bench_app.command("remote")(bench_remote)
     app.add_typer(bench_app, name="bench")
