@@ -24,6 +24,7 @@ from orchestrator.bench.hil import free_port
 from orchestrator.components.fmu import UnpackedFmu
 from orchestrator.components.served import ServedInstance
 from orchestrator.trace import load
+from tests.test_cli import error_line, platoon
 from tests.test_hil import _env, end_process
 
 REPO = Path(__file__).resolve().parent.parent
@@ -187,3 +188,38 @@ def test_a_silent_run_loses_its_instance_after_the_lease(fmu_dir: Path) -> None:
     finally:
         served.close()
         fmu.cleanup()
+
+
+REMOTE = REPO / "configs" / "remote" / "platoon.toml"
+
+
+def test_what_cannot_work_with_remote_vehicles_is_one_line_and_exit_2(tmp_path: Path) -> None:
+    """The native engine, an SSP export (no client FMU yet: never a silent local stand-in) and a file that is
+    not an FMU are refused before anything is written, in one line naming what."""
+    native = platoon("run", REMOTE, "--engine", "native", "--out", tmp_path / "x.mcap", cwd=tmp_path)
+    assert native.returncode == 2 and "vehicle1, vehicle2, vehicle3, vehicle4 is remote" in error_line(native)
+    ssp = platoon("export-ssp", REMOTE, "--out", tmp_path / "x.ssp", cwd=tmp_path)
+    assert ssp.returncode == 2 and "vehicles.1, vehicles.2, vehicles.3, vehicles.4" in error_line(ssp)
+    (tmp_path / "not.fmu").write_text("hello")
+    bad = platoon("serve", tmp_path / "not.fmu", "--name", "v", cwd=tmp_path)
+    assert bad.returncode == 2 and "not.fmu: not an FMU" in error_line(bad)
+    assert not list(tmp_path.glob("x.*"))
+
+
+def test_a_run_is_refused_an_instance_another_run_holds(tmp_path: Path, native_fmu_dir: Path) -> None:
+    """Two runs name the same server: the second one fails at its start with one line saying the server is busy."""
+    port = free_port()
+    sets = ["--set", "platoon.count=1", *remote_sets({1: port})]
+    with server("vehicle1", port, "native", tmp_path):
+        first = platoon_run(PAPER, tmp_path / "first.mcap", "native", "--set", "simulation.stop_time=5000", *sets)
+        partial = tmp_path / "first.mcap.partial"
+        deadline = time.monotonic() + 120
+        while not (partial.exists() and partial.stat().st_size > 50_000):  # the first run steps
+            assert first.poll() is None and time.monotonic() < deadline, first.communicate()
+            time.sleep(0.05)
+        second = platoon_run(PAPER, tmp_path / "second.mcap", "native", *sets)
+        _, err = second.communicate(timeout=120)
+        first.send_signal(signal.SIGINT)
+        first.communicate(timeout=60)
+    assert second.returncode == 1 and "busy: this server's instance belongs to another run" in err, err
+    assert "vehicle1" in err and "platoon/fmu/vehicle1" in err
