@@ -72,6 +72,12 @@ def first_reply(handle: Any) -> bytes | None:
     return None
 
 
+def _reason(body: bytes) -> str:
+    """A server's refusal, as text of at most 300 characters (it comes from the network)."""
+    text = body.decode("utf-8", "replace")
+    return text if len(text) <= 300 else text[:300] + " ..."
+
+
 @dataclass
 class RemoteComponent:
     """One remote FMU instance behind the ``Component`` interface (module docstring)."""
@@ -117,8 +123,15 @@ class RemoteComponent:
         except wire.WireError as error:
             raise self._fail(f"{what}: {error}") from None
         if not ok:
-            raise self._fail(f"{what} refused: {body.decode('utf-8', 'replace')}")
+            raise self._fail(f"{what} refused: {_reason(body)}")
         return body
+
+    def _outputs(self, handle: Any, what: str) -> list[float]:
+        """The outputs a reply carries; a reply that is not a whole number of f64 fails the run, naming the server."""
+        try:
+            return wire.unpack_floats(self._wait(handle, what), "outputs")
+        except wire.WireError as error:
+            raise self._fail(f"{what}: {error}") from None
 
     def initialize(self, start_time: float) -> None:
         """Open the instance on the server (instantiate, parameters, initialization mode), retrying while
@@ -137,10 +150,15 @@ class RemoteComponent:
             time.sleep(0.05)
         if payload is None:
             raise self._fail(f"no server answered within {self.connect_timeout:g} s (is `platoon serve` running there?)")
-        ok, reply = wire.parse_reply(payload)
-        if not ok:
-            raise self._fail(f"open refused: {reply.decode('utf-8', 'replace')}")
-        self.served = wire.parse_json(reply, "open reply")
+        try:
+            ok, reply = wire.parse_reply(payload)
+            if not ok:
+                raise self._fail(f"open refused: {_reason(reply)}")
+            self.served = wire.parse_json(reply, "open reply")
+        except wire.WireError as error:
+            raise self._fail(str(error)) from None
+        if not isinstance(self.served, dict):
+            raise self._fail("open reply: not a JSON object")
         self._querier = self.host.querier(self.key, self.step_timeout)
         if self.served.get("inputs") != self.inputs or self.served.get("outputs") != self.outputs:
             self._seq, self._token = -1, b""  # not ours to use: the lease frees it
@@ -152,10 +170,10 @@ class RemoteComponent:
     def get_outputs(self) -> list[float]:
         if self._pending is not None:
             handle, self._pending = self._pending, None
-            return wire.unpack_floats(self._wait(handle, f"step from t = {self._time:.6g} s"), "outputs")
+            return self._outputs(handle, f"step from t = {self._time:.6g} s")
         body = wire.floats(self._inputs) if self._dirty else b""
         self._dirty = False
-        return wire.unpack_floats(self._wait(self._call(wire.EXCHANGE, body), "exchange"), "outputs")
+        return self._outputs(self._call(wire.EXCHANGE, body), "exchange")
 
     def end_initialization(self) -> None:
         self._wait(self._call(wire.END_INIT), "end of initialization")

@@ -223,3 +223,49 @@ def test_a_run_is_refused_an_instance_another_run_holds(tmp_path: Path, native_f
         first.communicate(timeout=60)
     assert second.returncode == 1 and "busy: this server's instance belongs to another run" in err, err
     assert "vehicle1" in err and "platoon/fmu/vehicle1" in err
+
+
+def test_a_reply_that_breaks_the_layout_fails_the_run_naming_the_server(fmu_dir: Path) -> None:
+    """A server (or an impostor on its key) answering garbage: one ComponentError naming the vehicle and the
+    server, never a ValueError from deep inside (a real Zenoh session on 127.0.0.1 and a queryable that lies)."""
+    import zenoh
+
+    from bridge.fmu_client import RemoteComponent, RemoteHost
+    from bridge.session import open_session, zenoh_config
+    from fmus.component import ComponentError
+
+    port = free_port()
+    fmu = UnpackedFmu.open(fmu_dir / "Vehicle.fmu")
+    served = ServedInstance(fmu)
+    bad_step = [False]
+
+    def answer(query: zenoh.Query) -> None:
+        payload = query.payload.to_bytes()
+        reply = served.handle(payload)
+        if wire.parse_request(payload)[0] == wire.STEP and bad_step[0]:
+            reply = wire.reply_ok(b"\x01\x02\x03")  # not a whole number of f64
+        query.reply(query.key_expr, reply)
+
+    with open_session(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"]), "liar") as session:
+        queryable = session.declare_queryable("platoon/fmu/vehicle1", answer)  # noqa: F841
+        variables = fmu.description.modelVariables
+        inputs = [v.name for v in variables if v.causality == "input"]
+        starts = fmu.start_values()
+        component = RemoteComponent("vehicle1", "platoon/fmu/vehicle1", f"tcp/127.0.0.1:{port}", {}, inputs,
+                                    [v.name for v in variables if v.causality == "output"],
+                                    [float(starts[n]) for n in inputs], RemoteHost((f"tcp/127.0.0.1:{port}",)))
+        try:
+            component.initialize(0.0)
+            component.end_initialization()
+            component.set_inputs(component.input_defaults)
+            component.step(0.0, 0.01)
+            assert len(component.get_outputs()) == len(component.outputs)
+            bad_step[0] = True
+            component.step(0.01, 0.01)
+            with pytest.raises(ComponentError, match=r"^vehicle1 failed at t = 0.01 s: step from t = 0.01 s: outputs: "
+                                                     r"3 bytes .* \(server platoon/fmu/vehicle1 at tcp/127.0.0.1:\d+\)$"):
+                component.get_outputs()
+        finally:
+            component.close()
+            served.close()
+            fmu.cleanup()
