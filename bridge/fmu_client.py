@@ -38,6 +38,7 @@ class RemoteHost:
     allow_insecure: bool = False
     _session: Any = None
     _users: int = 0
+    _frees: list[Any] = field(default_factory=list)  # the frees sent, answered (or timed out) before closing
 
     def acquire(self) -> Any:
         if self._session is None:
@@ -46,9 +47,17 @@ class RemoteHost:
         self._users += 1
         return self._session
 
-    def release(self) -> None:
+    def release(self, free: Any = None) -> None:
+        """One component done (``free``: its free request's reply handle). The last one closes the session,
+        once every free is answered or timed out: sent back to back, they take ``CLOSE_TIMEOUT`` together at
+        most, however many servers are gone."""
+        if free is not None:
+            self._frees.append(free)
         self._users -= 1
         if self._users <= 0 and self._session is not None:
+            for handle in self._frees:
+                first_reply(handle)
+            self._frees.clear()
             session, self._session = self._session, None
             session.close()
 
@@ -185,15 +194,16 @@ class RemoteComponent:
         self._pending = self._call(wire.STEP, wire.step_body(time, step, self._inputs))
 
     def close(self) -> None:
-        """Free the instance (a dead server is not waited for longer than ``CLOSE_TIMEOUT``)."""
+        """Free the instance; the host waits for the reply (a dead server: ``CLOSE_TIMEOUT`` at most, for all of them)."""
         self._pending = None
         if self._session is None:
             return
+        free = None
         try:
             if self._token and self._seq >= 0:
-                first_reply(self._call(wire.FREE, timeout=CLOSE_TIMEOUT))
+                free = self._call(wire.FREE, timeout=CLOSE_TIMEOUT)
         finally:
             if self._querier is not None:
                 self._querier.undeclare()
             self._session, self._querier, self._token = None, None, b""
-            self.host.release()
+            self.host.release(free)

@@ -1,6 +1,7 @@
 """The python engine: the master loop in Python (orchestrator/execution/python_master.py) over FMUs
-opened with FMPy's bindings, or live robots on Zenoh; the only engine that steps live robots, paced
-to the wall clock when one is in the run."""
+opened with FMPy's bindings, live robots on Zenoh, or remote vehicles (FMUs in a `platoon serve`,
+docs/remote.md); the only engine that steps live robots, paced to the wall clock when one is in the run,
+and remote vehicles."""
 
 from __future__ import annotations
 
