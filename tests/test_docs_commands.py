@@ -134,6 +134,8 @@ SPECIAL: dict[tuple[str, str], Shorten | Parse | Skip | Expect] = {
         Parse("needs a real m3pi behind an XBee on /dev/ttyUSB0"),
     ("docs/hil.md", ".venv/bin/platoon mocap --system vicon --host 192.168.1.5 --body m3pi_3=3 --listen tcp/127.0.0.1:7449 &"):
         Parse("needs a Vicon system at 192.168.1.5 (tests/test_ros2.py runs platoon mocap with libmotioncapture's mock)"),
+    ("docs/remote.md", ".venv/bin/platoon serve Vehicle --name vehicle3 --listen tls/192.168.1.13:7447 --zenoh-config "
+                       "lab/robot3-serve.json5"): Parse("needs the robot's computer at 192.168.1.13 and the lab's certificates"),
     ("docs/hil.md", ROS2_LAB_RUN): Parse("needs the lab's ROS 2 machine and its rmw_zenohd at 192.168.1.20"),
     ("docs/hil.md", ROS2_DDS_LAB_RUN): Parse("needs the lab's ROS 2 machine and its zenoh-bridge-ros2dds at 192.168.1.20"),
     ("docs/hil.md", ROS2_PUBLISH_RUN): Parse("needs a ROS 2 graph's router at 192.168.1.20 (tests/test_ros2.py publishes "
@@ -346,7 +348,7 @@ def parse_only(command: str, root: Path) -> None:
 
 # Blocks that listen on a fixed port as documented (the HIL configs' tcp/127.0.0.1:7447, a --live
 # server): run one at a time, across parallel workers too (tests/conftest.py: fixed_ports)
-FIXED_PORT = re.compile(r"m3pi-emulator|--live\b|configs/hil/|ros2\.publish")
+FIXED_PORT = re.compile(r"m3pi-emulator|--live\b|configs/hil/|ros2\.publish|platoon serve|bench remote")
 @dataclass(frozen=True)
 class Slow:
     """A block long by nature, run as written by the slow tests only (pytest -m slow; CI runs them), within

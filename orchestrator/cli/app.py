@@ -12,7 +12,7 @@ from typing import Annotated
 
 import typer
 
-from orchestrator.cli import bench, hil, mocap, run, ssp, sweep, trace, viewer
+from orchestrator.cli import bench, hil, mocap, run, serve, ssp, sweep, trace, viewer
 from orchestrator.cli.common import out
 from orchestrator.cli.process import run_and_exit
 
@@ -46,6 +46,7 @@ for command in (run.build, run.run, trace.report, trace.export, run.analyze, tra
     app.command()(command)
 hil.register(app)  # m3pi-emulator, m3pi-serial
 mocap.register(app)  # mocap: rigid bodies as robot poses
+serve.register(app)  # serve: an FMU instance for a run elsewhere (remote vehicles)
 sweep.register(app)  # sweep, sweep-plot, stability-map
 ssp.register(app)  # export-ssp: the platoon for other tools
 viewer.register(app)  # layout, figure: what users look at

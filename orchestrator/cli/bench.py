@@ -372,6 +372,18 @@ def bench_readback(
     run_bench("readback", lambda progress: measured.run(rounds, with_map, progress), measured.render, out_dir, quiet)
 
 
+def bench_remote(
+    n: Counts = "1,4,16",
+    steps: Annotated[int, typer.Option(min=1, help="macro steps per measurement")] = 500,
+    rounds: Rounds = 3,
+    out_dir: OutDir = DEFAULT_OUT_DIR,
+    quiet: Quiet = False,
+) -> None:
+    """Remote vehicles on loopback: a macro step in lockstep against one by one, local, and the Zenoh round trip."""
+    measured = suite("remote")
+    run_bench("remote", lambda progress: measured.run(_counts(n), steps, rounds, progress), measured.render, out_dir, quiet)
+
+
 def register(app: typer.Typer) -> None:
     """``platoon bench`` and its suites."""
     bench_app.command("steps")(bench_steps)
@@ -387,4 +399,5 @@ def register(app: typer.Typer) -> None:
     bench_app.command("sweep")(bench_sweep)
     bench_app.command("sweep-bookkeeping")(bench_sweep_bookkeeping)
     bench_app.command("readback")(bench_readback)
+    bench_app.command("remote")(bench_remote)
     app.add_typer(bench_app, name="bench")

@@ -118,6 +118,7 @@ def _chosen_engine(config: Path, parsed: Config, engine_name: str | None, monoli
                    compare: bool = False) -> str:
     """The engine `platoon run` uses, after checking the options that choose it; exit 2 naming a bad one."""
     from orchestrator.components.live import LiveRunError, check_live_options
+    from orchestrator.components.remote import RemoteRunError, check_remote_options
     from orchestrator.execution.run import TRACE_WRITERS, default_engine
 
     if engine_name is not None and engine_name not in RUN_ENGINES:
@@ -135,7 +136,8 @@ def _chosen_engine(config: Path, parsed: Config, engine_name: str | None, monoli
             fail(2, f"config {config}: {'--monolithic' if monolithic else '--compare-monolithic'}: {refusal}")
     try:
         check_live_options(parsed, engine, trace_writer)
-    except LiveRunError as error:
+        check_remote_options(parsed, engine)
+    except (LiveRunError, RemoteRunError) as error:
         fail(2, f"config {config}: {error}")
     return engine
 

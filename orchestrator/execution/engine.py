@@ -77,8 +77,8 @@ def engine_class(name: str) -> type:
 
 def default_engine(config: "Config | None" = None) -> str:
     """The native engine when its extension is built (bit-identical results), else the Python one; the
-    Python one for a config with a live vehicle (the native core steps FMUs only)."""
-    if config is not None and config.live_vehicles():
+    Python one for a config with a live or remote vehicle (the native core steps local FMUs only)."""
+    if config is not None and (config.live_vehicles() or config.remote_vehicles()):
         return "python"
     from orchestrator.execution.native import available
 

@@ -21,6 +21,7 @@ from fmus.errors import ComponentError
 from orchestrator.components.fmu import UnpackedFmu
 from orchestrator.components.kinds import ensure_fmus, resolve_fmu_kind, run_fmu_names
 from orchestrator.components.live import check_live_options, live_names
+from orchestrator.components.remote import check_remote_options
 from orchestrator.execution.engine import EngineSetup, default_engine, engine_class
 from orchestrator.execution.signals import StopRequest
 from orchestrator.observers.base import Observers, WaitClock
@@ -168,6 +169,7 @@ class Execution:
         self.engine_name = engine or default_engine(config)
         self.engine_class = engine_class(self.engine_name)
         check_live_options(config, self.engine_name, trace_writer)
+        check_remote_options(config, self.engine_name)
         self.scenario = build_scenario(config)
         self.steps = step_count(sim.stop_time, sim.step)
         self.live = live_names(config) if self.engine_name == "python" else set()

@@ -194,7 +194,10 @@ class VehicleOverride(_Strict):
     initial: VehicleState | None = None
     # Hardware in the loop (docs/hil.md): "zenoh" makes this vehicle a live m3pi robot on Zenoh; the keys
     # after it say where the robot is, and are ignored with "fmu".
-    endpoint: Literal["fmu", "zenoh"] = "fmu"
+    endpoint: Literal["fmu", "zenoh", "remote"] = "fmu"
+    # "remote" (docs/remote.md): the Vehicle FMU runs in a `platoon serve` named ``server`` (default
+    # vehicle<K>), reached through connect/listen/zenoh_config, under prefix
+    server: str | None = Field(None, description="the remote vehicle's `platoon serve --name` (default vehicle<K>)")
     robot: int | None = Field(None, ge=0, le=2**31 - 1, description="robot id on Zenoh (default: the vehicle number)")
     prefix: str | None = Field(None, description="key prefix (default hil.prefix)")
     connect: list[Text] | None = Field(None, description="Zenoh endpoints to connect to, e.g. tcp/127.0.0.1:7447")
@@ -206,11 +209,21 @@ class VehicleOverride(_Strict):
     def _prefix_is_a_key(self) -> "VehicleOverride":
         # robot, prefix, connect, listen and zenoh_config only act with endpoint = "zenoh"; they may stay
         # when a run sets endpoint = "fmu" (the same platoon all simulated, for comparison)
-        if self.prefix is not None:
-            problems = check_prefix(self.prefix)
+        for key in ("prefix", "server"):
+            value = getattr(self, key)
+            problems = check_prefix(value) if value is not None else []
             if problems:
-                raise _rule("prefix", self.prefix, problems[0])
+                raise _rule(key, value, problems[0])
         return self
+
+
+class Remote(_Strict):
+    """Remote vehicles (docs/remote.md): how patient the run is with their servers."""
+
+    step_timeout: Annotated[float, Unit("s")] = Field(2.0, gt=0.0, le=600.0, description="s to wait for a server's reply "
+                                                                                       "to one call: then the run fails")
+    connect_timeout: Annotated[float, Unit("s")] = Field(10.0, gt=0.0, le=600.0, description="s to wait for each server "
+                                                                                          "at the start")
 
 
 class Hil(_Strict):
@@ -334,6 +347,7 @@ class Config(_Strict):
     disturbance: list[Disturbance] = Field(default_factory=list)
     vehicles: dict[str, VehicleOverride] = Field(default_factory=dict)
     hil: Hil = Hil()
+    remote: Remote = Remote()
     ros2: RunRos2 = RunRos2()
     links: Links = Links()
 
@@ -542,6 +556,10 @@ class Config(_Strict):
     def live_vehicles(self) -> list[int]:
         """Numbers of the vehicles that are live robots, front to back."""
         return sorted(int(k) for k, v in self.vehicles.items() if v.endpoint == "zenoh")
+
+    def remote_vehicles(self) -> list[int]:
+        """Numbers of the vehicles whose FMU runs in a `platoon serve` elsewhere, front to back."""
+        return sorted(int(k) for k, v in self.vehicles.items() if v.endpoint == "remote")
 
     def robot_id(self, vehicle: int) -> int:
         robot = self.override(vehicle).robot

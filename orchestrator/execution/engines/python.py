@@ -1,6 +1,7 @@
 """The python engine: the master loop in Python (orchestrator/execution/python_master.py) over FMUs
-opened with FMPy's bindings, or live robots on Zenoh; the only engine that steps live robots, paced
-to the wall clock when one is in the run."""
+opened with FMPy's bindings, live robots on Zenoh, or remote vehicles (FMUs in a `platoon serve`,
+docs/remote.md); the only engine that steps live robots, paced to the wall clock when one is in the run,
+and remote vehicles."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from fmus.component import Component
 from fmus.realtime import Pacer
 from orchestrator.components.fmu import FmuComponent
 from orchestrator.components.live import live_component
+from orchestrator.components.remote import remote_components
 from orchestrator.execution.engine import Check, EngineSetup
 from orchestrator.execution.python_master import Master
 from orchestrator.observers.base import Observers
@@ -21,8 +23,10 @@ class Engine:
     def __init__(self, setup: EngineSetup) -> None:
         sim = setup.config.simulation
         self.step = sim.step
+        remote = remote_components(setup.config, setup.scenario, setup.fmus)  # in a `platoon serve` elsewhere
         self.components: list[Component] = [
             live_component(spec, setup.fmus[spec.fmu], setup.config, index) if spec.name in setup.live
+            else remote[spec.name] if spec.name in remote
             else FmuComponent(spec.name, setup.fmus[spec.fmu], spec.parameters)
             for index, spec in enumerate(setup.scenario.components)
         ]
