@@ -17,6 +17,8 @@ finds this folder there (orchestrator/cli/bench.py), or ``python -m benchmarks.<
 * ``sweep``: wall time of a sweep with 1, 2, ... local workers and on Dask; the speed-up (``sweep.py``);
 * ``readback``: each trace reader (load, report, stability, stability-map) against the run that wrote the
   trace, whole processes in one sitting; load's peak memory against its arrays (``readback.py``);
+* ``remote``: a macro step of N remote vehicles (``platoon serve``) in lockstep, one by one, local, and the
+  Zenoh round trip, in one sitting (``remote.py``);
 * ``cores LABEL=PATH LABEL=PATH``: the native engine with two or more builds of _core.c (``flatness.py``).
 
 ``python -m benchmarks.<name>`` (each module's docstring has its options):
