@@ -158,6 +158,7 @@ def _outsiders(folder: Path, tls: str) -> list[tuple[str, object]]:
             ("a certificate of another CA", zenoh_config(connect=[tls], config_file=str(impostor)))]
 
 
+@pytest.mark.realtime
 def test_with_tls_and_acl_strangers_cannot_connect_or_drive_and_the_platoon_tracks_as_without(tmp_path: Path) -> None:
     """The emulator as lab host xbee-pc on tls/127.0.0.1, the run as laptop. Outsiders never get a
     session; desk (a valid certificate, not robot 3's run host) connects but its claim token and
@@ -484,6 +485,7 @@ print(json.dumps({"refused": [refused.returncode, refused.stderr], "moved": move
 '''
 
 
+@pytest.mark.realtime
 def test_on_a_trusted_network_a_stranger_without_the_lab_key_moves_the_robot_0_m(tmp_path: Path) -> None:
     """The trusted-network setup, on a real non-loopback address (10.200.0.1 in a private network namespace,
     ``unshare -rn``): the emulator refuses to listen there without TLS unless allow_insecure; with it, a

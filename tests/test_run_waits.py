@@ -10,10 +10,13 @@ import subprocess
 import time
 from pathlib import Path
 
+import pytest
+
 from orchestrator.bench.hil import free_port
 from tests.test_hil import LIVE3, PLATOON, REPO, _env, emulator, endpoint, wait_for
 
 
+@pytest.mark.realtime
 def test_the_steps_time_leaves_out_the_wait_for_the_robot(tmp_path: Path) -> None:
     """The robot's emulator starts HOLD s after the run says it waits for the robot (a wait made on purpose:
     it is what is measured). The 2 s run is paced to the wall clock, so its own work is a little over 2 s;
