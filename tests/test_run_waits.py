@@ -40,3 +40,11 @@ def test_the_steps_time_leaves_out_the_wait_for_the_robot(tmp_path: Path) -> Non
     done = re.search(r"\((\d+) steps in ([\d.]+) s\)", stdout)
     assert done and int(done.group(1)) == 200, stdout
     assert stop <= float(done.group(2)) < stop + hold / 2, stdout
+    # where those seconds went: the stepping, held to the pace's 2 s (or behind it, saying so), and the start
+    # and finish around it
+    paced = re.search(r"^paced: 2 s of simulated time on the wall clock; stepping took ([\d.]+) s(.*); starting and "
+                      r"finishing ([\d.]+) s$", stdout, re.MULTILINE)
+    assert paced and float(paced.group(1)) >= stop - 0.005, stdout
+    assert float(paced.group(1)) + float(paced.group(3)) == pytest.approx(float(done.group(2)), abs=0.011), stdout
+    assert paced.group(2) in ("", f", so the run ended {float(paced.group(1)) - stop:.2f} s behind the pace: it fell "
+                                  "behind (a loaded machine)"), stdout

@@ -104,6 +104,8 @@ def run_bench(suite: str, measure, render, out_dir: Path, quiet: bool) -> None:
     """Run one suite with progress, print its tables, write its JSON; bad options exit 2, failures 1."""
     from orchestrator.bench.common import BenchError, BenchUsageError, write_result
 
+    if not quiet:  # at once: a suite's first measurement can take seconds (a run, a sweep)
+        err.print(f"bench {suite}: measuring, a line as each measurement is done ...", highlight=False)
     try:
         with _BenchProgress(quiet) as progress:
             result = measure(progress)

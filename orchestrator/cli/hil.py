@@ -56,7 +56,8 @@ def live_table(summary: dict[str, dict[str, Any]]) -> Table:
     pacing = summary.get("pacing", {})
     title = (f"live: step jitter median {ms_text(pacing.get('jitter.median'))} ms, p99 {ms_text(pacing.get('jitter.p99'))} ms, "
              f"max {ms_text(pacing.get('jitter.max'))} ms; overruns {pacing.get('overruns', 0)} of {pacing.get('points', 0)}"
-             + (f", behind by {ms_text(pacing['behind.total'])} ms in all" if pacing.get("overruns") and "behind.total" in pacing else ""))
+             + (f", behind by {ms_text(pacing['behind.total'])} ms in all (its stalls added up, each caught up after)"
+                if pacing.get("overruns") and "behind.total" in pacing else ""))
     notes = ["trip: command sent -> first pose taken after the robot applied it (median/p99); "
              "age: of the pose each step used (median/max)"]
     headers = ("vehicle", "robot", "state", "cmds", "poses", "dropped", "trip ms", "age ms")
