@@ -117,8 +117,9 @@ def zig_timeout_text(target: str, limit: float) -> str:
 
 def run_compiler(command: list[str], cwd: Path, timeout_text: Callable[[float], str],
                  waiting: Callable[[float], None] | None = None, every: float = 5.0) -> subprocess.CompletedProcess:
-    """Run a compiler ``command`` in ``cwd``, its output captured; ``waiting(seconds so far)`` every ``every``
-    s while it runs (a first Zig compile takes minutes: the caller shows it is alive). Past
+    """Run a compiler ``command`` in ``cwd``, its output captured; ``waiting(seconds so far)`` after ``every`` s
+    while it runs, then each time the time so far has doubled (a first Zig compile takes minutes: the caller
+    shows it is alive, in a few lines, not a screenful). Past
     ``compile_timeout()`` the compiler is stopped and ``CompileTimeout(timeout_text(limit))`` raised. The
     compiler runs in a process group of its own, stopped as a whole (``python -m ziglang cc`` starts zig,
     which starts clang), on a timeout and on Ctrl-C alike: no compiler is left writing to Zig's cache."""
@@ -126,17 +127,21 @@ def run_compiler(command: list[str], cwd: Path, timeout_text: Callable[[float], 
     process = subprocess.Popen(command, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                start_new_session=True)
     started = time.monotonic()
+    next_word = every
     try:
         while True:
-            left = limit - (time.monotonic() - started)
+            so_far = time.monotonic() - started
             try:
-                stdout, stderr = process.communicate(timeout=max(0.01, min(every, left)))
+                stdout, stderr = process.communicate(timeout=max(0.01, min(next_word, limit) - so_far))
                 return subprocess.CompletedProcess(command, process.returncode, stdout, stderr)
             except subprocess.TimeoutExpired:
-                if time.monotonic() - started >= limit:
+                so_far = time.monotonic() - started
+                if so_far >= limit:
                     raise CompileTimeout(timeout_text(limit)) from None
-                if waiting is not None:
-                    waiting(time.monotonic() - started)
+                if so_far >= next_word:
+                    next_word = max(every, 2 * so_far)
+                    if waiting is not None:
+                        waiting(so_far)
     finally:
         if process.poll() is None:
             _stop_group(process)

@@ -85,7 +85,7 @@ def _build_native(out_dir: Path, force: bool, all_platforms: bool = False, rule:
 
 def _warm_zig() -> None:
     """Zig's C runtime for each release target, each said as it is ready, and while one takes long (a cold
-    cache) a line every PLATOON_PROGRESS_SECONDS (at least 1 s)."""
+    cache) a line after PLATOON_PROGRESS_SECONDS (at least 1 s) and each time the wait has doubled."""
     from fmus.builders.zig_cache import warm_cross_cache
 
     from orchestrator.observers.progress import progress_seconds
