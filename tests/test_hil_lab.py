@@ -511,3 +511,28 @@ def test_on_a_trusted_network_a_stranger_without_the_lab_key_moves_the_robot_0_m
     assert result["moved"] == 0.0 and result["claims"] == [0], result
     assert "claimed by 5757575757575757" not in result["log"] and "MAC does not check" in result["log"]
     assert result["run"][0] == 0, result["run"][1]
+
+
+def test_a_plain_tcp_run_to_a_tls_robot_side_says_the_far_side_speaks_tls(tmp_path: Path) -> None:
+    """The lab's robot side listens on tls/, the run connects with tcp/ to the same port (a forgotten
+    recipe): Zenoh's handshake fails in silence, and the run's failure says that the far side answers in TLS and
+    how to connect, not whether the emulator runs. A plain Zenoh listener there is not taken for TLS."""
+    from bridge.tls_probe import speaks_tls
+
+    folder = tmp_path / "lab"
+    write_lab(LAB, folder, days=1)
+    port = free_port()
+    side, _, _ = _robot_side(folder, f"tls/127.0.0.1:{port}")
+    try:
+        code, _, err = finish(start_run(free_port(), tmp_path / "plain.mcap", 1.0,
+                                        f'vehicles.3.connect=["tcp/127.0.0.1:{port}"]', "hil.connect_timeout=1"), 60)
+    finally:
+        side.close()
+    assert code == 1 and "did not appear within 1 s" in err, err
+    assert (f"tcp/127.0.0.1:{port} answers in TLS: the robot side listens with TLS there, so connect with "
+            f"tls/127.0.0.1:{port} and the lab's zenoh_config") in err, err
+    assert "is `platoon m3pi-emulator`" not in err
+    plain = free_port()
+    with open_session(zenoh_config(listen=[f"tcp/127.0.0.1:{plain}"]), "plain"):
+        assert not speaks_tls("127.0.0.1", plain)
+    assert not speaks_tls("127.0.0.1", free_port())  # nobody there

@@ -40,6 +40,7 @@ def test_the_steps_time_leaves_out_the_wait_for_the_robot(tmp_path: Path) -> Non
     done = re.search(r"\((\d+) steps in ([\d.]+) s\)", stdout)
     assert done and int(done.group(1)) == 200, stdout
     assert stop <= float(done.group(2)) < stop + hold / 2, stdout
+    assert "reported nothing back" not in stdout  # our protocol's robot side reports what it received
     # where those seconds went: the stepping, held to the pace's 2 s (or behind it, saying so), and the start
     # and finish around it
     paced = re.search(r"^paced: 2 s of simulated time on the wall clock; stepping took ([\d.]+) s(.*); starting and "

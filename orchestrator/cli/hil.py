@@ -72,6 +72,9 @@ def live_table(summary: dict[str, dict[str, Any]]) -> Table:
                                         str(stats.get("command.foreign_claim", "")))
         if refused:
             notes.append(f"{name}: {refused}")
+        if stats.get("command.sent") and not (stats.get("command.accepted") or stats.get("command.dropped")):
+            notes.append(f"{name}: its robot side reported nothing back (a ROS 2 robot sends no status): how many "
+                         "commands it received and its safety stops are not known here; its own log has them")
         if stats.get("command.safety_stops"):
             notes.append(f"{name}: robot-side safety stops {stats['command.safety_stops']} (no command for up to "
                          f"{ms_text(stats.get('command.longest_gap'))} ms, past the deadline: the run stalled)")
