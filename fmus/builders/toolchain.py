@@ -51,6 +51,9 @@ ZIG_TARGETS = {
 # advice (run again: the cache keeps what Zig finished).
 COMPILE_TIMEOUT_VARIABLE = "PLATOON_COMPILE_TIMEOUT"
 DEFAULT_COMPILE_TIMEOUT = 600.0
+# s: warming Zig's cache (fmus/builders/zig_cache.py) is the first compile for a target by design: Windows'
+# C runtime took 135 s at load 5-8 and more than 480 s at load 15-23 (2026-12-02); the same variable sets it.
+DEFAULT_WARM_TIMEOUT = 1800.0
 WARM_ADVICE = "or warm Zig's cache first: python -m fmus.builders.zig_cache"
 
 
@@ -97,13 +100,13 @@ def zig_cc() -> list[str]:
     return [sys.executable, "-m", "ziglang", "cc"]
 
 
-def compile_timeout() -> float:
-    """The seconds one compiler process may take (``PLATOON_COMPILE_TIMEOUT``, > 0; default 600)."""
+def compile_timeout(default: float = DEFAULT_COMPILE_TIMEOUT) -> float:
+    """The seconds one compiler process may take (``PLATOON_COMPILE_TIMEOUT``, > 0; else ``default``)."""
     try:
         value = float(os.environ.get(COMPILE_TIMEOUT_VARIABLE, ""))
     except ValueError:
-        return DEFAULT_COMPILE_TIMEOUT
-    return value if 0 < value < float("inf") else DEFAULT_COMPILE_TIMEOUT
+        return default
+    return value if 0 < value < float("inf") else default
 
 
 def zig_timeout_text(target: str, limit: float) -> str:
@@ -116,14 +119,16 @@ def zig_timeout_text(target: str, limit: float) -> str:
 
 
 def run_compiler(command: list[str], cwd: Path, timeout_text: Callable[[float], str],
-                 waiting: Callable[[float], None] | None = None, every: float = 5.0) -> subprocess.CompletedProcess:
+                 waiting: Callable[[float], None] | None = None, every: float = 5.0,
+                 limit: float | None = None) -> subprocess.CompletedProcess:
     """Run a compiler ``command`` in ``cwd``, its output captured; ``waiting(seconds so far)`` after ``every`` s
     while it runs, then each time the time so far has doubled (a first Zig compile takes minutes: the caller
     shows it is alive, in a few lines, not a screenful). Past
-    ``compile_timeout()`` the compiler is stopped and ``CompileTimeout(timeout_text(limit))`` raised. The
+    ``limit`` (default ``compile_timeout()``) the compiler is stopped and ``CompileTimeout(timeout_text(limit))``
+    raised. The
     compiler runs in a process group of its own, stopped as a whole (``python -m ziglang cc`` starts zig,
     which starts clang), on a timeout and on Ctrl-C alike: no compiler is left writing to Zig's cache."""
-    limit = compile_timeout()
+    limit = compile_timeout() if limit is None else limit
     process = subprocess.Popen(command, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                start_new_session=True)
     started = time.monotonic()

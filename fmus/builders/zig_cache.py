@@ -13,7 +13,8 @@ from pathlib import Path
 from typing import Callable
 
 from fmus.builders.base import BuildError
-from fmus.builders.toolchain import LIBS, ZIG_TARGETS, cross_flags, run_compiler, zig_cc, zig_timeout_text
+from fmus.builders.toolchain import (DEFAULT_WARM_TIMEOUT, LIBS, ZIG_TARGETS, compile_timeout, cross_flags, run_compiler,
+                                     zig_cc, zig_timeout_text)
 
 # What a first cross-compilation for a target costs, paid once per machine: Zig builds that target's C
 # library stubs (glibc 2.17, MinGW-w64's CRT, macOS's libSystem) and compiler-rt from source into its
@@ -31,8 +32,9 @@ def warm_cross_cache(ready: Callable[[str, float], None] | None = None,
     under a time budget call this first). Returns the seconds each target took (a fraction of a second
     each when the cache is warm already); ``ready(target, seconds)`` as each one is done, ``waiting(target,
     seconds so far)`` every ``every`` s while one takes longer (a cold cache: minutes). ``NoCrossCompiler``
-    without the ziglang package; ``CompileTimeout`` (one line: the target, what to do) past the compile
-    timeout, the compiler stopped."""
+    without the ziglang package; ``CompileTimeout`` (one line: the target, what to do) past the warm-up's
+    timeout (``PLATOON_COMPILE_TIMEOUT``, default 1800 s: this compile is the slow one by design), the
+    compiler stopped."""
     taken = {}
     with tempfile.TemporaryDirectory(prefix="platoon-zig-warm-") as scratch:
         source = Path(scratch) / "warm.c"
@@ -43,7 +45,7 @@ def warm_cross_cache(ready: Callable[[str, float], None] | None = None,
             command = [*zig_cc(), *cross_flags("warm", platform), str(source), "-o", str(output), *LIBS]
             result = run_compiler(command, Path(scratch), lambda limit, target=target: zig_timeout_text(target, limit),
                                   None if waiting is None else (lambda seconds, target=target: waiting(target, seconds)),
-                                  every)
+                                  every, compile_timeout(DEFAULT_WARM_TIMEOUT))
             if result.returncode != 0:
                 raise BuildError(f"warming Zig's cache for {platform.tuple} failed ({' '.join(command)}):\n"
                                  f"{result.stderr.strip()}")
