@@ -115,6 +115,12 @@ def test_the_monolithic_reference_refuses_links(tmp_path):
         refused = platoon("run", str(config), option, "--out", str(tmp_path / "x.mcap"))
         assert refused.returncode == 2
         assert f"{option}: the monolithic reference has no messages, so it cannot run links (8 in this config" in refused.stderr
+        assert "or without the [links] table" in refused.stderr
+    plain = tmp_path / "plain.toml"  # the links made by --set: the remedy names the option, not a table it lacks
+    plain.write_text('name = "plain"\n')
+    refused = platoon("run", str(plain), "--monolithic", "--set", "links.delay=0.1", "--out", str(tmp_path / "x.mcap"))
+    assert refused.returncode == 2 and "or without --set links.delay" in refused.stderr, refused.stderr
+    assert "[links] table" not in refused.stderr
     assert not (tmp_path / "x.mcap").exists()
     result = run_scenario(config_from_mapping({"name": "x", "links": {"loss": 0.1}}), "", None, engine="monolithic")
     assert result.status == "failed" and "cannot run links" in result.error

@@ -46,7 +46,7 @@ def run_command(options: RunOptions) -> None:
 
     imported = seconds_since_process_start()  # the engines, numpy, the trace writer
     engine = _chosen_engine(config, parsed, options.engine_name, options.monolithic, options.trace_writer,
-                            options.compare)
+                            options.compare, tuple(o.split("=", 1)[0].strip() for o in overrides if o.startswith("links")))
     view = _live_view(parsed, options)
     inputs = run_inputs(config, parsed)
     target = claim_trace(options.trace, options.overwrite, inputs, lambda: default_trace_path(parsed, engine))
@@ -116,8 +116,9 @@ def _execute(config: Config, text: str, trace, engine: str, quiet: bool, trace_w
 
 
 def _chosen_engine(config: Path, parsed: Config, engine_name: str | None, monolithic: bool, trace_writer: str,
-                   compare: bool = False) -> str:
-    """The engine `platoon run` uses, after checking the options that choose it; exit 2 naming a bad one."""
+                   compare: bool = False, set_links: tuple[str, ...] = ()) -> str:
+    """The engine `platoon run` uses, after checking the options that choose it; exit 2 naming a bad one
+    (``set_links``: the --set keys under links, which a refused monolithic run names)."""
     from orchestrator.components.live import LiveRunError, check_live_options
     from orchestrator.execution.run import TRACE_WRITERS, default_engine
 
@@ -131,7 +132,7 @@ def _chosen_engine(config: Path, parsed: Config, engine_name: str | None, monoli
     if monolithic or compare:
         from orchestrator.scenario.scenario import monolithic_refusal
 
-        refusal = monolithic_refusal(parsed)
+        refusal = monolithic_refusal(parsed, set_links)
         if refusal is not None:
             fail(2, f"config {config}: {'--monolithic' if monolithic else '--compare-monolithic'}: {refusal}")
     try:
