@@ -148,6 +148,11 @@ def trace_recover(
     state = "a complete file" if result.finished else f"{result.chunks} intact chunks"
     out.print(f"recovered {result.steps} communication points ({span}, {result.messages} messages) from {state}: {fixed}"
               f"{damage}", highlight=False, soft_wrap=True)
+    from shlex import quote
+
+    out.print(f"layout: platoon layout {quote(str(fixed))}  (a Foxglove layout fitted to the run, to open with it: "
+              "docs/foxglove.md)",
+              highlight=False, soft_wrap=True)
 
 
 
