@@ -1002,10 +1002,12 @@ def test_a_robot_side_safety_stop_shows_in_the_terminal_the_summary_and_the_log(
     # the run's layout has a panel for the live link, each series a field of the trace's vehicle3/link stream
     from orchestrator.trace.layout import layout_path
 
-    panel = json.loads(layout_path(trace).read_text())["configById"]["Plot!live"]
-    fields = [path["value"].split(".", 1)[1].strip('"') for path in panel["paths"]]
-    assert [path["value"].split(".", 1)[0] for path in panel["paths"]] == ["/platoon/vehicle3/link"] * 3
+    panels = json.loads(layout_path(trace).read_text())["configById"]
+    paths = panels["Plot!live"]["paths"] + panels["Plot!stops"]["paths"]  # ages (s) and stops (a count): two axes
+    fields = [path["value"].split(".", 1)[1].strip('"') for path in paths]
+    assert [path["value"].split(".", 1)[0] for path in paths] == ["/platoon/vehicle3/link"] * 3
     assert fields == ["pose_age.median", "pose_age.max", "command.safety_stops"]
+    assert [path["label"] for path in paths] == ["vehicle3 med", "vehicle3 max", "vehicle3"]  # whole in 150 px
     assert all(field in loaded.live["vehicle3/link"] for field in fields)
     assert loaded.live["vehicle3/link"]["command.safety_stops"][-1] >= 1
 

@@ -244,6 +244,17 @@ def test_the_layout_of_a_run_with_links_plots_each_links_age(link_fmus, run, tmp
     plain = config_from_mapping({**lossy(stop_time=0.5), "links": {}})
     assert "Plot!links" not in run_layout(plain, 3)["configById"]
 
+    def heights(node, share: float = 100.0) -> dict[str, float]:  # % of the column each plot gets
+        if isinstance(node, str):
+            return {node: share}
+        first = share * node.get("splitPercentage", 50.0) / 100.0
+        return {**heights(node["first"], first), **heights(node["second"], share - first)}
+
+    # four plots stacked: each a quarter of the column, so the links' legend (8 lines) is not cut to 3
+    column = heights(json.loads(written.path.read_text())["layout"]["second"])
+    assert list(column) == ["Plot!path", "Plot!gap", "Plot!speed", "Plot!links"]
+    assert all(abs(share - 25.0) < 1e-9 for share in column.values()), column
+
 
 def link_table_rows(stdout: str) -> dict[str, list[str]]:
     """The links table `platoon run` / `platoon report` print: cells by link."""
