@@ -1007,7 +1007,7 @@ def test_a_robot_side_safety_stop_shows_in_the_terminal_the_summary_and_the_log(
     fields = [path["value"].split(".", 1)[1].strip('"') for path in paths]
     assert [path["value"].split(".", 1)[0] for path in paths] == ["/platoon/vehicle3/link"] * 3
     assert fields == ["pose_age.median", "pose_age.max", "command.safety_stops"]
-    assert [path["label"] for path in paths] == ["vehicle3 med", "vehicle3 max", "vehicle3"]  # whole in 150 px
+    assert [path["label"] for path in paths] == ["v3 median", "v3 max", "vehicle 3"]  # whole in the legend's 150 px
     assert all(field in loaded.live["vehicle3/link"] for field in fields)
     assert loaded.live["vehicle3/link"]["command.safety_stops"][-1] >= 1
 

@@ -502,19 +502,20 @@ def _link_plot(links: Sequence[str]) -> dict[str, Any]:
 def _live_plots(live: Sequence[str]) -> dict[str, dict[str, Any]]:
     """Each live robot's link (docs/hil.md, "The live view"), from its ``<vehicle>/link`` statistics, in two
     plots: the age of the poses the run used (median and largest so far: tens of ms) and the robot-side
-    safety stops (a count), each on its own axis (on one, a count of 3 flattens the ages onto zero). Short
-    labels ("vehicle3 max"): the legend's column is 150 px wide."""
+    safety stops (a count), each on its own axis (on one, a count of 3 flattens the ages onto zero). Labels
+    of at most 9 characters ("v3 median", "vehicle 3"): the legend's 150 px column shows "vehicle 4" whole and
+    cut "vehicle3 med" (Lichtblick 1.10.8 at 1600x900)."""
     def plot(title: str, fields: tuple[tuple[str, str], ...]) -> dict[str, Any]:
         shown = _plot(title, "link", [], [])
         shown["paths"] = [{"value": message_path(f"{CHANNEL_PREFIX}{name}/link", field), "enabled": True,
-                           "timestampMethod": "receiveTime", "label": f"{name}{label}"}
+                           "timestampMethod": "receiveTime", "label": label.format(name[len("vehicle"):])}
                           for name in live for field, label in fields]
         shown["showLegend"], shown["legendDisplay"] = True, "left"
         return shown
 
-    return {"Plot!live": plot("live link: pose age [s] (median, max)", (("pose_age.median", " med"),
-                                                                         ("pose_age.max", " max"))),
-            "Plot!stops": plot("live link: robot-side safety stops", (("command.safety_stops", ""),))}
+    return {"Plot!live": plot("live link: pose age [s] (median, max)", (("pose_age.median", "v{} median"),
+                                                                         ("pose_age.max", "v{} max"))),
+            "Plot!stops": plot("live link: robot-side safety stops", (("command.safety_stops", "vehicle {}"),))}
 
 
 def _column(panels: Sequence[Any]) -> Any:
