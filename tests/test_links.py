@@ -322,3 +322,25 @@ def test_a_link_that_sent_nothing_reports_null_not_nan():
     assert json.loads(json.dumps(rows, allow_nan=False)) == [
         {"name": "link_forward1", "sent": 0, "delivered": 0, "lost": 0, "lost_share": None, "mean_age": None},
         {"name": "link_backward1", "sent": 4, "delivered": 3, "lost": 1, "lost_share": 0.25, "mean_age": 0.25}]
+
+
+def test_report_plots_of_a_lossy_run_say_lossy_and_draw_each_links_age(link_fmus, run, tmp_path, monkeypatch):
+    """`platoon report --plots` of a run with imperfect links: every panel's title names them (the header's
+    words), and links.png draws each link's age of information from the trace, one line per link; a run
+    whose links are perfect gets no links.png."""
+    from orchestrator.analysis import plots as plots_module
+
+    config = config_from_mapping(lossy(stop_time=2.0))
+    trace = run(config)
+    kept: list = []
+    monkeypatch.setattr(plots_module.plt, "close", kept.append)  # each figure kept once saved, to read back
+    written = plots_module.write_plots(trace, config, tmp_path / "plots")
+    assert [path.name for path in written][-1] == "links.png" and written[-1].read_bytes()[:4] == b"\x89PNG"
+    assert all(config.links_text() in figure.axes[0].get_title() for figure in kept), config.links_text()
+    lines = kept[-1].axes[0].get_lines()
+    names = [name for name in trace.channels if name.startswith("link_")]
+    assert [line.get_label() for line in lines] == [name.removeprefix("link_") for name in names]
+    for line, name in zip(lines, names):
+        assert np.array_equal(line.get_ydata(), trace.component(name)["age"])
+    plain = config_from_mapping({**lossy(stop_time=0.5), "links": {}})
+    assert [path.name for path in plots_module.write_plots(run(plain), plain, tmp_path / "plain")][-1] == "xy.png"
