@@ -48,11 +48,11 @@ ZIG_TARGETS = {
 # our FMU takes a second or two; a first Zig compile for a target also builds that target's C runtime into
 # Zig's cache: 135 s for Windows with a cold cache at load 5-8 (docs/fmus.md, "Cost"), 2-3x that on a busier
 # machine. The limit only stops a compiler that hangs; a slow cold cache reaching it gets CompileTimeout's
-# advice (run again: the cache keeps what Zig finished).
+# advice (run again with a longer limit: the cache keeps the targets Zig finished).
 COMPILE_TIMEOUT_VARIABLE = "PLATOON_COMPILE_TIMEOUT"
 DEFAULT_COMPILE_TIMEOUT = 600.0
 # s: warming Zig's cache (fmus/builders/zig_cache.py) is the first compile for a target by design: Windows'
-# C runtime took 135 s at load 5-8 and more than 480 s at load 15-23 (2026-12-02); the same variable sets it.
+# C runtime took 135 s at load 5-8 and 765 s at load about 20 (2026-12-02); the same variable sets it.
 DEFAULT_WARM_TIMEOUT = 1800.0
 WARM_ADVICE = "or warm Zig's cache first: python -m fmus.builders.zig_cache"
 
@@ -113,9 +113,10 @@ def zig_timeout_text(target: str, limit: float) -> str:
     """One line for a Zig compile for ``target`` stopped after ``limit`` s: what was most likely going on, and
     what to do."""
     return (f"Zig's compiler for {target} did not finish within {limit:.0f} s: Zig was most likely still building "
-            f"its C runtime for {target} (the first build for a target: minutes on a busy machine). Run the same "
-            f"command again (Zig's cache keeps what it finished; nothing half-built was kept), {WARM_ADVICE} "
-            f"({COMPILE_TIMEOUT_VARIABLE}=SECONDS gives it longer)")
+            f"its C runtime for {target} (the first build for a target: minutes on a busy machine; nothing "
+            f"half-built was kept). Run the same command again, with {COMPILE_TIMEOUT_VARIABLE}=SECONDS to give it "
+            f"longer (Zig's cache keeps the targets it finished, but builds a C runtime whole: Windows' took 765 s at "
+            f"load 20), {WARM_ADVICE}")
 
 
 def run_compiler(command: list[str], cwd: Path, timeout_text: Callable[[float], str],
