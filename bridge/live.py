@@ -361,9 +361,10 @@ class LiveVehicle:
     def _not_found(self) -> str:
         where = self._endpoints()
         if not self._alive:
+            cause = tls_listener_hint(self.settings) or ("is `platoon m3pi-emulator` or `platoon m3pi-serial` running?"
+                                                         + tls_hint(self.settings))
             return (f"{self.what} did not appear within {self.settings.connect_timeout:g} s: no liveliness token on "
-                    f"{self.keys.alive} ({where}; is `platoon m3pi-emulator` or `platoon m3pi-serial` running?"
-                    + tls_hint(self.settings) + ")")
+                    f"{self.keys.alive} ({where}; {cause})")
         if not self.claim.granted:
             key = f"lab key {self._key.path}" if self._key is not None else "no lab key"
             if self.claim.request_refused:
@@ -549,6 +550,18 @@ class LiveVehicle:
             self._events.append(LiveEvent("Warning", f"{self.what}: its robot side did not confirm the claim's "
                                                      f"release within {RELEASE_WATCH:g} s: what it applied after the "
                                                      "last status is not known"))
+
+
+def tls_listener_hint(settings: LiveSettings) -> str:
+    """For a robot that did not appear over plain tcp/: if the far side of a connect endpoint speaks TLS
+    (``bridge.tls_probe``: one handshake per endpoint, only now), that this run forgot the lab's TLS; else ""."""
+    from .tls_probe import tls_listeners
+
+    secured = tls_listeners(settings.connect)
+    if not secured:
+        return ""
+    return (f"{secured[0]} answers in TLS: the robot side listens with TLS there, so connect with "
+            f"tls/{secured[0][len('tcp/'):]} and the lab's zenoh_config (docs/hil.md, \"A secure lab\")")
 
 
 def tls_hint(settings: LiveSettings) -> str:

@@ -9,6 +9,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import pytest
+
 from tests.test_bench import written
 from tests.test_cli import REPO, platoon
 
@@ -16,6 +18,7 @@ LIVE = ("step 100 Hz, poses 200 Hz", "step 200 Hz, poses 200 Hz", "step 100 Hz, 
         "step 100 Hz, poses 200 Hz, TLS+ACL")
 
 
+@pytest.mark.realtime
 def test_hil_measures_transport_and_live_runs(tmp_path: Path, fmu_dir: Path) -> None:
     result = platoon("bench", "hil", "--seconds", "2", "--out-dir", tmp_path, "-q", cwd=REPO)
     data = written(result, tmp_path, "hil")

@@ -92,3 +92,45 @@ def test_a_build_never_writes_an_fmu_without_binaries(fmu_dir, tmp_path):
     assert lines and lines[0].startswith("refused: pythonfmu was imported from"), lines
     assert "platoon build" in lines[0]
     assert lines[1:] == [], lines  # nothing written
+
+
+def test_a_cross_compile_past_its_time_is_one_line_naming_the_target_and_writes_no_native_fmu(tmp_path):
+    """`platoon build --all-platforms` on a cold Zig cache (an empty ZIG_GLOBAL_CACHE_DIR) with a compile
+    limit of 4 s (PLATOON_COMPILE_TIMEOUT): Zig is still building the first target's C runtime when the limit
+    comes (tens of seconds of CPU on any machine). The user gets a line while it waits, then one error line
+    naming the target, what Zig was doing and what to do, exit 1, no traceback; no native FMU and no partial
+    file is left, and no compiler of that build is still running."""
+    import os
+
+    import psutil
+    import pytest
+
+    pytest.importorskip("ziglang")
+    from fmus.builders.toolchain import ZIG_TARGETS
+
+    cache, out = tmp_path / "zig-cache", tmp_path / "out"
+    env = {**os.environ, "ZIG_GLOBAL_CACHE_DIR": str(cache), "PLATOON_COMPILE_TIMEOUT": "4",
+           "PLATOON_PROGRESS_SECONDS": "1", "COLUMNS": "200"}
+    result = subprocess.run([*PLATOON, "build", "--all-platforms", "--out", str(out)], capture_output=True, text=True,
+                            cwd=REPO, env=env, timeout=300)
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert "Traceback" not in result.stderr
+    first, lines = next(iter(ZIG_TARGETS.values())), result.stderr.strip().splitlines()
+    assert lines[-1].startswith(f"error: build --all-platforms: Zig's compiler for {first} did not finish within 4 s: "
+                                f"Zig was most likely still building its C runtime for {first}"), lines[-1]
+    assert "Run the same command again" in lines[-1] and "python -m fmus.builders.zig_cache" in lines[-1]
+    assert any(line.startswith(f"zig: building its C runtime for {first}, ") for line in lines), lines
+    assert not list(out.glob("native/*")) and not list(out.glob("fmi3/*")) and not list(out.rglob("*partial*"))
+    assert len(list(out.glob("*.fmu"))) == 4  # the pythonfmu FMUs, built before: whole
+
+    def ours() -> list[psutil.Process]:  # a compiler of this build, alive (its environment names the cache)
+        alive = []
+        for process in psutil.process_iter():
+            try:
+                if process.status() != psutil.STATUS_ZOMBIE and process.environ().get("ZIG_GLOBAL_CACHE_DIR") == str(cache):
+                    alive.append(process)
+            except (psutil.NoSuchProcess, psutil.AccessDenied):
+                continue
+        return alive
+
+    assert not ours()

@@ -325,6 +325,8 @@ def test_run_failure_mid_run_exits_1_and_keeps_trace(workdir: Path, tmp_path: Pa
     assert result.returncode == 1, result.returncode
     assert "speed fell" in loaded.run["error"], loaded.run["error"]
     assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+    report = platoon("report", trace, cwd=workdir)  # the summary of what it recorded says how far the run got
+    assert report.returncode == 0 and "(failed at t = 1 of 2 s)" in " ".join(report.stdout.split()), report.stdout
 
 
 def test_run_verbose_splits_the_wall_time_from_the_process_start(tmp_path):

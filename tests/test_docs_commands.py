@@ -28,6 +28,7 @@ import signal
 import subprocess
 import sys
 import time
+import tomllib
 from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
@@ -72,7 +73,10 @@ class Expect:
 
 INSTALL = ("python3 -m venv .venv && .venv/bin/pip install -e . && .venv/bin/platoon run configs/paper/platoon.toml "
            "--out runs/platoon.mcap && .venv/bin/platoon report runs/platoon.mcap --plots runs/platoon-plots")
-TEST_LINE = ".venv/bin/pip install -e '.[test]' && .venv/bin/python -m pytest -q"  # the README's second command
+REALTIME_PHASE = ".venv/bin/python -m pytest -q -m 'realtime and not slow' -n 0"  # the real-time tests, alone
+TEST_LINE = ".venv/bin/pip install -e '.[test]' && .venv/bin/python -m pytest -q && " + REALTIME_PHASE  # README's 2nd
+SLOW_PHASES = (".venv/bin/python -m pytest -q -m 'slow and not realtime' --dist loadfile",
+               ".venv/bin/python -m pytest -q -m 'slow and realtime' -n 0")  # CI's, after the two (.ci/run)
 LIVE3_EMULATOR_4 = (".venv/bin/platoon m3pi-emulator --config configs/hil/m3pi_live3.toml --set vehicles.4.endpoint=zenoh "
                     "--set 'vehicles.4.connect=[\"tcp/127.0.0.1:7447\"]' &")
 LIVE3_RUN_4 = (".venv/bin/platoon run configs/hil/m3pi_live3.toml --set vehicles.4.endpoint=zenoh "
@@ -113,12 +117,16 @@ SPECIAL: dict[tuple[str, str], Shorten | Parse | Skip | Expect] = {
         "the venv and `pip install -e` are the environment this test runs in (pip would need the network); "
         "the run and report of the install line run as written"),
     ("README.md", TEST_LINE): Shorten(
-        ".venv/bin/python -m pytest -q --collect-only",
+        REALTIME_PHASE + " --collect-only",
         "the test extra is the environment this test runs in (pip would need the network); the whole suite "
-        "takes minutes (and includes this test); collecting it imports every test module"),
-    ("README.md", ".venv/bin/python -m pytest -q -m slow --dist loadfile"): Shorten(
-        ".venv/bin/python -m pytest -q -m slow --dist loadfile --collect-only",
+        "takes minutes (and includes this test); collecting the real-time phase imports every test module, as "
+        "the first phase does, and selects the second's tests (which phase holds which test: "
+        "test_the_real_time_tests_are_a_phase_of_their_own)"),
+    ("README.md", SLOW_PHASES[0]): Shorten(
+        SLOW_PHASES[0] + " --collect-only",
         "the slow tests take ~10 min (CI runs them); collecting them imports their modules and selects them"),
+    ("README.md", SLOW_PHASES[1]): Shorten(
+        SLOW_PHASES[1] + " --collect-only", "the long HIL runs, paced to the wall clock (CI runs them)"),
     ("README.md", ".venv/bin/platoon run configs/hil/m3pi_live3.toml"): Shorten(
         ".venv/bin/platoon run configs/hil/m3pi_live3.toml" + SHORT,
         "a live run is paced to the wall clock: 60 s as written"),
@@ -437,7 +445,30 @@ def test_the_readme_first_block_is_ci_s_two_commands() -> None:
                            check=True).stdout.splitlines()
     assert lines == [INSTALL, TEST_LINE]
     assert "pip install -e . &&" in lines[0] and "[" not in lines[0].split("&&")[1]  # no extra on the first install
-    assert "pip install -e '.[test]'" in lines[1] and lines[1].endswith("pytest -q")
+    assert "pip install -e '.[test]'" in lines[1] and lines[1].endswith(REALTIME_PHASE)
+    assert all(f'"{command}"' in script for command in SLOW_PHASES), "CI's slow phases are not the README's"
+
+
+def test_the_real_time_tests_are_a_phase_of_their_own() -> None:
+    """The four phases (pyproject's addopts, the README's real-time phase, CI's two slow ones) split the tests
+    by their two markers, each test in exactly one, as pytest itself reads the expressions; the real-time
+    phase holds the live robots' tracking tests and not the pacer's unit tests (no pacing in them)."""
+    from _pytest.mark.expression import Expression
+
+    addopts = re.search(r"-m '([^']+)'", tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["pytest"]
+                        ["ini_options"]["addopts"]).group(1)
+    phases = [Expression.compile(expression) for expression in
+              (addopts, *(re.search(r"-m '([^']+)'", command).group(1) for command in (REALTIME_PHASE, *SLOW_PHASES)))]
+    for marks in ({"slow", "realtime"}, {"slow"}, {"realtime"}, set()):
+        chosen = [phase.evaluate(lambda name, *_, marks=marks: name in marks) for phase in phases]
+        assert chosen.count(True) == 1, (marks, chosen)
+    listed = subprocess.run([sys.executable, "-m", "pytest", "-q", "--collect-only", "-n", "0", "-m", "realtime",
+                             "tests/test_hil.py", "tests/test_ros2.py"], cwd=REPO, capture_output=True, text=True)
+    assert listed.returncode == 0, listed.stdout[-2000:] + listed.stderr[-2000:]
+    assert "tests/test_hil.py::test_live_robot_tracks_the_all_fmu_run" in listed.stdout
+    assert "tests/test_hil.py::test_noisy_late_robot_still_converges" in listed.stdout
+    assert "tests/test_ros2.py::test_ros2_robot_tracks_the_all_fmu_run[bridge_dds]" in listed.stdout
+    assert "test_pacer" not in listed.stdout and "test_pose_stamped" not in listed.stdout
 
 
 def test_what_the_docs_commands_write_into_the_checkout_is_ignored_by_git() -> None:

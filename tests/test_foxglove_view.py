@@ -235,6 +235,7 @@ def test_ctrl_c_during_a_live_run_keeps_a_finalized_trace(tmp_path: Path) -> Non
     assert log and b"interrupted by SIGINT" in log[-1]  # the viewer is told, as the trace's log says
 
 
+@pytest.mark.realtime
 def test_a_live_robots_run_shows_its_link_streams(tmp_path: Path) -> None:
     """A hardware-in-the-loop run (configs/hil/, the emulator standing in for robot 3): the view serves
     the robot link's raw streams as the trace records them, and the run is not paced twice."""

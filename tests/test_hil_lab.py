@@ -158,6 +158,7 @@ def _outsiders(folder: Path, tls: str) -> list[tuple[str, object]]:
             ("a certificate of another CA", zenoh_config(connect=[tls], config_file=str(impostor)))]
 
 
+@pytest.mark.realtime
 def test_with_tls_and_acl_strangers_cannot_connect_or_drive_and_the_platoon_tracks_as_without(tmp_path: Path) -> None:
     """The emulator as lab host xbee-pc on tls/127.0.0.1, the run as laptop. Outsiders never get a
     session; desk (a valid certificate, not robot 3's run host) connects but its claim token and
@@ -484,6 +485,7 @@ print(json.dumps({"refused": [refused.returncode, refused.stderr], "moved": move
 '''
 
 
+@pytest.mark.realtime
 def test_on_a_trusted_network_a_stranger_without_the_lab_key_moves_the_robot_0_m(tmp_path: Path) -> None:
     """The trusted-network setup, on a real non-loopback address (10.200.0.1 in a private network namespace,
     ``unshare -rn``): the emulator refuses to listen there without TLS unless allow_insecure; with it, a
@@ -509,3 +511,28 @@ def test_on_a_trusted_network_a_stranger_without_the_lab_key_moves_the_robot_0_m
     assert result["moved"] == 0.0 and result["claims"] == [0], result
     assert "claimed by 5757575757575757" not in result["log"] and "MAC does not check" in result["log"]
     assert result["run"][0] == 0, result["run"][1]
+
+
+def test_a_plain_tcp_run_to_a_tls_robot_side_says_the_far_side_speaks_tls(tmp_path: Path) -> None:
+    """The lab's robot side listens on tls/, the run connects with tcp/ to the same port (a forgotten
+    recipe): Zenoh's handshake fails in silence, and the run's failure says that the far side answers in TLS and
+    how to connect, not whether the emulator runs. A plain Zenoh listener there is not taken for TLS."""
+    from bridge.tls_probe import speaks_tls
+
+    folder = tmp_path / "lab"
+    write_lab(LAB, folder, days=1)
+    port = free_port()
+    side, _, _ = _robot_side(folder, f"tls/127.0.0.1:{port}")
+    try:
+        code, _, err = finish(start_run(free_port(), tmp_path / "plain.mcap", 1.0,
+                                        f'vehicles.3.connect=["tcp/127.0.0.1:{port}"]', "hil.connect_timeout=1"), 60)
+    finally:
+        side.close()
+    assert code == 1 and "did not appear within 1 s" in err, err
+    assert (f"tcp/127.0.0.1:{port} answers in TLS: the robot side listens with TLS there, so connect with "
+            f"tls/127.0.0.1:{port} and the lab's zenoh_config") in err, err
+    assert "is `platoon m3pi-emulator`" not in err
+    plain = free_port()
+    with open_session(zenoh_config(listen=[f"tcp/127.0.0.1:{plain}"]), "plain"):
+        assert not speaks_tls("127.0.0.1", plain)
+    assert not speaks_tls("127.0.0.1", free_port())  # nobody there

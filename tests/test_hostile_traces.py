@@ -221,6 +221,10 @@ def test_a_killed_run_leaves_the_old_trace_intact_and_its_own_data_recoverable(w
     assert recovered.returncode == 0, recovered.stderr
     fixed = work / "kept-recovered.mcap"
     assert f": {fixed.name}" in recovered.stdout or str(fixed) in recovered.stdout
+    suggested = recovered.stdout.strip().splitlines()[-1]  # no layout is written beside it: the command that does
+    assert suggested.startswith(f"layout: platoon layout {fixed}  (a Foxglove layout fitted to the run"), suggested
+    made = platoon(*suggested.split("  (")[0].split()[2:], cwd=work)  # "layout: platoon" is the CLI itself
+    assert made.returncode == 0 and (work / "kept-recovered.layout.json").is_file(), made.stderr
     assert status_of(fixed) == "recovered" and load(fixed).component("vehicle4")["t"][-1] > 0.5
     again = platoon("run", "victim.toml", *SHORT, "--out", trace, "-q", "--overwrite", cwd=work)
     assert again.returncode == 0, again.stderr

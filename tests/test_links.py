@@ -115,6 +115,12 @@ def test_the_monolithic_reference_refuses_links(tmp_path):
         refused = platoon("run", str(config), option, "--out", str(tmp_path / "x.mcap"))
         assert refused.returncode == 2
         assert f"{option}: the monolithic reference has no messages, so it cannot run links (8 in this config" in refused.stderr
+        assert "or without the [links] table" in refused.stderr
+    plain = tmp_path / "plain.toml"  # the links made by --set: the remedy names the option, not a table it lacks
+    plain.write_text('name = "plain"\n')
+    refused = platoon("run", str(plain), "--monolithic", "--set", "links.delay=0.1", "--out", str(tmp_path / "x.mcap"))
+    assert refused.returncode == 2 and "or without --set links.delay" in refused.stderr, refused.stderr
+    assert "[links] table" not in refused.stderr
     assert not (tmp_path / "x.mcap").exists()
     result = run_scenario(config_from_mapping({"name": "x", "links": {"loss": 0.1}}), "", None, engine="monolithic")
     assert result.status == "failed" and "cannot run links" in result.error
@@ -238,6 +244,17 @@ def test_the_layout_of_a_run_with_links_plots_each_links_age(link_fmus, run, tmp
     plain = config_from_mapping({**lossy(stop_time=0.5), "links": {}})
     assert "Plot!links" not in run_layout(plain, 3)["configById"]
 
+    def heights(node, share: float = 100.0) -> dict[str, float]:  # % of the column each plot gets
+        if isinstance(node, str):
+            return {node: share}
+        first = share * node.get("splitPercentage", 50.0) / 100.0
+        return {**heights(node["first"], first), **heights(node["second"], share - first)}
+
+    # four plots stacked: each a quarter of the column, so the links' legend (8 lines) is not cut to 3
+    column = heights(json.loads(written.path.read_text())["layout"]["second"])
+    assert list(column) == ["Plot!path", "Plot!gap", "Plot!speed", "Plot!links"]
+    assert all(abs(share - 25.0) < 1e-9 for share in column.values()), column
+
 
 def link_table_rows(stdout: str) -> dict[str, list[str]]:
     """The links table `platoon run` / `platoon report` print: cells by link."""
@@ -305,3 +322,25 @@ def test_a_link_that_sent_nothing_reports_null_not_nan():
     assert json.loads(json.dumps(rows, allow_nan=False)) == [
         {"name": "link_forward1", "sent": 0, "delivered": 0, "lost": 0, "lost_share": None, "mean_age": None},
         {"name": "link_backward1", "sent": 4, "delivered": 3, "lost": 1, "lost_share": 0.25, "mean_age": 0.25}]
+
+
+def test_report_plots_of_a_lossy_run_say_lossy_and_draw_each_links_age(link_fmus, run, tmp_path, monkeypatch):
+    """`platoon report --plots` of a run with imperfect links: every panel's title names them (the header's
+    words), and links.png draws each link's age of information from the trace, one line per link; a run
+    whose links are perfect gets no links.png."""
+    from orchestrator.analysis import plots as plots_module
+
+    config = config_from_mapping(lossy(stop_time=2.0))
+    trace = run(config)
+    kept: list = []
+    monkeypatch.setattr(plots_module.plt, "close", kept.append)  # each figure kept once saved, to read back
+    written = plots_module.write_plots(trace, config, tmp_path / "plots")
+    assert [path.name for path in written][-1] == "links.png" and written[-1].read_bytes()[:4] == b"\x89PNG"
+    assert all(config.links_text() in figure.axes[0].get_title() for figure in kept), config.links_text()
+    lines = kept[-1].axes[0].get_lines()
+    names = [name for name in trace.channels if name.startswith("link_")]
+    assert [line.get_label() for line in lines] == [name.removeprefix("link_") for name in names]
+    for line, name in zip(lines, names):
+        assert np.array_equal(line.get_ydata(), trace.component(name)["age"])
+    plain = config_from_mapping({**lossy(stop_time=0.5), "links": {}})
+    assert [path.name for path in plots_module.write_plots(run(plain), plain, tmp_path / "plain")][-1] == "xy.png"

@@ -49,6 +49,7 @@ def libcosim(package: Path, tmp_path: Path, *options: str) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
+@pytest.mark.realtime
 @pytest.mark.slow  # 20 s paced to the wall clock in libcosim; the live FMU's link is tested fast by the two below
 def test_libcosim_runs_the_exported_live_platoon_and_the_live_vehicle_converges(tmp_path: Path) -> None:
     """Every vehicle, the live one included, ends within 20 mm of the path over its last second (the
@@ -89,6 +90,7 @@ def test_libcosim_runs_the_exported_live_platoon_and_the_live_vehicle_converges(
         assert error < 0.020, f"{vehicle}: {error * 1e3:.1f} mm off the path over the last second"
 
 
+@pytest.mark.realtime
 def test_a_lost_robot_fails_the_step_with_its_reason_after_a_stop_command(tmp_path: Path) -> None:
     """The emulator frozen (SIGSTOP) mid-run: after pose_timeout the FMU's doStep returns fmi2Error with
     the reason in its log (libcosim prints it and stops), and its last wheel commands are stops,

@@ -10,10 +10,13 @@ import subprocess
 import time
 from pathlib import Path
 
+import pytest
+
 from tests.conftest import free_port
 from tests.test_hil import LIVE3, PLATOON, REPO, _env, emulator, endpoint, wait_for
 
 
+@pytest.mark.realtime
 def test_the_steps_time_leaves_out_the_wait_for_the_robot(tmp_path: Path) -> None:
     """The robot's emulator starts HOLD s after the run says it waits for the robot (a wait made on purpose:
     it is what is measured). The 2 s run is paced to the wall clock, so its own work is a little over 2 s;
@@ -37,3 +40,12 @@ def test_the_steps_time_leaves_out_the_wait_for_the_robot(tmp_path: Path) -> Non
     done = re.search(r"\((\d+) steps in ([\d.]+) s\)", stdout)
     assert done and int(done.group(1)) == 200, stdout
     assert stop <= float(done.group(2)) < stop + hold / 2, stdout
+    assert "reported nothing back" not in stdout  # our protocol's robot side reports what it received
+    # where those seconds went: the stepping, held to the pace's 2 s (or behind it, saying so), and the start
+    # and finish around it
+    paced = re.search(r"^paced: 2 s of simulated time on the wall clock; stepping took ([\d.]+) s(.*); starting and "
+                      r"finishing ([\d.]+) s$", stdout, re.MULTILINE)
+    assert paced and float(paced.group(1)) >= stop - 0.005, stdout
+    assert float(paced.group(1)) + float(paced.group(3)) == pytest.approx(float(done.group(2)), abs=0.011), stdout
+    assert paced.group(2) in ("", f", so the run ended {float(paced.group(1)) - stop:.2f} s behind the pace: it fell "
+                                  "behind (a loaded machine)"), stdout

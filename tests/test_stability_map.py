@@ -59,7 +59,8 @@ def test_the_command_says_what_it_measures_as_it_goes(sweep: Path, tmp_path: Pat
                           env=env(), capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     lines = done.stderr.splitlines()
-    assert lines[0].startswith(f"stability-map: measuring 4 traces of {sweep} and computing the analytic maps ("), lines
+    assert lines[0] == f"stability-map: reading {sweep} ...", lines  # before its imports and the sweep's files
+    assert lines[1].startswith(f"stability-map: measuring 4 traces of {sweep} and computing the analytic maps ("), lines
     assert lines[-1].startswith("stability-map: 100% (") and "tasks)" in lines[-1], lines
     assert done.stdout.strip().splitlines()[-1] == f"wrote {tmp_path / 'map.png'}"
 

@@ -196,3 +196,22 @@ def test_platoon_stability_refuses_a_run_without_disturbance_in_one_line(native_
     shown = _platoon("stability", trace, cwd=tmp_path)
     assert shown.returncode == 2 and shown.stderr.strip().count("\n") == 0
     assert "has no [[disturbance]]" in shown.stderr and "Traceback" not in shown.stderr
+
+
+def test_analyze_s_verdict_is_the_l2_gain_s_even_where_the_peaks_shrink() -> None:
+    """configs/paper/platoon_back_speed.toml as `platoon analyze` measured it (2026-12-02): the speed peaks
+    shrink toward the front (l_inf 0.44, 0.65, 0.99) while the l2 gain from vehicle 2 to vehicle 1 is 1.11.
+    The verdict follows the l2 gain and says so, naming the peaks as the other column (docs/reproduction.md
+    reads that row the same way)."""
+    from orchestrator.analysis.error_gains import LinkGains, gains_lines
+
+    nan = float("nan")
+    measured = [("vehicle4", "vehicle3", 0.5783, 0.4437), ("vehicle3", "vehicle2", 0.9932, 0.6491),
+                ("vehicle2", "vehicle1", 1.1132, 0.9878)]
+    gains = [LinkGains(a, b, {"speed": l2, "gap": nan}, {"speed": linf, "gap": nan}) for a, b, l2, linf in measured]
+    verdict = gains_lines(gains)[-1]
+    assert verdict.startswith("  largest speed l2 gain past the disturbed vehicle: 1.1132: this disturbance grows "
+                              "along the platoon (the l2 gain decides"), verdict
+    assert "the l_inf column, the peaks, may shrink while it grows" in verdict
+    shrinking = [LinkGains(g.sender, g.receiver, {"speed": 0.9 * g.l2["speed"] / 1.1132, "gap": nan}, g.linf) for g in gains]
+    assert "this disturbance does not grow along the platoon" in gains_lines(shrinking)[-1]

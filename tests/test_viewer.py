@@ -306,6 +306,8 @@ def test_figure_command_writes_each_format(runs: dict[str, Path], tmp_path: Path
     out = tmp_path / f"fig{suffix}"
     result = platoon("figure", runs["regular"], runs["paper"], "--out", out, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
+    # said before it reads (tens of seconds on a loaded machine), the only line on stderr
+    assert result.stderr.splitlines() == [f"figure: reading {runs['regular']} and {runs['paper']}, then drawing {out} ..."]
     data = out.read_bytes()
     assert data.startswith(magic) and len(data) > 20_000
 

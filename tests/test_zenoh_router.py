@@ -88,11 +88,12 @@ def reference(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return all_fmu_reference(ROS3, tmp_path_factory.mktemp("reference") / "fmu.mcap")
 
 
+@pytest.mark.realtime
 def test_a_run_in_client_mode_through_zenohd_tracks_as_against_the_emulator(tmp_path: Path, reference: Path) -> None:
     """zenohd where rmw_zenohd listens; the emulator speaking rmw_zenoh as a robot's nodes do (a peer that
     listens on loopback and connects to the router); the run with the shipped config and its defaults (a ROS 2
     vehicle that only connects joins in client mode). The platoon converges as against the emulator directly
-    (tests/test_hil.py: the same capped bound; a run that fell behind is tried again)."""
+    (tests/test_hil.py: the same capped bound; only a run that fell behind is tried again)."""
     _needs(ZENOHD)
     logs: list[str] = []
 
@@ -147,6 +148,7 @@ def _dds_robot(domain: int, folder: Path) -> subprocess.Popen:
     return process
 
 
+@pytest.mark.realtime
 def test_a_dds_robot_driven_through_zenohd_and_the_ros2dds_plugin_tracks_as_against_the_emulator(
         tmp_path: Path, reference: Path) -> None:
     """A ROS 2 robot on DDS (CycloneDDS: PoseStamped out on rt/vrpn_mocap/m3pi_3/pose, Twist in on

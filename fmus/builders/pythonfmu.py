@@ -36,7 +36,7 @@ BUILDER_MODULES = ("builders/base.py", "builders/pythonfmu.py", "modeldescriptio
 _ONLY_IN = {"LiveVehicle.py": LIVE_FMU, "Link.py": LINK_FMU}
 _EXTRA_SOURCES = {
     LIVE_FMU: ("bridge/__init__.py", "bridge/claim.py", "bridge/lab_key.py", "bridge/live.py", "bridge/protocol.py", "bridge/session.py",
-               "bridge/motion_watch.py", "bridge/states.py",
+               "bridge/motion_watch.py", "bridge/states.py", "bridge/tls_probe.py",
                "fmus/component.py", "fmus/errors.py", "fmus/realtime.py"),
 }
 

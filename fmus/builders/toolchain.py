@@ -13,10 +13,13 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import struct
 import subprocess
 import sys
+import time
 from pathlib import Path
+from typing import Callable
 
 from fmus.builders.base import PACKAGE_DIR, BuildError
 from fmus.platforms import Platform
@@ -39,6 +42,23 @@ ZIG_TARGETS = {
     Platform("x86_64", "darwin"): "x86_64-macos.10.13",
     Platform("aarch64", "darwin"): "aarch64-macos.11.0",
 }
+
+
+# s: how long one compiler process may take before it is stopped (PLATOON_COMPILE_TIMEOUT). A compile of
+# our FMU takes a second or two; a first Zig compile for a target also builds that target's C runtime into
+# Zig's cache: 135 s for Windows with a cold cache at load 5-8 (docs/fmus.md, "Cost"), 2-3x that on a busier
+# machine. The limit only stops a compiler that hangs; a slow cold cache reaching it gets CompileTimeout's
+# advice (run again with a longer limit: the cache keeps the targets Zig finished).
+COMPILE_TIMEOUT_VARIABLE = "PLATOON_COMPILE_TIMEOUT"
+DEFAULT_COMPILE_TIMEOUT = 600.0
+# s: warming Zig's cache (fmus/builders/zig_cache.py) is the first compile for a target by design: Windows'
+# C runtime took 135 s at load 5-8 and 765 s at load about 20 (2026-12-02); the same variable sets it.
+DEFAULT_WARM_TIMEOUT = 1800.0
+WARM_ADVICE = "or warm Zig's cache first: python -m fmus.builders.zig_cache"
+
+
+class CompileTimeout(BuildError):
+    """A compiler process ran past ``compile_timeout()`` and was stopped (with every process it started)."""
 
 
 class NoCompiler(BuildError):
@@ -80,6 +100,68 @@ def zig_cc() -> list[str]:
     return [sys.executable, "-m", "ziglang", "cc"]
 
 
+def compile_timeout(default: float = DEFAULT_COMPILE_TIMEOUT) -> float:
+    """The seconds one compiler process may take (``PLATOON_COMPILE_TIMEOUT``, > 0; else ``default``)."""
+    try:
+        value = float(os.environ.get(COMPILE_TIMEOUT_VARIABLE, ""))
+    except ValueError:
+        return default
+    return value if 0 < value < float("inf") else default
+
+
+def zig_timeout_text(target: str, limit: float) -> str:
+    """One line for a Zig compile for ``target`` stopped after ``limit`` s: what was most likely going on, and
+    what to do."""
+    return (f"Zig's compiler for {target} did not finish within {limit:.0f} s: Zig was most likely still building "
+            f"its C runtime for {target} (the first build for a target: minutes on a busy machine; nothing "
+            f"half-built was kept). Run the same command again, with {COMPILE_TIMEOUT_VARIABLE}=SECONDS to give it "
+            f"longer (Zig's cache keeps the targets it finished, but builds a C runtime whole: Windows' took 765 s at "
+            f"load 20), {WARM_ADVICE}")
+
+
+def run_compiler(command: list[str], cwd: Path, timeout_text: Callable[[float], str],
+                 waiting: Callable[[float], None] | None = None, every: float = 5.0,
+                 limit: float | None = None) -> subprocess.CompletedProcess:
+    """Run a compiler ``command`` in ``cwd``, its output captured; ``waiting(seconds so far)`` after ``every`` s
+    while it runs, then each time the time so far has doubled (a first Zig compile takes minutes: the caller
+    shows it is alive, in a few lines, not a screenful). Past
+    ``limit`` (default ``compile_timeout()``) the compiler is stopped and ``CompileTimeout(timeout_text(limit))``
+    raised. The
+    compiler runs in a process group of its own, stopped as a whole (``python -m ziglang cc`` starts zig,
+    which starts clang), on a timeout and on Ctrl-C alike: no compiler is left writing to Zig's cache."""
+    limit = compile_timeout() if limit is None else limit
+    process = subprocess.Popen(command, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               start_new_session=True)
+    started = time.monotonic()
+    next_word = every
+    try:
+        while True:
+            so_far = time.monotonic() - started
+            try:
+                stdout, stderr = process.communicate(timeout=max(0.01, min(next_word, limit) - so_far))
+                return subprocess.CompletedProcess(command, process.returncode, stdout, stderr)
+            except subprocess.TimeoutExpired:
+                so_far = time.monotonic() - started
+                if so_far >= limit:
+                    raise CompileTimeout(timeout_text(limit)) from None
+                if so_far >= next_word:
+                    next_word = max(every, 2 * so_far)
+                    if waiting is not None:
+                        waiting(so_far)
+    finally:
+        if process.poll() is None:
+            _stop_group(process)
+
+
+def _stop_group(process: subprocess.Popen) -> None:
+    """Kill ``process`` and every process of its group, and reap it."""
+    try:
+        os.killpg(process.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    process.communicate()
+
+
 def cross_flags(name: str, platform: Platform) -> list[str]:
     """Zig's flags for ``platform``: its target, CFLAGS (no -fPIC on Windows, where every DLL is
     relocatable and clang refuses the flag), no debug information or symbol table (they would hold the
@@ -94,10 +176,10 @@ def cross_flags(name: str, platform: Platform) -> list[str]:
 
 
 def compile_binary(name: str, files: tuple[str, ...], generated: dict[str, str], scratch: Path,
-                   target: Platform | None = None) -> bytes:
+                   target: Platform | None = None, waiting: Callable[[float], None] | None = None) -> bytes:
     """The shared library of FMU ``name``, compiled in ``scratch`` from copies of the C ``files`` and
     HEADERS (fmus/native) with the ``generated`` headers (name: text): for this machine with the system
-    compiler, or for ``target`` with Zig's."""
+    compiler, or for ``target`` with Zig's (``waiting``: as ``run_compiler``'s)."""
     sources = scratch / "sources"
     sources.mkdir(parents=True)
     for file in files + HEADERS:
@@ -109,7 +191,13 @@ def compile_binary(name: str, files: tuple[str, ...], generated: dict[str, str],
     else:
         output, compile_command = scratch / f"{name}{target.suffix}", [*zig_cc(), *cross_flags(name, target)]
     command = [*compile_command, f"-I{fmi_headers()}", "-I.", *files, "-o", str(output), *LIBS]
-    result = subprocess.run(command, cwd=sources, capture_output=True, text=True, timeout=600)
+    if target is None:
+        def timeout_text(limit: float) -> str:
+            return f"{name}: the C compiler ({command[0]}) did not finish within {limit:.0f} s"
+    else:
+        def timeout_text(limit: float) -> str:
+            return f"{name}: {zig_timeout_text(ZIG_TARGETS[target], limit)}"
+    result = run_compiler(command, sources, timeout_text, waiting)
     if result.returncode != 0:
         raise BuildError(f"{name}: compiling the native FMU failed ({' '.join(command)}):\n{result.stderr.strip()}")
     return output.read_bytes()

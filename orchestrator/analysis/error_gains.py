@@ -176,7 +176,9 @@ def gains_lines(gains: list[LinkGains], clean: list[str] | None = None) -> list[
         worst = max(g.l2["speed"] for g in gains[1:] or gains)
         word = "grows" if worst > 1.0 else "does not grow"
         lines.append(f"  largest speed l2 gain past the disturbed vehicle: {worst:.4f}: this disturbance {word} along "
-                     "the platoon (string stability asks it of every disturbance: platoon analyze has the bound)")
+                     "the platoon (the l2 gain decides, the error's energy, which |G(jw)| bounds; the l_inf column, "
+                     "the peaks, may shrink while it grows; string stability asks it of every disturbance: platoon "
+                     "analyze has the bound)")
     return lines
 
 

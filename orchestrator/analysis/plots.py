@@ -177,7 +177,8 @@ def check_plot_targets(directory: Path, overwrite: bool = False, protect: Iterab
 
 def write_plots(trace: Trace, config: Config, directory: Path, overwrite: bool = False,
                 protect: Iterable[Path] = ()) -> list[Path]:
-    """Write speed_errors.png, gap_errors.png, path_errors.png and xy.png into ``directory``.
+    """Write speed_errors.png, gap_errors.png, path_errors.png and xy.png into ``directory``, and links.png for a
+    run with imperfect links.
 
     By the output rule (orchestrator/support/output.py): every target is checked before the first is
     drawn (an existing PNG is replaced, anything else only with ``overwrite``, an input never), and each
@@ -188,6 +189,8 @@ def write_plots(trace: Trace, config: Config, directory: Path, overwrite: bool =
     targets = check_plot_targets(directory, overwrite, protect)
     vehicles = trace.vehicles()
     label = f"{config.name} ({config.laws_text()})"
+    if config.links_text():  # a lossy run's panels say so, on a line of their own: "8 imperfect links (...)"
+        label += f"\n{config.links_text()}"
     for target, (stem, ylabel, title, series) in zip(targets, TIME_PANELS):
         figure, axes = plt.subplots(figsize=(7.5, 4.2), dpi=120)
         draw_time_panel(axes, trace, config, series, ylabel, f"{title}: {label}")
@@ -206,7 +209,33 @@ def write_plots(trace: Trace, config: Config, directory: Path, overwrite: bool =
         colorbar(figure, axes, vehicles)
     figure.tight_layout()
     _save_png(figure, targets[-1], replacing)
-    return targets
+    links = _link_panel(trace, config, directory, overwrite, protect, replacing)
+    return targets + ([links] if links is not None else [])
+
+
+def _link_panel(trace: Trace, config: Config, directory: Path, overwrite: bool, protect: Iterable[Path],
+                replacing) -> Path | None:
+    """links.png for a run with imperfect links: each link's age of information over time (the layout's
+    links plot, docs/links.md), one line per link; None for a run whose links are all perfect."""
+    from orchestrator.analysis.link_stats import AGE, is_link
+    from orchestrator.support.output import IMAGE, check_target
+
+    names = [name for name in trace.channels if is_link(name) and len(trace.component(name)["t"])]
+    if not names:
+        return None
+    target = directory / "links.png"
+    check_target(target, overwrite, protect, "--plots", kind=IMAGE)
+    figure, axes = plt.subplots(figsize=(7.5, 4.2), dpi=120)
+    for name in names:
+        channel = trace.component(name)
+        axes.plot(channel["t"], channel[AGE], linewidth=0.8, label=name.removeprefix("link_"))
+    axes.set_xlabel("t [s]")
+    axes.set_ylabel("age of information [s]")
+    axes.set_title(f"age of the message each link delivers: {config.name}\n{config.links_text()}", fontsize=10)
+    axes.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small")
+    figure.tight_layout()
+    _save_png(figure, target, replacing)
+    return target
 
 
 def _save_png(figure, target: Path, replacing) -> None:

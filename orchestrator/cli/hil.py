@@ -56,7 +56,8 @@ def live_table(summary: dict[str, dict[str, Any]]) -> Table:
     pacing = summary.get("pacing", {})
     title = (f"live: step jitter median {ms_text(pacing.get('jitter.median'))} ms, p99 {ms_text(pacing.get('jitter.p99'))} ms, "
              f"max {ms_text(pacing.get('jitter.max'))} ms; overruns {pacing.get('overruns', 0)} of {pacing.get('points', 0)}"
-             + (f", behind by {ms_text(pacing['behind.total'])} ms in all" if pacing.get("overruns") and "behind.total" in pacing else ""))
+             + (f", behind by {ms_text(pacing['behind.total'])} ms in all (its stalls added up, each caught up after)"
+                if pacing.get("overruns") and "behind.total" in pacing else ""))
     notes = ["trip: command sent -> first pose taken after the robot applied it (median/p99); "
              "age: of the pose each step used (median/max)"]
     headers = ("vehicle", "robot", "state", "cmds", "poses", "dropped", "trip ms", "age ms")
@@ -71,6 +72,9 @@ def live_table(summary: dict[str, dict[str, Any]]) -> Table:
                                         str(stats.get("command.foreign_claim", "")))
         if refused:
             notes.append(f"{name}: {refused}")
+        if stats.get("command.sent") and not (stats.get("command.accepted") or stats.get("command.dropped")):
+            notes.append(f"{name}: its robot side reported nothing back (a ROS 2 robot sends no status): how many "
+                         "commands it received and its safety stops are not known here; its own log has them")
         if stats.get("command.safety_stops"):
             notes.append(f"{name}: robot-side safety stops {stats['command.safety_stops']} (no command for up to "
                          f"{ms_text(stats.get('command.longest_gap'))} ms, past the deadline: the run stalled)")

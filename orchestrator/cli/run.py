@@ -45,23 +45,34 @@ def build(
 
 def _build_native(out_dir: Path, force: bool, all_platforms: bool = False, rule: OwnFiles | None = None) -> None:
     """The native twins into OUT/native (FMI 2.0) and OUT/fmi3 (FMI 3.0), both by fmus/builders/native.py,
-    with this machine's binary or every platform's; no compiler is one line, not a failure."""
+    with this machine's binary or every platform's; no compiler is one line, not a failure. With every
+    platform's, Zig's cache is warmed first and each target said as it finishes (a cold cache: minutes);
+    a compiler that runs past its time is one line naming the target and what to do, exit 1, and no FMU it
+    was building is written."""
     from fmus.builders import FMU_NAMES, LINK_FMU, BuildError, NativeBuilder, NoCompiler
+    from fmus.builders.toolchain import CompileTimeout
 
     from orchestrator.cli.common import output_rule
 
     names = FMU_NAMES + (LINK_FMU,)
     if all_platforms:  # said before it starts: a cold Zig cache makes the first such build take minutes
         err.print("note: --all-platforms cross-compiles with Zig for 5 platforms; on a machine whose Zig cache is cold "
-                  "Zig first compiles its C runtimes for each target (several minutes on 2 cores, docs/fmus.md); "
-                  "later builds reuse its cache", highlight=False, soft_wrap=True)
+                  "Zig first compiles its C runtimes for each target (several minutes on 2 cores, docs/fmus.md), "
+                  "each target said as it finishes; later builds reuse its cache", highlight=False, soft_wrap=True)
+    compiled = _say_compiled if all_platforms else None
     try:
         with output_rule():
-            built_fmus = NativeBuilder(2, all_platforms).build(out_dir / "native", force=force, names=names, output=rule)
-            built_fmus += NativeBuilder(3, all_platforms).build(out_dir / "fmi3", force=force, names=names, output=rule)
+            if all_platforms:
+                _warm_zig()
+            built_fmus = NativeBuilder(2, all_platforms, compiled).build(out_dir / "native", force=force, names=names,
+                                                                         output=rule)
+            built_fmus += NativeBuilder(3, all_platforms, compiled).build(out_dir / "fmi3", force=force, names=names,
+                                                                          output=rule)
     except NoCompiler as error:
         err.print(f"note: {error}", soft_wrap=True)
         return
+    except CompileTimeout as error:  # not the user's input: their machine's load, or a compiler that hangs
+        fail(1, f"build{' --all-platforms' if all_platforms else ''}: {error}")
     except BuildError as error:
         fail(2, f"build: {error}")
     except OSError as error:
@@ -70,6 +81,24 @@ def _build_native(out_dir: Path, force: bool, all_platforms: bool = False, rule:
     for built in built_fmus:
         state = "built" if built.rebuilt else "up to date"
         out.print(f"{built.path}  {built.guid}  ({state}, native{' FMI 3.0' if built.path.parent.name == 'fmi3' else ''})", soft_wrap=True)
+
+
+def _warm_zig() -> None:
+    """Zig's C runtime for each release target, each said as it is ready, and while one takes long (a cold
+    cache) a line after PLATOON_PROGRESS_SECONDS (at least 1 s) and each time the wait has doubled."""
+    from fmus.builders.zig_cache import warm_cross_cache
+
+    from orchestrator.observers.progress import progress_seconds
+
+    warm_cross_cache(lambda target, seconds: err.print(f"zig: C runtime for {target} ready ({seconds:.1f} s)",
+                                                       highlight=False),
+                     lambda target, seconds: err.print(f"zig: building its C runtime for {target}, {seconds:.0f} s so "
+                                                       "far ...", highlight=False),
+                     max(1.0, progress_seconds()))
+
+
+def _say_compiled(what: str, platform, seconds: float) -> None:
+    err.print(f"compiled {what} for {platform.tuple} ({seconds:.1f} s)", highlight=False)
 
 
 def run(

@@ -46,7 +46,7 @@ def run_command(options: RunOptions) -> None:
 
     imported = seconds_since_process_start()  # the engines, numpy, the trace writer
     engine = _chosen_engine(config, parsed, options.engine_name, options.monolithic, options.trace_writer,
-                            options.compare)
+                            options.compare, tuple(o.split("=", 1)[0].strip() for o in overrides if o.startswith("links")))
     view = _live_view(parsed, options)
     inputs = run_inputs(config, parsed)
     target = claim_trace(options.trace, options.overwrite, inputs, lambda: default_trace_path(parsed, engine))
@@ -61,7 +61,8 @@ def run_command(options: RunOptions) -> None:
             say(line, stderr=True)
     result = _run_with_view(config, parsed, text, target, engine, options.quiet, options.trace_writer, view)
     first_step = _first_step(entered, entered_at, result, clock.perf_counter())
-    _report_run(result, trace, parsed, engine, options.quiet)
+    pace = 1.0 if result.live else (options.live_speed if options.live and options.live_speed > 0 else None)
+    _report_run(result, trace, parsed, engine, options.quiet, pace)
     if options.verbose:
         split = _time_split(entered, loaded, imported, result.timings, seconds_since_process_start(), first_step)
         console(stderr=True).print(split, highlight=False)
@@ -115,8 +116,9 @@ def _execute(config: Config, text: str, trace, engine: str, quiet: bool, trace_w
 
 
 def _chosen_engine(config: Path, parsed: Config, engine_name: str | None, monolithic: bool, trace_writer: str,
-                   compare: bool = False) -> str:
-    """The engine `platoon run` uses, after checking the options that choose it; exit 2 naming a bad one."""
+                   compare: bool = False, set_links: tuple[str, ...] = ()) -> str:
+    """The engine `platoon run` uses, after checking the options that choose it; exit 2 naming a bad one
+    (``set_links``: the --set keys under links, which a refused monolithic run names)."""
     from orchestrator.components.live import LiveRunError, check_live_options
     from orchestrator.components.remote import RemoteRunError, check_remote_options
     from orchestrator.execution.run import TRACE_WRITERS, default_engine
@@ -131,7 +133,7 @@ def _chosen_engine(config: Path, parsed: Config, engine_name: str | None, monoli
     if monolithic or compare:
         from orchestrator.scenario.scenario import monolithic_refusal
 
-        refusal = monolithic_refusal(parsed)
+        refusal = monolithic_refusal(parsed, set_links)
         if refusal is not None:
             fail(2, f"config {config}: {'--monolithic' if monolithic else '--compare-monolithic'}: {refusal}")
     try:
@@ -185,9 +187,11 @@ def _run_with_view(config: Path, parsed: Config, text: str, target, engine: str,
     raise AssertionError("not reached: fail exits")
 
 
-def _report_run(result: "RunResult", trace: Path, parsed: Config, engine: str, quiet: bool) -> None:
-    """The layout beside the trace, the live link table, the summary and where the trace is; a run that did
-    not complete exits 1 (130/143 when stopped by a signal) naming why."""
+def _report_run(result: "RunResult", trace: Path, parsed: Config, engine: str, quiet: bool,
+                pace: float | None = None) -> None:
+    """The layout beside the trace, the live link table, the summary and where the trace is (with ``pace``, the
+    speed a run was paced to the wall clock at, where its time went); a run that did not complete exits 1
+    (130/143 when stopped by a signal) naming why."""
     from orchestrator.trace.layout import write_run_layout
 
     written = write_run_layout(trace, parsed)  # beside the trace; a failed or stopped run says only that
@@ -214,8 +218,21 @@ def _report_run(result: "RunResult", trace: Path, parsed: Config, engine: str, q
 
             console().print(link_table(result.links))
     say(f"trace: {result.trace}  ({result.steps} steps in {result.working_time:.2f} s)")  # waits for a viewer or robot left out
+    if pace is not None and "steps" in result.timings:
+        say(paced_time_text(result, parsed.simulation.stop_time / pace))
     if written.path is not None:
         say(f"layout: {written.path}  (open both in Foxglove: docs/foxglove.md)")  # one line in a log
+
+
+def paced_time_text(result: "RunResult", paced: float) -> str:
+    """Where a paced run's "N steps in X s" went: ``paced`` s of wall clock the stepping was held to, how far
+    behind it the last step ended (a run that fell behind says so), and the start and finish around it."""
+    stepping = result.timings["steps"]
+    late = stepping - paced
+    behind = (f", so the run ended {late:.2f} s behind the pace: it fell behind (a loaded machine)" if late >= 0.1
+              else "")
+    return (f"paced: {paced:g} s of simulated time on the wall clock; stepping took {stepping:.2f} s{behind}; "
+            f"starting and finishing {result.working_time - stepping:.2f} s")
 
 
 def _compare_monolithic(config: Path, parsed: Config, text: str, result: "RunResult", reference_path: Path,

@@ -173,6 +173,8 @@ def stability_map(
 ) -> None:
     """Map a string-stability sweep: per law, the analytic boundary over the measured gains (delay x loss)."""
     from orchestrator.cli.common import err, fail, out, output_rule
+
+    err.print(f"stability-map: reading {out_dir} ...", highlight=False, soft_wrap=True)  # at once: seconds of imports
     from orchestrator.observers.progress import progress
     from orchestrator.sweep.stability_map import draw_stability_map
     from orchestrator.sweep.store import check_not_in_folder

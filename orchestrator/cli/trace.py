@@ -73,7 +73,9 @@ def report(
             out.print_json(json.dumps({"trace": str(trace), "law": config.platoon.law, "status": status,
                                         **report_json(summaries, config), "links": link_rows(links)}))
         else:
-            out.print(summary_table(summaries, config, f"{trace.name}: {config.header_text()} ({status})"))
+            reached = float(loaded.component(loaded.vehicles()[0])["t"][-1])  # a run that ended early: how far
+            shown = status if status == "completed" else f"{status} at t = {reached:.6g} of {config.simulation.stop_time:g} s"
+            out.print(summary_table(summaries, config, f"{trace.name}: {config.header_text()} ({shown})"))
             if links:
                 from orchestrator.cli.tables import link_table
 
@@ -148,6 +150,11 @@ def trace_recover(
     state = "a complete file" if result.finished else f"{result.chunks} intact chunks"
     out.print(f"recovered {result.steps} communication points ({span}, {result.messages} messages) from {state}: {fixed}"
               f"{damage}", highlight=False, soft_wrap=True)
+    from shlex import quote
+
+    out.print(f"layout: platoon layout {quote(str(fixed))}  (a Foxglove layout fitted to the run, to open with it: "
+              "docs/foxglove.md)",
+              highlight=False, soft_wrap=True)
 
 
 

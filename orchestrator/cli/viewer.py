@@ -52,13 +52,14 @@ def figure_command(
     overwrite: Overwrite = False,
 ) -> None:
     """Draw the paper's figure pair from two traces: speed, gap and path errors, and X-Y, side by side."""
-    from orchestrator.cli.common import fail, load_trace, out as console, output_rule
+    from orchestrator.cli.common import err, fail, load_trace, out as console, output_rule
     from orchestrator.support.output import IMAGE, check_target
 
     if out.suffix.lower() not in FIGURE_SUFFIXES:
         fail(2, f"--out {out}: expected a file ending in {', '.join(FIGURE_SUFFIXES)}")
     with output_rule():
         check_target(out, overwrite, [first, second], kind=IMAGE)
+    err.print(f"figure: reading {first} and {second}, then drawing {out} ...", highlight=False, soft_wrap=True)
     from orchestrator.analysis.figure import draw_pair, save
 
     runs = []

@@ -173,13 +173,15 @@ def build_scenario(config: Config) -> Scenario:
                     schedules)
 
 
-def monolithic_refusal(config: Config) -> str | None:
-    """Why the monolithic reference cannot run ``config`` (it has links), or None."""
+def monolithic_refusal(config: Config, set_links: tuple[str, ...] = ()) -> str | None:
+    """Why the monolithic reference cannot run ``config`` (it has links), or None; ``set_links``: the keys
+    of the ``--set`` options that made them, named instead of a [links] table the config may not have."""
     linked = config.linked()
     if not linked:
         return None
+    without = f"without --set {', '.join(set_links)}" if set_links else "without the [links] table"
     return (f"the monolithic reference has no messages, so it cannot run links ({len(linked)} in this config, "
-            "docs/links.md); run without --monolithic, or without the [links] table")
+            f"docs/links.md); run without --monolithic, or {without}")
 
 
 def link_specs(config: Config) -> dict[tuple[str, int], ComponentSpec]:
