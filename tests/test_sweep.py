@@ -23,6 +23,7 @@ import matplotlib.image
 import pytest
 
 from orchestrator.analysis.metrics import report_json, summarize
+from orchestrator.analysis.validity import departures_of_trace
 from orchestrator.sweep.worker import flatten_report
 from orchestrator.trace import load
 from tests.conftest import SPEED_TO_ZERO
@@ -63,7 +64,7 @@ def report_of(out: Path, row: dict[str, str]) -> dict[str, float]:
     from orchestrator.scenario.config import config_from_mapping
 
     config = config_from_mapping(trace.config)
-    return flatten_report(report_json(summarize(trace, config), config))
+    return flatten_report(report_json(summarize(trace, config), config, departures_of_trace(trace, config)))
 
 
 def assert_row_is_its_report(out: Path, row: dict[str, str]) -> None:
@@ -71,6 +72,7 @@ def assert_row_is_its_report(out: Path, row: dict[str, str]) -> None:
     from the trace read back: the same sums in blocks of other sizes, so equal to rounding (1e-12
     relative, as tests/test_summary.py argues), not bit for bit."""
     expected = report_of(out, row)
+    assert row["run.left_model"] == expected.pop("run.left_model")  # text: where the run left the model, "" inside
     assert {k for k in row if k.startswith(("vehicle", "last.")) and row[k]} == set(expected)
     for key, value in expected.items():
         if math.isnan(value):  # path_error_max: no disturbance started within the run

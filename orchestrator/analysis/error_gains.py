@@ -219,6 +219,11 @@ def string_stability_report(config: Config, config_text: str, progress: Progress
         result = run_scenario(config, config_text, scratch / "analysis.mcap", tick=tick)
         if result.status != "completed":
             return f"string stability: the run {result.status}: {result.error}"
+        if result.departures:
+            from orchestrator.analysis.validity import departures_lines
+
+            return "\n".join(["string stability: no gains, the disturbed run left the model",
+                              *departures_lines(result.departures)])
         trace = load(result.trace)
     reference_config = config.model_copy(update={"disturbance": []})
     with ScratchDir("analyze") as scratch, shown("undisturbed run (2/2)", steps) as tick:
@@ -312,30 +317,6 @@ def frequency_gains(errors: dict[str, dict[str, np.ndarray]], order: list[str], 
     return [[ratio(b[k], a[k]) for a, b in zip(amplitudes, amplitudes[1:])] for k in range(len(frequencies))]
 
 
-def _closed_form_line(config: Config, chain_vehicle: int) -> tuple[str, bool]:
-    """The closed form's verdict for the trace's config: the sampled-data cascade's where it applies, else
-    the phase-averaged model's; (the line, string stable)."""
-    from orchestrator.analysis.sampled_chain import exact_applies, peak_growth
-    from orchestrator.analysis.string_stability import chain_of, interior_vehicle, peak_gain
-
-    if exact_applies(config) is None:
-        from orchestrator.analysis.loop_moments import settles
-
-        vehicle = interior_vehicle(config)
-        if not settles(config, vehicle):
-            return ("closed form (platoon analyze): the vehicle's own loop through its links grows: the platoon is "
-                    "unstable, NOT string stable", False)
-        growth = peak_growth(config, vehicle)
-        where = f"at {growth.frequency:.4g} rad/s" if growth.frequency > 0 else "as w -> 0"
-        word = "string stable" if growth.string_stable else "NOT string stable"
-        return (f"closed form (platoon analyze, the sampled-data cascade): growth per link far down the string "
-                f"peaks at {growth.gain:.4f} {where}: {word}", growth.string_stable)
-    peak = peak_gain(chain_of(config, chain_vehicle))
-    where = f"at {peak.frequency:.4g} rad/s" if peak.frequency > 0 else "as w -> 0"
-    word = "string stable" if peak.string_stable else "NOT string stable"
-    return f"closed form (platoon analyze, phase-averaged): peak |G(jw)| = {peak.gain:.4f} {where}: {word}", peak.string_stable
-
-
 def predicted_gains(config: Config, names: list[str], clean: list[str], frequencies: list[float]) -> list[list[float]] | None:
     """Per frequency, per link along ``clean``: the gain the sampled-data cascade predicts for this run
     (its pushes, its links, its records); None where the cascade does not apply."""
@@ -393,11 +374,19 @@ def stability_report(trace: "Trace", config: Config, reference: "Trace | None", 
     largest probe's alone)."""
     if not config.disturbance:
         raise ValueError("its config has no [[disturbance]]: the gains need a disturbance run")
-    errors = vehicle_errors(trace, config, reference)
+    from orchestrator.analysis.validity import departures_lines, departures_of_trace
+    from orchestrator.analysis.verdict import closed_form_verdict
+
     names = trace.vehicles()
     source = source_vehicle(config)
     order = propagation(config, names, source)
     law = law_of(config, source)
+    verdict = closed_form_verdict(config)
+    departures = departures_of_trace(trace, config)
+    if departures:  # no gains: the run is no linear chain's, whatever its numbers
+        return "\n".join([f"string stability measured: {law} law: no gains, the run left the model",
+                          *departures_lines(departures), verdict.line()])
+    errors = vehicle_errors(trace, config, reference)
     start = min(d.start for d in config.disturbance)
     against = "the reference trace" if reference is not None else f"the state recorded last before t = {start:g} s"
     pushed = ", ".join(str(v) if v else "the target" for v in sorted(disturbed(config)))
@@ -408,8 +397,6 @@ def stability_report(trace: "Trace", config: Config, reference: "Trace | None", 
     gains = link_gains(errors, order, window)
     lines += gains_lines(gains)[:-1] if gains else gains_lines(gains)
     clean = clean_order(config, names)
-    chain_vehicle = max(source, 1) if law == "paper" else min(source + 1, config.platoon.count)
-    closed_line, stable = _closed_form_line(config, chain_vehicle)
     per_frequency, worst = _frequency_lines(config, errors, names, clean, window)
     if worst is None and len(clean) > 1:
         worst = max(g.l2["speed"] for g in link_gains(errors, clean, window))
@@ -421,5 +408,5 @@ def stability_report(trace: "Trace", config: Config, reference: "Trace | None", 
         word = "grows" if worst > 1.0 else "does not grow"
         lines.append(f"  largest {kind} over the links that measure propagation ({' -> '.join(clean)}): {worst:.4f}: "
                      f"this disturbance {word} along the platoon")
-    lines.append(closed_line)
+    lines.append(verdict.line())
     return "\n".join(lines + per_frequency)

@@ -32,10 +32,11 @@ from matplotlib.colors import ListedColormap, Normalize  # noqa: E402
 
 from orchestrator.analysis.error_gains import (clean_order, frequency_gains, predicted_gains, probe_frequencies,  # noqa: E402
                                                steady_window, stretch_growth, vehicle_errors)
-from orchestrator.analysis.loop_moments import closed_form_stable  # noqa: E402
 from orchestrator.analysis.sampled_chain import (GROWTH_TOLERANCE, Growth, exact_applies,  # noqa: E402
                                                  growth_per_link, lifting_period, peak_growth, vehicle_of)
 from orchestrator.analysis.string_stability import interior_vehicle  # noqa: E402
+from orchestrator.analysis.validity import LEFT_MODEL, departures_cell, departures_of_trace  # noqa: E402
+from orchestrator.analysis.verdict import NOT_COMPUTED, ClosedFormVerdict, closed_form_verdict  # noqa: E402
 from orchestrator.scenario.config import Config, config_from_mapping  # noqa: E402
 from orchestrator.scenario.wiring import TARGET  # noqa: E402
 from orchestrator.support.output import IMAGE, check_target, replacing  # noqa: E402
@@ -56,7 +57,7 @@ def measured_gains(config: Config, trace_path: Path) -> tuple[np.ndarray, np.nda
     # what the gains need: the vehicles and the target (gaps from positions), not the links or the errors,
     # over the window they are fitted in (with an offset: no baseline from before the disturbance is needed),
     # that of a run to its stop time; read again from the start if the run ended early
-    components = [TARGET] + [f"vehicle{k}" for k in range(1, config.platoon.count + 1)]
+    components = _bodies(config)
     expected = steady_window(config, config.simulation.stop_time)
     trace = load(trace_path, components=components, errors=False, start=expected[0])
     names = trace.vehicles()
@@ -71,13 +72,14 @@ def measured_gains(config: Config, trace_path: Path) -> tuple[np.ndarray, np.nda
     return measured, None if predicted is None else np.array(predicted)
 
 
-def _analytic(config: Config, delay: float, loss: float) -> tuple[float, float]:
-    """(peak growth per link, largest growth at the probe frequencies) of the sampled-data cascade of
-    ``config`` with every link's delay and loss set."""
+def _analytic(config: Config, delay: float, loss: float) -> tuple[float, float, float]:
+    """(peak growth per link, the frequency of that peak, largest growth at the probe frequencies) of the
+    sampled-data cascade of ``config`` with every link's delay and loss set."""
     changed = _with_link(config, delay, loss)
     vehicle = interior_vehicle(changed)
     probes = growth_per_link(changed, vehicle, np.array(probe_frequencies(config))).max()
-    return peak_growth(changed, vehicle).gain, float(probes)
+    peak = peak_growth(changed, vehicle)
+    return peak.gain, peak.frequency, float(probes)
 
 
 def _points(folder: Path) -> list[dict[str, Any]]:
@@ -96,22 +98,35 @@ def _points(folder: Path) -> list[dict[str, Any]]:
         if missing is not None:
             raise PlotError(f"run {record['id']}: the sampled-data cascade does not model {missing}")
         trace = folder / record["trace"] if record["status"] == "completed" else None
+        # where the run left the model, from its row (None for a sweep from before the column: from its trace)
         points.append({**where, "gain": math.nan, "deviation": math.nan, "config": config, "raw": record["config"],
-                       "trace": trace})
+                       "trace": trace, "left": record["metrics"].get(LEFT_MODEL)})
     return points
 
 
-def _point(raw: dict[str, Any], trace: Path | None, verdict: bool) -> tuple[float, float, bool | None]:
+def _point(raw: dict[str, Any], trace: Path | None, verdict: bool,
+           left: str | None) -> tuple[float, float, ClosedFormVerdict | None, str]:
     """One run's (measured growth per link, the headline's; worst deviation from the cascade's prediction;
-    the closed form's verdict if ``verdict``, else None: the analytic grid has it), from its config's
-    mapping (a task of a worker process)."""
+    the closed form's verdict if ``verdict``, else None: the analytic grid has its peak; where it left the
+    model, "" inside it, and then no gains), from its config's mapping (a task of a worker process).
+    ``left``: the row's ``run.left_model``, None to find it in the trace."""
     config = config_from_mapping(raw)
-    vehicle = interior_vehicle(config)
-    stable = closed_form_stable(config, vehicle, peak_growth(config, vehicle)) if verdict else None
+    stable = closed_form_verdict(config, mean_square=False) if verdict else None
     if trace is None:
-        return math.nan, math.nan, stable
+        return math.nan, math.nan, stable, ""
+    if left is None:
+        from orchestrator.trace import load
+
+        left = departures_cell(departures_of_trace(load(trace, components=_bodies(config), errors=False), config))
+    if left:
+        return math.nan, math.nan, stable, left
     measured, predicted = measured_gains(config, trace)
-    return stretch_growth(measured), float(np.abs(measured / predicted - 1.0).max()), stable
+    return stretch_growth(measured), float(np.abs(measured / predicted - 1.0).max()), stable, ""
+
+
+def _bodies(config: Config) -> list[str]:
+    """The components the gains and the validity check read: the target and the vehicles."""
+    return [TARGET] + [f"vehicle{k}" for k in range(1, config.platoon.count + 1)]
 
 
 def grid_axis(values: list[float], most: int) -> np.ndarray:
@@ -136,15 +151,20 @@ def _with_link(config: Config, delay: float, loss: float) -> Config:
     return config.model_copy(update={"links": config.links.model_copy(update={"delay": delay, "loss": loss})})
 
 
-def agreement_lines(points: list[dict[str, Any]], stable: dict[str, dict[tuple[float, float], bool]]) -> list[str]:
+def agreement_lines(points: list[dict[str, Any]], stable: dict[str, dict[tuple[float, float], ClosedFormVerdict]]) -> list[str]:
     """Per law: how far the measured gains are from the cascade's prediction for the same links (worst over
     links and probes, by loss rate), and in how many runs the headline verdict (measured growth per link above 1)
     is the closed form's."""
     lines = []
     for law, verdicts in stable.items():
+        left = [p for p in points if p[LAW] == law and p["left"]]
+        lines += [f"{law}: run at delay {p[DELAY]:g} s, loss {p[LOSS]:g} left the model ({p['left']}): no gain" for p in left]
         mine = [p for p in points if p[LAW] == law and not math.isnan(p["gain"])]
         worst = {loss: max(p["deviation"] for p in mine if p[LOSS] == loss) for loss in sorted({p[LOSS] for p in mine})}
-        agree = sum((p["gain"] > 1.0) == (not verdicts[(p[DELAY], p[LOSS])]) for p in mine)
+        agree = sum((p["gain"] > 1.0) == (not verdicts[(p[DELAY], p[LOSS])].string_stable) for p in mine)
+        unknown = sorted({f"delay {k[0]:g} s, loss {k[1]:g}: {v.loop.reason}" for k, v in verdicts.items()
+                          if v.loop.state == NOT_COMPUTED})
+        lines += [f"{law}: the closed form's loop not computed at {where} (the cascade's verdict alone)" for where in unknown]
         by_loss = ", ".join(f"{100 * deviation:.2f} % at loss {loss:g}" for loss, deviation in worst.items())
         lines.append(f"{law}: measured vs the cascade, worst over links and probes: {by_loss}; headline verdict = "
                      f"closed form's in {agree} of {len(mine)} runs")
@@ -183,7 +203,7 @@ def tasks(points: list[dict[str, Any]], laws: list[str], losses: np.ndarray) -> 
 
 def _compute(points: list[dict[str, Any]], laws: list[str], delays: np.ndarray, losses: np.ndarray,
              tick: Callable[[int], None] | None, workers: int) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]],
-                                                                          dict[str, dict[tuple[float, float], bool]]]:
+                                                                          dict[str, dict[tuple[float, float], ClosedFormVerdict]]]:
     """Every run's measured gain and deviation (into the points), each law's analytic grid and the closed
     form's verdict per run, on ``workers`` processes: the grid's rows first, then the runs, each a task;
     ``tick(done)`` counts them as they finish."""
@@ -204,29 +224,29 @@ def _compute(points: list[dict[str, Any]], laws: list[str], delays: np.ndarray, 
     from_grid = {id(p): cells.get(_chain_key(p["config"])) for p in points}
     with pool if pool is not None else nullcontext():
         rows = {law: [submit(_analytic_row, first[law]["raw"], delays, float(loss)) for loss in losses] for law in laws}
-        runs = {submit(_point, p["raw"], p["trace"], from_grid[id(p)] is None): p for p in points}
-        stable: dict[str, dict[tuple[float, float], bool]] = {law: {} for law in laws}
+        runs = {submit(_point, p["raw"], p["trace"], from_grid[id(p)] is None, p["left"]): p for p in points}
+        stable: dict[str, dict[tuple[float, float], ClosedFormVerdict]] = {law: {} for law in laws}
         for task in as_completed([*(t for law_rows in rows.values() for t in law_rows), *runs]):
             if task in runs:
                 p = runs[task]
-                p["gain"], p["deviation"], stable[p[LAW]][(p[DELAY], p[LOSS])] = task.result()
+                p["gain"], p["deviation"], stable[p[LAW]][(p[DELAY], p[LOSS])], p["left"] = task.result()
             done += 1
             if tick is not None:
                 tick(done)
         grids = {}
         for law, law_rows in rows.items():
-            stacked = np.array([task.result() for task in law_rows])  # loss x (peaks, probes) x delay
-            grids[law] = (stacked[:, 0, :], stacked[:, 1, :])
+            stacked = np.array([task.result() for task in law_rows])  # loss x (peaks, probes, peak frequencies) x delay
+            grids[law] = (stacked[:, 0, :], stacked[:, 2, :], stacked[:, 1, :])
     for p in points:
         if from_grid[id(p)] is not None:
             law, i, j = from_grid[id(p)]
-            stable[p[LAW]][(p[DELAY], p[LOSS])] = closed_form_stable(p["config"], interior_vehicle(p["config"]),
-                                                                     Growth(float(grids[law][0][i, j]), 0.0))
+            peak = Growth(float(grids[law][0][i, j]), float(grids[law][2][i, j]))  # the cell's peak, computed
+            stable[p[LAW]][(p[DELAY], p[LOSS])] = closed_form_verdict(p["config"], peak, mean_square=False)
     return grids, stable
 
 
-def _panel(axis, mine: list[dict[str, Any]], grid: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], norm, cmap):
-    delays, losses, peaks, probes = grid
+def _panel(axis, mine: list[dict[str, Any]], grid: tuple[np.ndarray, ...], norm, cmap):
+    delays, losses, peaks, probes, _ = grid
     image = axis.pcolormesh(delays, losses, np.clip(peaks, norm.vmin, norm.vmax), norm=norm, cmap=cmap, shading="nearest")
     if peaks.min() < 1.0 + GROWTH_TOLERANCE < peaks.max():  # the peak's verdict: string stable up to it
         axis.contour(delays, losses, peaks, levels=[1.0 + GROWTH_TOLERANCE], colors="black", linewidths=1.6)
@@ -234,9 +254,12 @@ def _panel(axis, mine: list[dict[str, Any]], grid: tuple[np.ndarray, np.ndarray,
         axis.contour(delays, losses, probes, levels=[1.0], colors="black", linewidths=1.0, linestyles="dashed")
     for p in mine:
         gain = p["gain"]
-        colour = "white" if math.isnan(gain) else cmap(norm(min(max(gain, norm.vmin), norm.vmax)))
-        axis.scatter(p[DELAY], p[LOSS], s=70, color=colour, edgecolors="black", zorder=3)
-        label = "failed" if math.isnan(gain) else f"{gain:.3f}"
+        if p["left"]:  # no gain: a cross, never a colour of the scale
+            axis.scatter(p[DELAY], p[LOSS], s=70, marker="X", color="0.4", edgecolors="black", zorder=3)
+        else:
+            colour = "white" if math.isnan(gain) else cmap(norm(min(max(gain, norm.vmin), norm.vmax)))
+            axis.scatter(p[DELAY], p[LOSS], s=70, color=colour, edgecolors="black", zorder=3)
+        label = "left model" if p["left"] else "failed" if math.isnan(gain) else f"{gain:.3f}"
         axis.annotate(label, (p[DELAY], p[LOSS]), textcoords="offset points", xytext=(0, 8), ha="center", fontsize=6,
                       bbox={"boxstyle": "round,pad=0.1", "facecolor": "white", "alpha": 0.8, "linewidth": 0})
     ticks = sorted({p[DELAY] for p in mine})
@@ -263,7 +286,7 @@ def draw_stability_map(folder: Path, png: Path, overwrite: bool = False, resolut
         grids, stable = _compute(points, laws, delays, losses, tick, workers)
     # the scale ends at the analysis's highest peak: a lossy run's single-seed gain beyond it shows in its
     # label, its dot at the scale's end
-    norm, cmap = colour_scale(max(float(peaks.max()) for peaks, _ in grids.values()))
+    norm, cmap = colour_scale(max(float(peaks.max()) for peaks, _, _ in grids.values()))
     figure, axes = plt.subplots(1, len(laws), figsize=(4.2 * len(laws) + 1.0, 4.6), dpi=120, squeeze=False,
                                 sharey=True, layout="constrained")
     image = None
@@ -277,7 +300,7 @@ def draw_stability_map(folder: Path, png: Path, overwrite: bool = False, resolut
     axes[0][0].set_ylabel("links.loss")
     figure.suptitle("String stability: the sampled-data cascade's peak growth per link (colour; solid line: 1, "
                     "dashed: 1 at the probes)\nunder each run's measured largest growth per link at the probes (dot "
-                    "and label; a lossy dot is one run of one seed)", fontsize=8)
+                    "and label; a lossy dot is one run of one seed; a cross: the run left the model, no gain)", fontsize=8)
     figure.colorbar(image, ax=axes[0].tolist(), label="gain per link", shrink=0.9, extend="max")
     try:  # the output rule (support/output.py): drawn aside, synced, renamed
         with replacing(png) as aside:
