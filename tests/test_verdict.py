@@ -92,3 +92,19 @@ def test_a_growing_loop_is_reported_by_analyze_stability_and_the_map(tmp_path: P
     assert line in measured.stdout
     mapped = _point(config.model_dump(mode="json", exclude_none=True), None, True, "")[2]  # the map's verdict of the run
     assert mapped.loop.state == GROWS and not mapped.string_stable and mapped.line() == line  # mean square aside, equal
+
+
+def test_analyze_prints_the_cascades_bounds_and_labels_the_averaged_ones() -> None:
+    """The study under cacc with 0.3 s links: the delay bound is the cascade's 0.38 s (where runs start to grow,
+    tests/test_sampled_chain.py), not the averaged 0.42 s; the averaged bounds only under their label, after."""
+    from orchestrator.analysis.string_stability import chain_report
+
+    config, _ = load_config("configs/study/string_stability.toml", ["platoon.speed_law=cacc", "links.delay=0.3"])
+    lines = chain_report(config).splitlines()
+    label = next(i for i, line in enumerate(lines) if line.startswith("  for comparison only, the phase-averaged"))
+    cascade = [line for line in lines[:label] if line.startswith("  (cascade)")]
+    assert cascade[-1].endswith("string stable for every link delay on the step grid up to 0.38 s")
+    assert "time_gap >= 0.4064 s" in cascade[0]  # the study's 0.5 s is inside it
+    assert not [line for line in lines[:label] if "(phase-averaged)" in line and "bound" not in line
+                and ("time_gap >=" in line or "delays up to" in line)]
+    assert all(line.startswith("    (phase-averaged)") for line in lines[label + 1:])

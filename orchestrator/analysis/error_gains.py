@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
+from orchestrator.analysis.headline import Headline, Mixing, measured_headline, probe_amplitudes
 from orchestrator.scenario.config import TARGET_VEHICLE, Config
 from orchestrator.scenario.wiring import TARGET
 
@@ -301,19 +302,7 @@ def frequency_gains(errors: dict[str, dict[str, np.ndarray]], order: list[str], 
                     window: tuple[float, float]) -> list[list[float]]:
     """Per frequency, per link along ``order``: the speed error's amplitude ratio at that frequency (all
     frequencies and an offset fitted jointly by least squares over ``window``)."""
-    fits: dict[str, np.ndarray] = {}
-    for name in order:  # vehicles recorded at the same instants share one design: one solve for all of them
-        if name in fits:
-            continue
-        t = errors[name]["t"]
-        alike = [other for other in order if other not in fits and np.array_equal(errors[other]["t"], t)]
-        inside = (t >= window[0] - 1e-9) & (t <= window[1] + 1e-9)
-        columns = [f(w * t[inside]) for w in frequencies for f in (np.cos, np.sin)] + [np.ones(int(inside.sum()))]
-        speeds = np.column_stack([errors[other]["speed"][inside] for other in alike])
-        solved, *_ = np.linalg.lstsq(np.column_stack(columns), speeds, rcond=None)
-        fits.update(zip(alike, solved.T))
-    amplitudes = [[math.hypot(fits[name][2 * k], fits[name][2 * k + 1]) for k in range(len(frequencies))]
-                  for name in order]
+    amplitudes = probe_amplitudes(errors, order, frequencies, window)
     return [[ratio(b[k], a[k]) for a, b in zip(amplitudes, amplitudes[1:])] for k in range(len(frequencies))]
 
 
@@ -344,10 +333,22 @@ def stretch_growth(gains: "list[list[float]] | np.ndarray") -> float:
     return max(math.prod(row) ** (1.0 / len(row)) for row in gains)
 
 
+def run_headline(config: Config, errors: dict[str, dict[str, np.ndarray]], clean: list[str],
+                 steady: tuple[float, float]) -> Headline:
+    """The run's headline over the stretch ``clean`` (orchestrator/analysis/headline.py): its growth per link at
+    the probes, the scatter of a single run's value, the weak probes (the paper law's V d*/d mixes probes)."""
+    frequencies = probe_frequencies(config)
+    mixing = None
+    if law_of(config, source_vehicle(config)) == "paper":
+        mixing = Mixing(config.platoon.speed, {name: equilibrium_gap(config, int(name[len("vehicle"):]))
+                                               for name in clean if name != TARGET})
+    return measured_headline(errors, clean, frequencies, steady, 2.0 * math.pi / min(frequencies), mixing)
+
+
 def _frequency_lines(config: Config, errors: dict[str, dict[str, np.ndarray]], names: list[str], clean: list[str],
-                     window: tuple[float, float]) -> tuple[list[str], float | None]:
+                     window: tuple[float, float]) -> tuple[list[str], Headline | None]:
     """Per probe frequency, the measured gains along the clean links beside the cascade's prediction;
-    and their growth per link (``stretch_growth``; None without sinusoids or clean links)."""
+    and the run's headline (``run_headline``; None without sinusoids or clean links)."""
     frequencies = probe_frequencies(config)
     if not frequencies or len(clean) < 2:
         return [], None
@@ -361,7 +362,7 @@ def _frequency_lines(config: Config, errors: dict[str, dict[str, np.ndarray]], n
     for k, w in enumerate(frequencies):
         expected = "" if predicted is None else "predicted " + ", ".join(f"{g:.4f}" for g in predicted[k]) + "; "
         lines.append(f"    {w:g} rad/s: {expected}measured " + ", ".join(f"{g:.4f}" for g in measured[k]))
-    return lines, stretch_growth(measured)
+    return lines, run_headline(config, errors, clean, steady)
 
 
 def stability_report(trace: "Trace", config: Config, reference: "Trace | None", window: tuple[float, float]) -> str:
@@ -397,16 +398,17 @@ def stability_report(trace: "Trace", config: Config, reference: "Trace | None", 
     gains = link_gains(errors, order, window)
     lines += gains_lines(gains)[:-1] if gains else gains_lines(gains)
     clean = clean_order(config, names)
-    per_frequency, worst = _frequency_lines(config, errors, names, clean, window)
-    if worst is None and len(clean) > 1:
+    per_frequency, headline = _frequency_lines(config, errors, names, clean, window)
+    stretch = " -> ".join(clean)
+    if headline is not None:
+        lines.append(f"  largest growth per link at the probe frequencies over the links that measure propagation "
+                     f"({stretch}): {headline.text()}")
+    elif len(clean) > 1:
         worst = max(g.l2["speed"] for g in link_gains(errors, clean, window))
-    if worst is None:
-        lines.append("  no link measures propagation here (too few vehicles past the pushed ones)")
-    else:
-        kind = ("growth per link at the probe frequencies" if per_frequency and len(per_frequency) > 1
-                else "speed l2 gain")
         word = "grows" if worst > 1.0 else "does not grow"
-        lines.append(f"  largest {kind} over the links that measure propagation ({' -> '.join(clean)}): {worst:.4f}: "
-                     f"this disturbance {word} along the platoon")
+        lines.append(f"  largest speed l2 gain over the links that measure propagation ({stretch}): {worst:.4f}: "
+                     f"this disturbance {word} along the platoon (no scatter: no sinusoid)")
+    else:
+        lines.append("  no link measures propagation here (too few vehicles past the pushed ones)")
     lines.append(verdict.line())
     return "\n".join(lines + per_frequency)

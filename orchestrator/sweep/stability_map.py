@@ -4,7 +4,7 @@ One panel per speed law, the age of information the receiver works with across (
 ages, from the step or the delay on its grid to one beacon period more), the loss rate up. Each run of
 the sweep (configs/sweeps/string_stability.toml) is measured from its trace: the largest growth per link at
 the probe frequencies (the config's sinusoids) over the links that measure propagation
-(``error_gains.clean_order``, ``error_gains.stretch_growth``), the number `platoon stability`'s headline
+(``error_gains.clean_order``, ``error_gains.run_headline``: weak probes left out), the number `platoon stability`'s headline
 gives. That one number is each
 dot's fill (on the colour scale) and its label; a lossy dot is one run of one seed. Under the dots, the
 sampled-data cascade (orchestrator/analysis/sampled_chain.py) of each (delay, loss) on a finer grid: its
@@ -31,7 +31,8 @@ import numpy as np  # noqa: E402
 from matplotlib.colors import ListedColormap, Normalize  # noqa: E402
 
 from orchestrator.analysis.error_gains import (clean_order, frequency_gains, predicted_gains, probe_frequencies,  # noqa: E402
-                                               steady_window, stretch_growth, vehicle_errors)
+                                               run_headline, steady_window, vehicle_errors)
+from orchestrator.analysis.headline import Headline  # noqa: E402
 from orchestrator.analysis.sampled_chain import (GROWTH_TOLERANCE, Growth, exact_applies,  # noqa: E402
                                                  growth_per_link, lifting_period, peak_growth, vehicle_of)
 from orchestrator.analysis.string_stability import interior_vehicle  # noqa: E402
@@ -46,9 +47,10 @@ from orchestrator.sweep.results import lookup, read_records  # noqa: E402  (the 
 LAW, DELAY, LOSS = "platoon.speed_law", "links.delay", "links.loss"
 
 
-def measured_gains(config: Config, trace_path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+def measured_gains(config: Config, trace_path: Path) -> tuple[np.ndarray, np.ndarray | None, Headline]:
     """Per probe frequency, per link that measures propagation: the run's gains, and the sampled-data
-    cascade's prediction for the same links of the same run (None where it does not apply)."""
+    cascade's prediction for the same links of the same run (None where it does not apply); the run's
+    headline (``error_gains.run_headline``: its growth, scatter and weak probes)."""
     from orchestrator.trace import load
 
     frequencies = probe_frequencies(config)
@@ -67,9 +69,10 @@ def measured_gains(config: Config, trace_path: Path) -> tuple[np.ndarray, np.nda
     window = steady_window(config, float(trace.component(order[0])["t"][-1]))
     if window[0] < expected[0] - 1e-9:
         trace = load(trace_path, components=components, errors=False)
-    measured = np.array(frequency_gains(vehicle_errors(trace, config), order, frequencies, window))
+    errors = vehicle_errors(trace, config)
+    measured = np.array(frequency_gains(errors, order, frequencies, window))
     predicted = predicted_gains(config, names, order, frequencies)
-    return measured, None if predicted is None else np.array(predicted)
+    return measured, None if predicted is None else np.array(predicted), run_headline(config, errors, order, window)
 
 
 def _analytic(config: Config, delay: float, loss: float) -> tuple[float, float, float]:
@@ -99,29 +102,29 @@ def _points(folder: Path) -> list[dict[str, Any]]:
             raise PlotError(f"run {record['id']}: the sampled-data cascade does not model {missing}")
         trace = folder / record["trace"] if record["status"] == "completed" else None
         # where the run left the model, from its row (None for a sweep from before the column: from its trace)
-        points.append({**where, "gain": math.nan, "deviation": math.nan, "config": config, "raw": record["config"],
+        points.append({**where, "gain": math.nan, "headline": None, "deviation": math.nan, "config": config, "raw": record["config"],
                        "trace": trace, "left": record["metrics"].get(LEFT_MODEL)})
     return points
 
 
 def _point(raw: dict[str, Any], trace: Path | None, verdict: bool,
-           left: str | None) -> tuple[float, float, ClosedFormVerdict | None, str]:
-    """One run's (measured growth per link, the headline's; worst deviation from the cascade's prediction;
+           left: str | None) -> tuple[Headline | None, float, ClosedFormVerdict | None, str]:
+    """One run's (headline: its growth per link, scatter, weak probes; None without gains; worst deviation from the cascade's prediction;
     the closed form's verdict if ``verdict``, else None: the analytic grid has its peak; where it left the
     model, "" inside it, and then no gains), from its config's mapping (a task of a worker process).
     ``left``: the row's ``run.left_model``, None to find it in the trace."""
     config = config_from_mapping(raw)
     stable = closed_form_verdict(config, mean_square=False) if verdict else None
     if trace is None:
-        return math.nan, math.nan, stable, ""
+        return None, math.nan, stable, ""
     if left is None:
         from orchestrator.trace import load
 
         left = departures_cell(departures_of_trace(load(trace, components=_bodies(config), errors=False), config))
     if left:
-        return math.nan, math.nan, stable, left
-    measured, predicted = measured_gains(config, trace)
-    return stretch_growth(measured), float(np.abs(measured / predicted - 1.0).max()), stable, ""
+        return None, math.nan, stable, left
+    measured, predicted, headline = measured_gains(config, trace)
+    return headline, float(np.abs(measured / predicted - 1.0).max()), stable, ""
 
 
 def _bodies(config: Config) -> list[str]:
@@ -161,13 +164,17 @@ def agreement_lines(points: list[dict[str, Any]], stable: dict[str, dict[tuple[f
         lines += [f"{law}: run at delay {p[DELAY]:g} s, loss {p[LOSS]:g} left the model ({p['left']}): no gain" for p in left]
         mine = [p for p in points if p[LAW] == law and not math.isnan(p["gain"])]
         worst = {loss: max(p["deviation"] for p in mine if p[LOSS] == loss) for loss in sorted({p[LOSS] for p in mine})}
-        agree = sum((p["gain"] > 1.0) == (not verdicts[(p[DELAY], p[LOSS])].string_stable) for p in mine)
+        judged = [p for p in mine if p["headline"].verdict in ("grows", "does not grow")]
+        agree = sum((p["headline"].verdict == "grows") == (not verdicts[(p[DELAY], p[LOSS])].string_stable) for p in judged)
+        noisy = [p for p in mine if p not in judged]
+        lines += [f"{law}: run at delay {p[DELAY]:g} s, loss {p[LOSS]:g}: {p['headline'].text()}" for p in noisy]
         unknown = sorted({f"delay {k[0]:g} s, loss {k[1]:g}: {v.loop.reason}" for k, v in verdicts.items()
                           if v.loop.state == NOT_COMPUTED})
         lines += [f"{law}: the closed form's loop not computed at {where} (the cascade's verdict alone)" for where in unknown]
         by_loss = ", ".join(f"{100 * deviation:.2f} % at loss {loss:g}" for loss, deviation in worst.items())
         lines.append(f"{law}: measured vs the cascade, worst over links and probes: {by_loss}; headline verdict = "
-                     f"closed form's in {agree} of {len(mine)} runs")
+                     f"closed form's in {agree} of the {len(judged)} runs outside the noise ({len(noisy)} inside it or "
+                     "with no probe to judge)")
     return lines
 
 
@@ -229,7 +236,8 @@ def _compute(points: list[dict[str, Any]], laws: list[str], delays: np.ndarray, 
         for task in as_completed([*(t for law_rows in rows.values() for t in law_rows), *runs]):
             if task in runs:
                 p = runs[task]
-                p["gain"], p["deviation"], stable[p[LAW]][(p[DELAY], p[LOSS])], p["left"] = task.result()
+                p["headline"], p["deviation"], stable[p[LAW]][(p[DELAY], p[LOSS])], p["left"] = task.result()
+                p["gain"] = p["headline"].growth if p["headline"] is not None else math.nan
             done += 1
             if tick is not None:
                 tick(done)
@@ -260,6 +268,8 @@ def _panel(axis, mine: list[dict[str, Any]], grid: tuple[np.ndarray, ...], norm,
             colour = "white" if math.isnan(gain) else cmap(norm(min(max(gain, norm.vmin), norm.vmax)))
             axis.scatter(p[DELAY], p[LOSS], s=70, color=colour, edgecolors="black", zorder=3)
         label = "left model" if p["left"] else "failed" if math.isnan(gain) else f"{gain:.3f}"
+        if p["headline"] is not None and p["headline"].verdict == "inside the noise":
+            label += " (noise)"
         axis.annotate(label, (p[DELAY], p[LOSS]), textcoords="offset points", xytext=(0, 8), ha="center", fontsize=6,
                       bbox={"boxstyle": "round,pad=0.1", "facecolor": "white", "alpha": 0.8, "linewidth": 0})
     ticks = sorted({p[DELAY] for p in mine})
