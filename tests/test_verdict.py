@@ -90,7 +90,7 @@ def test_a_growing_loop_is_reported_by_analyze_stability_and_the_map(tmp_path: P
     measured = platoon("stability", trace, cwd=workdir)
     assert measured.returncode == 0, measured.stderr
     assert line in measured.stdout
-    mapped = _point(config.model_dump(mode="json", exclude_none=True), None, True, "")[2]  # the map's verdict of the run
+    mapped = _point(config.model_dump(mode="json", exclude_none=True), None, True)[2]  # the map's verdict of the run
     assert mapped.loop.state == GROWS and not mapped.string_stable and mapped.line() == line  # mean square aside, equal
 
 

@@ -220,11 +220,11 @@ def string_stability_report(config: Config, config_text: str, progress: Progress
         result = run_scenario(config, config_text, scratch / "analysis.mcap", tick=tick)
         if result.status != "completed":
             return f"string stability: the run {result.status}: {result.error}"
-        if result.departures:
-            from orchestrator.analysis.validity import departures_lines
+        from orchestrator.analysis.validity import departures_lines, split_at
 
-            return "\n".join(["string stability: no gains, the disturbed run left the model",
-                              *departures_lines(result.departures)])
+        if departures := split_at(result.departures, start)[1]:  # one that left it while settling came back
+            return "\n".join([f"string stability: no gains, the disturbed run left the model after t = {start:g} s",
+                              *departures_lines(departures)])
         trace = load(result.trace)
     reference_config = config.model_copy(update={"disturbance": []})
     with ScratchDir("analyze") as scratch, shown("undisturbed run (2/2)", steps) as tick:
@@ -375,7 +375,7 @@ def stability_report(trace: "Trace", config: Config, reference: "Trace | None", 
     largest probe's alone)."""
     if not config.disturbance:
         raise ValueError("its config has no [[disturbance]]: the gains need a disturbance run")
-    from orchestrator.analysis.validity import departures_lines, departures_of_trace
+    from orchestrator.analysis.validity import departures_lines, departures_of_trace, split_at
     from orchestrator.analysis.verdict import closed_form_verdict
 
     names = trace.vehicles()
@@ -383,18 +383,21 @@ def stability_report(trace: "Trace", config: Config, reference: "Trace | None", 
     order = propagation(config, names, source)
     law = law_of(config, source)
     verdict = closed_form_verdict(config)
-    departures = departures_of_trace(trace, config)
-    if departures:  # no gains: the run is no linear chain's, whatever its numbers
-        return "\n".join([f"string stability measured: {law} law: no gains, the run left the model",
-                          *departures_lines(departures), verdict.line()])
-    errors = vehicle_errors(trace, config, reference)
     start = min(d.start for d in config.disturbance)
+    settling, departures = split_at(departures_of_trace(trace, config), min(start, window[0]))
+    if departures:  # no gains: the run is no linear chain's, whatever its numbers
+        return "\n".join([f"string stability measured: {law} law: no gains, the run left the model after t = "
+                          f"{min(start, window[0]):g} s", *departures_lines(departures), verdict.line()])
+    errors = vehicle_errors(trace, config, reference)
     against = "the reference trace" if reference is not None else f"the state recorded last before t = {start:g} s"
     pushed = ", ".join(str(v) if v else "the target" for v in sorted(disturbed(config)))
     lines = [f"string stability measured: {law} law, carried from {'the target' if source == TARGET_VEHICLE else f'vehicle {source}'} "
              f"(pushed: {pushed}), errors against "
              f"{against}, window {window[0]:g} to {window[1]:g} s; a link that starts or ends at a pushed vehicle "
              "measures the push too"]
+    if settling:
+        lines += [f"  (it left the model while it settled, before t = {min(start, window[0]):g} s, and came back: the "
+                  f"gains are of the settled run) {d.text()}" for d in settling[:3]]
     gains = link_gains(errors, order, window)
     lines += gains_lines(gains)[:-1] if gains else gains_lines(gains)
     clean = clean_order(config, names)

@@ -191,6 +191,12 @@ def departures_cell(departures: list[Departure]) -> str:
     return f"{kinds} from t = {min(d.t for d in departures):g} s"
 
 
+def split_at(departures: list[Departure], start: float) -> tuple[list[Departure], list[Departure]]:
+    """(before ``start``, from it on): a run that left the model while it settled (a start far from its own
+    equilibrium) and came back measures its gains from the disturbance on; one that leaves it there has none."""
+    return [d for d in departures if d.t < start], [d for d in departures if d.t >= start]
+
+
 def departures_lines(departures: list[Departure], most: int = 6) -> list[str]:
     """What `platoon run`, `stability` and `analyze` print: the departures, the first ``most`` of them."""
     if not departures:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import multiprocessing
+import textwrap
 import os
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from contextlib import nullcontext
@@ -36,7 +37,7 @@ from orchestrator.analysis.headline import Headline  # noqa: E402
 from orchestrator.analysis.sampled_chain import (GROWTH_TOLERANCE, Growth, exact_applies,  # noqa: E402
                                                  growth_per_link, lifting_period, peak_growth, vehicle_of)
 from orchestrator.analysis.string_stability import interior_vehicle  # noqa: E402
-from orchestrator.analysis.validity import LEFT_MODEL, departures_cell, departures_of_trace  # noqa: E402
+from orchestrator.analysis.validity import departures_cell, departures_of_trace, split_at  # noqa: E402
 from orchestrator.analysis.verdict import NOT_COMPUTED, ClosedFormVerdict, closed_form_verdict  # noqa: E402
 from orchestrator.scenario.config import Config, config_from_mapping  # noqa: E402
 from orchestrator.scenario.wiring import TARGET  # noqa: E402
@@ -101,30 +102,30 @@ def _points(folder: Path) -> list[dict[str, Any]]:
         if missing is not None:
             raise PlotError(f"run {record['id']}: the sampled-data cascade does not model {missing}")
         trace = folder / record["trace"] if record["status"] == "completed" else None
-        # where the run left the model, from its row (None for a sweep from before the column: from its trace)
-        points.append({**where, "gain": math.nan, "headline": None, "deviation": math.nan, "config": config, "raw": record["config"],
-                       "trace": trace, "left": record["metrics"].get(LEFT_MODEL)})
+        points.append({**where, "gain": math.nan, "headline": None, "deviation": math.nan, "config": config,
+                       "raw": record["config"], "trace": trace, "left": "", "settling": ""})
     return points
 
 
-def _point(raw: dict[str, Any], trace: Path | None, verdict: bool,
-           left: str | None) -> tuple[Headline | None, float, ClosedFormVerdict | None, str]:
-    """One run's (headline: its growth per link, scatter, weak probes; None without gains; worst deviation from the cascade's prediction;
-    the closed form's verdict if ``verdict``, else None: the analytic grid has its peak; where it left the
-    model, "" inside it, and then no gains), from its config's mapping (a task of a worker process).
-    ``left``: the row's ``run.left_model``, None to find it in the trace."""
+def _point(raw: dict[str, Any], trace: Path | None,
+           verdict: bool) -> tuple[Headline | None, float, ClosedFormVerdict | None, str, str]:
+    """One run's (headline: its growth per link, scatter, weak probes; None without gains; worst deviation
+    from the cascade's prediction; the closed form's verdict if ``verdict``, else None: the analytic grid has
+    its peak; where it left the model from the first disturbance on, "" if it did not, and then no gains;
+    where it left it while it settled, before), from its config's mapping (a task of a worker process)."""
     config = config_from_mapping(raw)
     stable = closed_form_verdict(config, mean_square=False) if verdict else None
     if trace is None:
-        return None, math.nan, stable, ""
-    if left is None:
-        from orchestrator.trace import load
+        return None, math.nan, stable, "", ""
+    from orchestrator.trace import load
 
-        left = departures_cell(departures_of_trace(load(trace, components=_bodies(config), errors=False), config))
-    if left:
-        return None, math.nan, stable, left
+    start = min(d.start for d in config.disturbance)
+    found = departures_of_trace(load(trace, components=_bodies(config), errors=False), config)
+    settling, departures = (departures_cell(part) for part in split_at(found, start))
+    if departures:
+        return None, math.nan, stable, departures, settling
     measured, predicted, headline = measured_gains(config, trace)
-    return headline, float(np.abs(measured / predicted - 1.0).max()), stable, ""
+    return headline, float(np.abs(measured / predicted - 1.0).max()), stable, "", settling
 
 
 def _bodies(config: Config) -> list[str]:
@@ -160,8 +161,9 @@ def agreement_lines(points: list[dict[str, Any]], stable: dict[str, dict[tuple[f
     is the closed form's."""
     lines = []
     for law, verdicts in stable.items():
-        left = [p for p in points if p[LAW] == law and p["left"]]
-        lines += [f"{law}: run at delay {p[DELAY]:g} s, loss {p[LOSS]:g} left the model ({p['left']}): no gain" for p in left]
+        for p in (p for p in points if p[LAW] == law and (p["left"] or p["settling"])):
+            lines.append(f"{law}: run at delay {p[DELAY]:g} s, loss {p[LOSS]:g} left the model " + (
+                f"({p['left']}): no gain" if p["left"] else f"while it settled ({p['settling']}) and came back: gain shown"))
         mine = [p for p in points if p[LAW] == law and not math.isnan(p["gain"])]
         worst = {loss: max(p["deviation"] for p in mine if p[LOSS] == loss) for loss in sorted({p[LOSS] for p in mine})}
         judged = [p for p in mine if p["headline"].verdict in ("grows", "does not grow")]
@@ -231,12 +233,12 @@ def _compute(points: list[dict[str, Any]], laws: list[str], delays: np.ndarray, 
     from_grid = {id(p): cells.get(_chain_key(p["config"])) for p in points}
     with pool if pool is not None else nullcontext():
         rows = {law: [submit(_analytic_row, first[law]["raw"], delays, float(loss)) for loss in losses] for law in laws}
-        runs = {submit(_point, p["raw"], p["trace"], from_grid[id(p)] is None, p["left"]): p for p in points}
+        runs = {submit(_point, p["raw"], p["trace"], from_grid[id(p)] is None): p for p in points}
         stable: dict[str, dict[tuple[float, float], ClosedFormVerdict]] = {law: {} for law in laws}
         for task in as_completed([*(t for law_rows in rows.values() for t in law_rows), *runs]):
             if task in runs:
                 p = runs[task]
-                p["headline"], p["deviation"], stable[p[LAW]][(p[DELAY], p[LOSS])], p["left"] = task.result()
+                p["headline"], p["deviation"], stable[p[LAW]][(p[DELAY], p[LOSS])], p["left"], p["settling"] = task.result()
                 p["gain"] = p["headline"].growth if p["headline"] is not None else math.nan
             done += 1
             if tick is not None:
@@ -267,9 +269,12 @@ def _panel(axis, mine: list[dict[str, Any]], grid: tuple[np.ndarray, ...], norm,
         else:
             colour = "white" if math.isnan(gain) else cmap(norm(min(max(gain, norm.vmin), norm.vmax)))
             axis.scatter(p[DELAY], p[LOSS], s=70, color=colour, edgecolors="black", zorder=3)
-        label = "left model" if p["left"] else "failed" if math.isnan(gain) else f"{gain:.3f}"
-        if p["headline"] is not None and p["headline"].verdict == "inside the noise":
-            label += " (noise)"
+        headline = p["headline"]
+        label = ("left model" if p["left"] else "failed" if headline is None else "weak probes" if math.isnan(gain)
+                 else f"{gain:.3f}")
+        notes = [note for note, shown in (("noise", headline is not None and headline.verdict == "inside the noise"),
+                                          ("left, settled", p["settling"] and not p["left"])) if shown]
+        label += "".join(f"\n{note}" for note in notes)
         axis.annotate(label, (p[DELAY], p[LOSS]), textcoords="offset points", xytext=(0, 8), ha="center", fontsize=6,
                       bbox={"boxstyle": "round,pad=0.1", "facecolor": "white", "alpha": 0.8, "linewidth": 0})
     ticks = sorted({p[DELAY] for p in mine})
@@ -308,9 +313,11 @@ def draw_stability_map(folder: Path, png: Path, overwrite: bool = False, resolut
         axis.set_ylim(-pad_y, losses[-1] + pad_y)
         axis.set_xlabel("links.delay [s]\nage of information at the receiver [s]", fontsize=8)
     axes[0][0].set_ylabel("links.loss")
-    figure.suptitle("String stability: the sampled-data cascade's peak growth per link (colour; solid line: 1, "
-                    "dashed: 1 at the probes)\nunder each run's measured largest growth per link at the probes (dot "
-                    "and label; a lossy dot is one run of one seed; a cross: the run left the model, no gain)", fontsize=8)
+    title = ("String stability: the sampled-data cascade's peak growth per link (colour; solid line: 1, dashed: 1 at "
+             "the probes) under each run's measured largest growth per link at the probes (dot and label; a lossy dot "
+             "is one run of one seed; 'noise': inside 3 of its standard errors of 1; a cross: the run left the model, "
+             "no gain; 'left, settled': it left it only while it settled)")
+    figure.suptitle(textwrap.fill(title, int(figure.get_figwidth() * 15)), fontsize=8)  # ~15 characters an inch at 8 pt
     figure.colorbar(image, ax=axes[0].tolist(), label="gain per link", shrink=0.9, extend="max")
     try:  # the output rule (support/output.py): drawn aside, synced, renamed
         with replacing(png) as aside:
