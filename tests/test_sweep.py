@@ -420,6 +420,14 @@ def test_sweep_plot_draws_the_map_and_names_a_bad_column(tmp_path: Path, fmu_dir
         assert len(expected) == 8 and all(math.isfinite(v) and v != 0.0 for v in expected.values())
         figure = drawn_figure(out, column, tmp_path / "again.png")
         assert_map_shows(figure, matplotlib.image.imread(written), expected)
+    # a run that left the model (its row's run.left_model) is marked so, its value not drawn
+    marked = rows(out)[0]
+    record_path = out / "results" / f"{marked['id']}.json"
+    record = json.loads(record_path.read_text())
+    record["metrics"]["run.left_model"] = "collision (vehicle2) from t = 1 s"
+    record_path.write_text(json.dumps(record))
+    texts = [t.get_text() for axis in drawn_figure(out, "last.path_offset", tmp_path / "left.png").axes for t in axis.texts]
+    assert texts.count("left\nmodel") == 1 and f"{float(marked['last.path_offset']):.2g}" not in texts
     bad = platoon("sweep-plot", out, "--value", "last.colour")
     assert bad.returncode == 2 and "--value last.colour" in error_line(bad)
     ambiguous = platoon("sweep-plot", out, "--panel", "platoon.k_v")  # law and k_v: two runs per cell
