@@ -114,6 +114,8 @@ class ValidityWatch:
         self._aheads = [TARGET] + self.names[:-1]
         self._pairs = [(ahead, name) for ahead, name in zip(self._aheads, self.names) if ahead in columns]
         self._columns = columns
+        self._pair_columns = [np.array([columns[pair[side]][axis] for pair in self._pairs], dtype=np.intp)
+                              for side, axis in ((0, "x"), (0, "y"), (1, "x"), (1, "y"))]
         self._speed_limit = np.array(self.limits.max_speed[:len(self.names)])
         self.departures: dict[tuple[str, str], Departure] = {}
 
@@ -121,23 +123,24 @@ class ValidityWatch:
         rows = np.asarray(rows, dtype=float)
         if rows.ndim != 2 or not len(rows) or not self.names:
             return []
-        t, found = rows[:, 0], []
-        column = self._columns
+        t, found, column = rows[:, 0], [], self._columns
         speeds = rows[:, [column[name]["speed"] for name in self.names]]
-        for index in zip(*np.nonzero(np.abs(speeds) > self._speed_limit)):
-            found.append(Departure("speed", self.names[index[1]], float(t[index[0]]), float(speeds[index]),
-                                   float(self._speed_limit[index[1]])))
-        for ahead, name in self._pairs:
-            ax, ay = rows[:, column[ahead]["x"]], rows[:, column[ahead]["y"]]
-            dx, dy = ax - rows[:, column[name]["x"]], ay - rows[:, column[name]["y"]]
+        fast = np.abs(speeds) > self._speed_limit
+        for vehicle in np.flatnonzero(fast.any(axis=0)):  # its first row only: a runaway exceeds it for thousands
+            first = int(np.argmax(fast[:, vehicle]))
+            found.append(Departure("speed", self.names[vehicle], float(t[first]), float(speeds[first, vehicle]),
+                                   float(self._speed_limit[vehicle])))
+        if self._pairs:  # every pair at once (rows x pairs): a platoon of thousands is one numpy pass a block
+            ax, ay, bx, by = (rows[:, indices] for indices in self._pair_columns)
+            dx, dy = ax - bx, ay - by
             tx, ty = _tangent(self.config, ax, ay)
-            along = dx * tx + dy * ty
-            gap = np.hypot(dx, dy)
-            for kind, hit, value in (("collision", gap <= self.limits.min_gap, gap), ("reversal", along < 0.0, along)):
-                if hit.any():
-                    first = int(np.argmax(hit))
-                    found.append(Departure(kind, name, float(t[first]), float(value[first]), self.limits.min_gap
-                                           if kind == "collision" else 0.0, ahead))
+            along, gap = dx * tx + dy * ty, np.hypot(dx, dy)
+            for kind, hits, values in (("collision", gap <= self.limits.min_gap, gap), ("reversal", along < 0.0, along)):
+                for pair in np.flatnonzero(hits.any(axis=0)):
+                    first = int(np.argmax(hits[:, pair]))
+                    ahead, name = self._pairs[pair]
+                    found.append(Departure(kind, name, float(t[first]), float(values[first, pair]),
+                                           self.limits.min_gap if kind == "collision" else 0.0, ahead))
         new = []
         for departure in sorted(found, key=lambda d: (d.t, KINDS.index(d.kind))):
             key = (departure.kind, departure.vehicle)
