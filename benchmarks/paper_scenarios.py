@@ -16,6 +16,7 @@ from pathlib import Path
 
 from fmus.builders import DEFAULT_OUT
 from orchestrator.analysis.metrics import report_json, summarize
+from orchestrator.analysis.validity import departures_of_trace
 from orchestrator.support.output import OutputError
 from orchestrator.trace import load
 
@@ -39,7 +40,8 @@ def main() -> None:
             for law in ("sine", "regular"):
                 out = Path(scratch) / f"{path.stem}-{law}.mcap"
                 config, result = run_config(path, None, out, [f"platoon.law={law}"], DEFAULT_OUT)
-                summary = report_json(summarize(load(out), config), config)
+                trace = load(out)
+                summary = report_json(summarize(trace, config), config, departures_of_trace(trace, config))
                 record = {"scenario": path.stem, "law": law, "wall_time_s": round(result.wall_time, 3),
                           "steps": result.steps, "trace_bytes": out.stat().st_size, **summary}
                 results.append(record)

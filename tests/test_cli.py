@@ -181,8 +181,11 @@ def test_report_json(completed_run, workdir: Path) -> None:
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     assert list(report) == ["trace", "law", "status", "units", "steady_window", "path_error_max_interval", "vehicles",
-                            "links"]
+                            "validity", "links"]
     assert report["links"] == []  # the paper's platoon has no communication links
+    # vehicle 1 starts 5 m off the circle and swings in: no vehicle comes within 4.5 m of another, or passes it
+    assert report["validity"] == {"inside_model": True, "min_gap": 4.5, "max_speed": [75.0] * len(VEHICLES),
+                                  "departures": []}
     assert [v["name"] for v in report["vehicles"]] == VEHICLES
     for vehicle in report["vehicles"]:
         assert set(vehicle) == SUMMARY_KEYS

@@ -80,6 +80,7 @@ FLOAT_KEYS = [
     "hil.pose_timeout", "hil.connect_timeout", "hil.command_validity", "hil.max_pose_age",
     "remote.step_timeout", "remote.connect_timeout",
     "vehicles.1.ros2.frame.x", "vehicles.1.ros2.frame.y", "vehicles.1.ros2.frame.yaw", "ros2.rate",
+    "validity.min_gap", "validity.max_speed",
 ] + [f"links.{table}{key}" for table in ("", "backward.", "forward.", "vehicles.1.backward.", "vehicles.1.forward.")
      for key in ("delay", "jitter", "period", "loss", "burst")]
 
@@ -169,6 +170,8 @@ RANGES = [
     ("vehicles.1.initial.heading", -7.0, "a finite number >= -6.28319 rad and <= 6.28319 rad (radians: 90 degrees = 1.5708 rad)", 3.0),
     ("hil.pose_timeout", 6.0, "a finite number > 0 s and <= 5 s", 5.0),
     ("remote.step_timeout", 0.0, "a finite number > 0 s and <= 600 s", 0.05),
+    ("validity.min_gap", -1.0, "a finite number >= 0 m and <= 1e+06 m", 0.0),
+    ("validity.max_speed", 2000.0, "a finite number >= 0.001 m/s and <= 1000 m/s", 1000.0),
 ]
 
 

@@ -88,6 +88,7 @@ def test_the_grid_holds_the_runs_values_and_gives_their_verdicts(sweep: Path) ->
     grid holds it: the same verdict as the run's own peak growth."""
     from orchestrator.analysis.sampled_chain import peak_growth
     from orchestrator.analysis.string_stability import interior_vehicle
+    from orchestrator.analysis.verdict import closed_form_verdict
     from orchestrator.sweep.stability_map import LAW, DELAY, LOSS, _compute, _points, grid_axis
 
     assert list(grid_axis([0.0, 0.1, 0.2, 0.3, 0.4], 11)) == pytest.approx([0.05 * k for k in range(9)], abs=1e-12)
@@ -96,8 +97,10 @@ def test_the_grid_holds_the_runs_values_and_gives_their_verdicts(sweep: Path) ->
     laws = list(dict.fromkeys(p[LAW] for p in points))
     delays, losses = grid_axis([p[DELAY] for p in points], 3), grid_axis([p[LOSS] for p in points], 3)
     assert 0.3 in delays
-    _, stable = _compute(points, laws, delays, losses, None, 1)
+    _, verdicts = _compute(points, laws, delays, losses, None, 1)
     for p in points:
         config = p["config"]
-        assert stable[p[LAW]][(p[DELAY], p[LOSS])] == peak_growth(config, interior_vehicle(config)).string_stable
-    assert {stable[p[LAW]][(p[DELAY], p[LOSS])] for p in points} == {True, False}  # both verdicts are checked
+        verdict = verdicts[p[LAW]][(p[DELAY], p[LOSS])]
+        assert verdict == closed_form_verdict(config, mean_square=False)  # the cell's peak is the run's own
+        assert verdict.peak_growth_per_link == peak_growth(config, interior_vehicle(config)).gain
+    assert {verdicts[p[LAW]][(p[DELAY], p[LOSS])].string_stable for p in points} == {True, False}  # both are checked

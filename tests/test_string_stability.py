@@ -178,7 +178,8 @@ def test_platoon_stability_prints_the_gains_and_the_closed_form_beside_them(nati
     assert "target -> vehicle1" in shown.stdout and "vehicle6 -> vehicle7" in shown.stdout
     assert ("over the links that measure propagation (vehicle3 -> vehicle4 -> vehicle5 -> vehicle6)" in shown.stdout
             and "does not grow along the platoon" in shown.stdout), shown.stdout
-    assert "the sampled-data cascade): growth per link far down the string peaks at 1.0000 as w -> 0: string stable" in shown.stdout
+    assert ("closed form (sampled-data cascade): growth per link far down the string peaks at 1.0000 as w -> 0; no link "
+            "inside the vehicle's own loop: string stable") in shown.stdout
     rows = [line.split(":", 1)[1] for line in shown.stdout.splitlines() if line.strip().startswith(("0.1 rad/s", "3 rad/s"))]
     assert len(rows) == 2, shown.stdout
     for row in rows:  # " predicted 0.9960, 0.9986; measured 0.9960, 0.9986"

@@ -23,6 +23,7 @@ import matplotlib.image
 import pytest
 
 from orchestrator.analysis.metrics import report_json, summarize
+from orchestrator.analysis.validity import departures_of_trace
 from orchestrator.sweep.worker import flatten_report
 from orchestrator.trace import load
 from tests.conftest import SPEED_TO_ZERO
@@ -63,7 +64,7 @@ def report_of(out: Path, row: dict[str, str]) -> dict[str, float]:
     from orchestrator.scenario.config import config_from_mapping
 
     config = config_from_mapping(trace.config)
-    return flatten_report(report_json(summarize(trace, config), config))
+    return flatten_report(report_json(summarize(trace, config), config, departures_of_trace(trace, config)))
 
 
 def assert_row_is_its_report(out: Path, row: dict[str, str]) -> None:
@@ -71,6 +72,7 @@ def assert_row_is_its_report(out: Path, row: dict[str, str]) -> None:
     from the trace read back: the same sums in blocks of other sizes, so equal to rounding (1e-12
     relative, as tests/test_summary.py argues), not bit for bit."""
     expected = report_of(out, row)
+    assert row["run.left_model"] == expected.pop("run.left_model")  # text: where the run left the model, "" inside
     assert {k for k in row if k.startswith(("vehicle", "last.")) and row[k]} == set(expected)
     for key, value in expected.items():
         if math.isnan(value):  # path_error_max: no disturbance started within the run
@@ -418,6 +420,14 @@ def test_sweep_plot_draws_the_map_and_names_a_bad_column(tmp_path: Path, fmu_dir
         assert len(expected) == 8 and all(math.isfinite(v) and v != 0.0 for v in expected.values())
         figure = drawn_figure(out, column, tmp_path / "again.png")
         assert_map_shows(figure, matplotlib.image.imread(written), expected)
+    # a run that left the model (its row's run.left_model) is marked so, its value not drawn
+    marked = rows(out)[0]
+    record_path = out / "results" / f"{marked['id']}.json"
+    record = json.loads(record_path.read_text())
+    record["metrics"]["run.left_model"] = "collision (vehicle2) from t = 1 s"
+    record_path.write_text(json.dumps(record))
+    texts = [t.get_text() for axis in drawn_figure(out, "last.path_offset", tmp_path / "left.png").axes for t in axis.texts]
+    assert texts.count("left\nmodel") == 1 and f"{float(marked['last.path_offset']):.2g}" not in texts
     bad = platoon("sweep-plot", out, "--value", "last.colour")
     assert bad.returncode == 2 and "--value last.colour" in error_line(bad)
     ambiguous = platoon("sweep-plot", out, "--panel", "platoon.k_v")  # law and k_v: two runs per cell

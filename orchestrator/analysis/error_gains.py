@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
+from orchestrator.analysis.headline import Headline, Mixing, measured_headline, probe_amplitudes
 from orchestrator.scenario.config import TARGET_VEHICLE, Config
 from orchestrator.scenario.wiring import TARGET
 
@@ -221,6 +222,11 @@ def string_stability_report(config: Config, config_text: str, progress: Progress
         result = run_scenario(config, config_text, scratch / "analysis.mcap", tick=tick)
         if result.status != "completed":
             return f"string stability: the run {result.status}: {result.error}"
+        from orchestrator.analysis.validity import departures_lines, split_at
+
+        if departures := split_at(result.departures, start)[1]:  # one that left it while settling came back
+            return "\n".join([f"string stability: no gains, the disturbed run left the model after t = {start:g} s",
+                              *departures_lines(departures)])
         trace = load(result.trace)
     reference_config = config.model_copy(update={"disturbance": []})
     with ScratchDir("analyze") as scratch, shown("undisturbed run (2/2)", steps) as tick:
@@ -298,44 +304,8 @@ def frequency_gains(errors: dict[str, dict[str, np.ndarray]], order: list[str], 
                     window: tuple[float, float]) -> list[list[float]]:
     """Per frequency, per link along ``order``: the speed error's amplitude ratio at that frequency (all
     frequencies and an offset fitted jointly by least squares over ``window``)."""
-    fits: dict[str, np.ndarray] = {}
-    for name in order:  # vehicles recorded at the same instants share one design: one solve for all of them
-        if name in fits:
-            continue
-        t = errors[name]["t"]
-        alike = [other for other in order if other not in fits and np.array_equal(errors[other]["t"], t)]
-        inside = (t >= window[0] - 1e-9) & (t <= window[1] + 1e-9)
-        columns = [f(w * t[inside]) for w in frequencies for f in (np.cos, np.sin)] + [np.ones(int(inside.sum()))]
-        speeds = np.column_stack([errors[other]["speed"][inside] for other in alike])
-        solved, *_ = np.linalg.lstsq(np.column_stack(columns), speeds, rcond=None)
-        fits.update(zip(alike, solved.T))
-    amplitudes = [[math.hypot(fits[name][2 * k], fits[name][2 * k + 1]) for k in range(len(frequencies))]
-                  for name in order]
+    amplitudes = probe_amplitudes(errors, order, frequencies, window)
     return [[ratio(b[k], a[k]) for a, b in zip(amplitudes, amplitudes[1:])] for k in range(len(frequencies))]
-
-
-def _closed_form_line(config: Config, chain_vehicle: int) -> tuple[str, bool]:
-    """The closed form's verdict for the trace's config: the sampled-data cascade's where it applies, else
-    the phase-averaged model's; (the line, string stable)."""
-    from orchestrator.analysis.sampled_chain import exact_applies, peak_growth
-    from orchestrator.analysis.string_stability import chain_of, interior_vehicle, peak_gain
-
-    if exact_applies(config) is None:
-        from orchestrator.analysis.loop_moments import settles
-
-        vehicle = interior_vehicle(config)
-        if not settles(config, vehicle):
-            return ("closed form (platoon analyze): the vehicle's own loop through its links grows: the platoon is "
-                    "unstable, NOT string stable", False)
-        growth = peak_growth(config, vehicle)
-        where = f"at {growth.frequency:.4g} rad/s" if growth.frequency > 0 else "as w -> 0"
-        word = "string stable" if growth.string_stable else "NOT string stable"
-        return (f"closed form (platoon analyze, the sampled-data cascade): growth per link far down the string "
-                f"peaks at {growth.gain:.4f} {where}: {word}", growth.string_stable)
-    peak = peak_gain(chain_of(config, chain_vehicle))
-    where = f"at {peak.frequency:.4g} rad/s" if peak.frequency > 0 else "as w -> 0"
-    word = "string stable" if peak.string_stable else "NOT string stable"
-    return f"closed form (platoon analyze, phase-averaged): peak |G(jw)| = {peak.gain:.4f} {where}: {word}", peak.string_stable
 
 
 def predicted_gains(config: Config, names: list[str], clean: list[str], frequencies: list[float]) -> list[list[float]] | None:
@@ -365,10 +335,22 @@ def stretch_growth(gains: "list[list[float]] | np.ndarray") -> float:
     return max(math.prod(row) ** (1.0 / len(row)) for row in gains)
 
 
+def run_headline(config: Config, errors: dict[str, dict[str, np.ndarray]], clean: list[str],
+                 steady: tuple[float, float]) -> Headline:
+    """The run's headline over the stretch ``clean`` (orchestrator/analysis/headline.py): its growth per link at
+    the probes, the scatter of a single run's value, the weak probes (the paper law's V d*/d mixes probes)."""
+    frequencies = probe_frequencies(config)
+    mixing = None
+    if law_of(config, source_vehicle(config)) == "paper":
+        mixing = Mixing(config.platoon.speed, {name: equilibrium_gap(config, int(name[len("vehicle"):]))
+                                               for name in clean if name != TARGET})
+    return measured_headline(errors, clean, frequencies, steady, 2.0 * math.pi / min(frequencies), mixing)
+
+
 def _frequency_lines(config: Config, errors: dict[str, dict[str, np.ndarray]], names: list[str], clean: list[str],
-                     window: tuple[float, float]) -> tuple[list[str], float | None]:
+                     window: tuple[float, float]) -> tuple[list[str], Headline | None]:
     """Per probe frequency, the measured gains along the clean links beside the cascade's prediction;
-    and their growth per link (``stretch_growth``; None without sinusoids or clean links)."""
+    and the run's headline (``run_headline``; None without sinusoids or clean links)."""
     frequencies = probe_frequencies(config)
     if not frequencies or len(clean) < 2:
         return [], None
@@ -382,7 +364,7 @@ def _frequency_lines(config: Config, errors: dict[str, dict[str, np.ndarray]], n
     for k, w in enumerate(frequencies):
         expected = "" if predicted is None else "predicted " + ", ".join(f"{g:.4f}" for g in predicted[k]) + "; "
         lines.append(f"    {w:g} rad/s: {expected}measured " + ", ".join(f"{g:.4f}" for g in measured[k]))
-    return lines, stretch_growth(measured)
+    return lines, run_headline(config, errors, clean, steady)
 
 
 def stability_report(trace: "Trace", config: Config, reference: "Trace | None", window: tuple[float, float]) -> str:
@@ -395,33 +377,43 @@ def stability_report(trace: "Trace", config: Config, reference: "Trace | None", 
     largest probe's alone)."""
     if not config.disturbance:
         raise ValueError("its config has no [[disturbance]]: the gains need a disturbance run")
-    errors = vehicle_errors(trace, config, reference)
+    from orchestrator.analysis.validity import departures_lines, departures_of_trace, split_at
+    from orchestrator.analysis.verdict import closed_form_verdict
+
     names = trace.vehicles()
     source = source_vehicle(config)
     order = propagation(config, names, source)
     law = law_of(config, source)
+    verdict = closed_form_verdict(config)
     start = min(d.start for d in config.disturbance)
+    settling, departures = split_at(departures_of_trace(trace, config), min(start, window[0]))
+    if departures:  # no gains: the run is no linear chain's, whatever its numbers
+        return "\n".join([f"string stability measured: {law} law: no gains, the run left the model after t = "
+                          f"{min(start, window[0]):g} s", *departures_lines(departures), verdict.line()])
+    errors = vehicle_errors(trace, config, reference)
     against = "the reference trace" if reference is not None else f"the state recorded last before t = {start:g} s"
     pushed = ", ".join(str(v) if v else "the target" for v in sorted(disturbed(config)))
     lines = [f"string stability measured: {law} law, carried from {'the target' if source == TARGET_VEHICLE else f'vehicle {source}'} "
              f"(pushed: {pushed}), errors against "
              f"{against}, window {window[0]:g} to {window[1]:g} s; a link that starts or ends at a pushed vehicle "
              "measures the push too"]
+    if settling:
+        lines += [f"  (it left the model while it settled, before t = {min(start, window[0]):g} s, and came back: the "
+                  f"gains are of the settled run) {d.text()}" for d in settling[:3]]
     gains = link_gains(errors, order, window)
     lines += gains_lines(gains)[:-1] if gains else gains_lines(gains)
     clean = clean_order(config, names)
-    chain_vehicle = max(source, 1) if law == "paper" else min(source + 1, config.platoon.count)
-    closed_line, stable = _closed_form_line(config, chain_vehicle)
-    per_frequency, worst = _frequency_lines(config, errors, names, clean, window)
-    if worst is None and len(clean) > 1:
+    per_frequency, headline = _frequency_lines(config, errors, names, clean, window)
+    stretch = " -> ".join(clean)
+    if headline is not None:
+        lines.append(f"  largest growth per link at the probe frequencies over the links that measure propagation "
+                     f"({stretch}): {headline.text()}")
+    elif len(clean) > 1:
         worst = max(g.l2["speed"] for g in link_gains(errors, clean, window))
-    if worst is None:
-        lines.append("  no link measures propagation here (too few vehicles past the pushed ones)")
-    else:
-        kind = ("growth per link at the probe frequencies" if per_frequency and len(per_frequency) > 1
-                else "speed l2 gain")
         word = "grows" if worst > 1.0 else "does not grow"
-        lines.append(f"  largest {kind} over the links that measure propagation ({' -> '.join(clean)}): {worst:.4f}: "
-                     f"this disturbance {word} along the platoon")
-    lines.append(closed_line)
+        lines.append(f"  largest speed l2 gain over the links that measure propagation ({stretch}): {worst:.4f}: "
+                     f"this disturbance {word} along the platoon (no scatter: no sinusoid)")
+    else:
+        lines.append("  no link measures propagation here (too few vehicles past the pushed ones)")
+    lines.append(verdict.line())
     return "\n".join(lines + per_frequency)

@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from orchestrator.analysis.sampled_chain import Growth, step_maps, timing_of, vehicle_of
+from orchestrator.analysis.sampled_chain import step_maps, timing_of, vehicle_of
 
 if TYPE_CHECKING:
     from orchestrator.scenario.config import Config
@@ -221,20 +221,6 @@ def _growth(k_v: float, c: float, step: float, extrapolate: bool, q: LoopLink, f
         return LoopGrowth(mean, None, period, step, f"a loop state of {size} (more than {DENSE_STATE}: the links "
                           "hold too many beacons in flight for the second moment's matrix)")
     return LoopGrowth(mean, _second_moment_radius(maps) if square else None, period, step)
-
-
-def settles(config: "Config", vehicle: int) -> bool:
-    """False when ``vehicle``'s loop through its links grows on average: the platoon has no steady state
-    (the cascade's gains are then of one that is never reached). True where no link is in the loop, and
-    where the loop is not computed (burst losses)."""
-    growth = loop_growth(config, vehicle, square=False)
-    return growth is None or math.isnan(growth.mean) or growth.mean_stable
-
-
-def closed_form_stable(config: "Config", vehicle: int, growth: Growth) -> bool:
-    """The closed form's verdict, given the cascade's peak ``growth`` for ``vehicle``: string stable when the
-    growth per link stays at 1 and the loop through the links settles (no steady state, no string stability)."""
-    return growth.string_stable and settles(config, vehicle)
 
 
 def loop_lines(config: "Config", vehicle: int) -> list[str]:

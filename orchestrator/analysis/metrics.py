@@ -19,6 +19,7 @@ from orchestrator.scenario.scenario import path_of
 from orchestrator.trace.format import vehicle_names
 
 if TYPE_CHECKING:  # a run accumulates its summary without the trace reader (mcap's reader: start-up time)
+    from orchestrator.analysis.validity import Departure
     from orchestrator.trace import Trace
 
 STEADY_FRACTION = 0.1
@@ -185,8 +186,11 @@ def summary_rows(summaries: list[VehicleSummary], config: Config) -> list[dict[s
             for s in summaries]
 
 
-def report_json(summaries: list[VehicleSummary], config: Config) -> dict:
-    """The summary as ``platoon report --json`` prints it: the table's quantities, their units and intervals."""
+def report_json(summaries: list[VehicleSummary], config: Config, departures: "list[Departure]") -> dict:
+    """The summary as ``platoon report --json`` prints it: the table's quantities, their units and intervals,
+    and where the run left the model (``validity``: orchestrator/analysis/validity.py)."""
+    from orchestrator.analysis.validity import departures_json
+
     start, interval = path_error_interval(config)
     return {
         "units": SUMMARY_UNITS,
@@ -195,4 +199,5 @@ def report_json(summaries: list[VehicleSummary], config: Config) -> dict:
                           "text": f"means over the last {STEADY_FRACTION:.0%} of the recorded time"},
         "path_error_max_interval": {"from_s": start, "text": interval},
         "vehicles": summary_rows(summaries, config),
+        "validity": departures_json(departures, config),
     }

@@ -543,6 +543,25 @@ def largest_stable_delay(config: "Config", vehicle: int, longest: float = 2.0) -
     return longest
 
 
+def smallest_stable_time_gap(config: "Config", vehicle: int, longest: float = 100.0) -> float | None:
+    """The smallest time gap h (s, to 1e-4 relative) from which the cascade is string stable (acc, cacc; the
+    rest kept), by bisection: the peak falls as h grows. None if not stable up to ``longest``; 1e-3 if
+    stable from there."""
+    def stable(time_gap: float) -> bool:
+        platoon = config.platoon.model_copy(update={"time_gap": time_gap})
+        return peak_growth(config.model_copy(update={"platoon": platoon}), vehicle).string_stable
+
+    low, high = 1e-3, longest
+    if not stable(high):
+        return None
+    if stable(low):
+        return low
+    while high - low > 1e-4 * high:
+        middle = math.sqrt(low * high)  # geometric: h spans five decades
+        low, high = (low, middle) if stable(middle) else (middle, high)
+    return high
+
+
 def exact_lines(config: "Config", vehicle: int) -> list[str]:
     """`platoon analyze`'s lines for the sampled-data cascade, or the reason it does not apply."""
     missing = exact_applies(config)
@@ -554,8 +573,14 @@ def exact_lines(config: "Config", vehicle: int) -> list[str]:
     verdict = "string stable" if growth.string_stable else "NOT string stable"
     lines = [f"  sampled-data cascade, exact on the {config.simulation.step:g} s step grid (lifted over "
              f"{period} step(s)): growth per link far down the string peaks at {growth.gain:.4f} {where}: {verdict}"]
-    if config.speed_law_of(vehicle) == "cacc":
+    law = config.speed_law_of(vehicle)
+    if law in ("acc", "cacc"):
+        least = smallest_stable_time_gap(config, vehicle)
+        lines.append("  (cascade) not string stable for any time_gap up to 100 s with these links" if least is None else
+                     f"  (cascade) string stable for time_gap >= {least:.4g} s with these links")
+    if law == "cacc":
         most = largest_stable_delay(config, vehicle)
-        lines.append("  (cascade) not string stable even without a link delay" if most is None else
-                     f"  (cascade) string stable for every link delay on the step grid up to {most:.4g} s")
+        lines.append(f"  (cascade) with time_gap = {config.platoon.time_gap:g} s not string stable even without a link "
+                     "delay" if most is None else f"  (cascade) with time_gap = {config.platoon.time_gap:g} s string "
+                     f"stable for every link delay on the step grid up to {most:.4g} s")
     return lines

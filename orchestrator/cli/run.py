@@ -165,7 +165,10 @@ def analyze(
             f"platoon.speed_law = {parsed.platoon.speed_law!r} (it knows only the paper's law)")
         out.print(f"eigenvalues: not for {why}; the speed chain:", highlight=False, soft_wrap=True)
     if parsed.platoon.count > 1:
+        from orchestrator.analysis.verdict import closed_form_verdict
+
         out.print(chain_report(parsed), highlight=False, soft_wrap=True)
+        out.print(closed_form_verdict(parsed).line(), highlight=False, soft_wrap=True)  # as stability and the map say it
     if string_stability:
         from orchestrator.observers.progress import progress
 

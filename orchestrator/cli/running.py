@@ -217,6 +217,11 @@ def _report_run(result: "RunResult", trace: Path, parsed: Config, engine: str, q
             from orchestrator.cli.tables import link_table
 
             console().print(link_table(result.links))
+    if result.departures:  # said even with --quiet: the run completed, but not as the model
+        from orchestrator.analysis.validity import departures_lines
+
+        for line in departures_lines(result.departures):
+            say(line, stderr=True)
     say(f"trace: {result.trace}  ({result.steps} steps in {result.working_time:.2f} s)")  # waits for a viewer or robot left out
     if pace is not None and "steps" in result.timings:
         say(paced_time_text(result, parsed.simulation.stop_time / pace))

@@ -42,6 +42,7 @@ def report(
     """Summarize a trace (path offset, gap, speed, max path error) and draw the paper's panels."""
     from orchestrator.analysis.link_stats import link_rows, link_stats_of_trace
     from orchestrator.analysis.metrics import report_json, summarize
+    from orchestrator.analysis.validity import departures_lines, departures_of_trace
 
     if plots is not None:  # every panel's target checked before the trace is read
         from orchestrator.analysis.plots import check_plot_targets
@@ -69,9 +70,10 @@ def report(
     with quiet_nan(bool(non_finite)):  # nan figures were announced above
         summaries = summarize(loaded, config)
         links = link_stats_of_trace(loaded)
+        departures = departures_of_trace(loaded, config)
         if as_json:
             out.print_json(json.dumps({"trace": str(trace), "law": config.platoon.law, "status": status,
-                                        **report_json(summaries, config), "links": link_rows(links)}))
+                                        **report_json(summaries, config, departures), "links": link_rows(links)}))
         else:
             reached = float(loaded.component(loaded.vehicles()[0])["t"][-1])  # a run that ended early: how far
             shown = status if status == "completed" else f"{status} at t = {reached:.6g} of {config.simulation.stop_time:g} s"
@@ -80,6 +82,8 @@ def report(
                 from orchestrator.cli.tables import link_table
 
                 out.print(link_table(links))
+            for line in departures_lines(departures):
+                out.print(line, highlight=False, soft_wrap=True)
         if plots is not None:
             from orchestrator.analysis.plots import write_plots
 

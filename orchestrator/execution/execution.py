@@ -40,10 +40,12 @@ from orchestrator.trace.writer_base import NullTraceWriter, TraceWriteError
 if TYPE_CHECKING:
     from orchestrator.analysis.link_stats import LinkStats
     from orchestrator.analysis.metrics import VehicleSummary
+    from orchestrator.analysis.validity import Departure
     from orchestrator.observers.foxglove_view import FoxgloveView
     from orchestrator.observers.hil_link import LinkReporter
     from orchestrator.observers.link_stats import LinkStatsObserver
     from orchestrator.observers.summary import SummaryObserver
+    from orchestrator.observers.validity import ValidityObserver
 
 Tick = Callable[[int], None]
 
@@ -75,6 +77,9 @@ class RunResult:
     links: "list[LinkStats]" = field(default_factory=list)
     # of wall_time, the seconds the start waited for a viewer (--live-wait) or a live robot: not the run's work
     waited: float = 0.0
+    # where the recorded run left the model (orchestrator/analysis/validity.py): each vehicle's first collision,
+    # pass, impossible speed; empty inside it (and for a run that records nothing)
+    departures: "list[Departure]" = field(default_factory=list)
 
 
 @dataclass
@@ -199,6 +204,7 @@ class Execution:
         self.reporter: "LinkReporter | None" = None
         self.summary_feed: "SummaryObserver | None" = None
         self.link_feed: "LinkStatsObserver | None" = None
+        self.validity: "ValidityObserver | None" = None
         self.wait_clock = WaitClock()  # a robot's wait; the viewer's the view measures itself
         try:
             stop.install()
@@ -239,7 +245,8 @@ class Execution:
                          outcome.status, outcome.error, outcome.signum, {"open": opened, **_phase_durations(marks)},
                          live_summary, summary, self.fmu_kind,
                          self.link_feed.result() if self.link_feed is not None else [],
-                         self.wait_clock.waited + (self.live_view.waited if self.live_view is not None else 0.0))
+                         self.wait_clock.waited + (self.live_view.waited if self.live_view is not None else 0.0),
+                         self.validity.result() if self.validity is not None else [])
 
     def _observe(self, observers: Observers, stop: StopRequest) -> EngineSetup:
         """Open the trace and the other observers, write the run's metadata; what the engine is built from."""
@@ -269,6 +276,11 @@ class Execution:
             from orchestrator.observers.disturbance_log import DisturbanceLog
 
             observers.add(DisturbanceLog(config, observers.log))
+        if self.target is not None or self.summarize:  # a line in the log where the run leaves the model
+            from orchestrator.observers.validity import ValidityObserver
+
+            self.validity = ValidityObserver(config, components, observers.log)
+            observers.add(self.validity)
         if self.summarize:
             from orchestrator.observers.summary import SummaryObserver
 

@@ -171,6 +171,16 @@ class Platoon(_Strict):
         return self.d_star - self.time_gap * self.speed
 
 
+class Validity(_Strict):
+    """Where a run stops being the model's (orchestrator/analysis/validity.py; docs/model.md, section 12): it
+    keeps running, and says so in its summary, its log, `platoon report --json` and a sweep's row."""
+
+    min_gap: GapLength | None = Field(None, description="m: a gap at or below it is a collision (default: a vehicle's "
+                                      "size, 4.5 m or the m3pi's 0.095 m, at most half the equilibrium gap)")
+    max_speed: Speed | None = Field(None, description="m/s: a faster vehicle has left the model (default: 3 V_c for "
+                                    "kinematic vehicles; an m3pi is bounded by its wheels)")
+
+
 class Initial(_Strict):
     """Default placement: on the path behind the target, spaced by the chord d*, then perturbed."""
 
@@ -350,6 +360,7 @@ class Config(_Strict):
     remote: Remote = Remote()
     ros2: RunRos2 = RunRos2()
     links: Links = Links()
+    validity: Validity = Validity()
 
     @model_validator(mode="after")
     def _platoon_rules(self) -> "Config":

@@ -3,7 +3,8 @@
 The defaults draw the shipped campaign (configs/sweeps/offset_map.toml): the last vehicle's steady
 path offset against d*/R and platoon length, the regular law's panel beside the sine law's, on one
 logarithmic colour scale (the sine law's offsets are ~1e-9 m, the regular law's metres). Each cell
-says the signed value; a run that failed is marked so.
+says the signed value; a run that failed is marked so, and so is one that left the model (a collision,
+a pass, an impossible speed: its ``run.left_model``), whose value is no model's and is not drawn.
 
 The rows are those of DIR/results.csv; axes may name any config key, varied or not, read from each
 run's resolved config (DIR/results/<id>.json), or ``d_star/R`` (platoon.d_star / path.radius): results.py
@@ -27,6 +28,7 @@ from matplotlib.colors import LogNorm  # noqa: E402
 
 from orchestrator.support.output import IMAGE, check_target, replacing  # noqa: E402
 from orchestrator.analysis.metrics import SUMMARY_UNITS  # noqa: E402
+from orchestrator.analysis.validity import LEFT_MODEL  # noqa: E402
 from orchestrator.scenario.config import key_unit  # noqa: E402
 
 from .results import RATIO, ResultsError, lookup, read_records  # noqa: E402  (the sweep folder's reading)
@@ -67,8 +69,11 @@ def draw_map(folder: Path, value: str, x: str, y: str, panel: str, png: Path, ov
     columns = {name for r in records for name in r["metrics"]}
     if value not in columns and any(r["status"] == "completed" for r in records):
         raise PlotError(f"--value {value}: not a result column (e.g. {', '.join(sorted(columns)[:4])}, last.path_offset)")
+    if value == LEFT_MODEL:
+        raise PlotError(f"--value {value}: a text column (where a run left the model), marked on every map")
     cells: dict[tuple[Any, Any, Any], float] = {}
     invalid: set[tuple[Any, Any, Any]] = set()
+    left: set[tuple[Any, Any, Any]] = set()  # runs that left the model (orchestrator/analysis/validity.py)
     axes_options = {"--panel": panel, "--y": y, "--x": x}
     shared = _shared(records, list(axes_options.values()))
     for record in records:
@@ -85,7 +90,9 @@ def draw_map(folder: Path, value: str, x: str, y: str, panel: str, png: Path, ov
             varied = ", ".join(record["values"])
             raise PlotError(f"several runs fall on {panel}={where[0]}, {y}={where[1]}, {x}={_label(where[2])}: "
                             f"choose --x, --y and --panel among the varied keys ({varied}) so that one run fills each cell")
-        metric = record["metrics"].get(value) if record["status"] == "completed" else None
+        if record["metrics"].get(LEFT_MODEL):  # a run that left the model is marked, its value not drawn
+            left.add(where)
+        metric = record["metrics"].get(value) if record["status"] == "completed" and where not in left else None
         cells[where] = float(metric) if metric is not None else math.nan
     panels = list(dict.fromkeys(key[0] for key in cells))
     ys = sorted({key[1] for key in cells})
@@ -109,7 +116,8 @@ def draw_map(folder: Path, value: str, x: str, y: str, panel: str, png: Path, ov
                 v = grid[row, column]
                 missing = (name, ys[row], xs[column]) not in cells
                 cell = (name, ys[row], xs[column])
-                text = "" if missing else "invalid" if cell in invalid else "failed" if math.isnan(v) else f"{v:.2g}"
+                text = ("" if missing else "invalid" if cell in invalid else "left\nmodel" if cell in left
+                        else "failed" if math.isnan(v) else f"{v:.2g}")
                 bright = not math.isnan(v) and norm(max(abs(v), norm.vmin)) > 0.6
                 axis.text(column, row, text, ha="center", va="center", fontsize=7, color="black" if bright else "white")
         axis.set_facecolor("0.35")

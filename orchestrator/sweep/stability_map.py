@@ -4,7 +4,7 @@ One panel per speed law, the age of information the receiver works with across (
 ages, from the step or the delay on its grid to one beacon period more), the loss rate up. Each run of
 the sweep (configs/sweeps/string_stability.toml) is measured from its trace: the largest growth per link at
 the probe frequencies (the config's sinusoids) over the links that measure propagation
-(``error_gains.clean_order``, ``error_gains.stretch_growth``), the number `platoon stability`'s headline
+(``error_gains.clean_order``, ``error_gains.run_headline``: weak probes left out), the number `platoon stability`'s headline
 gives. That one number is each
 dot's fill (on the colour scale) and its label; a lossy dot is one run of one seed. Under the dots, the
 sampled-data cascade (orchestrator/analysis/sampled_chain.py) of each (delay, loss) on a finer grid: its
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import multiprocessing
+import textwrap
 import os
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from contextlib import nullcontext
@@ -31,11 +32,13 @@ import numpy as np  # noqa: E402
 from matplotlib.colors import ListedColormap, Normalize  # noqa: E402
 
 from orchestrator.analysis.error_gains import (clean_order, frequency_gains, predicted_gains, probe_frequencies,  # noqa: E402
-                                               steady_window, stretch_growth, vehicle_errors)
-from orchestrator.analysis.loop_moments import closed_form_stable  # noqa: E402
+                                               run_headline, steady_window, vehicle_errors)
+from orchestrator.analysis.headline import Headline  # noqa: E402
 from orchestrator.analysis.sampled_chain import (GROWTH_TOLERANCE, Growth, exact_applies,  # noqa: E402
                                                  growth_per_link, lifting_period, peak_growth, vehicle_of)
 from orchestrator.analysis.string_stability import interior_vehicle  # noqa: E402
+from orchestrator.analysis.validity import departures_cell, departures_of_trace, split_at  # noqa: E402
+from orchestrator.analysis.verdict import NOT_COMPUTED, ClosedFormVerdict, closed_form_verdict  # noqa: E402
 from orchestrator.scenario.config import Config, config_from_mapping  # noqa: E402
 from orchestrator.scenario.wiring import TARGET  # noqa: E402
 from orchestrator.support.output import IMAGE, check_target, replacing  # noqa: E402
@@ -45,9 +48,10 @@ from orchestrator.sweep.results import lookup, read_records  # noqa: E402  (the 
 LAW, DELAY, LOSS = "platoon.speed_law", "links.delay", "links.loss"
 
 
-def measured_gains(config: Config, trace_path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+def measured_gains(config: Config, trace_path: Path) -> tuple[np.ndarray, np.ndarray | None, Headline]:
     """Per probe frequency, per link that measures propagation: the run's gains, and the sampled-data
-    cascade's prediction for the same links of the same run (None where it does not apply)."""
+    cascade's prediction for the same links of the same run (None where it does not apply); the run's
+    headline (``error_gains.run_headline``: its growth, scatter and weak probes)."""
     from orchestrator.trace import load
 
     frequencies = probe_frequencies(config)
@@ -56,7 +60,7 @@ def measured_gains(config: Config, trace_path: Path) -> tuple[np.ndarray, np.nda
     # what the gains need: the vehicles and the target (gaps from positions), not the links or the errors,
     # over the window they are fitted in (with an offset: no baseline from before the disturbance is needed),
     # that of a run to its stop time; read again from the start if the run ended early
-    components = [TARGET] + [f"vehicle{k}" for k in range(1, config.platoon.count + 1)]
+    components = _bodies(config)
     expected = steady_window(config, config.simulation.stop_time)
     trace = load(trace_path, components=components, errors=False, start=expected[0])
     names = trace.vehicles()
@@ -66,18 +70,20 @@ def measured_gains(config: Config, trace_path: Path) -> tuple[np.ndarray, np.nda
     window = steady_window(config, float(trace.component(order[0])["t"][-1]))
     if window[0] < expected[0] - 1e-9:
         trace = load(trace_path, components=components, errors=False)
-    measured = np.array(frequency_gains(vehicle_errors(trace, config), order, frequencies, window))
+    errors = vehicle_errors(trace, config)
+    measured = np.array(frequency_gains(errors, order, frequencies, window))
     predicted = predicted_gains(config, names, order, frequencies)
-    return measured, None if predicted is None else np.array(predicted)
+    return measured, None if predicted is None else np.array(predicted), run_headline(config, errors, order, window)
 
 
-def _analytic(config: Config, delay: float, loss: float) -> tuple[float, float]:
-    """(peak growth per link, largest growth at the probe frequencies) of the sampled-data cascade of
-    ``config`` with every link's delay and loss set."""
+def _analytic(config: Config, delay: float, loss: float) -> tuple[float, float, float]:
+    """(peak growth per link, the frequency of that peak, largest growth at the probe frequencies) of the
+    sampled-data cascade of ``config`` with every link's delay and loss set."""
     changed = _with_link(config, delay, loss)
     vehicle = interior_vehicle(changed)
     probes = growth_per_link(changed, vehicle, np.array(probe_frequencies(config))).max()
-    return peak_growth(changed, vehicle).gain, float(probes)
+    peak = peak_growth(changed, vehicle)
+    return peak.gain, peak.frequency, float(probes)
 
 
 def _points(folder: Path) -> list[dict[str, Any]]:
@@ -96,22 +102,35 @@ def _points(folder: Path) -> list[dict[str, Any]]:
         if missing is not None:
             raise PlotError(f"run {record['id']}: the sampled-data cascade does not model {missing}")
         trace = folder / record["trace"] if record["status"] == "completed" else None
-        points.append({**where, "gain": math.nan, "deviation": math.nan, "config": config, "raw": record["config"],
-                       "trace": trace})
+        points.append({**where, "gain": math.nan, "headline": None, "deviation": math.nan, "config": config,
+                       "raw": record["config"], "trace": trace, "left": "", "settling": ""})
     return points
 
 
-def _point(raw: dict[str, Any], trace: Path | None, verdict: bool) -> tuple[float, float, bool | None]:
-    """One run's (measured growth per link, the headline's; worst deviation from the cascade's prediction;
-    the closed form's verdict if ``verdict``, else None: the analytic grid has it), from its config's
-    mapping (a task of a worker process)."""
+def _point(raw: dict[str, Any], trace: Path | None,
+           verdict: bool) -> tuple[Headline | None, float, ClosedFormVerdict | None, str, str]:
+    """One run's (headline: its growth per link, scatter, weak probes; None without gains; worst deviation
+    from the cascade's prediction; the closed form's verdict if ``verdict``, else None: the analytic grid has
+    its peak; where it left the model from the first disturbance on, "" if it did not, and then no gains;
+    where it left it while it settled, before), from its config's mapping (a task of a worker process)."""
     config = config_from_mapping(raw)
-    vehicle = interior_vehicle(config)
-    stable = closed_form_stable(config, vehicle, peak_growth(config, vehicle)) if verdict else None
+    stable = closed_form_verdict(config, mean_square=False) if verdict else None
     if trace is None:
-        return math.nan, math.nan, stable
-    measured, predicted = measured_gains(config, trace)
-    return stretch_growth(measured), float(np.abs(measured / predicted - 1.0).max()), stable
+        return None, math.nan, stable, "", ""
+    from orchestrator.trace import load
+
+    start = min(d.start for d in config.disturbance)
+    found = departures_of_trace(load(trace, components=_bodies(config), errors=False), config)
+    settling, departures = (departures_cell(part) for part in split_at(found, start))
+    if departures:
+        return None, math.nan, stable, departures, settling
+    measured, predicted, headline = measured_gains(config, trace)
+    return headline, float(np.abs(measured / predicted - 1.0).max()), stable, "", settling
+
+
+def _bodies(config: Config) -> list[str]:
+    """The components the gains and the validity check read: the target and the vehicles."""
+    return [TARGET] + [f"vehicle{k}" for k in range(1, config.platoon.count + 1)]
 
 
 def grid_axis(values: list[float], most: int) -> np.ndarray:
@@ -136,18 +155,28 @@ def _with_link(config: Config, delay: float, loss: float) -> Config:
     return config.model_copy(update={"links": config.links.model_copy(update={"delay": delay, "loss": loss})})
 
 
-def agreement_lines(points: list[dict[str, Any]], stable: dict[str, dict[tuple[float, float], bool]]) -> list[str]:
+def agreement_lines(points: list[dict[str, Any]], stable: dict[str, dict[tuple[float, float], ClosedFormVerdict]]) -> list[str]:
     """Per law: how far the measured gains are from the cascade's prediction for the same links (worst over
     links and probes, by loss rate), and in how many runs the headline verdict (measured growth per link above 1)
     is the closed form's."""
     lines = []
     for law, verdicts in stable.items():
+        for p in (p for p in points if p[LAW] == law and (p["left"] or p["settling"])):
+            lines.append(f"{law}: run at delay {p[DELAY]:g} s, loss {p[LOSS]:g} left the model " + (
+                f"({p['left']}): no gain" if p["left"] else f"while it settled ({p['settling']}) and came back: gain shown"))
         mine = [p for p in points if p[LAW] == law and not math.isnan(p["gain"])]
         worst = {loss: max(p["deviation"] for p in mine if p[LOSS] == loss) for loss in sorted({p[LOSS] for p in mine})}
-        agree = sum((p["gain"] > 1.0) == (not verdicts[(p[DELAY], p[LOSS])]) for p in mine)
+        judged = [p for p in mine if p["headline"].verdict in ("grows", "does not grow")]
+        agree = sum((p["headline"].verdict == "grows") == (not verdicts[(p[DELAY], p[LOSS])].string_stable) for p in judged)
+        noisy = [p for p in mine if p not in judged]
+        lines += [f"{law}: run at delay {p[DELAY]:g} s, loss {p[LOSS]:g}: {p['headline'].text()}" for p in noisy]
+        unknown = sorted({f"delay {k[0]:g} s, loss {k[1]:g}: {v.loop.reason}" for k, v in verdicts.items()
+                          if v.loop.state == NOT_COMPUTED})
+        lines += [f"{law}: the closed form's loop not computed at {where} (the cascade's verdict alone)" for where in unknown]
         by_loss = ", ".join(f"{100 * deviation:.2f} % at loss {loss:g}" for loss, deviation in worst.items())
         lines.append(f"{law}: measured vs the cascade, worst over links and probes: {by_loss}; headline verdict = "
-                     f"closed form's in {agree} of {len(mine)} runs")
+                     f"closed form's in {agree} of the {len(judged)} runs outside the noise ({len(noisy)} inside it or "
+                     "with no probe to judge)")
     return lines
 
 
@@ -183,7 +212,7 @@ def tasks(points: list[dict[str, Any]], laws: list[str], losses: np.ndarray) -> 
 
 def _compute(points: list[dict[str, Any]], laws: list[str], delays: np.ndarray, losses: np.ndarray,
              tick: Callable[[int], None] | None, workers: int) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]],
-                                                                          dict[str, dict[tuple[float, float], bool]]]:
+                                                                          dict[str, dict[tuple[float, float], ClosedFormVerdict]]]:
     """Every run's measured gain and deviation (into the points), each law's analytic grid and the closed
     form's verdict per run, on ``workers`` processes: the grid's rows first, then the runs, each a task;
     ``tick(done)`` counts them as they finish."""
@@ -205,28 +234,29 @@ def _compute(points: list[dict[str, Any]], laws: list[str], delays: np.ndarray, 
     with pool if pool is not None else nullcontext():
         rows = {law: [submit(_analytic_row, first[law]["raw"], delays, float(loss)) for loss in losses] for law in laws}
         runs = {submit(_point, p["raw"], p["trace"], from_grid[id(p)] is None): p for p in points}
-        stable: dict[str, dict[tuple[float, float], bool]] = {law: {} for law in laws}
+        stable: dict[str, dict[tuple[float, float], ClosedFormVerdict]] = {law: {} for law in laws}
         for task in as_completed([*(t for law_rows in rows.values() for t in law_rows), *runs]):
             if task in runs:
                 p = runs[task]
-                p["gain"], p["deviation"], stable[p[LAW]][(p[DELAY], p[LOSS])] = task.result()
+                p["headline"], p["deviation"], stable[p[LAW]][(p[DELAY], p[LOSS])], p["left"], p["settling"] = task.result()
+                p["gain"] = p["headline"].growth if p["headline"] is not None else math.nan
             done += 1
             if tick is not None:
                 tick(done)
         grids = {}
         for law, law_rows in rows.items():
-            stacked = np.array([task.result() for task in law_rows])  # loss x (peaks, probes) x delay
-            grids[law] = (stacked[:, 0, :], stacked[:, 1, :])
+            stacked = np.array([task.result() for task in law_rows])  # loss x (peaks, probes, peak frequencies) x delay
+            grids[law] = (stacked[:, 0, :], stacked[:, 2, :], stacked[:, 1, :])
     for p in points:
         if from_grid[id(p)] is not None:
             law, i, j = from_grid[id(p)]
-            stable[p[LAW]][(p[DELAY], p[LOSS])] = closed_form_stable(p["config"], interior_vehicle(p["config"]),
-                                                                     Growth(float(grids[law][0][i, j]), 0.0))
+            peak = Growth(float(grids[law][0][i, j]), float(grids[law][2][i, j]))  # the cell's peak, computed
+            stable[p[LAW]][(p[DELAY], p[LOSS])] = closed_form_verdict(p["config"], peak, mean_square=False)
     return grids, stable
 
 
-def _panel(axis, mine: list[dict[str, Any]], grid: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], norm, cmap):
-    delays, losses, peaks, probes = grid
+def _panel(axis, mine: list[dict[str, Any]], grid: tuple[np.ndarray, ...], norm, cmap):
+    delays, losses, peaks, probes, _ = grid
     image = axis.pcolormesh(delays, losses, np.clip(peaks, norm.vmin, norm.vmax), norm=norm, cmap=cmap, shading="nearest")
     if peaks.min() < 1.0 + GROWTH_TOLERANCE < peaks.max():  # the peak's verdict: string stable up to it
         axis.contour(delays, losses, peaks, levels=[1.0 + GROWTH_TOLERANCE], colors="black", linewidths=1.6)
@@ -234,9 +264,17 @@ def _panel(axis, mine: list[dict[str, Any]], grid: tuple[np.ndarray, np.ndarray,
         axis.contour(delays, losses, probes, levels=[1.0], colors="black", linewidths=1.0, linestyles="dashed")
     for p in mine:
         gain = p["gain"]
-        colour = "white" if math.isnan(gain) else cmap(norm(min(max(gain, norm.vmin), norm.vmax)))
-        axis.scatter(p[DELAY], p[LOSS], s=70, color=colour, edgecolors="black", zorder=3)
-        label = "failed" if math.isnan(gain) else f"{gain:.3f}"
+        if p["left"]:  # no gain: a cross, never a colour of the scale
+            axis.scatter(p[DELAY], p[LOSS], s=70, marker="X", color="0.4", edgecolors="black", zorder=3)
+        else:
+            colour = "white" if math.isnan(gain) else cmap(norm(min(max(gain, norm.vmin), norm.vmax)))
+            axis.scatter(p[DELAY], p[LOSS], s=70, color=colour, edgecolors="black", zorder=3)
+        headline = p["headline"]
+        label = ("left model" if p["left"] else "failed" if headline is None else "weak probes" if math.isnan(gain)
+                 else f"{gain:.3f}")
+        notes = [note for note, shown in (("noise", headline is not None and headline.verdict == "inside the noise"),
+                                          ("left, settled", p["settling"] and not p["left"])) if shown]
+        label += "".join(f"\n{note}" for note in notes)
         axis.annotate(label, (p[DELAY], p[LOSS]), textcoords="offset points", xytext=(0, 8), ha="center", fontsize=6,
                       bbox={"boxstyle": "round,pad=0.1", "facecolor": "white", "alpha": 0.8, "linewidth": 0})
     ticks = sorted({p[DELAY] for p in mine})
@@ -263,7 +301,7 @@ def draw_stability_map(folder: Path, png: Path, overwrite: bool = False, resolut
         grids, stable = _compute(points, laws, delays, losses, tick, workers)
     # the scale ends at the analysis's highest peak: a lossy run's single-seed gain beyond it shows in its
     # label, its dot at the scale's end
-    norm, cmap = colour_scale(max(float(peaks.max()) for peaks, _ in grids.values()))
+    norm, cmap = colour_scale(max(float(peaks.max()) for peaks, _, _ in grids.values()))
     figure, axes = plt.subplots(1, len(laws), figsize=(4.2 * len(laws) + 1.0, 4.6), dpi=120, squeeze=False,
                                 sharey=True, layout="constrained")
     image = None
@@ -275,9 +313,11 @@ def draw_stability_map(folder: Path, png: Path, overwrite: bool = False, resolut
         axis.set_ylim(-pad_y, losses[-1] + pad_y)
         axis.set_xlabel("links.delay [s]\nage of information at the receiver [s]", fontsize=8)
     axes[0][0].set_ylabel("links.loss")
-    figure.suptitle("String stability: the sampled-data cascade's peak growth per link (colour; solid line: 1, "
-                    "dashed: 1 at the probes)\nunder each run's measured largest growth per link at the probes (dot "
-                    "and label; a lossy dot is one run of one seed)", fontsize=8)
+    title = ("String stability: the sampled-data cascade's peak growth per link (colour; solid line: 1, dashed: 1 at "
+             "the probes) under each run's measured largest growth per link at the probes (dot and label; a lossy dot "
+             "is one run of one seed; 'noise': inside 3 of its standard errors of 1; a cross: the run left the model, "
+             "no gain; 'left, settled': it left it only while it settled)")
+    figure.suptitle(textwrap.fill(title, int(figure.get_figwidth() * 15)), fontsize=8)  # ~15 characters an inch at 8 pt
     figure.colorbar(image, ax=axes[0].tolist(), label="gain per link", shrink=0.9, extend="max")
     try:  # the output rule (support/output.py): drawn aside, synced, renamed
         with replacing(png) as aside:

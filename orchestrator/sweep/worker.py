@@ -37,9 +37,13 @@ _children_lock = threading.Lock()
 _terminating = threading.Event()  # set by terminate_children: a child dead by SIGTERM was stopped, not failed
 
 
-def flatten_report(report: dict[str, Any]) -> dict[str, float]:
-    """``platoon report --json``'s per-vehicle summary as columns: vehicleN.path_offset, ..., last.*."""
-    row: dict[str, float] = {}
+def flatten_report(report: dict[str, Any]) -> dict[str, float | str]:
+    """``platoon report --json``'s per-vehicle summary as columns: vehicleN.path_offset, ..., last.*; and
+    ``run.left_model``, where the run left the model ("" inside it: orchestrator/analysis/validity.py)."""
+    from orchestrator.analysis.validity import LEFT_MODEL, Departure, departures_cell
+
+    row: dict[str, float | str] = {LEFT_MODEL: departures_cell([Departure(**d) for d in
+                                                                       report["validity"]["departures"]])}
     vehicles = report["vehicles"]
     for vehicle in vehicles:
         row.update({f"{vehicle['name']}.{key}": value for key, value in vehicle.items() if key != "name"})
@@ -64,6 +68,7 @@ def _die_with_parent(parent: int) -> None:
 def _run(request: dict[str, Any]) -> dict[str, Any]:
     from orchestrator.scenario.config import config_from_mapping
     from orchestrator.analysis.metrics import report_json, summarize
+    from orchestrator.analysis.validity import departures_of_trace
     from orchestrator.execution.run import run_scenario
     from ..trace import load
 
@@ -76,7 +81,8 @@ def _run(request: dict[str, Any]) -> dict[str, Any]:
     outcome: dict[str, Any] = {"status": result.status, "error": result.error or "", "wall_time": result.wall_time}
     if result.status == "completed":
         summaries = result.summary if result.summary is not None else summarize(load(trace), config)
-        outcome["metrics"] = flatten_report(report_json(summaries, config))
+        departures = result.departures if result.summary is not None else departures_of_trace(load(trace), config)
+        outcome["metrics"] = flatten_report(report_json(summaries, config, departures))
     return outcome
 
 
