@@ -23,21 +23,25 @@ def random_truth(rng: random.Random) -> dict[str, float]:
     return {name: rng.uniform(low, high) for name, (low, high) in BOUNDS.items()}
 
 
-def excitation(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(left, right) wheel commands: speed steps, turns both ways, a slow sweep through zero, a stretch past 1 m/s."""
+def excitation(t: np.ndarray, full: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """(left, right) wheel commands: speed steps, turns both ways and (``full``) a slow sweep through zero and a
+    stretch past 1 m/s."""
     speed = 0.3 + 0.12 * np.sign(np.sin(2 * np.pi * t / 6.0))
-    speed = np.where((t > 20) & (t < 32), 0.2 - 0.2 * np.cos(2 * np.pi * (t - 20) / 6.0), speed)
-    speed = np.where((t > 36) & (t < 38), 1.2, speed)
+    speed = np.where((t > 8) & (t < 16), 0.35 + 0.2 * np.sin(8.0 * (t - 8)), speed)  # the lag apart from the delay
+    if full:
+        speed = np.where((t > 20) & (t < 32), 0.2 - 0.2 * np.cos(2 * np.pi * (t - 20) / 6.0), speed)
+        speed = np.where((t > 36) & (t < 38), 1.2, speed)
     turn = 0.08 * np.sin(2 * np.pi * t / 5.0)
     return np.clip(speed - turn, -1.2, 1.2), np.clip(speed + turn, -1.2, 1.2)
 
 
-def synthetic_record(truth: dict[str, float], seconds: float = 45.0, seed: int = 0) -> RobotRecord:
+def synthetic_record(truth: dict[str, float], seconds: float = 45.0, seed: int = 0, noise: bool = True,
+                     full: bool = True) -> RobotRecord:
     """A record as a live run of robot ``truth`` would leave it: commands every 10 ms (with jitter), applied
     ``command_latency`` later; poses every 5 ms, noisy, received ``pose_latency`` after they were taken."""
     rng = np.random.default_rng(seed)
     sent = np.arange(0.0, seconds, 0.01) + rng.uniform(0.0, 0.002, int(round(seconds / 0.01)))
-    left, right = excitation(sent)
+    left, right = excitation(sent, full)
     left[-3:] = right[-3:] = 0.0
     dynamics = M3piDynamics(0.5, **{k: v for k, v in truth.items() if k in M3piDynamics.__dataclass_fields__})
     applied = sent + truth.get("command_latency", 0.0)
@@ -54,7 +58,7 @@ def synthetic_record(truth: dict[str, float], seconds: float = 45.0, seed: int =
         now = stamp
         poses.append(state[:3])
     poses = np.array(poses)
-    noise = rng.normal(0.0, 1.0, poses.shape) * [POSITION_NOISE, POSITION_NOISE, HEADING_NOISE]
+    noise = rng.normal(0.0, 1.0, poses.shape) * [POSITION_NOISE, POSITION_NOISE, HEADING_NOISE] * noise
     commands = Commands(sent, sent + 0.1, left, right)
     return RobotRecord("synthetic", "vehicle1", 1, 0.0, commands, stamps, stamps + truth.get("pose_latency", 0.0),
                        *(poses + noise).T, M3piDynamics(0.5, wheel_speed_max=1.2))

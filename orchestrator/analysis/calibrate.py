@@ -57,7 +57,7 @@ DYNAMICS = ("track", "wheel_speed_max", "motor_time_constant", "wheel_gain_right
 # how wide (half the 95 % interval) an estimate may be and still count as identified
 TOLERANCE = {"wheel_gain_right": ("rel", 0.05), "wheel_gain_left": ("rel", 0.05), "motor_time_constant": ("rel", 0.1),
              "wheel_speed_max": ("rel", 0.05), "track": ("rel", 0.05), "command_latency": ("abs", 0.005),
-             "wheel_deadband": ("abs", 0.005), "pose_latency": ("abs", 0.005)}
+             "wheel_deadband": ("abs", 0.003), "pose_latency": ("abs", 0.005)}
 UNITS = {name: unit for name, unit, *_ in FITTED} | {"wheel_deadband": "m/s", "pose_latency": "s"}
 ORDER = ("wheel_gain_right", "wheel_gain_left", "motor_time_constant", "wheel_speed_max", "wheel_deadband", "track",
          "command_latency", "pose_latency")
@@ -222,7 +222,7 @@ def deadband_interval(problem: PathProblem, values: dict[str, float], variance: 
     """(best, low, high): the dead-band's profile near its estimate and where the misfit stays within the 95 %
     likelihood-ratio bound (chi-squared, one degree of freedom) of its least."""
     best = values["wheel_deadband"]
-    grid = np.unique(np.append(np.linspace(max(best - 0.01, 0.0), best + 0.01, 11), best))
+    grid = np.unique(np.append(np.linspace(max(best - 0.006, 0.0), best + 0.006, 13), best))
     costs = np.array([problem.cost({**values, "wheel_deadband": float(d)}) for d in grid])
     k = int(np.argmin(costs))
     inside = np.flatnonzero(costs - costs[k] <= CHI2_95 * variance)
@@ -292,7 +292,10 @@ def calibrate_robot(records: Sequence[RobotRecord], tick: Callable[[], None] = l
         values.update({n: nominal[n] for n in unidentified})
         values, half, variance = _fit(problem, values, [n for n in free if n not in unidentified])
         for name, e in list(estimates.items()):
-            if name in unidentified:
+            if name == "wheel_deadband" and name in unidentified:  # its interval around the nominal, the rest refitted
+                _, low, high = deadband_interval(problem, values, variance)
+                estimates[name] = replace(e, value=nominal[name], low=low, high=high)
+            elif name in unidentified:
                 estimates[name] = replace(e, value=nominal[name])
             elif name in half:
                 estimates[name] = replace(e, value=values[name], low=values[name] - half[name],
