@@ -19,7 +19,7 @@ import numpy as np
 from fmus.model.dynamics import M3piDynamics
 from orchestrator.analysis.wheel_path import Commands
 
-MOVED = 0.02  # m: a robot whose poses all lie within this of its first never moved
+MOVED = 0.02  # m: a robot whose poses (but 1 %: the noise's tail) lie within this of their median never moved
 MIN_POSES = 50
 
 
@@ -113,9 +113,9 @@ def _record(trace: Any, source: str, vehicle: str) -> RobotRecord:
     if len(stamp) < MIN_POSES:
         raise RecordError(f"{where}: {len(stamp)} pose(s) recorded, at least {MIN_POSES} needed")
     x, y = np.asarray(pose["x"], dtype=float), np.asarray(pose["y"], dtype=float)
-    reach = float(np.max(np.hypot(x - x[0], y - y[0])))
+    reach = float(np.percentile(np.hypot(x - np.median(x), y - np.median(y)), 99.0))
     if reach < MOVED:
-        raise RecordError(f"{where}: its poses never moved (all within {reach * 1e3:.1f} mm of the first): "
+        raise RecordError(f"{where}: its poses never moved (99 % within {reach * 1e3:.1f} mm of their median): "
                           "nothing to identify")
     order = np.argsort(stamp, kind="stable")
     origin = float(sent[0])
