@@ -26,7 +26,10 @@ from tests.test_calibrate import identification_misses
 from tests.test_hil import PLATOON, REPO, _env, end_process, endpoint
 
 EXPERIMENT = REPO / "configs" / "hil" / "calibrate.toml"
-BEHIND_LIMIT = 1.0  # s: a run further behind its wall-clock schedule than this is not a fair experiment
+# s: a run further behind its wall-clock schedule than this is not a fair experiment. Lateness itself is in the
+# trace (the commands' send times, the poses' echoes of the commands applied), so calibrate takes a stall in its
+# stride; a run that stalls this long has mostly lost its robot instead (exit 1), and is tried again.
+BEHIND_LIMIT = 5.0
 TRIES = 3
 
 
@@ -96,9 +99,9 @@ def test_three_random_robots_are_identified_from_one_run_of_the_experiment_each(
         from orchestrator.analysis.robot_record import robot_records
 
         calibration = calibrate_robot(robot_records(load(trace), trace))
-        assert {k: round(v, 6) for k, v in calibration.values().items()} == pytest.approx(written, rel=1e-5)
+        print(f"\nseed {seed}, truth {index}: {truth}, the run {behind(trace):.2f} s behind\n{result.stdout}")
+        assert calibration.values() == pytest.approx(written, rel=1e-5)  # what it printed is what it wrote (6 digits)
         misses = identification_misses(calibration, truth)
-        print(f"\nseed {seed}, truth {index}: {truth}\n{result.stdout}")
         assert not misses, (f"seed {seed}, truth {index} {truth}: {misses} (the run was {behind(trace):.2f} s behind)",
                             result.stdout)
 

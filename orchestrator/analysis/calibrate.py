@@ -100,6 +100,11 @@ def nominal_values(model: M3piDynamics) -> dict[str, float]:
     return {**nominal, "command_latency": 0.0, "pose_latency": 0.0}
 
 
+def model_values(model: M3piDynamics) -> dict[str, float]:
+    """What a run's config said of its robot: its m3pi's values, no latency."""
+    return {**{n: getattr(model, n) for n in DYNAMICS}, "command_latency": 0.0}
+
+
 def robot_model(model: M3piDynamics, values: dict[str, float]) -> M3piDynamics:
     return replace(model, **{name: values[name] for name in DYNAMICS if name in values})
 
@@ -257,7 +262,7 @@ def calibrate_robot(records: Sequence[RobotRecord], tick: Callable[[], None] = l
     """Identify one robot from its records (module docstring); what the traces did not excite is the nominal."""
     model = records[0].model
     nominal = nominal_values(model)
-    start = {**{n: getattr(model, n) for n in DYNAMICS}, "command_latency": 0.0}
+    start = model_values(model)
     # the limit starts where the robot was seen to go: a limit above every wheel's target would give the fit
     # nothing to pull on, were the robot's own one below them
     first = {**start, "command_latency": 0.02, "wheel_speed_max": top_speed(records)}

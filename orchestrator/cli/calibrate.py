@@ -13,6 +13,7 @@ import typer
 from orchestrator.cli.common import err, fail, load_trace, out
 from orchestrator.support.output import OVERWRITE_HELP
 
+POOR_FIT = 2.0  # residual / the poses' own noise above which a fit does not explain the robot
 SCALE = {"m/s": (1e3, "mm/s"), "s": (1e3, "ms"), "m": (1e3, "mm"), "": (1.0, "")}
 
 
@@ -101,6 +102,11 @@ def calibrate(
             calibrations.append(calibrate_robot(own, tick))
     for calibration in calibrations:
         out.print(calibration_table(calibration))
+        if calibration.residual > POOR_FIT * calibration.pose_noise:
+            err.print(f"warning: robot {calibration.robot}: the model does not explain its poses (residual "
+                      f"{calibration.residual / calibration.pose_noise:.1f} x their noise): its values are suspect "
+                      "(traces of different robots under one id? a robot that slipped or was touched?)",
+                      highlight=False, soft_wrap=True)
     output.write_text(calibration_toml(calibrations))
     out.print(f"wrote {output}", highlight=False)
     if plots is not None:
@@ -111,5 +117,32 @@ def calibrate(
                 out.print(f"wrote {path}", highlight=False)
 
 
+
+
+def compare(
+    run: Annotated[Path, typer.Argument(metavar="LIVE.mcap", help="a run's trace (e.g. of a live run)")],
+    other: Annotated[Path, typer.Argument(metavar="SIM.mcap", help="another run's trace (e.g. the all-FMU run of the same config)")],
+) -> None:
+    """Path and speed differences, per vehicle, between two runs of one scenario (a live run and its simulation)."""
+    from rich.table import Table
+
+    from orchestrator.analysis.compare import SPEED_WINDOW, run_differences
+
+    differences = run_differences(load_trace(run), load_trace(other))
+    if not differences:
+        fail(2, f"{run} and {other}: no vehicle recorded at common time points in both")
+    table = Table(title=f"{run.name} against {other.name}", title_justify="left")
+    for column in ("vehicle", "points", "path rms", "path max", "at t", "speed rms", "speed max"):
+        table.add_column(column, justify="left" if column == "vehicle" else "right", no_wrap=True)
+    for d in differences:
+        table.add_row(d.name, str(d.points), f"{d.path_rms * 1e3:.2f} mm", f"{d.path_max * 1e3:.2f} mm",
+                      f"{d.path_max_at:.2f} s", f"{d.speed_rms * 1e3:.1f} mm/s", f"{d.speed_max * 1e3:.1f} mm/s")
+    table.caption = (f"path: distance between the two positions; speed: over the ground, the distance covered in "
+                     f"{SPEED_WINDOW:g} s (a live vehicle's speed output is its controller's estimate)")
+    table.caption_justify = "left"
+    out.print(table)
+
+
 def register(app: typer.Typer) -> None:
     app.command()(calibrate)
+    app.command()(compare)
