@@ -135,3 +135,32 @@ def test_each_emulated_robot_has_its_own_latency_and_noise_over_the_settings() -
     spread = np.std([robots[0].sample(100.02 + 1e-9 * k, noise).x for k in range(400)])
     assert 0.003 < spread < 0.005 and robots[1].sample(100.03, noise).x == robots[1].state[0]
     assert math.isfinite(spread)
+
+
+def test_compare_prints_each_vehicles_path_and_speed_differences(tmp_path) -> None:
+    """Two all-FMU runs of the experiment, one 2 cm/s faster: compare names the vehicle with the rms and the
+    largest distance between the two paths (as the traces read back give them), and a run against itself is 0."""
+    import subprocess
+
+    from orchestrator.analysis.compare import run_differences
+    from orchestrator.trace import load
+    from tests.test_hil import PLATOON, REPO, _env
+
+    traces = []
+    for name, sets in (("nominal", []), ("faster", ["--set", "platoon.speed=0.32"])):
+        trace = tmp_path / f"{name}.mcap"
+        run = subprocess.run([str(PLATOON), "run", "configs/hil/calibrate.toml", "-q", "--out", str(trace), "--set",
+                              "vehicles.1.endpoint=fmu", "--set", "simulation.stop_time=8.0", *sets], cwd=REPO,
+                             env=_env(), capture_output=True, text=True, timeout=120)
+        assert run.returncode == 0, run.stderr
+        traces.append(trace)
+    a, b = load(traces[0]).component("vehicle1"), load(traces[1]).component("vehicle1")
+    distance = np.hypot(a["x"] - b["x"], a["y"] - b["y"])
+    [difference] = run_differences(load(traces[0]), load(traces[1]))
+    assert difference.path_rms == pytest.approx(float(np.sqrt(np.mean(distance ** 2))), rel=1e-12)
+    assert difference.path_max == float(distance.max()) > 0.05 and difference.speed_max > 0.01
+    assert run_differences(load(traces[0]), load(traces[0]))[0].path_max == 0.0
+    shown = subprocess.run([str(PLATOON), "compare", *map(str, traces)], cwd=REPO, env=_env(), capture_output=True,
+                           text=True, timeout=120)
+    assert shown.returncode == 0, shown.stderr
+    assert "vehicle1" in shown.stdout and f"{difference.path_rms * 1e3:.2f} mm" in shown.stdout

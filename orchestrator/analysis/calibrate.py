@@ -159,6 +159,17 @@ def top_speed(records: Sequence[RobotRecord]) -> float:
     return fastest
 
 
+def echoed_latency(records: Sequence[RobotRecord]) -> float:
+    """Where the command latency starts: the middle of the window the poses' echoes put each command's application
+    in (median over the commands), else 20 ms. With echoes the path hardly depends on a latency outside those
+    windows (every command is held to its window), so the fit must start inside them."""
+    middles = [0.5 * (r.commands.earliest + r.commands.latest) - r.commands.sent for r in records
+               if r.commands.earliest is not None and r.commands.latest is not None]
+    middle = np.concatenate(middles) if middles else np.array([])
+    middle = middle[np.isfinite(middle)]
+    return float(np.clip(np.median(middle), 0.0, 0.5)) if len(middle) else 0.02
+
+
 def least_squares_fit(problem: PathProblem, values: dict[str, float], free: Sequence[str]) -> tuple[dict[str, float], object]:
     """Fit the ``free`` parameters (the rest held at ``values``); returns the values and scipy's result."""
     spec = {name: (low, high, scale) for name, _, low, high, scale in FITTED}
@@ -265,7 +276,7 @@ def calibrate_robot(records: Sequence[RobotRecord], tick: Callable[[], None] = l
     start = model_values(model)
     # the limit starts where the robot was seen to go: a limit above every wheel's target would give the fit
     # nothing to pull on, were the robot's own one below them
-    first = {**start, "command_latency": 0.02, "wheel_speed_max": top_speed(records)}
+    first = {**start, "command_latency": echoed_latency(records), "wheel_speed_max": top_speed(records)}
     free = [n for n, *_ in FITTED]
     values, _ = least_squares_fit(PathProblem(records, SEGMENTS[0], tick, rate=COARSE_RATE), first, free)
     problem = PathProblem(records, SEGMENTS[1], tick, rate=FINE_RATE)
