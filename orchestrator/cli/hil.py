@@ -106,7 +106,6 @@ def emulated_robots(config: Any, ids: list[int]) -> list[Any]:
     from orchestrator.scenario.scenario import initial_states
 
     states = initial_states(config)
-    m3pi = config.m3pi
     robots = []
     for vehicle in config.live_vehicles():
         robot = config.robot_id(vehicle)
@@ -114,8 +113,10 @@ def emulated_robots(config: Any, ids: list[int]) -> list[Any]:
             continue
         override = config.override(vehicle)
         x, y, heading, speed = states[vehicle - 1]
+        m3pi = config.m3pi_of(vehicle)
         dynamics = M3piDynamics(override.k_v or config.platoon.k_v, m3pi.track, m3pi.wheel_speed_max,
-                                m3pi.motor_time_constant)
+                                m3pi.motor_time_constant, m3pi.wheel_gain_right, m3pi.wheel_gain_left,
+                                m3pi.wheel_deadband)
         robots.append(RobotSpec(RobotKeys(override.prefix or config.hil.prefix, robot), x, y, heading, speed, dynamics))
     return robots
 
