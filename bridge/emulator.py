@@ -20,8 +20,11 @@ motor lag, clipped to the wheel speed limit, and a unicycle body. It runs in wal
   so one emulator serves any number of runs one after the other; the claim ends when that token goes.
 
 Each robot may differ from the model (``RobotSpec.truth``, from a robot truth file: ``bridge.robot_truth``):
-its own wheel gains, motor lag, limit and dead-band (in its ``dynamics``), its own command and pose
-latencies and pose noise (else the ``EmulatorSettings``' values). The run never sees that file.
+its own wheel gains, motor lag, limit and dead-band (in its ``dynamics``), its own command latency and pose
+noise (else the ``EmulatorSettings``' values), and a pose latency its stamps do not show: its poses are
+stamped and handed over ``pose_latency`` after the robot was there, as ``platoon mocap`` stamps a frame
+when the motion capture hands it over (the model's ``pose_latency``, fmus/model/robot_loop.py), and
+published ``latency`` after that stamp. The run never sees that file.
 
 Before its first command a robot stands at its config's initial pose. With ``flying_start`` (the
 default) its wheels are set to the config's initial speed at the first command, as the simulated
@@ -93,11 +96,12 @@ class RobotSpec:
     truth: RobotTruth = RobotTruth()
 
     def link_value(self, key: str, settings: EmulatorSettings) -> float:
-        """This robot's ``command_latency``, ``pose_latency``, ``position_noise`` or ``heading_noise``."""
+        """This robot's ``command_latency``, ``pose_latency`` (the latency its stamps do not show: none unless the
+        truth file says), ``position_noise`` or ``heading_noise``."""
         own = getattr(self.truth, key)
         if own is not None:
             return own
-        return getattr(settings, "latency" if key == "pose_latency" else key)
+        return 0.0 if key == "pose_latency" else getattr(settings, key)
 
 
 @dataclass
@@ -266,7 +270,8 @@ class EmulatedRobot:
             y += noise.gauss(0.0, self.position_noise)
         if self.heading_noise > 0.0:
             heading += noise.gauss(0.0, self.heading_noise)
-        return Pose(self.pose_seq, self.command_seq, now, x, y, heading, self.claim.owner)
+        # stamped as a motion capture that hands a frame over pose_latency after it saw the robot stamps it
+        return Pose(self.pose_seq, self.command_seq, now + self.pose_latency, x, y, heading, self.claim.owner)
 
     def status(self, now: float) -> bytes | None:
         """The status message if one is due (every ``STATUS_PERIOD``, or at once after a claim change)."""
@@ -341,7 +346,8 @@ class Emulator:
                         if now >= next_sample:
                             for index, robot in enumerate(self.robots):
                                 pose = robot.sample(now, self._noise)
-                                heapq.heappush(self._outbox, (now + robot.pose_latency, next(self._order), index,
+                                publish = pose.stamp + self.settings.latency
+                                heapq.heappush(self._outbox, (publish, next(self._order), index,
                                                               self._encode_pose(index, pose)))
                             next_sample += period
                             if next_sample < now:  # fell behind (a stalled machine): no burst of catch-up samples

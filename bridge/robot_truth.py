@@ -16,9 +16,11 @@ emulator (``platoon m3pi-emulator --robots TRUTH.toml``) takes each robot's trut
     wheel_speed_max = 0.8
     wheel_deadband = 0.02      # m/s
     command_latency = 0.025    # s, command received -> applied (the radio)
-    pose_latency = 0.008       # s, pose taken -> published (the motion capture)
+    pose_latency = 0.008       # s, robot there -> pose stamped and handed over (the motion capture)
 
-A key left out is the model's value (the config's ``[m3pi]`` table, or the emulator's command-line
+``pose_latency`` is the motion capture's latency that its stamps do not show (as ``platoon mocap`` stamps a
+frame when the system hands it over): the pose is the robot's pose that long before its stamp, the meaning of
+the model's ``[m3pi] pose_latency``. A key left out is the model's value (the config's ``[m3pi]`` table, or the emulator's command-line
 settings for latencies and noise). The keys are those of ``platoon calibrate``'s output (the ``[m3pi]``
 keys), plus the two noises, so that a calibration can be checked against the truth it should find.
 """

@@ -38,7 +38,8 @@ def excitation(t: np.ndarray, full: bool = True) -> tuple[np.ndarray, np.ndarray
 def synthetic_record(truth: dict[str, float], seconds: float = 45.0, seed: int = 0, noise: bool = True,
                      full: bool = True) -> RobotRecord:
     """A record as a live run of robot ``truth`` would leave it: commands every 10 ms (with jitter), applied
-    ``command_latency`` later; poses every 5 ms, noisy, received ``pose_latency`` after they were taken."""
+    ``command_latency`` later; poses every 5 ms, noisy, each the robot ``pose_latency`` before its stamp (the
+    latency a stamp does not show), received 1 ms after the stamp."""
     rng = np.random.default_rng(seed)
     sent = np.arange(0.0, seconds, 0.01) + rng.uniform(0.0, 0.002, int(round(seconds / 0.01)))
     left, right = excitation(sent, full)
@@ -48,7 +49,7 @@ def synthetic_record(truth: dict[str, float], seconds: float = 45.0, seed: int =
     stamps = np.arange(0.0, seconds + 0.5, 0.005)
     state, now, command = [0.0, 0.0, 0.3, 0.0, 0.0], 0.0, (0.0, 0.0)
     poses, k = [], 0
-    for stamp in stamps:
+    for stamp in stamps - truth.get("pose_latency", 0.0):
         while k < len(applied) and applied[k] <= stamp:
             state = integrate(lambda _, s: dynamics.drive(s[2], s[3], s[4], command[1], command[0], 0.0), 0.0, state,
                               applied[k] - now, 0.001)
@@ -60,5 +61,5 @@ def synthetic_record(truth: dict[str, float], seconds: float = 45.0, seed: int =
     poses = np.array(poses)
     noise = rng.normal(0.0, 1.0, poses.shape) * [POSITION_NOISE, POSITION_NOISE, HEADING_NOISE] * noise
     commands = Commands(sent, sent + 0.1, left, right)
-    return RobotRecord("synthetic", "vehicle1", 1, 0.0, commands, stamps, stamps + truth.get("pose_latency", 0.0),
+    return RobotRecord("synthetic", "vehicle1", 1, 0.0, commands, stamps, stamps + 0.001,
                        *(poses + noise).T, M3piDynamics(0.5, wheel_speed_max=1.2))

@@ -74,9 +74,12 @@ FLOAT_KEYS = [
     "platoon.time_gap", "platoon.standstill_gap", "platoon.cacc_gain",
     "initial.radial_offset", "initial.heading_error", "initial.speed_factor",
     "m3pi.track", "m3pi.wheel_speed_max", "m3pi.motor_time_constant",
+    "m3pi.wheel_gain_right", "m3pi.wheel_gain_left", "m3pi.wheel_deadband", "m3pi.command_latency", "m3pi.pose_latency",
     "disturbance[0].start", "disturbance[0].duration", "disturbance[0].value", "disturbance[0].frequency",
     "vehicles.1.k_v", "vehicles.1.initial.x", "vehicles.1.initial.y", "vehicles.1.initial.heading",
     "vehicles.1.initial.speed",
+] + [f"vehicles.1.m3pi.{key}" for key in ("track", "wheel_speed_max", "motor_time_constant", "wheel_gain_right",
+                                          "wheel_gain_left", "wheel_deadband", "command_latency", "pose_latency")] + [
     "hil.pose_timeout", "hil.connect_timeout", "hil.command_validity", "hil.max_pose_age",
     "vehicles.1.ros2.frame.x", "vehicles.1.ros2.frame.y", "vehicles.1.ros2.frame.yaw", "ros2.rate",
 ] + [f"links.{table}{key}" for table in ("", "backward.", "forward.", "vehicles.1.backward.", "vehicles.1.forward.")
@@ -160,6 +163,11 @@ RANGES = [
     ("initial.speed_factor", 11.0, "a finite number >= 0.001 and <= 10", 10.0),
     ("m3pi.track", 0.0, "a finite number >= 0.001 m and <= 10 m", 0.2),
     ("m3pi.motor_time_constant", 1e-9, "a finite number >= 0.001 s and <= 100 s", 1e-3),
+    ("m3pi.wheel_gain_left", 0.05, "a finite number >= 0.1 and <= 10", 0.1),
+    ("m3pi.wheel_deadband", -0.001, "a finite number >= 0 m/s and <= 100 m/s", 0.0),
+    ("m3pi.command_latency", 1.5, "a finite number >= 0 s and <= 1 s", 1.0),
+    ("vehicles.1.m3pi.pose_latency", -1e-3, "a finite number >= 0 s and <= 1 s", 0.015),
+    ("vehicles.1.m3pi.wheel_gain_right", 11.0, "a finite number >= 0.1 and <= 10", 10.0),
     ("disturbance[0].start", -1.0, "a finite number >= 0 s", 0.0),
     ("disturbance[0].value", -1e7, 'a finite number >= -1e+06 and <= 1e+06 (m/s² for kind = "lateral_acceleration", '
      'm/s for kind = "speed")', -1e6),

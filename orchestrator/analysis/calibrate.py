@@ -13,8 +13,11 @@ own, and a slightly wrong gain cannot send a two-minute path astray and the fit 
 second after the first command is left out: the wheels' state there (at rest, or the emulator's
 flying start) is forgotten after a few motor time constants.
 
-The pose latency is not in the path at all: a pose carries when it was taken (its stamp), the run
-recorded when it arrived, and the difference is the motion capture's latency (plus the network's).
+The pose latency (a pose older than its stamp) cannot be told from the command latency: the path only shows
+when a command moved the robot as the stamps see it, so the fitted command latency is the loop's whole delay
+(what the model's sampled loop needs: it moves the observed robot command_latency + pose_latency after a
+command). The pose latency is written as the nominal 0, not identified; how long poses took from their stamp
+to the run (the delivery, which the run dead-reckons over) is measured and printed.
 
 Each parameter gets a 95 % confidence interval (from the fit's Jacobian and residual variance; the
 dead-band's from its profile) and is "identified" only when the trace excited it: a wheel limit the
@@ -87,6 +90,7 @@ class RobotCalibration:
     residual: float  # m, rms per axis of the calibrated path against the poses
     residual_before: float  # m, the same for the run's own model
     pose_noise: float  # m, the poses' own noise per axis (from their second differences)
+    delivery: float  # s, median of received - stamp
     poses: int
     seconds: float  # of recorded motion used
 
@@ -246,13 +250,15 @@ def deadband_interval(problem: PathProblem, values: dict[str, float], variance: 
     return float(grid[k]), float(grid[max(inside.min() - 1, 0)]), float(grid[min(inside.max() + 1, len(grid) - 1)])
 
 
-def pose_latency(records: Sequence[RobotRecord]) -> Estimate:
-    """Received minus taken, per pose: its median and that median's 95 % interval."""
-    ages = np.concatenate([r.received - r.stamp for r in records])
-    middle = float(np.median(ages))
-    half = Z95 * 1.2533 * float(np.std(ages)) / math.sqrt(len(ages))
-    return Estimate("pose_latency", middle, middle - half, middle + half, _within("pose_latency", middle, half),
-                    "received - taken (median)")
+def delivery(records: Sequence[RobotRecord]) -> float:
+    """How long the poses took from their stamp to the run (median): the run dead-reckons over it."""
+    return float(np.median(np.concatenate([r.received - r.stamp for r in records])))
+
+
+def pose_latency(nominal: float) -> Estimate:
+    """A pose older than its stamp: inside the fitted command latency, never apart from it."""
+    return Estimate("pose_latency", nominal, -math.inf, math.inf, False,
+                    "inside command_latency (the loop's delay, measured against the stamps)")
 
 
 def _fit(problem: PathProblem, values: dict[str, float], free: list[str]) -> tuple[dict[str, float], dict[str, float], float]:
@@ -316,12 +322,12 @@ def calibrate_robot(records: Sequence[RobotRecord], tick: Callable[[], None] = l
             elif name in half:
                 estimates[name] = replace(e, value=values[name], low=values[name] - half[name],
                                           high=values[name] + half[name])
-    estimates["pose_latency"] = pose_latency(records)
+    estimates["pose_latency"] = pose_latency(nominal["pose_latency"])
     before = start
     return RobotCalibration(
         records[0].robot, tuple(f"{r.source}: {r.vehicle}" for r in records),
         {name: estimates[name] for name in ORDER}, _rms(problem.residuals(values)), _rms(problem.residuals(before)),
-        pose_noise(records), int(sum(w.sum() for w in problem.windows)),
+        pose_noise(records), delivery(records), int(sum(w.sum() for w in problem.windows)),
         float(sum(r.stamp[w][-1] - r.stamp[w][0] for r, w in zip(records, problem.windows))))
 
 

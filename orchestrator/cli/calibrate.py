@@ -47,13 +47,14 @@ def calibration_table(calibration: Any) -> Any:
     for column in ("parameter", "value", "95 % interval", "identified"):
         table.add_column(column)
     for e in calibration.estimates.values():
-        interval = f"{_shown(e.low, e.unit)} .. {_shown(e.high, e.unit)}"
-        verdict = "yes" if e.identified else f"no: {e.note}; the nominal value written"
+        interval = f"{_shown(e.low, e.unit)} .. {_shown(e.high, e.unit)}" if math.isfinite(e.low) else "-"
+        verdict = "yes" if e.identified else f"no: {e.note}; the nominal written"
         table.add_row(e.name, _shown(e.value, e.unit), interval, verdict)
     ratio = calibration.residual / calibration.pose_noise if calibration.pose_noise > 0 else math.inf
     table.caption = (f"path residual {calibration.residual * 1e3:.2f} mm rms per axis, {ratio:.2f} x the poses' own "
                      f"noise ({calibration.pose_noise * 1e3:.2f} mm); the run's own model: "
-                     f"{calibration.residual_before * 1e3:.1f} mm")
+                     f"{calibration.residual_before * 1e3:.1f} mm. Poses arrived {calibration.delivery * 1e3:.1f} ms "
+                     "after their stamps (median; the run dead-reckons over that)")
     table.caption_justify = "left"
     return table
 

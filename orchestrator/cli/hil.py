@@ -108,7 +108,6 @@ def emulated_robots(config: Any, ids: list[int], truths: Any = None) -> list[Any
     from orchestrator.scenario.scenario import initial_states
 
     states = initial_states(config)
-    m3pi = config.m3pi
     robots = []
     for vehicle in config.live_vehicles():
         robot = config.robot_id(vehicle)
@@ -116,8 +115,10 @@ def emulated_robots(config: Any, ids: list[int], truths: Any = None) -> list[Any
             continue
         override = config.override(vehicle)
         x, y, heading, speed = states[vehicle - 1]
+        m3pi = config.m3pi_of(vehicle)
         dynamics = M3piDynamics(override.k_v or config.platoon.k_v, m3pi.track, m3pi.wheel_speed_max,
-                                m3pi.motor_time_constant)
+                                m3pi.motor_time_constant, m3pi.wheel_gain_right, m3pi.wheel_gain_left,
+                                m3pi.wheel_deadband)
         truth = truths.robot(robot) if truths is not None else RobotTruth()
         robots.append(RobotSpec(RobotKeys(override.prefix or config.hil.prefix, robot), x, y, heading, speed,
                                 truth.dynamics(dynamics), truth))

@@ -144,14 +144,12 @@ def build_scenario(config: Config) -> Scenario:
                     "k_v": override.k_v or platoon.k_v,
                     "v_c": platoon.speed,
                     "is_last": index == platoon.count,
-                    "dynamics": override.dynamics or platoon.dynamics,
+                    "dynamics": config.dynamics_of(index),
                     "initial.x": x,
                     "initial.y": y,
                     "initial.heading": heading,
                     "initial.speed": speed,
-                    "m3pi.track": config.m3pi.track,
-                    "m3pi.wheel_speed_max": config.m3pi.wheel_speed_max,
-                    "m3pi.motor_time_constant": config.m3pi.motor_time_constant,
+                    **config.m3pi_of(index).parameters(),
                     **speed_law_parameters(config, index),
                     **common,
                 },
@@ -174,12 +172,17 @@ def build_scenario(config: Config) -> Scenario:
 
 
 def monolithic_refusal(config: Config) -> str | None:
-    """Why the monolithic reference cannot run ``config`` (it has links), or None."""
+    """Why the monolithic reference cannot run ``config`` (it has links, or robots with latencies), or None."""
     linked = config.linked()
-    if not linked:
-        return None
-    return (f"the monolithic reference has no messages, so it cannot run links ({len(linked)} in this config, "
-            "docs/links.md); run without --monolithic, or without the [links] table")
+    if linked:
+        return (f"the monolithic reference has no messages, so it cannot run links ({len(linked)} in this config, "
+                "docs/links.md); run without --monolithic, or without the [links] table")
+    sampled = [i for i in config.m3pi_vehicles() if config.m3pi_of(i).samples]
+    if sampled:
+        return (f"the monolithic reference is one continuous system, so it cannot run a robot's sampled loop with "
+                f"latencies (m3pi.command_latency, m3pi.pose_latency > 0 on vehicle {sampled[0]}; docs/model.md, \"A "
+                "robot that is not its nominal model\"); run without --monolithic, or with latencies of 0")
+    return None
 
 
 def link_specs(config: Config) -> dict[tuple[str, int], ComponentSpec]:
