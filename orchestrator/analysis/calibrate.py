@@ -258,7 +258,7 @@ def delivery(records: Sequence[RobotRecord]) -> float:
 def pose_latency(nominal: float) -> Estimate:
     """A pose older than its stamp: inside the fitted command latency, never apart from it."""
     return Estimate("pose_latency", nominal, -math.inf, math.inf, False,
-                    "inside command_latency (the loop's delay, measured against the stamps)")
+                    "inside command_latency, the loop's whole delay")
 
 
 def _fit(problem: PathProblem, values: dict[str, float], free: list[str]) -> tuple[dict[str, float], dict[str, float], float]:
