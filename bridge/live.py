@@ -7,7 +7,8 @@ the robot's measured one:
 
 * each step it takes the newest valid pose, dead-reckons it from the pose's time stamp to now along
   the arc the robot is turning on (``fmus.model.coupling.arc_extrapolate``: this absorbs the motion
-  capture's latency), evaluates the guidance law there, turns the lateral command into wheel speeds
+  capture's latency as far as the stamp shows it; what a stamp hides is the robot's ``m3pi.pose_latency``,
+  fmus.model.robot_loop), evaluates the guidance law there, turns the lateral command into wheel speeds
   (paper eqs. 10-11, ``M3piDynamics.wheel_commands``) and publishes them with a deadline;
 * between poses it keeps the controller's own states (the speed setpoint V_s of the speed loop, and
   the wheel speeds the motor-lag model predicts) by integrating the same model over the step;
