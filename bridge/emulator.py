@@ -19,6 +19,13 @@ motor lag, clipped to the wheel speed limit, and a unicycle body. It runs in wal
   MAC, while the robot is free: ``bridge.claim``) puts the robot back on its mark, at rest and waiting,
   so one emulator serves any number of runs one after the other; the claim ends when that token goes.
 
+Each robot may differ from the model (``RobotSpec.truth``, from a robot truth file: ``bridge.robot_truth``):
+its own wheel gains, motor lag, limit and dead-band (in its ``dynamics``), its own command latency and pose
+noise (else the ``EmulatorSettings``' values), and a pose latency its stamps do not show: its poses are
+stamped and handed over ``pose_latency`` after the robot was there, as ``platoon mocap`` stamps a frame
+when the motion capture hands it over (the model's ``pose_latency``, fmus/model/robot_loop.py), and
+published ``latency`` after that stamp. The run never sees that file.
+
 Before its first command a robot stands at its config's initial pose. With ``flying_start`` (the
 default) its wheels are set to the config's initial speed at the first command, as the simulated
 vehicles start, so a live run is comparable with the all-FMU run; ``flying_start=False`` starts
@@ -27,6 +34,8 @@ from rest, as a real robot does.
 
 from __future__ import annotations
 
+import heapq
+import itertools
 import random
 import sys
 import threading
@@ -42,6 +51,7 @@ from fmus.model.integrate import integrate
 
 from .claim import RobotClaim, claim_from_key, claim_text
 from .lab_key import LabKey
+from .robot_truth import RobotTruth
 from .protocol import (
     STATUS_POSES,
     LinkCounters,
@@ -74,7 +84,8 @@ class EmulatorSettings:
 
 @dataclass(frozen=True)
 class RobotSpec:
-    """One robot to emulate: its id, keys, where it starts, and its m3pi constants."""
+    """One robot to emulate: its id, keys, where it starts, its m3pi physics (the robot's own, when a truth file
+    gives them) and its own latencies and noise (``truth``: None values are the emulator's settings)."""
 
     keys: RobotKeys
     x: float
@@ -82,6 +93,15 @@ class RobotSpec:
     heading: float
     speed: float
     dynamics: M3piDynamics
+    truth: RobotTruth = RobotTruth()
+
+    def link_value(self, key: str, settings: EmulatorSettings) -> float:
+        """This robot's ``command_latency``, ``pose_latency`` (the latency its stamps do not show: none unless the
+        truth file says), ``position_noise`` or ``heading_noise``."""
+        own = getattr(self.truth, key)
+        if own is not None:
+            return own
+        return 0.0 if key == "pose_latency" else getattr(settings, key)
 
 
 @dataclass
@@ -112,6 +132,9 @@ class EmulatedRobot:
         self.state = [spec.x, spec.y, spec.heading, 0.0, 0.0]
         self.claim = RobotClaim(self.settings.lab_key, spec.keys.wheels)
         self.link = StateMachine(f"m3pi-emulator robot {spec.keys.robot}", self._announce)
+        self.command_latency, self.pose_latency, self.position_noise, self.heading_noise = (
+            spec.link_value(key, self.settings) for key in ("command_latency", "pose_latency", "position_noise",
+                                                             "heading_noise"))
         self._warned: set[str] = set()
 
     def _announce(self, old: LinkState, new: LinkState, reason: str) -> None:
@@ -161,8 +184,7 @@ class EmulatedRobot:
             self.link.go(LinkState.STOPPED, "stop command")
         elif self.link.state != LinkState.RUNNING and (command.left != 0.0 or command.right != 0.0):
             self.link.go(LinkState.RUNNING, f"command {command.seq}")
-        right, left = self.spec.dynamics.limit_wheels(command.right, command.left)
-        self.command = (left, right)
+        self.command = (command.left, command.right)  # the robot's own dead-band, gains and limit act in drive()
         self.command_seq = command.seq
         self.claim.record_applied(command.seq)
         self.deadline = float("inf") if stop else command.deadline
@@ -202,7 +224,7 @@ class EmulatedRobot:
         self.counters.accept()
         self.last_valid = now
         self.advance(now)
-        self.pending.append((now + self.settings.command_latency, command))
+        self.pending.append((now + self.command_latency, command))
         self.advance(now)
 
     def host_arrived(self, claim: int, now: float) -> None:
@@ -242,14 +264,14 @@ class EmulatedRobot:
         """The pose the motion capture sees now (with noise), numbered and stamped."""
         self.advance(now)
         self.pose_seq += 1
-        s = self.settings
         x, y, heading = self.state[0], self.state[1], self.state[2]
-        if s.position_noise > 0.0:
-            x += noise.gauss(0.0, s.position_noise)
-            y += noise.gauss(0.0, s.position_noise)
-        if s.heading_noise > 0.0:
-            heading += noise.gauss(0.0, s.heading_noise)
-        return Pose(self.pose_seq, self.command_seq, now, x, y, heading, self.claim.owner)
+        if self.position_noise > 0.0:
+            x += noise.gauss(0.0, self.position_noise)
+            y += noise.gauss(0.0, self.position_noise)
+        if self.heading_noise > 0.0:
+            heading += noise.gauss(0.0, self.heading_noise)
+        # stamped as a motion capture that hands a frame over pose_latency after it saw the robot stamps it
+        return Pose(self.pose_seq, self.command_seq, now + self.pose_latency, x, y, heading, self.claim.owner)
 
     def status(self, now: float) -> bytes | None:
         """The status message if one is due (every ``STATUS_PERIOD``, or at once after a claim change)."""
@@ -272,7 +294,9 @@ class Emulator:
         self.robots = [EmulatedRobot(spec, settings, say) for spec in robots]
         self._lock = threading.Lock()
         self._noise = random.Random(settings.seed)
-        self._outbox: deque[tuple[float, int, bytes]] = deque()  # (publish at, robot index, payload)
+        # (publish at, order, robot index, payload), a heap: each robot's poses wait its own pose latency
+        self._outbox: list[tuple[float, int, int, bytes]] = []
+        self._order = itertools.count()
         self.stop_event = threading.Event()
 
     def _on_command(self, index: int) -> Callable[[zenoh.Sample], None]:
@@ -322,7 +346,9 @@ class Emulator:
                         if now >= next_sample:
                             for index, robot in enumerate(self.robots):
                                 pose = robot.sample(now, self._noise)
-                                self._outbox.append((now + self.settings.latency, index, self._encode_pose(index, pose)))
+                                publish = pose.stamp + self.settings.latency
+                                heapq.heappush(self._outbox, (publish, next(self._order), index,
+                                                              self._encode_pose(index, pose)))
                             next_sample += period
                             if next_sample < now:  # fell behind (a stalled machine): no burst of catch-up samples
                                 next_sample = now + period
@@ -331,9 +357,9 @@ class Emulator:
                                 robot.advance(now)
                         due = []
                         while self._outbox and self._outbox[0][0] <= now:
-                            due.append(self._outbox.popleft())
+                            due.append(heapq.heappop(self._outbox))
                         reports = [(index, robot.status(now)) for index, robot in enumerate(self.robots)]
-                    for _, index, payload in due:
+                    for _, _, index, payload in due:
                         publishers[index].put(payload)
                     for index, report in reports:
                         if report is not None and statuses[index] is not None:

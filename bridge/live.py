@@ -1,12 +1,14 @@
 """A live m3pi robot behind the orchestrator's ``Component`` interface: the host side of the link.
 
 ``LiveVehicle`` stands where a Vehicle FMU would: same inputs, same outputs, fed by and feeding the
-neighbouring FMUs. What it computes is the FMU's own model (``fmus.model.factory.vehicle_stepper``,
-m3pi dynamics), with the pose replaced by the robot's measured one:
+neighbouring FMUs. What it computes is the FMU's own model (``fmus.model.factory.controller_stepper``,
+m3pi dynamics, the config's constants: a calibrated config's gains and dead-band too), with the pose replaced by
+the robot's measured one:
 
 * each step it takes the newest valid pose, dead-reckons it from the pose's time stamp to now along
   the arc the robot is turning on (``fmus.model.coupling.arc_extrapolate``: this absorbs the motion
-  capture's latency), evaluates the guidance law there, turns the lateral command into wheel speeds
+  capture's latency as far as the stamp shows it; what a stamp hides is the robot's ``m3pi.pose_latency``,
+  fmus.model.robot_loop), evaluates the guidance law there, turns the lateral command into wheel speeds
   (paper eqs. 10-11, ``M3piDynamics.wheel_commands``) and publishes them with a deadline;
 * between poses it keeps the controller's own states (the speed setpoint V_s of the speed loop, and
   the wheel speeds the motor-lag model predicts) by integrating the same model over the step;
@@ -38,7 +40,7 @@ import zenoh
 from fmus.model.angles import wrap_angle
 from fmus.model.coupling import arc_extrapolate
 from fmus.model.dynamics import M3piDynamics
-from fmus.model.factory import vehicle_stepper
+from fmus.model.factory import controller_stepper
 from fmus.model.vehicle import VEHICLE_INPUTS
 from fmus.component import ComponentError, LiveEvent, LiveRecord, percentile_summary
 
@@ -122,7 +124,7 @@ class LiveVehicle:
         if unknown:
             raise ValueError(f"{name}: a live vehicle has no input(s) {', '.join(unknown)}")
         self._attributes = [VEHICLE_INPUTS[n] for n in self.inputs]
-        self.stepper = vehicle_stepper(parameters, 0.0)
+        self.stepper = controller_stepper(parameters, 0.0)  # the latencies are the robot's own, out there
         dynamics = self.stepper.model.dynamics
         if not isinstance(dynamics, M3piDynamics):
             raise ValueError(f"{name}: a live robot needs dynamics = \"m3pi\" (got {dynamics.kind!r})")
@@ -424,9 +426,7 @@ class LiveVehicle:
         self.pose_ages.append(self._measure())  # the pose this step's command is computed from
         stepper = self.stepper
         _, acceleration, _ = stepper.evaluate(time_, stepper.state)
-        right, left = self.dynamics.wheel_commands(stepper.state[5], acceleration)
-        push = stepper.added_speed  # a speed disturbance moves the robot faster; its speed loop does not see it
-        right, left = self.dynamics.limit_wheels(right + push, left + push)
+        right, left = self.dynamics.radio_command(stepper.state[5], acceleration, stepper.added_speed)
         self._watch_motion(time_, left, right)
         self._send(left, right, self.settings.command_validity)
         try:

@@ -26,6 +26,9 @@ d = |p<sub>t</sub> &minus; p| and &lambda; = atan2(y<sub>t</sub> &minus; y, x<su
 <li>kinematic dynamics: dx/dt = V cos &gamma;, dy/dt = V sin &gamma;, d&gamma;/dt = a/V</li>
 <li>m3pi dynamics: wheel commands V<sub>r,l</sub> = V<sub>s</sub>(1 &plusmn; W/(2R<sub>t</sub>)), R<sub>t</sub> = V<sub>s</sub>&sup2;/a (paper eqs. 10-11), clipped to &plusmn;wheel_speed_max,
 first-order motor lag, unicycle kinematics: V = (v<sub>r</sub> + v<sub>l</sub>)/2, d&gamma;/dt = (v<sub>r</sub> &minus; v<sub>l</sub>)/W</li>
+<li>a robot that is not its nominal model: each wheel heads for its gain times its command (m3pi.wheel_gain_right, _left), 0 for
+a command inside m3pi.wheel_deadband; with m3pi.command_latency or m3pi.pose_latency &gt; 0, the live run's sampled loop: one
+command per step from the pose the motion capture shows, acting command_latency + pose_latency later (docs/model.md)</li>
 </ul>
 """,
     "VirtualTarget": """

@@ -205,8 +205,9 @@ def init_read_refused(reason: str) -> Check:
 # --- the cases ----------------------------------------------------------------------------------------
 
 
-# Real parameters declared with min = 0 that may be 0 (the others must be > 0): acc's standstill gap.
-MAY_BE_ZERO = ("standstill_gap",)
+# Real parameters declared with min = 0 that may be 0 (the others must be > 0): acc's standstill gap, and the dead-band
+# and latencies of a robot that is not its nominal model (0: the nominal robot).
+MAY_BE_ZERO = ("standstill_gap", "m3pi.wheel_deadband", "m3pi.command_latency", "m3pi.pose_latency")
 
 
 def invalid_parameter_cases() -> list[Case]:
@@ -236,6 +237,8 @@ def invalid_parameter_cases() -> list[Case]:
             for value in bad:
                 cases.append(Case(cls.__name__, f"{info.name} = {value!r}", {info.name: value},
                                   [["exit"], *AFTER_FAILURE], refused_for_good(f"{info.name} = {value!r}")))
+    cases.append(Case("Vehicle", "m3pi.pose_latency = 2.0 > 1 s", {"m3pi.pose_latency": 2.0}, [["exit"], *AFTER_FAILURE],
+                      refused_for_good("m3pi.pose_latency = 2.0: must be a finite number >= 0 and <= 1")))
     cases.append(Case("VirtualTarget", "d_star = 120 > 2 R = 100", {"d_star": 120.0}, [["exit"], *AFTER_FAILURE],
                       refused_for_good("must be <= 2 R = 100.0")))
     return cases

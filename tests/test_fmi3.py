@@ -179,7 +179,13 @@ SIMULATE_CASES = [
     ("VirtualTarget", {"path.kind": kind, "coupling": coupling, "path.heading": 0.3})
     for kind in ("circle", "line") for coupling in ("extrapolate", "hold")
 ] + [("Vehicle", {"speed_law": law, "coupling": "extrapolate"}) for law in ("acc", "cacc")] + [
-    ("VirtualTarget", {"speed_law": "cacc", "path.kind": "circle"})]
+    ("VirtualTarget", {"speed_law": "cacc", "path.kind": "circle"})] + [
+    # a robot that is not its nominal model, in the live run's sampled loop (docs/model.md): the car-sized m3pi of
+    # the wheel-limit cases, with its own gains and a dead-band, a radio and a motion capture late by no multiple
+    # of the step
+    ("Vehicle", {"dynamics": "m3pi", "m3pi.wheel_speed_max": 30.0, "m3pi.wheel_gain_right": 1.04,
+                 "m3pi.wheel_gain_left": 0.97, "m3pi.wheel_deadband": 0.5, "m3pi.command_latency": 0.035,
+                 "m3pi.pose_latency": 0.0125})]
 # a disturbance through FMPy's input, so the run is not only the start values
 PULSES = {"Vehicle": ("disturbance.lateral_acceleration", 0.0, 5.0), "VirtualTarget": ("lead.gap", 75.0, 90.0)}
 

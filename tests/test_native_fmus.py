@@ -102,12 +102,22 @@ def test_the_binary_needs_only_the_c_library(native_fmu_dir, tmp_path):
 
 # --- (b) standalone: every output, both kinds -----------------------------------------------------------
 
+# a robot on the paper's 1 m circle, turning hard towards a target 0.6 m ahead that circles at 0.3 m/s
+M3PI_CHASE = {"dynamics": "m3pi", "k_v": 2.0, "v_c": 0.3, "d_star": 0.6, "initial.x": 1.0, "initial.y": -0.6,
+              "initial.heading": 2.5, "initial.speed": 0.25, "target.x": 1.0, "target.y": 0.0,
+              "target.heading": 1.5707963267948966, "target.speed": 0.3, "target.turn_rate": 0.3,
+              "follower.speed": 0.3, "follower.gap": 0.6}
 VEHICLE_CASES = [
     {"law": law, "dynamics": dynamics, "coupling": coupling}
     for law in ("sine", "regular") for dynamics in ("kinematic", "m3pi") for coupling in ("extrapolate", "hold")
 ] + [
     {"is_last": False, "d_star": 60.0, "k_v": 2.0},  # the speed chain: V_cmd from the follower's speed and gap
     {"dynamics": "m3pi", "m3pi.wheel_speed_max": 26.0, "initial.speed": 24.0},  # the wheel limits bite
+] + [  # a robot that is not its nominal model (docs/model.md), on the m3pi's scale: its own wheel gains, a dead-band
+    # the inner wheel's commands fall into while it turns hard at the start (2 mm off the path without it), and
+    # the live run's sampled loop with the radio's and the motion capture's latencies (no multiple of the step)
+    {**M3PI_CHASE, "m3pi.wheel_gain_right": 1.08, "m3pi.wheel_gain_left": 0.93, "m3pi.wheel_deadband": 0.2, **loop}
+    for loop in ({}, {"m3pi.command_latency": 0.025}, {"m3pi.command_latency": 0.03, "m3pi.pose_latency": 0.0075})
 ] + [  # the speed laws beyond the paper's: the sensed gap (sensor.*, dead-reckoned like target.*) and target.speed
     {"speed_law": law, "dynamics": dynamics, "time_gap": 1.5, "standstill_gap": 30.0, "cacc_gain": 0.4,
      "m3pi.wheel_speed_max": 30.0}  # the wheels of a car: the default target runs at 25 m/s
@@ -192,6 +202,13 @@ PLATOONS = [
     {"platoon": {"count": 3, "law": "regular", "dynamics": "m3pi", "speed": 0.35, "d_star": 0.7,
                  "k_v": 2.0, "time_gap": 1.0}, "path": {"radius": 1.0},
      "simulation": {"coupling": "hold", "master": "gauss-seidel"}, "vehicles": {"3": {"speed_law": "cacc"}}},
+    # three robots unlike their model and unlike each other (docs/config.md, [vehicles.N.m3pi]), in the live run's
+    # sampled loop
+    {"platoon": {"count": 3, "law": "sine", "dynamics": "m3pi", "speed": 0.35, "d_star": 0.7, "k_v": 2.0},
+     "path": {"radius": 1.0}, "simulation": {"coupling": "extrapolate", "master": "jacobi"},
+     "m3pi": {"wheel_gain_right": 1.06, "wheel_gain_left": 0.95, "wheel_deadband": 0.02, "command_latency": 0.02},
+     "vehicles": {"2": {"m3pi": {"wheel_gain_left": 1.1, "pose_latency": 0.0125, "motor_time_constant": 0.08}},
+                  "3": {"m3pi": {"command_latency": 0.0, "wheel_deadband": 0.0}}}},
 ]
 
 
@@ -212,7 +229,7 @@ def _run_platoon(scenario, folder) -> list[list[list[float]]]:
 
 
 @pytest.mark.parametrize("sections", PLATOONS, ids=["sine-extrapolate-jacobi", "m3pi-regular-hold-gs", "line", "acc",
-                                                    "m3pi-paper-then-cacc-hold-gs"])
+                                                    "m3pi-paper-then-cacc-hold-gs", "m3pi-robots-unlike-their-model"])
 def test_platoon_through_our_master_equals_the_python_fmus(fmu_dir, native_fmu_dir, sections):
     """A virtual target and three vehicles, wired as Fig. 2 (orchestrator.scenario.wiring), a lateral pulse on
     vehicle 2, a speed pulse on vehicle 3 and a speed sinusoid on the target, 20 s: every output of every component at every

@@ -50,11 +50,14 @@ def typed(element: etree._Element) -> object:
 
 def test_exported_package_is_valid_ssp_and_holds_the_run(tmp_path: Path) -> None:
     package = tmp_path / "platoon.ssp"
-    result = platoon("export-ssp", str(PAPER), "--set", "platoon.law=regular", "--out", str(package))
+    # with a calibrated robot's constants (docs/config.md, [m3pi] and [vehicles.N.m3pi]): the package carries them
+    sets = ["platoon.law=regular", "m3pi.wheel_gain_right=1.04", "vehicles.2.m3pi.command_latency=0.021"]
+    result = platoon("export-ssp", str(PAPER), *[arg for key in sets for arg in ("--set", key)], "--out", str(package))
     assert result.returncode == 0, result.stderr
     assert str(package) in result.stdout and result.stderr == ""
-    config, _ = load_config(PAPER, ["platoon.law=regular"])
+    config, _ = load_config(PAPER, sets)
     scenario = build_scenario(config)
+    assert scenario.components[2].parameters["m3pi.command_latency"] == 0.021
 
     with zipfile.ZipFile(package) as archive:
         ssd = etree.fromstring(archive.read("SystemStructure.ssd"))

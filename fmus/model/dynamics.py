@@ -137,6 +137,14 @@ class M3piDynamics:
         limit = self.wheel_speed_max
         return min(max(right, -limit), limit), min(max(left, -limit), limit)
 
+    def radio_command(self, setpoint: float, lateral_acceleration: float, added_speed: float) -> tuple[float, float]:
+        """The wheel commands a controller sends the robot: eqs. 10-11 from the speed setpoint and the lateral
+        command, plus a speed disturbance's push (it moves the robot faster; the speed loop does not see it),
+        clipped to the motors' limits. The live run (bridge/live.py) and the sampled robot loop
+        (fmus.model.robot_loop) both send this."""
+        right, left = self.wheel_commands(setpoint, lateral_acceleration)
+        return self.limit_wheels(right + added_speed, left + added_speed)
+
     def wheel_target(self, command: float, gain: float) -> float:
         """The speed a wheel heads for under a speed command: none inside the dead-band, else the wheel's
         gain times the command, and never beyond the motor's limit.
@@ -201,9 +209,13 @@ def make_dynamics(
     track: float = M3PI_TRACK,
     wheel_speed_max: float = M3PI_WHEEL_SPEED_MAX,
     motor_time_constant: float = M3PI_MOTOR_TIME_CONSTANT,
+    wheel_gain_right: float = M3PI_WHEEL_GAIN,
+    wheel_gain_left: float = M3PI_WHEEL_GAIN,
+    wheel_deadband: float = M3PI_WHEEL_DEADBAND,
 ) -> Dynamics:
     if kind == "kinematic":
         return KinematicDynamics(k_v, track)
     if kind == "m3pi":
-        return M3piDynamics(k_v, track, wheel_speed_max, motor_time_constant)
+        return M3piDynamics(k_v, track, wheel_speed_max, motor_time_constant, wheel_gain_right, wheel_gain_left,
+                            wheel_deadband)
     raise ValueError(f"unknown dynamics {kind!r}; expected one of {', '.join(DYNAMICS_KINDS)}")

@@ -15,6 +15,7 @@ from .guidance import LAWS, SPEED_LAWS
 from .link import LinkParameters, LinkStepper
 from .link import parameter_errors as _link_errors
 from .paths import PATH_KINDS, make_path
+from .robot_loop import LATENCY_MAX, RobotLoopStepper
 from .target import VirtualTargetStepper
 from .vehicle import SpeedLaw, VehicleModel, VehicleStepper
 
@@ -33,6 +34,28 @@ def _non_negative(values: Mapping[str, Any], names: tuple[str, ...]) -> list[str
         for name in names
         if not (math.isfinite(values[name]) and values[name] >= 0.0)
     ]
+
+
+def _at_most(values: Mapping[str, Any], names: tuple[str, ...], limit: float) -> list[str]:
+    return [f"{name} = {values[name]}: must be a finite number >= 0 and <= {limit:g}"
+            for name in names if not (math.isfinite(values[name]) and 0.0 <= values[name] <= limit)]
+
+
+# The parameters of a robot that is not its nominal model (docs/model.md, "A robot that is not its nominal model")
+ROBOT_GAINS = ("m3pi.wheel_gain_right", "m3pi.wheel_gain_left")
+ROBOT_LATENCIES = ("m3pi.command_latency", "m3pi.pose_latency")
+
+
+def _robot_errors(values: Mapping[str, Any]) -> list[str]:
+    """A wheel's gain is > 0 (a wheel that turns backwards or not at all is broken, not calibrated), its dead-band
+    >= 0 and below the wheel speed limit (else no command would ever turn it), the latencies in [0, LATENCY_MAX]."""
+    errors = _positive(values, ROBOT_GAINS) + _non_negative(values, ("m3pi.wheel_deadband",))
+    errors += _at_most(values, ROBOT_LATENCIES, LATENCY_MAX)
+    deadband, limit = values["m3pi.wheel_deadband"], values["m3pi.wheel_speed_max"]
+    if not errors and math.isfinite(limit) and deadband >= limit:
+        errors.append(f"m3pi.wheel_deadband = {deadband}: must be below m3pi.wheel_speed_max = {limit} (no "
+                      "command would turn the wheels)")
+    return errors
 
 
 def _choice(values: Mapping[str, Any], name: str, allowed: tuple[str, ...]) -> list[str]:
@@ -54,6 +77,7 @@ def vehicle_parameter_errors(values: Mapping[str, Any]) -> list[str]:
              "m3pi.motor_time_constant", "time_gap", "cacc_gain"),
         )
         + _non_negative(values, ("standstill_gap",))
+        + _robot_errors(values)
     )
 
 
@@ -73,13 +97,18 @@ def target_parameter_errors(values: Mapping[str, Any]) -> list[str]:
     return errors
 
 
-def vehicle_stepper(values: Mapping[str, Any], start_time: float) -> VehicleStepper:
+def controller_stepper(values: Mapping[str, Any], start_time: float) -> VehicleStepper:
+    """The continuous vehicle of these parameters: the all-FMU model without latencies, and the controller a
+    live run (bridge/live.py) keeps beside its robot, whatever the latencies."""
     dynamics = make_dynamics(
         values["dynamics"],
         values["k_v"],
         values["m3pi.track"],
         values["m3pi.wheel_speed_max"],
         values["m3pi.motor_time_constant"],
+        values["m3pi.wheel_gain_right"],
+        values["m3pi.wheel_gain_left"],
+        values["m3pi.wheel_deadband"],
     )
     speed_law = SpeedLaw(values["speed_law"], values["time_gap"], values["standstill_gap"], values["cacc_gain"])
     model = VehicleModel(values["law"], values["d_star"], values["v_c"], bool(values["is_last"]), dynamics, speed_law)
@@ -87,6 +116,22 @@ def vehicle_stepper(values: Mapping[str, Any], start_time: float) -> VehicleStep
         values["initial.x"], values["initial.y"], values["initial.heading"], values["initial.speed"]
     )
     return VehicleStepper(model, values["coupling"], values["max_substep"], state, start_time)
+
+
+def samples_its_robot(values: Mapping[str, Any]) -> bool:
+    """An m3pi with a radio or motion-capture latency: the sampled loop of a live run (fmus.model.robot_loop),
+    not the continuous vehicle. Latencies of 0 are the continuous model, the same to the bit as before they
+    existed."""
+    return values["dynamics"] == "m3pi" and any(values[name] > 0.0 for name in ROBOT_LATENCIES)
+
+
+def vehicle_stepper(values: Mapping[str, Any], start_time: float) -> VehicleStepper:
+    """The Vehicle FMU's stepper: the continuous vehicle, or the sampled loop of a robot with latencies."""
+    stepper = controller_stepper(values, start_time)
+    if not samples_its_robot(values):
+        return stepper
+    return RobotLoopStepper(stepper.model, values["coupling"], values["max_substep"], stepper.state, start_time,
+                            values["m3pi.command_latency"], values["m3pi.pose_latency"])
 
 
 def target_path(values: Mapping[str, Any]):

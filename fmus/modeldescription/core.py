@@ -21,6 +21,7 @@ UNITS: dict[str, dict[str, int]] = {
     "s": {"s": 1},
     "1/m": {"m": -1},
     "1/s": {"s": -1},
+    "1": {},  # dimensionless: a ratio (an m3pi wheel's gain)
 }
 
 GUID_NAMESPACE = uuid.UUID("7f1f5a8e-3b4c-4d39-9a57-9e0b3c2a4f10")

@@ -44,7 +44,7 @@ typedef enum {
     MODE_FAILED          /* initialization failed: every later call is refused */
 } Mode;
 
-#define FW_MAX_STATE 8        /* the longest state vector of any model (m3pi: 6) */
+#define FW_MAX_STATE 16       /* the longest state vector of any model (m3pi in the sampled loop: 16, vehicle.c) */
 #define FW_MAX_SUBSTEPS 100000 /* fmus.slaves.base.PlatoonSlave.MAX_SUBSTEPS_PER_STEP */
 #define FW_TEXT_SIZE 4096
 

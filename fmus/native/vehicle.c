@@ -13,6 +13,17 @@
 #include "science.h"
 #include "variables.h"
 
+#define LATENCY_MAX 1.0        /* fmus.model.robot_loop.LATENCY_MAX */
+#define COMMAND_CAPACITY 256   /* fmus.model.robot_loop.COMMAND_CAPACITY */
+#define COMMAND_FIELDS 3       /* fmus.model.robot_loop.COMMAND_FIELDS: lands at, right, left */
+
+/* The state vector: the controller's (m3pi: x, y, heading, v_right, v_left, V_s), then, in the sampled loop of
+ * a robot with latencies (fmus.model.robot_loop.RobotLoopStepper), the robot and the command acting; the commands
+ * in flight live in a ring of COMMAND_CAPACITY in the instance's memory, whose window is in the state vector. A
+ * step only writes a slot outside the window and moves the window, so restoring the state vector undoes it. */
+enum { S_ROBOT = 6, S_HELD_KNOWN = 11, S_HELD_RIGHT, S_HELD_LEFT, S_FIRST, S_COUNT };
+#define ROBOT_SIZE 5
+
 typedef enum { DYNAMICS_KINEMATIC, DYNAMICS_M3PI } DynamicsKind; /* fmus.model.dynamics.DYNAMICS_KINDS */
 
 /* fmus.model.vehicle.VehicleModel with its dynamics (fmus.model.dynamics.*Dynamics), as
@@ -25,6 +36,9 @@ typedef struct {
     int is_last;
     double d_star, k_v, v_c, max_substep;
     double track, wheel_speed_max, motor_time_constant;
+    double wheel_gain_right, wheel_gain_left, wheel_deadband;
+    int sampled;  /* fmus.model.factory.samples_its_robot */
+    double delay; /* RobotLoopStepper.delay: command_latency + pose_latency */
     double time_gap, standstill_gap, cacc_gain; /* fmus.model.vehicle.SpeedLaw */
     int state_size;
 } VehicleConfig;
@@ -46,6 +60,35 @@ static void non_negative(const Instance *instance, int vr, FwText *reasons, int 
     fw_text_append(reasons, ": must be a finite number >= 0");
 }
 
+/* fmus.model.factory._at_most: Real variable vr must be a finite number in [0, limit]. */
+static void at_most(const Instance *instance, int vr, double limit, FwText *reasons, int *errors)
+{
+    double value = instance->reals[vr];
+    if (isfinite(value) && 0.0 <= value && value <= limit) return;
+    fw_text_append(reasons, "%s%s = ", (*errors)++ ? "; " : "", instance->model->variables[vr].name);
+    fw_text_float(reasons, value);
+    fw_text_append(reasons, ": must be a finite number >= 0 and <= %g", limit);
+}
+
+/* fmus.model.factory._robot_errors */
+static void robot_errors(const Instance *instance, FwText *reasons, int *errors)
+{
+    int before = *errors;
+    fw_positive(instance, VR_M3PI_WHEEL_GAIN_RIGHT, reasons, errors);
+    fw_positive(instance, VR_M3PI_WHEEL_GAIN_LEFT, reasons, errors);
+    non_negative(instance, VR_M3PI_WHEEL_DEADBAND, reasons, errors);
+    at_most(instance, VR_M3PI_COMMAND_LATENCY, LATENCY_MAX, reasons, errors);
+    at_most(instance, VR_M3PI_POSE_LATENCY, LATENCY_MAX, reasons, errors);
+    double deadband = instance->reals[VR_M3PI_WHEEL_DEADBAND], limit = instance->reals[VR_M3PI_WHEEL_SPEED_MAX];
+    if (*errors == before && isfinite(limit) && deadband >= limit) {
+        fw_text_append(reasons, "%sm3pi.wheel_deadband = ", (*errors)++ ? "; " : "");
+        fw_text_float(reasons, deadband);
+        fw_text_append(reasons, ": must be below m3pi.wheel_speed_max = ");
+        fw_text_float(reasons, limit);
+        fw_text_append(reasons, " (no command would turn the wheels)");
+    }
+}
+
 static int vehicle_parameter_errors(const Instance *instance, FwText *reasons)
 {
     int errors = 0;
@@ -57,6 +100,7 @@ static int vehicle_parameter_errors(const Instance *instance, FwText *reasons)
                                    VR_M3PI_WHEEL_SPEED_MAX, VR_M3PI_MOTOR_TIME_CONSTANT, VR_TIME_GAP, VR_CACC_GAIN};
     for (size_t i = 0; i < sizeof POSITIVE / sizeof POSITIVE[0]; ++i) fw_positive(instance, POSITIVE[i], reasons, &errors);
     non_negative(instance, VR_STANDSTILL_GAP, reasons, &errors);
+    robot_errors(instance, reasons, &errors);
     return errors;
 }
 
@@ -82,6 +126,9 @@ static void vehicle_configure(Instance *instance)
     config->track = r[VR_M3PI_TRACK];
     config->wheel_speed_max = r[VR_M3PI_WHEEL_SPEED_MAX];
     config->motor_time_constant = r[VR_M3PI_MOTOR_TIME_CONSTANT];
+    config->wheel_gain_right = r[VR_M3PI_WHEEL_GAIN_RIGHT];
+    config->wheel_gain_left = r[VR_M3PI_WHEEL_GAIN_LEFT];
+    config->wheel_deadband = r[VR_M3PI_WHEEL_DEADBAND];
     double *state = instance->state;
     state[0] = r[VR_INITIAL_X];
     state[1] = r[VR_INITIAL_Y];
@@ -91,8 +138,15 @@ static void vehicle_configure(Instance *instance)
         state[4] = r[VR_INITIAL_SPEED];
         state[5] = r[VR_INITIAL_SPEED];
         config->state_size = 6;
+        /* fmus.model.factory.samples_its_robot, RobotLoopStepper.__init__ */
+        config->sampled = r[VR_M3PI_COMMAND_LATENCY] > 0.0 || r[VR_M3PI_POSE_LATENCY] > 0.0;
+        config->delay = r[VR_M3PI_COMMAND_LATENCY] + r[VR_M3PI_POSE_LATENCY];
+        memcpy(&state[S_ROBOT], state, ROBOT_SIZE * sizeof *state);
+        state[S_HELD_KNOWN] = state[S_HELD_RIGHT] = state[S_HELD_LEFT] = state[S_FIRST] = state[S_COUNT] = 0.0;
     } else {
         config->state_size = 4;
+        config->sampled = 0;
+        config->delay = 0.0;
     }
 }
 
@@ -122,6 +176,29 @@ static double dynamics_loop_speed(const VehicleConfig *config, const double *sta
     return config->dynamics == DYNAMICS_M3PI ? state[5] : state[3];
 }
 
+/* M3piDynamics.wheel_target: none inside the dead-band, else the gain times the command, within the limit */
+static double m3pi_wheel_target(const VehicleConfig *config, double command, double gain)
+{
+    if (fabs(command) < config->wheel_deadband) return 0.0;
+    double limit = config->wheel_speed_max;
+    return py_min(py_max(gain * command, -limit), limit);
+}
+
+/* M3piDynamics.drive: the derivative of (x, y, heading, v_right, v_left) under wheel commands */
+static void m3pi_drive(const VehicleConfig *config, double heading, double right, double left, double right_cmd,
+                       double left_cmd, double speed_offset, double *derivative)
+{
+    double v = 0.5 * (right + left) + speed_offset;
+    double lag = 1.0 / config->motor_time_constant;
+    double right_target = m3pi_wheel_target(config, right_cmd, config->wheel_gain_right);
+    double left_target = m3pi_wheel_target(config, left_cmd, config->wheel_gain_left);
+    derivative[0] = v * cos(heading);
+    derivative[1] = v * sin(heading);
+    derivative[2] = (right - left) / config->track;
+    derivative[3] = (right_target - right) * lag;
+    derivative[4] = (left_target - left) * lag;
+}
+
 /* KinematicDynamics.derivative / M3piDynamics.derivative (with wheel_commands, limit_wheels, drive) */
 static void dynamics_derivative(const VehicleConfig *config, const double *state, double lateral_acceleration,
                                 double commanded_speed, double speed_offset, double *derivative)
@@ -141,14 +218,7 @@ static void dynamics_derivative(const VehicleConfig *config, const double *state
     double limit = config->wheel_speed_max; /* M3piDynamics.limit_wheels */
     right_cmd = py_min(py_max(right_cmd, -limit), limit);
     left_cmd = py_min(py_max(left_cmd, -limit), limit);
-    double right = state[3], left = state[4]; /* M3piDynamics.drive */
-    double v = 0.5 * (right + left) + speed_offset;
-    double lag = 1.0 / config->motor_time_constant;
-    derivative[0] = v * cos(state[2]);
-    derivative[1] = v * sin(state[2]);
-    derivative[2] = (right - left) / config->track;
-    derivative[3] = (right_cmd - right) * lag;
-    derivative[4] = (left_cmd - left) * lag;
+    m3pi_drive(config, state[2], state[3], state[4], right_cmd, left_cmd, speed_offset, derivative);
     derivative[5] = speed_loop(config->k_v, commanded_speed, setpoint);
 }
 
@@ -321,13 +391,104 @@ static void derivative_of(void *context, double t, const double *state, double *
     evaluate((TargetSight *)context, t, state, derivative, &acceleration, &distance);
 }
 
-/* VehicleStepper.step with VehicleStepper.check */
+/* --- fmus.model.robot_loop.RobotLoopStepper ----------------------------------------------------------- */
+
+/* M3piDynamics.radio_command */
+static void radio_command(const VehicleConfig *config, double setpoint, double lateral_acceleration,
+                          double added_speed, double *right, double *left)
+{
+    differential_wheel_speeds(setpoint, lateral_acceleration, config->track, right, left);
+    double limit = config->wheel_speed_max; /* wheel_commands' limit_wheels, then limit_wheels with the push */
+    *right = py_min(py_max(*right, -limit), limit);
+    *left = py_min(py_max(*left, -limit), limit);
+    *right = py_min(py_max(*right + added_speed, -limit), limit);
+    *left = py_min(py_max(*left + added_speed, -limit), limit);
+}
+
+/* RobotLoopStepper.robot_derivative: the robot's physics under the command acting */
+typedef struct {
+    const VehicleConfig *config;
+    double right_cmd, left_cmd;
+} RobotDrive;
+
+static void robot_derivative(void *context, double t, const double *state, double *derivative)
+{
+    (void)t;
+    const RobotDrive *drive = (const RobotDrive *)context;
+    m3pi_drive(drive->config, state[2], state[3], state[4], drive->right_cmd, drive->left_cmd, 0.0, derivative);
+}
+
+static double *command_slot(Instance *instance, int index)
+{
+    return instance->memory + (size_t)(index % COMMAND_CAPACITY) * COMMAND_FIELDS;
+}
+
+/* RobotLoopStepper.move_robot on state (the instance's, copied), after the command sent at t joined the ring */
+static void move_robot(Instance *instance, double t, double h, double *state)
+{
+    const VehicleConfig *config = config_of(instance);
+    double now = t, end = t + h;
+    for (;;) {
+        int count = (int)state[S_COUNT], first = (int)state[S_FIRST];
+        double lands = count > 0 ? command_slot(instance, first)[0] : INFINITY;
+        double until = py_min(lands, end);
+        if (state[S_HELD_KNOWN] != 0.0 && until > now) {
+            RobotDrive drive = {config, state[S_HELD_RIGHT], state[S_HELD_LEFT]};
+            integrate(robot_derivative, &drive, now, &state[S_ROBOT], ROBOT_SIZE, until - now, config->max_substep);
+        }
+        now = py_max(now, until);
+        if (lands > end) return;
+        const double *landed = command_slot(instance, first);
+        state[S_HELD_KNOWN] = 1.0;
+        state[S_HELD_RIGHT] = landed[1];
+        state[S_HELD_LEFT] = landed[2];
+        state[S_FIRST] = (double)((first + 1) % COMMAND_CAPACITY);
+        state[S_COUNT] = (double)(count - 1);
+    }
+}
+
+/* RobotLoopStepper.step's command: sent at t from the controller's state, into the ring (0, or 1 when full) */
+static int send_command(Instance *instance, TargetSight *sight, double t, double *state, FwText *why)
+{
+    const VehicleConfig *config = config_of(instance);
+    double derivative[FW_MAX_STATE], acceleration, distance, right, left;
+    evaluate(sight, t, state, derivative, &acceleration, &distance);
+    radio_command(config, state[5], acceleration, instance->reals[VR_DISTURBANCE_SPEED], &right, &left);
+    int count = (int)state[S_COUNT];
+    if (count + 1 > COMMAND_CAPACITY) {
+        fw_text_append(why, "ValueError: more than %d commands in flight (the latencies span too many steps)",
+                       COMMAND_CAPACITY);
+        return 1;
+    }
+    double *slot = command_slot(instance, (int)state[S_FIRST] + count);
+    slot[0] = t + config->delay;
+    slot[1] = right;
+    slot[2] = left;
+    state[S_COUNT] = (double)(count + 1);
+    return 0;
+}
+
+/* The robot after the step (RobotLoopStepper.step): finite, and measured: the controller sees its pose */
+static int measure_robot(double *state, double time, FwText *why)
+{
+    for (int i = 0; i < ROBOT_SIZE; ++i) {
+        if (!isfinite(state[S_ROBOT + i])) {
+            fw_text_append(why, "the robot's state became non-finite before t = %.6g s", time);
+            return 1;
+        }
+    }
+    memcpy(state, &state[S_ROBOT], 3 * sizeof *state);
+    return 0;
+}
+
+/* VehicleStepper.step with VehicleStepper.check; RobotLoopStepper.step in the sampled loop */
 static int vehicle_step(Instance *instance, double t, double h, FwStepMemo *memo, FwText *why)
 {
     const VehicleConfig *config = config_of(instance);
     double state[FW_MAX_STATE];
     memcpy(state, instance->state, sizeof state);
     TargetSight sight = target_sight(instance);
+    if (config->sampled && send_command(instance, &sight, t, state, why) != 0) return 1;
     integrate(derivative_of, &sight, t, state, config->state_size, h, config->max_substep);
     double time = t + h;
     for (int i = 0; i < config->state_size; ++i) {
@@ -340,6 +501,10 @@ static int vehicle_step(Instance *instance, double t, double h, FwStepMemo *memo
     if (speed <= 0.0) {
         fw_text_append(why, "speed fell to %.6g m/s at t = %.6g s; guidance needs V > 0", speed, time);
         return 1;
+    }
+    if (config->sampled) {
+        move_robot(instance, t, h, state);
+        if (measure_robot(state, time, why) != 0) return 1;
     }
     memcpy(instance->state, state, sizeof state);
     instance->time = time;
@@ -384,5 +549,5 @@ static void vehicle_outputs(const Instance *instance, const FwStepMemo *memo, do
 const ModelDef MODEL = {
     MODEL_IDENTIFIER,         MODEL_GUID,    VARIABLE_COUNT,      MODEL_VARIABLES,
     sizeof(VehicleConfig),    vehicle_parameter_errors, vehicle_configure, vehicle_max_substep,
-    vehicle_outputs,          vehicle_step,
+    vehicle_outputs,          vehicle_step,  COMMAND_CAPACITY * COMMAND_FIELDS,
 };

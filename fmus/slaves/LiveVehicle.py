@@ -30,7 +30,7 @@ from pythonfmu.enums import Fmi2Status
 
 from bridge.live import LiveSettings, LiveVehicle as LiveLink
 from bridge.protocol import DEFAULT_PREFIX, check_prefix
-from fmus.model.factory import vehicle_parameter_errors, vehicle_stepper
+from fmus.model.factory import controller_stepper, vehicle_parameter_errors
 from fmus.model.vehicle import VehicleStepper
 from fmus.slaves import Vehicle as vehicle_slave  # the module: pythonfmu wants one slave class here
 from fmus.slaves.base import PlatoonSlave, VariableInfo, real
@@ -131,7 +131,8 @@ class LiveVehicle(PlatoonSlave):
         return errors
 
     def make_stepper(self, start_time: float) -> VehicleStepper:
-        return vehicle_stepper(self.values, start_time)
+        """The live run's controller: the robot itself, with whatever latencies it has, is out there."""
+        return controller_stepper(self.values, start_time)
 
     def _forward_link_log(self, link: LiveLink | None = None) -> None:
         """The link's state changes and first drops into the FMU's log; its raw records are not kept."""

@@ -12,8 +12,10 @@ import math
 
 from pythonfmu.default_experiment import DefaultExperiment
 
-from fmus.model.dynamics import M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEEL_SPEED_MAX
+from fmus.model.dynamics import (M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEEL_DEADBAND, M3PI_WHEEL_GAIN,
+                                 M3PI_WHEEL_SPEED_MAX)
 from fmus.model.factory import vehicle_parameter_errors, vehicle_stepper
+from fmus.model.robot_loop import LATENCY_MAX, M3PI_COMMAND_LATENCY, M3PI_POSE_LATENCY
 from fmus.model.vehicle import VEHICLE_INPUTS as _INPUT_ATTRIBUTES
 from fmus.slaves import defaults as d
 from fmus.slaves.base import PlatoonSlave, VariableInfo, real
@@ -104,6 +106,19 @@ def _sensor_inputs() -> tuple[VariableInfo, ...]:
     )
 
 
+def _robot_parameters() -> tuple[VariableInfo, ...]:
+    """A robot that is not its nominal model (docs/model.md): what `platoon calibrate` identifies. Declared last,
+    so that every variable the FMU had before keeps its value reference; the defaults are the nominal robot,
+    whose runs are the same to the bit as before these existed."""
+    return (
+        real("m3pi.wheel_gain_right", "parameter", "Right wheel speed per commanded speed (m3pi; a real motor's own gain)", "1", start=M3PI_WHEEL_GAIN, min=0.0),
+        real("m3pi.wheel_gain_left", "parameter", "Left wheel speed per commanded speed (m3pi)", "1", start=M3PI_WHEEL_GAIN, min=0.0),
+        real("m3pi.wheel_deadband", "parameter", "A wheel command smaller than this does not turn the wheel (m3pi; static friction)", "m/s", start=M3PI_WHEEL_DEADBAND, min=0.0),
+        real("m3pi.command_latency", "parameter", "The radio: a wheel command acts this long after it is sent (m3pi; > 0 with pose_latency: the live run's sampled loop)", "s", start=M3PI_COMMAND_LATENCY, min=0.0, max=LATENCY_MAX),
+        real("m3pi.pose_latency", "parameter", "The motion capture: the pose the controller sees, and the outputs, are this old (m3pi)", "s", start=M3PI_POSE_LATENCY, min=0.0, max=LATENCY_MAX),
+    )
+
+
 class Vehicle(PlatoonSlave):
     """Platoon vehicle: trajectory shaping guidance (regular or sine) on kinematic or m3pi dynamics."""
 
@@ -111,7 +126,7 @@ class Vehicle(PlatoonSlave):
         "Platoon vehicle chasing its target with (modified) trajectory shaping guidance "
         "(Erekson, Sharma, Ratnoo, Gerdes: Multi-vehicle path following using modified trajectory shaping guidance)"
     )
-    variables = _parameters() + _inputs() + _outputs() + _speed_law_parameters() + _sensor_inputs()
+    variables = _parameters() + _inputs() + _outputs() + _speed_law_parameters() + _sensor_inputs() + _robot_parameters()
     input_attributes = _INPUT_ATTRIBUTES
     default_experiment = DefaultExperiment(start_time=0.0, stop_time=d.STOP_TIME, step_size=d.STEP)
 

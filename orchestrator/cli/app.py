@@ -12,7 +12,7 @@ from typing import Annotated
 
 import typer
 
-from orchestrator.cli import bench, hil, mocap, run, serve, ssp, sweep, trace, viewer
+from orchestrator.cli import bench, calibrate, hil, mocap, run, serve, ssp, sweep, trace, viewer
 from orchestrator.cli.common import out
 from orchestrator.cli.process import run_and_exit
 
@@ -45,6 +45,7 @@ def _options(
 for command in (run.build, run.run, trace.report, trace.export, run.analyze, trace.stability):
     app.command()(command)
 hil.register(app)  # m3pi-emulator, m3pi-serial
+calibrate.register(app)  # calibrate, compare: a live robot against its model
 mocap.register(app)  # mocap: rigid bodies as robot poses
 serve.register(app)  # serve: an FMU instance for a run elsewhere (remote vehicles)
 sweep.register(app)  # sweep, sweep-plot, stability-map

@@ -101,16 +101,17 @@ def live_table(summary: dict[str, dict[str, Any]]) -> Table:
     return table
 
 
-def emulated_robots(config: Any, ids: list[int]) -> list[Any]:
-    """One ``RobotSpec`` per live vehicle of ``config`` (only robots ``ids`` if given), placed as the run starts it."""
+def emulated_robots(config: Any, ids: list[int], truths: Any = None) -> list[Any]:
+    """One ``RobotSpec`` per live vehicle of ``config`` (only robots ``ids`` if given), placed as the run starts it,
+    each the config's m3pi unless ``truths`` (a ``bridge.robot_truth.TruthFile``) gives its robot its own physics."""
     from bridge.emulator import RobotSpec
     from bridge.protocol import RobotKeys
+    from bridge.robot_truth import RobotTruth
     from fmus.model.dynamics import M3piDynamics
 
     from orchestrator.scenario.scenario import initial_states
 
     states = initial_states(config)
-    m3pi = config.m3pi
     robots = []
     for vehicle in config.live_vehicles():
         robot = config.robot_id(vehicle)
@@ -118,9 +119,13 @@ def emulated_robots(config: Any, ids: list[int]) -> list[Any]:
             continue
         override = config.override(vehicle)
         x, y, heading, speed = states[vehicle - 1]
+        m3pi = config.m3pi_of(vehicle)
         dynamics = M3piDynamics(override.k_v or config.platoon.k_v, m3pi.track, m3pi.wheel_speed_max,
-                                m3pi.motor_time_constant)
-        robots.append(RobotSpec(RobotKeys(override.prefix or config.hil.prefix, robot), x, y, heading, speed, dynamics))
+                                m3pi.motor_time_constant, m3pi.wheel_gain_right, m3pi.wheel_gain_left,
+                                m3pi.wheel_deadband)
+        truth = truths.robot(robot) if truths is not None else RobotTruth()
+        robots.append(RobotSpec(RobotKeys(override.prefix or config.hil.prefix, robot), x, y, heading, speed,
+                                truth.dynamics(dynamics), truth))
     return robots
 
 
@@ -156,6 +161,8 @@ def m3pi_emulator(
     config: Annotated[Path, typer.Option("--config", help="scenario whose live vehicles (endpoint = \"zenoh\") to emulate")],
     overrides: Annotated[list[str], typer.Option("--set", metavar="KEY=VALUE", help="override a config key, as for platoon run")] = [],
     ids: Annotated[list[int], typer.Option("--id", metavar="K", help="emulate only this robot id (repeatable; default: all)")] = [],
+    robots_file: Annotated[Optional[Path], typer.Option("--robots", metavar="TRUTH.toml", help="each robot's own physics, "
+                           "latencies and noise (docs/hil.md, \"Calibrating your robots\"); the run never reads it")] = None,
     rate: Annotated[float, typer.Option(metavar="HZ", help="poses per second (motion capture rate), Hz")] = 200.0,
     noise_position: Annotated[float, typer.Option(metavar="METRES", help="pose noise in m (standard deviation per axis; paper ~0.002 m)")] = 0.0,
     noise_heading: Annotated[float, typer.Option(metavar="DEGREES", help="heading noise in degrees, not radians as in configs (standard deviation; paper ~2 degrees = 0.035 rad)")] = 0.0,
@@ -177,8 +184,14 @@ def m3pi_emulator(
     from bridge.emulator import EmulatorSettings, run_emulator
     from bridge.session import SessionError
 
+    from bridge.robot_truth import TruthError, load_truth
+
     parsed, _ = load_config(config, overrides)
-    robots = emulated_robots(parsed, ids)
+    try:
+        truths = load_truth(robots_file) if robots_file is not None else None
+    except TruthError as error:
+        fail(2, str(error))
+    robots = emulated_robots(parsed, ids, truths)
     if not robots:
         wanted = f" with robot id {', '.join(map(str, ids))}" if ids else ""
         fail(2, f"config {config}: no live vehicle{wanted} (set endpoint = \"zenoh\" on a [vehicles.K] table)")

@@ -21,12 +21,14 @@ import annotated_types
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from bridge.protocol import DEFAULT_PREFIX, check_prefix
-from fmus.model.dynamics import M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEEL_SPEED_MAX
+from fmus.model.dynamics import (M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEEL_DEADBAND, M3PI_WHEEL_GAIN,
+                                 M3PI_WHEEL_SPEED_MAX)
 from fmus.model.guidance import SENSING_LAWS
 from fmus.model.integrate import substep_count
 from fmus.model.link import CAPACITY as LINK_CAPACITY
 from fmus.model.link import LinkParameters, messages_held
 from fmus.model.link import parameter_errors as link_parameter_errors
+from fmus.model.robot_loop import COMMAND_CAPACITY, LATENCY_MAX, M3PI_COMMAND_LATENCY, M3PI_POSE_LATENCY
 from orchestrator.support.suggest import did_you_mean
 
 from .raw_config import (DEFAULT_COUNT, DEFAULT_STEP, DEFAULT_STOP_TIME, DEFAULT_TRACE_EVERY, ConfigError, apply_override,
@@ -134,10 +136,49 @@ class PathConfig(_Strict):
     direction: Literal["ccw", "cw"] = "ccw"
 
 
+Track = Annotated[float, Field(ge=SMALL, le=10.0), Unit("m")]
+WheelSpeed = Annotated[float, Field(ge=SMALL, le=100.0), Unit("m/s")]
+MotorLag = Annotated[float, Field(ge=SMALL, le=100.0), Unit("s")]
+# A wheel that turns at a tenth of its command, or ten times it, is a broken motor, not one to calibrate.
+WheelGain = Annotated[float, Field(ge=0.1, le=10.0)]
+Deadband = Annotated[float, Field(ge=0.0, le=100.0), Unit("m/s")]
+Latency = Annotated[float, Field(ge=0.0, le=LATENCY_MAX), Unit("s")]
+
+
 class M3pi(_Strict):
-    track: Annotated[float, Field(ge=SMALL, le=10.0), Unit("m")] = Field(M3PI_TRACK, description="m")
-    wheel_speed_max: Annotated[float, Field(ge=SMALL, le=100.0), Unit("m/s")] = Field(M3PI_WHEEL_SPEED_MAX, description="m/s")
-    motor_time_constant: Annotated[float, Field(ge=SMALL, le=100.0), Unit("s")] = Field(M3PI_MOTOR_TIME_CONSTANT, description="s")
+    """The m3pi robots' constants (docs/model.md): the nominal robot by default; a calibrated config sets the
+    gains, dead-band and latencies `platoon calibrate` identifies, here or per vehicle ([vehicles.N.m3pi])."""
+
+    track: Track = Field(M3PI_TRACK, description="m")
+    wheel_speed_max: WheelSpeed = Field(M3PI_WHEEL_SPEED_MAX, description="m/s")
+    motor_time_constant: MotorLag = Field(M3PI_MOTOR_TIME_CONSTANT, description="s")
+    wheel_gain_right: WheelGain = Field(M3PI_WHEEL_GAIN, description="right wheel speed per commanded speed")
+    wheel_gain_left: WheelGain = Field(M3PI_WHEEL_GAIN, description="left wheel speed per commanded speed")
+    wheel_deadband: Deadband = Field(M3PI_WHEEL_DEADBAND, description="m/s: a smaller command does not turn a wheel")
+    command_latency: Latency = Field(M3PI_COMMAND_LATENCY, description="s: a command acts this long after it is sent")
+    pose_latency: Latency = Field(M3PI_POSE_LATENCY, description="s: a pose is this much older than its stamp")
+
+    @property
+    def samples(self) -> bool:
+        """A robot with latencies: the live run's sampled loop (fmus.model.robot_loop), not the continuous model."""
+        return self.command_latency > 0.0 or self.pose_latency > 0.0
+
+    def parameters(self) -> dict[str, float]:
+        """The Vehicle FMU's ``m3pi.*`` parameters of these constants."""
+        return {f"m3pi.{key}": value for key, value in self.model_dump().items()}
+
+
+class M3piOverride(_Strict):
+    """``[vehicles.N.m3pi]``: the constants of vehicle N's robot that differ from ``[m3pi]`` (each robot is its own)."""
+
+    track: Track | None = None
+    wheel_speed_max: WheelSpeed | None = None
+    motor_time_constant: MotorLag | None = None
+    wheel_gain_right: WheelGain | None = None
+    wheel_gain_left: WheelGain | None = None
+    wheel_deadband: Deadband | None = None
+    command_latency: Latency | None = None
+    pose_latency: Latency | None = None
 
 
 Law = Literal["sine", "regular"]
@@ -202,6 +243,7 @@ class VehicleOverride(_Strict):
     k_v: Gain | None = None
     dynamics: DynamicsKind | None = None
     initial: VehicleState | None = None
+    m3pi: M3piOverride | None = Field(None, description="this vehicle's robot constants, over [m3pi]")
     # Hardware in the loop (docs/hil.md): "zenoh" makes this vehicle a live m3pi robot on Zenoh; the keys
     # after it say where the robot is, and are ignored with "fmu".
     endpoint: Literal["fmu", "zenoh", "remote"] = "fmu"
@@ -398,6 +440,7 @@ class Config(_Strict):
                 f"max_substep) = {steps * substeps:.3g} substeps per FMU: expected at most 2**53 = {COUNT_LIMIT:.3g} "
                 "(beyond it step counts are not exact in double precision; no option lifts this)"))
         self._check_speed_laws()
+        self._check_robots()
         self._check_stiffness()
         self._check_links()
         if sim.trace_every > self.steps:
@@ -478,6 +521,24 @@ class Config(_Strict):
                         f"under acc or cacc, or an explicit platoon.standstill_gap >= 0 (the default standstill gap "
                         f"d_star - time_gap * speed = {p.resolved_standstill_gap:g} m would be negative)")
 
+    def _check_robots(self) -> None:
+        """Each m3pi's dead-band lies below its wheel speed limit: a command is clipped to the limit, so a
+        dead-band at or above it would keep the wheels still whatever the run commands. Its latencies may be any
+        fraction of the step (the robot loop is exact there: fmus.model.robot_loop), but the commands they keep in
+        flight must fit the robot's ring (COMMAND_CAPACITY)."""
+        for vehicle in self.m3pi_vehicles():
+            m3pi = self.m3pi_of(vehicle)
+            if m3pi.wheel_deadband >= m3pi.wheel_speed_max:
+                raise _rule(self.m3pi_key(vehicle, "wheel_deadband"), m3pi.wheel_deadband,
+                            f"below vehicle {vehicle}'s wheel_speed_max = {m3pi.wheel_speed_max:g} m/s (a dead-band at "
+                            "or above the limit keeps the wheels still whatever the run commands)")
+            delay, step = m3pi.command_latency + m3pi.pose_latency, self.simulation.step
+            if math.ceil(delay / step) + 1 > COMMAND_CAPACITY:
+                raise _RuleError("m3pi", None, "", message=(
+                    f"vehicle {vehicle}: command_latency + pose_latency = {delay:g} s spans {math.ceil(delay / step) + 1} "
+                    f"commands in flight at simulation.step = {step:g} s; a robot holds at most {COMMAND_CAPACITY} "
+                    "(a latency of a few tens of ms is a real radio; or lengthen the step)"))
+
     def _law_lags(self) -> list[tuple[str, float]]:
         """The fastest time constant each sensing law adds (1 / the largest |pole| of its loop, docs/model.md
         section 11): cacc's poles are -1/h and -k_p; acc's are the roots of h s^2 + k_v h s + k_v."""
@@ -505,10 +566,8 @@ class Config(_Strict):
         h = sim.step / substep_count(sim.step, sim.max_substep)
         lags = [(f"vehicles.{key}.k_v" if v.k_v is not None else "platoon.k_v", 1.0 / (v.k_v or self.platoon.k_v))
                 for key, v in self.vehicles.items()] + [("platoon.k_v", 1.0 / self.platoon.k_v)] + self._law_lags()
-        overridden_away = sum(1 for v in self.vehicles.values() if v.dynamics not in (None, "m3pi"))
-        if any(v.dynamics == "m3pi" for v in self.vehicles.values()) or (
-                self.platoon.dynamics == "m3pi" and overridden_away < self.platoon.count):  # some vehicle is an m3pi
-            lags.append(("m3pi.motor_time_constant", self.m3pi.motor_time_constant))
+        lags += [(self.m3pi_key(i, "motor_time_constant"), self.m3pi_of(i).motor_time_constant)
+                 for i in self.m3pi_vehicles()]
         key, lag = min(lags, key=lambda item: item[1])
         if h > RK4_STABILITY * lag:
             raise _rule("simulation.max_substep", sim.max_substep,
@@ -558,6 +617,26 @@ class Config(_Strict):
 
     def override(self, vehicle: int) -> VehicleOverride:
         return self.vehicles.get(str(vehicle), VehicleOverride())
+
+    def dynamics_of(self, vehicle: int) -> str:
+        """Vehicle ``vehicle``'s dynamics: its [vehicles.K] override, else platoon.dynamics."""
+        return self.override(vehicle).dynamics or self.platoon.dynamics
+
+    def m3pi_of(self, vehicle: int) -> M3pi:
+        """Vehicle ``vehicle``'s robot constants: [m3pi], with its [vehicles.K.m3pi] keys over them."""
+        own = self.override(vehicle).m3pi
+        if own is None:
+            return self.m3pi
+        return self.m3pi.model_copy(update=own.model_dump(exclude_none=True))
+
+    def m3pi_key(self, vehicle: int, key: str) -> str:
+        """Where vehicle ``vehicle``'s m3pi ``key`` comes from, for an error: vehicles.K.m3pi.key or m3pi.key."""
+        own = self.override(vehicle).m3pi
+        return f"vehicles.{vehicle}.m3pi.{key}" if own is not None and getattr(own, key) is not None else f"m3pi.{key}"
+
+    def m3pi_vehicles(self) -> list[int]:
+        """The vehicles that are m3pi robots, front to back."""
+        return [i for i in range(1, self.platoon.count + 1) if self.dynamics_of(i) == "m3pi"]
 
     def named_files(self) -> list[Path]:
         """The files this config names (``FILE_KEYS`` of [vehicles.K]): inputs of the run, like the config."""

@@ -32,13 +32,11 @@ def _longer_than_path(config: Config) -> str | None:
 
 def _m3pi_too_slow(config: Config) -> str | None:
     """m3pi robots asked to follow a speed their wheels cannot reach (V = mean of the two wheel speeds)."""
-    limit, speed = config.m3pi.wheel_speed_max, config.platoon.speed
-    if speed <= limit:
-        return None
-    robots = [i for i in range(1, config.platoon.count + 1)
-              if (config.override(i).dynamics or config.platoon.dynamics) == "m3pi"]
+    speed = config.platoon.speed
+    robots = [i for i in config.m3pi_vehicles() if config.m3pi_of(i).wheel_speed_max < speed]
     if not robots:
         return None
+    limit = config.m3pi_of(robots[0]).wheel_speed_max
     which = f"vehicle {robots[0]} is an m3pi" if len(robots) == 1 else f"{len(robots)} vehicles are m3pi robots"
     return (f"{which}, whose wheels top out at m3pi.wheel_speed_max = {limit:g} m/s, below platoon.speed = "
             f"{speed:g} m/s: it cannot keep up, and its speed can fall to zero, which ends the run; "

@@ -144,14 +144,12 @@ def build_scenario(config: Config) -> Scenario:
                     "k_v": override.k_v or platoon.k_v,
                     "v_c": platoon.speed,
                     "is_last": index == platoon.count,
-                    "dynamics": override.dynamics or platoon.dynamics,
+                    "dynamics": config.dynamics_of(index),
                     "initial.x": x,
                     "initial.y": y,
                     "initial.heading": heading,
                     "initial.speed": speed,
-                    "m3pi.track": config.m3pi.track,
-                    "m3pi.wheel_speed_max": config.m3pi.wheel_speed_max,
-                    "m3pi.motor_time_constant": config.m3pi.motor_time_constant,
+                    **config.m3pi_of(index).parameters(),
                     **speed_law_parameters(config, index),
                     **common,
                 },
@@ -174,14 +172,20 @@ def build_scenario(config: Config) -> Scenario:
 
 
 def monolithic_refusal(config: Config, set_links: tuple[str, ...] = ()) -> str | None:
-    """Why the monolithic reference cannot run ``config`` (it has links), or None; ``set_links``: the keys
-    of the ``--set`` options that made them, named instead of a [links] table the config may not have."""
+    """Why the monolithic reference cannot run ``config`` (it has links, or robots with latencies), or None;
+    ``set_links``: the keys of the ``--set`` options that made the links, named instead of a [links] table the
+    config may not have."""
     linked = config.linked()
-    if not linked:
-        return None
-    without = f"without --set {', '.join(set_links)}" if set_links else "without the [links] table"
-    return (f"the monolithic reference has no messages, so it cannot run links ({len(linked)} in this config, "
-            f"docs/links.md); run without --monolithic, or {without}")
+    if linked:
+        without = f"without --set {', '.join(set_links)}" if set_links else "without the [links] table"
+        return (f"the monolithic reference has no messages, so it cannot run links ({len(linked)} in this config, "
+                f"docs/links.md); run without --monolithic, or {without}")
+    sampled = [i for i in config.m3pi_vehicles() if config.m3pi_of(i).samples]
+    if sampled:
+        return (f"the monolithic reference is one continuous system, so it cannot run a robot's sampled loop with "
+                f"latencies (m3pi.command_latency, m3pi.pose_latency > 0 on vehicle {sampled[0]}; docs/model.md, \"A "
+                "robot that is not its nominal model\"); run without --monolithic, or with latencies of 0")
+    return None
 
 
 def link_specs(config: Config) -> dict[tuple[str, int], ComponentSpec]:
