@@ -19,6 +19,8 @@ finds this folder there (orchestrator/cli/bench.py), or ``python -m benchmarks.<
   trace, whole processes in one sitting; load's peak memory against its arrays (``readback.py``);
 * ``remote``: a macro step of N remote vehicles (``platoon serve``) in lockstep, one by one, local, and the
   Zenoh round trip, in one sitting (``remote.py``);
+* ``startup``: each command's time to first output, and a sweep's cost per run against the run's own work
+  (``startup.py``);
 * ``cores LABEL=PATH LABEL=PATH``: the native engine with two or more builds of _core.c (``flatness.py``).
 
 ``python -m benchmarks.<name>`` (each module's docstring has its options):

@@ -165,6 +165,18 @@ def test_wholerun_compares_the_same_fmus_on_both_sides(tmp_path: Path, fmu_dir: 
     assert ssp_side.returncode == 2 and "--fmus" in ssp_side.stderr
 
 
+def test_startup_times_each_command_and_the_sweeps_cost_per_run(tmp_path: Path, fmu_dir: Path) -> None:
+    result = platoon("bench", "startup", "--runs", "2", "--stop-time", "0.5", "--rounds", "1", "--out-dir", tmp_path, cwd=REPO,
+                     timeout=900)  # 16 whole processes, each seconds on a loaded machine
+    data = written(result, tmp_path, "startup")
+    medians = data["medians"]
+    assert set(medians) == {"--help", "--version", "bad option", "run 10 steps", "README run", "report",
+                            "run of a sweep's length", "sweep"}
+    assert all(0 < m["first"] <= m["whole"] for m in medians.values())
+    assert data["sweep"]["per_run"] == medians["sweep"]["whole"] / 2
+    assert "first output s" in result.stdout and "1 worker" in result.stdout and len(data["load_average"]) == 2
+
+
 def test_flatness_times_both_orders(tmp_path: Path, fmu_dir: Path) -> None:
     result = platoon("bench", "flatness", "--n", "1,5", "--steps", "3", "--rounds", "1", "--repeats", "1",
                      "--out-dir", tmp_path, cwd=REPO)

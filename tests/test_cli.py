@@ -31,13 +31,13 @@ VEHICLES = ["vehicle1", "vehicle2", "vehicle3", "vehicle4"]
 SUMMARY_KEYS = {"name", "path_offset", "gap", "gap_error", "speed", "speed_error", "path_error_max"}
 
 
-def platoon(*args: object, cwd: Path) -> subprocess.CompletedProcess[str]:
+def platoon(*args: object, cwd: Path, timeout: float = 120) -> subprocess.CompletedProcess[str]:
     """Run the console script as a user would, without a terminal (no progress bar, no colour)."""
     assert PLATOON.is_file(), f"console script not installed next to the interpreter: {PLATOON}"
     env = {**os.environ, "COLUMNS": "80", "NO_COLOR": "1", "TERM": "dumb", "PYTHONPATH": str(REPO)}  # this tree's code
     env.pop("FORCE_COLOR", None)
     return subprocess.run(
-        [str(PLATOON), *map(str, args)], cwd=cwd, env=env, capture_output=True, text=True, timeout=120
+        [str(PLATOON), *map(str, args)], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout
     )
 
 

@@ -209,6 +209,14 @@ def _children(pid: int) -> list[int]:
     return found
 
 
+def _descendants(pid: int) -> list[int]:
+    """Processes below ``pid``: its children (the warm workers), theirs (the runs), and so on."""
+    found = _children(pid)
+    for child in list(found):
+        found += _descendants(child)
+    return found
+
+
 def _alive(pid: int) -> bool:
     try:
         state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
@@ -268,9 +276,9 @@ def test_the_runs_die_with_a_killed_sweep(tmp_path: Path, fmu_dir: Path) -> None
     try:
         deadline = time.monotonic() + 120
         while True:
-            runs = [p for p in _children(sweep.pid) if _alive(p)]
+            runs = [p for p in _descendants(sweep.pid) if _alive(p)]  # the warm workers and the runs they forked
             # *.part.partial: run_scenario writes aside until it finalizes (docs/trace-format.md)
-            if len(runs) == 2 and len(list((tmp_path / "out" / "traces").glob("*.part*"))) == 2:
+            if len(runs) >= 2 and len(list((tmp_path / "out" / "traces").glob("*.part*"))) == 2:
                 break  # both runs are writing their traces
             assert sweep.poll() is None and time.monotonic() < deadline, "the sweep did not start its two runs"
             time.sleep(POLL)
@@ -286,6 +294,33 @@ def test_the_runs_die_with_a_killed_sweep(tmp_path: Path, fmu_dir: Path) -> None
         for pid in runs:  # only if the test failed: the orphans it found, by their pid
             if _alive(pid):
                 os.kill(pid, signal.SIGKILL)
+
+
+def test_a_run_killed_by_a_signal_is_one_failed_row_and_the_sweep_goes_on(tmp_path: Path, fmu_dir: Path) -> None:
+    # as a run that segfaults inside an FMU ends: its process killed by SIGSEGV (sent here, to the run's own pid)
+    path = sweep_file(tmp_path, '[grid]\n"simulation.stop_time" = [10000.0, 2.0, 3.0]\n')
+    out = tmp_path / "out"
+    sweep = subprocess.Popen([str(PLATOON), "sweep", str(path), "--out", str(out), "--workers", "1"],
+                             cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not (runs := [run for worker in _children(sweep.pid) for run in _children(worker) if _alive(run)]) \
+                or not list((out / "traces").glob("*.part*")):  # the run forked by the warm worker, writing
+            assert sweep.poll() is None and time.monotonic() < deadline, "the sweep did not start its first run"
+            time.sleep(POLL)
+        (run,) = runs
+        os.kill(run, signal.SIGSEGV)
+        _, stderr = sweep.communicate(timeout=240)
+    finally:
+        if sweep.poll() is None:
+            sweep.kill()
+            sweep.communicate()
+    assert sweep.returncode == 1 and "1 of 3 runs failed" in stderr, stderr
+    by_stop = {r["simulation.stop_time"]: r for r in rows(out)}
+    assert by_stop["10000.0"]["status"] == "failed" and "killed by SIGSEGV" in by_stop["10000.0"]["error"]
+    for stop in ("2.0", "3.0"):  # forked from the same warm worker after the crash
+        assert by_stop[stop]["status"] == "completed"
+        assert_row_is_its_report(out, by_stop[stop])
 
 
 # --- random samples ---------------------------------------------------------------------------------

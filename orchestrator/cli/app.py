@@ -25,11 +25,9 @@ app = typer.Typer(
 
 def _print_version(value: bool) -> None:
     if value:
-        from orchestrator.support.versions import tool_versions
+        from orchestrator.support.versions import version_line
 
-        versions = tool_versions()
-        out.print(f"platoon {versions.pop('platoon-cosim')} ("
-                  + ", ".join(f"{name} {version}" for name, version in versions.items()) + ")", highlight=False)
+        out.print(version_line(), highlight=False)
         raise typer.Exit()
 
 

@@ -386,6 +386,21 @@ def bench_remote(
     run_bench("remote", lambda progress: measured.run(_counts(n), steps, rounds, progress), measured.render, out_dir, quiet)
 
 
+def bench_startup(
+    runs: Annotated[int, typer.Option(min=1, help="runs in the sweep")] = 20,
+    stop_time: Annotated[float, typer.Option(min=0.1, help="simulated seconds per run of the sweep")] = 200.0,
+    rounds: Rounds = 3,
+    sweep: Annotated[bool, typer.Option("--sweep/--no-sweep", help="also the sweep's cost per run against a run's own work")] = True,
+    out_dir: OutDir = DEFAULT_OUT_DIR,
+    quiet: Quiet = False,
+) -> None:
+    """Each command's time to first output (--help, --version, a bad option, a 10-step run, the README's run and its
+    report), and a sweep's cost per run against the run's own work (one worker)."""
+    measured = suite("startup")
+    run_bench("startup", lambda progress: measured.run(runs, stop_time, rounds, sweep, progress), measured.render,
+              out_dir, quiet)
+
+
 def register(app: typer.Typer) -> None:
     """``platoon bench`` and its suites."""
     bench_app.command("steps")(bench_steps)
@@ -402,4 +417,5 @@ def register(app: typer.Typer) -> None:
     bench_app.command("sweep-bookkeeping")(bench_sweep_bookkeeping)
     bench_app.command("readback")(bench_readback)
     bench_app.command("remote")(bench_remote)
+    bench_app.command("startup")(bench_startup)
     app.add_typer(bench_app, name="bench")

@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from orchestrator.cli import help_cache
 from orchestrator.cli.options import RunOptions
 from orchestrator.cli.process import run_and_exit
 
@@ -60,7 +61,15 @@ def main() -> None:
     from orchestrator.support.startup import single_threaded_blas
 
     single_threaded_blas()
-    options = plain_run_options(sys.argv[1:])
+    args = sys.argv[1:]
+    if args == ["--version"]:
+        _print_version()
+    if help_cache.is_help_request(args):  # shown again from the cache when nothing it depends on changed
+        help_cache.replay(args)
+        from orchestrator.cli.app import app
+
+        run_and_exit(help_cache.recording(app, args))
+    options = plain_run_options(args)
     if options is None:
         from orchestrator.cli.app import main as typer_main
 
@@ -75,8 +84,26 @@ def main() -> None:
         prestart()
     with loading_a_run():  # pydantic and the config models, built without garbage collection (~2 % of a start-up)
         import orchestrator.cli.running  # noqa: F401
+        import orchestrator.scenario.config  # noqa: F401  (read by the run's load_config)
 
     run_and_exit(lambda: _run(options), without_typer=True)
+
+
+def _print_version() -> None:
+    """`platoon --version` without typer and rich, when the line fits the terminal as rich measures it
+    (else rich would wrap it: typer's option prints it then, orchestrator/cli/app.py)."""
+    from orchestrator.cli.plain import say
+    from orchestrator.support.versions import version_line
+
+    line = version_line()
+    widths = [int(os.environ["COLUMNS"])] if os.environ.get("COLUMNS", "").isdigit() else []
+    for descriptor in (0, 1, 2):
+        try:
+            widths.append(os.get_terminal_size(descriptor).columns)
+        except OSError:
+            pass
+    if len(line) < min(widths or [80], default=80):
+        run_and_exit(lambda: say(line), without_typer=True)
 
 
 def _run(options: RunOptions) -> None:

@@ -19,12 +19,14 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterator, Optional
 
-from orchestrator.scenario.config import Config, ConfigError, parse_config, read_config_text
+from orchestrator.scenario.raw_config import ConfigError, read_config_text  # no pydantic: the models load with a config
 from orchestrator.support.output import OutputError  # the one output rule (docs/output.md)
 from orchestrator.support.suggest import did_you_mean
 
 if TYPE_CHECKING:
     from rich.console import Console
+
+    from orchestrator.scenario.config import Config
 
 _CONSOLES: dict[bool, "Console"] = {}
 _EMOJI_CODE = re.compile(r":\S*:")  # what rich may replace by an emoji (":smile:"); such a line goes through rich
@@ -67,9 +69,10 @@ def check_choice(option: str, value: str | None, choices: tuple[str, ...]) -> No
     fail(2, f"{option} {value!r}: expected {' or '.join(choices)}{did_you_mean(value, choices)}")
 
 
-def load_config(config: Path, overrides: list[str], allow_long: bool = True) -> tuple[Config, str]:
+def load_config(config: Path, overrides: list[str], allow_long: bool = True) -> tuple["Config", str]:
     """The validated config and its text as read (stored in the trace); exit 2 naming the problem.
     ``allow_long=False`` also refuses a run above the size limits (orchestrator/scenario/limits.py)."""
+    from orchestrator.scenario.config import parse_config  # the pydantic models: loaded when a config is read
     from orchestrator.scenario.limits import check_run_size
 
     try:
@@ -103,7 +106,7 @@ def check_output(path: Path, overwrite: bool, protect: list[Path], what: str = "
         check_replaceable(path, overwrite, protect, what)
 
 
-def run_inputs(config: Path, parsed: Config) -> list[Path]:
+def run_inputs(config: Path, parsed: "Config") -> list[Path]:
     """Every file a run of ``config`` (or its SSP export) reads, which its output never replaces: the config,
     the files it names (a Zenoh config), the FMUs in build/fmus (both kinds) and the sources they are
     built from."""

@@ -12,7 +12,7 @@ from orchestrator.cli.common import AllowLong, OVERWRITE_HELP, SET_METAVAR, choi
 from orchestrator.cli.options import RunOptions
 from orchestrator.cli.running import RUN_ENGINES, TRACE_WRITER_CHOICES, run_command
 from orchestrator.components.kinds import FMU_KINDS
-from orchestrator.scenario.config import ConfigError
+from orchestrator.scenario.raw_config import ConfigError
 
 if TYPE_CHECKING:
     from orchestrator.support.output import OwnFiles

@@ -18,9 +18,9 @@ from orchestrator.cli.options import RunOptions
 from orchestrator.cli.plain import (check_choice, check_output, claim_trace, console, fail, load_config, run_inputs,
                                     say)
 from orchestrator.components.kinds import FMU_KINDS
-from orchestrator.scenario.config import Config
 
 if TYPE_CHECKING:
+    from orchestrator.scenario.config import Config
     from orchestrator.execution.run import RunResult
     from orchestrator.observers.foxglove_view import FoxgloveView
 

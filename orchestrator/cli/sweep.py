@@ -18,11 +18,12 @@ import typer
 from rich.markup import escape
 
 from orchestrator.cli.common import Overwrite
-from orchestrator.sweep.plan import Run
 from orchestrator.sweep.spec import SweepError
 
 if TYPE_CHECKING:  # imported where used: registering these commands must not slow every `platoon` start
     from rich.progress import Progress
+
+    from orchestrator.sweep.plan import Run
 
 
 def _cores() -> int:

@@ -8,10 +8,11 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from orchestrator.scenario.config import Config
 
 if TYPE_CHECKING:
     from rich.table import Table
+
+    from orchestrator.scenario.config import Config
 
 
 def summary_table(summaries, config: Config, title: str) -> Table:

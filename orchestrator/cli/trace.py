@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
-from orchestrator.scenario.config import ConfigError
+from orchestrator.scenario.raw_config import ConfigError
 
 if TYPE_CHECKING:  # rich's table is imported where used: `platoon run -q` needs none
     pass

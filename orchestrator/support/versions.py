@@ -18,3 +18,9 @@ def tool_versions() -> dict[str, str]:
         "pythonfmu": importlib.metadata.version("pythonfmu"),
         "python": platform.python_version(),
     }
+
+
+def version_line() -> str:
+    """What `platoon --version` prints: ``platoon 0.1.0 (fmus 0.1.0, fmpy ..., python 3.11.7)``."""
+    versions = tool_versions()
+    return f"platoon {versions.pop('platoon-cosim')} (" + ", ".join(f"{name} {version}" for name, version in versions.items()) + ")"

@@ -17,7 +17,7 @@ from typing import Any, Iterator, Protocol
 
 from .plan import Run
 from .spec import SweepError
-from .worker import execute, remote_run, terminate_children
+from .worker import close_workers, execute, remote_run, terminate_children
 
 CONNECT_TIMEOUT = "10s"
 DASK_WINDOW = 256  # runs submitted to a cluster at a time: enough to keep a big cluster busy, never the whole plan  # to reach the scheduler of --scheduler
@@ -86,7 +86,7 @@ class LocalExecutor:
         terminate_children()
 
     def close(self) -> None:
-        pass
+        close_workers()  # the warm workers of this sweep's threads
 
 
 class DaskExecutor:

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from orchestrator.scenario.config import ConfigError, read_config_text
+from orchestrator.scenario.raw_config import ConfigError, read_config_text
 
 Scalar = str | int | float | bool
 # Columns of results.csv that a varied key must not shadow

@@ -1,17 +1,29 @@
-"""One run of a sweep, in a fresh process: ``python -m orchestrator.sweep.worker`` (request on stdin).
+"""The runs of a sweep: each in a process of its own, forked from a warm worker that imported what a run needs.
 
 Why a process per run: pythonfmu FMUs embed themselves in the host interpreter, so a crash inside one
 (or the heap damage its teardown can cause, orchestrator/cli/app.py: main) takes its process down. In a
 process of its own, such a run is recorded as failed, with the reason, and the sweep goes on; the
-process leaves with ``os._exit``. Its start-up (about 0.4 s of imports) is small against a run.
+process leaves with ``os._exit``.
+
+Why a warm worker: a fresh interpreter per run paid about 0.4 s of imports before its first step, as
+much as a short run's own work (docs/performance.md, "Sweeps"). ``python -m orchestrator.sweep.worker
+PARENT`` (the warm worker, one per thread that runs runs: a local worker, a Dask worker's thread) imports
+a run's modules once, then reads run requests, one JSON line each, on stdin. For each it forks a child
+that runs it and answers ``PID n`` when it forked, ``DONE {json}`` when the child ended: its exit code
+(negative: the signal that killed it) and what it wrote on stdout and stderr. The child is what a fresh
+process was: a session of its own (Ctrl-C in the terminal reaches only the sweep, which stops the runs
+it wants stopped, ``terminate_children``), nothing of another run in it (the worker itself never runs
+one), and it leaves with ``os._exit``.
 
 The child runs ``run_scenario`` (orchestrator/execution/run.py) with the summary ``platoon report --json`` gives
-(orchestrator/analysis/metrics.py), accumulated as the rows are recorded, and prints one ``RESULT {json}`` line. It dies
-with the process that started it (Linux: PR_SET_PDEATHSIG), so a sweep killed with SIGKILL leaves no
-run behind that could still write into its folder.
+(orchestrator/analysis/metrics.py), accumulated as the rows are recorded, and prints one ``RESULT {json}`` line.
+Everything dies with the sweep (Linux: PR_SET_PDEATHSIG): the warm worker with the process that started
+it, a run with its warm worker, so a sweep killed with SIGKILL leaves no run behind that could still write
+into its folder.
 
-``execute`` starts the child and collects its outcome; the local executor calls it in a thread per
-worker, and ``remote_run`` is the same on a Dask worker, returning the trace's bytes to the client.
+``execute`` hands a run to this thread's warm worker (started on first use) and collects its outcome; the
+local executor calls it in a thread per worker, and ``remote_run`` is the same on a Dask worker,
+returning the trace's bytes to the client.
 """
 
 from __future__ import annotations
@@ -20,21 +32,20 @@ import fcntl
 import json
 import os
 import signal
-import subprocess
 import sys
 import tempfile
 import threading
 from pathlib import Path
 from typing import Any
 
-from orchestrator.support.child_python import module_command, module_environment
 
 RESULT = "RESULT "
 STDERR_TAIL = 400  # characters of a dead child's stderr kept in its error message
 
-_children: set[subprocess.Popen] = set()
-_children_lock = threading.Lock()
+_running: dict[int, int] = {}  # the runs under way: thread id -> the pid of its run
+_running_lock = threading.Lock()
 _terminating = threading.Event()  # set by terminate_children: a child dead by SIGTERM was stopped, not failed
+_warm = threading.local()  # this thread's warm worker (warm.py)
 
 
 def flatten_report(report: dict[str, Any]) -> dict[str, float | str]:
@@ -87,62 +98,117 @@ def _run(request: dict[str, Any]) -> dict[str, Any]:
 
 
 def main() -> None:
+    """The warm worker: a run's modules imported once, then a child forked per request (module docstring)."""
     from orchestrator.support.internal_entry import check_arguments
 
-    check_arguments(sys.argv[1:], "python -m orchestrator.sweep.worker < REQUEST.json", __doc__, count=0)
-    try:
-        request = json.loads(sys.stdin.read())
-    except ValueError:
-        sys.exit("error: python -m orchestrator.sweep.worker reads a run request (JSON) on stdin; `platoon sweep` sends it")
-    _die_with_parent(request["parent"])
-    try:
-        outcome = _run(request)
-    except Exception as error:  # a bug or a broken FMU, not a run that failed: still this run's result
-        outcome = {"status": "failed", "error": f"{type(error).__name__}: {error}", "wall_time": None}
-    sys.stdout.write(RESULT + json.dumps(outcome) + "\n")
-    sys.stdout.flush()
-    sys.stderr.flush()
+    check_arguments(sys.argv[1:], "python -m orchestrator.sweep.worker PARENT_PID < REQUESTS", __doc__, count=1,
+                    fits=lambda argv: argv[0].isdigit())
+    _die_with_parent(int(sys.argv[1]))
+    from orchestrator.support.startup import loading_a_run
+
+    with loading_a_run():  # what every run imports, frozen out of the collector's way (startup.py)
+        from orchestrator.analysis import metrics  # noqa: F401
+        from orchestrator.execution import run  # noqa: F401
+        from orchestrator.scenario import config  # noqa: F401
+        from orchestrator.sweep.warm import preload
+
+        preload()
+    for line in sys.stdin:
+        _serve(json.loads(line))
     os._exit(0)
 
 
-def _death_text(process: subprocess.Popen, stderr: str) -> str:
-    code = process.returncode
-    how = f"killed by {signal.Signals(-code).name}" if code is not None and code < 0 else f"exit {code}"
+def _serve(request: dict[str, Any]) -> None:
+    """Fork a child that runs ``request``; answer ``PID``, then ``DONE`` with how it ended."""
+    with tempfile.TemporaryFile() as stdout, tempfile.TemporaryFile() as stderr:  # unlinked already: nothing left behind
+        sys.stdout.flush()
+        server = os.getpid()
+        pid = os.fork()
+        if pid == 0:
+            _child(request, stdout.fileno(), stderr.fileno(), server)
+        _answer("PID", pid)
+        _, status = os.waitpid(pid, 0)
+        stdout.seek(0)
+        stderr.seek(0)
+        _answer("DONE", {"returncode": os.waitstatus_to_exitcode(status), "stdout": stdout.read().decode(errors="replace"),
+                         "stderr": stderr.read()[-16 * STDERR_TAIL:].decode(errors="replace")})
+
+
+def _answer(word: str, value: object) -> None:
+    sys.stdout.write(f"{word} {json.dumps(value)}\n")
+    sys.stdout.flush()
+
+
+def _child(request: dict[str, Any], stdout: int, stderr: int, server: int) -> None:
+    """A forked run: a session of its own, its output in the files its warm worker reads, dead with its
+    warm worker; never returns."""
+    try:
+        os.setsid()
+        null = os.open(os.devnull, os.O_RDONLY)
+        for source, target in ((null, 0), (stdout, 1), (stderr, 2)):
+            os.dup2(source, target)
+        _die_with_parent(server)
+        try:
+            outcome = _run(request)
+        except Exception as error:  # a bug or a broken FMU, not a run that failed: still this run's result
+            outcome = {"status": "failed", "error": f"{type(error).__name__}: {error}", "wall_time": None}
+        sys.stdout.write(RESULT + json.dumps(outcome) + "\n")
+        sys.stdout.flush()
+        sys.stderr.flush()
+    finally:
+        os._exit(0)
+
+
+def _death_text(returncode: int | None, stderr: str) -> str:
+    how = f"killed by {signal.Signals(-returncode).name}" if returncode is not None and returncode < 0 else f"exit {returncode}"
     tail = " ".join(stderr.strip().splitlines()[-3:])[-STDERR_TAIL:]
     return f"worker process died ({how})" + (f": {tail}" if tail else "")
 
 
 def execute(request: dict[str, Any], trace: Path) -> dict[str, Any]:
-    """Run ``request`` in a child process writing ``trace``; its outcome (status, error, wall_time, metrics).
+    """Run ``request`` in a child of this thread's warm worker, writing ``trace``; its outcome (status, error,
+    wall_time, metrics)."""
+    from .warm import WarmWorker
 
-    The child has a session of its own: Ctrl-C in the terminal reaches only the sweep, which stops
-    the children it wants stopped (``terminate_children``); their outcome is "interrupted".
-    """
-    message = json.dumps({**request, "trace": str(trace), "parent": os.getpid()})
-    process = subprocess.Popen(module_command("orchestrator.sweep.worker"), stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True, start_new_session=True, env=module_environment())
-    with _children_lock:
-        _children.add(process)
+    if getattr(_warm, "worker", None) is None:
+        _warm.worker = WarmWorker()
+    thread = threading.get_ident()
+
+    def started(pid: int) -> None:
+        with _running_lock:
+            _running[thread] = pid
+            if _terminating.is_set():  # stopped while it was being forked
+                os.kill(pid, signal.SIGTERM)
+
     try:
-        stdout, stderr = process.communicate(message)
+        returncode, stdout, stderr = _warm.worker.run({**request, "trace": str(trace)}, started)
     finally:
-        with _children_lock:
-            _children.discard(process)
+        with _running_lock:
+            _running.pop(thread, None)
     for line in stdout.splitlines():
         if line.startswith(RESULT):
             return json.loads(line[len(RESULT):])
-    if _terminating.is_set() and process.returncode == -signal.SIGTERM:  # ours, before the run set its handlers
+    if _terminating.is_set() and returncode == -signal.SIGTERM:  # ours, before the run set its handlers
         return {"status": "interrupted", "error": "stopped before the run started", "wall_time": None}
-    return {"status": "failed", "error": _death_text(process, stderr), "wall_time": None}
+    return {"status": "failed", "error": _death_text(returncode, stderr), "wall_time": None}
 
 
 def terminate_children() -> None:
-    """SIGTERM to every run this process started: each stops at its next communication point."""
-    with _children_lock:
+    """SIGTERM to every run this process's warm workers are running: each stops at its next communication point."""
+    with _running_lock:
         _terminating.set()
-        for process in _children:
-            if process.poll() is None:
-                process.terminate()
+        for pid in _running.values():
+            try:
+                os.kill(pid, signal.SIGTERM)
+            except ProcessLookupError:  # ended meanwhile
+                pass
+
+
+def close_workers() -> None:
+    """Let the warm workers this process started end (each ends when its requests do)."""
+    from .warm import close_all
+
+    close_all()
 
 
 def _fmus_here(fmu_dir: str) -> Path:
