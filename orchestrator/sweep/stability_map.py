@@ -33,6 +33,7 @@ from matplotlib.colors import ListedColormap, Normalize  # noqa: E402
 from orchestrator.analysis.error_gains import (clean_order, frequency_gains, predicted_gains, probe_frequencies,  # noqa: E402
                                                steady_window, stretch_growth, vehicle_errors)
 from orchestrator.analysis.loop_moments import closed_form_stable  # noqa: E402
+from orchestrator.analysis.sizing import AnalysisRefused, check_analysis, nothing_arrives  # noqa: E402
 from orchestrator.analysis.sampled_chain import (GROWTH_TOLERANCE, Growth, exact_applies,  # noqa: E402
                                                  growth_per_link, lifting_period, peak_growth, vehicle_of)
 from orchestrator.analysis.string_stability import interior_vehicle  # noqa: E402
@@ -95,6 +96,13 @@ def _points(folder: Path) -> list[dict[str, Any]]:
         missing = exact_applies(config)
         if missing is not None:
             raise PlotError(f"run {record['id']}: the sampled-data cascade does not model {missing}")
+        try:  # sized before any work (analysis/sizing.py); links that deliver nothing make no chain to map
+            check_analysis(config)
+            cut = nothing_arrives(config)
+        except AnalysisRefused as error:
+            cut = str(error)
+        if cut is not None:
+            raise PlotError(f"run {record['id']}: {cut}")
         trace = folder / record["trace"] if record["status"] == "completed" else None
         points.append({**where, "gain": math.nan, "deviation": math.nan, "config": config, "raw": record["config"],
                        "trace": trace})
