@@ -95,6 +95,10 @@ def read_key(path: Path) -> LabKey:
                           "it to every run host and robot side)") from None
     except OSError as error:
         raise LabKeyError(f"lab key {path}: cannot open it ({error.strerror or error}; a link is refused)") from None
+    if stat.S_ISDIR(os.fstat(descriptor).st_mode):  # before fdopen, which refuses a folder with a traceback
+        os.close(descriptor)
+        raise LabKeyError(f"lab key {path}: a folder, not a key file (the lab's DIR? name the file in it: "
+                          f"{path / 'lab.key'})")
     with os.fdopen(descriptor, "rb") as stream:
         info = os.fstat(stream.fileno())
         if not stat.S_ISREG(info.st_mode):

@@ -1127,6 +1127,19 @@ def test_a_lab_key_file_others_can_read_or_a_link_is_refused_and_the_default_one
         load_lab_key(garbage)
 
 
+def test_a_folder_given_as_the_lab_key_is_one_line_in_the_emulator_and_the_run(tmp_path: Path) -> None:
+    """The lab's DIR instead of DIR/lab.key: was a 43-line traceback (IsADirectoryError) on both sides."""
+    folder = tmp_path / "lab"
+    folder.mkdir(mode=0o700)
+    said = "a folder, not a key file (the lab's DIR? name the file in it: "
+    robot = subprocess.run([str(PLATOON), "m3pi-emulator", "--config", str(LIVE3), "--lab-key", str(folder)], cwd=REPO,
+                           env=_env(), capture_output=True, text=True, timeout=60)
+    assert robot.returncode != 0 and "Traceback" not in robot.stderr and said in robot.stderr, robot.stderr
+    assert len(robot.stderr.strip().splitlines()) == 1, robot.stderr
+    code, _, err = finish(start_run(free_port(), tmp_path / "run.mcap", 1.0, f'hil.lab_key="{folder}"'))
+    assert code == 1 and "Traceback" not in err and said in err, err
+
+
 def test_a_run_and_a_robot_side_with_different_lab_keys_say_so_within_seconds(tmp_path: Path) -> None:
     """The robot side given another key file than the run's: the run ends at its start (exit 1) naming the
     lab key as the reason, not after connect_timeout; a key file others can read stops the emulator (exit 2)."""
