@@ -115,3 +115,23 @@ def test_stability_map_refuses_a_sweep_whose_analysis_would_eat_the_machine(tmp_
                           cwd=REPO, capture_output=True, text=True, timeout=600, env=env)
     assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
     assert "links.period = 3600 s: the sampled-data cascade is lifted over 180,000 steps" in done.stderr, done.stderr
+
+
+def test_stability_map_refuses_a_trace_replaced_by_a_link_to_a_fifo_instead_of_hanging(tmp_path: Path,
+                                                                                      fmu_dir: Path) -> None:
+    """Report and stability refuse a trace that is a FIFO; stability-map blocked on it forever."""
+    spec = tmp_path / "sweep.toml"
+    spec.write_text(f'base = "{STUDY}"\n[set]\n"simulation.stop_time" = 2.0\n[grid]\n"platoon.speed_law" = ["cacc"]\n'
+                    '"links.delay" = [0.0]\n"links.loss" = [0.0]\n')
+    env = {**os.environ, "COLUMNS": "200"}
+    done = subprocess.run([str(PLATOON), "sweep", str(spec), "--out", str(tmp_path / "out"), "-q"], cwd=REPO,
+                          capture_output=True, text=True, timeout=600, env=env)
+    assert done.returncode == 0, done.stderr
+    [trace] = list((tmp_path / "out").rglob("*.mcap"))
+    trace.unlink()
+    os.mkfifo(tmp_path / "fifo")
+    trace.symlink_to(tmp_path / "fifo")
+    done = subprocess.run([str(PLATOON), "stability-map", str(tmp_path / "out")], cwd=REPO, capture_output=True,
+                          text=True, timeout=120, env=env)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert "is not a regular file" in done.stderr, done.stderr

@@ -104,6 +104,9 @@ def _points(folder: Path) -> list[dict[str, Any]]:
         if cut is not None:
             raise PlotError(f"run {record['id']}: {cut}")
         trace = folder / record["trace"] if record["status"] == "completed" else None
+        if trace is not None and not trace.is_file():  # a FIFO (or a link to one) would block the reading forever
+            raise PlotError(f"run {record['id']}: its trace {trace} is not a regular file (report and stability refuse "
+                            "it too)")
         points.append({**where, "gain": math.nan, "deviation": math.nan, "config": config, "raw": record["config"],
                        "trace": trace})
     return points
