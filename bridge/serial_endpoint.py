@@ -4,8 +4,9 @@ The m3pi is a 3pi base running Pololu's 3pi serial slave program, reached throug
 transparent mode: whatever bytes this program writes to the XBee's serial port come out of the
 robot's XBee into the 3pi's UART (115200 baud, 8N1). This endpoint stands for the robot on Zenoh: it
 declares the robot's liveliness token, obeys the first run that claims it with the lab key
-(``bridge.claim``, ``bridge.lab_key``) until that run's token goes, checks every wheel command (decode, claim, sequence, deadline) and writes the
-owner's valid ones as motor bytes at once; it reports its claim and counts on the status key.
+(``bridge.claim``, ``bridge.lab_key``) until that claim ends (the run's MAC'd release, its lease not renewed,
+or its token gone), checks every wheel command (decode, claim, sequence, deadline) and writes the owner's
+valid ones as motor bytes at once; it reports its claim and counts on the status key.
 
 Byte format (3pi serial slave, a TReX-like command set: an opcode 0x80..0xFF, then data bytes
 0x00..0x7F):
@@ -23,7 +24,7 @@ Byte format (3pi serial slave, a TReX-like command set: an opcode 0x80..0xFF, th
 
 Safety: the motors are zeroed at start-up (the slave keeps running its last speeds, possibly from an
 earlier session), when the current command's deadline passes, when no valid command came for
-``command_timeout`` s, when the host's liveliness token goes away, and always on exit before the
+``command_timeout`` s, when the claim ends (release, lease, the host's liveliness token), and always on exit before the
 port closes. The serial slave has no watchdog of its own, so a lost stop frame (transparent mode has
 no end-to-end acknowledgement) leaves the robot running until the next frame: keep the robot in
 reach of the XBee.
