@@ -1127,6 +1127,34 @@ def test_a_lab_key_file_others_can_read_or_a_link_is_refused_and_the_default_one
         load_lab_key(garbage)
 
 
+def test_a_robot_side_whose_clock_is_7_s_behind_is_told_as_such_not_as_a_lab_key_problem(tmp_path: Path) -> None:
+    """The issue's case: the robot side drops every claim request as too far ahead (its clock 7 s behind) and
+    says why in its status; the run tells the user the clocks are apart (it said: check the lab key)."""
+    import threading
+
+    from bridge.emulator import Emulator, EmulatorSettings, RobotSpec
+    from bridge.lab_key import load_lab_key
+    from bridge.session import zenoh_config
+    from fmus.model.dynamics import M3piDynamics
+
+    port = free_port()
+    said: list[str] = []
+    robot = Emulator([RobotSpec(KEYS, 0.0, 0.0, 0.0, 0.3, M3piDynamics(0.5))], EmulatorSettings(lab_key=load_lab_key()),
+                     zenoh_config(listen=[endpoint(port)]), said.append, clock=lambda: time.time() - 7.0)
+    thread = threading.Thread(target=robot.run, daemon=True)
+    thread.start()
+    try:
+        code, _, err = finish(start_run(port, tmp_path / "skewed.mcap", 2.0), timeout=120)
+    finally:
+        robot.stop_event.set()
+        thread.join(30)
+    said_err = " ".join(err.split())
+    assert code == 1, err
+    assert "its robot side refused this run's claim" in said_err and "more than 6 s ahead by the robot side's clock: " \
+           "the robot side's clock is behind this host's by more than 5 s; synchronize the clocks" in said_err, said_err
+    assert "lab key" not in said_err, said_err
+
+
 def test_a_folder_given_as_the_lab_key_is_one_line_in_the_emulator_and_the_run(tmp_path: Path) -> None:
     """The lab's DIR instead of DIR/lab.key: was a 43-line traceback (IsADirectoryError) on both sides."""
     folder = tmp_path / "lab"
