@@ -100,10 +100,23 @@ class _BenchProgress:
         err.print(line, highlight=False, soft_wrap=True)
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM during a suite: raised where the suite is, so that its children are ended and its scratch
+    folders removed on the way out (``subprocess.run`` kills its child on any exception), as on Ctrl-C."""
+
+
+def _on_sigterm(signum: int, frame: object) -> None:
+    raise _Terminated()
+
+
 def run_bench(suite: str, measure, render, out_dir: Path, quiet: bool) -> None:
-    """Run one suite with progress, print its tables, write its JSON; bad options exit 2, failures 1."""
+    """Run one suite with progress, print its tables, write its JSON; bad options exit 2, failures 1, SIGINT
+    and SIGTERM 130 and 143 once its children ended and its scratch files are gone."""
+    import signal
+
     from orchestrator.bench.common import BenchError, BenchUsageError, write_result
 
+    previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         with _BenchProgress(quiet) as progress:
             result = measure(progress)
@@ -111,6 +124,12 @@ def run_bench(suite: str, measure, render, out_dir: Path, quiet: bool) -> None:
         fail(2, str(error))
     except BenchError as error:
         fail(1, f"bench {suite}: {error}")
+    except KeyboardInterrupt as stop:
+        name, code = ("SIGTERM", 143) if isinstance(stop, _Terminated) else ("SIGINT (Ctrl-C)", 130)
+        fail(code, f"bench {suite}: stopped by {name}; its child processes ended, its scratch files removed, no "
+                   "result written")
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     result["command"] = " ".join(["platoon", *sys.argv[1:]])
     out.print(render(result), highlight=False, soft_wrap=True)
     with output_rule():  # a folder it cannot write: one line
