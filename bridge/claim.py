@@ -7,9 +7,18 @@ with the lab key (``bridge.lab_key``): the robot side (emulator, ``m3pi-serial``
 claim whose token is there and whose request checks with its own key, while it obeys none; it numbers
 that claim's commands afresh (so nothing sent before, a sequence number 2^32 - 1 included, touches the
 next run), and refuses every command of any other claim or without a valid MAC: counted, and reported
-back on its status key. The claim ends when its token goes: the run released it (it undeclares the
-token after its stop commands) or its session died (Zenoh drops the token). Nothing else ends it, and
-an ended claim is never granted again.
+back on its status key. The claim ends on what only its run can say, or on its run's silence:
+
+* the run's release: a MAC'd message (flag bit 0, numbered 0), sent after its stop commands;
+* its lease: every fresh authenticated message of the run renews it (a command in sequence, a claim
+  request in time; the run renews every ``LEASE_RENEW_PERIOD`` from its grant to its release), and the
+  robot side ends the claim ``CLAIM_LEASE`` after the last renewal (a run killed, frozen or cut off);
+* its token's going (the run's session died: Zenoh drops the token) ends it at once.
+
+A copy of the run's token held by someone without the key therefore holds nothing: the release or
+the lease ends the claim anyway (a replayed claim request renews it for at most its own validity). An
+ended claim is never granted again. Without a lab key (commands on a ROS topic carry no MAC) there is
+no lease: the token alone says who holds the robot.
 
 ``RobotClaim`` is the robot side's bookkeeping, ``HostClaim`` the run's: it tells its own poses from
 foreign ones (another publisher on the pose key: dropped and counted as ``foreign``, with their own
@@ -28,8 +37,12 @@ import secrets
 from collections import deque
 from dataclasses import dataclass, field
 
+import threading
+from typing import Callable
+
 from .lab_key import LabKey
 from .protocol import (
+    STATUS_LEASE_ENDED,
     STATUS_POSES,
     WHEELS_BODY,
     Drop,
@@ -38,13 +51,20 @@ from .protocol import (
     SequenceCheck,
     Status,
     WheelCommand,
+    MAX_COMMAND_AHEAD,
     check_command_deadline,
     decode_wheels,
+    refusal_flags,
 )
 
 REFUSED_VERDICT_AFTER = 50  # commands the robot side received before "mostly refused" can end a run
 ENDED_KEPT = 1024  # claims that ended, remembered so that a copy of their requests never claims the robot again
 GRANT_GRACE = 1.0  # s the robot side may take to see a new claim before its status naming another owner counts
+# s a claim holds without a renewal: a run renews it 8 times as often, so a stalled machine (a second or so
+# without scheduling the run) does not lose it; the next run after a killed one drives within this (plus its start)
+CLAIM_LEASE = 2.0
+LEASE_RENEW_PERIOD = 0.25  # s between a run's renewals (claim requests of its granted claim)
+CLAIM_REQUEST_VALIDITY = 1.0  # s a claim request stays valid (its deadline): a replay renews a lease for at most this
 
 
 def new_claim() -> int:
@@ -93,9 +113,13 @@ class RobotClaim:
     foreign: int = 0
     invalid: int = 0
     foreign_claim: int = 0
+    foreign_reason: Drop | None = None  # why the last refused message (foreign_claim's) was refused
     released: int = 0  # the claim that ended last: its stragglers are late, not foreign
     ended: deque = field(default_factory=lambda: deque(maxlen=ENDED_KEPT))  # never granted again
     requests: dict[int, float] = field(default_factory=dict)  # claim -> deadline of a valid request before its token
+    lease: float = CLAIM_LEASE  # s the owner's claim holds without a renewal (with a lab key)
+    renewed: float = 0.0  # when the owner last renewed its claim
+    lease_ended: bool = False  # the released claim ended because its lease ran out (a status flag)
 
     def host_appeared(self, claim: int, now: float = 0.0) -> bool:
         """A host's token appeared; True if that claim is now the owner (the robot was free and, with a lab
@@ -103,15 +127,22 @@ class RobotClaim:
         self.hosts.add(claim)
         if self.key is not None and self.requests.pop(claim, 0.0) <= now:
             return False
-        return self._grant(claim)
+        return self._grant(claim, now)
 
-    def _grant(self, claim: int) -> bool:
+    def _grant(self, claim: int, now: float) -> bool:
         if self.owner or claim in self.ended:
             return False
-        self.owner, self.released = claim, 0
+        self.owner, self.released, self.renewed, self.lease_ended = claim, 0, now, False
         self.sequence = SequenceCheck()
         self.applied = self.accepted = self.dropped = self.foreign = self.invalid = self.foreign_claim = 0  # per claim
+        self.foreign_reason = None
         return True
+
+    def _end(self, lease_ended: bool = False) -> int:
+        claim = self.owner
+        self.owner, self.released, self.lease_ended = 0, claim, lease_ended
+        self.ended.append(claim)
+        return claim
 
     def host_left(self, claim: int) -> bool:
         """A host's token went; True if it was the owner's (the claim ended: stop the wheels)."""
@@ -119,9 +150,15 @@ class RobotClaim:
         self.requests.pop(claim, None)
         if claim != self.owner:
             return False
-        self.owner, self.released = 0, claim
-        self.ended.append(claim)
+        self._end()
         return True
+
+    def expire(self, now: float) -> int:
+        """End the owner's claim if its run did not renew it for ``lease`` s (with a lab key); the claim that
+        ended (stop the wheels), else 0."""
+        if self.key is None or not self.owner or now - self.renewed <= self.lease:
+            return 0
+        return self._end(lease_ended=True)
 
     def check(self, payload: bytes, now: float, what: str) -> WheelCommand | None:
         """The command in ``payload`` to apply: the owner's, in order and in time, or a stop of the owner's (or
@@ -134,10 +171,12 @@ class RobotClaim:
             raise
         name = f"wheel command {command.seq} of claim {claim_text(command.claim)}"
         if self.key is not None and not self.key.verify(self.command_key, payload[:WHEELS_BODY], payload[WHEELS_BODY:]):
-            self._refuse(command.claim)
+            self._refuse(command.claim, Drop.UNAUTHENTICATED)
             raise MessageError(Drop.UNAUTHENTICATED, f"{name}: its MAC does not check with this robot side's lab key "
                                                      f"{self.key.path} (not from a run of this lab); refused")
         stop = command.left == 0.0 and command.right == 0.0
+        if command.release:
+            return self._release(command, what)
         if command.seq == 0:
             return self._request(command, now, what, name)
         if command.claim == self.released and not self.owner:  # its last stops, overtaken by the token's going
@@ -159,11 +198,24 @@ class RobotClaim:
             self.dropped += 1
             raise
         self.accepted += 1
+        self.renewed = now  # fresh (a number never seen): only its run can have sent it
         return command
 
-    def _refuse(self, claim: int) -> None:
+    def _release(self, command: WheelCommand, what: str) -> None:
+        """The owner's MAC'd release ends its claim, however late (ending a claim, as stopping, is always safe; a
+        replay ends a claim that ended already). A repeat of an ended claim's release is ignored."""
+        if command.claim == self.owner:
+            self._end()
+            return None
+        if command.claim in self.ended:
+            return None
+        self._refuse(command.claim)
+        raise MessageError(Drop.FOREIGN, f"release of claim {claim_text(command.claim)}: {what} obeys "
+                                         f"{'claim ' + claim_text(self.owner) if self.owner else 'no claim'}; refused")
+
+    def _refuse(self, claim: int, reason: Drop = Drop.FOREIGN) -> None:
         self.foreign += 1
-        self.foreign_claim = claim
+        self.foreign_claim, self.foreign_reason = claim, reason
 
     def _request(self, command: WheelCommand, now: float, what: str, name: str) -> None:
         """A claim request (authenticated): granted if its token is there and the robot free; remembered until
@@ -171,10 +223,16 @@ class RobotClaim:
         if command.left != 0.0 or command.right != 0.0:
             self.invalid += 1
             raise MessageError(Drop.MALFORMED, f"{name}: a claim request (number 0) with speeds")
-        check_command_deadline(command, now)
+        try:
+            check_command_deadline(command, now)
+        except MessageError as error:  # the run is told why (its clock and this one's apart), not left guessing
+            if command.claim != self.owner:
+                self._refuse(command.claim, error.reason)
+            raise
         if command.claim == self.owner:
+            self.renewed = now  # a renewal, in time: at most a replay within its validity extends the lease
             return None
-        if command.claim in self.hosts and self._grant(command.claim):
+        if command.claim in self.hosts and self._grant(command.claim, now):
             return None
         if self.owner or command.claim in self.ended:
             self._refuse(command.claim)
@@ -190,6 +248,9 @@ class RobotClaim:
         self.applied = max(self.applied, seq)
 
     def status(self, seq: int, now: float, flags: int = 0) -> Status:
+        if self.lease_ended and not self.owner:
+            flags |= STATUS_LEASE_ENDED
+        flags |= refusal_flags(self.foreign_reason)
         return Status(seq, self.owner, self.applied, self.accepted, self.dropped, self.foreign, self.invalid,
                       self.foreign_claim, now, flags, 0 if self.owner else self.released)
 
@@ -209,7 +270,9 @@ class HostClaim:
     other_owner: int = 0  # the owner the newest status named, when not this claim
     foreign_poses: int = 0
     release_seen: bool = False  # the robot side said (status) that this claim ended: the stop window is watched
-    request_refused: bool = False  # the robot side refused this run's claim request (another lab key?)
+    releasing: bool = False  # the run is releasing its claim: the robot side's saying it ended is expected
+    lease_ended: bool = False  # the robot side ended this claim because its lease ran out
+    refusal: Drop | None = None  # why the robot side refused this run's claim request (in its words), before the grant
     _sequences: dict[int, SequenceCheck] = field(default_factory=dict)
 
     def source(self, pose: Pose) -> None:
@@ -237,11 +300,14 @@ class HostClaim:
         if status.owner != self.claim:
             if status.owner == 0 and status.released == self.claim and self.granted:
                 self.release_seen, self.status = True, status  # its final counts: the stop window included
+                self.lease_ended = bool(status.flags & STATUS_LEASE_ENDED)
                 self._check_applied(status, sent)
+                if not self.releasing:
+                    raise NotDriving(self.ended_early())
                 return
             self.other_owner = status.owner
             if status.foreign_claim == self.claim and not self.granted:
-                self.request_refused = True
+                self.refusal = status.refusal
             return
         self.granted, self.status, self.other_owner = True, status, 0
         if status.flags & STATUS_POSES:  # only the claimed robot side says how to tell its poses
@@ -251,6 +317,15 @@ class HostClaim:
         if received >= REFUSED_VERDICT_AFTER and status.dropped > status.accepted:
             raise NotDriving(f"the robot side refused most of this run's commands: accepted {status.accepted}, dropped "
                              f"{status.dropped} of {received} received (late, duplicate or out of order: see its log)")
+
+    def ended_early(self) -> str:
+        """Why the robot side ended this run's claim before the run released it."""
+        if self.lease_ended:
+            why = (f"no renewal of it reached the robot side for the claim's lease of {CLAIM_LEASE:g} s (the run "
+                   "stalled, or its messages were lost on the way)")
+        else:
+            why = "its token went (the robot side saw this run's Zenoh session end)"
+        return f"its robot side ended this run's claim {claim_text(self.claim)}: {why}"
 
     def _check_applied(self, status: Status, sent: int) -> None:
         if status.applied > sent:
@@ -263,6 +338,45 @@ class HostClaim:
         if status is None:
             return ""
         return describe_interference(status.foreign, status.invalid, claim_text(status.foreign_claim))
+
+
+class LeaseRenewal:
+    """A run's renewals of its granted claim, every ``LEASE_RENEW_PERIOD`` on a thread of their own: the lease
+    holds while the run lives, whatever it does between its commands (its start, its end), and runs out
+    when the run is killed or frozen. Stopped (and joined) before the release, so none follows it."""
+
+    def __init__(self, renew: Callable[[], None], period: float = LEASE_RENEW_PERIOD) -> None:
+        self._renew, self._period = renew, period
+        self._stopped = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="claim lease renewal", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stopped.wait(self._period):
+            self._renew()
+
+    def stop(self) -> None:
+        self._stopped.set()
+        self._thread.join()
+
+
+# the robot side's refusals of a run's claim request that waiting cannot mend: another lab key, clocks apart
+REQUEST_REFUSALS = (Drop.UNAUTHENTICATED, Drop.LATE, Drop.FUTURE)
+
+
+def refused_request(refusal: Drop | None, claim: int, key: str) -> str:
+    """What the robot side saw of a run's claim requests, in words, when it refused them (``REQUEST_REFUSALS``)."""
+    name = f"its robot side refused this run's claim {claim_text(claim)}"
+    if refusal is Drop.LATE:
+        return (f"{name}: its requests arrived after their deadline by the robot side's clock (each valid for "
+                f"{CLAIM_REQUEST_VALIDITY:g} s): the robot side's clock is ahead of this host's by more than "
+                f"{CLAIM_REQUEST_VALIDITY:g} s; synchronize the clocks (NTP, chrony)")
+    if refusal is Drop.FUTURE:
+        return (f"{name}: its requests' deadlines were more than {MAX_COMMAND_AHEAD:g} s ahead by the robot side's "
+                "clock: the robot side's clock is behind this host's by more than "
+                f"{MAX_COMMAND_AHEAD - CLAIM_REQUEST_VALIDITY:g} s; synchronize the clocks (NTP, chrony)")
+    return (f"{name}: the MAC of its requests does not check with the robot side's lab key (this run uses {key}; "
+            "give both sides the same file: docs/hil.md, \"Who can start the robot\")")
 
 
 def describe_interference(foreign: int, invalid: int, foreign_claim: str) -> str:

@@ -17,7 +17,8 @@ motor lag, clipped to the wheel speed limit, and a unicycle body. It runs in wal
 * a liveliness token on ``<prefix>/m3pi/<id>/alive`` says the robot is there;
 * a new claim (a host's token on ``<prefix>/m3pi/<id>/host/<claim>`` and its request with the lab key's
   MAC, while the robot is free: ``bridge.claim``) puts the robot back on its mark, at rest and waiting,
-  so one emulator serves any number of runs one after the other; the claim ends when that token goes.
+  so one emulator serves any number of runs one after the other; the claim ends on the run's MAC'd
+  release, when its lease runs out (the run stopped renewing it) or when that token goes.
 
 Each robot may differ from the model (``RobotSpec.truth``, from a robot truth file: ``bridge.robot_truth``):
 its own wheel gains, motor lag, limit and dead-band (in its ``dynamics``), its own command latency and pose
@@ -191,14 +192,17 @@ class EmulatedRobot:
 
     def receive(self, payload: bytes, now: float) -> None:
         """A wheel command arrived: check it, then queue it for its application time."""
+        self.expire(now)
         owner = self.claim.owner
         try:
             command = self.claim.check(payload, now, f"robot {self.spec.keys.robot}")
         except MessageError as error:
             self.refuse(error)
             return
-        if self.claim.owner != owner:  # a claim request granted
+        if self.claim.owner and self.claim.owner != owner:  # a claim request granted
             self._claimed(self.claim.owner, now)
+        elif owner and not self.claim.owner:
+            self._ended(owner, now, "its run released it")
         if command is not None:
             self.queue(command, now)
 
@@ -230,6 +234,7 @@ class EmulatedRobot:
     def host_arrived(self, claim: int, now: float) -> None:
         """A host's token appeared: if that makes a claim (the robot free and, with a lab key, the claim's request
         already here), the robot goes back on its mark, at rest, as before a first run."""
+        self.expire(now)
         if self.claim.host_appeared(claim, now):
             self._claimed(claim, now)
         elif self.claim.owner and claim != self.claim.owner:
@@ -252,13 +257,22 @@ class EmulatedRobot:
         self.link.go(LinkState.CONFIGURED, "a new host appeared: back on the initial pose, waiting for commands")
 
     def host_gone(self, claim: int, now: float) -> None:
-        if not self.claim.host_left(claim):
-            return
+        if self.claim.host_left(claim):
+            self._ended(claim, now, "its token went")
+
+    def expire(self, now: float) -> None:
+        """End the claim if its run stopped renewing it (``bridge.claim``: killed, frozen, cut off)."""
+        ended = self.claim.expire(now)
+        if ended:
+            self._ended(ended, now, f"its lease of {self.claim.lease:g} s ran out")
+
+    def _ended(self, claim: int, now: float, how: str) -> None:
+        """The claim ended: the wheels stop at once, whatever was queued."""
         self.claim_changed = True
         self.advance(now)
         self.pending.clear()
-        self.say(f"m3pi-emulator robot {self.spec.keys.robot}: claim {claim_text(claim)} released")
-        self._stop_wheels(now, "host's liveliness token dropped")
+        self.say(f"m3pi-emulator robot {self.spec.keys.robot}: claim {claim_text(claim)} released ({how})")
+        self._stop_wheels(now, f"claim ended: {how}")
 
     def sample(self, now: float, noise: random.Random) -> Pose:
         """The pose the motion capture sees now (with noise), numbered and stamped."""
@@ -355,6 +369,8 @@ class Emulator:
                         else:
                             for robot in self.robots:
                                 robot.advance(now)
+                        for robot in self.robots:
+                            robot.expire(now)
                         due = []
                         while self._outbox and self._outbox[0][0] <= now:
                             due.append(heapq.heappop(self._outbox))

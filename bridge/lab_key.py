@@ -86,18 +86,21 @@ def _parse(path: Path, text: str) -> bytes:
                       "`platoon hil-certs` or the first run writes it)")
 
 
-def read_private(path: Path, what: str, error: type[ValueError] = LabKeyError, missing: str = "",
+def read_private(path: Path, what: str, error: type[ValueError] = LabKeyError, missing: str = "", folder: str = "",
                  limit: int = 4096) -> bytes:
     """The bytes of a secret file the user named (a lab key, a CA's private key): a regular file, not a link,
     this user's, readable by no one else; whoever else can read it can drive the robots (or sign anyone into
     the lab). The one check of such a file: every refusal is one ``error`` naming ``what``, the file and what to
-    do (``missing``: the hint for a file that is not there)."""
+    do (``missing``, ``folder``: the hints for a file that is not there, and for a folder named instead)."""
     try:
         descriptor = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
     except FileNotFoundError:
         raise error(f"{what} {path}: no such file{missing}") from None
     except OSError as failure:
         raise error(f"{what} {path}: cannot open it ({failure.strerror or failure}; a link is refused)") from None
+    if stat.S_ISDIR(os.fstat(descriptor).st_mode):  # before fdopen, which refuses a folder with a traceback
+        os.close(descriptor)
+        raise error(f"{what} {path}: a folder, not a key file{folder}")
     with os.fdopen(descriptor, "rb") as stream:
         info = os.fstat(stream.fileno())
         if not stat.S_ISREG(info.st_mode):
@@ -115,7 +118,7 @@ def read_private(path: Path, what: str, error: type[ValueError] = LabKeyError, m
 def read_key(path: Path) -> LabKey:
     """The key in ``path``, checked (``read_private``)."""
     data = read_private(path, "lab key", missing=" (`platoon hil-certs DIR ...` writes DIR/lab.key; copy it to "
-                        "every run host and robot side)")
+                        "every run host and robot side)", folder=f" (the lab's DIR? name the file in it: {path / 'lab.key'})")
     try:
         return LabKey(_parse(path, data.decode("ascii")), path)
     except UnicodeDecodeError:

@@ -44,7 +44,17 @@ from fmus.model.factory import controller_stepper
 from fmus.model.vehicle import VEHICLE_INPUTS
 from fmus.component import ComponentError, LiveEvent, LiveRecord, percentile_summary
 
-from .claim import GRANT_GRACE, HostClaim, NotDriving, claim_text
+from .claim import (
+    CLAIM_LEASE,
+    CLAIM_REQUEST_VALIDITY,
+    GRANT_GRACE,
+    REQUEST_REFUSALS,
+    HostClaim,
+    LeaseRenewal,
+    NotDriving,
+    claim_text,
+    refused_request,
+)
 from .lab_key import LabKey, LabKeyError, load_lab_key
 from .motion_watch import MotionWatch
 from .protocol import (
@@ -67,10 +77,11 @@ STOP_REPEATS = 3  # a stop command is sent this many times: one lost message mus
 # the data sent just before it, and the robot side then counts the last stop as arriving after its claim
 RELEASE_DELAY = 0.02
 # s the run waits after releasing its claim for the robot side's status saying so, with the claim's final counts:
-# a command the run never sent, applied between its stops and the release, ends the run (exit 1) as mid-run
-RELEASE_WATCH = 1.0
+# a command the run never sent, applied between its stops and the release, ends the run (exit 1) as mid-run. A
+# release that did not arrive is made up for by the lease's end, so the watch outlasts the lease; unconfirmed,
+# the run ends with exit 1 saying so (bridge.claim)
+RELEASE_WATCH = CLAIM_LEASE + 1.0
 CLAIM_REQUEST_PERIOD = 0.1  # s between claim requests while the robot side has not granted the claim
-CLAIM_REQUEST_VALIDITY = 1.0  # s a claim request stays valid (its deadline)
 # the numbers of each raw message a link records (``LiveRecord``), in order: known before the link opens, so
 # a live view declares these streams before its first viewer connects (orchestrator/observers/hil_link.py)
 POSE_FIELDS = ("received", "stamp", "seq", "command_seq", "x", "y", "heading")
@@ -165,6 +176,8 @@ class LiveVehicle:
         self._releasing = False
         self._key: LabKey | None = None
         self._token: Any = None  # the claim's liveliness token, released last
+        self._renewal: LeaseRenewal | None = None  # renews the granted claim until its release
+        self._unconfirmed: str | None = None  # why the claim's end was not confirmed (the run then fails)
         self.on_wait: Callable[[str, float], None] | None = None  # (what the start waits for, s left), each second
 
     # -- events and records for the run (LiveComponent) -----------------------------------------
@@ -267,7 +280,7 @@ class LiveVehicle:
         shown = None  # the whole seconds left last reported to on_wait
         requested = 0.0
         while not self._ready():
-            if time.monotonic() - requested >= CLAIM_REQUEST_PERIOD and not self.claim.granted:
+            if time.monotonic() - requested >= CLAIM_REQUEST_PERIOD:  # once granted, each renews the claim's lease
                 requested = time.monotonic()
                 self._request_claim()
             left = deadline - time.monotonic()
@@ -281,6 +294,8 @@ class LiveVehicle:
                 self._stop_sent = True  # nothing of ours to stop: the robot does not obey this run
                 raise self._fail(start_time, problem)
             time.sleep(0.005)
+        if self.claim.granted:  # from here to its release the run renews its claim (bridge.claim)
+            self._renewal = LeaseRenewal(self._renew_claim)
         refusal = self._refusal(session)
         if refusal is not None:
             self._stop_sent = True  # it cannot hear this run's commands
@@ -297,14 +312,15 @@ class LiveVehicle:
 
     def _start_problem(self, waited: float) -> str | None:
         """Why waiting longer is useless: another claim holds the robot, or the robot side speaks another version."""
-        if self.claim.other_owner and not self.claim.granted and waited > GRANT_GRACE:
+        # a claim whose run died holds until its lease ends (a copy of its token holds nothing): wait that long
+        if self.claim.other_owner and not self.claim.granted and waited > GRANT_GRACE + CLAIM_LEASE:
             return (f"{self.what} is already driven by another run (its robot side obeys claim "
-                    f"{claim_text(self.claim.other_owner)}, not this run's {claim_text(self.claim.claim)}): one run "
-                    "per robot")
+                    f"{claim_text(self.claim.other_owner)}, not this run's {claim_text(self.claim.claim)}, and it was "
+                    f"renewed for longer than the claim's lease of {CLAIM_LEASE:g} s): one run per robot")
         for counters, key in ((self.pose_counters, self.keys.pose), (self.status_counters, self.keys.status)):
             if counters.dropped[Drop.VERSION.value] and not counters.accepted:
                 return f"{self.what}: the messages on {key} are of another protocol version ({counters.last_problem})"
-        if self.claim.request_refused and waited > GRANT_GRACE:
+        if self.claim.refusal in REQUEST_REFUSALS and waited > GRANT_GRACE:
             return self._not_found()
         return None
 
@@ -331,6 +347,21 @@ class LiveVehicle:
     def _load_key(self) -> LabKey | None:
         """The lab key our commands carry the MAC of (a ROS topic carries none: ``RosLiveVehicle``)."""
         return load_lab_key(self.settings.lab_key)
+
+    def _renew_claim(self) -> None:
+        """A renewal of the granted claim (a claim request of it); a session already gone renews nothing."""
+        try:
+            self._request_claim()
+        except zenoh.ZError:
+            pass
+
+    def _release_claim(self) -> None:
+        """The claim's MAC'd release, after the stops (sent as often: one lost must not leave it to the lease)."""
+        deadline = self.clock() + self.settings.command_validity
+        release = encode_wheels(WheelCommand(0, deadline, 0.0, 0.0, self.claim.claim, release=True), self._key,
+                                self.keys.wheels)
+        for _ in range(STOP_REPEATS):
+            self._publisher.put(release)
 
     def _request_claim(self) -> None:
         """Ask the robot side for the claim: a command numbered 0, both speeds 0, with the lab key's MAC."""
@@ -369,14 +400,18 @@ class LiveVehicle:
                     f"{self.keys.alive} ({where}; {cause})")
         if not self.claim.granted:
             key = f"lab key {self._key.path}" if self._key is not None else "no lab key"
-            if self.claim.request_refused:
-                return (f"{self.what}: its robot side refused this run's claim {claim_text(self.claim.claim)}: the MAC "
-                        f"of its requests does not check with the robot side's lab key (this run uses {key}; give "
-                        "both sides the same file: docs/hil.md, \"Who can start the robot\")")
+            if self.claim.refusal in REQUEST_REFUSALS:
+                return f"{self.what}: " + refused_request(self.claim.refusal, self.claim.claim, key)
+            if self.status_counters.accepted:  # the robot side speaks, and never named this run's claim
+                return (f"{self.what} is there but its robot side did not grant this run's claim "
+                        f"{claim_text(self.claim.claim)} within {self.settings.connect_timeout:g} s, and its status on "
+                        f"{self.keys.status} never named it: its requests on {self.keys.wheels} did not reach it (an "
+                        "access-control rule of the lab's Zenoh configs that keeps this host's puts on that key from "
+                        "it? docs/hil.md, \"A secure lab\")")
             return (f"{self.what} is there but its robot side did not grant this run's claim "
-                    f"{claim_text(self.claim.claim)} within {self.settings.connect_timeout:g} s: no status naming it on "
-                    f"{self.keys.status} (this run uses {key}: the robot side needs the same; a robot side of another "
-                    "protocol version sends none: update it)")
+                    f"{claim_text(self.claim.claim)} within {self.settings.connect_timeout:g} s: no status on "
+                    f"{self.keys.status} (a robot side of another protocol version sends none: update it; or an "
+                    "access-control rule keeps its status from this host)")
         counters = self.pose_counters
         return (f"{self.what} is there but sent no valid pose on {self.keys.pose} within "
                 f"{self.settings.connect_timeout:g} s ({counters.received} received, {counters.dropped_total} dropped"
@@ -524,17 +559,26 @@ class LiveVehicle:
         if self._not_driving is not None and self.state.state != LinkState.ERROR:
             raise self._fail(self._time, f"{self.what} does not obey this run: {self._not_driving} (seen while "
                                          "it stopped)")
+        if self._unconfirmed is not None:
+            raise self._fail(self._time, self._unconfirmed)
         if self.state.state != LinkState.STOPPED and self.state.state != LinkState.ERROR:
             self.state.go(LinkState.STOPPED, "run ended; stop command sent")
 
     def _release_and_watch(self) -> None:
-        """Undeclare the claim token and wait (``RELEASE_WATCH``) for the robot side's status naming the claim as
-        ended: its counts then cover everything applied under the claim, the stop window included."""
+        """Release the claim (its MAC'd release, then the token) and wait (``RELEASE_WATCH``) for the robot side's
+        status naming the claim as ended: its counts then cover everything applied under the claim, the stop
+        window included. Unconfirmed, the run says so and fails in ``close``: the robot may be held still."""
         token, self._token = self._token, None
-        self._releasing = True
+        if self._renewal is not None:
+            self._renewal.stop()
+        with self._lock:
+            self._releasing = self.claim.releasing = True
         if token is None:
             return
         try:
+            if self.claim.granted:
+                self._release_claim()
+                time.sleep(RELEASE_DELAY)  # the release ahead of the token's going: the robot side says which ended it
             token.undeclare()
         except zenoh.ZError:
             return
@@ -547,9 +591,11 @@ class LiveVehicle:
                     return
             time.sleep(0.005)
         if self._lost is None:
-            self._events.append(LiveEvent("Warning", f"{self.what}: its robot side did not confirm the claim's "
-                                                     f"release within {RELEASE_WATCH:g} s: what it applied after the "
-                                                     "last status is not known"))
+            self._unconfirmed = (f"{self.what}: its robot side did not confirm the end of this run's claim "
+                                 f"{claim_text(self.claim.claim)} within {RELEASE_WATCH:g} s (no status on "
+                                 f"{self.keys.status} naming it released): the robot may still be held for the next "
+                                 "run, and what it applied after its last status is not known")
+            self._events.append(LiveEvent("Warning", self._unconfirmed))
 
 
 def tls_listener_hint(settings: LiveSettings) -> str:

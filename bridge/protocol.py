@@ -12,19 +12,23 @@ Keys (one namespace per run and robot, slash-separated so that zenoh-bridge-ros2
 
 Payloads are fixed-size little-endian structs, version byte first (docs/hil.md has the tables).
 Version 2 added the claim id to every pose and command and the status message; version 3 the MAC of
-every wheel command (``bridge.lab_key``), claim requests and the status's released claim. A peer of
-another version's messages are dropped as ``version`` and named as such, never misread:
+every wheel command (``bridge.lab_key``), claim requests and the status's released claim; version 4 the
+claim's lease (the run renews it; the robot side ends a claim not renewed for ``bridge.claim.CLAIM_LEASE``)
+and the run's MAC'd release. A peer of another version's messages are dropped as ``version`` and named as
+such, never misread:
 
 * pose, 52 bytes: version u8, kind u8 = 1, flags u16 = 0, seq u32, command_seq u32 (the last wheel
   command the robot had applied when the pose was taken; 0 = none), claim u64 (the claim that command
   belonged to; 0 = unknown, e.g. a motion capture), stamp f64 (s, the pose's own Unix time), x f64
   (m), y f64 (m), heading f64 (rad, counter-clockwise from x)
-* wheels, 56 bytes: version u8, kind u8 = 2, flags u16 = 0, seq u32 (from 1 per claim; 0 = a claim
+* wheels, 56 bytes: version u8, kind u8 = 2, flags u16 (bit 0: the release of the claim, numbered 0,
+  both speeds 0), seq u32 (from 1 per claim; 0 = a claim
   request, both speeds 0), claim u64, deadline f64 (Unix time after which the robot stops by itself),
   left f64 (m/s), right f64 (m/s), then mac 16 bytes (HMAC-SHA256 with the lab key over the command key
   and the 40 bytes before it, ``bridge.lab_key``)
 * status, 60 bytes: version u8, kind u8 = 3, flags u16 (bit 0: this robot side publishes the poses,
-  so they echo the claim), seq u32, owner u64 (the claim it obeys; 0 = none), applied u32, accepted
+  so they echo the claim; bit 1: the released claim ended because its lease ran out; bits 4-7: why the
+  last refused message was refused, ``REFUSALS``), seq u32, owner u64 (the claim it obeys; 0 = none), applied u32, accepted
   u32, dropped u32 (the owner's commands: last applied, accepted, dropped as late, duplicate ...),
   foreign u32 (well-formed commands of another claim or without a valid MAC, refused), invalid u32
   (undecodable commands), foreign_claim u64 (the claim of the last refused one), released u64 (the claim
@@ -46,7 +50,7 @@ from enum import Enum
 from struct import Struct
 from typing import Any
 
-VERSION = 3
+VERSION = 4
 DEFAULT_PREFIX = "platoon"
 MAX_PAYLOAD = 256  # bytes: anything larger is "oversized" and not even looked at
 
@@ -59,6 +63,9 @@ POSE_SIZE, WHEELS_BODY, STATUS_SIZE = _POSE.size, _WHEELS.size, _STATUS.size
 WHEELS_SIZE = WHEELS_BODY + MAC_SIZE
 _LAYOUTS = {POSE_KIND: _POSE, WHEELS_KIND: _WHEELS, STATUS_KIND: _STATUS}
 STATUS_POSES = 0x1  # status flag: this robot side publishes the robot's poses (they echo the claim)
+STATUS_LEASE_ENDED = 0x2  # status flag: the released claim ended because its run stopped renewing it (bridge.claim)
+REFUSAL_SHIFT = 4  # status flags bits 4-7: why the robot side refused the last refused message (foreign_claim's)
+WHEELS_RELEASE = 0x1  # wheel command flag: the run releases its claim (a MAC'd release: a copied token ends nothing)
 MAX_COMMAND_AHEAD = 6.0  # s: a command whose deadline is further ahead is refused (config: validity <= 5 s)
 
 _PREFIX_SEGMENT = re.compile(r"^[A-Za-z0-9_.-]+$")
@@ -77,6 +84,11 @@ class Drop(Enum):
     FUTURE = "future"  # stamped ahead of the receiver's clock (clocks not synchronized?), or a deadline too far
     FOREIGN = "foreign"  # not of this claim: another run's or a stranger's
     UNAUTHENTICATED = "unauthenticated"  # a wheel command whose MAC does not check with the lab key
+
+
+# the codes of those bits: 0 none; what the run tells its user from them (the robot side's view, not a guess)
+REFUSALS: tuple[Drop | None, ...] = (None, Drop.UNAUTHENTICATED, Drop.FOREIGN, Drop.LATE, Drop.FUTURE)
+STATUS_FLAGS = STATUS_POSES | STATUS_LEASE_ENDED | (0xF << REFUSAL_SHIFT)
 
 
 class MessageError(ValueError):
@@ -105,6 +117,7 @@ class WheelCommand:
     left: float
     right: float
     claim: int = 0
+    release: bool = False  # the run releases its claim (numbered 0, both speeds 0)
 
 
 @dataclass(frozen=True)
@@ -122,6 +135,16 @@ class Status:
     stamp: float
     flags: int = 0
     released: int = 0  # with owner 0: the claim that ended last (the counts above are still its own)
+
+    @property
+    def refusal(self) -> Drop | None:
+        """Why the robot side refused the last refused message (that of ``foreign_claim``), if it says."""
+        return REFUSALS[(self.flags >> REFUSAL_SHIFT) & 0xF]
+
+
+def refusal_flags(reason: Drop | None) -> int:
+    """The status flags that say ``reason`` (a refusal of another kind says none)."""
+    return (REFUSALS.index(reason) if reason in REFUSALS else 0) << REFUSAL_SHIFT
 
 
 def check_prefix(prefix: str) -> list[str]:
@@ -179,7 +202,8 @@ def encode_pose(pose: Pose) -> bytes:
 def encode_wheels(command: WheelCommand, key: Any = None, key_expr: str = "") -> bytes:
     """The command's bytes, with the MAC the lab key ``key`` (a ``bridge.lab_key.LabKey``) makes for the
     command key ``key_expr``; without a key the MAC is zeros (a stranger's, refused by every robot side)."""
-    body = _WHEELS.pack(VERSION, WHEELS_KIND, 0, command.seq, command.claim, command.deadline, command.left,
+    flags = WHEELS_RELEASE if command.release else 0
+    body = _WHEELS.pack(VERSION, WHEELS_KIND, flags, command.seq, command.claim, command.deadline, command.left,
                         command.right)
     return body + (key.mac(key_expr, body) if key is not None else bytes(MAC_SIZE))
 
@@ -225,15 +249,23 @@ def decode_pose(payload: bytes) -> Pose:
 
 def decode_wheels(payload: bytes) -> WheelCommand:
     """A wheel command from its bytes, or ``MessageError`` saying why not."""
-    _, _, _, seq, claim, deadline, left, right = _header(bytes(payload), WHEELS_KIND, WHEELS_SIZE, "wheel command")
+    _, _, flags, seq, claim, deadline, left, right = _header(bytes(payload), WHEELS_KIND, WHEELS_SIZE, "wheel command",
+                                                             WHEELS_RELEASE)
     _finite("wheel command", ("deadline", "left", "right"), (deadline, left, right))
-    return WheelCommand(seq, deadline, left, right, claim)
+    release = bool(flags & WHEELS_RELEASE)
+    if release and (seq != 0 or left != 0.0 or right != 0.0):
+        raise MessageError(Drop.MALFORMED, f"wheel command {seq}: a release (flag bit 0) numbered {seq} or with speeds "
+                                           "(a release is numbered 0, both speeds 0)")
+    return WheelCommand(seq, deadline, left, right, claim, release)
 
 
 def decode_status(payload: bytes) -> Status:
     """A robot side's status from its bytes, or ``MessageError`` saying why not."""
-    _, _, flags, *numbers, released, stamp = _header(bytes(payload), STATUS_KIND, STATUS_SIZE, "status", STATUS_POSES)
+    _, _, flags, *numbers, released, stamp = _header(bytes(payload), STATUS_KIND, STATUS_SIZE, "status", STATUS_FLAGS)
     _finite("status", ("stamp",), (stamp,))
+    if (flags >> REFUSAL_SHIFT) & 0xF >= len(REFUSALS):
+        raise MessageError(Drop.MALFORMED, f"status: refusal code {(flags >> REFUSAL_SHIFT) & 0xF} in its flags, "
+                                           f"expected at most {len(REFUSALS) - 1}")
     return Status(*numbers, stamp=stamp, flags=flags, released=released)
 
 

@@ -4,8 +4,9 @@ The m3pi is a 3pi base running Pololu's 3pi serial slave program, reached throug
 transparent mode: whatever bytes this program writes to the XBee's serial port come out of the
 robot's XBee into the 3pi's UART (115200 baud, 8N1). This endpoint stands for the robot on Zenoh: it
 declares the robot's liveliness token, obeys the first run that claims it with the lab key
-(``bridge.claim``, ``bridge.lab_key``) until that run's token goes, checks every wheel command (decode, claim, sequence, deadline) and writes the
-owner's valid ones as motor bytes at once; it reports its claim and counts on the status key.
+(``bridge.claim``, ``bridge.lab_key``) until that claim ends (the run's MAC'd release, its lease not renewed,
+or its token gone), checks every wheel command (decode, claim, sequence, deadline) and writes the owner's
+valid ones as motor bytes at once; it reports its claim and counts on the status key.
 
 Byte format (3pi serial slave, a TReX-like command set: an opcode 0x80..0xFF, then data bytes
 0x00..0x7F):
@@ -23,7 +24,7 @@ Byte format (3pi serial slave, a TReX-like command set: an opcode 0x80..0xFF, th
 
 Safety: the motors are zeroed at start-up (the slave keeps running its last speeds, possibly from an
 earlier session), when the current command's deadline passes, when no valid command came for
-``command_timeout`` s, when the host's liveliness token goes away, and always on exit before the
+``command_timeout`` s, when the claim ends (release, lease, the host's liveliness token), and always on exit before the
 port closes. The serial slave has no watchdog of its own, so a lost stop frame (transparent mode has
 no end-to-end acknowledgement) leaves the robot running until the next frame: keep the robot in
 reach of the XBee.
@@ -310,14 +311,17 @@ class SerialEndpoint:
         with self._lock:
             if self._closing or self._fault is not None:
                 return
+            self._expire(arrival)
             owner = self._claim.owner
             try:
                 command = self._claim.check(payload, arrival, f"robot {self.robot}")
             except MessageError as error:
                 self._drop(error)
                 return
-            if self._claim.owner != owner:
+            if self._claim.owner and self._claim.owner != owner:
                 self._claimed(self._claim.owner, "claim request")
+            elif owner and not self._claim.owner:
+                self._ended(owner, "its run released it")
             if command is None:
                 return
             self.counters.accept()
@@ -345,6 +349,7 @@ class SerialEndpoint:
         with self._lock:
             if self._closing or self._fault is not None:
                 return
+            self._expire(time.time())
             if sample.kind == zenoh.SampleKind.PUT:
                 if self._claim.host_appeared(claim, time.time()):
                     self._claimed(claim, str(sample.key_expr))
@@ -352,12 +357,22 @@ class SerialEndpoint:
                     self._say(f"host of claim {claim_text(claim)} appeared while claim "
                               f"{claim_text(self._claim.owner)} holds the robot; its commands are refused")
             elif self._claim.host_left(claim):
-                self._claim_changed = True
-                self._say(f"claim {claim_text(claim)} released ({sample.key_expr})")
-                try:
-                    self._stop_motors("host gone")
-                except SerialEndpointError:
-                    return
+                self._ended(claim, f"its token {sample.key_expr} went")
+
+    def _expire(self, now: float) -> None:
+        """End the claim if its run stopped renewing it (``bridge.claim``: killed, frozen, cut off)."""
+        ended = self._claim.expire(now)
+        if ended:
+            self._ended(ended, f"its lease of {self._claim.lease:g} s ran out")
+
+    def _ended(self, claim: int, how: str) -> None:
+        """The claim ended: the motors stop at once (a failing port becomes the fault ``run`` raises)."""
+        self._claim_changed = True
+        self._say(f"claim {claim_text(claim)} released ({how})")
+        try:
+            self._stop_motors(f"claim ended: {how}")
+        except SerialEndpointError:
+            return
 
     def _claimed(self, claim: int, how: str) -> None:
         self._claim_changed = True
@@ -388,6 +403,7 @@ class SerialEndpoint:
                     if self._fault is not None:
                         raise self._fault
                     self._watch_once()
+                    self._expire(now)
                     due = self._claim_changed or now - reported >= STATUS_PERIOD
                     if due:
                         status_seq += 1

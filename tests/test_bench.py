@@ -370,3 +370,33 @@ def test_platoon_bench_outside_a_checkout_says_where_the_benchmarks_are(tmp_path
     assert exit_.value.code == 2
     message = capsys.readouterr().err.strip()
     assert message.count("\n") == 0 and "benchmarks/" in message and "checkout" in message
+
+
+def test_bench_readback_stopped_by_sigterm_ends_its_child_and_leaves_no_scratch(tmp_path: Path, fmu_dir: Path) -> None:
+    """The issue's case: SIGTERM left `bench readback`'s child running and 31 MB in /tmp. Now: exit 143, one
+    line, the child gone, no bench-readback-* folder left (TMPDIR is this test's own)."""
+    import os
+    import signal
+    import time
+
+    psutil = pytest.importorskip("psutil")
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    env = {**os.environ, "TMPDIR": str(scratch), "COLUMNS": "200"}
+    bench = subprocess.Popen([sys.executable, "-c", "from orchestrator.cli import main; main()", "bench", "readback",
+                              "--rounds", "1", "-q", "--out-dir", str(tmp_path / "out")], cwd=REPO, env=env,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    children: list = []
+    while not children:  # an event: the suite's first child process (a run writing the study's trace)
+        assert bench.poll() is None and time.monotonic() < deadline, bench.communicate()
+        children = psutil.Process(bench.pid).children(recursive=True)
+        time.sleep(0.05)
+    assert list(scratch.glob("bench-readback-*"))  # its scratch folder is there while it works
+    bench.send_signal(signal.SIGTERM)
+    _, err = bench.communicate(timeout=120)
+    assert bench.returncode == 143, err
+    assert "Traceback" not in err and "bench readback: stopped by SIGTERM" in err, err
+    gone, alive = psutil.wait_procs(children, timeout=30)
+    assert not alive, alive
+    assert not list(scratch.glob("bench-readback-*"))

@@ -29,6 +29,7 @@ import pytest
 from bridge.lab_key import LabKey
 from bridge.protocol import (
     MAX_PAYLOAD,
+    STATUS_LEASE_ENDED,
     STATUS_POSES,
     Drop,
     MessageError,
@@ -78,7 +79,7 @@ def test_a_version_1_peer_is_named_not_misread() -> None:
     old_pose = struct.pack("<BBHIIdddd", 1, 1, 0, 5, 4, 1.7e9, 0.5, 0.5, 0.0)
     old_command = struct.pack("<BBHIddd", 1, 2, 0, 5, 1.7e9, 0.3, 0.3)
     for decode, payload in ((decode_pose, old_pose), (decode_wheels, old_command)):
-        with pytest.raises(MessageError, match="protocol version 1, expected 3") as refused:
+        with pytest.raises(MessageError, match="protocol version 1, expected 4") as refused:
             decode(payload)
         assert refused.value.reason is Drop.VERSION
 
@@ -87,7 +88,7 @@ def test_a_version_1_peer_is_named_not_misread() -> None:
     (bytes(MAX_PAYLOAD + 1), Drop.OVERSIZED, "257 bytes, more than 256"),
     (b"", Drop.MALFORMED, "0 bytes, expected 52"),
     (encode_pose(Pose(1, 0, 1.0, 0.0, 0.0, 0.0))[:-1], Drop.MALFORMED, "51 bytes, expected 52"),
-    (b"\x02" + encode_pose(Pose(1, 0, 1.0, 0.0, 0.0, 0.0))[1:], Drop.VERSION, "protocol version 2, expected 3"),
+    (b"\x02" + encode_pose(Pose(1, 0, 1.0, 0.0, 0.0, 0.0))[1:], Drop.VERSION, "protocol version 2, expected 4"),
     (encode_wheels(WheelCommand(1, 1.0, 0.0, 0.0))[:-4], Drop.MALFORMED, "message kind 2, expected 1"),
     (encode_pose(Pose(1, 0, 1.0, math.nan, 0.0, math.inf)), Drop.NON_FINITE, "x = nan, heading = inf (not finite)"),
 ])
@@ -195,7 +196,8 @@ def test_only_the_claim_holding_the_robot_moves_it_and_nothing_sent_before_a_cla
     assert robot.command == (0.3, 0.3) and robot.command_seq == 2
     status = decode_status(robot.status(100.04))
     assert (status.owner, status.applied, status.accepted, status.dropped) == (OTHER + 1, 2, 2, 0)
-    assert (status.foreign, status.foreign_claim, status.flags) == (2, OTHER, STATUS_POSES)  # its request and command
+    assert (status.foreign, status.foreign_claim, status.flags & STATUS_POSES) == (2, OTHER, STATUS_POSES)  # its request, command
+    assert status.refusal is Drop.FOREIGN  # the robot side says why: another claim holds it
     assert any(f"of claim {claim_text(OTHER)}" in line and "refused" in line for line in said)
     robot.host_gone(OTHER + 1, 100.05)  # the run released it: the wheels stop at once
     assert robot.command == (0.0, 0.0) and robot.claim.owner == 0
@@ -247,6 +249,91 @@ def test_a_stop_of_the_claim_is_applied_whatever_its_number_even_after_the_claim
     assert robot.command == (0.0, 0.0) and robot.counters.dropped["late"] == 1
     claim(robot, CLAIM, 101.0)  # its token and request again (a copy): never granted again
     assert robot.claim.owner == 0
+
+
+def release(claim_id: int, deadline: float, key: LabKey | None = LAB_KEY) -> bytes:
+    """The release of a claim, with the MAC of ``key`` (None: a keyless copy's zeros)."""
+    return encode_wheels(WheelCommand(0, deadline, 0.0, 0.0, claim_id, release=True), key, KEYS.wheels)
+
+
+def test_a_copied_token_holds_nothing_the_run_s_mac_d_release_or_its_lease_ends_the_claim() -> None:
+    """The issue's case: someone without the lab key holds a copy of the run's token, so its going never
+    reaches the robot side. A keyless release ends nothing; the run's MAC'd release ends the claim at
+    once (a repeat is ignored). A run that goes silent (SIGKILL, frozen, cut off) loses its claim
+    ``CLAIM_LEASE`` after its last renewal, not before, and the next run claims the robot then."""
+    from bridge.claim import CLAIM_LEASE
+
+    robot, said = _robot()  # claimed by CLAIM at 100.0; its token (the run's, or a copy) stays
+    robot.receive(wheels(1, 100.2, 0.3, 0.3), 100.1)
+    robot.receive(release(CLAIM, 100.3, key=None), 100.15)  # the copy's holder: no MAC
+    assert robot.claim.owner == CLAIM and robot.counters.dropped["unauthenticated"] == 1
+    robot.receive(release(CLAIM, 100.3), 100.2)  # the run's own
+    assert robot.claim.owner == 0 and robot.command == (0.0, 0.0)
+    status = decode_status(robot.status(100.21))
+    assert (status.owner, status.released, status.flags & STATUS_LEASE_ENDED) == (0, CLAIM, 0)
+    assert "released (its run released it)" in " ".join(said)
+    robot.receive(release(CLAIM, 100.3), 100.22)  # its repeat: nothing more, nothing counted
+    assert robot.counters.received == 2 and robot.claim.foreign == 1  # the keyless copy's only
+
+    claim(robot, OTHER, 101.0)  # the next run, while the copy of CLAIM's token is still there
+    assert robot.claim.owner == OTHER
+    robot.receive(wheels(1, 101.2, 0.3, 0.3, claim=OTHER), 101.1)  # its last message: then it is killed
+    robot.expire(101.1 + CLAIM_LEASE)  # the lease holds until CLAIM_LEASE after the last renewal ...
+    assert robot.claim.owner == OTHER
+    robot.expire(101.1 + CLAIM_LEASE + 0.01)  # ... and not longer
+    assert robot.claim.owner == 0 and robot.command == (0.0, 0.0)
+    status = decode_status(robot.status(103.2))
+    assert (status.released, status.flags & STATUS_LEASE_ENDED) == (OTHER, STATUS_LEASE_ENDED)
+    assert f"released (its lease of {CLAIM_LEASE:g} s ran out)" in " ".join(said)
+    claim(robot, OTHER + 1, 103.2)
+    assert robot.claim.owner == OTHER + 1
+
+
+def test_only_fresh_messages_of_the_run_renew_its_lease() -> None:
+    """A renewal (a claim request of the granted claim, in time) or a command in sequence renews the lease; a
+    replay of either (someone who reads the traffic) does not, beyond the request's own validity."""
+    from bridge.claim import CLAIM_LEASE
+
+    robot, _ = _robot()
+    request = wheels(0, 101.0, 0.0, 0.0)  # the run's renewal at 100.5, valid 0.5 s
+    robot.receive(request, 100.5)
+    robot.receive(wheels(1, 101.0, 0.3, 0.3), 100.6)
+    command = wheels(2, 101.0, 0.0, 0.0)
+    robot.receive(command, 100.7)  # the run's last message: a stop
+    for _ in range(3):  # a reader replays both, every second
+        robot.receive(request, 100.7 + CLAIM_LEASE)  # past its deadline: late
+        robot.receive(command, 100.7 + CLAIM_LEASE)  # a stop again: applied, but it is no renewal
+    robot.expire(100.71 + CLAIM_LEASE)
+    assert robot.claim.owner == 0 and robot.claim.released == CLAIM
+
+
+def test_the_run_is_told_when_the_robot_side_ended_its_claim_and_why_its_requests_were_refused() -> None:
+    """Mid-run, a status naming the run's claim as ended (its lease ran out: the run stalled) ends the run
+    with that reason; while the run releases it, it is the expected confirmation. A request refused as
+    late or too far ahead is told as the robot side's clock being apart, not as a lab key problem."""
+    from bridge.claim import CLAIM_LEASE, HostClaim, NotDriving, refused_request
+    from bridge.protocol import STATUS_LEASE_ENDED, refusal_flags
+
+    host = HostClaim(claim=CLAIM)
+    host.robot_status(Status(1, CLAIM, 0, 0, 0, 0, 0, 0, 1.0, STATUS_POSES), sent=0)
+    with pytest.raises(NotDriving, match=f"ended this run's claim {CLAIM:016x}: no renewal of it reached the robot "
+                                         f"side for the claim's lease of {CLAIM_LEASE:g} s"):
+        host.robot_status(Status(2, 0, 5, 5, 0, 0, 0, 0, 1.0, STATUS_LEASE_ENDED, released=CLAIM), sent=5)
+    host.releasing = True
+    host.robot_status(Status(3, 0, 5, 5, 0, 0, 0, 0, 1.0, 0, released=CLAIM), sent=5)
+    assert host.release_seen
+
+    robot, _ = _robot()
+    for skew, reason, words in ((2.0, Drop.LATE, "ahead of this host's by more than 1 s"),
+                                (-7.0, Drop.FUTURE, "behind this host's by more than 5 s")):
+        robot.receive(wheels(0, 101.0, 0.0, 0.0, claim=OTHER + 5), 100.0 + skew)  # sent at 100.0, valid 1 s
+        status = decode_status(robot.status(101.0 + abs(skew)))
+        assert (status.foreign_claim, status.refusal) == (OTHER + 5, reason)
+        waiting = HostClaim(claim=OTHER + 5)
+        waiting.robot_status(status, sent=0)
+        assert waiting.refusal is reason and words in refused_request(waiting.refusal, OTHER + 5, "lab key k")
+    assert decode_status(encode_status(Status(1, 0, 0, 0, 0, 0, 0, 0, 1.0, refusal_flags(Drop.UNAUTHENTICATED)))
+                         ).refusal is Drop.UNAUTHENTICATED
 
 
 def test_the_run_tells_its_robots_poses_from_foreign_ones_and_notices_when_the_robot_obeys_someone_else() -> None:
@@ -538,7 +625,7 @@ def test_live_robot_tracks_the_all_fmu_run(tmp_path: Path) -> None:
         outputs.append(out)
         a = tracked(lambda index: live if index == 0 else attempt(index), simulated)
         out = outputs[-1]
-    assert "running -> stopped (stop command)" in log.read_text() or "host's liveliness token dropped" in log.read_text()
+    assert "running -> stopped (stop command)" in log.read_text() or "(claim ended: " in log.read_text()
     # the live vehicle's raw link, its statistics and its states are in the same trace
     assert {"vehicle3/pose", "vehicle3/command", "vehicle3/link"} <= set(a.live)
     assert len(a.live["vehicle3/command"]["seq"]) >= 1000
@@ -802,7 +889,7 @@ def test_strangers_commands_never_move_the_robot_and_runs_back_to_back_drive_lis
             assert f"refused 12 commands of other claims (the last of claim {claim_text(stranger_claim)}) and 1 " \
                    "invalid" in said, said
             stranger_commands(stranger, stranger_claim)
-    assert "protocol version 1, expected 3" in log.read_text()
+    assert "protocol version 1, expected 4" in log.read_text()
 
 
 @pytest.mark.realtime
@@ -918,6 +1005,96 @@ def test_a_stranger_who_reads_nothing_moves_an_idle_robot_0_m_and_a_run_then_dri
 
 
 @pytest.mark.realtime
+def test_a_keyless_copy_of_each_run_s_token_holds_no_robot_after_its_run_completes_or_is_killed(tmp_path: Path) -> None:
+    """The issue's case: a client of the emulator's port without the lab key reads each run's claim off the
+    robot's poses and declares a copy of its token, held to the end. The run that completes ends its claim
+    with its MAC'd release (exit 0, the release confirmed); a run SIGKILLed mid-drive loses its claim when its
+    lease runs out (measured at the robot side's status, from the kill); the run after each drives the robot."""
+    from bridge.claim import CLAIM_LEASE
+    from bridge.session import open_session, zenoh_config
+
+    port = free_port()
+    claims: list[int] = []
+    ended: dict[int, tuple[float, int]] = {}  # claim -> (when the robot side said it ended, its status flags)
+
+    def on_pose(sample: Any) -> None:
+        claim = decode_pose(sample.payload.to_bytes()).claim
+        if claim and claim not in claims:
+            claims.append(claim)
+
+    def on_status(sample: Any) -> None:
+        status = decode_status(sample.payload.to_bytes())
+        if status.released and status.released not in ended:
+            ended[status.released] = (time.monotonic(), status.flags)
+
+    with emulator(port, tmp_path) as (_, log), \
+            open_session(zenoh_config(connect=[endpoint(port)]), "stranger") as stranger:
+        watchers = [stranger.declare_subscriber(KEYS.pose, on_pose), stranger.declare_subscriber(KEYS.status, on_status)]
+        copies = []
+
+        def copy_token_of_run(number: int, run: subprocess.Popen) -> int:
+            wait_for(lambda: len(claims) >= number, f"run {number}'s claim in the robot's poses", run)
+            copies.append(stranger.liveliness().declare_token(KEYS.host(claims[number - 1])))
+            return claims[number - 1]
+
+        first = start_run(port, tmp_path / "first.mcap", 3.0, *PATIENT)
+        copy_token_of_run(1, first)
+        code, out, err = finish(first)
+        assert code == 0, err  # its release confirmed, though its token is still there
+        assert ended[claims[0]][1] & STATUS_LEASE_ENDED == 0  # its release, not its lease, ended it
+        assert "released (its run released it)" in log.read_text()
+
+        killed = start_run(port, tmp_path / "killed.mcap", 30.0, *PATIENT)
+        wait_for_driving(log, 2, killed)
+        copy_token_of_run(2, killed)
+        killed.kill()
+        when_killed = time.monotonic()
+        killed.communicate()
+        code, out, err = finish(start_run(port, tmp_path / "after.mcap", 3.0, *PATIENT))
+        for token in copies + watchers:
+            token.undeclare()
+    assert code == 0, err
+    lease_end, flags = ended[claims[1]]
+    print(f"\n[copied token] the killed run's claim ended {lease_end - when_killed:.2f} s after its SIGKILL "
+          f"(lease {CLAIM_LEASE:g} s)")
+    assert flags & STATUS_LEASE_ENDED and lease_end - when_killed <= CLAIM_LEASE + 0.5
+    assert drove(tmp_path / "after.mcap", 3.0) > 0.8
+
+
+@pytest.mark.realtime
+def test_a_run_whose_release_its_robot_side_does_not_confirm_ends_non_zero_saying_so(tmp_path: Path) -> None:
+    """The robot side freezes (SIGSTOP) at the run's first stop command, before its release arrives: no status
+    confirms the claim's end, so the run cannot know whether the robot is free or what it applied; it waits
+    out the lease, then ends with exit 1 saying so, and its trace says failed."""
+    from bridge.session import open_session, zenoh_config
+
+    port, host_port = free_port(), free_port()
+    trace = tmp_path / "unconfirmed.mcap"
+    frozen: list[float] = []
+    with emulator(port, tmp_path) as (robot, log):
+        run = start_run(port, trace, 4.0, f'vehicles.3.listen=["{endpoint(host_port)}"]', *PATIENT)
+        wait_for_driving(log, 1, run)  # the run listens: the watcher meets it to see its commands
+        with open_session(zenoh_config(connect=[endpoint(port), endpoint(host_port)]), "watcher") as session:
+            def on_command(sample: Any) -> None:
+                command = decode_wheels(sample.payload.to_bytes())
+                if command.seq > 1 and command.left == command.right == 0.0 and not frozen:  # the run's first stop
+                    os.kill(robot.pid, signal.SIGSTOP)
+                    frozen.append(time.time())
+            subscriber = session.declare_subscriber(KEYS.wheels, on_command)
+            code, out, err = finish(run, timeout=60)
+            subscriber.undeclare()
+        os.kill(robot.pid, signal.SIGCONT)
+        # thawed, it sees the lease ran out (its first look at the clock) and ends the claim
+        wait_for(lambda: "released (its lease of" in log.read_text(), lambda: f"the claim's end: {log.read_text()}")
+    assert frozen, "no stop command seen"
+    assert code == 1, (out, err)
+    said = " ".join(err.split())
+    assert "its robot side did not confirm the end of this run's claim" in said, said
+    assert "the robot may still be held for the next run" in said, said
+    assert load(trace).run["status"] == "failed"
+
+
+@pytest.mark.realtime
 def test_a_run_whose_commands_the_robot_side_mostly_refuses_ends_non_zero(tmp_path: Path) -> None:
     """Commands valid for 1 us reach the emulator after their deadline (encoding and the transport alone
     take tens of us): it drops them as late and says so on its status; after 50 the run ends with exit 1."""
@@ -955,6 +1132,47 @@ def test_a_lab_key_file_others_can_read_or_a_link_is_refused_and_the_default_one
     garbage.chmod(0o600)
     with pytest.raises(LabKeyError, match="not a lab key file"):
         load_lab_key(garbage)
+
+
+def test_a_robot_side_whose_clock_is_7_s_behind_is_told_as_such_not_as_a_lab_key_problem(tmp_path: Path) -> None:
+    """The issue's case: the robot side drops every claim request as too far ahead (its clock 7 s behind) and
+    says why in its status; the run tells the user the clocks are apart (it said: check the lab key)."""
+    import threading
+
+    from bridge.emulator import Emulator, EmulatorSettings, RobotSpec
+    from bridge.lab_key import load_lab_key
+    from bridge.session import zenoh_config
+    from fmus.model.dynamics import M3piDynamics
+
+    port = free_port()
+    said: list[str] = []
+    robot = Emulator([RobotSpec(KEYS, 0.0, 0.0, 0.0, 0.3, M3piDynamics(0.5))], EmulatorSettings(lab_key=load_lab_key()),
+                     zenoh_config(listen=[endpoint(port)]), said.append, clock=lambda: time.time() - 7.0)
+    thread = threading.Thread(target=robot.run, daemon=True)
+    thread.start()
+    try:
+        code, _, err = finish(start_run(port, tmp_path / "skewed.mcap", 2.0), timeout=120)
+    finally:
+        robot.stop_event.set()
+        thread.join(30)
+    said_err = " ".join(err.split())
+    assert code == 1, err
+    assert "its robot side refused this run's claim" in said_err and "more than 6 s ahead by the robot side's clock: " \
+           "the robot side's clock is behind this host's by more than 5 s; synchronize the clocks" in said_err, said_err
+    assert "lab key" not in said_err, said_err
+
+
+def test_a_folder_given_as_the_lab_key_is_one_line_in_the_emulator_and_the_run(tmp_path: Path) -> None:
+    """The lab's DIR instead of DIR/lab.key: was a 43-line traceback (IsADirectoryError) on both sides."""
+    folder = tmp_path / "lab"
+    folder.mkdir(mode=0o700)
+    said = "a folder, not a key file (the lab's DIR? name the file in it: "
+    robot = subprocess.run([str(PLATOON), "m3pi-emulator", "--config", str(LIVE3), "--lab-key", str(folder)], cwd=REPO,
+                           env=_env(), capture_output=True, text=True, timeout=60)
+    assert robot.returncode != 0 and "Traceback" not in robot.stderr and said in robot.stderr, robot.stderr
+    assert len(robot.stderr.strip().splitlines()) == 1, robot.stderr
+    code, _, err = finish(start_run(free_port(), tmp_path / "run.mcap", 1.0, f'hil.lab_key="{folder}"'))
+    assert code == 1 and "Traceback" not in err and said in err, err
 
 
 def test_a_run_and_a_robot_side_with_different_lab_keys_say_so_within_seconds(tmp_path: Path) -> None:

@@ -288,6 +288,55 @@ def test_hil_certs_refuses_a_folder_others_can_write_and_rewrites_an_open_key_fi
     assert opened.returncode == 2 and "only you can read (mode 0600)" in opened.stderr
 
 
+def test_hil_certs_never_turns_one_lab_into_another_and_refuses_an_expired_ca(tmp_path: Path) -> None:
+    """The issue's cases: `--ca OTHER/ca.pem` into an existing lab replaced its CA and lab key while its ca.key
+    stayed (exit 0); a CA expired 35 days ago signed certificates every handshake refuses. Both now exit 2
+    with one line and write nothing; adding hosts to a lab (its own CA, or OTHER's in a new DIR) still works."""
+    import datetime
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes
+    from cryptography.hazmat.primitives.asymmetric import ec
+
+    from bridge.lab import make_ca, pem
+
+    ours, theirs = tmp_path / "ours", tmp_path / "theirs"
+    assert hil_certs(ours).returncode == 0 and hil_certs(theirs).returncode == 0
+    before = {path.name: path.read_bytes() for path in ours.iterdir()}
+    mixed = hil_certs(ours, "--ca", str(theirs / "ca.pem"))
+    assert mixed.returncode == 2 and len(mixed.stderr.strip().splitlines()) == 1, mixed.stderr
+    assert "DIR is another lab (its own CA)" in mixed.stderr and f"--ca {ours / 'ca.pem'}" in mixed.stderr
+    assert {path.name: path.read_bytes() for path in ours.iterdir()} == before  # nothing written
+    assert hil_certs(ours, "--ca", str(ours / "ca.pem")).returncode == 0
+    assert hil_certs(tmp_path / "more", "--ca", str(theirs / "ca.pem")).returncode == 0
+
+    old = tmp_path / "old"
+    old.mkdir(mode=0o700)
+    key, _ = make_ca(1)
+    now = datetime.datetime.now(datetime.timezone.utc)
+    name = x509.Name([x509.NameAttribute(x509.NameOID.COMMON_NAME, "expired lab CA")])
+    expired = (x509.CertificateBuilder().subject_name(name).issuer_name(name).public_key(key.public_key())
+               .serial_number(x509.random_serial_number()).not_valid_before(now - datetime.timedelta(days=400))
+               .not_valid_after(now - datetime.timedelta(days=35))
+               .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True).sign(key, hashes.SHA256()))
+    (old / "ca.pem").write_bytes(pem(expired))
+    (old / "ca.key").write_bytes(pem(key))
+    (old / "ca.key").chmod(0o600)
+    refused = hil_certs(tmp_path / "new", "--ca", str(old / "ca.pem"))
+    assert refused.returncode == 2 and "the lab CA expired on" in refused.stderr and "(35 days ago)" in refused.stderr, \
+        refused.stderr
+    assert not (tmp_path / "new").exists()
+
+
+def test_hil_certs_writes_the_ca_certificate_writable_by_no_one_else_whatever_the_umask(tmp_path: Path) -> None:
+    made = subprocess.run([str(PLATOON), "hil-certs", str(tmp_path / "lab"), "--run-host", "laptop=3", "--robot-side",
+                           "xbee-pc=3"], cwd=REPO,
+                          env=_env(), capture_output=True, text=True, timeout=60, preexec_fn=lambda: os.umask(0))
+    assert made.returncode == 0, made.stderr
+    assert stat.S_IMODE((tmp_path / "lab" / "ca.pem").stat().st_mode) == 0o644  # was 0666
+    assert stat.S_IMODE((tmp_path / "lab" / "ca.key").stat().st_mode) == 0o600
+
+
 def test_hil_certs_on_a_full_disk_names_the_file_and_keeps_the_old_ones(tmp_path: Path) -> None:
     """A 64 KiB tmpfs would need root; RLIMIT_FSIZE makes every write past the limit fail with EFBIG (the child
     ignores SIGXFSZ), the same path through the code as ENOSPC: the error names the file, the old stays whole."""

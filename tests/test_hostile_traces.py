@@ -270,6 +270,29 @@ def test_recover_keeps_every_intact_chunk_after_a_flipped_bit_and_names_the_lost
     assert f"data is missing between t = {before:.6g} .. {after:.6g} s" in report.stdout
 
 
+def test_stability_on_a_recovered_trace_with_a_hole_warns_as_report_does(tmp_path: Path, fmu_dir: Path) -> None:
+    """The issue's case: a disturbance run loses one chunk of the bodies inside the gains' window; `platoon
+    stability` on the recovered file names the lost time (before: other gains, without a word)."""
+    (tmp_path / "build").symlink_to(REPO / "build", target_is_directory=True)
+    run = tmp_path / "pushed.mcap"
+    pushed = platoon("run", PAPER, "--set", "simulation.stop_time=20.0", "--set",
+                     'disturbance=[{vehicle=0,kind="speed",start=2.0,duration=16.0,value=0.5,frequency=0.5}]',
+                     "--out", run, "-q", cwd=tmp_path)
+    assert pushed.returncode == 0, pushed.stderr
+    spans = chunk_spans(run, "/platoon/vehicle1")
+    offset, length, _, _ = spans[len(spans) // 2]
+    data = bytearray(run.read_bytes())
+    data[offset + length // 2] ^= 0x10
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+    assert platoon("trace", "recover", damaged, "--out", tmp_path / "fixed.mcap", cwd=tmp_path).returncode == 0
+    shown = platoon("stability", tmp_path / "fixed.mcap", cwd=tmp_path)
+    assert shown.returncode == 0, shown.stderr
+    assert "warning: recovered from a damaged trace; data is missing between t = " in shown.stdout, shown.stdout
+    intact = platoon("stability", run, cwd=tmp_path)
+    assert intact.returncode == 0 and "warning" not in intact.stdout, intact.stdout
+
+
 def test_recover_skips_garbage_between_chunks_and_loses_no_message(reference: Path, tmp_path: Path) -> None:
     spans = chunk_spans(reference)
     cut = spans[2][0]

@@ -19,6 +19,7 @@ from typing import Iterator
 import pytest
 import zenoh
 
+from bridge.claim import CLAIM_LEASE, LeaseRenewal, claim_text
 from bridge.lab_key import LabKey
 from bridge.protocol import LinkCounters, RobotKeys, WheelCommand, decode_status, encode_wheels
 from bridge.serial_endpoint import (
@@ -271,6 +272,7 @@ def test_serial_endpoint_end_to_end(pty: Pty, capsys: pytest.CaptureFixture[str]
 
             request_claim(publisher, keys, CLAIM)
             log.wait_for("configured -> synchronized (host present)")
+            renewal = LeaseRenewal(lambda: request_claim(publisher, keys, CLAIM))  # as a run renews its claim
 
             def expect(left: float, right: float) -> float:
                 """The next frame on the wire is this command (speeds clipped to max_speed)."""
@@ -320,10 +322,25 @@ def test_serial_endpoint_end_to_end(pty: Pty, capsys: pytest.CaptureFixture[str]
             # The host goes away: stopped at once, before the command's deadline (5 s: at most MAX_COMMAND_AHEAD) or the timeout.
             sent = command(0.6, 0.6, deadline_in=5.0)
             expect(0.6, 0.6)
+            renewal.stop()
             host_token.undeclare()
             assert pty.read(4, timeout=WAIT) == STOP_FRAME
             assert time.time() - sent < timeout, "the stop came from the watchdog, not from the host's token"
-            log.wait_for("running -> stopped (host gone)")
+            log.wait_for("running -> stopped (claim ended: its token")
+
+            # A run that goes silent while a copy of its token stays (a keyless client's): its lease ends the claim.
+            second = CLAIM + 1
+            copy = session.liveliness().declare_token(keys.host(second))
+            request_claim(publisher, keys, second)
+            log.wait_for(f"claimed by {claim_text(second)}")
+            publisher.put(encode_wheels(WheelCommand(1, time.time() + 5.0, 0.6, 0.6, second), LAB_KEY, keys.wheels))
+            expect(0.6, 0.6)
+            silent = time.time()
+            assert pty.read(4, timeout=CLAIM_LEASE + WAIT) == STOP_FRAME  # the lease's end (or the equal timeout)
+            assert time.time() - silent < CLAIM_LEASE + 1.0
+            log.wait_for(f"claim {claim_text(second)} released (its lease of {CLAIM_LEASE:g} s ran out)")
+            assert pty.pending(0.3) in (b"", STOP_FRAME)  # the other of the two stops, as close as 2 s and 2 s
+            copy.undeclare()
             publisher.undeclare()
             status_subscriber.undeclare()
 
@@ -334,7 +351,7 @@ def test_serial_endpoint_end_to_end(pty: Pty, capsys: pytest.CaptureFixture[str]
 
     # Exit: the motors are zeroed once more before the port closes.
     assert pty.pending(0.2) == STOP_FRAME
-    assert counters.accepted == seq - 1  # every command but the late one
+    assert counters.accepted == seq  # every command but the late one, and the silent run's one
     assert counters.dropped["malformed"] == 1
     assert counters.dropped["duplicate"] == 1
     assert counters.dropped["late"] == 1

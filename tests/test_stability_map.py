@@ -104,3 +104,25 @@ def test_the_grid_holds_the_runs_values_and_gives_their_verdicts(sweep: Path) ->
         assert verdict == closed_form_verdict(config, mean_square=False)  # the cell's peak is the run's own
         assert verdict.peak_growth_per_link == peak_growth(config, interior_vehicle(config)).gain
     assert {verdicts[p[LAW]][(p[DELAY], p[LOSS])].string_stable for p in points} == {True, False}  # both are checked
+
+
+def test_an_emptied_results_table_is_told_apart_from_a_sweep_with_no_run_and_resuming_rebuilds_it(
+        sweep: Path, tmp_path: Path) -> None:
+    """results.csv cut to its header while results/ holds the committed runs: stability-map said "no finished
+    run yet"; it says what is there and how to get the table back, and resuming the sweep rebuilds it."""
+    import shutil
+
+    copy = tmp_path / "out"
+    shutil.copytree(sweep, copy, symlinks=True)
+    table = copy / "results.csv"
+    header = table.read_text().splitlines()[0]
+    table.write_text(header + "\n")
+    shown = subprocess.run([str(PLATOON), "stability-map", str(copy), "--out", str(tmp_path / "map.png")], cwd=REPO,
+                           env=env(), capture_output=True, text=True, timeout=600)
+    assert shown.returncode == 2 and "Traceback" not in shown.stderr, shown.stderr
+    assert "lists no run, but results/ holds 4 committed run(s)" in shown.stderr, shown.stderr
+    spec = sweep.parent / "sweep.toml"
+    resumed = subprocess.run([str(PLATOON), "sweep", str(spec), "--out", str(copy), "-q"], cwd=REPO, env=env(),
+                             capture_output=True, text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr
+    assert len(table.read_text().splitlines()) == 5  # the header and the four runs again

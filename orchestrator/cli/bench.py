@@ -132,13 +132,25 @@ class _BenchProgress:
         err.print(line, highlight=False, soft_wrap=True)
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM during a suite: raised where the suite is, so that its children are ended and its scratch
+    folders removed on the way out (``subprocess.run`` kills its child on any exception), as on Ctrl-C."""
+
+
+def _on_sigterm(signum: int, frame: object) -> None:
+    raise _Terminated()
+
+
 def run_bench(name: str, measure, render, out_dir: Path, quiet: bool) -> None:
-    """Run one suite with progress, print its tables, write its JSON; bad options exit 2, failures 1."""
+    """Run one suite with progress, print its tables, write its JSON; bad options exit 2, failures 1, SIGINT
+    and SIGTERM 130 and 143 once its children ended and its scratch files are gone."""
+    import signal
+
     common = suite("common")
     BenchError, BenchUsageError, write_result = common.BenchError, common.BenchUsageError, common.write_result
-
     if not quiet:  # at once: a suite's first measurement can take seconds (a run, a sweep)
-        err.print(f"bench {suite}: measuring, a line as each measurement is done ...", highlight=False)
+        err.print(f"bench {name}: measuring, a line as each measurement is done ...", highlight=False)
+    previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         with _BenchProgress(quiet) as progress:
             result = measure(progress)
@@ -146,6 +158,12 @@ def run_bench(name: str, measure, render, out_dir: Path, quiet: bool) -> None:
         fail(2, str(error))
     except BenchError as error:
         fail(1, f"bench {name}: {error}")
+    except KeyboardInterrupt as stop:
+        signal_name, code = ("SIGTERM", 143) if isinstance(stop, _Terminated) else ("SIGINT (Ctrl-C)", 130)
+        fail(code, f"bench {name}: stopped by {signal_name}; its child processes ended, its scratch files removed, no "
+                   "result written")
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     result["command"] = " ".join(["platoon", *sys.argv[1:]])
     out.print(render(result), highlight=False, soft_wrap=True)
     with output_rule():  # a folder it cannot write: one line

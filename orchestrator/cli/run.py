@@ -143,18 +143,25 @@ def analyze(
     gains measured from vehicle to vehicle."""
     from orchestrator.analysis.error_gains import string_stability_report
     from orchestrator.analysis.linear import eigen_report
+    from orchestrator.analysis.sizing import check_analysis, nothing_arrives
     from orchestrator.analysis.string_stability import chain_report
     from orchestrator.scenario.limits import check_analyze_size, check_run_size
 
     string_stability = measure if old_measure is None else old_measure
     parsed, text = load_config(config, overrides)
-    if not allow_long:
-        try:
+    measured = string_stability and bool(parsed.disturbance)  # only then is the scenario run (twice)
+    try:
+        check_analysis(parsed, measured, closed_form=not allow_long)  # sized before any work (analysis/sizing.py)
+        if not allow_long:
             check_analyze_size(parsed)
-            if string_stability and parsed.disturbance:  # only then is the scenario run (twice)
+            if measured:
                 check_run_size(parsed)
-        except ConfigError as error:
-            fail(2, f"config {config}: {error}")
+    except ConfigError as error:
+        fail(2, f"config {config}: {error}")
+    answer = nothing_arrives(parsed)
+    if answer is not None:  # a platoon whose links deliver nothing: answered, not divided by
+        out.print(answer, highlight=False, soft_wrap=True)
+        return
     paper = all(parsed.speed_law_of(i) == "paper" for i in range(1, parsed.platoon.count + 1))
     if paper and parsed.path.kind == "circle":
         out.print(eigen_report(parsed), highlight=False, soft_wrap=True)

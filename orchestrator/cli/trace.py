@@ -177,15 +177,27 @@ def stability(
 ) -> None:
     """String stability measured: l2 and l_inf gains of the speed and gap errors from vehicle to vehicle."""
     from orchestrator.analysis.error_gains import stability_report, window_of
+    from orchestrator.analysis.sizing import check_analysis, nothing_arrives
     from orchestrator.trace.format import is_link
 
     bodies = {"components": lambda name: not is_link(name), "errors": False}  # the gains need the bodies' motion only
     loaded, config, _ = _trace_and_config(trace, **bodies)
     if not loaded.vehicles() or any(len(loaded.component(v)["t"]) < 2 for v in loaded.vehicles()):
         fail(2, f"trace {trace}: fewer than two recorded points, no gains to measure")
+    try:
+        check_analysis(config, measured=True)  # sized before any work (analysis/sizing.py)
+    except ValueError as error:
+        fail(2, f"trace {trace}: {error}")
+    answer = nothing_arrives(config)
+    if answer is not None:  # links that deliver nothing: no chain to measure gains along
+        out.print(answer, highlight=False, soft_wrap=True)
+        return
     base = load_trace(reference, **bodies) if reference is not None else None
     if base is not None and base.vehicles() != loaded.vehicles():
         fail(2, f"reference {reference}: its vehicles ({', '.join(base.vehicles())}) are not the trace's")
+    note_recovery(loaded, out.print)  # a hole in the window changes the gains: said, as report says it
+    if base is not None:
+        note_recovery(base, lambda text, **style: out.print(f"reference {reference}: {text}", **style))
     try:
         text = stability_report(loaded, config, base, window_of(config, loaded, start, end))
     except ValueError as error:

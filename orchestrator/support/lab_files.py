@@ -6,7 +6,11 @@ These files are the lab's secrets, so writing them is stricter than the output r
 * DIR is the user's own folder, writable by no one else (made 0700 if missing): another user who made
   ``/tmp/lab`` first could read the keys or swap in a CA of their own;
 * no file is written through a symlink, nor onto anything but a regular file;
-* private keys (``ca.key``, ``lab.key``, each ``HOST.json5``) are 0600 from their creation on;
+* private keys (``ca.key``, ``lab.key``, each ``HOST.json5``) are 0600 from their creation on; ``ca.pem``
+  too until it is in place, then readable as the umask allows but never writable by others;
+* ``--ca`` must name a CA that is valid now (an expired one signs certificates every handshake refuses),
+  and into a DIR of another lab (another CA, another lab key) it writes nothing: it would replace DIR's
+  CA while its ``ca.key`` stays;
 * a CA found in DIR is never used unasked: ``--ca`` names the one to sign with (its key beside it),
   else DIR must hold none. So a CA someone slipped into DIR never signs a host;
 * everything is checked before anything is written; a failure (full disk) names the file, leaves the
@@ -21,6 +25,12 @@ from contextlib import suppress
 from pathlib import Path
 
 WHAT = "hil-certs"
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def check_private_folder(folder: Path) -> None:
@@ -70,6 +80,61 @@ def check_new_file(path: Path) -> None:
         raise LabError(f"{path}: is not a regular file (a folder, FIFO or device); refusing to replace it")
 
 
+def read_regular(path: Path) -> bytes:
+    """A public file of a lab (a CA certificate) found in DIR, never read through a link: a regular file. (A key
+    file goes through ``bridge.lab_key.read_private``, which also checks that only its owner can read it.)"""
+    from bridge.lab import LabError
+
+    try:
+        descriptor = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError as error:
+        raise LabError(f"{path}: cannot read it ({error.strerror or error}; a link is refused)") from None
+    with os.fdopen(descriptor, "rb") as stream:
+        if not stat.S_ISREG(os.fstat(stream.fileno()).st_mode):
+            raise LabError(f"{path}: not a regular file")
+        return stream.read(1 << 20)
+
+
+def check_ca_current(certificate, where: str) -> None:
+    """A lab CA that expired (or is not valid yet) signs certificates every handshake refuses: refused."""
+    import datetime
+
+    from bridge.lab import LabError
+
+    now = datetime.datetime.now(datetime.timezone.utc)
+    ends, starts = certificate.not_valid_after_utc, certificate.not_valid_before_utc
+    if ends <= now:
+        raise LabError(f"{where}: the lab CA expired on {ends:%Y-%m-%d %H:%M} UTC ({(now - ends).days} days ago): every "
+                       "TLS handshake refuses a certificate it signs; make a new lab (`platoon hil-certs NEWDIR ...`) "
+                       "and give every host its new files")
+    if starts > now:
+        raise LabError(f"{where}: the lab CA is valid only from {starts:%Y-%m-%d %H:%M} UTC (is this machine's clock "
+                       "right?)")
+
+
+def check_same_lab(folder: Path, ca: Path, certificate) -> None:
+    """``--ca`` from another folder into DIR: DIR must hold no CA, or that same one. Another CA there would be
+    replaced while its key ``ca.key`` stays (no longer a pair), and DIR's hosts trust a CA that is gone."""
+    from cryptography import x509
+
+    from bridge.lab import CA_FILE, CA_KEY_FILE, LabError
+
+    here = folder / CA_FILE
+    if not os.path.lexists(here):
+        if os.path.lexists(folder / CA_KEY_FILE):
+            raise LabError(f"{folder / CA_KEY_FILE}: DIR holds a CA key but no {CA_FILE}; writing --ca {ca}'s certificate "
+                           "beside it would pair it with a key that is not its own; use a new DIR")
+        return
+    try:
+        theirs = x509.load_pem_x509_certificate(read_regular(here))
+    except ValueError:
+        theirs = None
+    if theirs is None or theirs.public_key() != certificate.public_key():
+        raise LabError(f"{here}: DIR is another lab (its own CA); --ca {ca} would replace its CA and lab key while "
+                       f"its {CA_KEY_FILE} stays, and its hosts would trust a CA that is gone: add hosts to DIR's lab with "
+                       f"--ca {here}, or to {ca}'s in a new DIR")
+
+
 def _lab_files(lab, folder: Path, days: int, ca: Path | None) -> tuple[dict[Path, tuple[bytes, bool]], bool]:
     """Every file to write (path -> (bytes, private)) and whether the CA is new; nothing written yet."""
     from bridge.lab import CA_FILE, CA_KEY_FILE, LAB_KEY_FILE, LabError, pem, host_file, load_ca, make_ca
@@ -91,10 +156,16 @@ def _lab_files(lab, folder: Path, days: int, ca: Path | None) -> tuple[dict[Path
         except OSError as error:
             raise LabError(f"--ca {ca}: cannot read it ({error.strerror or error})") from None
         ca_key, certificate = load_ca(ca_bytes, read_private(key_path, "CA key", LabError, limit=1 << 20), f"--ca {ca}")
+        check_ca_current(certificate, f"--ca {ca}")
         if folder.resolve() != ca.parent.resolve():
+            check_same_lab(folder, ca, certificate)
             files[folder / CA_FILE] = (pem(certificate), False)
     old_key = (ca.parent if ca is not None else folder) / LAB_KEY_FILE
     secret = read_key(old_key).secret if ca is not None and os.path.lexists(old_key) else new_secret()
+    if ca is not None and folder.resolve() != ca.parent.resolve() and os.path.lexists(folder / LAB_KEY_FILE) \
+            and read_key(folder / LAB_KEY_FILE).secret != secret:
+        raise LabError(f"{folder / LAB_KEY_FILE}: DIR holds another lab key than {old_key}'s lab: writing that one "
+                       "would lock DIR's runs and robot sides out of each other; add the hosts to one lab")
     files[folder / LAB_KEY_FILE] = (key_text(secret).encode(), True)
     for host in lab.hosts():
         files[folder / f"{host}.json5"] = (host_file(lab, host, ca_key, certificate, days), True)
@@ -126,8 +197,10 @@ def write_lab(lab, folder: Path, days: int = 365, ca: Path | None = None) -> tup
     written: list[Path] = []
     try:
         for path, (data, private) in files.items():
-            write_bytes(path, data, WHAT, private=private)
+            write_bytes(path, data, WHAT, private=True)  # 0600 from its creation on, whatever the umask ...
             written.append(path)
+            if not private:  # ... then readable as the umask allows, never writable by others (umask 000: 0644)
+                os.chmod(path, 0o644 & ~_umask())
     except OutputError:
         if new_ca:  # a new lab half made is no lab: nothing of it stays (old files were never touched)
             for path in written:

@@ -37,6 +37,10 @@ def read_records(folder: Path) -> list[dict[str, Any]]:
         except (OSError, ValueError):
             raise ResultsError(f"{folder}: results.csv names run {identifier}, whose results/{identifier}.json is unreadable") from None
     if not found:
+        committed = len(list((folder / "results").glob("*.json"))) if (folder / "results").is_dir() else 0
+        if committed:  # the rows are what was lost, not the runs: each run's result file is its commit
+            raise ResultsError(f"{folder}/results.csv: lists no run, but results/ holds {committed} committed run(s): "
+                               "the table was emptied or cut; run the sweep's command again to resume, which rebuilds it")
         raise ResultsError(f"{folder}/results.csv: no finished run yet")
     return found
 

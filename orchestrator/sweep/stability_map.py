@@ -34,6 +34,7 @@ from matplotlib.colors import ListedColormap, Normalize  # noqa: E402
 from orchestrator.analysis.error_gains import (clean_order, frequency_gains, predicted_gains, probe_frequencies,  # noqa: E402
                                                run_headline, steady_window, vehicle_errors)
 from orchestrator.analysis.headline import Headline  # noqa: E402
+from orchestrator.analysis.sizing import AnalysisRefused, check_analysis, nothing_arrives  # noqa: E402
 from orchestrator.analysis.sampled_chain import (GROWTH_TOLERANCE, Growth, exact_applies,  # noqa: E402
                                                  growth_per_link, lifting_period, peak_growth, vehicle_of)
 from orchestrator.analysis.string_stability import interior_vehicle  # noqa: E402
@@ -101,7 +102,17 @@ def _points(folder: Path) -> list[dict[str, Any]]:
         missing = exact_applies(config)
         if missing is not None:
             raise PlotError(f"run {record['id']}: the sampled-data cascade does not model {missing}")
+        try:  # sized before any work (analysis/sizing.py); links that deliver nothing make no chain to map
+            check_analysis(config)
+            cut = nothing_arrives(config)
+        except AnalysisRefused as error:
+            cut = str(error)
+        if cut is not None:
+            raise PlotError(f"run {record['id']}: {cut}")
         trace = folder / record["trace"] if record["status"] == "completed" else None
+        if trace is not None and not trace.is_file():  # a FIFO (or a link to one) would block the reading forever
+            raise PlotError(f"run {record['id']}: its trace {trace} is not a regular file (report and stability refuse "
+                            "it too)")
         points.append({**where, "gain": math.nan, "headline": None, "deviation": math.nan, "config": config,
                        "raw": record["config"], "trace": trace, "left": "", "settling": ""})
     return points
