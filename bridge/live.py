@@ -470,11 +470,13 @@ class LiveVehicle:
             raise self._fail(time_, str(error)) from None
 
     def _watch_motion(self, t: float, left: float, right: float) -> None:
-        """End the run if the robot's poses do not answer the commands (``bridge.motion_watch``)."""
+        """End the run if the robot's new poses do not answer the commands (``bridge.motion_watch``: judged by
+        the poses' stamps, so a pause of the poses is left to ``pose_timeout``)."""
         with self._lock:
             pose = self._latest
         assert pose is not None
-        problem = self.motion.observe(self.clock(), pose.x, pose.y, 0.5 * (left + right), self.settings.command_validity)
+        problem = self.motion.observe(self.clock(), pose.stamp, pose.x, pose.y, 0.5 * (left + right),
+                                      self.settings.command_validity)
         if problem is not None:
             raise self._fail(t, f"{self.what} is not moving: {problem}{self._unanswered_hint()}")
 

@@ -13,7 +13,8 @@ router with zenoh-plugin-ros2dds (tests/test_zenoh_router.py):
 
 DDS discovery is confined to loopback by ``CYCLONEDDS_URI`` (the caller sets it; ``LOOPBACK_ONLY``):
 no multicast, unicast to 127.0.0.1 only. Run as ``python -m tests.dds_robot CONFIG DOMAIN``; prints "dds robot:
-ready" once its entities exist, and its counts when SIGTERM or SIGINT ends it.
+ready" once its entities exist, and its counts and last command (linear.x angular.z) when SIGTERM or SIGINT
+ends it.
 """
 
 from dataclasses import dataclass, field
@@ -143,7 +144,7 @@ def main(config_path: str, domain: int) -> None:
     discovery.write(t["ParticipantEntitiesInfo"](gid(participant), [node]))
     robot = EmulatedRobot(spec, EmulatorSettings(command_timeout=0.25), lambda text: print(text, flush=True))
     robot.host_arrived(1, time.time())  # what commands it: whoever may write its topic (no claim on DDS)
-    received = 0
+    received, last = 0, (math.nan, math.nan)
     stop = threading.Event()
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda *_: stop.set())
@@ -155,6 +156,7 @@ def main(config_path: str, domain: int) -> None:
             if isinstance(twist, t["Twist"]):
                 received += 1
                 left, right = messages.twist_to_wheels(twist.linear.x, twist.angular.z, spec.dynamics.track)
+                last = (twist.linear.x, twist.angular.z)
                 robot.accept_unclaimed(left, right, now)
         if now >= next_pose:
             pose = robot.sample(now, None)
@@ -166,6 +168,7 @@ def main(config_path: str, domain: int) -> None:
             next_pose = max(next_pose + period, now)
         time.sleep(0.001)
     print(f"dds robot: commands received {received}", flush=True)
+    print(f"dds robot: last command {last[0]} {last[1]}", flush=True)  # linear.x, angular.z: 0.0 0.0 is a stop
 
 
 if __name__ == "__main__":

@@ -105,7 +105,8 @@ ROUTER_BLOCKS = (  # docs/hil.md, "A real router and DDS bridge"
     ".venv/bin/platoon run configs/hil/ros2_live3.toml --set simulation.stop_time=10 --out /tmp/ros2-router.mcap",
     "kill %2 %1",
     "export CYCLONEDDS_URI=\"$(.venv/bin/python -c 'from tests.dds_robot import LOOPBACK_ONLY; print(LOOPBACK_ONLY)')\"",
-    ZENOHD + " --plugin-search-dir ~/.cache/platoon-cosim/zenoh-1.10.2/lib -P ros2dds &",
+    "RUST_LOG=warn,zenoh_plugin_ros2dds=info " + ZENOHD + " --plugin-search-dir ~/.cache/platoon-cosim/zenoh-1.10.2/lib "
+    "-P ros2dds &",
     ".venv/bin/python -m tests.dds_robot configs/hil/ros2_live3.toml 0 &",
     ".venv/bin/platoon run configs/hil/ros2_live3.toml --set vehicles.3.ros2.convention=bridge_dds "
     "--set simulation.stop_time=10 --out /tmp/ros2-dds.mcap",
@@ -161,7 +162,8 @@ SPECIAL: dict[tuple[str, str], Shorten | Parse | Skip | Expect] = {
     ("docs/hil.md", "tools/build-zenoh-cache.sh"): Skip("builds zenohd and the ros2dds plugin with cargo: most of an "
                                                         "hour (docs/hil.md, \"A real router and DDS bridge\")"),
     **{("docs/hil.md", command): Skip("needs zenohd (and its ros2dds plugin) from tools/build-zenoh-cache.sh; "
-                                      "tests/test_zenoh_router.py runs the same chains (slow)") for command in ROUTER_BLOCKS},
+                                      "tests/test_zenoh_router.py runs the same chains, the DDS block as written (slow)")
+       for command in ROUTER_BLOCKS},
     ("docs/hil.md", REAL_ROBOT_RUN): Parse("needs the real robot and motion capture of the two lines above"),
     ("docs/hil.md", ".venv/bin/platoon bench hil"): Shorten(
         ".venv/bin/platoon bench hil --seconds 0.5", "about 40 s as written; the same measurements, 0.5 s each"),

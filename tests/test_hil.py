@@ -1231,7 +1231,7 @@ def test_a_robot_side_safety_stop_shows_in_the_terminal_the_summary_and_the_log(
 
 
 def test_the_motion_watch_blames_a_still_robot_not_a_stalled_run() -> None:
-    """bridge/motion_watch.py without a network: a robot that moves as commanded (even 40 ms behind) is never
+    """bridge/motion_watch.py without a network: a robot that moves as commanded (its poses 40 ms old) is never
     judged; one that stands still is, after about a second; a run that stalls 0.9 s between two commands (the
     robot rightly stopped at the deadline) is not blamed on the robot."""
     from bridge.motion_watch import MotionWatch
@@ -1241,8 +1241,9 @@ def test_the_motion_watch_blames_a_still_robot_not_a_stalled_run() -> None:
     said = []
     for k in range(300):
         t = 100.0 + k * step
-        assert follows.observe(t, speed * max(0.0, k * step - 0.04), 0.0, speed, validity) is None
-        said.append(still.observe(t, 0.0, 0.0, speed, validity))
+        stamp = t - 0.04
+        assert follows.observe(t, stamp, speed * max(0.0, stamp - 100.0), 0.0, speed, validity) is None
+        said.append(still.observe(t, stamp, 0.0, 0.0, speed, validity))
     assert follows.ratio_min > 0.9
     first = next(k for k, problem in enumerate(said) if problem)
     assert 100 <= first <= 101 and "its poses moved 0.000 m" in said[first], said[first]
@@ -1251,4 +1252,29 @@ def test_the_motion_watch_blames_a_still_robot_not_a_stalled_run() -> None:
         gap = 0.9 if k == 150 else step
         x += speed * min(gap, validity)
         t += gap
-        assert stalled.observe(t, x, 0.0, speed, validity) is None, k
+        assert stalled.observe(t, t, x, 0.0, speed, validity) is None, k
+
+
+@pytest.mark.parametrize("silence", [0.75, 3.0])
+def test_the_motion_watch_leaves_a_pause_of_the_poses_to_pose_timeout(silence: float) -> None:
+    """Issue 54: a robot that drives as commanded while its poses stop for a while (the motion capture lost it;
+    pose_timeout may be up to 5 s) is not "not moving": without new poses nothing is judged, and the first
+    poses after the pause are compared with one taken a window before, so the motion through the pause counts.
+    The robot goes at 95 % of the commanded speed (its wheel gains): judged on the newest pose whatever its
+    age, as before, the 0.75 s pause read 0.246 over the last second and ended the run. A robot that stood
+    still through the pause is judged as soon as its poses come back."""
+    from bridge.motion_watch import MotionWatch
+
+    speed, step, validity = 0.35, 0.01, 0.1
+    drives, stood = MotionWatch(), MotionWatch()
+    said = []
+    for k in range(round((3.0 + silence) / step)):
+        t = 100.0 + k * step
+        paused = 1.5 <= k * step < 1.5 + silence  # no pose arrives: the newest is the one before the pause
+        stamp = 100.0 + (1.5 if paused else k * step) - 0.02
+        x = 0.95 * speed * (stamp - 100.0)  # where the robot was when that pose was taken
+        assert drives.observe(t, stamp, x, 0.0, speed, validity) is None, k
+        said.append(stood.observe(t, stamp, min(x, 0.95 * speed * 1.48), 0.0, speed, validity))
+    assert 0.9 < drives.ratio_min < 0.96, drives.ratio_min
+    first = next(k for k, problem in enumerate(said) if problem)
+    assert first == round((1.5 + silence) / step), (first, said[first])  # the first pose after the pause

@@ -9,6 +9,8 @@
 # whose bindings are made by bindgen; on Debian: apt-get install cmake libclang-dev).
 # The plugin must come from the same rustc and the same zenoh features as zenohd (zenohd refuses a plugin
 # built otherwise), so both are built here with the toolchain on PATH; rerun after a toolchain change.
+# Everything is fetched by cargo's own client from the registry cargo is configured with (its index checks
+# each crate's checksum); the build runs at nice 19 and each part says how long it took.
 # Cold build on 2 shared cores: see docs/hil.md, "A real router and DDS bridge".
 set -euo pipefail
 version=1.10.2
@@ -17,18 +19,33 @@ jobs="${CARGO_BUILD_JOBS:-2}"
 mkdir -p "$root/lib" "$root/build"
 if [ ! -x "$root/bin/zenohd" ]; then
   echo "+ cargo install zenohd --version $version --locked --root $root"
-  nice -n 19 cargo install zenohd --version "$version" --locked --root "$root" -j "$jobs"
+  time nice -n 19 cargo install zenohd --version "$version" --locked --root "$root" -j "$jobs"
 fi
 if [ ! -e "$root/lib/libzenoh_plugin_ros2dds.so" ]; then
-  # A library crate: cargo install builds only binaries, so the published source is built in place, with
-  # the Cargo.lock it ships (--locked), its checksum checked against the one crates.io's index records.
-  crate="$root/build/zenoh-plugin-ros2dds-$version.crate"
-  curl -fsSL -o "$crate" "https://static.crates.io/crates/zenoh-plugin-ros2dds/zenoh-plugin-ros2dds-$version.crate"
-  echo "1e7d42cc7ed61b792194e3f1862241721fa6577b4d171412a64486c1ac53c7e9  $crate" | sha256sum -c --quiet -
-  tar -xzf "$crate" -C "$root/build"
-  echo "+ cargo build --release --locked (zenoh-plugin-ros2dds $version)"
-  (cd "$root/build/zenoh-plugin-ros2dds-$version" &&
-     CARGO_TARGET_DIR="$root/build/target" nice -n 19 cargo build --release --locked -j "$jobs")
+  # A library crate: cargo install builds only binaries. So a manifest that depends on the plugin has cargo
+  # fetch and unpack its published source (cargo metadata says where), which is then built in place with the
+  # Cargo.lock it ships (--locked).
+  fetcher="$root/build/fetch-plugin"
+  mkdir -p "$fetcher/src"
+  : >"$fetcher/src/lib.rs"
+  cat >"$fetcher/Cargo.toml" <<EOF
+[package]
+name = "fetch-zenoh-plugin-ros2dds"
+version = "0.0.0"
+edition = "2021"
+publish = false
+
+[dependencies]
+zenoh-plugin-ros2dds = "=$version"
+EOF
+  echo "+ cargo fetch (zenoh-plugin-ros2dds $version)"
+  nice -n 19 cargo fetch --manifest-path "$fetcher/Cargo.toml"
+  manifest=$(cargo metadata --format-version 1 --manifest-path "$fetcher/Cargo.toml" |
+    python3 -c 'import json, sys; print(next(p["manifest_path"] for p in json.load(sys.stdin)["packages"]
+                if p["name"] == "zenoh-plugin-ros2dds"))')
+  echo "+ cargo build --release --locked --manifest-path $manifest"
+  time CARGO_TARGET_DIR="$root/build/target" nice -n 19 cargo build --release --locked -j "$jobs" \
+    --manifest-path "$manifest"
   cp "$root/build/target/release/libzenoh_plugin_ros2dds.so" "$root/lib/"
 fi
 echo "$root/bin/zenohd"

@@ -14,7 +14,10 @@ Inside, it is ``bridge.live.LiveVehicle``, the host side of the hardware-in-the-
   started at the first step), then takes the pose the outputs describe;
 * the robot lost (its token gone, or no valid pose for ``hil.pose_timeout``): a stop command is sent
   and doStep returns fmi2Error with the reason in the FMU's log; terminate stops the robot and leaves
-  Zenoh.
+  Zenoh, and with it every thread the link held;
+* a host that never terminates the instance (or frees it only as its interpreter tears down) still exits:
+  the link is closed as the host's interpreter begins to exit, before it joins its threads
+  (``fmus.slaves.host_exit.close_at_host_exit``), which stops the robot as terminate would.
 
 The FMU's resources carry the bridge code it needs (``fmus.builders.pythonfmu``); it needs the ``eclipse-zenoh``
 package in the Python environment that runs it.
@@ -23,7 +26,7 @@ package in the Python environment that runs it.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, Callable
 
 from pythonfmu.default_experiment import DefaultExperiment
 from pythonfmu.enums import Fmi2Status
@@ -34,6 +37,7 @@ from fmus.model.factory import controller_stepper, vehicle_parameter_errors
 from fmus.model.vehicle import VehicleStepper
 from fmus.slaves import Vehicle as vehicle_slave  # the module: pythonfmu wants one slave class here
 from fmus.slaves.base import PlatoonSlave, VariableInfo, real
+from fmus.slaves.host_exit import close_at_host_exit
 from fmus.component import ComponentError
 from fmus.realtime import Pacer
 
@@ -113,6 +117,7 @@ class LiveVehicle(PlatoonSlave):
         self.link: LiveLink | None = None
         self.pacer: Pacer | None = None
         self.unreachable = ""  # why the robot could not be reached when initialization ended
+        self._withdraw_exit_close: Callable[[], None] = lambda: None  # the host's exit no longer closes the link
 
     def parameter_errors(self) -> list[str]:
         values = self.values
@@ -151,6 +156,7 @@ class LiveVehicle(PlatoonSlave):
         start_time = getattr(self, "start_time", 0.0)
         self.link = LiveLink(self.instance_name, self.values, inputs, outputs,
                              [float(self.values[name]) for name in inputs], live_settings(self.values))
+        self._withdraw_exit_close = close_at_host_exit(self._close_at_exit)
         try:
             self.link.initialize(start_time)
             self.link.set_inputs([self.values[name] for name in inputs])
@@ -161,6 +167,7 @@ class LiveVehicle(PlatoonSlave):
             self._forward_link_log()
             self.log(str(error), Fmi2Status.error)
             self.link.close()
+            self._withdraw_exit_close()
             self.link, self.unreachable = None, str(error)
             return
         self._forward_link_log()
@@ -192,6 +199,7 @@ class LiveVehicle(PlatoonSlave):
         if self.link is None:
             return
         link, self.link = self.link, None
+        self._withdraw_exit_close()
         try:
             link.close()
         except ComponentError as error:  # a command it never sent, applied while it stopped: said at Error level
@@ -203,6 +211,14 @@ class LiveVehicle(PlatoonSlave):
         self.log(f"{self.instance_name}: {link.what}: commands sent {statistics.get('command.sent')}, poses accepted "
                  f"{statistics.get('pose.accepted')}, dropped {link.pose_counters.dropped_total}; paced points "
                  f"{pacing.get('points', 0)}, overruns {pacing.get('overruns', 0)}")
+
+    def _close_at_exit(self) -> None:
+        """The host's interpreter begins to exit with the link open: stop the robot and leave Zenoh now. The
+        link is forgotten, so a terminate that comes later, in the interpreter's teardown (libcosim's execution
+        collected with the host's globals), finds nothing to do: by then module globals may be gone."""
+        link, self.link = self.link, None
+        if link is not None:
+            link.close()
 
     def _get_fmu_state(self) -> dict[str, Any]:
         raise RuntimeError("a live robot has no FMU state to save (canGetAndSetFMUstate = false)")
