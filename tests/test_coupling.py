@@ -330,6 +330,11 @@ GOOD = {
     "m3pi.track": 0.084,
     "m3pi.wheel_speed_max": 1.0,
     "m3pi.motor_time_constant": 0.05,
+    "m3pi.wheel_gain_right": 1.0,  # a robot's own truth: the nominal one
+    "m3pi.wheel_gain_left": 1.0,
+    "m3pi.wheel_deadband": 0.0,
+    "m3pi.command_latency": 0.0,
+    "m3pi.pose_latency": 0.0,
     "speed_law": "paper",
     "time_gap": 2.0,
     "standstill_gap": 0.0,

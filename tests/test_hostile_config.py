@@ -276,7 +276,8 @@ def test_allow_long_lifts_the_size_limits(workdir: Path, tmp_path: Path) -> None
     assert len(load(tmp_path / "a.mcap").component("vehicle1")["t"]) == 3
 
 
-SCENARIOS = sorted(path for path in (REPO / "configs").rglob("*.toml") if "sweeps" not in path.parts)  # not sweep files
+# scenario configs: not sweep files (configs/sweeps) nor robot truth files (configs/robots: the robot side's)
+SCENARIOS = sorted(path for path in (REPO / "configs").rglob("*.toml") if not {"sweeps", "robots"} & set(path.parts))
 
 
 @pytest.mark.parametrize("path", SCENARIOS, ids=lambda p: p.name)

@@ -148,8 +148,6 @@ def run_bench(name: str, measure, render, out_dir: Path, quiet: bool) -> None:
 
     common = suite("common")
     BenchError, BenchUsageError, write_result = common.BenchError, common.BenchUsageError, common.write_result
-    if not quiet:  # at once: a suite's first measurement can take seconds (a run, a sweep)
-        err.print(f"bench {name}: measuring, a line as each measurement is done ...", highlight=False)
     previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         with _BenchProgress(quiet) as progress:

@@ -45,7 +45,7 @@ def _fmu_path(fmu: str, kind: Optional[str]) -> Path:
 def serve(
     fmu: Annotated[str, typer.Argument(metavar="FMU", help="an FMU file (FMI 2.0 co-simulation), or Vehicle, "
                                                            "VirtualTarget or Link (ours, built if stale)")],
-    name: Annotated[str, typer.Option("--name", help="the name runs reach it by: key <prefix>/fmu/<name> "
+    name: Annotated[str, typer.Option("--name", metavar="NAME", help="the name runs reach it by: key <prefix>/fmu/<name> "
                                                      "([vehicles.K] server in the run's config)")],
     prefix: Annotated[str, typer.Option(metavar="PREFIX", help="Zenoh key prefix")] = "platoon",
     listen: Endpoints = [],

@@ -174,21 +174,25 @@ def stability_map(
 ) -> None:
     """Map a string-stability sweep: per law, the analytic boundary over the measured gains (delay x loss)."""
     from orchestrator.cli.common import err, fail, out, output_rule
+    from orchestrator.sweep.store import check_not_in_folder
 
+    target = png or out_dir / "stability.png"
+    try:  # a target among the sweep's own files is refused in its one line, before anything else is said
+        with output_rule():
+            check_not_in_folder(target, out_dir)
+    except ValueError as error:
+        fail(2, str(error))
     err.print(f"stability-map: reading {out_dir} ...", highlight=False, soft_wrap=True)  # at once: seconds of imports
     from orchestrator.observers.progress import progress
     from orchestrator.sweep.stability_map import draw_stability_map
-    from orchestrator.sweep.store import check_not_in_folder
 
     def shown(traces: int, total: int):  # a bar on a terminal, plain lines elsewhere: it takes a while
         err.print(f"stability-map: measuring {traces} traces of {out_dir} and computing the analytic maps "
                   f"({total} tasks) ...", highlight=False, soft_wrap=True)
         return progress(total, "stability-map", err, unit="tasks")
 
-    target = png or out_dir / "stability.png"
     try:
         with output_rule():
-            check_not_in_folder(target, out_dir)  # its results, traces, tables and lock: every file it reads
             path, agreement = draw_stability_map(out_dir, target, overwrite, progress=shown)
     except ValueError as error:  # a PlotError, a ResultsError, a config the analysis refuses
         fail(2, str(error))

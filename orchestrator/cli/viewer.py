@@ -59,7 +59,8 @@ def figure_command(
         fail(2, f"--out {out}: expected a file ending in {', '.join(FIGURE_SUFFIXES)}")
     with output_rule():
         check_target(out, overwrite, [first, second], kind=IMAGE)
-    err.print(f"figure: reading {first} and {second}, then drawing {out} ...", highlight=False, soft_wrap=True)
+    if first.is_file() and second.is_file():  # said before the reading (tens of seconds under load); a bad input is its one line
+        err.print(f"figure: reading {first} and {second}, then drawing {out} ...", highlight=False, soft_wrap=True)
     from orchestrator.analysis.figure import draw_pair, save
 
     runs = []
