@@ -52,7 +52,7 @@ def _folder_option(option: str) -> Callable[[Inputs, Path], tuple]:
 WRITERS = [
     Writer("run", lambda i, t: ("run", i.config, *SHORT, "--out", t, "-q")),
     Writer("layout", lambda i, t: ("layout", i.trace, "--out", t)),
-    Writer("figure", lambda i, t: ("figure", i.trace, i.trace, "--out", t), file="out.png", progress="figure: reading "),
+    Writer("figure", lambda i, t: ("figure", i.trace, i.trace, "--out", t), file="out.png", progress="figure: drawing "),
     Writer("export-ssp", lambda i, t: ("export-ssp", i.config, "--out", t)),
     Writer("trace recover", lambda i, t: ("trace", "recover", i.trace, "--out", t)),
     Writer("report --plots", _folder_option("--plots"), target_in="xy.png"),

@@ -307,7 +307,7 @@ def test_figure_command_writes_each_format(runs: dict[str, Path], tmp_path: Path
     result = platoon("figure", runs["regular"], runs["paper"], "--out", out, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     # said before it reads (tens of seconds on a loaded machine), the only line on stderr
-    assert result.stderr.splitlines() == [f"figure: reading {runs['regular']} and {runs['paper']}, then drawing {out} ..."]
+    assert result.stderr.splitlines() == [f"figure: drawing {out} from {runs['regular']} and {runs['paper']} ..."]
     data = out.read_bytes()
     assert data.startswith(magic) and len(data) > 20_000
 

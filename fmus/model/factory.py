@@ -52,7 +52,7 @@ def _robot_errors(values: Mapping[str, Any]) -> list[str]:
     errors = _positive(values, ROBOT_GAINS) + _non_negative(values, ("m3pi.wheel_deadband",))
     errors += _at_most(values, ROBOT_LATENCIES, LATENCY_MAX)
     deadband, limit = values["m3pi.wheel_deadband"], values["m3pi.wheel_speed_max"]
-    if not errors and math.isfinite(limit) and deadband >= limit:
+    if not errors and math.isfinite(limit) and limit > 0.0 and deadband >= limit:  # a bad limit is its own error
         errors.append(f"m3pi.wheel_deadband = {deadband}: must be below m3pi.wheel_speed_max = {limit} (no "
                       "command would turn the wheels)")
     return errors

@@ -43,7 +43,7 @@ def _fmu_path(fmu: str, kind: Optional[str]) -> Path:
 
 
 def serve(
-    fmu: Annotated[str, typer.Argument(metavar="FMU", help="an FMU file (FMI 2.0 co-simulation), or Vehicle, "
+    fmu: Annotated[Path, typer.Argument(metavar="FMU", help="an FMU file (FMI 2.0 co-simulation), or Vehicle, "
                                                            "VirtualTarget or Link (ours, built if stale)")],
     name: Annotated[str, typer.Option("--name", metavar="NAME", help="the name runs reach it by: key <prefix>/fmu/<name> "
                                                      "([vehicles.K] server in the run's config)")],
@@ -71,7 +71,7 @@ def serve(
         fail(2, f"--lease {lease}: expected a finite number of seconds > 0")
     if not (listen or connect or zenoh_config):
         listen = [DEFAULT_LISTEN]
-    path = _fmu_path(fmu, fmus)
+    path = _fmu_path(str(fmu), fmus)
     try:
         unpacked = UnpackedFmu.open(path)
     except Exception as error:  # not a zip, no model description: the user's file

@@ -59,9 +59,6 @@ def figure_command(
         fail(2, f"--out {out}: expected a file ending in {', '.join(FIGURE_SUFFIXES)}")
     with output_rule():
         check_target(out, overwrite, [first, second], kind=IMAGE)
-    if first.is_file() and second.is_file():  # said before the reading (tens of seconds under load); a bad input is its one line
-        err.print(f"figure: reading {first} and {second}, then drawing {out} ...", highlight=False, soft_wrap=True)
-    from orchestrator.analysis.figure import draw_pair, save
 
     runs = []
     for trace in (first, second):
@@ -75,6 +72,11 @@ def figure_command(
             runs.append((loaded, recorded_config(loaded.config)))
         except ValueError as error:
             fail(2, f"trace {trace}: {error}")
+    # said once both traces are read (a bad input is its one line), before the plotting library and the drawing:
+    # tens of seconds on a loaded machine
+    err.print(f"figure: drawing {out} from {first} and {second} ...", highlight=False, soft_wrap=True)
+    from orchestrator.analysis.figure import draw_pair, save
+
     figure = draw_pair(runs)
     with output_rule():
         save(figure, out, dpi)
