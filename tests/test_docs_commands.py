@@ -397,8 +397,15 @@ def slow_entries(block: Block) -> list[Slow]:
     return [SLOW[bare(command)] for command in block.commands if bare(command) in SLOW]
 
 
+# a block that drives a live (emulated) robot, or serves a run live: paced to the wall clock, so it runs in the
+# real-time phase, alone (README, "Tests")
+PACED = re.compile(r"m3pi-emulator|--live\b")
+
+
 def block_param(block: Block):
     marks = [pytest.mark.slow] if slow_entries(block) else []
+    if any(PACED.search(command) for command in block.commands):
+        marks.append(pytest.mark.realtime)
     return pytest.param(block, marks=marks, id=f"{block.doc}:{block.line}")
 
 
