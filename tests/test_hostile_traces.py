@@ -655,3 +655,73 @@ def test_two_builds_into_one_folder_at_once_both_succeed(tmp_path: Path) -> None
         assert sorted(p.name for p in (tmp_path / "fmus" / kind).iterdir()) == ["Link.fmu", "Vehicle.fmu", "VirtualTarget.fmu"]
     for name in ALL_FMUS:
         assert fmu_guid(tmp_path / "fmus" / f"{name}.fmu") == PYTHONFMU.expected_guid(name)
+
+
+def _channel_copy_spans(data: bytes) -> list[tuple[int, int]]:
+    """(offset, end) of each platoon.channels metadata record, read record by record from the file's start."""
+    import struct
+
+    spans, position = [], 8  # past the magic
+    while position < len(data):
+        opcode, length = struct.unpack_from("<BQ", data, position)
+        end = position + 9 + length
+        if opcode == 0x0C and data[position + 13:position + 13 + 16] == b"platoon.channels":
+            spans.append((position, end))
+        if opcode == 0x06:  # the first chunk: the copies are all before it
+            return spans
+        position = end
+    return spans
+
+
+def _copy_record(copy: dict[str, str]) -> bytes:
+    """A platoon.channels metadata record as MCAP frames it (the name, then the string map)."""
+    import struct
+
+    def text(value: str) -> bytes:
+        raw = value.encode()
+        return struct.pack("<I", len(raw)) + raw
+
+    pairs = b"".join(text(k) + text(v) for k, v in copy.items())
+    content = text("platoon.channels") + struct.pack("<I", len(pairs)) + pairs
+    return struct.pack("<BQ", 0x0C, len(content)) + content
+
+
+@pytest.mark.parametrize("damage", ["unchecked copy", "another run's copy"])
+def test_a_channel_copy_that_contradicts_the_chunks_never_relabels_intact_channels(reference: Path, tmp_path: Path,
+                                                                                     damage: str) -> None:
+    """One of the two copies of the channels (outside the chunks, no CRC of their own) with vehicles 2 and 3
+    swapped: with its "crc32" key renamed (an unchecked copy) or with a CRC that checks (a copy spliced from
+    another run). The first chunk's own channel records win: recovery gives back every vehicle as it was, and
+    says it refused the copy."""
+    import json as json_module
+
+    from mcap.reader import make_reader as reader_of
+
+    from orchestrator.trace import channel_copy
+
+    data = reference.read_bytes()
+    spans = _channel_copy_spans(data)
+    assert len(spans) == channel_copy.COPIES
+    with open(reference, "rb") as stream:
+        copy = next(dict(m.metadata) for m in reader_of(stream).iter_metadata() if m.name == channel_copy.NAME)
+    swapped = copy["channels"].replace("/platoon/vehicle2", "/platoon/vehicleX").replace(
+        "/platoon/vehicle3", "/platoon/vehicle2").replace("/platoon/vehicleX", "/platoon/vehicle3")
+    assert swapped != copy["channels"]
+    if damage == "unchecked copy":
+        forged = {"schemas": copy["schemas"], "channels": swapped, "crc33": copy["crc32"]}
+    else:
+        forged = {"schemas": copy["schemas"], "channels": swapped,
+                  "crc32": str(__import__("zlib").crc32(f"{copy['schemas']}\0{swapped}".encode()))}
+    start, end = spans[0]
+    damaged = tmp_path / "forged.mcap"
+    damaged.write_bytes(data[:start] + _copy_record(forged) + data[end:])
+    assert json_module.loads(forged["channels"])  # the forged copy decodes: only the chunks can contradict it
+
+    result = platoon("trace", "recover", damaged, "--out", tmp_path / "fixed.mcap", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    original, fixed = load(reference), load(tmp_path / "fixed.mcap")
+    for name in ("vehicle2", "vehicle3"):
+        for key in ("t", "x", "y", "gap"):
+            assert np.array_equal(fixed.component(name)[key], original.component(name)[key]), (name, key)
+    assert fixed.metadata["platoon.recovery"]["refused_channel_copies"] == "1"
+    assert "1 copy of the channel list refused" in result.stdout

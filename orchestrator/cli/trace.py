@@ -147,6 +147,9 @@ def trace_recover(
     target.release()
     stretches = "stretch" if result.damaged == 1 else "stretches"
     damage = f"; {result.damaged} damaged {stretches} skipped, data lost between {describe_lost(result.lost)}" if result.damaged else ""
+    if result.refused_copies:
+        damage += (f"; {result.refused_copies} copy of the channel list refused (it contradicts the file's own "
+                   "channels: spliced from another trace, or damaged)")
     if result.steps == 0:
         fail(1, f"trace {broken}: no complete communication point to recover ({result.chunks} intact chunks{damage}); "
                  f"wrote {fixed} with its metadata only")

@@ -9,8 +9,9 @@ base64) and channels, ids as in the file, and the CRC-32 of both lists. It is wr
 after the other: a metadata record has no CRC of its own, and one damaged byte in a single copy and
 another in the first chunk left a killed run's intact chunks with no channels (the recovery fuzz
 campaign, tests/test_recovery_fuzz.py); the CRC keeps a damaged copy from defining a wrong channel.
-Recovery takes channels and schemas from wherever they survive: the chunks, the summary, a copy whose
-CRC checks (docs/trace-format.md, "Recovering").
+Recovery takes channels and schemas from wherever they survive: the chunks and the summary first, then a
+copy whose CRC checks, then one written before the CRC; a copy that contradicts what an intact chunk (or a
+copy trusted more) defines is another file's, and none of it is taken (docs/trace-format.md, "Recovering").
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from __future__ import annotations
 import base64
 import json
 import zlib
+from dataclasses import dataclass
 from typing import Any, Iterable
 
 from mcap.records import Channel, Metadata, Schema
@@ -51,13 +53,22 @@ def encode(schemas: Iterable[Schema], channels: Iterable[Channel]) -> dict[str, 
     return {**listed, "crc32": _crc(listed["schemas"], listed["channels"])}
 
 
-def decode(record: Metadata) -> tuple[list[Schema], list[Channel]]:
-    """The schemas and channels of a ``platoon.channels`` record; ([], []) if it does not decode, or its
-    CRC-32 does not check (a copy written before the CRC has none: taken as it decodes)."""
+@dataclass(frozen=True)
+class ChannelCopy:
+    """One ``platoon.channels`` record, decoded: its schemas and channels, and whether its CRC-32 checked (a copy
+    written before the CRC has none: ``checked`` is False, and recovery trusts it least)."""
+
+    schemas: list[Schema]
+    channels: list[Channel]
+    checked: bool
+
+
+def decode(record: Metadata) -> ChannelCopy | None:
+    """The copy a ``platoon.channels`` record holds; None if it does not decode, or its CRC-32 does not check."""
     try:
         crc = record.metadata.get("crc32")
         if crc is not None and crc != _crc(record.metadata["schemas"], record.metadata["channels"]):
-            return [], []
+            return None
         schemas = [Schema(id=int(s["id"]), name=str(s["name"]), encoding=str(s["encoding"]),
                           data=base64.b64decode(s["data"], validate=True)) for s in json.loads(record.metadata["schemas"])]
         channels = [Channel(id=int(c["id"]), schema_id=int(c["schema_id"]), topic=str(c["topic"]),
@@ -65,5 +76,5 @@ def decode(record: Metadata) -> tuple[list[Schema], list[Channel]]:
                             metadata={str(k): str(v) for k, v in dict(c["metadata"]).items()})
                     for c in json.loads(record.metadata["channels"])]
     except (KeyError, TypeError, ValueError):
-        return [], []
-    return schemas, channels
+        return None
+    return ChannelCopy(schemas, channels, crc is not None)

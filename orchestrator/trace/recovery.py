@@ -52,6 +52,7 @@ class Recovery:
     lost: list[tuple[float | None, float | None]] = field(default_factory=list)
     damaged: int = 0  # damaged stretches skipped
     cut: bool = False  # the file ends inside a record (the usual end of a killed run's file)
+    refused_copies: int = 0  # platoon.channels copies refused: they contradict the file's own channels
 
 
 @dataclass
@@ -66,6 +67,8 @@ class _Scan:
     damaged: int = 0
     finished: bool = False
     cut: bool = False  # the file ends inside a record (a killed run's last chunk)
+    copies: list[channel_copy.ChannelCopy] = field(default_factory=list)  # platoon.channels records that decoded
+    refused_copies: int = 0
 
 
 def _read_at(stream: BinaryIO, position: int, size: int) -> bytes:
@@ -163,7 +166,8 @@ _ANY = -2  # awaited: the damage is before any message; the first intact one aft
 
 
 def _group_of(scan: _Scan, channel: int) -> int:
-    known = scan.channels.get(channel)
+    known = scan.channels.get(channel) or next((c for copy in scan.copies for c in copy.channels if c.id == channel),
+                                               None)
     return -1 if known is None else chunk_group(known.topic)
 
 
@@ -194,9 +198,25 @@ def _resumed(scan: _Scan, firsts: dict[int, int]) -> None:
 
 
 def _keep_definition(scan: _Scan, item: Schema | Channel) -> None:
-    """A schema or channel from wherever it survives (a chunk, the summary, the platoon.channels copy)."""
+    """A schema or channel of an intact chunk or of the summary: the file's own word on it."""
     table = scan.schemas if isinstance(item, Schema) else scan.channels
     table.setdefault(item.id, item)
+
+
+def _adopt_copies(scan: _Scan) -> None:
+    """Fill in, from the platoon.channels copies, what no intact chunk defined (its first chunk damaged): checked
+    copies before unchecked ones, and each copy whole or not at all. A copy that contradicts a definition already
+    held (a chunk's own, or a copy trusted more: the same id, another topic or schema) is not this file's copy as
+    written (spliced from another run, or damaged where no CRC guards it) and gives nothing: it would relabel
+    intact channels."""
+    for copy in sorted(scan.copies, key=lambda copy: not copy.checked):
+        held = [(scan.schemas, copy.schemas), (scan.channels, copy.channels)]
+        if any(table.get(item.id, item) != item for table, items in held for item in items):
+            scan.refused_copies += 1
+            continue
+        for table, items in held:
+            for item in items:
+                table.setdefault(item.id, item)
 
 
 def _scan(stream: BinaryIO, size: int) -> _Scan:
@@ -210,8 +230,8 @@ def _scan(stream: BinaryIO, size: int) -> _Scan:
             if isinstance(item, (Schema, Channel)):
                 _keep_definition(scan, item)
             elif isinstance(item, Metadata) and item.name == channel_copy.NAME:
-                for definition in (definitions := channel_copy.decode(item))[0] + definitions[1]:
-                    _keep_definition(scan, definition)
+                if (copy := channel_copy.decode(item)) is not None:
+                    scan.copies.append(copy)
             elif isinstance(item, Metadata):
                 scan.metadata.append(item)
             elif isinstance(item, Message):
@@ -219,6 +239,7 @@ def _scan(stream: BinaryIO, size: int) -> _Scan:
                 firsts[group] = min(firsts.get(group, item.log_time), item.log_time)
                 scan.last[item.channel_id] = max(scan.last.get(item.channel_id, item.log_time), item.log_time)
         _resumed(scan, firsts)  # the damage ends where intact messages resume
+    _adopt_copies(scan)
     return scan
 
 
@@ -302,10 +323,11 @@ def recover(source: str | Path, destination: str | Path) -> Recovery:
                 "damaged": str(scan.damaged),
                 "cut_short": "true" if scan.cut else "false",
                 "lost": json.dumps(lost),
+                "refused_channel_copies": str(scan.refused_copies),
             })
             writer.finish()
     return Recovery(source, destination, len(scan.chunks), kept, dropped, steps, last_time, scan.finished,
-                    lost, scan.damaged, scan.cut)
+                    lost, scan.damaged, scan.cut, scan.refused_copies)
 
 
 def describe_lost(lost: list[tuple[float | None, float | None]]) -> str:
