@@ -54,7 +54,8 @@ def interleaved(rounds: int, groups: Sequence[Any], variants: Sequence[Any],
                 progress: Progress | None,
                 variants_of: Callable[[Any], Sequence[Any]] | None = None) -> list[dict[str, Any]]:
     """``measure(group, variant)`` for every group and variant once per round, variants rotated each
-    round; every result gets its ``round`` and is described to ``progress`` as it arrives.
+    round; every result gets its ``round`` and is described to ``progress`` as it arrives (and the first one
+    announced before it starts: a suite says it is measuring once its options have checked).
     ``variants_of(group)``: a group's own variants, when they are not ``variants`` for every group."""
     chosen = variants_of or (lambda group: variants)
     total = rounds * sum(len(chosen(group)) for group in groups)
@@ -62,6 +63,8 @@ def interleaved(rounds: int, groups: Sequence[Any], variants: Sequence[Any],
     for round_ in range(rounds):
         for group in groups:
             for variant in rotated(chosen(group), round_):
+                if progress is not None and not samples and round_ == 0:  # a first line before the first, slowest wait
+                    progress(0, total, f"{total} measurements in {rounds} round(s), starting with {group} {variant}")
                 result = measure(group, variant)
                 result["round"] = round_
                 samples.append(result)

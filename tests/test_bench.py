@@ -372,7 +372,8 @@ def test_platoon_bench_outside_a_checkout_says_where_the_benchmarks_are(tmp_path
 
 def test_bench_readback_stopped_by_sigterm_ends_its_child_and_leaves_no_scratch(tmp_path: Path, fmu_dir: Path) -> None:
     """The issue's case: SIGTERM left `bench readback`'s child running and 31 MB in /tmp. Now: exit 143, one
-    line, the child gone, no bench-readback-* folder left (TMPDIR is this test's own)."""
+    line, the child gone, no bench-readback-* folder left (TMPDIR is this test's own). Its first line comes before
+    its first measurement (a suite is silent for minutes otherwise)."""
     import os
     import signal
     import time
@@ -382,8 +383,10 @@ def test_bench_readback_stopped_by_sigterm_ends_its_child_and_leaves_no_scratch(
     scratch.mkdir()
     env = {**os.environ, "TMPDIR": str(scratch), "COLUMNS": "200"}
     bench = subprocess.Popen([sys.executable, "-c", "from orchestrator.cli import main; main()", "bench", "readback",
-                              "--rounds", "1", "-q", "--out-dir", str(tmp_path / "out")], cwd=REPO, env=env,
+                              "--rounds", "1", "--out-dir", str(tmp_path / "out")], cwd=REPO, env=env,
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    first = bench.stderr.readline()
+    assert first.startswith("7 measurements in 1 round(s), starting with study run"), first
     deadline = time.monotonic() + 120
     children: list = []
     while not children:  # an event: the suite's first child process (a run writing the study's trace)
