@@ -38,6 +38,7 @@ from __future__ import annotations
 import heapq
 import itertools
 import random
+import statistics
 import sys
 import threading
 import time
@@ -81,6 +82,9 @@ class EmulatorSettings:
     flying_start: bool = True
     seed: int | None = None
     lab_key: LabKey | None = None  # the runs' commands must carry its MAC (bridge.lab_key); None: tokens claim
+
+
+SLACK_KEPT = 10_000  # commands whose deadline slack the end-of-run line summarises (100 s at 100 Hz)
 
 
 @dataclass(frozen=True)
@@ -127,6 +131,9 @@ class EmulatedRobot:
     claim_changed: bool = False  # a status is due at once
     unclaimed_seq: int = 0  # commands of a source without claims (a ROS 2 topic) numbered here, afresh per claim
     echoes_poses: bool = True  # its poses go out in our protocol, echoing the claim (not on a ROS 2 topic)
+    # s of each recent command's deadline left when it arrived: the run sets deadline = sent + command_validity,
+    # so command_validity minus this is the hop from the run to the robot side, part of the loop's delay
+    slack: deque = field(default_factory=lambda: deque(maxlen=SLACK_KEPT))
 
     def __post_init__(self) -> None:
         spec = self.spec
@@ -204,6 +211,7 @@ class EmulatedRobot:
         elif owner and not self.claim.owner:
             self._ended(owner, now, "its run released it")
         if command is not None:
+            self.slack.append(command.deadline - now)
             self.queue(command, now)
 
     def accept_unclaimed(self, left: float, right: float, now: float) -> None:
@@ -275,8 +283,10 @@ class EmulatedRobot:
         self._stop_wheels(now, f"claim ended: {how}")
 
     def sample(self, now: float, noise: random.Random) -> Pose:
-        """The pose the motion capture sees now (with noise), numbered and stamped."""
+        """The pose the motion capture sees now (with noise), numbered and stamped with the instant the robot's
+        state describes (``now``, or later if a command already moved it on)."""
         self.advance(now)
+        now = max(now, self.time)
         self.pose_seq += 1
         x, y, heading = self.state[0], self.state[1], self.state[2]
         if self.position_noise > 0.0:
@@ -353,10 +363,12 @@ class Emulator:
             next_sample = start
             try:
                 while not self.stop_event.is_set():
-                    now = self.clock()
-                    if duration is not None and now - start >= duration:
-                        break
                     with self._lock:
+                        # read under the lock: a command taken meanwhile has moved the robots to its own (later)
+                        # arrival, and a pose stamped with an earlier instant would show them ahead of its stamp
+                        now = self.clock()
+                        if duration is not None and now - start >= duration:
+                            break
                         if now >= next_sample:
                             for index, robot in enumerate(self.robots):
                                 pose = robot.sample(now, self._noise)
@@ -386,9 +398,11 @@ class Emulator:
                 undeclare_all(resources)
                 for robot in self.robots:
                     c = robot.counters
+                    slack = (f"; deadline left on arrival {statistics.median(robot.slack) * 1e3:.2f} ms (median of the last "
+                             f"{len(robot.slack)})" if robot.slack else "")
                     self.say(f"m3pi-emulator robot {robot.spec.keys.robot}: commands received {c.received}, accepted "
                              f"{c.accepted}, dropped {c.dropped_total} "
-                             + " ".join(f"{k}={v}" for k, v in c.dropped.items() if v))
+                             + " ".join(f"{k}={v}" for k, v in c.dropped.items() if v) + slack)
 
     # -- the robot side's seam: our protocol here, ROS 2 topics in bridge.ros2.emulator.RosEmulator ----------
 

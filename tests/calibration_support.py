@@ -9,7 +9,7 @@ import numpy as np
 
 from fmus.model.dynamics import M3piDynamics
 from fmus.model.integrate import integrate
-from orchestrator.analysis.robot_record import RobotRecord
+from orchestrator.analysis.robot_record import RobotRecord, applied_between
 from orchestrator.analysis.wheel_path import Commands
 
 # issue 51's realistic bounds
@@ -36,10 +36,11 @@ def excitation(t: np.ndarray, full: bool = True) -> tuple[np.ndarray, np.ndarray
 
 
 def synthetic_record(truth: dict[str, float], seconds: float = 45.0, seed: int = 0, noise: bool = True,
-                     full: bool = True) -> RobotRecord:
+                     full: bool = True, echoes: bool = False) -> RobotRecord:
     """A record as a live run of robot ``truth`` would leave it: commands every 10 ms (with jitter), applied
     ``command_latency`` later; poses every 5 ms, noisy, each the robot ``pose_latency`` before its stamp (the
-    latency a stamp does not show), received 1 ms after the stamp."""
+    latency a stamp does not show), received 1 ms after the stamp. With ``echoes``, each pose echoes the last
+    command applied when it was taken, as the emulator's do (robot_record.applied_between reads them)."""
     rng = np.random.default_rng(seed)
     sent = np.arange(0.0, seconds, 0.01) + rng.uniform(0.0, 0.002, int(round(seconds / 0.01)))
     left, right = excitation(sent, full)
@@ -48,7 +49,7 @@ def synthetic_record(truth: dict[str, float], seconds: float = 45.0, seed: int =
     applied = sent + truth.get("command_latency", 0.0)
     stamps = np.arange(0.0, seconds + 0.5, 0.005)
     state, now, command = [0.0, 0.0, 0.3, 0.0, 0.0], 0.0, (0.0, 0.0)
-    poses, k = [], 0
+    poses, echoed, k = [], [], 0
     for stamp in stamps - truth.get("pose_latency", 0.0):
         while k < len(applied) and applied[k] <= stamp:
             state = integrate(lambda _, s: dynamics.drive(s[2], s[3], s[4], command[1], command[0], 0.0), 0.0, state,
@@ -58,8 +59,11 @@ def synthetic_record(truth: dict[str, float], seconds: float = 45.0, seed: int =
                           stamp - now, 0.001)
         now = stamp
         poses.append(state[:3])
+        echoed.append(k)  # commands are numbered from 1: k is the number of the last one applied
     poses = np.array(poses)
     noise = rng.normal(0.0, 1.0, poses.shape) * [POSITION_NOISE, POSITION_NOISE, HEADING_NOISE] * noise
-    commands = Commands(sent, sent + 0.1, left, right)
+    earliest, latest = (applied_between(np.arange(1.0, len(sent) + 1.0), stamps, np.asarray(echoed, dtype=float))
+                        if echoes else (None, None))
+    commands = Commands(sent, sent + 0.1, left, right, earliest, latest)
     return RobotRecord("synthetic", "vehicle1", 1, 0.0, commands, stamps, stamps + 0.001,
                        *(poses + noise).T, M3piDynamics(0.5, wheel_speed_max=1.2))

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import random
+import re
 import subprocess
 import time
 import tomllib
@@ -22,8 +23,8 @@ import pytest
 
 from tests.conftest import free_port, realtime_not_tested
 from orchestrator.trace import load
-from tests.calibration_support import HEADING_NOISE, POSITION_NOISE, random_truth
-from tests.test_calibrate import identification_misses
+from tests.calibration_support import BOUNDS, HEADING_NOISE, POSITION_NOISE, random_truth
+from tests.test_calibrate import ABSOLUTE, identification_misses
 from tests.test_hil import PLATOON, REPO, _env, end_process, endpoint
 
 EXPERIMENT = REPO / "configs" / "hil" / "calibrate.toml"
@@ -81,18 +82,27 @@ def live_experiment(tmp_path: Path, truth: dict[str, float], name: str, *options
 
 
 def paced_run(tmp_path: Path, config: Path, vehicle: int, truth: dict[str, float], name: str, limit: float,
-              why: str, sets: Sequence[str] = ()) -> Path:
+              why: str, sets: Sequence[str] = (), options: Sequence[str] = ()) -> Path:
     """A live run that kept to its wall-clock schedule (fell behind at most ``limit`` s), tried up to ``TRIES``
     times; when every try fell behind, the test is not a test of ``why`` here (``realtime_not_tested``)."""
     unpaced = []
     for attempt in range(TRIES):
-        code, trace, stderr = live_run(tmp_path, config, vehicle, truth, f"{name}-{attempt}", sets=sets)
+        code, trace, stderr = live_run(tmp_path, config, vehicle, truth, f"{name}-{attempt}", *options, sets=sets)
         late = behind(trace) if trace.exists() and code == 0 else float("inf")
         if code == 0 and late <= limit:
             return trace
         unpaced.append(f"{name} try {attempt}: exit {code}, behind {late:.2f} s: {stderr.strip()[-300:]}")
     realtime_not_tested(f"{why}: this machine could not pace the run: {unpaced}")
     raise AssertionError("unreachable")
+
+
+def hop(trace: Path) -> float:
+    """How long the run's commands took to reach the emulator (s, median): the command validity (each command's
+    deadline is its send time plus it) less the deadline left on arrival, which the emulator's last line says."""
+    said = re.findall(r"deadline left on arrival ([0-9.]+) ms", trace.with_name(f"{trace.stem}-emulator.log").read_text())
+    assert said, f"{trace}: the emulator did not say how much deadline its commands had left"
+    validity = (load(trace).config.get("hil") or {}).get("command_validity", 0.1)
+    return validity - float(said[-1]) * 1e-3
 
 
 def behind(trace: Path) -> float:
@@ -129,10 +139,18 @@ def test_three_random_robots_are_identified_from_one_run_of_the_experiment_each(
     rng = random.Random(seed)
     for index in range(3):
         truth = random_truth(rng)
-        trace = paced_run(tmp_path, EXPERIMENT, 1, truth, f"robot{index}", BEHIND_LIMIT, f"seed {seed}")
-        print(f"\nseed {seed}, truth {index}: {truth}")
+        # a motion capture that stamps each pose when it was taken (Vicon, OptiTrack, VRPN do) and hands it over
+        # this much later: the latency the stamps show, which calibrate measures and the run dead-reckons over
+        shown = rng.uniform(*BOUNDS["pose_latency"])
+        trace = paced_run(tmp_path, EXPERIMENT, 1, truth, f"robot{index}", BEHIND_LIMIT, f"seed {seed}",
+                          options=("--latency", repr(shown)))
+        print(f"\nseed {seed}, truth {index}: {truth}, a pose latency the stamps show of {shown * 1e3:.2f} ms")
         calibrated(trace, tmp_path / f"robot{index}.toml")
-        misses = identification_misses(calibrate_robot(robot_records(load(trace), trace)), truth)
+        calibration = calibrate_robot(robot_records(load(trace), trace))
+        print(f"the commands reached the robot side {hop(trace) * 1e3:.2f} ms after they were sent (median)")
+        misses = identification_misses(calibration, truth, hop(trace))
+        if abs(calibration.delivery - shown) > ABSOLUTE["pose_latency"]:
+            misses.append(f"poses arrived {calibration.delivery * 1e3:.2f} ms after their stamps, not {shown * 1e3:.2f}")
         assert not misses, f"seed {seed}, truth {index} {truth}: {misses} (the run was {behind(trace):.2f} s behind)"
 
 

@@ -122,6 +122,7 @@ class PathProblem:
         self.records, self.tick = list(records), tick
         self.windows = [_thinned(record.stamp, rate) & (record.stamp >= SETTLE) for record in self.records]
         self.labels = [segments(record.stamp[w], segment) for record, w in zip(self.records, self.windows)]
+        self.latency_range = echoed_range(self.records)
 
     def path(self, record: RobotRecord, window: np.ndarray, values: dict[str, float]) -> DeadReckoned:
         return dead_reckon(robot_model(record.model, values), record.commands, values["command_latency"],
@@ -174,9 +175,32 @@ def echoed_latency(records: Sequence[RobotRecord]) -> float:
     return float(np.clip(np.median(middle), 0.0, 0.5)) if len(middle) else 0.02
 
 
+def echoed_range(records: Sequence[RobotRecord]) -> tuple[float, float] | None:
+    """The command latencies the poses' echoes allow for the typical command: from the median of how long after
+    its sending each command's window opens to the median of how long after it closes (None without echoes).
+
+    Every command is held to its window, so outside this range the path no longer depends on the latency: a
+    latency below it applies nearly every command at its window's opening, which a slightly slower motor
+    lag mimics, and the fit can settle there with a flat gradient (measured: a loop delay of 28.9 ms found as
+    24.0 ms, the time constant 3 % long). Inside it, the path depends on the latency as without echoes."""
+    opens = [r.commands.earliest - r.commands.sent for r in records if r.commands.earliest is not None]
+    closes = [r.commands.latest - r.commands.sent for r in records if r.commands.latest is not None]
+    if not opens or not closes:
+        return None
+    low, high = (np.concatenate(parts) for parts in (opens, closes))
+    low, high = low[np.isfinite(low)], high[np.isfinite(high)]
+    if not len(low) or not len(high):
+        return None
+    lowest, highest = float(np.median(low)), float(np.median(high))
+    return (max(lowest, 0.0), highest) if highest > max(lowest, 0.0) else None
+
+
 def least_squares_fit(problem: PathProblem, values: dict[str, float], free: Sequence[str]) -> tuple[dict[str, float], object]:
-    """Fit the ``free`` parameters (the rest held at ``values``); returns the values and scipy's result."""
+    """Fit the ``free`` parameters (the rest held at ``values``); returns the values and scipy's result. With
+    echoes the command latency stays within what they allow (``echoed_range``)."""
     spec = {name: (low, high, scale) for name, _, low, high, scale in FITTED}
+    if problem.latency_range is not None:
+        spec["command_latency"] = (*problem.latency_range, spec["command_latency"][2])
     start = np.array([min(max(values[n], spec[n][0]), spec[n][1]) for n in free])
 
     def residuals(p: np.ndarray) -> np.ndarray:
