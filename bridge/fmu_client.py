@@ -72,6 +72,22 @@ class RemoteHost:
         return self._session.declare_querier(key, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout)
 
 
+_SHARED: dict[tuple[Any, ...], RemoteHost] = {}
+
+
+def shared_host(connect: tuple[str, ...], listen: tuple[str, ...], zenoh_config: str | None,
+                allow_insecure: bool) -> RemoteHost:
+    """This process's ``RemoteHost`` for these settings. A process that holds several remote instances
+    without a run to share a host for them (an FMI importer running client FMUs, fmus/slaves/RemoteVehicle.py)
+    gets one Zenoh session per way of reaching the servers, as a run's remote vehicles share one: two
+    sessions could not both listen on one endpoint. Opened by its first user, closed by its last."""
+    key = (tuple(connect), tuple(listen), zenoh_config, bool(allow_insecure))
+    host = _SHARED.get(key)
+    if host is None:
+        host = _SHARED[key] = RemoteHost(*key)
+    return host
+
+
 def first_reply(handle: Any) -> bytes | None:
     """The payload of the first reply of ``handle``, or None if the query ended without one."""
     for reply in handle:
