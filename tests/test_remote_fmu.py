@@ -201,7 +201,7 @@ def test_a_host_that_frees_the_client_fmu_or_never_does_exits_at_once_and_frees_
     assert exited <= EXITED_WITHIN, f"{host} ({mode}): it exited {exited:.2f} s after the run's end: {out}"
 
 
-KILL_SCRIPT = """
+KILL_SCRIPTS = {"libcosim": """
 import sys
 from libcosimpy.CosimExecution import CosimExecution
 from libcosimpy.CosimLogging import CosimLogLevel, log_output_level
@@ -211,27 +211,45 @@ execution = CosimExecution.from_ssp_file(sys.argv[1])
 while execution.step(10):
     print("at", execution.status().current_time / 1e9, flush=True)
 print("failed at", execution.status().current_time / 1e9, flush=True)
-"""
+""", "fmpy": """
+import sys
+import fmpy.ssp.simulation as runner
+from orchestrator.interop.fmpy_ssp import simulate_ssp
+
+step = runner.do_step
+def do_step(component, time, h):
+    step(component, time, h)
+    if component.name == "target" and round(time / h) % 10 == 0:
+        print("at", time, flush=True)
+runner.do_step = do_step
+try:
+    simulate_ssp(sys.argv[1], stop_time=5000.0, step_size=0.01)
+except Exception as error:
+    print("failed at", error, flush=True)
+"""}
 
 
 @pytest.mark.parametrize("signal_", [signal.SIGKILL, signal.SIGSTOP], ids=["killed", "frozen"])
-def test_a_killed_or_frozen_server_fails_the_importers_step_within_its_timeout(signal_: int, tmp_path: Path) -> None:
-    """kill -9 of vehicle 2's server while libcosim steps the package (its connection drops: Zenoh ends the query
+@pytest.mark.parametrize("host", ["libcosim", "fmpy"])
+def test_a_killed_or_frozen_server_fails_the_importers_step_within_its_timeout(host: str, signal_: int,
+                                                                               tmp_path: Path) -> None:
+    """kill -9 of vehicle 2's server while libcosim or FMPy steps the package (its connection drops: Zenoh ends the query
     at once), or SIGSTOP (a partition, a server too slow: the connection stays, no reply comes): within
     ``remote.step_timeout`` (1 s) + 1 s the step fails, libcosim's log naming vehicle 2, its server's key and where
-    it was reached; the host exits; the other server is freed."""
+    it was reached (FMPy's runner prints it with orchestrator/interop/fmpy_ssp.py); the host exits; the other
+    server is freed."""
     ports = {1: free_port(), 2: free_port()}
     package = tmp_path / "two.ssp"
     with server("vehicle1", ports[1], "native", tmp_path), server("vehicle2", ports[2], "native", tmp_path) as victim:
         export(package, ports, "platoon.count=2", "simulation.stop_time=5000", "remote.step_timeout=1.0",
                "vehicles.1.endpoint=remote", "vehicles.2.endpoint=remote", config=PAPER)
-        run = subprocess.Popen([sys.executable, "-c", KILL_SCRIPT, str(package)], cwd=tmp_path,
+        run = subprocess.Popen([sys.executable, "-c", KILL_SCRIPTS[host], str(package)], cwd=tmp_path,
                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         lines: list[str] = []
         reader = threading.Thread(target=lambda: lines.extend(run.stdout))  # type: ignore[arg-type]
         reader.start()
         try:
-            wait_for(lambda: any(line.startswith("at 1.") for line in lines), "libcosim steps the package", run)
+            wait_for(lambda: any(line.startswith("at 1.") for line in lines), f"{host} steps the package", run)
             os.kill(victim.pid, signal_)
             killed = time.monotonic()
             wait_for(lambda: any(line.startswith("failed at") for line in lines) or run.poll() is not None,
@@ -246,7 +264,7 @@ def test_a_killed_or_frozen_server_fails_the_importers_step_within_its_timeout(s
         out = "".join(lines)
         wait_for(lambda: "vehicle1 freed by its run" in (tmp_path / "serve-vehicle1.log").read_text(),
                  lambda: f"vehicle 1's server freed: {(tmp_path / 'serve-vehicle1.log').read_text()}")
-    print(f"\n[remote FMU, server {signal.Signals(signal_).name}] libcosim's step failed {took:.2f} s after the signal "
+    print(f"\n[remote FMU, server {signal.Signals(signal_).name}] {host}'s step failed {took:.2f} s after the signal "
           f"(step timeout 1 s): {next(line for line in lines if 'vehicle2 failed' in line).strip()}")
     assert run.returncode == 0 and "failed at" in out, out
     assert took <= 1.0 + 1.0, f"the step failed {took:.2f} s after the kill (timeout 1 s)"
