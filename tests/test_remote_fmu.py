@@ -270,3 +270,25 @@ def test_a_killed_or_frozen_server_fails_the_importers_step_within_its_timeout(h
     assert took <= 1.0 + 1.0, f"the step failed {took:.2f} s after the kill (timeout 1 s)"
     assert (f"vehicle2 failed at t = " in out and "no reply to step from t = " in out
             and f"(server platoon/fmu/vehicle2 at tcp/127.0.0.1:{ports[2]})" in out), out
+
+
+NO_SERVER_SCRIPTS = {"libcosim": [str(RUNNER)], "fmpy": ["-c", KILL_SCRIPTS["fmpy"]]}
+
+
+@pytest.mark.parametrize("host", ["libcosim", "fmpy"])
+def test_no_server_fails_the_run_at_its_start_naming_the_vehicle_and_the_server(host: str, tmp_path: Path) -> None:
+    """Nobody serves vehicle 1 (``remote.connect_timeout`` 1 s): the importer's run fails at its start, its log
+    saying which vehicle found no server at which key and endpoint; it exits (no hang, no abort)."""
+    port = free_port()
+    package = tmp_path / "none.ssp"
+    export(package, {1: port}, "platoon.count=1", "vehicles.1.endpoint=remote", "remote.connect_timeout=1.0",
+           "simulation.stop_time=5", config=PAPER)
+    started = time.monotonic()
+    run = subprocess.run([sys.executable, *NO_SERVER_SCRIPTS[host], str(package)], cwd=tmp_path, capture_output=True,
+                         text=True, timeout=120)
+    took = time.monotonic() - started
+    out = run.stdout + run.stderr
+    print(f"\n[remote FMU, no server] {host} failed {took:.2f} s after its start (connect timeout 1 s)")
+    assert ("steps failed" in out and "end 0.0" in out) if host == "libcosim" else "failed at" in out, out
+    assert (f"vehicle1 failed at t = 0 s: no server answered within 1 s (is `platoon serve` running there?) "
+            f"(server platoon/fmu/vehicle1 at tcp/127.0.0.1:{port})") in out, out
