@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 from lxml import etree
 
-from tests.conftest import free_port
+from tests.conftest import free_port, shared_build
 from tests.test_hil import wait_for
 from tests.test_live_fmu import HOST, JOINED_WITHIN, RUNNER, _lines_until_exit
 from tests.test_remote import server
@@ -292,3 +292,61 @@ def test_no_server_fails_the_run_at_its_start_naming_the_vehicle_and_the_server(
     assert ("steps failed" in out and "end 0.0" in out) if host == "libcosim" else "failed at" in out, out
     assert (f"vehicle1 failed at t = 0 s: no server answered within 1 s (is `platoon serve` running there?) "
             f"(server platoon/fmu/vehicle1 at tcp/127.0.0.1:{port})") in out, out
+
+
+TWIN_SCRIPT = """
+import sys
+from fmpy import extract, read_model_description
+from fmpy.fmi2 import FMU2Slave
+
+def instance(path, name, parameters, early):
+    description = read_model_description(path)
+    refs = {v.name: (v.valueReference, v.type) for v in description.modelVariables}
+    fmu = FMU2Slave(guid=description.guid, unzipDirectory=extract(path), instanceName=name,
+                    modelIdentifier=description.coSimulation.modelIdentifier)
+    fmu.instantiate(loggingOn=True)
+    fmu.setupExperiment(startTime=0.0)
+    def set_(values):
+        for key, value in values.items():
+            ref, kind = refs[key]
+            {"Real": fmu.setReal, "String": fmu.setString, "Boolean": fmu.setBoolean}[kind]([ref], [value])
+    set_(early)
+    fmu.enterInitializationMode()
+    outputs = [v.valueReference for v in description.modelVariables if v.causality == "output"]
+    fmu.getReal(outputs)  # read in initialization (libcosim does): opens the served instance
+    set_(parameters)  # set after that read: the served instance must get them too
+    fmu.exitInitializationMode()
+    for k in range(3):
+        fmu.doStep(k * 0.01, 0.01)
+    values = fmu.getReal(outputs)
+    fmu.terminate()
+    fmu.freeInstance()
+    return values
+
+parameters = {"d_star": 80.0, "law": "regular", "is_last": True, "initial.x": 3.0}
+local = instance(sys.argv[1], "vehicle1", parameters, {})
+remote = instance(sys.argv[2], "vehicle1", parameters, {"remote.connect": sys.argv[3], "d_star": 70.0})
+print("equal" if local == remote else f"differ {local} {remote}")
+"""
+
+
+def test_parameters_set_after_the_instance_opened_reopen_it_and_reach_the_server(servers, fmu_dir: Path,
+                                                                                 tmp_path: Path) -> None:
+    """An importer that reads outputs in initialization mode (the served instance opens then) and sets parameters
+    after: the instance is opened again with them (freed, then opened), and three steps give exactly what the
+    local Vehicle FMU gives with those parameters, every output bit for bit."""
+    from fmus.builders import PYTHONFMU, REMOTE_FMU
+
+    with shared_build():
+        PYTHONFMU.build(fmu_dir, names=(REMOTE_FMU,))
+    ports, folder = servers
+    log = folder / "serve-vehicle1.log"
+    opened, before = log.read_text().count("opened vehicle1"), log.read_text().count("freed by its run")
+    run = subprocess.run([sys.executable, "-c", TWIN_SCRIPT, str(fmu_dir / "Vehicle.fmu"),
+                          str(fmu_dir / "RemoteVehicle.fmu"), f"tcp/127.0.0.1:{ports[1]}"], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and run.stdout.strip().endswith("equal"), run.stdout[-2000:] + run.stderr[-2000:]
+    wait_for(lambda: log.read_text().count("freed by its run") >= before + 2, lambda: log.read_text())
+    text = log.read_text()
+    assert text.count("opened vehicle1") == opened + 2 and "vehicle1 freed by its run after 0 steps" in text, text
+    assert "vehicle1 freed by its run after 3 steps" in text, text

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
-from pythonfmu.default_experiment import DefaultExperiment
 from pythonfmu.enums import Fmi2Status
 
 from bridge.fmu_client import RemoteComponent, shared_host
@@ -81,7 +80,7 @@ class RemoteVehicle(PlatoonSlave):
                    "stepped over Zenoh: the served FMU's numbers, bit for bit")
     variables = vehicle_slave.Vehicle.variables + _remote_parameters()
     input_attributes = vehicle_slave.Vehicle.input_attributes
-    default_experiment = vehicle_slave.Vehicle.default_experiment or DefaultExperiment(step_size=0.01)
+    default_experiment = vehicle_slave.Vehicle.default_experiment
     # the served instance cannot be rolled back through the wire protocol: no FMU state
     capabilities = {"canGetAndSetFMUstate": "false", "canSerializeFMUstate": "false"}
 
