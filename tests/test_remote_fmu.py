@@ -235,7 +235,7 @@ def test_a_killed_or_frozen_server_fails_the_importers_step_within_its_timeout(h
                                                                                tmp_path: Path) -> None:
     """kill -9 of vehicle 2's server while libcosim or FMPy steps the package (its connection drops: Zenoh ends the query
     at once), or SIGSTOP (a partition, a server too slow: the connection stays, no reply comes): within
-    ``remote.step_timeout`` (1 s) + 1 s the step fails, libcosim's log naming vehicle 2, its server's key and where
+    ``remote.step_timeout`` (1 s) the step fails (0.5 s allowed for a loaded machine), libcosim's log naming vehicle 2, its server's key and where
     it was reached (FMPy's runner prints it with orchestrator/interop/fmpy_ssp.py); the host exits; the other
     server is freed."""
     ports = {1: free_port(), 2: free_port()}
@@ -267,7 +267,7 @@ def test_a_killed_or_frozen_server_fails_the_importers_step_within_its_timeout(h
     print(f"\n[remote FMU, server {signal.Signals(signal_).name}] {host}'s step failed {took:.2f} s after the signal "
           f"(step timeout 1 s): {next(line for line in lines if 'vehicle2 failed' in line).strip()}")
     assert run.returncode == 0 and "failed at" in out, out
-    assert took <= 1.0 + 1.0, f"the step failed {took:.2f} s after the kill (timeout 1 s)"
+    assert took <= 1.0 + 0.5, f"the step failed {took:.2f} s after the signal (timeout 1 s)"  # measured 0.02, 1.01 s
     assert (f"vehicle2 failed at t = " in out and "no reply to step from t = " in out
             and f"(server platoon/fmu/vehicle2 at tcp/127.0.0.1:{ports[2]})" in out), out
 

@@ -205,16 +205,16 @@ class RemoteVehicle(PlatoonSlave):
 
     def do_step(self, current_time: float, step_size: float) -> bool:
         remote = self.remote
-        if remote is None or not self.initialized:
+        if remote is None or not self.initialized or self.lost:
             self.log(self.lost or f"{self.instance_name}: doStep before initialization ended", Fmi2Status.error)
             return False
         try:
             remote.set_inputs([float(self.values[name]) for name in self._inputs])
             remote.step(current_time, step_size)
             self._outputs = dict(zip(self._output_names, remote.get_outputs()))
-        except ComponentError as error:
-            self._lose(str(error))
-            self.log(str(error), Fmi2Status.error)
+        except ComponentError as error:  # the instance is freed at fmi2Terminate (or exit), not here: a free
+            self.lost = str(error)  # waits for a dead server's reply, and the step must fail within step_timeout
+            self.log(self.lost, Fmi2Status.error)
             return False
         return True
 
