@@ -63,7 +63,7 @@ EQUATIONS["RemoteVehicle"] = EQUATIONS["Vehicle"] + """
 <p>The equations above run in a <code>platoon serve</code> on another host or process (key
 <code>&lt;remote.prefix&gt;/fmu/&lt;remote.server&gt;</code>), whose FMU this one forwards to over Zenoh: the parameters
 set here open its instance, each doStep sends the inputs, t and h and returns the outputs at t + h, exactly as the
-served FMU computes them. No reply within <code>remote.step_timeout</code>: doStep returns fmi2Error, naming the
+served FMU computes them. No reply within <code>remote.step_timeout</code>: doStep fails (fmi2Discard) with the reason in the log, naming the
 vehicle and the server. Needs the <code>eclipse-zenoh</code> Python package. Protocol: docs/remote.md of
 platoon-cosim.</p>
 """

@@ -12,7 +12,8 @@ that code's (bridge/fmu_wire.py), and the numbers are the served FMU's, bit for 
   initialization mode, or after inputs changed, are the server's (one exchange);
 * each doStep(t, h) sends the inputs, t and h in one request and waits (``remote.step_timeout``) for
   the outputs at t + h. No reply (the server killed, the network parted, a server too slow): doStep
-  returns fmi2Error with one line naming the vehicle, the server's key and where it was reached;
+  fails (False: pythonfmu answers fmi2Discard) with one line at error level in the FMU's log naming the
+  vehicle, the server's key and where it was reached;
 * fmi2Terminate frees the served instance and leaves Zenoh; a host that never terminates it (or frees
   it only as its interpreter tears down) still exits, and the server is freed for the next run, as the
   host's interpreter begins to exit (``fmus.slaves.host_exit.close_at_host_exit``).
