@@ -15,6 +15,7 @@ a ``ComponentError`` naming the vehicle, its server's key and where the server w
 from __future__ import annotations
 
 import secrets
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -39,27 +40,31 @@ class RemoteHost:
     _session: Any = None
     _users: int = 0
     _frees: list[Any] = field(default_factory=list)  # the frees sent, answered (or timed out) before closing
+    # an importer's worker threads may open (or close) instances of one shared host at once (``shared_host``)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def acquire(self) -> Any:
-        if self._session is None:
-            config = zenoh_config(self.connect, self.listen, self.zenoh_config, allow_insecure=self.allow_insecure)
-            self._session = open_session(config, "the run's remote vehicles")
-        self._users += 1
-        return self._session
+        with self._lock:
+            if self._session is None:
+                config = zenoh_config(self.connect, self.listen, self.zenoh_config, allow_insecure=self.allow_insecure)
+                self._session = open_session(config, "the run's remote vehicles")
+            self._users += 1
+            return self._session
 
     def release(self, free: Any = None) -> None:
         """One component done (``free``: its free request's reply handle). The last one closes the session,
         once every free is answered or timed out: sent back to back, they take ``CLOSE_TIMEOUT`` together at
         most, however many servers are gone."""
-        if free is not None:
-            self._frees.append(free)
-        self._users -= 1
-        if self._users <= 0 and self._session is not None:
-            for handle in self._frees:
-                first_reply(handle)
-            self._frees.clear()
-            session, self._session = self._session, None
-            session.close()
+        with self._lock:
+            if free is not None:
+                self._frees.append(free)
+            self._users -= 1
+            if self._users <= 0 and self._session is not None:
+                for handle in self._frees:
+                    first_reply(handle)
+                self._frees.clear()
+                session, self._session = self._session, None
+                session.close()
 
     def ask(self, key: str, payload: bytes, timeout: float) -> Any:
         """Send one query and return its reply handle at once (``first_reply`` collects the reply)."""
