@@ -15,6 +15,7 @@ a ``ComponentError`` naming the vehicle, its server's key and where the server w
 from __future__ import annotations
 
 import secrets
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -39,27 +40,31 @@ class RemoteHost:
     _session: Any = None
     _users: int = 0
     _frees: list[Any] = field(default_factory=list)  # the frees sent, answered (or timed out) before closing
+    # an importer's worker threads may open (or close) instances of one shared host at once (``shared_host``)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def acquire(self) -> Any:
-        if self._session is None:
-            config = zenoh_config(self.connect, self.listen, self.zenoh_config, allow_insecure=self.allow_insecure)
-            self._session = open_session(config, "the run's remote vehicles")
-        self._users += 1
-        return self._session
+        with self._lock:
+            if self._session is None:
+                config = zenoh_config(self.connect, self.listen, self.zenoh_config, allow_insecure=self.allow_insecure)
+                self._session = open_session(config, "the run's remote vehicles")
+            self._users += 1
+            return self._session
 
     def release(self, free: Any = None) -> None:
         """One component done (``free``: its free request's reply handle). The last one closes the session,
         once every free is answered or timed out: sent back to back, they take ``CLOSE_TIMEOUT`` together at
         most, however many servers are gone."""
-        if free is not None:
-            self._frees.append(free)
-        self._users -= 1
-        if self._users <= 0 and self._session is not None:
-            for handle in self._frees:
-                first_reply(handle)
-            self._frees.clear()
-            session, self._session = self._session, None
-            session.close()
+        with self._lock:
+            if free is not None:
+                self._frees.append(free)
+            self._users -= 1
+            if self._users <= 0 and self._session is not None:
+                for handle in self._frees:
+                    first_reply(handle)
+                self._frees.clear()
+                session, self._session = self._session, None
+                session.close()
 
     def ask(self, key: str, payload: bytes, timeout: float) -> Any:
         """Send one query and return its reply handle at once (``first_reply`` collects the reply)."""
@@ -70,6 +75,22 @@ class RemoteHost:
         """A declared querier on ``key``: its ``get`` costs a sixth of the session's (about 10 against 70 us
         of this process's time per call, measured here), which is what lockstep stepping pays per vehicle."""
         return self._session.declare_querier(key, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout)
+
+
+_SHARED: dict[tuple[Any, ...], RemoteHost] = {}
+
+
+def shared_host(connect: tuple[str, ...], listen: tuple[str, ...], zenoh_config: str | None,
+                allow_insecure: bool) -> RemoteHost:
+    """This process's ``RemoteHost`` for these settings. A process that holds several remote instances
+    without a run to share a host for them (an FMI importer running client FMUs, fmus/slaves/RemoteVehicle.py)
+    gets one Zenoh session per way of reaching the servers, as a run's remote vehicles share one: two
+    sessions could not both listen on one endpoint. Opened by its first user, closed by its last."""
+    key = (tuple(connect), tuple(listen), zenoh_config, bool(allow_insecure))
+    host = _SHARED.get(key)
+    if host is None:
+        host = _SHARED[key] = RemoteHost(*key)
+    return host
 
 
 def first_reply(handle: Any) -> bytes | None:

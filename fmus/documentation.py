@@ -58,6 +58,15 @@ returns when the wall clock has reached its end. No valid pose for <code>hil.pos
 liveliness token gone: a stop command is sent and doStep returns fmi2Error with the reason in the log.
 Needs the <code>eclipse-zenoh</code> Python package. Protocol: docs/hil.md of platoon-cosim.</p>
 """
+EQUATIONS["RemoteVehicle"] = EQUATIONS["Vehicle"] + """
+<h2>A served vehicle</h2>
+<p>The equations above run in a <code>platoon serve</code> on another host or process (key
+<code>&lt;remote.prefix&gt;/fmu/&lt;remote.server&gt;</code>), whose FMU this one forwards to over Zenoh: the parameters
+set here open its instance, each doStep sends the inputs, t and h and returns the outputs at t + h, exactly as the
+served FMU computes them. No reply within <code>remote.step_timeout</code>: doStep fails (fmi2Discard) with the reason in the log, naming the
+vehicle and the server. Needs the <code>eclipse-zenoh</code> Python package. Protocol: docs/remote.md of
+platoon-cosim.</p>
+"""
 
 COUPLING = """
 <h2>Coupling between communication points</h2>

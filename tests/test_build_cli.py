@@ -25,10 +25,10 @@ def test_build_writes_every_fmu_then_reuses_them_and_repairs_a_damaged_one(tmp_p
     from fmus.builders import NATIVE_FMI2, NATIVE_FMI3
 
     first = _build(tmp_path)
-    assert set(first) == {"Vehicle", "VirtualTarget", "Link", "LiveVehicle", "native/Vehicle", "native/VirtualTarget",
+    assert set(first) == {"Vehicle", "VirtualTarget", "Link", "LiveVehicle", "RemoteVehicle", "native/Vehicle", "native/VirtualTarget",
                           "native/Link", "fmi3/Vehicle", "fmi3/VirtualTarget", "fmi3/Link"}
     assert all(line.endswith(("(built)", "(built, native)", "(built, native FMI 3.0)")) for line in first.values())
-    for name in ("Vehicle", "VirtualTarget", "LiveVehicle"):
+    for name in ("Vehicle", "VirtualTarget", "LiveVehicle", "RemoteVehicle"):
         assert fmu_guid(tmp_path / f"{name}.fmu") == PYTHONFMU.expected_guid(name)
         assert PYTHONFMU.expected_guid(name) in first[name]
     for name in ("Vehicle", "VirtualTarget"):
@@ -121,7 +121,7 @@ def test_a_cross_compile_past_its_time_is_one_line_naming_the_target_and_writes_
     assert "Run the same command again" in lines[-1] and "python -m fmus.builders.zig_cache" in lines[-1]
     assert any(line.startswith(f"zig: building its C runtime for {first}, ") for line in lines), lines
     assert not list(out.glob("native/*")) and not list(out.glob("fmi3/*")) and not list(out.rglob("*partial*"))
-    assert len(list(out.glob("*.fmu"))) == 4  # the pythonfmu FMUs, built before: whole
+    assert len(list(out.glob("*.fmu"))) == 5  # the pythonfmu FMUs, built before: whole
 
     def ours() -> list[psutil.Process]:  # a compiler of this build, alive (its environment names the cache)
         alive = []

@@ -509,7 +509,7 @@ def test_an_fmu_with_the_right_guid_but_damaged_is_rebuilt(damage: str, workdir:
     states = {Path(line.split()[0]).name: line.split("(", 1)[1] for line in result.stdout.splitlines()
               if Path(line.split()[0]).parent == out}  # the pythonfmu FMUs (not out/native, out/fmi3)
     assert states == {"Vehicle.fmu": "built)", "VirtualTarget.fmu": "up to date)", "Link.fmu": "up to date)",
-                      "LiveVehicle.fmu": "up to date)"}
+                      "LiveVehicle.fmu": "up to date)", "RemoteVehicle.fmu": "up to date)"}
     with zipfile.ZipFile(fmu) as archive:
         assert archive.testzip() is None and archive.getinfo(binary).file_size > 0
     assert all(b.rebuilt is False for b in PYTHONFMU.build(out, names=ALL_FMUS)), "a repaired build is up to date"

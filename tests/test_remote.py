@@ -194,12 +194,10 @@ REMOTE = REPO / "configs" / "remote" / "platoon.toml"
 
 
 def test_what_cannot_work_with_remote_vehicles_is_one_line_and_exit_2(tmp_path: Path) -> None:
-    """The native engine, an SSP export (no client FMU yet: never a silent local stand-in) and a file that is
-    not an FMU are refused before anything is written, in one line naming what."""
+    """The native engine and a file that is not an FMU are refused before anything is written, in one line
+    naming what (an SSP export gives the remote vehicles client FMUs: tests/test_remote_fmu.py)."""
     native = platoon("run", REMOTE, "--engine", "native", "--out", tmp_path / "x.mcap", cwd=tmp_path)
     assert native.returncode == 2 and "vehicle1, vehicle2, vehicle3, vehicle4 is remote" in error_line(native)
-    ssp = platoon("export-ssp", REMOTE, "--out", tmp_path / "x.ssp", cwd=tmp_path)
-    assert ssp.returncode == 2 and "vehicles.1, vehicles.2, vehicles.3, vehicles.4" in error_line(ssp)
     (tmp_path / "not.fmu").write_text("hello")
     bad = platoon("serve", tmp_path / "not.fmu", "--name", "v", cwd=tmp_path)
     assert bad.returncode == 2 and "not.fmu: not an FMU" in error_line(bad)

@@ -25,7 +25,8 @@ ROOT = PACKAGE_DIR.parent  # the folder holding fmus/, bridge/ and orchestrator/
 FMU_NAMES = ("Vehicle", "VirtualTarget")  # what every run uses
 LIVE_FMU = "LiveVehicle"  # a live robot as an FMU (platoon build --live, platoon export-ssp of a live config)
 LINK_FMU = "Link"  # a communication link, in runs whose config has a [links] table (docs/links.md)
-ALL_FMUS = FMU_NAMES + (LINK_FMU, LIVE_FMU)
+REMOTE_FMU = "RemoteVehicle"  # a client of a `platoon serve` as an FMU (platoon export-ssp of a remote config)
+ALL_FMUS = FMU_NAMES + (LINK_FMU, LIVE_FMU, REMOTE_FMU)
 DEFAULT_OUT = Path("build") / "fmus"
 _ZIP_TIME = (2020, 1, 1, 0, 0, 0)
 

@@ -23,7 +23,8 @@ from pathlib import Path
 import pythonfmu  # noqa: F401
 
 import fmus
-from fmus.builders.base import DEFAULT_OUT, LINK_FMU, LIVE_FMU, PACKAGE_DIR, ROOT, Builder, BuildError, slave_instance
+from fmus.builders.base import (DEFAULT_OUT, LINK_FMU, LIVE_FMU, PACKAGE_DIR, REMOTE_FMU, ROOT, Builder, BuildError,
+                                slave_instance)
 from fmus.modeldescription.fmi2 import guid_for, model_description
 from fmus.platforms import binary_entry
 
@@ -31,14 +32,18 @@ _BUNDLED_SUBPACKAGES = ("model", "slaves")
 # the modules (below fmus/) that shape what this builder writes: a change to one rebuilds the FMUs
 BUILDER_MODULES = ("builders/base.py", "builders/pythonfmu.py", "modeldescription/core.py", "modeldescription/fmi2.py",
                    "documentation.py")
-# What an FMU carries beyond fmus/model and fmus/slaves: the LiveVehicle FMU runs the bridge's host side
-# (bridge.live and what it imports), the component interface and the pacer, so it needs nothing but zenoh installed.
-_ONLY_IN = {"LiveVehicle.py": LIVE_FMU, "Link.py": LINK_FMU}
-_EXTRA_SOURCES = {
-    LIVE_FMU: ("bridge/__init__.py", "bridge/claim.py", "bridge/lab_key.py", "bridge/live.py", "bridge/protocol.py", "bridge/session.py",
-               "bridge/motion_watch.py", "bridge/states.py", "bridge/tls_probe.py",
-               "fmus/component.py", "fmus/errors.py", "fmus/realtime.py"),
-}
+# What an FMU carries beyond fmus/model and fmus/slaves. Every one carries the fmus modules the
+# Zenoh-speaking FMUs import (the component interface, its error, the pacer): FMUs in one host share
+# sys.modules, and the first FMU to load ``fmus`` (a Vehicle, say) must hold what a later LiveVehicle
+# or RemoteVehicle imports from it. The LiveVehicle FMU runs the bridge's host side (bridge.live and what
+# it imports); the RemoteVehicle FMU runs the served-FMU client (bridge.fmu_client, bridge.fmu_wire). Both
+# carry the same bridge code, for the same reason. Either needs nothing but zenoh installed.
+_ONLY_IN = {"LiveVehicle.py": LIVE_FMU, "Link.py": LINK_FMU, "RemoteVehicle.py": REMOTE_FMU}
+_SHARED_SOURCES = ("fmus/component.py", "fmus/errors.py", "fmus/realtime.py")
+_ZENOH_SOURCES = ("bridge/__init__.py", "bridge/claim.py", "bridge/fmu_client.py", "bridge/fmu_wire.py", "bridge/lab_key.py",
+                  "bridge/live.py", "bridge/protocol.py", "bridge/session.py", "bridge/motion_watch.py", "bridge/states.py",
+                  "bridge/tls_probe.py")
+_EXTRA_SOURCES = {LIVE_FMU: _ZENOH_SOURCES, REMOTE_FMU: _ZENOH_SOURCES}
 
 
 def bundled_sources(name: str = "Vehicle") -> list[Path]:
@@ -46,7 +51,7 @@ def bundled_sources(name: str = "Vehicle") -> list[Path]:
     files = [PACKAGE_DIR / "__init__.py"]
     for sub in _BUNDLED_SUBPACKAGES:
         files += sorted(path for path in (PACKAGE_DIR / sub).glob("*.py") if _ONLY_IN.get(path.name, name) == name)
-    return files + [ROOT / extra for extra in _EXTRA_SOURCES.get(name, ())]
+    return files + [ROOT / extra for extra in _SHARED_SOURCES + _EXTRA_SOURCES.get(name, ())]
 
 
 def source_digest(name: str = "Vehicle") -> str:

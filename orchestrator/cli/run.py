@@ -19,11 +19,11 @@ if TYPE_CHECKING:
 
 
 def build(
-    out_dir: Annotated[Path, typer.Option("--out", help="folder for Vehicle.fmu, VirtualTarget.fmu, Link.fmu and LiveVehicle.fmu")] = Path("build/fmus"),
+    out_dir: Annotated[Path, typer.Option("--out", help="folder for Vehicle.fmu, VirtualTarget.fmu, Link.fmu, LiveVehicle.fmu and RemoteVehicle.fmu")] = Path("build/fmus"),
     force: Annotated[bool, typer.Option(help="rebuild even if up to date")] = False,
     all_platforms: Annotated[bool, typer.Option("--all-platforms", help="native FMUs with binaries for x86_64 and aarch64 Linux, x86_64 Windows, x86_64 and aarch64 macOS, cross-compiled with Zig (pip install 'platoon-cosim[release]')")] = False,
 ) -> None:
-    """Build the Vehicle, VirtualTarget, Link and LiveVehicle FMUs, and the native Vehicle, VirtualTarget and Link into OUT/native (FMI 2.0) and OUT/fmi3 (FMI 3.0) (only when their sources changed)."""
+    """Build the Vehicle, VirtualTarget, Link, LiveVehicle and RemoteVehicle FMUs, and the native Vehicle, VirtualTarget and Link into OUT/native (FMI 2.0) and OUT/fmi3 (FMI 3.0) (only when their sources changed)."""
     from fmus.builders import ALL_FMUS, PYTHONFMU
     from fmus.builders.base import source_files
 

@@ -48,8 +48,10 @@ def export_ssp(
     for note in ssp_notes(parsed):
         err.print(f"note: {note}", highlight=False, soft_wrap=True, markup=False)
     live = ", ".join(f"vehicle{k}" for k in parsed.live_vehicles())
+    remote = ", ".join(f"vehicle{k}" for k in parsed.remote_vehicles())
     console.print(f"{written}: {parsed.platoon.count + 1 + len(parsed.linked())} components, step {parsed.simulation.step:g} s, stop "
-                  f"{parsed.simulation.stop_time:g} s" + (f"; live robot: {live} (LiveVehicle.fmu)" if live else ""),
+                  f"{parsed.simulation.stop_time:g} s" + (f"; live robot: {live} (LiveVehicle.fmu)" if live else "")
+                  + (f"; remote: {remote} (RemoteVehicle.fmu: start their platoon serve first)" if remote else ""),
                   highlight=False, soft_wrap=True, markup=False)
 
 

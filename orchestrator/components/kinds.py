@@ -74,17 +74,18 @@ def ensure_fmus(fmu_dir: Path, kind: str, names: Sequence[str],
     folder in an FMU's place is refused (``OutputError``, one line naming it) before anything reads it,
     a source of the fmus package is never replaced, and an FMU is written aside, synced and renamed.
 
-    ``LiveVehicle`` (a live robot as an FMU) exists only as a pythonfmu FMU: it runs the bridge's
-    Python code, so it comes from the pythonfmu folder whatever ``kind`` says.
+    ``LiveVehicle`` (a live robot as an FMU) and ``RemoteVehicle`` (a served FMU's client) exist only as
+    pythonfmu FMUs: they run the bridge's Python code, so they come from the pythonfmu folder whatever
+    ``kind`` says.
     """
-    from fmus.builders import LIVE_FMU, PYTHONFMU
+    from fmus.builders import LIVE_FMU, PYTHONFMU, REMOTE_FMU
     from fmus.builders.base import source_files
 
     from orchestrator.support.output import OwnFiles
 
     rule = OwnFiles(source_files(), "FMU")
     paths: dict[str, Path] = {}
-    native = [name for name in names if name != LIVE_FMU] if kind == "native" else []
+    native = [name for name in names if name not in (LIVE_FMU, REMOTE_FMU)] if kind == "native" else []
     python = [name for name in names if name not in native]
     if native:
         from fmus.builders import NATIVE_FMI2, NoCompiler
@@ -120,10 +121,10 @@ def prepare_fmus(fmu_dir: Path) -> None:
 def fmu_files(fmu_dir: Path) -> list[Path]:
     """Every FMU a run (or an SSP export) may read below ``fmu_dir``, of both kinds, and the fmus package's
     sources it builds them from: the inputs its output must never replace (support/output.py)."""
-    from fmus.builders import FMU_NAMES, LINK_FMU, LIVE_FMU
+    from fmus.builders import FMU_NAMES, LINK_FMU, LIVE_FMU, REMOTE_FMU
     from fmus.builders.base import source_files
 
-    names = (*FMU_NAMES, LINK_FMU, LIVE_FMU)
+    names = (*FMU_NAMES, LINK_FMU, LIVE_FMU, REMOTE_FMU)
     return [fmu_folder(fmu_dir, kind) / f"{name}.fmu" for kind in FMU_KINDS for name in names] + list(source_files())
 
 

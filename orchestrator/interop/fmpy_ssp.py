@@ -17,8 +17,12 @@ As is, simulate_ssp cannot run the platoon:
    previous input's connection (``fmpy.ssp.ssd.get_connections`` reuses its loop variable): each
    vehicle's ``disturbance.speed`` would follow its follower's ``time``.
 
-The fixes replace three of its module functions: ``set_parameters`` applies each component's own
-bindings with the setter of each parameter's type, ``get_connections`` keeps only the pairs the .ssd
+It also instantiates every FMU with logging off (``loggingOn=False``), so an FMU's reason for a failed
+call (a remote vehicle's server gone, naming the vehicle and the server) never reaches the user: only
+``fmi2DoStep failed with status 2``.
+
+The fixes replace three of its module functions: ``set_parameters`` turns each FMU's logging on (FMPy
+prints its messages) and applies each component's own bindings with the setter of each parameter's type, ``get_connections`` keeps only the pairs the .ssd
 connects, and the first ``do_step`` first moves every component's initial outputs along the
 connections until they settle (what our master and libcosim do before the first step). ``stop_time`` is passed half a step short: simulate_ssp adds the step to its
 clock (``time += step_size``) and steps while ``time < stop_time``, so the rounded sum could add a step.
@@ -34,7 +38,9 @@ _SETTERS = {"Real": ("setReal", float), "Integer": ("setInteger", int),
 
 
 def apply_bindings(component: Component, _parameter_set: object) -> None:
-    """The component's ParameterBindings (as read_ssd parsed them), each value with its type's setter."""
+    """The component's ParameterBindings (as read_ssd parsed them), each value with its type's setter; first,
+    the FMU's logging on (every category), so FMPy prints what it says."""
+    component.fmu.setDebugLogging(True, [])
     for binding in component.parameterBindings:
         for parameter_set in binding.parameterValues:
             for parameter in parameter_set.parameters:

@@ -3,8 +3,8 @@
 An SSP (System Structure and Parameterization, Modelica Association) package is a zip with
 ``SystemStructure.ssd`` at its root. Ours holds:
 
-* ``resources/<Kind>.fmu``: the FMUs the platoon uses (VirtualTarget, Vehicle, and LiveVehicle for a
-  vehicle that is a live robot);
+* ``resources/<Kind>.fmu``: the FMUs the platoon uses (VirtualTarget, Vehicle, LiveVehicle for a
+  vehicle that is a live robot, RemoteVehicle for a vehicle served by a ``platoon serve``: docs/remote.md);
 * ``resources/<component>.ssv``: each component's parameter values, exactly the ones our orchestrator
   sets (``build_scenario``), bound to it by a ParameterBinding;
 * in the .ssd: every component with every input and output as a connector (units from the FMUs), the
@@ -204,33 +204,69 @@ def ssp_notes(config: Config) -> list[str]:
 
 def export_components(config: Config, scenario: Scenario) -> list[ComponentSpec]:
     """The scenario's components, with each live vehicle (``endpoint = "zenoh"``) as a LiveVehicle FMU that
-    reaches the robot the config names (its ``hil.*`` parameters)."""
-    remote = [f"vehicles.{k}" for k in config.remote_vehicles()]
-    if remote:  # a client FMU for other tools is not built yet (docs/remote.md): never a silent local stand-in
-        raise SspError(f"{', '.join(remote)}: endpoint = \"remote\" has no client FMU for other tools yet; export "
-                       "with --set vehicles.K.endpoint=fmu, or run the config with platoon run")
-    live = set(config.live_vehicles())
-    if not live:
+    reaches the robot the config names (its ``hil.*`` parameters), and each remote vehicle (``endpoint =
+    "remote"``) as a RemoteVehicle FMU that reaches its ``platoon serve`` (its ``remote.*`` parameters)."""
+    live, remote = _live_parameters(config), _remote_parameters(config)
+    if not live and not remote:
         return list(scenario.components)
-    from fmus.builders import LIVE_FMU
+    from fmus.builders import LIVE_FMU, REMOTE_FMU
+
+    def replaced(spec: ComponentSpec) -> ComponentSpec:
+        if spec.name in live:
+            return ComponentSpec(spec.name, LIVE_FMU, {**spec.parameters, **live[spec.name]})
+        if spec.name in remote:
+            return ComponentSpec(spec.name, REMOTE_FMU, {**spec.parameters, **remote[spec.name]})
+        return spec
+
+    return [replaced(spec) for spec in scenario.components]
+
+
+def _absolute(path: str | None) -> str | None:
+    """A config's Zenoh config file, relative to the folder of the export, not of whoever runs the package."""
+    return str(Path(path).resolve()) if path else None
+
+
+def _live_parameters(config: Config) -> dict[str, dict[str, Any]]:
+    """Each live vehicle's ``hil.*`` parameters, by component name ({} without live vehicles)."""
+    live = config.live_vehicles()
+    if not live:
+        return {}
     from fmus.slaves.LiveVehicle import hil_parameters
 
     from orchestrator.components.live import live_settings
     from orchestrator.scenario.wiring import vehicle_name
 
-    def parameters(spec: ComponentSpec) -> dict[str, Any]:
-        settings = live_settings(config, names[spec.name])
-        if settings.zenoh_config:  # relative to the folder of the export, not of whoever runs the package
-            settings = dataclasses.replace(settings, zenoh_config=str(Path(settings.zenoh_config).resolve()))
-        return {**spec.parameters, **hil_parameters(settings)}
-
     on_ros = [f"vehicles.{k}.ros2" for k in sorted(live) if config.override(k).ros2 is not None]
     if on_ros:
         raise SspError(f"{', '.join(on_ros)}: the LiveVehicle FMU speaks our protocol only, not ROS 2 topics; "
                        "export the config without these tables, or run it with platoon run")
-    names = {vehicle_name(k): k for k in live}
-    return [ComponentSpec(spec.name, LIVE_FMU, parameters(spec)) if spec.name in names else spec
-            for spec in scenario.components]
+    parameters = {}
+    for vehicle in live:
+        settings = live_settings(config, vehicle)
+        settings = dataclasses.replace(settings, zenoh_config=_absolute(settings.zenoh_config))
+        parameters[vehicle_name(vehicle)] = hil_parameters(settings)
+    return parameters
+
+
+def _remote_parameters(config: Config) -> dict[str, dict[str, Any]]:
+    """Each remote vehicle's ``remote.*`` parameters (its server, as ``platoon run`` reaches it), by component
+    name ({} without remote vehicles)."""
+    remote = config.remote_vehicles()
+    if not remote:
+        return {}
+    from fmus.slaves.RemoteVehicle import remote_parameters
+
+    from orchestrator.components.remote import server_name
+    from orchestrator.scenario.wiring import vehicle_name
+
+    parameters = {}
+    for vehicle in remote:
+        override = config.override(vehicle)
+        parameters[vehicle_name(vehicle)] = remote_parameters(
+            server_name(config, vehicle), override.prefix or config.hil.prefix, tuple(override.connect or ()),
+            tuple(override.listen or ()), _absolute(override.zenoh_config), config.remote.step_timeout,
+            config.remote.connect_timeout, config.hil.allow_insecure)
+    return parameters
 
 
 def export_ssp(config: Config, out: Path, fmu_dir: Path, force: bool = False, worker_threads: int | None = 0) -> Path:
