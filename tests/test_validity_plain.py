@@ -20,7 +20,8 @@ from tests.conftest import make_config
 WATCHED = ("x", "y", "speed")
 
 
-def _rows(rng: random.Random, count: int, vehicles: int, radius: float, d_star: float, speed: float) -> list[list[float]]:
+def _rows(rng: random.Random, count: int, vehicles: int, radius: float, d_star: float,
+          speed: float) -> list[list[float]]:
     """Rows [t, target, vehicles...] on a circle about (3, -2), each gap near d* or near 0, each speed near
     the limit or a pass: scattered around every threshold, with some exactly on one."""
     rows = []

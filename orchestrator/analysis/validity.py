@@ -125,8 +125,8 @@ class ValidityWatch:
         self._pairs = [(ahead, name) for ahead, name in zip(self._aheads, self.names) if ahead in columns]
         self._columns = columns
         # per pair: the columns of the ahead's x and y, the follower's x and y
-        self._pair_columns = [tuple(columns[pair[side]][axis] for side, axis in ((0, "x"), (0, "y"), (1, "x"), (1, "y")))
-                              for pair in self._pairs]
+        sides = ((0, "x"), (0, "y"), (1, "x"), (1, "y"))
+        self._pair_columns = [tuple(columns[pair[side]][axis] for side, axis in sides) for pair in self._pairs]
         self.departures: dict[tuple[str, str], Departure] = {}
 
     def plainly_inside(self, rows: Iterable[Sequence[float]]) -> bool:
@@ -173,7 +173,7 @@ class ValidityWatch:
             found.append(Departure("speed", self.names[vehicle], float(t[first]), float(speeds[first, vehicle]),
                                    float(speed_limit[vehicle])))
         if self._pairs:  # every pair at once (rows x pairs): a platoon of thousands is one numpy pass a block
-            ax, ay, bx, by = (rows[:, np.array(indices, dtype=np.intp)] for indices in zip(*self._pair_columns))
+            ax, ay, bx, by = (rows[:, np.array(columns, dtype=np.intp)] for columns in zip(*self._pair_columns))
             dx, dy = ax - bx, ay - by
             tx, ty = _tangent(self.config, ax, ay)
             along, gap = dx * tx + dy * ty, np.hypot(dx, dy)

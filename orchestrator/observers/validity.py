@@ -25,7 +25,8 @@ if TYPE_CHECKING:
 
 Log = Callable[[float, str, str], None]
 GATHERED = 256  # Python-stepped rows checked at a time
-PLAIN_BUDGET = 10_000  # vehicle-rows a run checks in plain Python (1.5-2 µs each) before numpy (~0.05 s to import) takes over
+# vehicle-rows a run checks in plain Python (1.5-2 µs each) before numpy (~0.05 s to import) takes over
+PLAIN_BUDGET = 10_000
 
 
 def numpy_loaded() -> bool:
