@@ -89,7 +89,9 @@ def report_command(trace: Path, as_json: bool, plots: Optional[Path], overwrite:
 
         with output_rule():
             check_plot_targets(plots, overwrite, [trace])
-    loaded, config, non_finite = trace_and_config(trace)
+    # the recorded /platoon/errors are not read: the summary computes its errors from the bodies, as the run did
+    # (half of the reading, like the 3D scene's chunks, which no reader decodes)
+    loaded, config, non_finite = trace_and_config(trace, errors=False)
     out, err = console(), console(stderr=True)
     note = (err.print if as_json else out.print)
     if non_finite:
