@@ -7,9 +7,10 @@ It sees the rows the trace records (the same decimation), so every engine finds 
 numpy sees them (a point at a time would cost more than the check).
 
 A short run does not import numpy for the watch: while numpy is not loaded, a block whose rows are plainly
-inside the model (``ValidityWatch.plainly_inside``, plain Python) is passed without it, up to ``PLAIN_BUDGET``
-vehicle-rows a run; a block near a limit, or the rows beyond that budget, go to numpy, whose verdicts these
-are either way. numpy was a fifth of a 10-step run's start-up (docs/performance.md, "Start-up")."""
+inside the model (``ValidityWatch.plainly_inside``, plain Python) is passed without it, in a run that records
+up to ``PLAIN_BUDGET`` vehicle-rows; a block near a limit, and every block of a longer run, go to numpy,
+whose verdicts these are either way. numpy was a fifth of a 10-step run's start-up (docs/performance.md,
+"Start-up")."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from orchestrator.observers.base import Observer
 from orchestrator.scenario.config import Config
+from orchestrator.scenario.raw_config import recorded_rows, step_count
 from orchestrator.support.rows import RowBlock
 
 if TYPE_CHECKING:
@@ -46,7 +48,9 @@ class ValidityObserver(Observer):
         self._watch: "ValidityWatch | None" = None
         self._count = 0
         self._rows: list[list[float]] = []
-        self._plain_left = PLAIN_BUDGET
+        rows = recorded_rows(step_count(config.simulation.stop_time, config.simulation.step), self.every)
+        # a run that records more than the budget will need numpy: from its first block, not after the budget
+        self._plain_left = PLAIN_BUDGET if rows * config.platoon.count <= PLAIN_BUDGET else 0
 
     def point(self, t: float, outputs: Sequence[Sequence[float]]) -> None:
         if self._count % self.every == 0:
