@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 
 import orchestrator.cli.run as run_module
 from orchestrator.cli.app import app
-from orchestrator.cli.launch import RUN_OPTIONS, RUN_RANGES, plain_run_options
+from orchestrator.cli.launch import REPORT_OPTIONS, RUN_OPTIONS, RUN_RANGES, plain_report_options, plain_run_options
 from orchestrator.cli.options import RunOptions
 
 C = "configs/paper/platoon.toml"
@@ -122,3 +122,64 @@ def test_the_fast_start_knows_every_option_of_the_typer_command_as_declared() ->
     defaults = {param.name: param.default for param in command.params if param.name != "config"}
     assert {name: list(value) if isinstance(value, tuple) else value for name, value in defaults.items()} == \
         {name: getattr(RunOptions(Path(C)), name) for name in defaults}
+
+
+# `platoon report` command lines: plain ones first (the fast start takes them), then typer's
+T = "runs/x.mcap"
+REPORT_LINES = [
+    ["report", T],
+    ["report", T, "--json"],
+    ["report", "--json", T, "--plots", "runs/plots", "--overwrite"],
+    ["report", T, "--plots=runs/plots"],
+    ["report", "a trace with spaces.mcap"],
+    ["report", T, "--json", "--json"],
+    # typer's
+    ["report"],
+    ["report", "--help"],
+    ["report", T, "-h"],
+    ["report", T, "other.mcap"],
+    ["report", T, "--json=true"],
+    ["report", T, "--plots"],
+    ["report", T, "--plots", ""],
+    ["report", T, "--plots", "-x"],
+    ["report", T, "--csv", "x"],
+    ["report", T, "--", "x"],
+    ["report", ""],
+    ["report", "-"],
+    ["run", C],
+]
+
+
+def typers_report(args: list[str], monkeypatch: pytest.MonkeyPatch) -> tuple[int, dict | None]:
+    """(exit code, the arguments typer's `report` command passed on) for ``args``; nothing is read."""
+    import orchestrator.cli.trace as trace_module
+
+    built: list[dict] = []
+    monkeypatch.setattr(trace_module, "report_command",
+                        lambda trace, as_json, plots, overwrite: built.append(
+                            {"trace": trace, "as_json": as_json, "plots": plots, "overwrite": overwrite}))
+    result = CliRunner().invoke(app, args, env={"COLUMNS": "100", "NO_COLOR": "1", "TERM": "dumb"})
+    return result.exit_code, (built[0] if built else None)
+
+
+@pytest.mark.parametrize("args", REPORT_LINES, ids=lambda args: " ".join(args) or "(empty)")
+def test_the_fast_start_reads_a_report_as_typer_does_or_leaves_it_to_typer(
+        args: list[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    ours = plain_report_options(args)
+    if ours is not None:  # taken without typer: exactly what typer's command would have run
+        assert typers_report(args, monkeypatch) == (0, ours)
+
+
+def test_the_plain_report_lines_above_are_taken_by_the_fast_start() -> None:
+    plain = REPORT_LINES[:REPORT_LINES.index(["report"])]
+    assert [args for args in REPORT_LINES if plain_report_options(args) is not None] == plain
+
+
+def test_the_fast_start_knows_every_option_of_the_report_command_as_declared() -> None:
+    command = typer.main.get_command(app).commands["report"]  # type: ignore[attr-defined]
+    kinds = {Path: "path", bool: "flag"}
+    declared = {name: (param.name, kinds[param.type_descriptor.annotation])
+                for param in command.params if param.param_type_name != "argument" for name in param.opts}
+    assert declared == REPORT_OPTIONS
+    assert [param.name for param in command.params if param.param_type_name == "argument"] == ["trace"]
+    assert all(param.min is None and param.max is None for param in command.params if hasattr(param, "min"))

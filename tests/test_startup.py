@@ -89,10 +89,11 @@ def test_a_quiet_run_of_a_large_platoon_imports_nothing_it_does_not_need(tmp_pat
     assert "orchestrator.execution.run" in modules and "orchestrator.execution.native" in modules  # it did run
     assert unwanted(modules) == []
     # numpy was a quarter of start-up: the native engine's blocks reach the trace worker as bytes
-    # (orchestrator/support/rows.py); what computes on rows imports it: the summary table, a live view, and now
-    # the watch that says when a run leaves the model (orchestrator/observers/validity.py), which every run has,
-    # so a quiet run loads numpy again (taking the watch off numpy is open work: the notes of this change)
+    # (orchestrator/support/rows.py); what computes on rows imports it: the summary table, a live view; the
+    # watch that says when a run leaves the model, which every run has, checks a short run's rows that are
+    # plainly inside in plain Python (orchestrator/observers/validity.py)
     assert "orchestrator.observers.validity" in modules
+    assert "numpy" not in modules
 
 
 def quiet_run(tmp_path: Path) -> list[str]:

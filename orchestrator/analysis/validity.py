@@ -18,21 +18,25 @@ singularity): true of the equations, impossible for any vehicle, and outside wha
 The first departure of each kind per vehicle is kept. ``ValidityWatch`` folds flat rows ``[t, outputs...]``
 (the run's observer feeds it while stepping, ``departures_of_trace`` a trace's rows): one implementation for
 `platoon run`, `platoon report`, a sweep's row and the string-stability commands. Pure computation, no I/O.
+
+numpy is imported where the rows are folded, not with this module: a quiet run whose rows stay plainly inside
+(``ValidityWatch.plainly_inside``, plain Python) never needs it, and importing it was a fifth of a short
+run's start-up (docs/performance.md, "Start-up").
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import TYPE_CHECKING, Sequence
-
-import numpy as np
+from typing import TYPE_CHECKING, Iterable, Sequence
 
 from orchestrator.scenario.config import Config
 from orchestrator.scenario.wiring import TARGET
 from orchestrator.trace.format import vehicle_names
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from orchestrator.trace import Trace
 
 VEHICLE_LENGTH = 4.5  # m: a car's length, the kinematic vehicle's size
@@ -41,6 +45,10 @@ SPEED_FACTOR = 3.0  # the default speed limit over V_c
 WATCHED = ("x", "y", "speed")
 KINDS = ("collision", "reversal", "speed")
 LEFT_MODEL = "run.left_model"  # a sweep row's column: ``departures_cell``, "" inside the model
+# ``plainly_inside``'s margins: relative, far above the few ulps by which its sums and math.hypot may differ
+# from numpy's (~1e-15), and absolute, above the rounding of subnormal products
+MARGIN = 1e-9
+TINY = 1e-300
 
 
 @dataclass(frozen=True)
@@ -94,6 +102,8 @@ class Departure:
 
 def _tangent(config: Config, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The path's direction of travel at (x, y): the line's heading, or the circle's tangent there."""
+    import numpy as np
+
     path = config.path
     if path.kind == "line":
         return np.full_like(x, math.cos(path.heading)), np.full_like(x, math.sin(path.heading))
@@ -114,24 +124,56 @@ class ValidityWatch:
         self._aheads = [TARGET] + self.names[:-1]
         self._pairs = [(ahead, name) for ahead, name in zip(self._aheads, self.names) if ahead in columns]
         self._columns = columns
-        self._pair_columns = [np.array([columns[pair[side]][axis] for pair in self._pairs], dtype=np.intp)
-                              for side, axis in ((0, "x"), (0, "y"), (1, "x"), (1, "y"))]
-        self._speed_limit = np.array(self.limits.max_speed[:len(self.names)])
+        # per pair: the columns of the ahead's x and y, the follower's x and y
+        sides = ((0, "x"), (0, "y"), (1, "x"), (1, "y"))
+        self._pair_columns = [tuple(columns[pair[side]][axis] for side, axis in sides) for pair in self._pairs]
         self.departures: dict[tuple[str, str], Departure] = {}
 
+    def plainly_inside(self, rows: Iterable[Sequence[float]]) -> bool:
+        """True when no row comes near a limit, seen in plain Python: ``add`` would find nothing in them. False
+        when a row is at a limit, near one (within ``MARGIN``) or not finite: then ``add`` decides. The margins
+        cover the few ulps by which these sums and math.hypot may differ from numpy's, so the verdicts are
+        ``add``'s either way; a run that never comes near a limit needs no numpy (module docstring)."""
+        speeds = [(self._columns[name]["speed"], limit) for name, limit in zip(self.names, self.limits.max_speed)]
+        near_gap = (self.limits.min_gap * (1.0 + MARGIN)) ** 2
+        path = self.config.path
+        circle = path.kind != "line"
+        sign, (center_x, center_y) = (1.0 if path.direction == "ccw" else -1.0), path.center
+        tx, ty = math.cos(path.heading), math.sin(path.heading)  # a line's direction (a circle's: per row)
+        for row in rows:
+            if not all(abs(row[column]) <= limit for column, limit in speeds):  # add's test, exactly
+                return False
+            for ax, ay, bx, by in self._pair_columns:
+                x, y = row[ax], row[ay]
+                dx, dy = x - row[bx], y - row[by]
+                if not dx * dx + dy * dy > near_gap:  # its gap is above the minimum with the margin (or overflows)
+                    return False
+                if circle:  # _tangent's, at the vehicle ahead
+                    radius = math.hypot(x - center_x, y - center_y)
+                    if not radius > TINY:
+                        return False
+                    tx, ty = -sign * (y - center_y) / radius, sign * (x - center_x) / radius
+                along_x, along_y = dx * tx, dy * ty
+                if not along_x + along_y > MARGIN * (abs(along_x) + abs(along_y)) + TINY:  # plainly still behind
+                    return False
+        return True
+
     def add(self, rows: np.ndarray) -> list[Departure]:
+        import numpy as np
+
         rows = np.asarray(rows, dtype=float)
         if rows.ndim != 2 or not len(rows) or not self.names:
             return []
         t, found, column = rows[:, 0], [], self._columns
         speeds = rows[:, [column[name]["speed"] for name in self.names]]
-        fast = np.abs(speeds) > self._speed_limit
+        speed_limit = np.array(self.limits.max_speed[:len(self.names)])
+        fast = np.abs(speeds) > speed_limit
         for vehicle in np.flatnonzero(fast.any(axis=0)):  # its first row only: a runaway exceeds it for thousands
             first = int(np.argmax(fast[:, vehicle]))
             found.append(Departure("speed", self.names[vehicle], float(t[first]), float(speeds[first, vehicle]),
-                                   float(self._speed_limit[vehicle])))
+                                   float(speed_limit[vehicle])))
         if self._pairs:  # every pair at once (rows x pairs): a platoon of thousands is one numpy pass a block
-            ax, ay, bx, by = (rows[:, indices] for indices in self._pair_columns)
+            ax, ay, bx, by = (rows[:, np.array(columns, dtype=np.intp)] for columns in zip(*self._pair_columns))
             dx, dy = ax - bx, ay - by
             tx, ty = _tangent(self.config, ax, ay)
             along, gap = dx * tx + dy * ty, np.hypot(dx, dy)
@@ -173,6 +215,8 @@ def departures_of_trace(trace: "Trace", config: Config) -> list[Departure]:
     if any(len(data[name]["t"]) != len(t) for name in names):  # recorded at different instants: vehicles only
         names = [name for name in names if name != TARGET]
     watch = watch_for(config, [(name, WATCHED) for name in names])
+    import numpy as np
+
     watch.add(np.column_stack([t] + [data[name][output] for name in names for output in WATCHED]))
     return watch.result()
 

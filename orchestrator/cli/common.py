@@ -7,11 +7,7 @@ No rich markup in what we print: names, paths and config text are the user's ("[
 
 from __future__ import annotations
 
-import json
-import warnings
-from contextlib import contextmanager
-from pathlib import Path
-from typing import Annotated, Iterator
+from typing import Annotated
 
 import typer
 
@@ -19,6 +15,7 @@ from orchestrator.cli.plain import (check_choice, check_output, claim_trace, con
                                     output_rule)  # re-exported: the commands import them from here
 from orchestrator.support.output import OVERWRITE_HELP  # noqa: F401  (the one output rule, docs/output.md)
 from orchestrator.cli.tables import summary_table  # noqa: F401  (re-exported for the commands)
+from orchestrator.cli.reporting import load_trace, note_recovery, quiet_nan  # noqa: F401  (re-exported, typer-free)
 
 # The consoles (orchestrator/cli/plain.py makes them: markup off, the text is the user's)
 out = console()
@@ -42,47 +39,3 @@ AllowLong = Annotated[bool, typer.Option("--allow-long", help="run even above th
 
 
 Overwrite = Annotated[bool, typer.Option("--overwrite", help=OVERWRITE_HELP)]
-
-
-@contextmanager
-def quiet_nan(quiet: bool) -> Iterator[None]:
-    """Silence numpy's invalid-value warnings when a config's non-finite values make figures nan on purpose."""
-    if not quiet:
-        yield
-        return
-    import numpy as np
-
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        yield
-
-
-def note_recovery(loaded, note) -> None:
-    """A trace written by `platoon trace recover` with damaged stretches skipped: say which time is missing."""
-    record = loaded.metadata.get("platoon.recovery")
-    if not record or record.get("damaged", "0") == "0":
-        return
-    from orchestrator.trace.recovery import describe_lost
-
-    lost = [tuple(pair) for pair in json.loads(record.get("lost", "[]"))]
-    note(f"warning: recovered from a damaged trace; data is missing between {describe_lost(lost)}",
-         highlight=False, soft_wrap=True)
-
-
-def load_trace(trace: Path, **selection):
-    """The trace read back (``selection``: ``load``'s components, start, end, errors), with a progress bar
-    or lines on stderr when reading takes more than a second; exit 2 with one line when it cannot be read."""
-    from orchestrator.observers.progress import late_progress
-    from orchestrator.trace import TraceError, load
-
-    if not trace.is_file():
-        fail(2, f"trace {trace}: no such file")
-    try:
-        with late_progress(f"reading {trace.name}", err, "chunks") as shown:
-            return load(trace, progress=shown, **selection)
-    except TraceError as error:  # says what is wrong and what to do (e.g. `platoon trace recover`)
-        fail(2, f"trace {trace}: not a readable MCAP trace: {error}")
-    except Exception as error:  # any other reader failure means the file is not a usable trace
-        fail(2, f"trace {trace}: not a readable MCAP trace ({error}); try `platoon trace recover {trace}`")
-
-

@@ -1,5 +1,5 @@
-"""The ``platoon`` console entry point: a plain `platoon run` starts without typer; everything else goes
-through the typer app (orchestrator/cli/app.py).
+"""The ``platoon`` console entry point: a plain `platoon run` or `platoon report` starts without typer;
+everything else goes through the typer app (orchestrator/cli/app.py).
 
 Loading typer, rich and every command group costs a run ~0.1 s before its first step, and a sweep is
 made of short runs (docs/performance.md, "Start-up"). So a `platoon run` command line that is plainly
@@ -8,6 +8,9 @@ into the same ``RunOptions`` the typer command builds, and run without typer. An
 an unknown or repeated option, a value typer would refuse or read differently, shell completion)
 goes to typer, which then answers exactly as before: its help, its error messages, its parsing.
 tests/test_launch.py holds this parser to typer's on the command lines it accepts.
+
+`platoon report TRACE` is read the same way (``REPORT_OPTIONS``): typer's parameter adapters and the other
+commands' modules were a third of a report (orchestrator/cli/reporting.py).
 """
 
 from __future__ import annotations
@@ -44,6 +47,12 @@ RUN_OPTIONS: dict[str, tuple[str, str]] = {
     "--live-speed": ("live_speed", "float"),
     "--live-wait": ("live_wait", "flag"),
 }
+# `platoon report`'s options (orchestrator/cli/trace.py): option -> (report_command's argument, kind of value)
+REPORT_OPTIONS: dict[str, tuple[str, str]] = {
+    "--json": ("as_json", "flag"),
+    "--plots": ("plots", "path"),
+    "--overwrite": ("overwrite", "flag"),
+}
 # the ranges typer checks (min=, max= in run.py); a value outside goes to typer for its message
 RUN_RANGES: dict[str, tuple[float | None, float | None]] = {
     "trace_every": (1, None), "live_port": (0, 65535), "live_speed": (0.0, None)}
@@ -70,6 +79,11 @@ def main() -> None:
 
         run_and_exit(help_cache.recording(app, args))
     options = plain_run_options(args)
+    report = plain_report_options(args) if options is None else None
+    if report is not None:
+        from orchestrator.cli.reporting import report_command
+
+        run_and_exit(lambda: report_command(**report), without_typer=True)
     if options is None:
         from orchestrator.cli.app import main as typer_main
 
@@ -120,21 +134,36 @@ def _run(options: RunOptions) -> None:
 def plain_run_options(args: list[str]) -> RunOptions | None:
     """``RunOptions`` of a plainly well-formed `platoon run` command line, as typer would parse it; None
     for anything else (typer then handles it)."""
-    if not args or args[0] != "run" or any(name.startswith("_") and name.endswith("_COMPLETE") for name in os.environ):
-        return None  # not a run, or a shell's completion request
+    values = _plain_command(args, "run", "config", RUN_OPTIONS)
+    return None if values is None else RunOptions(**values)
+
+
+def plain_report_options(args: list[str]) -> dict[str, Any] | None:
+    """``report_command``'s arguments of a plainly well-formed `platoon report` command line, as typer would
+    parse it (its defaults filled in); None for anything else (typer then handles it)."""
+    values = _plain_command(args, "report", "trace", REPORT_OPTIONS)
+    return None if values is None else {"as_json": False, "plots": None, "overwrite": False, **values}
+
+
+def _plain_command(args: list[str], command: str, argument: str,
+                   table: dict[str, tuple[str, str]]) -> dict[str, Any] | None:
+    """The values of `platoon COMMAND`'s one ``argument`` and its options (``table``), read as typer reads a
+    plainly well-formed command line; None for anything else."""
+    if not args or args[0] != command or any(name.startswith("_") and name.endswith("_COMPLETE") for name in os.environ):
+        return None  # not this command, or a shell's completion request
     values: dict[str, Any] = {}
     rest = args[1:]
     while rest:
         token, rest = rest[0], rest[1:]
         if not token.startswith("-"):
-            if "config" in values or not token:
+            if argument in values or not token:
                 return None  # a second argument (typer: "Got unexpected extra argument"), or an empty one
-            values["config"] = Path(token)
+            values[argument] = Path(token)
             continue
         name, equals, attached = token.partition("=")
-        if name not in RUN_OPTIONS:
+        if name not in table:
             return None  # help, "--", "-qv", an unknown option ...
-        field, kind = RUN_OPTIONS[name]
+        field, kind = table[name]
         if kind == "flag":
             if equals:
                 return None
@@ -148,9 +177,7 @@ def plain_run_options(args: list[str]) -> RunOptions | None:
         if value is None or (kind != "list" and field in values):
             return None  # a value typer would refuse or read otherwise, or one option given twice
         values[field] = [*values.get(field, []), value] if kind == "list" else value
-    if "config" not in values:
-        return None
-    return RunOptions(**values)
+    return values if argument in values else None
 
 
 def _value(text: str, kind: str, bounds: tuple[float | None, float | None]) -> Any:

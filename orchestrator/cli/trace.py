@@ -3,35 +3,17 @@ CSV, rescue what a killed run or a damaged file holds."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
-from orchestrator.scenario.raw_config import ConfigError
-
 if TYPE_CHECKING:  # rich's table is imported where used: `platoon run -q` needs none
     pass
 
-from orchestrator.cli.common import (Overwrite, err, fail, load_trace, note_recovery, out, output_rule, quiet_nan,
-                                     summary_table)
+from orchestrator.cli.common import Overwrite, err, fail, load_trace, note_recovery, out, output_rule
+from orchestrator.cli.reporting import report_command, trace_and_config
 from orchestrator.support.output import check_folder
-
-def _trace_and_config(trace: Path, **selection):
-    """The trace read back (``selection``: what ``load`` reads of it), its config and the keys that were
-    not finite; exit 2 naming what is wrong."""
-    from orchestrator.scenario.stored_config import stored_config
-
-    loaded = load_trace(trace, **selection)
-    if loaded.config is None:
-        fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
-    try:
-        config, non_finite = stored_config(loaded.config)
-    except ConfigError as error:
-        fail(2, f"trace {trace}: its stored config is not valid: {error}")
-    return loaded, config, non_finite
-
 
 def report(
     trace: Annotated[Path, typer.Argument(help="trace written by `platoon run`")],
@@ -40,57 +22,7 @@ def report(
     overwrite: Overwrite = False,
 ) -> None:
     """Summarize a trace (path offset, gap, speed, max path error) and draw the paper's panels."""
-    from orchestrator.analysis.link_stats import link_rows, link_stats_of_trace
-    from orchestrator.analysis.metrics import report_json, summarize
-    from orchestrator.analysis.validity import departures_lines, departures_of_trace
-
-    if plots is not None:  # every panel's target checked before the trace is read
-        from orchestrator.analysis.plots import check_plot_targets
-
-        with output_rule():
-            check_plot_targets(plots, overwrite, [trace])
-    loaded, config, non_finite = _trace_and_config(trace)
-    note = (err.print if as_json else out.print)
-    if non_finite:
-        note(f"warning: the run's config held values that were not finite (stored as null): {', '.join(non_finite)}; "
-             f"figures that depend on them are nan", highlight=False, soft_wrap=True)
-    note_recovery(loaded, note)
-    run_record = loaded.run
-    status = run_record.get("status", "?")
-    empty = not loaded.vehicles() or any(len(loaded.component(v)["t"]) == 0 for v in loaded.vehicles())
-    if empty:  # e.g. a run that failed before its first communication point: nothing to summarize or plot
-        reason = f": {run_record['error']}" if run_record.get("error") else ""
-        message = f"trace {trace}: no recorded communication point, nothing to summarize (run {status}{reason})"
-        if as_json:
-            out.print_json(json.dumps({"status": status, "error": run_record.get("error", ""), "vehicles": []}))
-            err.print(message, highlight=False, soft_wrap=True)
-        else:
-            out.print(message, highlight=False, soft_wrap=True)
-        return
-    with quiet_nan(bool(non_finite)):  # nan figures were announced above
-        summaries = summarize(loaded, config)
-        links = link_stats_of_trace(loaded)
-        departures = departures_of_trace(loaded, config)
-        if as_json:
-            out.print_json(json.dumps({"trace": str(trace), "law": config.platoon.law, "status": status,
-                                        **report_json(summaries, config, departures), "links": link_rows(links)}))
-        else:
-            reached = float(loaded.component(loaded.vehicles()[0])["t"][-1])  # a run that ended early: how far
-            shown = status if status == "completed" else f"{status} at t = {reached:.6g} of {config.simulation.stop_time:g} s"
-            out.print(summary_table(summaries, config, f"{trace.name}: {config.header_text()} ({shown})"))
-            if links:
-                from orchestrator.cli.tables import link_table
-
-                out.print(link_table(links))
-            for line in departures_lines(departures):
-                out.print(line, highlight=False, soft_wrap=True)
-        if plots is not None:
-            from orchestrator.analysis.plots import write_plots
-
-            with output_rule():
-                written = write_plots(loaded, config, plots, overwrite, [trace])
-            for path in written:
-                note(f"wrote {path}")
+    report_command(trace, as_json, plots, overwrite)
 
 
 def export(
@@ -184,7 +116,7 @@ def stability(
     from orchestrator.trace.format import is_link
 
     bodies = {"components": lambda name: not is_link(name), "errors": False}  # the gains need the bodies' motion only
-    loaded, config, _ = _trace_and_config(trace, **bodies)
+    loaded, config, _ = trace_and_config(trace, **bodies)
     if not loaded.vehicles() or any(len(loaded.component(v)["t"]) < 2 for v in loaded.vehicles()):
         fail(2, f"trace {trace}: fewer than two recorded points, no gains to measure")
     try:

@@ -4,14 +4,22 @@ live view) at the time it happened, and kept for the run's result (`platoon run`
 
 It sees the rows the trace records (the same decimation), so every engine finds the same departures, and
 `platoon report` finds them again in the trace. Python-stepped points are gathered into blocks before
-numpy sees them (a point at a time would cost more than the check)."""
+numpy sees them (a point at a time would cost more than the check).
+
+A short run does not import numpy for the watch: while numpy is not loaded, a block whose rows are plainly
+inside the model (``ValidityWatch.plainly_inside``, plain Python) is passed without it, in a run that records
+up to ``PLAIN_BUDGET`` vehicle-rows; a block near a limit, and every block of a longer run, go to numpy,
+whose verdicts these are either way. numpy was a fifth of a 10-step run's start-up (docs/performance.md,
+"Start-up")."""
 
 from __future__ import annotations
 
+import sys
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from orchestrator.observers.base import Observer
 from orchestrator.scenario.config import Config
+from orchestrator.scenario.raw_config import recorded_rows, step_count
 from orchestrator.support.rows import RowBlock
 
 if TYPE_CHECKING:
@@ -19,6 +27,13 @@ if TYPE_CHECKING:
 
 Log = Callable[[float, str, str], None]
 GATHERED = 256  # Python-stepped rows checked at a time
+# vehicle-rows a run checks in plain Python (1.5-2 µs each) before numpy (~0.05 s to import) takes over
+PLAIN_BUDGET = 10_000
+
+
+def numpy_loaded() -> bool:
+    """Whether this process has imported numpy already (then it checks every block)."""
+    return "numpy" in sys.modules
 
 
 class ValidityObserver(Observer):
@@ -33,6 +48,9 @@ class ValidityObserver(Observer):
         self._watch: "ValidityWatch | None" = None
         self._count = 0
         self._rows: list[list[float]] = []
+        rows = recorded_rows(step_count(config.simulation.stop_time, config.simulation.step), self.every)
+        # a run that records more than the budget will need numpy: from its first block, not after the budget
+        self._plain_left = PLAIN_BUDGET if rows * config.platoon.count <= PLAIN_BUDGET else 0
 
     def point(self, t: float, outputs: Sequence[Sequence[float]]) -> None:
         if self._count % self.every == 0:
@@ -46,22 +64,35 @@ class ValidityObserver(Observer):
 
     def block(self, rows: Any) -> None:
         block = RowBlock.coerce(rows)
-        if len(block):
+        if len(block) and not self._plainly_inside(block, len(block)):
             self._check(block.array())
 
     def _flush(self) -> None:
         if self._rows:
-            import numpy as np
-
             rows, self._rows = self._rows, []
-            self._check(np.array(rows, dtype=float))
+            if not self._plainly_inside(rows, len(rows)):
+                import numpy as np
 
-    def _check(self, rows: Any) -> None:
+                self._check(np.array(rows, dtype=float))
+
+    def _plainly_inside(self, rows: "RowBlock | list[list[float]]", count: int) -> bool:
+        """True when the watch saw, without numpy, that ``rows`` come near no limit (module docstring)."""
+        watch = self._the_watch()
+        cost = count * max(1, len(watch.names))
+        if numpy_loaded() or cost > self._plain_left:
+            return False  # numpy is there (it folds a block faster), or the run is long enough to pay for it
+        self._plain_left -= cost
+        return watch.plainly_inside(rows.tolist() if isinstance(rows, RowBlock) else rows)
+
+    def _the_watch(self) -> "ValidityWatch":
         if self._watch is None:
             from orchestrator.analysis.validity import watch_for
 
             self._watch = watch_for(*self._settings)
-        for departure in self._watch.add(rows):
+        return self._watch
+
+    def _check(self, rows: Any) -> None:
+        for departure in self._the_watch().add(rows):
             self.to_log(departure.t, "Warning", f"left the model: {departure.text()}")
 
     def finish(self) -> None:

@@ -19,7 +19,8 @@ Convention = Literal["rmw_zenoh", "bridge_dds"]
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
+    # built when first used, as the config's tables (orchestrator/scenario/config.py, _Strict)
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False, defer_build=True)
 
 
 class _Rule(ValueError):

@@ -29,9 +29,14 @@ _workers_lock = threading.Lock()
 
 
 def preload() -> None:
-    """Import ``RUN_MODULES`` (in the warm worker, before its first fork)."""
+    """Import ``RUN_MODULES`` and build the config models' validators (in the warm worker, before its first
+    fork). The models defer that to their first use (orchestrator/scenario/config.py, ``defer_build``: a
+    lone run builds only what it validates); here it is done once, not in every forked run."""
     for name in RUN_MODULES:
         importlib.import_module(name)
+    from orchestrator.scenario.config import Config
+
+    Config.model_rebuild(force=True)  # with the tables it holds
 
 
 class WarmWorker:

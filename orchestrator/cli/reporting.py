@@ -1,0 +1,136 @@
+"""`platoon report` and what the trace commands share, without typer: a trace read back with its errors turned
+into one line, its stored config, the note on a recovered trace.
+
+The console script runs a plainly well-formed `platoon report TRACE` without typer (orchestrator/cli/launch.py),
+as it runs `platoon run`: typer, its parameter adapters and the other commands' modules were about a third
+of the command (docs/performance.md, "Start-up"). orchestrator/cli/trace.py declares the command for typer
+and calls ``report_command``; orchestrator/cli/common.py re-exports the helpers.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator, Optional
+
+from orchestrator.cli.plain import console, fail, output_rule
+from orchestrator.cli.tables import summary_table
+from orchestrator.scenario.raw_config import ConfigError
+
+
+@contextmanager
+def quiet_nan(quiet: bool) -> Iterator[None]:
+    """Silence numpy's invalid-value warnings when a config's non-finite values make figures nan on purpose."""
+    if not quiet:
+        yield
+        return
+    import numpy as np
+
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        yield
+
+
+def note_recovery(loaded, note) -> None:
+    """A trace written by `platoon trace recover` with damaged stretches skipped: say which time is missing."""
+    record = loaded.metadata.get("platoon.recovery")
+    if not record or record.get("damaged", "0") == "0":
+        return
+    from orchestrator.trace.recovery import describe_lost
+
+    lost = [tuple(pair) for pair in json.loads(record.get("lost", "[]"))]
+    note(f"warning: recovered from a damaged trace; data is missing between {describe_lost(lost)}",
+         highlight=False, soft_wrap=True)
+
+
+def load_trace(trace: Path, **selection):
+    """The trace read back (``selection``: ``load``'s components, start, end, errors), with a progress bar
+    or lines on stderr when reading takes more than a second; exit 2 with one line when it cannot be read."""
+    from orchestrator.observers.progress import late_progress
+    from orchestrator.trace import TraceError, load
+
+    if not trace.is_file():
+        fail(2, f"trace {trace}: no such file")
+    try:
+        with late_progress(f"reading {trace.name}", console(stderr=True), "chunks") as shown:
+            return load(trace, progress=shown, **selection)
+    except TraceError as error:  # says what is wrong and what to do (e.g. `platoon trace recover`)
+        fail(2, f"trace {trace}: not a readable MCAP trace: {error}")
+    except Exception as error:  # any other reader failure means the file is not a usable trace
+        fail(2, f"trace {trace}: not a readable MCAP trace ({error}); try `platoon trace recover {trace}`")
+
+
+def trace_and_config(trace: Path, **selection):
+    """The trace read back (``selection``: what ``load`` reads of it), its config and the keys that were
+    not finite; exit 2 naming what is wrong."""
+    from orchestrator.scenario.stored_config import stored_config
+
+    loaded = load_trace(trace, **selection)
+    if loaded.config is None:
+        fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
+    try:
+        config, non_finite = stored_config(loaded.config)
+    except ConfigError as error:
+        fail(2, f"trace {trace}: its stored config is not valid: {error}")
+    return loaded, config, non_finite
+
+
+def report_command(trace: Path, as_json: bool, plots: Optional[Path], overwrite: bool) -> None:
+    """`platoon report` (orchestrator/cli/trace.py declares its options): the summary of a trace, as a table
+    or JSON, and the paper's panels."""
+    from orchestrator.analysis.link_stats import link_rows, link_stats_of_trace
+    from orchestrator.analysis.metrics import report_json, summarize
+    from orchestrator.analysis.validity import departures_lines, departures_of_trace
+
+    if plots is not None:  # every panel's target checked before the trace is read
+        from orchestrator.analysis.plots import check_plot_targets
+
+        with output_rule():
+            check_plot_targets(plots, overwrite, [trace])
+    # the recorded /platoon/errors are not read: the summary computes its errors from the bodies, as the run did
+    # (half of the reading, like the 3D scene's chunks, which no reader decodes)
+    loaded, config, non_finite = trace_and_config(trace, errors=False)
+    out, err = console(), console(stderr=True)
+    note = (err.print if as_json else out.print)
+    if non_finite:
+        note(f"warning: the run's config held values that were not finite (stored as null): {', '.join(non_finite)}; "
+             f"figures that depend on them are nan", highlight=False, soft_wrap=True)
+    note_recovery(loaded, note)
+    run_record = loaded.run
+    status = run_record.get("status", "?")
+    empty = not loaded.vehicles() or any(len(loaded.component(v)["t"]) == 0 for v in loaded.vehicles())
+    if empty:  # e.g. a run that failed before its first communication point: nothing to summarize or plot
+        reason = f": {run_record['error']}" if run_record.get("error") else ""
+        message = f"trace {trace}: no recorded communication point, nothing to summarize (run {status}{reason})"
+        if as_json:
+            out.print_json(json.dumps({"status": status, "error": run_record.get("error", ""), "vehicles": []}))
+            err.print(message, highlight=False, soft_wrap=True)
+        else:
+            out.print(message, highlight=False, soft_wrap=True)
+        return
+    with quiet_nan(bool(non_finite)):  # nan figures were announced above
+        summaries = summarize(loaded, config)
+        links = link_stats_of_trace(loaded)
+        departures = departures_of_trace(loaded, config)
+        if as_json:
+            out.print_json(json.dumps({"trace": str(trace), "law": config.platoon.law, "status": status,
+                                        **report_json(summaries, config, departures), "links": link_rows(links)}))
+        else:
+            reached = float(loaded.component(loaded.vehicles()[0])["t"][-1])  # a run that ended early: how far
+            shown = status if status == "completed" else f"{status} at t = {reached:.6g} of {config.simulation.stop_time:g} s"
+            out.print(summary_table(summaries, config, f"{trace.name}: {config.header_text()} ({shown})"))
+            if links:
+                from orchestrator.cli.tables import link_table
+
+                out.print(link_table(links))
+            for line in departures_lines(departures):
+                out.print(line, highlight=False, soft_wrap=True)
+        if plots is not None:
+            from orchestrator.analysis.plots import write_plots
+
+            with output_rule():
+                written = write_plots(loaded, config, plots, overwrite, [trace])
+            for path in written:
+                note(f"wrote {path}")
