@@ -17,6 +17,7 @@ from orchestrator.execution.run import run_scenario
 from orchestrator.scenario.config import ConfigError, config_from_mapping, parse_config
 from orchestrator.scenario.scenario import build_scenario
 from orchestrator.trace import load
+from orchestrator.scenario.config_text import links_text
 
 REPO = Path(__file__).resolve().parents[1]
 PLATOON = [sys.executable, "-c", "import sys; sys.argv[0] = 'platoon'; from orchestrator.cli import main; main()"]
@@ -336,7 +337,7 @@ def test_report_plots_of_a_lossy_run_say_lossy_and_draw_each_links_age(link_fmus
     monkeypatch.setattr(plots_module.plt, "close", kept.append)  # each figure kept once saved, to read back
     written = plots_module.write_plots(trace, config, tmp_path / "plots")
     assert [path.name for path in written][-1] == "links.png" and written[-1].read_bytes()[:4] == b"\x89PNG"
-    assert all(config.links_text() in figure.axes[0].get_title() for figure in kept), config.links_text()
+    assert all(links_text(config) in figure.axes[0].get_title() for figure in kept), links_text(config)
     lines = kept[-1].axes[0].get_lines()
     names = [name for name in trace.channels if name.startswith("link_")]
     assert [line.get_label() for line in lines] == [name.removeprefix("link_") for name in names]

@@ -26,6 +26,7 @@ from orchestrator.execution.run import run_scenario
 from orchestrator.scenario.config import ConfigError, config_from_mapping, load_config
 from orchestrator.scenario.scenario import build_scenario
 from orchestrator.trace import load
+from orchestrator.scenario.config_text import laws_text
 
 REPO = Path(__file__).resolve().parent.parent
 PAPER = REPO / "configs" / "paper"
@@ -319,7 +320,7 @@ def test_the_run_header_names_the_speed_laws(tmp_path: Path) -> None:
         mapping = {"name": "h", "platoon": {"count": 4, "time_gap": 1.0, **platoon}}
         if vehicles:
             mapping["vehicles"] = vehicles
-        return config_from_mapping(mapping).laws_text()
+        return laws_text(config_from_mapping(mapping))
 
     assert laws({"law": "sine"}) == "sine law"
     assert laws({"law": "regular", "speed_law": "cacc"}) == "regular law, cacc speed law"

@@ -21,6 +21,7 @@ from matplotlib.figure import Figure  # noqa: E402
 from orchestrator.scenario.config import Config  # noqa: E402
 from orchestrator.analysis.plots import TIME_PANELS, colorbar, draw_time_panel, draw_xy, many, time_legend_handles  # noqa: E402
 from orchestrator.trace import Trace  # noqa: E402
+from orchestrator.scenario.config_text import laws_text
 
 # characters per line of a legend entry: three columns of entries fit under a 6.2 in column in "small" type
 LEGEND_LABEL_WIDTH = 28
@@ -29,14 +30,14 @@ LEGEND_LABEL_WIDTH = 28
 def column_title(config: Config, vehicles: int) -> str:
     """What tells the two columns apart: the laws first, then the platoon and its path."""
     path = f"R = {config.path.radius:g} m circle" if config.path.kind == "circle" else "line"
-    return f"{config.laws_text()}: {vehicles} vehicles, {path}, d* = {config.platoon.d_star:g} m"
+    return f"{laws_text(config)}: {vehicles} vehicles, {path}, d* = {config.platoon.d_star:g} m"
 
 
 def column_titles(runs: list[tuple[Trace, Config]]) -> list[str]:
     """Each column's header; when the runs' laws are the same (two traces of one law: a parameter or a
     disturbance compared), the laws no longer tell the columns apart, so each header names its trace."""
     titles = [column_title(config, len(trace.vehicles())) for trace, config in runs]
-    if len(runs) > 1 and len({config.laws_text() for _, config in runs}) == 1:
+    if len(runs) > 1 and len({laws_text(config) for _, config in runs}) == 1:
         names = [trace.path.name for trace, _ in runs]
         if len(set(names)) < len(names):  # the same file name in two folders: the paths tell them apart
             names = [str(trace.path) for trace, _ in runs]

@@ -24,6 +24,7 @@ from orchestrator.scenario.config import Config  # noqa: E402
 from orchestrator.analysis.metrics import path_errors  # noqa: E402
 from orchestrator.trace import Trace  # noqa: E402
 from orchestrator.trace.foxglove import LEGEND_UP_TO, vehicle_colors  # noqa: E402
+from orchestrator.scenario.config_text import laws_text, links_text
 
 Series = Callable[[Trace, Config, str], np.ndarray]
 
@@ -188,9 +189,9 @@ def write_plots(trace: Trace, config: Config, directory: Path, overwrite: bool =
 
     targets = check_plot_targets(directory, overwrite, protect)
     vehicles = trace.vehicles()
-    label = f"{config.name} ({config.laws_text()})"
-    if config.links_text():  # a lossy run's panels say so, on a line of their own: "8 imperfect links (...)"
-        label += f"\n{config.links_text()}"
+    label = f"{config.name} ({laws_text(config)})"
+    if links_text(config):  # a lossy run's panels say so, on a line of their own: "8 imperfect links (...)"
+        label += f"\n{links_text(config)}"
     for target, (stem, ylabel, title, series) in zip(targets, TIME_PANELS):
         figure, axes = plt.subplots(figsize=(7.5, 4.2), dpi=120)
         draw_time_panel(axes, trace, config, series, ylabel, f"{title}: {label}")
@@ -231,7 +232,7 @@ def _link_panel(trace: Trace, config: Config, directory: Path, overwrite: bool, 
         axes.plot(channel["t"], channel[AGE], linewidth=0.8, label=name.removeprefix("link_"))
     axes.set_xlabel("t [s]")
     axes.set_ylabel("age of information [s]")
-    axes.set_title(f"age of the message each link delivers: {config.name}\n{config.links_text()}", fontsize=10)
+    axes.set_title(f"age of the message each link delivers: {config.name}\n{links_text(config)}", fontsize=10)
     axes.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small")
     figure.tight_layout()
     _save_png(figure, target, replacing)

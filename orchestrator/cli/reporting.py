@@ -18,6 +18,7 @@ from typing import Iterator, Optional
 from orchestrator.cli.plain import console, fail, output_rule
 from orchestrator.cli.tables import summary_table
 from orchestrator.scenario.raw_config import ConfigError
+from orchestrator.scenario.config_text import header_text
 
 
 @contextmanager
@@ -120,7 +121,7 @@ def report_command(trace: Path, as_json: bool, plots: Optional[Path], overwrite:
         else:
             reached = float(loaded.component(loaded.vehicles()[0])["t"][-1])  # a run that ended early: how far
             shown = status if status == "completed" else f"{status} at t = {reached:.6g} of {config.simulation.stop_time:g} s"
-            out.print(summary_table(summaries, config, f"{trace.name}: {config.header_text()} ({shown})"))
+            out.print(summary_table(summaries, config, f"{trace.name}: {header_text(config)} ({shown})"))
             if links:
                 from orchestrator.cli.tables import link_table
 

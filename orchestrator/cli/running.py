@@ -18,6 +18,7 @@ from orchestrator.cli.options import RunOptions
 from orchestrator.cli.plain import (check_choice, check_output, claim_trace, console, fail, load_config, run_inputs,
                                     say)
 from orchestrator.components.kinds import FMU_KINDS
+from orchestrator.scenario.config_text import header_text
 
 if TYPE_CHECKING:
     from orchestrator.scenario.config import Config
@@ -212,7 +213,7 @@ def _report_run(result: "RunResult", trace: Path, parsed: Config, engine: str, q
 
         # accumulated while stepping; the trace is read again only if the run's end was not the planned one
         summaries = result.summary if result.summary is not None else summarize(load(result.trace), parsed)
-        console().print(summary_table(summaries, parsed, f"{parsed.name}: {parsed.header_text()}, {engine} engine, {result.fmus} FMUs, {parsed.simulation.stop_time:g} s"))
+        console().print(summary_table(summaries, parsed, f"{parsed.name}: {header_text(parsed)}, {engine} engine, {result.fmus} FMUs, {parsed.simulation.stop_time:g} s"))
         if result.links:
             from orchestrator.cli.tables import link_table
 

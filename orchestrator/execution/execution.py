@@ -36,6 +36,7 @@ from orchestrator.trace.format import BLOCK
 from orchestrator.trace.output import Claim, claim
 from orchestrator.trace.worker import WORKER_BLOCK, TraceProcess, TraceWorkerError, discard_prestarted, take_prestarted
 from orchestrator.trace.writer_base import NullTraceWriter, TraceWriteError
+from orchestrator.scenario.config_text import header_text
 
 if TYPE_CHECKING:
     from orchestrator.analysis.link_stats import LinkStats
@@ -316,7 +317,7 @@ class Execution:
                                          "trace_encoder": trace.encoder,
                                          "scene_rate": repr(float(self.scene_rate)) if self.foxglove else "",
                                          "started": clock.strftime("%Y-%m-%dT%H:%M:%S%z")})
-        observers.log(0.0, "Info", f"run started: {config.name}, {config.platoon.count} vehicles, {config.header_text()}, "
+        observers.log(0.0, "Info", f"run started: {config.name}, {config.platoon.count} vehicles, {header_text(config)}, "
                                    f"{self.engine_name} engine ({sim.master}), {self.fmu_kind} FMUs, step {sim.step:g} s, "
                                    f"stop {sim.stop_time:g} s")
 

@@ -5,9 +5,13 @@ integer, a law one of the known names), plus the cross-field rules a platoon nee
 circle, disturbances name existing vehicles). A bad config raises ``ConfigError`` whose message is one
 line naming the key, the value and what was expected.
 
-Every number has a declared range, in one place: the annotated types below (``Positive``, ``Angle``,
-...), which pydantic enforces and ``_explain`` quotes back (``platoon.k_v = inf: must be a finite
-number >= 0.001 and <= 1000``). No float key accepts inf or NaN (``allow_inf_nan=False`` for all).
+Every number has a declared range, in one place: the annotated types of config_types.py (``Positive``,
+``Angle``, ...), which pydantic enforces and config_errors.py quotes back (``platoon.k_v = inf: must be a
+finite number >= 0.001 and <= 1000``). No float key accepts inf or NaN (``allow_inf_nan=False`` for all).
+
+Here: the root model with the rules across tables, and reading a config (``parse_config``, ``load_config``).
+The tables are in config_tables.py and link_config.py, the words a run's header says of a config in
+config_text.py.
 """
 
 from __future__ import annotations
@@ -15,379 +19,26 @@ from __future__ import annotations
 import math
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union, get_args, get_origin
+from typing import Any
 
-import annotated_types
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
-from bridge.protocol import DEFAULT_PREFIX, check_prefix
-from fmus.model.dynamics import (M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEEL_DEADBAND, M3PI_WHEEL_GAIN,
-                                 M3PI_WHEEL_SPEED_MAX)
 from fmus.model.guidance import SENSING_LAWS
 from fmus.model.integrate import substep_count
 from fmus.model.link import CAPACITY as LINK_CAPACITY
 from fmus.model.link import LinkParameters, messages_held
 from fmus.model.link import parameter_errors as link_parameter_errors
-from fmus.model.robot_loop import COMMAND_CAPACITY, LATENCY_MAX, M3PI_COMMAND_LATENCY, M3PI_POSE_LATENCY
-from orchestrator.support.suggest import did_you_mean
+from fmus.model.robot_loop import COMMAND_CAPACITY
 
-from .raw_config import (DEFAULT_COUNT, DEFAULT_STEP, DEFAULT_STOP_TIME, DEFAULT_TRACE_EVERY, ConfigError, apply_override,
-                         read_config_text, step_count)
+from .config_errors import explain, unit_of
+from .config_tables import TARGET_VEHICLE  # noqa: F401  (re-exported: the analyses name the target by it)
+from .config_tables import (Disturbance, Hil, Initial, M3pi, PathConfig, Platoon, Remote, Simulation, Validity,
+                            VehicleOverride)
+from .config_types import COUNT_LIMIT, RK4_STABILITY, Name, Text, _rule, _RuleError, _Strict
+from .link_config import LINK_DIRECTIONS, Links, resolve_link
+from .raw_config import ConfigError, apply_override, read_config_text, step_count  # noqa: F401  (re-exported)
 from .raw_config import parse_value  # noqa: F401  (re-exported: a --set value's parser, where it always was)
-from .ros2_config import RunRos2, VehicleRos2
-from .ros2_config import _Rule as _Ros2Rule
-
-
-class _Strict(BaseModel):
-    # defer_build: each model's validator is built when first used, not at import; a run validates one Config,
-    # whose validator holds every table, so the tables' own were built for nothing (~0.03 s of a run's start-up)
-    model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False, defer_build=True)
-
-
-class _Expected(ValueError):
-    """A field validator's complaint: what the value must be (``_explain`` adds the key and the value)."""
-
-
-# Ranges. A platoon lives on a ground plane: 1000 km is far beyond any scenario and keeps doubles at
-# sub-micrometre resolution (ulp(1e6) = 1.2e-10 m), so lengths and coordinates stay within it.
-LENGTH_MAX = 1e6  # m
-# The smallest length, speed, gain or time constant: a millimetre, a millimetre per second, a speed
-# loop of 1000 s. Below, nothing physical is left and the analysis and the models divide by ~0.
-SMALL = 1e-3
-SPEED_MAX = 1000.0  # m/s: three times the speed of sound, far above any vehicle
-GAIN_MAX = 1000.0  # 1/s: a speed loop faster than 1 ms is not a vehicle (and needs substeps below 1 ms)
-ANGLE_MAX = 2.0 * math.pi  # rad: one turn either way states every direction
-PULSE_MAX = 1e6  # m/s² or m/s (PULSE_UNITS): a disturbance beyond this only produces overflow
-
-
-
-class Unit(str):
-    """The unit of a numeric key, printed with its range in an error ("<= 6.28319 rad"): configs use SI
-    units and radians, and a message says which."""
-
-
-class UnitNote(str):
-    """The unit of a numeric key that depends on another key, said once after its range in an error."""
-
-
-# Every float is finite (allow_inf_nan=False above); these add the range and the unit.
-Positive = Annotated[float, Field(gt=0.0)]
-Duration = Annotated[float, Field(gt=0.0), Unit("s")]
-Length = Annotated[float, Field(ge=-LENGTH_MAX, le=LENGTH_MAX), Unit("m")]
-PositiveLength = Annotated[float, Field(ge=SMALL, le=LENGTH_MAX), Unit("m")]
-Speed = Annotated[float, Field(ge=SMALL, le=SPEED_MAX), Unit("m/s")]
-Gain = Annotated[float, Field(ge=SMALL, le=GAIN_MAX), Unit("1/s")]
-Angle = Annotated[float, Field(ge=-ANGLE_MAX, le=ANGLE_MAX), Unit("rad")]
-PULSE_UNITS = {"lateral_acceleration": "m/s²", "speed": "m/s"}  # a disturbance's value, by its kind
-Pulse = Annotated[float, Field(ge=-PULSE_MAX, le=PULSE_MAX),
-                  UnitNote(", ".join(f'{unit} for kind = "{kind}"' for kind, unit in PULSE_UNITS.items()))]
-
-# The run's name becomes a file name (runs/<name>-<time>.mcap): letters, digits (any script), and a
-# few punctuation marks, starting with a letter or digit, so it can hold no path separator, no "..",
-# no control character and no shell-unfriendly leading "-".
-# The length is a separate constraint: "[...]{0,99}" in the pattern made pydantic-core's regex engine
-# build 99 copies of the Unicode class \w, ~30 ms of every run's start-up (docs/performance.md).
-NAME_PATTERN = r"^\w[\w .,+=@#()-]*$"
-NAME_LENGTH_MAX = 100
-NAME_RULE = "letters, digits, spaces and . , + = @ # ( ) - _, starting with a letter or digit, at most 100 characters"
-
-
-def _clean_text(text: str) -> str:
-    """Free text may span lines and hold tabs, but no NUL or other control character (they break file
-    names, Zenoh endpoints, terminals and C strings further on), and must be encodable as UTF-8 (a
-    command-line argument that was not UTF-8 arrives with lone surrogates, which no file can hold)."""
-    try:
-        text.encode("utf-8")
-    except UnicodeEncodeError:
-        raise _Expected("must be valid UTF-8 text") from None
-    bad = [c for c in text if (ord(c) < 0x20 and c not in "\t\n\r") or ord(c) == 0x7F]
-    if bad:
-        raise _Expected(f"must be text without control characters (found {bad[0]!r})")
-    return text
-
-
-Text = Annotated[str, AfterValidator(_clean_text)]
-Name = Annotated[str, Field(pattern=NAME_PATTERN, max_length=NAME_LENGTH_MAX)]
-
-# RK4 alone is stable on dx/dt = -x/T for substeps h < 2.785 T (its real stability interval); coupled
-# to the guidance through the speed chain it needs a margin: the paper's platoon at k_v = 1000 1/s
-# diverged at h = 2.5 T and ran at h = 2 T (measured, docs/config.md).
-RK4_STABILITY = 2.0
-
-# Steps and substeps are counted in integers from float ratios: exact only up to 2**53.
-COUNT_LIMIT = 2**53
-
-
-class Simulation(_Strict):
-    stop_time: Duration = Field(DEFAULT_STOP_TIME, description="simulated time, s")
-    step: Duration = Field(DEFAULT_STEP, description="communication step, s (at most stop_time)")
-    master: Literal["jacobi", "gauss-seidel"] = "jacobi"
-    coupling: Literal["extrapolate", "hold"] = "extrapolate"
-    max_substep: Duration = Field(0.01, description="longest RK4 substep inside an FMU, s")
-    trace_every: int = Field(DEFAULT_TRACE_EVERY, ge=1, description="record every K-th communication point (at most the step count)")
-    fmus: Literal["native", "python"] | None = Field(
-        None, description="FMUs to step: native (C, no Python on the host) or python (pythonfmu); "
-                          "default native where a C compiler can build them (orchestrator/components/kinds.py)")
-
-
-class PathConfig(_Strict):
-    kind: Literal["circle", "line"] = "circle"
-    radius: PositiveLength = 50.0
-    center: list[Length] = Field(default_factory=lambda: [0.0, 0.0], min_length=2, max_length=2)
-    heading: Angle = 0.0
-    direction: Literal["ccw", "cw"] = "ccw"
-
-
-Track = Annotated[float, Field(ge=SMALL, le=10.0), Unit("m")]
-WheelSpeed = Annotated[float, Field(ge=SMALL, le=100.0), Unit("m/s")]
-MotorLag = Annotated[float, Field(ge=SMALL, le=100.0), Unit("s")]
-# A wheel that turns at a tenth of its command, or ten times it, is a broken motor, not one to calibrate.
-WheelGain = Annotated[float, Field(ge=0.1, le=10.0)]
-Deadband = Annotated[float, Field(ge=0.0, le=100.0), Unit("m/s")]
-Latency = Annotated[float, Field(ge=0.0, le=LATENCY_MAX), Unit("s")]
-
-
-class M3pi(_Strict):
-    """The m3pi robots' constants (docs/model.md): the nominal robot by default; a calibrated config sets the
-    gains, dead-band and latencies `platoon calibrate` identifies, here or per vehicle ([vehicles.N.m3pi])."""
-
-    track: Track = Field(M3PI_TRACK, description="m")
-    wheel_speed_max: WheelSpeed = Field(M3PI_WHEEL_SPEED_MAX, description="m/s")
-    motor_time_constant: MotorLag = Field(M3PI_MOTOR_TIME_CONSTANT, description="s")
-    wheel_gain_right: WheelGain = Field(M3PI_WHEEL_GAIN, description="right wheel speed per commanded speed")
-    wheel_gain_left: WheelGain = Field(M3PI_WHEEL_GAIN, description="left wheel speed per commanded speed")
-    wheel_deadband: Deadband = Field(M3PI_WHEEL_DEADBAND, description="m/s: a smaller command does not turn a wheel")
-    command_latency: Latency = Field(M3PI_COMMAND_LATENCY, description="s: a command acts this long after it is sent")
-    pose_latency: Latency = Field(M3PI_POSE_LATENCY, description="s: a pose is this much older than its stamp")
-
-    @property
-    def samples(self) -> bool:
-        """A robot with latencies: the live run's sampled loop (fmus.model.robot_loop), not the continuous model."""
-        return self.command_latency > 0.0 or self.pose_latency > 0.0
-
-    def parameters(self) -> dict[str, float]:
-        """The Vehicle FMU's ``m3pi.*`` parameters of these constants."""
-        return {f"m3pi.{key}": value for key, value in self.model_dump().items()}
-
-
-class M3piOverride(_Strict):
-    """``[vehicles.N.m3pi]``: the constants of vehicle N's robot that differ from ``[m3pi]`` (each robot is its own)."""
-
-    track: Track | None = None
-    wheel_speed_max: WheelSpeed | None = None
-    motor_time_constant: MotorLag | None = None
-    wheel_gain_right: WheelGain | None = None
-    wheel_gain_left: WheelGain | None = None
-    wheel_deadband: Deadband | None = None
-    command_latency: Latency | None = None
-    pose_latency: Latency | None = None
-
-
-Law = Literal["sine", "regular"]
-DynamicsKind = Literal["kinematic", "m3pi"]
-# The speed laws (fmus.model.guidance.SPEED_LAWS; docs/model.md, section 11): the paper's, a constant-time-gap
-# ACC, Ploeg's CACC adapted to the first-order speed loop.
-SpeedLawName = Literal["paper", "acc", "cacc"]
-# A time gap beyond 100 s is no platoon; below 1 ms the cacc pole -1/h is beyond any substep (the stiffness
-# check below names it).
-TimeGap = Annotated[float, Field(ge=SMALL, le=100.0), Unit("s")]
-GapLength = Annotated[float, Field(ge=0.0, le=LENGTH_MAX), Unit("m")]
-
-
-class Platoon(_Strict):
-    count: int = Field(DEFAULT_COUNT, ge=1, le=10000)
-    law: Law = "sine"
-    d_star: PositiveLength = Field(75.0, description="m; on a circle less than 2 path.radius")
-    k_v: Gain = 0.5
-    speed: Speed = Field(25.0, description="V_c, the last vehicle's commanded speed")
-    dynamics: DynamicsKind = "kinematic"
-    speed_law: SpeedLawName = Field("paper", description="paper (V d*/d), acc (constant time gap) or cacc (Ploeg)")
-    time_gap: TimeGap = Field(2.0, description="h of acc and cacc: desired gap standstill_gap + h V, s")
-    standstill_gap: GapLength | None = Field(None, description="r of acc and cacc, m (default d_star - time_gap speed)")
-    cacc_gain: Gain = Field(0.2, description="k_p of cacc (Ploeg et al. 2011), 1/s")
-
-    @property
-    def resolved_standstill_gap(self) -> float:
-        """r: as given, or the one that makes the acc/cacc equilibrium gap d* at V_c (d* - h V_c)."""
-        if self.standstill_gap is not None:
-            return self.standstill_gap
-        return self.d_star - self.time_gap * self.speed
-
-
-class Validity(_Strict):
-    """Where a run stops being the model's (orchestrator/analysis/validity.py; docs/model.md, section 12): it
-    keeps running, and says so in its summary, its log, `platoon report --json` and a sweep's row."""
-
-    min_gap: GapLength | None = Field(None, description="m: a gap at or below it is a collision (default: a vehicle's "
-                                      "size, 4.5 m or the m3pi's 0.095 m, at most half the equilibrium gap)")
-    max_speed: Speed | None = Field(None, description="m/s: a faster vehicle has left the model (default: 3 V_c for "
-                                    "kinematic vehicles; an m3pi is bounded by its wheels)")
-
-
-class Initial(_Strict):
-    """Default placement: on the path behind the target, spaced by the chord d*, then perturbed."""
-
-    radial_offset: Length = Field(0.0, description="vehicle 1 moved this far off the path (outward), m")
-    heading_error: Angle = Field(0.0, description="added to vehicle 1's heading, rad")
-    speed_factor: Annotated[float, Field(ge=SMALL, le=10.0)] = Field(1.0, description="every vehicle starts at this fraction of V_c")
-
-
-class VehicleState(_Strict):
-    x: Length
-    y: Length
-    heading: Angle
-    speed: Speed
-
-
-class VehicleOverride(_Strict):
-    law: Law | None = None
-    speed_law: SpeedLawName | None = None
-    k_v: Gain | None = None
-    dynamics: DynamicsKind | None = None
-    initial: VehicleState | None = None
-    m3pi: M3piOverride | None = Field(None, description="this vehicle's robot constants, over [m3pi]")
-    # Hardware in the loop (docs/hil.md): "zenoh" makes this vehicle a live m3pi robot on Zenoh; the keys
-    # after it say where the robot is, and are ignored with "fmu".
-    endpoint: Literal["fmu", "zenoh", "remote"] = "fmu"
-    # "remote" (docs/remote.md): the Vehicle FMU runs in a `platoon serve` named ``server`` (default
-    # vehicle<K>), reached through connect/listen/zenoh_config, under prefix
-    server: str | None = Field(None, description="the remote vehicle's `platoon serve --name` (default vehicle<K>)")
-    robot: int | None = Field(None, ge=0, le=2**31 - 1, description="robot id on Zenoh (default: the vehicle number)")
-    prefix: str | None = Field(None, description="key prefix (default hil.prefix)")
-    connect: list[Text] | None = Field(None, description="Zenoh endpoints to connect to, e.g. tcp/127.0.0.1:7447")
-    listen: list[Text] | None = Field(None, description="Zenoh endpoints to listen on")
-    zenoh_config: Text | None = Field(None, description="Zenoh config file (JSON5): TLS, access control, ...")
-    ros2: VehicleRos2 | None = Field(None, description="pose and/or commands on ROS 2 topics (docs/hil.md)")
-
-    @model_validator(mode="after")
-    def _prefix_is_a_key(self) -> "VehicleOverride":
-        # robot, prefix, connect, listen and zenoh_config only act with endpoint = "zenoh"; they may stay
-        # when a run sets endpoint = "fmu" (the same platoon all simulated, for comparison)
-        for key in ("prefix", "server"):
-            value = getattr(self, key)
-            problems = check_prefix(value) if value is not None else []
-            if problems:
-                raise _rule(key, value, problems[0])
-        return self
-
-
-class Remote(_Strict):
-    """Remote vehicles (docs/remote.md): how patient the run is with their servers."""
-
-    step_timeout: Annotated[float, Unit("s")] = Field(2.0, gt=0.0, le=600.0, description="s to wait for a server's reply "
-                                                                                       "to one call: then the run fails")
-    connect_timeout: Annotated[float, Unit("s")] = Field(10.0, gt=0.0, le=600.0, description="s to wait for each server "
-                                                                                          "at the start")
-
-
-class Hil(_Strict):
-    """Hardware in the loop: shared by every live vehicle of the run (docs/hil.md)."""
-
-    prefix: str = Field(DEFAULT_PREFIX, description="Zenoh key prefix: <prefix>/m3pi/<id>/...")
-    pose_timeout: Annotated[float, Unit("s")] = Field(0.5, gt=0.0, le=5.0, description="s without a valid pose: the robot is lost")
-    connect_timeout: Annotated[float, Unit("s")] = Field(10.0, gt=0.0, le=600.0, description="s to wait for each robot at the start")
-    command_validity: Annotated[float, Unit("s")] = Field(0.1, gt=0.0, le=5.0, description="s: a command's deadline after it is sent")
-    max_pose_age: Annotated[float, Unit("s")] = Field(0.25, gt=0.0, le=5.0, description="s: an older pose is dropped as late")
-    allow_insecure: bool = Field(False, description="allow Zenoh endpoints off this machine without TLS "
-                                                    "(docs/hil.md, \"A secure lab\")")
-    lab_key: Text | None = Field(None, description="the lab key file runs and robot sides share (default: "
-                                                   "$PLATOON_LAB_KEY or ~/.config/platoon/lab.key; docs/hil.md)")
-
-    @model_validator(mode="after")
-    def _prefix_is_a_key(self) -> "Hil":
-        problems = check_prefix(self.prefix)
-        if problems:
-            raise _rule("prefix", self.prefix, problems[0])
-        return self
-
-
-TARGET_VEHICLE = 0  # a disturbance's ``vehicle`` naming the virtual target, the platoon's head
-
-
-class Disturbance(_Strict):
-    # 1 .. platoon.count, or 0: the virtual target (a speed push only: the head's speed, prescribed)
-    vehicle: int = Field(ge=TARGET_VEHICLE)
-    kind: Literal["lateral_acceleration", "speed"]
-    start: Annotated[float, Field(ge=0.0), Unit("s")]
-    duration: Duration
-    value: Pulse = Field(description="m/s² for kind lateral_acceleration, m/s for kind speed")
-    # 0: a rectangular pulse of height value; > 0: value * sin(frequency (t - start)) over the same window,
-    # a sinusoid to measure the speed chain's gain at one frequency (docs/model.md, section 12)
-    frequency: Annotated[float, Field(ge=0.0, le=1e4), Unit("rad/s")] = 0.0
-
-    @property
-    def unit(self) -> str:
-        """The unit of ``value``: m/s² for a lateral acceleration, m/s for a speed."""
-        return PULSE_UNITS[self.kind]
-
-    @property
-    def on_target(self) -> bool:
-        """A push on the virtual target (vehicle 0), not on a vehicle."""
-        return self.vehicle == TARGET_VEHICLE
-
-    def what(self) -> str:
-        """The pulse's size and target in words, with its unit: "+5 m/s speed on vehicle 2" ("on the target")."""
-        where = "the target" if self.on_target else f"vehicle {self.vehicle}"
-        return f"{self.value:+g} {self.unit} {self.kind.replace('_', ' ')} on {where}"
-
-    def text(self) -> str:
-        """The whole pulse in words: "+5 m/s speed on vehicle 2 at 30 s for 1 s"."""
-        shape = f", a sinusoid of {self.frequency:g} rad/s," if self.frequency > 0.0 else ""
-        return f"{self.what()}{shape} at {self.start:g} s for {self.duration:g} s"
-
-
-LinkTime = Annotated[float, Field(ge=0.0, le=3600.0), Unit("s")]
-LINK_DIRECTIONS = ("backward", "forward")
-
-
-class LinkKeys(_Strict):
-    """One link's settings (docs/links.md); a key left out comes from the wider table."""
-
-    delay: LinkTime | None = Field(None, description="s from a message's output_time to its arrival")
-    jitter: LinkTime | None = Field(None, description="s: each message's extra delay is uniform in [0, jitter]")
-    period: LinkTime | None = Field(None, description="s between beacons; 0: every communication step")
-    loss: Annotated[float, Field(ge=0.0, le=1.0)] | None = Field(None, description="probability a message is lost")
-    burst: Annotated[float, Field(ge=1.0, le=1e6)] | None = Field(
-        None, description="mean burst length in messages; > 1: Gilbert-Elliott losses with the same mean loss")
-    seed: int | None = Field(None, ge=0, le=2**31 - 1, description="seed of every link's random stream")
-
-
-class VehicleLinks(_Strict):
-    """The two links between vehicle N and the component ahead of it (the target for vehicle 1)."""
-
-    backward: LinkKeys = LinkKeys()
-    forward: LinkKeys = LinkKeys()
-
-
-class Links(LinkKeys):
-    """``[links]``: every link; ``[links.backward]``, ``[links.forward]``: one direction;
-    ``[links.vehicles.N.backward]`` / ``.forward``: the links of vehicle N. The narrowest wins."""
-
-    backward: LinkKeys = LinkKeys()
-    forward: LinkKeys = LinkKeys()
-    vehicles: dict[str, VehicleLinks] = Field(default_factory=dict)
-
-
-def _link_layers(links: Links, direction: str, vehicle: int) -> list[LinkKeys]:
-    """The tables that may set a key of one link, narrowest first."""
-    own = links.vehicles.get(str(vehicle))
-    layers = [getattr(own, direction)] if own is not None else []
-    return layers + [getattr(links, direction), links]
-
-
-def link_stream(direction: str, vehicle: int) -> int:
-    """A link's own stream of the seed: 2 (N - 1) for vehicle N's backward link, + 1 for its forward one."""
-    return 2 * (vehicle - 1) + LINK_DIRECTIONS.index(direction)
-
-
-def resolve_link(links: Links, direction: str, vehicle: int) -> LinkParameters:
-    """The settings of vehicle ``vehicle``'s ``direction`` link: each key from the narrowest table that
-    sets it, else the perfect link's."""
-    layers = _link_layers(links, direction, vehicle)
-    default = LinkParameters()
-    values = {key: next((getattr(t, key) for t in layers if getattr(t, key) is not None), getattr(default, key))
-              for key in LinkKeys.model_fields}
-    return LinkParameters(**values, stream=link_stream(direction, vehicle))
+from .ros2_config import RunRos2
 
 
 class Config(_Strict):
@@ -453,51 +104,6 @@ class Config(_Strict):
     def speed_law_of(self, vehicle: int) -> str:
         """Vehicle ``vehicle``'s speed law: its [vehicles.K] override, else platoon.speed_law."""
         return self.override(vehicle).speed_law or self.platoon.speed_law
-
-    def header_text(self) -> str:
-        """The laws, then the imperfect links if any: what a run's header says of the platoon."""
-        links = self.links_text()
-        return f"{self.laws_text()}, {links}" if links else self.laws_text()
-
-    def links_text(self) -> str:
-        """The run's imperfect links in a few words, "" when every link is perfect (run headers and the
-        trace's first log line, beside the laws): "8 imperfect links (delay 0.1-0.12 s, 10% lost, beacons
-        every 0.1 s on 4)", so that a lossy run's header does not read as a perfect-link run's."""
-        links = [self.resolve_link(direction, vehicle) for direction, vehicle in self.linked()]
-        if not links:
-            return ""
-
-        def span(values: list[float], unit: str = " s", form: str = "g") -> str:
-            low, high = min(values), max(values)
-            return f"{low:{form}}{unit}" if low == high else f"{low:{form}}-{high:{form}}{unit}"
-
-        parts = []
-        if any(link.delay + link.jitter > 0.0 for link in links):
-            parts.append("delay " + span([link.delay for link in links] + [link.delay + link.jitter for link in links]))
-        if any(link.loss > 0.0 for link in links):
-            parts.append(span([link.loss for link in links], "", ".0%") + " lost")
-        beacons = [link.period for link in links if link.period > 0.0]
-        if beacons:
-            parts.append("beacons every " + span(beacons) + ("" if len(beacons) == len(links) else f" on {len(beacons)}"))
-        return f"{len(links)} imperfect link{'s' if len(links) > 1 else ''} ({', '.join(parts)})"
-
-    def laws_text(self) -> str:
-        """The guidance law and, when not the paper's alone, the speed laws: "sine law", "sine law, acc
-        speed law", "sine law, speed laws paper (1), acc (2-4)" (run headers and the trace's first log line)."""
-        laws = [self.speed_law_of(i) for i in range(1, self.platoon.count + 1)]
-        text = f"{self.platoon.law} law"
-        if set(laws) == {"paper"}:
-            return text
-        if len(set(laws)) == 1:
-            return f"{text}, {laws[0]} speed law"
-        runs: list[tuple[str, int, int]] = []  # (law, first vehicle, last vehicle)
-        for vehicle, law in enumerate(laws, start=1):
-            if runs and runs[-1][0] == law:
-                runs[-1] = (law, runs[-1][1], vehicle)
-            else:
-                runs.append((law, vehicle, vehicle))
-        parts = [f"{law} ({first})" if first == last else f"{law} ({first}-{last})" for law, first, last in runs]
-        return f"{text}, speed laws {', '.join(parts)}"
 
     def sensing_vehicles(self) -> list[int]:
         """Numbers of the vehicles whose speed law reads the on-board sensor (acc, cacc), front to back."""
@@ -658,129 +264,17 @@ class Config(_Strict):
         return vehicle if robot is None else robot
 
 
-class _RuleError(ValueError):
-    def __init__(self, key: str, value: Any, expected: str, message: str | None = None) -> None:
-        super().__init__(message or f"{key} = {value!r}: expected {expected}")
-        self.key, self.value, self.expected = key, value, expected
-
-
-def _rule(key: str, value: Any, expected: str) -> _RuleError:
-    return _RuleError(key, value, expected)
-
-
-def _key_of(loc: tuple[Any, ...]) -> str:
-    key = ""
-    for part in loc:
-        if isinstance(part, int):
-            key += f"[{part}]"
-        else:
-            key += ("." if key else "") + str(part)
-    return key
-
-
-_RANGE_ERRORS = {"finite_number", "greater_than", "greater_than_equal", "less_than", "less_than_equal"}
-_BOUND_WORDS = (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<="))
-
-
-def _field_at(loc: tuple[Any, ...]) -> tuple[Any, list[Any]]:
-    """(type, constraint objects) of the key at pydantic location ``loc``, from the models' declarations."""
-    annotation: Any = Config
-    metadata: list[Any] = []
-    for part in loc:
-        annotation, metadata = _unwrap(annotation)
-        origin = get_origin(annotation)
-        if isinstance(annotation, type) and issubclass(annotation, BaseModel) and part in annotation.model_fields:
-            info = annotation.model_fields[part]
-            annotation, metadata = info.annotation, list(info.metadata)
-        elif origin in (list, dict):
-            annotation, metadata = get_args(annotation)[-1], []
-        else:
-            break
-    annotation, more = _unwrap(annotation)
-    return annotation, metadata + more
-
-
-def _unwrap(annotation: Any) -> tuple[Any, list[Any]]:
-    """Strip ``X | None`` and ``Annotated[X, ...]``, collecting the annotated constraints."""
-    metadata: list[Any] = []
-    while True:
-        if get_origin(annotation) is Union or type(annotation).__name__ == "UnionType":
-            annotation = next(a for a in get_args(annotation) if a is not type(None))
-        elif get_origin(annotation) is Annotated:
-            annotation, *extra = get_args(annotation)
-            for item in extra:  # a Field(...) in Annotated carries its constraints as metadata
-                metadata += list(getattr(item, "metadata", [item]))
-        else:
-            return annotation, metadata
+def config_from_mapping(raw: dict[str, Any]) -> Config:
+    try:
+        return Config.model_validate(raw)
+    except ValidationError as error:
+        raise ConfigError(explain(error, Config)) from None
 
 
 def key_unit(key: str) -> str | None:
     """The unit of a numeric config key (``platoon.k_v`` -> ``1/s``, ``path.center[0]`` -> ``m``), for axis
     labels and messages; None for a key without one (a count, a factor, a word) or no such key."""
-    parts = key.replace("[", ".").replace("]", "").split(".")
-    loc = tuple(int(part) if part.isdigit() else part for part in parts if part)
-    _, metadata = _field_at(loc)
-    return next((str(item) for item in metadata if isinstance(item, (Unit, UnitNote))), None)
-
-
-def _range_text(field: tuple[Any, list[Any]]) -> str:
-    """"a finite number >= 0.001 and <= 1000", "an integer >= 1": the declared range of a numeric key."""
-    annotation, metadata = field
-    bounds = [f"{word} {_number(getattr(item, name))}" for item in metadata for name, word in _BOUND_WORDS
-              if isinstance(item, getattr(annotated_types, name.capitalize())) and hasattr(item, name)]
-    unit = next((f" {item}" for item in metadata if isinstance(item, Unit)), "")
-    note = next((f" ({item})" for item in metadata if isinstance(item, UnitNote)), "")
-    bounds = [bound + unit for bound in bounds]
-    kind = "an integer" if annotation is int else "a finite number"
-    text = " and ".join([f"{kind} {bounds[0]}" if bounds else kind, *bounds[1:]])
-    return text + (" (radians: 90 degrees = 1.5708 rad)" if unit == " rad" else note)
-
-
-def _number(value: float | int) -> str:
-    return f"{value:g}" if isinstance(value, float) else str(value)
-
-
-def _nearest_key(loc: tuple[Any, ...]) -> str:
-    """" (did you mean count?)" for an unknown key ``loc``: the nearest key its table has, if any is near."""
-    table, _ = _field_at(loc[:-1])
-    if not (isinstance(table, type) and issubclass(table, BaseModel)) or not isinstance(loc[-1], str):
-        return ""
-    table_key = _key_of(loc[:-1])
-    return did_you_mean(loc[-1], table.model_fields, f"{table_key}." if table_key else "")
-
-
-def _explain(error: ValidationError) -> str:
-    """One line for the first problem pydantic found: key, value, expectation."""
-    first = error.errors(include_url=False)[0]
-    ctx = first.get("ctx") or {}
-    loc = tuple(part for part in first["loc"] if not (isinstance(part, str) and part.startswith("function-")))
-    key = _key_of(loc)
-    if "error" in ctx and isinstance(ctx["error"], (_RuleError, _Ros2Rule)):  # a rule of a nested table names its own key
-        return f"{key}.{ctx['error']}" if key else str(ctx["error"])
-    key = key or "a key"  # the key itself is what is wrong (not UTF-8)
-    if first["type"] == "extra_forbidden":
-        return f"{key}: unknown key{_nearest_key(loc)}"
-    if first["type"] == "missing":
-        return f"{key}: missing (required)"
-    if "error" in ctx and isinstance(ctx["error"], _Expected):
-        return f"{key} = {first['input']!r}: {ctx['error']}"
-    if first["type"] in ("string_pattern_mismatch", "string_too_long") and loc == ("name",):
-        return (f"name = {first['input']!r}: must be {NAME_RULE} (it names the trace file runs/<name>-<time>.mcap; "
-                "without a name key it is the config's file name)")
-    if first["type"] == "string_unicode":
-        return f"{key} = {first['input']!r}: must be valid UTF-8 text"
-    if first["type"] in _RANGE_ERRORS:
-        return f"{key} = {first['input']!r}: must be {_range_text(_field_at(loc))}"
-    message = first["msg"]
-    message = message[0].lower() + message[1:] if message else message
-    return f"{key} = {first['input']!r}: {message}"
-
-
-def config_from_mapping(raw: dict[str, Any]) -> Config:
-    try:
-        return Config.model_validate(raw)
-    except ValidationError as error:
-        raise ConfigError(_explain(error)) from None
+    return unit_of(Config, key)
 
 
 FILE_KEYS = ("zenoh_config",)  # keys of [vehicles.K] that name a file

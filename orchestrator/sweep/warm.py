@@ -30,7 +30,7 @@ _workers_lock = threading.Lock()
 
 def preload() -> None:
     """Import ``RUN_MODULES`` and build the config models' validators (in the warm worker, before its first
-    fork). The models defer that to their first use (orchestrator/scenario/config.py, ``defer_build``: a
+    fork). The models defer that to their first use (orchestrator/scenario/config_types.py, ``defer_build``: a
     lone run builds only what it validates); here it is done once, not in every forked run."""
     for name in RUN_MODULES:
         importlib.import_module(name)
