@@ -203,6 +203,7 @@ class Platoon(_Strict):
     time_gap: TimeGap = Field(2.0, description="h of acc and cacc: desired gap standstill_gap + h V, s")
     standstill_gap: GapLength | None = Field(None, description="r of acc and cacc, m (default d_star - time_gap speed)")
     cacc_gain: Gain = Field(0.2, description="k_p of cacc (Ploeg et al. 2011), 1/s")
+    speed_max: Speed | None = Field(None, description="m/s: a kinematic vehicle's speed limit (default: none)")
 
     @property
     def resolved_standstill_gap(self) -> float:
@@ -440,6 +441,9 @@ class Config(_Strict):
                 f"max_substep) = {steps * substeps:.3g} substeps per FMU: expected at most 2**53 = {COUNT_LIMIT:.3g} "
                 "(beyond it step counts are not exact in double precision; no option lifts this)"))
         self._check_speed_laws()
+        if self.platoon.speed_max is not None and self.platoon.speed_max < self.platoon.speed:
+            raise _rule("platoon.speed_max", self.platoon.speed_max, f"at least platoon.speed = {self.platoon.speed:g} "
+                        "m/s (a limit below the cruise speed keeps the platoon from ever reaching it)")
         self._check_robots()
         self._check_stiffness()
         self._check_links()
