@@ -49,6 +49,7 @@ if TYPE_CHECKING:
 # (the measured one stands in), rather than a command that runs for hours or fills the memory.
 MOST_STATE = 1000
 MOST_WORK = 2e10
+MOST_PHASES = 5000  # step maps kept (a state x state mean map and the noises' columns each)
 
 
 @dataclass(frozen=True)
@@ -335,6 +336,8 @@ def predicted_scatter(config: "Config", stretch: Stretch) -> Scatter | str:
         return (f"not predicted: a state of {model.size} over {records[-1] - first} steps (at most {MOST_STATE}, and "
                 f"{MOST_WORK:.0e} state^2 x steps: the study's is 6e8, 2-7 s)")
     maps = _Maps(model)
+    if maps.period > MOST_PHASES:
+        return f"not predicted: its step maps repeat only every {maps.period} steps (at most {MOST_PHASES} are kept)"
     fit = _design(np.array(records) * model.h, stretch.frequencies)
     ends = (stretch.vehicles[0], stretch.vehicles[-1])
     speeds = {i: model.outputs(np.eye(model.size), i)[1] for i in ends}  # rows: the recorded speed
