@@ -365,9 +365,11 @@ def scatter_lines(config: Config) -> list[str]:
     """`platoon analyze`'s lines on a single run's headline: per probe, the cascade's growth over the links that
     measure propagation and the predicted standard deviation of one run's value (none without sinusoids)."""
     frequencies = probe_frequencies(config)
+    if not frequencies:  # no sinusoid: no probe, and no run's headline to predict
+        return []
     names = [component_name(i) for i in range(1, config.platoon.count + 1)]
     clean = clean_order(config, names)
-    if not frequencies or len(clean) < 2:
+    if len(clean) < 2:
         return []
     try:
         window = steady_window(config, config.simulation.stop_time)
