@@ -206,8 +206,8 @@ def init_read_refused(reason: str) -> Check:
 
 
 # Real parameters declared with min = 0 that may be 0 (the others must be > 0): acc's standstill gap, and the dead-band
-# and latencies of a robot that is not its nominal model (0: the nominal robot).
-MAY_BE_ZERO = ("standstill_gap", "m3pi.wheel_deadband", "m3pi.command_latency", "m3pi.pose_latency")
+# and latencies of a robot that is not its nominal model (0: the nominal robot), the kinematic speed limit (0: none).
+MAY_BE_ZERO = ("standstill_gap", "m3pi.wheel_deadband", "m3pi.command_latency", "m3pi.pose_latency", "speed_max")
 
 
 def invalid_parameter_cases() -> list[Case]:

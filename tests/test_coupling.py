@@ -339,6 +339,7 @@ GOOD = {
     "time_gap": 2.0,
     "standstill_gap": 0.0,
     "cacc_gain": 0.2,
+    "speed_max": 0.0,
 }
 
 
@@ -370,6 +371,8 @@ def test_vehicle_parameter_errors_accepts_good_parameters():
         ("standstill_gap", -0.1),
         ("standstill_gap", float("inf")),
         ("cacc_gain", 0.0),
+        ("speed_max", -1.0),
+        ("speed_max", float("inf")),
     ],
 )
 def test_vehicle_parameter_errors_names_each_bad_parameter(name, value):

@@ -67,3 +67,26 @@ def test_weak_probes_are_flagged_not_judged() -> None:
     mixed = measured_headline(errors([0.99, 0.98, 0.9, 0.5], [0.03, 0.01, 3e-4, 0.01], gap_noise=2.0), NAMES, PROBES,
                               WINDOW, PERIOD, Mixing(25.0, {name: 75.0 for name in NAMES}))
     assert 1.0 in mixed.weak and "V d*/d" in mixed.weak[1.0] and 0.1 not in mixed.weak
+
+
+def test_the_verdict_is_held_to_the_predicted_scatter_where_the_analysis_gives_one():
+    """A run 2 % above 1 with a measured standard error of 0.1 % grows by its own batch means, but the analysis
+    predicts that one run of its config scatters by 1 %: inside the noise. Without a prediction, the measured."""
+    from orchestrator.analysis.headline import Headline
+
+    assert Headline(1.02, 3.0, 0.001, 4).verdict == "grows"
+    predicted = Headline(1.02, 3.0, 0.001, 4, predicted=0.01)
+    assert predicted.verdict == "inside the noise"
+    assert "+- 0.01 (predicted: a run's standard deviation over its losses; measured 0.001" in predicted.text()
+    assert Headline(1.04, 3.0, 0.002, 4, predicted=0.01).verdict == "grows"  # 4 predicted sigma out
+    # a run that scatters beyond the prediction (it left the linear regime): held to its own, larger scatter
+    assert Headline(1.04, 3.0, 0.02, 4, predicted=0.01).verdict == "inside the noise"
+
+
+def test_measured_headline_takes_the_prediction_of_its_probe():
+    t = np.arange(0.0, 4 * 2 * math.pi / 0.5, 0.1)
+    errs = {name: {"t": t, "speed": a * np.sin(0.5 * t) + b * np.sin(2.0 * t), "gap": np.zeros_like(t)}
+            for name, a, b in (("v1", 1.0, 1.0), ("v2", 1.1, 0.5))}
+    headline = measured_headline(errs, ["v1", "v2"], [0.5, 2.0], (0.0, t[-1] + 0.05), 2 * math.pi / 0.5, None,
+                                 predicted=[0.03, 0.2])
+    assert headline.frequency == 0.5 and headline.predicted == 0.03

@@ -71,7 +71,7 @@ FLOAT_KEYS = [
     "simulation.stop_time", "simulation.step", "simulation.max_substep",
     "path.radius", "path.center[0]", "path.center[1]", "path.heading",
     "platoon.d_star", "platoon.k_v", "platoon.speed",
-    "platoon.time_gap", "platoon.standstill_gap", "platoon.cacc_gain",
+    "platoon.time_gap", "platoon.standstill_gap", "platoon.cacc_gain", "platoon.speed_max",
     "initial.radial_offset", "initial.heading_error", "initial.speed_factor",
     "m3pi.track", "m3pi.wheel_speed_max", "m3pi.motor_time_constant",
     "m3pi.wheel_gain_right", "m3pi.wheel_gain_left", "m3pi.wheel_deadband", "m3pi.command_latency", "m3pi.pose_latency",

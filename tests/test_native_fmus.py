@@ -113,6 +113,7 @@ VEHICLE_CASES = [
 ] + [
     {"is_last": False, "d_star": 60.0, "k_v": 2.0},  # the speed chain: V_cmd from the follower's speed and gap
     {"dynamics": "m3pi", "m3pi.wheel_speed_max": 26.0, "initial.speed": 24.0},  # the wheel limits bite
+    {"is_last": False, "d_star": 90.0, "k_v": 2.0, "speed_max": 27.0},  # the kinematic speed limit bites (V_cmd 30)
 ] + [  # a robot that is not its nominal model (docs/model.md), on the m3pi's scale: its own wheel gains, a dead-band
     # the inner wheel's commands fall into while it turns hard at the start (2 mm off the path without it), and
     # the live run's sampled loop with the radio's and the motion capture's latencies (no multiple of the step)
@@ -156,7 +157,8 @@ def test_standalone_trajectory_equals_the_python_fmus(fmu_dir, native_fmu_dir, n
 
 
 @pytest.mark.parametrize("name, start_values", [("Vehicle", {"law": "regular", "dynamics": "m3pi"}),
-                                                  ("Vehicle", {}), ("VirtualTarget", {})], ids=repr)
+                                                  ("Vehicle", {}), ("Vehicle", {"speed_max": 24.0}),
+                                                  ("VirtualTarget", {})], ids=repr)
 def test_identical_to_the_last_bit(fmu_dir, native_fmu_dir, name, start_values):
     """Stronger than the 1e-9 above: the C does Python's operations in Python's order, calls the
     same libm, and computes math.hypot with CPython's own algorithm (glibc's hypot differs in the

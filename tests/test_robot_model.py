@@ -25,7 +25,7 @@ def _values(**m3pi: float) -> dict:
               "initial.heading": 1.4, "initial.speed": 0.25, "time_gap": 2.0, "standstill_gap": 0.0,
               "cacc_gain": 0.2, "m3pi.track": 0.084, "m3pi.wheel_speed_max": 1.0, "m3pi.motor_time_constant": 0.05,
               "m3pi.wheel_gain_right": 1.0, "m3pi.wheel_gain_left": 1.0, "m3pi.wheel_deadband": 0.0,
-              "m3pi.command_latency": 0.0, "m3pi.pose_latency": 0.0}
+              "m3pi.command_latency": 0.0, "m3pi.pose_latency": 0.0, "speed_max": 0.0}
     values.update({f"m3pi.{key}": value for key, value in m3pi.items()})
     return values
 

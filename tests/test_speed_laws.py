@@ -159,7 +159,8 @@ def _delayed_cacc_gains(coupling: str, delay: float) -> np.ndarray:
     frequencies = FREQUENCIES[1:]
     config = config_from_mapping({"name": "d", "path": {"kind": "line"}, "platoon": {"count": 1, "speed_law": "cacc"},
                                   "simulation": {"coupling": coupling, "step": step, "max_substep": step}})
-    vehicle = vehicle_stepper(build_scenario(config).components[1].parameters, 0.0)
+    defaults = {info.name: info.start for info in Vehicle.variables if info.causality == "parameter"}  # as the FMU
+    vehicle = vehicle_stepper({**defaults, **build_scenario(config).components[1].parameters}, 0.0)
 
     def leader(t: float) -> tuple[float, float, float]:  # x, speed, speed rate; the leader drives along x
         return (25.0 * t + sum(0.1 / w * (1.0 - math.cos(w * t)) for w in frequencies),

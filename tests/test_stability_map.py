@@ -126,3 +126,29 @@ def test_an_emptied_results_table_is_told_apart_from_a_sweep_with_no_run_and_res
                              capture_output=True, text=True, timeout=600)
     assert resumed.returncode == 0, resumed.stderr
     assert len(table.read_text().splitlines()) == 5  # the header and the four runs again
+
+
+def test_a_run_whose_probes_are_all_weak_is_counted_not_dropped() -> None:
+    """The held sweep at 0.3-0.4 s and 60 % loss: every probe weak, no gain (NaN). The summary counts such a run
+    with those inside the noise or with no probe to judge; runs that left the model are listed apart, and the
+    counts add up to every run of the law."""
+    import math
+
+    from orchestrator.analysis.headline import Headline
+    from orchestrator.analysis.verdict import CASCADE, NO_LOOP, ClosedFormVerdict, LoopState
+    from orchestrator.sweep.stability_map import DELAY, LAW, LOSS, agreement_lines
+
+    def point(delay: float, loss: float, headline: Headline | None, left: str = "") -> dict:
+        gain = math.nan if headline is None else headline.growth
+        return {LAW: "paper", DELAY: delay, LOSS: loss, "gain": gain, "headline": headline, "deviation": 0.01,
+                "left": left, "settling": ""}
+
+    points = [point(0.0, 0.0, Headline(1.16, 0.3, 1e-7, 4)),  # grows, outside the noise
+              point(0.0, 0.2, Headline(1.10, 0.1, 0.05, 4)),  # inside the noise
+              point(0.3, 0.6, Headline(math.nan, math.nan, None, 0, {0.1: "weak"})),  # no probe to judge
+              point(0.0, 0.8, None, left="collision (vehicle4) from t = 83.5 s")]
+    verdict = ClosedFormVerdict(CASCADE, 1.2, 0.43, LoopState(NO_LOOP))
+    lines = agreement_lines(points, {"paper": {(p[DELAY], p[LOSS]): verdict for p in points}})
+    assert lines[-1].endswith("closed form's in 1 of the 1 runs outside the noise (2 inside it or with no probe to judge)")
+    assert any("delay 0.3 s, loss 0.6" in line and "NO PROBE TO JUDGE" in line for line in lines)
+    assert any("delay 0 s, loss 0.8 left the model" in line for line in lines)

@@ -52,10 +52,13 @@ def differential_wheel_speeds(speed: float, lateral_acceleration: float, track: 
 
 @dataclass(frozen=True)
 class KinematicDynamics:
-    """The paper's kinematic vehicle (x, y, heading, speed)."""
+    """The paper's kinematic vehicle (x, y, heading, speed), with an optional speed limit: ``speed_max`` > 0 clips
+    the speed loop's command to +-speed_max, as an m3pi's wheels clip theirs (``M3piDynamics.limit_wheels``), so a
+    vehicle started below it stays below it. 0 (the default) is no limit: the command is used as it is, to the bit."""
 
     k_v: float
     track: float = M3PI_TRACK  # only used to report equivalent wheel speeds
+    speed_max: float = 0.0  # m/s; 0: no limit
 
     kind = "kinematic"
     state_names = ("x", "y", "heading", "speed")
@@ -83,8 +86,15 @@ class KinematicDynamics:
             v * math.cos(heading),
             v * math.sin(heading),
             lateral_acceleration / v,
-            speed_loop(self.k_v, commanded_speed, state[3]),
+            speed_loop(self.k_v, self.limit_command(commanded_speed), state[3]),
         ]
+
+    def limit_command(self, commanded_speed: float) -> float:
+        """The speed command as the vehicle can follow it: clipped to +-speed_max, or as it is without a limit."""
+        limit = self.speed_max
+        if limit <= 0.0:
+            return commanded_speed
+        return min(max(commanded_speed, -limit), limit)
 
     @staticmethod
     def heading_rate(derivative: list[float]) -> float:
@@ -212,9 +222,11 @@ def make_dynamics(
     wheel_gain_right: float = M3PI_WHEEL_GAIN,
     wheel_gain_left: float = M3PI_WHEEL_GAIN,
     wheel_deadband: float = M3PI_WHEEL_DEADBAND,
+    speed_max: float = 0.0,
 ) -> Dynamics:
+    """``speed_max``: the kinematic vehicle's speed limit (0: none); an m3pi is bounded by its wheels."""
     if kind == "kinematic":
-        return KinematicDynamics(k_v, track)
+        return KinematicDynamics(k_v, track, speed_max)
     if kind == "m3pi":
         return M3piDynamics(k_v, track, wheel_speed_max, motor_time_constant, wheel_gain_right, wheel_gain_left,
                             wheel_deadband)

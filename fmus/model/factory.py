@@ -76,7 +76,7 @@ def vehicle_parameter_errors(values: Mapping[str, Any]) -> list[str]:
             ("d_star", "k_v", "v_c", "max_substep", "initial.speed", "m3pi.track", "m3pi.wheel_speed_max",
              "m3pi.motor_time_constant", "time_gap", "cacc_gain"),
         )
-        + _non_negative(values, ("standstill_gap",))
+        + _non_negative(values, ("standstill_gap", "speed_max"))
         + _robot_errors(values)
     )
 
@@ -109,6 +109,7 @@ def controller_stepper(values: Mapping[str, Any], start_time: float) -> VehicleS
         values["m3pi.wheel_gain_right"],
         values["m3pi.wheel_gain_left"],
         values["m3pi.wheel_deadband"],
+        values["speed_max"],
     )
     speed_law = SpeedLaw(values["speed_law"], values["time_gap"], values["standstill_gap"], values["cacc_gain"])
     model = VehicleModel(values["law"], values["d_star"], values["v_c"], bool(values["is_last"]), dynamics, speed_law)

@@ -37,6 +37,7 @@ typedef struct {
     double d_star, k_v, v_c, max_substep;
     double track, wheel_speed_max, motor_time_constant;
     double wheel_gain_right, wheel_gain_left, wheel_deadband;
+    double speed_max; /* KinematicDynamics.speed_max: 0, no limit */
     int sampled;  /* fmus.model.factory.samples_its_robot */
     double delay; /* RobotLoopStepper.delay: command_latency + pose_latency */
     double time_gap, standstill_gap, cacc_gain; /* fmus.model.vehicle.SpeedLaw */
@@ -100,6 +101,7 @@ static int vehicle_parameter_errors(const Instance *instance, FwText *reasons)
                                    VR_M3PI_WHEEL_SPEED_MAX, VR_M3PI_MOTOR_TIME_CONSTANT, VR_TIME_GAP, VR_CACC_GAIN};
     for (size_t i = 0; i < sizeof POSITIVE / sizeof POSITIVE[0]; ++i) fw_positive(instance, POSITIVE[i], reasons, &errors);
     non_negative(instance, VR_STANDSTILL_GAP, reasons, &errors);
+    non_negative(instance, VR_SPEED_MAX, reasons, &errors);
     robot_errors(instance, reasons, &errors);
     return errors;
 }
@@ -129,6 +131,7 @@ static void vehicle_configure(Instance *instance)
     config->wheel_gain_right = r[VR_M3PI_WHEEL_GAIN_RIGHT];
     config->wheel_gain_left = r[VR_M3PI_WHEEL_GAIN_LEFT];
     config->wheel_deadband = r[VR_M3PI_WHEEL_DEADBAND];
+    config->speed_max = r[VR_SPEED_MAX];
     double *state = instance->state;
     state[0] = r[VR_INITIAL_X];
     state[1] = r[VR_INITIAL_Y];
@@ -199,6 +202,14 @@ static void m3pi_drive(const VehicleConfig *config, double heading, double right
     derivative[4] = (left_target - left) * lag;
 }
 
+/* KinematicDynamics.limit_command: the speed command clipped to +-speed_max, as it is without a limit */
+static double kinematic_limit_command(const VehicleConfig *config, double commanded_speed)
+{
+    double limit = config->speed_max;
+    if (limit <= 0.0) return commanded_speed;
+    return py_min(py_max(commanded_speed, -limit), limit);
+}
+
 /* KinematicDynamics.derivative / M3piDynamics.derivative (with wheel_commands, limit_wheels, drive) */
 static void dynamics_derivative(const VehicleConfig *config, const double *state, double lateral_acceleration,
                                 double commanded_speed, double speed_offset, double *derivative)
@@ -209,7 +220,7 @@ static void dynamics_derivative(const VehicleConfig *config, const double *state
         derivative[0] = v * cos(heading);
         derivative[1] = v * sin(heading);
         derivative[2] = lateral_acceleration / v;
-        derivative[3] = speed_loop(config->k_v, commanded_speed, state[3]);
+        derivative[3] = speed_loop(config->k_v, kinematic_limit_command(config, commanded_speed), state[3]);
         return;
     }
     double setpoint = state[5];

@@ -119,6 +119,15 @@ def _robot_parameters() -> tuple[VariableInfo, ...]:
     )
 
 
+def _limit_parameters() -> tuple[VariableInfo, ...]:
+    """The kinematic vehicle's optional speed limit (docs/model.md, section 6). Declared last, so that every
+    variable the FMU had before keeps its value reference; the default 0 is no limit, the same to the bit as
+    before it existed."""
+    return (
+        real("speed_max", "parameter", "Speed limit of the kinematic vehicle: its speed command is clipped to +-speed_max (0: no limit; an m3pi is bounded by m3pi.wheel_speed_max)", "m/s", start=0.0, min=0.0),
+    )
+
+
 class Vehicle(PlatoonSlave):
     """Platoon vehicle: trajectory shaping guidance (regular or sine) on kinematic or m3pi dynamics."""
 
@@ -126,7 +135,8 @@ class Vehicle(PlatoonSlave):
         "Platoon vehicle chasing its target with (modified) trajectory shaping guidance "
         "(Erekson, Sharma, Ratnoo, Gerdes: Multi-vehicle path following using modified trajectory shaping guidance)"
     )
-    variables = _parameters() + _inputs() + _outputs() + _speed_law_parameters() + _sensor_inputs() + _robot_parameters()
+    variables = (_parameters() + _inputs() + _outputs() + _speed_law_parameters() + _sensor_inputs() + _robot_parameters()
+                 + _limit_parameters())
     input_attributes = _INPUT_ATTRIBUTES
     default_experiment = DefaultExperiment(start_time=0.0, stop_time=d.STOP_TIME, step_size=d.STEP)
 

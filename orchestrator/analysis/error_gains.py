@@ -25,11 +25,12 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from orchestrator.analysis.headline import Headline, Mixing, measured_headline, probe_amplitudes
+from orchestrator.analysis.headline import CONFIDENCE, Headline, Mixing, measured_headline, probe_amplitudes
 from orchestrator.scenario.config import TARGET_VEHICLE, Config
 from orchestrator.scenario.wiring import TARGET
 
 if TYPE_CHECKING:
+    from orchestrator.analysis.run_scatter import Scatter
     from orchestrator.trace.reader import Trace
 
 # progress(label, steps) -> a context manager giving a tick(steps done) or None (orchestrator/observers/progress.py)
@@ -344,7 +345,44 @@ def run_headline(config: Config, errors: dict[str, dict[str, np.ndarray]], clean
     if law_of(config, source_vehicle(config)) == "paper":
         mixing = Mixing(config.platoon.speed, {name: equilibrium_gap(config, int(name[len("vehicle"):]))
                                                for name in clean if name != TARGET})
-    return measured_headline(errors, clean, frequencies, steady, 2.0 * math.pi / min(frequencies), mixing)
+    scatter = predicted_run_scatter(config, clean, steady)
+    return measured_headline(errors, clean, frequencies, steady, 2.0 * math.pi / min(frequencies), mixing,
+                             None if isinstance(scatter, str) else scatter.sigma)
+
+
+def predicted_run_scatter(config: Config, clean: list[str], window: tuple[float, float]) -> "Scatter | str":
+    """The analysis' mean and standard deviation of a single run's growth per link over ``clean``, per probe, over
+    its delivery patterns (orchestrator/analysis/run_scatter.py), or why it is not predicted."""
+    from orchestrator.analysis.run_scatter import Stretch, predicted_scatter
+
+    names = [component_name(i) for i in range(1, config.platoon.count + 1)]
+    stretch = Stretch([component_index(name, names) for name in clean], probe_frequencies(config), window,
+                      config.simulation.trace_every)
+    return predicted_scatter(config, stretch)
+
+
+def scatter_lines(config: Config) -> list[str]:
+    """`platoon analyze`'s lines on a single run's headline: per probe, the cascade's growth over the links that
+    measure propagation and the predicted standard deviation of one run's value (none without sinusoids)."""
+    frequencies = probe_frequencies(config)
+    if not frequencies:  # no sinusoid: no probe, and no run's headline to predict
+        return []
+    names = [component_name(i) for i in range(1, config.platoon.count + 1)]
+    clean = clean_order(config, names)
+    if len(clean) < 2:
+        return []
+    try:
+        window = steady_window(config, config.simulation.stop_time)
+    except ValueError:
+        return []
+    scatter = predicted_run_scatter(config, clean, window)
+    head = f"a single run's growth per link over {' -> '.join(clean)} (fitted over {window[0]:g} to {window[1]:g} s)"
+    if isinstance(scatter, str):
+        return [f"{head}: its scatter {scatter}"]
+    values = "; ".join(f"{w:g} rad/s {g:.4f} +- {s:.2g}" for w, g, s in zip(scatter.frequencies, scatter.growth,
+                                                                            scatter.sigma))
+    return [f"{head}, its mean over the losses +- its predicted standard deviation: {values} (a single run's verdict "
+            f"stands where |growth - 1| is more than {CONFIDENCE:g} of them)"]
 
 
 def _frequency_lines(config: Config, errors: dict[str, dict[str, np.ndarray]], names: list[str], clean: list[str],

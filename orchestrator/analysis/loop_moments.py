@@ -88,7 +88,7 @@ class LoopGrowth:
         return None if self.square is None else self.square < 1.0
 
 
-def _shift(view: list[np.ndarray], steps: int, h: float) -> list[np.ndarray]:
+def shift_view(view: list[np.ndarray], steps: int, h: float) -> list[np.ndarray]:
     """An extrapolation polynomial (value, rate, second rate, as rows over the loop's initial state) moved
     ``steps`` steps on: value + D rate + D^2/2 second rate, and so on, D = steps h."""
     d = steps * h
@@ -153,18 +153,18 @@ def _one_period(k_v, c, h, extrapolate, q, f, period, layout, delivered) -> np.n
         if k % q.every == 0:  # the broadcast at t_k: x, speed, rate (state and the inputs of the step before)
             beacons[k] = [s[0], s[1], -k_v * s[1] + gain * heard_at_end]
         if k % f.every == 0:  # the follower's gap at t_k, from its view of the step before moved to t_k
-            moved = _shift(seen, 1, h) if extrapolate else seen
+            moved = shift_view(seen, 1, h) if extrapolate else seen
             gaps[k] = [moved[0], moved[1] if extrapolate else zero]
         if (k - q.lag) % q.every == 0 and delivered(("q", k)):
             beacon = beacons.pop(k - q.lag)
-            seen = _shift(beacon, q.lag, h) if extrapolate else [beacon[0], zero, zero]
+            seen = shift_view(beacon, q.lag, h) if extrapolate else [beacon[0], zero, zero]
         elif extrapolate:
-            seen = _shift(seen, 1, h)
+            seen = shift_view(seen, 1, h)
         if (k - f.lag) % f.every == 0 and delivered(("f", k)):
             gap = gaps.pop(k - f.lag)
-            heard = _shift(gap, f.lag, h) if extrapolate else [gap[0], zero]
+            heard = shift_view(gap, f.lag, h) if extrapolate else [gap[0], zero]
         elif extrapolate:
-            heard = _shift(heard, 1, h)
+            heard = shift_view(heard, 1, h)
         forcing = [gain * heard[0], gain * heard[1] if extrapolate else zero]
         s = [flow[i, 0] * s[0] + flow[i, 1] * s[1] + gammas[0][i, 1] * forcing[0] + gammas[1][i, 1] * forcing[1]
              for i in range(2)]

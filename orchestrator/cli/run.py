@@ -176,6 +176,10 @@ def analyze(
 
         out.print(chain_report(parsed), highlight=False, soft_wrap=True)
         out.print(closed_form_verdict(parsed).line(), highlight=False, soft_wrap=True)  # as stability and the map say it
+        from orchestrator.analysis.error_gains import scatter_lines
+
+        for line in scatter_lines(parsed):  # a single run's predicted scatter about that mean
+            out.print(line, highlight=False, soft_wrap=True)
     if string_stability:
         from orchestrator.observers.progress import progress
 

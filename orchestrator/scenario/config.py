@@ -93,6 +93,9 @@ class Config(_Strict):
                 f"max_substep) = {steps * substeps:.3g} substeps per FMU: expected at most 2**53 = {COUNT_LIMIT:.3g} "
                 "(beyond it step counts are not exact in double precision; no option lifts this)"))
         self._check_speed_laws()
+        if self.platoon.speed_max is not None and self.platoon.speed_max < self.platoon.speed:
+            raise _rule("platoon.speed_max", self.platoon.speed_max, f"at least platoon.speed = {self.platoon.speed:g} "
+                        "m/s (a limit below the cruise speed keeps the platoon from ever reaching it)")
         self._check_robots()
         self._check_stiffness()
         self._check_links()

@@ -105,6 +105,7 @@ class Platoon(_Strict):
     time_gap: TimeGap = Field(2.0, description="h of acc and cacc: desired gap standstill_gap + h V, s")
     standstill_gap: GapLength | None = Field(None, description="r of acc and cacc, m (default d_star - time_gap speed)")
     cacc_gain: Gain = Field(0.2, description="k_p of cacc (Ploeg et al. 2011), 1/s")
+    speed_max: Speed | None = Field(None, description="m/s: a kinematic vehicle's speed limit (default: none)")
 
     @property
     def resolved_standstill_gap(self) -> float:

@@ -113,6 +113,13 @@ def speed_law_parameters(config: Config, index: int) -> dict[str, Any]:
             "cacc_gain": p.cacc_gain}
 
 
+def speed_limit_parameters(config: Config, index: int) -> dict[str, Any]:
+    """A kinematic vehicle's speed limit where the config sets one (none otherwise: the FMU's default 0 is no
+    limit, so a run without it has the parameters, and the trace, it had before the limit existed)."""
+    limit = config.platoon.speed_max
+    return {} if limit is None or config.dynamics_of(index) != "kinematic" else {"speed_max": limit}
+
+
 def build_scenario(config: Config) -> Scenario:
     sim, platoon, path = config.simulation, config.platoon, config.path
     common = {"d_star": platoon.d_star, "coupling": sim.coupling, "max_substep": sim.max_substep}
@@ -151,6 +158,7 @@ def build_scenario(config: Config) -> Scenario:
                     "initial.speed": speed,
                     **config.m3pi_of(index).parameters(),
                     **speed_law_parameters(config, index),
+                    **speed_limit_parameters(config, index),
                     **common,
                 },
             )

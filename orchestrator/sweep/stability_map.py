@@ -175,8 +175,11 @@ def agreement_lines(points: list[dict[str, Any]], stable: dict[str, dict[tuple[f
         for p in (p for p in points if p[LAW] == law and (p["left"] or p["settling"])):
             lines.append(f"{law}: run at delay {p[DELAY]:g} s, loss {p[LOSS]:g} left the model " + (
                 f"({p['left']}): no gain" if p["left"] else f"while it settled ({p['settling']}) and came back: gain shown"))
-        mine = [p for p in points if p[LAW] == law and not math.isnan(p["gain"])]
-        worst = {loss: max(p["deviation"] for p in mine if p[LOSS] == loss) for loss in sorted({p[LOSS] for p in mine})}
+        # every run that stays inside the model has a headline; one whose probes are all weak has no gain but is
+        # counted (with no probe to judge), never silently dropped
+        mine = [p for p in points if p[LAW] == law and not p["left"] and p["headline"] is not None]
+        gained = [p for p in mine if not math.isnan(p["gain"])]
+        worst = {loss: max(p["deviation"] for p in gained if p[LOSS] == loss) for loss in sorted({p[LOSS] for p in gained})}
         judged = [p for p in mine if p["headline"].verdict in ("grows", "does not grow")]
         agree = sum((p["headline"].verdict == "grows") == (not verdicts[(p[DELAY], p[LOSS])].string_stable) for p in judged)
         noisy = [p for p in mine if p not in judged]
