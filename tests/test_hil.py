@@ -1062,6 +1062,53 @@ def test_a_keyless_copy_of_each_run_s_token_holds_no_robot_after_its_run_complet
 
 
 @pytest.mark.realtime
+def test_a_frozen_run_holds_its_robot_no_longer_than_its_lease(tmp_path: Path) -> None:
+    """A run frozen mid-drive (SIGSTOP: its process, its Zenoh session and its host token all stay, only its
+    lease renewals stop) holds its robot no longer than the claim's lease: the robot side ends the claim when
+    the lease runs out (measured at its status, from the freeze), and the next run drives the robot."""
+    import signal
+
+    from bridge.claim import CLAIM_LEASE
+    from bridge.session import open_session, zenoh_config
+
+    port = free_port()
+    claims: list[int] = []
+    ended: dict[int, tuple[float, int]] = {}  # claim -> (when the robot side said it ended, its status flags)
+
+    def on_pose(sample: Any) -> None:
+        claim = decode_pose(sample.payload.to_bytes()).claim
+        if claim and claim not in claims:
+            claims.append(claim)
+
+    def on_status(sample: Any) -> None:
+        status = decode_status(sample.payload.to_bytes())
+        if status.released and status.released not in ended:
+            ended[status.released] = (time.monotonic(), status.flags)
+
+    with emulator(port, tmp_path) as (_, log), \
+            open_session(zenoh_config(connect=[endpoint(port)]), "watcher") as watcher:
+        watchers = [watcher.declare_subscriber(KEYS.pose, on_pose), watcher.declare_subscriber(KEYS.status, on_status)]
+        frozen = start_run(port, tmp_path / "frozen.mcap", 30.0, *PATIENT)
+        try:
+            wait_for_driving(log, 1, frozen)
+            wait_for(lambda: claims, "the frozen run's claim in the robot's poses", frozen)
+            frozen.send_signal(signal.SIGSTOP)
+            when_frozen = time.monotonic()
+            code, out, err = finish(start_run(port, tmp_path / "after.mcap", 3.0, *PATIENT))
+        finally:
+            frozen.kill()  # SIGKILL ends a stopped process too
+            frozen.communicate()
+        for watcher_ in watchers:
+            watcher_.undeclare()
+    assert code == 0, err
+    lease_end, flags = ended[claims[0]]
+    print(f"\n[frozen run] its claim ended {lease_end - when_frozen:.2f} s after the freeze (lease {CLAIM_LEASE:g} s)")
+    assert flags & STATUS_LEASE_ENDED and lease_end - when_frozen <= CLAIM_LEASE + 0.5
+    assert f"lease of {CLAIM_LEASE:g} s ran out" in log.read_text()
+    assert drove(tmp_path / "after.mcap", 3.0) > 0.8
+
+
+@pytest.mark.realtime
 def test_a_run_whose_release_its_robot_side_does_not_confirm_ends_non_zero_saying_so(tmp_path: Path) -> None:
     """The robot side freezes (SIGSTOP) at the run's first stop command, before its release arrives: no status
     confirms the claim's end, so the run cannot know whether the robot is free or what it applied; it waits

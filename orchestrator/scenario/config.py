@@ -34,14 +34,14 @@ from .config_errors import explain, unit_of
 from .config_tables import TARGET_VEHICLE  # noqa: F401  (re-exported: the analyses name the target by it)
 from .config_tables import (Disturbance, Hil, Initial, M3pi, PathConfig, Platoon, Remote, Simulation, Validity,
                             VehicleOverride)
-from .config_types import COUNT_LIMIT, RK4_STABILITY, Name, Text, _rule, _RuleError, _Strict
+from .config_types import COUNT_LIMIT, RK4_STABILITY, Name, Text, rule, RuleError, StrictModel
 from .link_config import LINK_DIRECTIONS, Links, resolve_link
 from .raw_config import ConfigError, apply_override, read_config_text, step_count  # noqa: F401  (re-exported)
 from .raw_config import parse_value  # noqa: F401  (re-exported: a --set value's parser, where it always was)
 from .ros2_config import RunRos2
 
 
-class Config(_Strict):
+class Config(StrictModel):
     name: Name = "scenario"
     description: Text = ""
     simulation: Simulation = Simulation()
@@ -64,43 +64,43 @@ class Config(_Strict):
             # d* = 2R puts each vehicle diametrically opposite its target: alpha = sqrt(1 - (d*/2R)^2) = 0,
             # the gap no longer responds to a speed difference and the equilibrium is degenerate (the
             # analysis divides by alpha; the paper's eigenvalue -V_c alpha/d* is 0)
-            raise _rule("platoon.d_star", self.platoon.d_star, f"less than 2 * path.radius = {2.0 * self.path.radius} "
+            raise rule("platoon.d_star", self.platoon.d_star, f"less than 2 * path.radius = {2.0 * self.path.radius} "
                         "(a chord of the circle shorter than its diameter: at d* = 2R the equilibrium is degenerate)")
         for index, item in enumerate(self.disturbance):
             if item.vehicle > count:
-                raise _rule(f"disturbance[{index}].vehicle", item.vehicle, f"a vehicle number from 1 to platoon.count = {count} "
+                raise rule(f"disturbance[{index}].vehicle", item.vehicle, f"a vehicle number from 1 to platoon.count = {count} "
                             "(or 0, the virtual target)")
             if item.on_target and item.kind != "speed":
-                raise _rule(f"disturbance[{index}].kind", item.kind, '"speed" on vehicle 0 (the virtual target has no '
+                raise rule(f"disturbance[{index}].kind", item.kind, '"speed" on vehicle 0 (the virtual target has no '
                             'guidance to push sideways: push vehicle 1 instead)')
         for key, vehicle in self.vehicles.items():
             if not key.isdigit() or key != str(int(key)) or not 1 <= int(key) <= count:
-                raise _rule(f"vehicles.{key}", key, f"a vehicle number from 1 to platoon.count = {count}")
+                raise rule(f"vehicles.{key}", key, f"a vehicle number from 1 to platoon.count = {count}")
             if vehicle.endpoint == "zenoh" and (vehicle.dynamics or self.platoon.dynamics) != "m3pi":
-                raise _rule(f"vehicles.{key}.endpoint", "zenoh", 'm3pi dynamics, since a live robot is an m3pi: set '
+                raise rule(f"vehicles.{key}.endpoint", "zenoh", 'm3pi dynamics, since a live robot is an m3pi: set '
                             f'platoon.dynamics = "m3pi" (or vehicles.{key}.dynamics)')
         robots = [(v.prefix or self.hil.prefix, self.robot_id(int(k))) for k, v in self.vehicles.items()
                   if v.endpoint == "zenoh"]
         if len(set(robots)) != len(robots):
-            raise _rule("vehicles", [f"{p}/m3pi/{r}" for p, r in robots], "one live vehicle per robot (prefix and id)")
+            raise rule("vehicles", [f"{p}/m3pi/{r}" for p, r in robots], "one live vehicle per robot (prefix and id)")
         sim = self.simulation
         if sim.step > sim.stop_time:
-            raise _rule("simulation.step", sim.step, f"at most simulation.stop_time = {sim.stop_time}")
+            raise rule("simulation.step", sim.step, f"at most simulation.stop_time = {sim.stop_time}")
         steps, substeps = sim.stop_time / sim.step, max(1.0, sim.step / sim.max_substep)  # floats: may be inf
         if steps * substeps > COUNT_LIMIT:  # no option lifts this one (orchestrator/scenario/limits.py: the adjustable ones)
-            raise _RuleError("simulation", None, "", message=(
+            raise RuleError("simulation", None, "", message=(
                 f"simulation: {steps:.3g} steps (stop_time / step) x {substeps:.3g} RK4 substeps each (step / "
                 f"max_substep) = {steps * substeps:.3g} substeps per FMU: expected at most 2**53 = {COUNT_LIMIT:.3g} "
                 "(beyond it step counts are not exact in double precision; no option lifts this)"))
         self._check_speed_laws()
         if self.platoon.speed_max is not None and self.platoon.speed_max < self.platoon.speed:
-            raise _rule("platoon.speed_max", self.platoon.speed_max, f"at least platoon.speed = {self.platoon.speed:g} "
+            raise rule("platoon.speed_max", self.platoon.speed_max, f"at least platoon.speed = {self.platoon.speed:g} "
                         "m/s (a limit below the cruise speed keeps the platoon from ever reaching it)")
         self._check_robots()
         self._check_stiffness()
         self._check_links()
         if sim.trace_every > self.steps:
-            raise _rule("simulation.trace_every", sim.trace_every, f"at most the run's {self.steps} steps "
+            raise rule("simulation.trace_every", sim.trace_every, f"at most the run's {self.steps} steps "
                         "(stop_time / step), so that a point after t = 0 is recorded")
         return self
 
@@ -124,11 +124,11 @@ class Config(_Strict):
         for index in range(2, p.count + 1):
             if index - 1 in sensing and index not in sensing:
                 key = f"vehicles.{index}.speed_law" if self.override(index).speed_law else "platoon.speed_law"
-                raise _rule(key, self.speed_law_of(index), f"acc or cacc behind vehicle {index - 1}, whose "
+                raise rule(key, self.speed_law_of(index), f"acc or cacc behind vehicle {index - 1}, whose "
                             f"{self.speed_law_of(index - 1)} law does not read its follower's gap: a paper vehicle's "
                             "gap is regulated by the vehicle ahead, so behind an acc or cacc one it would drift")
         if p.standstill_gap is None and sensing and p.resolved_standstill_gap < 0.0:
-            raise _rule("platoon.time_gap", p.time_gap, f"at most platoon.d_star / platoon.speed = {p.d_star / p.speed:g} s "
+            raise rule("platoon.time_gap", p.time_gap, f"at most platoon.d_star / platoon.speed = {p.d_star / p.speed:g} s "
                         f"under acc or cacc, or an explicit platoon.standstill_gap >= 0 (the default standstill gap "
                         f"d_star - time_gap * speed = {p.resolved_standstill_gap:g} m would be negative)")
 
@@ -140,12 +140,12 @@ class Config(_Strict):
         for vehicle in self.m3pi_vehicles():
             m3pi = self.m3pi_of(vehicle)
             if m3pi.wheel_deadband >= m3pi.wheel_speed_max:
-                raise _rule(self.m3pi_key(vehicle, "wheel_deadband"), m3pi.wheel_deadband,
+                raise rule(self.m3pi_key(vehicle, "wheel_deadband"), m3pi.wheel_deadband,
                             f"below vehicle {vehicle}'s wheel_speed_max = {m3pi.wheel_speed_max:g} m/s (a dead-band at "
                             "or above the limit keeps the wheels still whatever the run commands)")
             delay, step = m3pi.command_latency + m3pi.pose_latency, self.simulation.step
             if math.ceil(delay / step) + 1 > COMMAND_CAPACITY:
-                raise _RuleError("m3pi", None, "", message=(
+                raise RuleError("m3pi", None, "", message=(
                     f"vehicle {vehicle}: command_latency + pose_latency = {delay:g} s spans {math.ceil(delay / step) + 1} "
                     f"commands in flight at simulation.step = {step:g} s; a robot holds at most {COMMAND_CAPACITY} "
                     "(a latency of a few tens of ms is a real radio; or lengthen the step)"))
@@ -181,7 +181,7 @@ class Config(_Strict):
                  for i in self.m3pi_vehicles()]
         key, lag = min(lags, key=lambda item: item[1])
         if h > RK4_STABILITY * lag:
-            raise _rule("simulation.max_substep", sim.max_substep,
+            raise rule("simulation.max_substep", sim.max_substep,
                         f"RK4 substeps of at most {RK4_STABILITY:g} x the fastest lag, here {key} (time constant "
                         f"{lag:g} s): max_substep <= {RK4_STABILITY * lag:.3g} s (the substep is now {h:.3g} s; "
                         "beyond it the integration diverges)")
@@ -192,7 +192,7 @@ class Config(_Strict):
         count = self.platoon.count
         for key in self.links.vehicles:
             if not key.isdigit() or key != str(int(key)) or not 1 <= int(key) <= count:
-                raise _rule(f"links.vehicles.{key}", key, f"a vehicle number from 1 to platoon.count = {count}")
+                raise rule(f"links.vehicles.{key}", key, f"a vehicle number from 1 to platoon.count = {count}")
         if self.links == Links():
             return  # no link: nothing to check for any of the vehicles
         for vehicle in range(1, count + 1):
@@ -201,10 +201,10 @@ class Config(_Strict):
                 where = f"links (vehicle {vehicle}'s {direction} link)"
                 errors = link_parameter_errors(link)
                 if errors:
-                    raise _RuleError("links", None, "", message=f"{where}: {errors[0]}")
+                    raise RuleError("links", None, "", message=f"{where}: {errors[0]}")
                 held = messages_held(link, self.simulation.step)
                 if held > LINK_CAPACITY:
-                    raise _RuleError("links", None, "", message=(
+                    raise RuleError("links", None, "", message=(
                         f"{where}: delay + jitter = {link.delay + link.jitter:g} s spans up to {held} messages at "
                         f"step {self.simulation.step:g} s and period {link.period:g} s; a link holds at most "
                         f"{LINK_CAPACITY} (shorten the delay, or send beacons less often: links.period)"))

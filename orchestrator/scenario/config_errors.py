@@ -11,8 +11,8 @@ from pydantic import BaseModel, ValidationError
 
 from orchestrator.support.suggest import did_you_mean
 
-from .config_types import NAME_RULE, Unit, UnitNote, _Expected, _RuleError
-from .ros2_config import _Rule as _Ros2Rule
+from .config_types import NAME_RULE, Unit, UnitNote, Expected, RuleError
+from .ros2_config import Ros2Rule
 
 def _key_of(loc: tuple[Any, ...]) -> str:
     key = ""
@@ -101,14 +101,14 @@ def explain(error: ValidationError, root: type[BaseModel]) -> str:
     ctx = first.get("ctx") or {}
     loc = tuple(part for part in first["loc"] if not (isinstance(part, str) and part.startswith("function-")))
     key = _key_of(loc)
-    if "error" in ctx and isinstance(ctx["error"], (_RuleError, _Ros2Rule)):  # a rule of a nested table names its own key
+    if "error" in ctx and isinstance(ctx["error"], (RuleError, Ros2Rule)):  # a rule of a nested table names its own key
         return f"{key}.{ctx['error']}" if key else str(ctx["error"])
     key = key or "a key"  # the key itself is what is wrong (not UTF-8)
     if first["type"] == "extra_forbidden":
         return f"{key}: unknown key{_nearest_key(root, loc)}"
     if first["type"] == "missing":
         return f"{key}: missing (required)"
-    if "error" in ctx and isinstance(ctx["error"], _Expected):
+    if "error" in ctx and isinstance(ctx["error"], Expected):
         return f"{key} = {first['input']!r}: {ctx['error']}"
     if first["type"] in ("string_pattern_mismatch", "string_too_long") and loc == ("name",):
         return (f"name = {first['input']!r}: must be {NAME_RULE} (it names the trace file runs/<name>-<time>.mcap; "

@@ -14,11 +14,11 @@ from fmus.model.dynamics import (M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEE
 from fmus.model.robot_loop import LATENCY_MAX, M3PI_COMMAND_LATENCY, M3PI_POSE_LATENCY
 
 from .config_types import (LENGTH_MAX, PULSE_UNITS, SMALL, Angle, Duration, Gain, Length, PositiveLength, Pulse, Speed,
-                           Text, Unit, _rule, _Strict)
+                           Text, Unit, rule, StrictModel)
 from .raw_config import DEFAULT_COUNT, DEFAULT_STEP, DEFAULT_STOP_TIME, DEFAULT_TRACE_EVERY
 from .ros2_config import VehicleRos2
 
-class Simulation(_Strict):
+class Simulation(StrictModel):
     stop_time: Duration = Field(DEFAULT_STOP_TIME, description="simulated time, s")
     step: Duration = Field(DEFAULT_STEP, description="communication step, s (at most stop_time)")
     master: Literal["jacobi", "gauss-seidel"] = "jacobi"
@@ -30,7 +30,7 @@ class Simulation(_Strict):
                           "default native where a C compiler can build them (orchestrator/components/kinds.py)")
 
 
-class PathConfig(_Strict):
+class PathConfig(StrictModel):
     kind: Literal["circle", "line"] = "circle"
     radius: PositiveLength = 50.0
     center: list[Length] = Field(default_factory=lambda: [0.0, 0.0], min_length=2, max_length=2)
@@ -47,7 +47,7 @@ Deadband = Annotated[float, Field(ge=0.0, le=100.0), Unit("m/s")]
 Latency = Annotated[float, Field(ge=0.0, le=LATENCY_MAX), Unit("s")]
 
 
-class M3pi(_Strict):
+class M3pi(StrictModel):
     """The m3pi robots' constants (docs/model.md): the nominal robot by default; a calibrated config sets the
     gains, dead-band and latencies `platoon calibrate` identifies, here or per vehicle ([vehicles.N.m3pi])."""
 
@@ -70,7 +70,7 @@ class M3pi(_Strict):
         return {f"m3pi.{key}": value for key, value in self.model_dump().items()}
 
 
-class M3piOverride(_Strict):
+class M3piOverride(StrictModel):
     """``[vehicles.N.m3pi]``: the constants of vehicle N's robot that differ from ``[m3pi]`` (each robot is its own)."""
 
     track: Track | None = None
@@ -94,7 +94,7 @@ TimeGap = Annotated[float, Field(ge=SMALL, le=100.0), Unit("s")]
 GapLength = Annotated[float, Field(ge=0.0, le=LENGTH_MAX), Unit("m")]
 
 
-class Platoon(_Strict):
+class Platoon(StrictModel):
     count: int = Field(DEFAULT_COUNT, ge=1, le=10000)
     law: Law = "sine"
     d_star: PositiveLength = Field(75.0, description="m; on a circle less than 2 path.radius")
@@ -115,7 +115,7 @@ class Platoon(_Strict):
         return self.d_star - self.time_gap * self.speed
 
 
-class Validity(_Strict):
+class Validity(StrictModel):
     """Where a run stops being the model's (orchestrator/analysis/validity.py; docs/model.md, section 12): it
     keeps running, and says so in its summary, its log, `platoon report --json` and a sweep's row."""
 
@@ -125,7 +125,7 @@ class Validity(_Strict):
                                     "kinematic vehicles; an m3pi is bounded by its wheels)")
 
 
-class Initial(_Strict):
+class Initial(StrictModel):
     """Default placement: on the path behind the target, spaced by the chord d*, then perturbed."""
 
     radial_offset: Length = Field(0.0, description="vehicle 1 moved this far off the path (outward), m")
@@ -133,14 +133,14 @@ class Initial(_Strict):
     speed_factor: Annotated[float, Field(ge=SMALL, le=10.0)] = Field(1.0, description="every vehicle starts at this fraction of V_c")
 
 
-class VehicleState(_Strict):
+class VehicleState(StrictModel):
     x: Length
     y: Length
     heading: Angle
     speed: Speed
 
 
-class VehicleOverride(_Strict):
+class VehicleOverride(StrictModel):
     law: Law | None = None
     speed_law: SpeedLawName | None = None
     k_v: Gain | None = None
@@ -168,11 +168,11 @@ class VehicleOverride(_Strict):
             value = getattr(self, key)
             problems = check_prefix(value) if value is not None else []
             if problems:
-                raise _rule(key, value, problems[0])
+                raise rule(key, value, problems[0])
         return self
 
 
-class Remote(_Strict):
+class Remote(StrictModel):
     """Remote vehicles (docs/remote.md): how patient the run is with their servers."""
 
     step_timeout: Annotated[float, Unit("s")] = Field(2.0, gt=0.0, le=600.0, description="s to wait for a server's reply "
@@ -181,7 +181,7 @@ class Remote(_Strict):
                                                                                           "at the start")
 
 
-class Hil(_Strict):
+class Hil(StrictModel):
     """Hardware in the loop: shared by every live vehicle of the run (docs/hil.md)."""
 
     prefix: str = Field(DEFAULT_PREFIX, description="Zenoh key prefix: <prefix>/m3pi/<id>/...")
@@ -198,14 +198,14 @@ class Hil(_Strict):
     def _prefix_is_a_key(self) -> "Hil":
         problems = check_prefix(self.prefix)
         if problems:
-            raise _rule("prefix", self.prefix, problems[0])
+            raise rule("prefix", self.prefix, problems[0])
         return self
 
 
 TARGET_VEHICLE = 0  # a disturbance's ``vehicle`` naming the virtual target, the platoon's head
 
 
-class Disturbance(_Strict):
+class Disturbance(StrictModel):
     # 1 .. platoon.count, or 0: the virtual target (a speed push only: the head's speed, prescribed)
     vehicle: int = Field(ge=TARGET_VEHICLE)
     kind: Literal["lateral_acceleration", "speed"]

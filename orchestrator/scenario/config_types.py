@@ -9,13 +9,13 @@ from typing import Annotated, Any
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
-class _Strict(BaseModel):
+class StrictModel(BaseModel):
     # defer_build: each model's validator is built when first used, not at import; a run validates one Config,
     # whose validator holds every table, so the tables' own were built for nothing (~0.03 s of a run's start-up)
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False, defer_build=True)
 
 
-class _Expected(ValueError):
+class Expected(ValueError):
     """A field validator's complaint: what the value must be (``_explain`` adds the key and the value)."""
 
 
@@ -70,10 +70,10 @@ def _clean_text(text: str) -> str:
     try:
         text.encode("utf-8")
     except UnicodeEncodeError:
-        raise _Expected("must be valid UTF-8 text") from None
+        raise Expected("must be valid UTF-8 text") from None
     bad = [c for c in text if (ord(c) < 0x20 and c not in "\t\n\r") or ord(c) == 0x7F]
     if bad:
-        raise _Expected(f"must be text without control characters (found {bad[0]!r})")
+        raise Expected(f"must be text without control characters (found {bad[0]!r})")
     return text
 
 
@@ -90,11 +90,11 @@ COUNT_LIMIT = 2**53
 
 
 
-class _RuleError(ValueError):
+class RuleError(ValueError):
     def __init__(self, key: str, value: Any, expected: str, message: str | None = None) -> None:
         super().__init__(message or f"{key} = {value!r}: expected {expected}")
         self.key, self.value, self.expected = key, value, expected
 
 
-def _rule(key: str, value: Any, expected: str) -> _RuleError:
-    return _RuleError(key, value, expected)
+def rule(key: str, value: Any, expected: str) -> RuleError:
+    return RuleError(key, value, expected)

@@ -9,13 +9,13 @@ from pydantic import Field
 
 from fmus.model.link import LinkParameters
 
-from .config_types import Unit, _Strict
+from .config_types import Unit, StrictModel
 
 LinkTime = Annotated[float, Field(ge=0.0, le=3600.0), Unit("s")]
 LINK_DIRECTIONS = ("backward", "forward")
 
 
-class LinkKeys(_Strict):
+class LinkKeys(StrictModel):
     """One link's settings (docs/links.md); a key left out comes from the wider table."""
 
     delay: LinkTime | None = Field(None, description="s from a message's output_time to its arrival")
@@ -27,7 +27,7 @@ class LinkKeys(_Strict):
     seed: int | None = Field(None, ge=0, le=2**31 - 1, description="seed of every link's random stream")
 
 
-class VehicleLinks(_Strict):
+class VehicleLinks(StrictModel):
     """The two links between vehicle N and the component ahead of it (the target for vehicle 1)."""
 
     backward: LinkKeys = LinkKeys()

@@ -19,19 +19,19 @@ Convention = Literal["rmw_zenoh", "bridge_dds"]
 
 
 class _Strict(BaseModel):
-    # built when first used, as the config's tables (orchestrator/scenario/config.py, _Strict)
+    # built when first used, as the config's tables (orchestrator/scenario/config_types.py, StrictModel)
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False, defer_build=True)
 
 
-class _Rule(ValueError):
+class Ros2Rule(ValueError):
     pass
 
 
 def _check(pattern: re.Pattern, value: str | None, key: str, expected: str) -> None:
     if value is not None and not pattern.match(value):
-        raise _Rule(f"{key} = {value!r}: expected {expected}")
+        raise Ros2Rule(f"{key} = {value!r}: expected {expected}")
     if value is not None and "__" in value:  # ROS 2 reserves repeated underscores (rcl_validate_topic_name)
-        raise _Rule(f"{key} = {value!r}: ROS 2 forbids repeated underscores (\"__\") in names")
+        raise Ros2Rule(f"{key} = {value!r}: ROS 2 forbids repeated underscores (\"__\") in names")
 
 
 TOPIC_RULE = 'a fully qualified ROS 2 topic such as "/vrpn_mocap/m3pi_3/pose" (segments of letters, digits, "_")'
@@ -59,7 +59,7 @@ class _Graph(_Strict):
         _check(_NAMESPACE, self.node_namespace, "node_namespace", NAMESPACE_RULE)
         _check(_NODE, self.node, "node", "a ROS 2 node name (letters, digits, '_', not starting with a digit)")
         if self.namespace and self.convention == "rmw_zenoh":  # it would be ignored: say so rather than drop it
-            raise _Rule(f"namespace = {self.namespace!r} is zenoh-bridge-ros2dds' key prefix (convention = "
+            raise Ros2Rule(f"namespace = {self.namespace!r} is zenoh-bridge-ros2dds' key prefix (convention = "
                         "\"bridge_dds\" only); under rmw_zenoh a namespace is part of each topic: write it into "
                         f"the topics ({self.namespace.rstrip('/')}/cmd_vel), and node_namespace puts the run's node in it")
         return self
@@ -84,7 +84,7 @@ class VehicleRos2(_Graph):
         _check(_TOPIC, self.pose_topic, "pose_topic", TOPIC_RULE)
         _check(_TOPIC, self.command_topic, "command_topic", TOPIC_RULE)
         if not (self.pose_topic or self.command_topic):
-            raise _Rule("pose_topic and command_topic both unset: set at least one (the other direction keeps "
+            raise Ros2Rule("pose_topic and command_topic both unset: set at least one (the other direction keeps "
                         "our protocol)")
         return self
 
@@ -104,5 +104,5 @@ class RunRos2(_Graph):
     def _prefix(self) -> "RunRos2":
         _check(_TOPIC, self.topic_prefix, "topic_prefix", TOPIC_RULE)
         if self.publish and not (self.connect or self.listen or self.zenoh_config):
-            raise _Rule("publish = true needs connect, listen or zenoh_config: where the ROS 2 graph's Zenoh is")
+            raise Ros2Rule("publish = true needs connect, listen or zenoh_config: where the ROS 2 graph's Zenoh is")
         return self
