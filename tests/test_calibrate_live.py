@@ -35,7 +35,7 @@ PREDICTION = REPO / "configs" / "hil" / "predict3.toml"  # the held-out scenario
 BEHIND_LIMIT = 5.0
 # s: a held-out run further behind than this does not test prediction: while the run stalls, the robot holds its
 # last command for the stall's length, which no simulation of the scenario's schedule reproduces (measured:
-# PREDICTION_NOTE in docs/hil.md, "Predicting a scenario calibration never saw")
+# docs/hil.md, "Predicting a scenario calibration never saw": 5.1 mm rms 1 s behind, 3.3 mm 0.15 s behind)
 PREDICTION_BEHIND_LIMIT = 0.2
 TRIES = 3
 
