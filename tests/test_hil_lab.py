@@ -585,3 +585,39 @@ def test_a_plain_tcp_run_to_a_tls_robot_side_says_the_far_side_speaks_tls(tmp_pa
     with open_session(zenoh_config(listen=[f"tcp/127.0.0.1:{plain}"]), "plain"):
         assert not speaks_tls("127.0.0.1", plain)
     assert not speaks_tls("127.0.0.1", free_port())  # nobody there
+
+
+def test_an_acl_typo_that_keeps_the_runs_claim_from_its_robot_side_is_named_as_such(tmp_path: Path) -> None:
+    """A typo in the robot side's access-control rule for robot 3's commands ("cmd/wheel" for "cmd/wheels"):
+    its TLS session, liveliness token and status reach the run, but the run's claim request never reaches it.
+    The run ends at its connect timeout with exit 1 and one line that says the robot side's status never named
+    this run's claim and points at an access-control rule, not at the lab key."""
+    folder = tmp_path / "lab"
+    write_lab(LAB, folder, days=1)
+    robot_side = folder / "xbee-pc.json5"
+    text = robot_side.read_text()
+    assert text.count('"platoon/m3pi/3/cmd/wheels"') == 1
+    robot_side.write_text(text.replace('"platoon/m3pi/3/cmd/wheels"', '"platoon/m3pi/3/cmd/wheel"'))
+    tls = f"tls/127.0.0.1:{free_port()}"
+    log = tmp_path / "emulator.log"
+    with open(log, "w") as stream:
+        robot = subprocess.Popen([str(PLATOON), "m3pi-emulator", "--config", str(LIVE3), "--set",
+                                  f'vehicles.3.connect=["{tls}"]', "--zenoh-config", str(robot_side)],
+                                 cwd=REPO, env=_env(), stdout=stream, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 30
+        while "configured, pose on" not in log.read_text():
+            assert robot.poll() is None and time.monotonic() < deadline, log.read_text()
+            time.sleep(0.05)
+        code, out, err = finish(start_run(0, tmp_path / "typo.mcap", 5.0, f'vehicles.3.connect=["{tls}"]',
+                                          f'vehicles.3.zenoh_config="{folder / "laptop.json5"}"',
+                                          "hil.connect_timeout=3.0"))
+    finally:
+        robot.terminate()
+        robot.wait(10)
+    assert code == 1, err
+    problem = [line for line in err.splitlines() if "did not grant this run's claim" in line]
+    assert len(problem) == 1, err
+    assert "its status on platoon/m3pi/3/status never named it" in problem[0], problem[0]
+    assert "access-control rule" in problem[0] and "lab key" not in problem[0].split("never named it")[1], problem[0]
+    assert "claimed by" not in log.read_text()
