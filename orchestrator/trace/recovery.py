@@ -68,6 +68,7 @@ class _Scan:
     finished: bool = False
     cut: bool = False  # the file ends inside a record (a killed run's last chunk)
     copies: list[channel_copy.ChannelCopy] = field(default_factory=list)  # platoon.channels records that decoded
+    copied: dict[int, Channel] = field(default_factory=dict)  # their channels by id, first seen: groups while scanning
     refused_copies: int = 0
 
 
@@ -166,8 +167,7 @@ _ANY = -2  # awaited: the damage is before any message; the first intact one aft
 
 
 def _group_of(scan: _Scan, channel: int) -> int:
-    known = scan.channels.get(channel) or next((c for copy in scan.copies for c in copy.channels if c.id == channel),
-                                               None)
+    known = scan.channels.get(channel) or scan.copied.get(channel)
     return -1 if known is None else chunk_group(known.topic)
 
 
@@ -232,6 +232,8 @@ def _scan(stream: BinaryIO, size: int) -> _Scan:
             elif isinstance(item, Metadata) and item.name == channel_copy.NAME:
                 if (copy := channel_copy.decode(item)) is not None:
                     scan.copies.append(copy)
+                    for channel in copy.channels:
+                        scan.copied.setdefault(channel.id, channel)
             elif isinstance(item, Metadata):
                 scan.metadata.append(item)
             elif isinstance(item, Message):
