@@ -1004,6 +1004,30 @@ def test_a_stranger_who_reads_nothing_moves_an_idle_robot_0_m_and_a_run_then_dri
     assert drove(trace, 2.0) > 0.5
 
 
+class ClaimWatch:
+    """What a bystander session sees of robot 3's claims: each claim in the order its poses first name it, and when
+    (and with which status flags) the robot side said each ended."""
+
+    def __init__(self) -> None:
+        self.claims: list[int] = []
+        self.ended: dict[int, tuple[float, int]] = {}  # claim -> (when the robot side said it ended, its flags)
+
+    def _on_pose(self, sample: Any) -> None:
+        claim = decode_pose(sample.payload.to_bytes()).claim
+        if claim and claim not in self.claims:
+            self.claims.append(claim)
+
+    def _on_status(self, sample: Any) -> None:
+        status = decode_status(sample.payload.to_bytes())
+        if status.released and status.released not in self.ended:
+            self.ended[status.released] = (time.monotonic(), status.flags)
+
+    def subscribe(self, session: Any) -> list[Any]:
+        """Its subscribers on ``session`` (undeclare them when done)."""
+        return [session.declare_subscriber(KEYS.pose, self._on_pose),
+                session.declare_subscriber(KEYS.status, self._on_status)]
+
+
 @pytest.mark.realtime
 def test_a_keyless_copy_of_each_run_s_token_holds_no_robot_after_its_run_completes_or_is_killed(tmp_path: Path) -> None:
     """The issue's case: a client of the emulator's port without the lab key reads each run's claim off the
@@ -1014,22 +1038,12 @@ def test_a_keyless_copy_of_each_run_s_token_holds_no_robot_after_its_run_complet
     from bridge.session import open_session, zenoh_config
 
     port = free_port()
-    claims: list[int] = []
-    ended: dict[int, tuple[float, int]] = {}  # claim -> (when the robot side said it ended, its status flags)
-
-    def on_pose(sample: Any) -> None:
-        claim = decode_pose(sample.payload.to_bytes()).claim
-        if claim and claim not in claims:
-            claims.append(claim)
-
-    def on_status(sample: Any) -> None:
-        status = decode_status(sample.payload.to_bytes())
-        if status.released and status.released not in ended:
-            ended[status.released] = (time.monotonic(), status.flags)
+    watch = ClaimWatch()
+    claims, ended = watch.claims, watch.ended
 
     with emulator(port, tmp_path) as (_, log), \
             open_session(zenoh_config(connect=[endpoint(port)]), "stranger") as stranger:
-        watchers = [stranger.declare_subscriber(KEYS.pose, on_pose), stranger.declare_subscriber(KEYS.status, on_status)]
+        watchers = watch.subscribe(stranger)
         copies = []
 
         def copy_token_of_run(number: int, run: subprocess.Popen) -> int:
@@ -1072,22 +1086,12 @@ def test_a_frozen_run_holds_its_robot_no_longer_than_its_lease(tmp_path: Path) -
     from bridge.session import open_session, zenoh_config
 
     port = free_port()
-    claims: list[int] = []
-    ended: dict[int, tuple[float, int]] = {}  # claim -> (when the robot side said it ended, its status flags)
-
-    def on_pose(sample: Any) -> None:
-        claim = decode_pose(sample.payload.to_bytes()).claim
-        if claim and claim not in claims:
-            claims.append(claim)
-
-    def on_status(sample: Any) -> None:
-        status = decode_status(sample.payload.to_bytes())
-        if status.released and status.released not in ended:
-            ended[status.released] = (time.monotonic(), status.flags)
+    watch = ClaimWatch()
+    claims, ended = watch.claims, watch.ended
 
     with emulator(port, tmp_path) as (_, log), \
             open_session(zenoh_config(connect=[endpoint(port)]), "watcher") as watcher:
-        watchers = [watcher.declare_subscriber(KEYS.pose, on_pose), watcher.declare_subscriber(KEYS.status, on_status)]
+        watchers = watch.subscribe(watcher)
         frozen = start_run(port, tmp_path / "frozen.mcap", 30.0, *PATIENT)
         try:
             wait_for_driving(log, 1, frozen)
