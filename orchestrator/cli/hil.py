@@ -8,6 +8,7 @@ its wheels before it exits.
 from __future__ import annotations
 
 import math
+import os
 import signal
 import threading
 from pathlib import Path
@@ -30,10 +31,26 @@ AllowInsecure = Annotated[bool, typer.Option("--allow-insecure", help="allow end
 
 
 def stop_on_signals(stop: threading.Event) -> None:
-    """SIGINT and SIGTERM set ``stop``: the program's loop ends, stops the wheels, releases Zenoh."""
-    def handler(signum: int, frame: object) -> None:
+    """SIGINT and SIGTERM set ``stop``: the program's loop ends, stops the wheels, releases Zenoh.
+
+    Not from the handler itself: Python runs it on the main thread between two bytecodes, which may be inside
+    ``stop.wait()`` with the event's (non-reentrant) lock held, and ``stop.set()`` there waits for that lock
+    forever (an emulator hung on Ctrl-C, then on every signal after it: tests/test_signal_stop.py). The
+    handler writes a byte to a pipe, which takes no lock; a thread waiting on the pipe sets ``stop``."""
+    read_end, write_end = os.pipe()
+
+    def relay() -> None:
+        os.read(read_end, 1)
         stop.set()
 
+    def handler(signum: int, frame: object) -> None:
+        try:
+            os.write(write_end, b"\0")
+        except OSError:  # the pipe full of earlier signals: ``stop`` is being set already
+            pass
+
+    os.set_blocking(write_end, False)
+    threading.Thread(target=relay, name="signal-stop", daemon=True).start()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, handler)
 
