@@ -262,7 +262,7 @@ class Execution:
             writer = open_trace_writer(self.writer_kind, self.target.aside, components, descriptions, config,
                                        every=sim.trace_every, scene_rate=self.scene_rate, foxglove=self.foxglove,
                                        process=self.trace_process, publish=self.target.final,
-                                       native=self.engine_name == "native")
+                                       native=self.engine_name == "native", paced=bool(self.live))
         self.trace = trace = TraceObserver(writer)
         observers.add(trace)  # first: every other observer sees a point once the trace holds it
         observers.add(self.wait_clock)
@@ -280,7 +280,7 @@ class Execution:
         if self.target is not None or self.summarize:  # a line in the log where the run leaves the model
             from orchestrator.observers.validity import ValidityObserver
 
-            self.validity = ValidityObserver(config, components, observers.log)
+            self.validity = ValidityObserver(config, components, observers.log, paced=bool(self.live))
             observers.add(self.validity)
         if self.summarize:
             from orchestrator.observers.summary import SummaryObserver

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 from fmus.errors import ComponentError
 from orchestrator.observers.base import Observer
 from orchestrator.trace.foxglove import SCENE_RATE, FoxgloveChannels, SceneSettings
+from orchestrator.trace.format import BLOCK
 from orchestrator.trace.worker import TraceProcess, TraceWorker, TraceWorkerError
 from orchestrator.trace.writer_base import NullTraceWriter, TraceWriteError
 
@@ -29,6 +30,7 @@ if TYPE_CHECKING:
 # run records enough messages that encoding them outweighs the worker's start-up (about 0.5-1 s).
 TRACE_WRITERS = ("auto", "inline", "process")
 WORKER_MESSAGES = 10_000  # recorded rows x components from which "auto" picks "process" (docs/performance.md)
+PACED_BLOCK = 1  # rows an inline writer of a paced run encodes at once: each at its point (open_trace_writer)
 STALLED_WRITER_GRACE = 2.0  # s a trace writer process may take nothing after a second signal before it is stopped
 
 
@@ -54,12 +56,17 @@ def open_trace_writer(
     process: TraceProcess | None = None,
     publish: Path | None = None,
     native: bool = False,
+    paced: bool = False,
 ) -> "TraceWriter | TraceWorker":
     """A run's trace writer, encoding in this process ("inline") or in a worker ("process"): same file.
 
     ``foxglove`` adds the Foxglove channels at ``scene_rate``; ``process`` is a worker started earlier;
     ``publish``: the final path, ``path`` being the aside file renamed onto it once finalized;
     ``native``: float64 blocks (the native engine's) are encoded in C (orchestrator/trace/native_rows.py).
+    ``paced``: the run keeps wall-clock time (a live robot in it), so the inline writer encodes each row at its
+    own point (``PACED_BLOCK``) instead of a block's worth at once: a second of rows encoded in one point took
+    7-16 ms of a 10 ms step, an overrun every second on an idle machine (`platoon run` of
+    configs/hil/m3pi_live3.toml: 5-11 overruns in 10 s; each row at its point: none, the largest point 6 ms).
     """
     if kind == "process":
         return TraceWorker(path, components, descriptions, every=every, process=process, publish=publish,
@@ -68,6 +75,7 @@ def open_trace_writer(
     from orchestrator.trace.writer import TraceWriter  # the MCAP writer: loaded only when this process writes
 
     return TraceWriter(path, components, descriptions, every=every, publish=publish, native=native,
+                       block=PACED_BLOCK if paced else BLOCK,
                        foxglove=FoxgloveChannels(config, components, scene_rate) if foxglove else None)
 
 
