@@ -74,6 +74,15 @@ def _raw_fmi2_call(address: int) -> Any:
     return call
 
 
+def raw_call(slave: Any, name: str) -> Callable[..., int]:
+    """The FMI function ``name`` of FMPy's ``slave`` as a ``_RAW_FMI2_CALL`` (FmuComponent._bind_hot_calls),
+    or FMPy's wrapper returning the status where FMPy did not keep the function."""
+    function = resolved_functions(slave).get(name)
+    if function is None:
+        return _status_returning(getattr(slave, name))
+    return _raw_fmi2_call(cast(function, c_void_p).value)
+
+
 def resolved_functions(slave: Any) -> dict[str, Any]:
     """The ctypes functions FMPy resolved from the FMU's library, by fmi2 name ({} if FMPy stops
     keeping them, and its wrappers stand in)."""
@@ -178,9 +187,10 @@ class UnpackedFmu:
 
 
 def _typed(kind: str, text: Any) -> Any:
-    if kind == "Real":
+    """A start value as the Python value of its FMI 2.0 or FMI 3.0 type."""
+    if kind in ("Real", "Float64", "Float32"):
         return float(text)
-    if kind == "Integer":
+    if kind == "Integer" or kind.startswith(("Int", "UInt")):
         return int(text)
     if kind == "Boolean":
         return text in (True, "true", "1", 1)
@@ -204,6 +214,9 @@ def parameters_by_type(variables: dict[str, Any], parameters: dict[str, Any]) ->
 class FmuComponent:
     """One FMU instance behind the Component interface."""
 
+    # named in failures (FMI 3.0: Fmu3Component)
+    _SET_CALL, _GET_CALL, _STEP_CALL = "fmi2SetReal", "fmi2GetReal", "fmi2DoStep"
+
     def __init__(
         self, name: str, fmu: UnpackedFmu, parameters: dict[str, Any], inputs: list[str] | None = None
     ) -> None:
@@ -222,20 +235,7 @@ class FmuComponent:
         self.messages: deque[str] = deque(maxlen=50)  # the latest FMU log lines, for error reports
         self._time = 0.0
         api = _fmpy()
-        self._slave = api.FMU2Slave(
-            guid=fmu.guid,
-            unzipDirectory=str(fmu.directory),
-            modelIdentifier=fmu.description.coSimulation.modelIdentifier,
-            instanceName=name,
-        )
-        self._callbacks = api.fmi2CallbackFunctions()
-        self._environment = next(_ENVIRONMENTS)
-        _MESSAGES_BY_ENVIRONMENT[self._environment] = self.messages
-        self._callbacks.logger = api.logger
-        self._callbacks.componentEnvironment = self._environment
-        self._callbacks.allocateMemory = api.allocate
-        self._callbacks.freeMemory = api.free
-        api.addLoggerProxy(byref(self._callbacks))
+        self._slave = self._open_slave()
         self._in_refs = (api.fmi2ValueReference * len(self.inputs))(*[variables[n].valueReference for n in self.inputs])
         self._in_values = (api.fmi2Real * len(self.inputs))()
         self._out_refs = (api.fmi2ValueReference * len(self.outputs))(*[variables[n].valueReference for n in self.outputs])
@@ -251,6 +251,25 @@ class FmuComponent:
         self._do_step: Callable[[], int] = _not_instantiated
         self._step_from, self._step_size = c_double(), c_double()  # fmi2DoStep's arguments, set per step
 
+    def _open_slave(self) -> Any:
+        """FMPy's slave of the FMU (not instantiated yet), its log routed to ``messages``."""
+        api = _fmpy()
+        slave = api.FMU2Slave(
+            guid=self.fmu.guid,
+            unzipDirectory=str(self.fmu.directory),
+            modelIdentifier=self.fmu.description.coSimulation.modelIdentifier,
+            instanceName=self.name,
+        )
+        self._callbacks = api.fmi2CallbackFunctions()
+        self._environment = next(_ENVIRONMENTS)
+        _MESSAGES_BY_ENVIRONMENT[self._environment] = self.messages
+        self._callbacks.logger = api.logger
+        self._callbacks.componentEnvironment = self._environment
+        self._callbacks.allocateMemory = api.allocate
+        self._callbacks.freeMemory = api.free
+        api.addLoggerProxy(byref(self._callbacks))
+        return slave
+
     def _bind_hot_calls(self) -> None:
         """fmi2SetReal, fmi2GetReal and fmi2DoStep with every argument but time bound once.
 
@@ -264,14 +283,8 @@ class FmuComponent:
         The status is checked here instead, with FMPy's own exception. Falls back to FMPy's wrapper
         if FMPy ever stops keeping its functions in ``_functions``.
         """
-        slave, functions = self._slave, resolved_functions(self._slave)
-
-        def raw(name: str) -> Callable[..., int]:
-            function = functions.get(name)
-            if function is None:
-                return _status_returning(getattr(slave, name))
-            return _raw_fmi2_call(cast(function, c_void_p).value)
-
+        slave = self._slave
+        raw = partial(raw_call, slave)
         instance = c_void_p(slave.component)
         self._set_real = partial(raw("fmi2SetReal"), instance, self._in_refs, c_size_t(len(self.inputs)),
                                  self._in_values)
@@ -320,12 +333,12 @@ class FmuComponent:
         self._pack_inputs(self._in_values, 0, *values)
         status = self._set_real()
         if status > _FMI2_WARNING:
-            self._raise("fmi2SetReal", status)
+            self._raise(self._SET_CALL, status)
 
     def get_outputs(self) -> list[float]:
         status = self._get_real()
         if status > _FMI2_WARNING:
-            self._raise("fmi2GetReal", status)
+            self._raise(self._GET_CALL, status)
         return self._output_view.tolist()
 
     def step(self, time: float, step: float) -> None:
@@ -334,7 +347,7 @@ class FmuComponent:
         self._step_size.value = step
         status = self._do_step()
         if status > _FMI2_WARNING:
-            self._raise("fmi2DoStep", status)
+            self._raise(self._STEP_CALL, status)
 
     def _raise(self, function: str, status: int) -> None:
         """Fail a call whose status is above fmi2Warning, with the exception FMPy's wrapper would raise."""

@@ -2,8 +2,8 @@
 
 ``platoon serve`` (orchestrator/cli/serve.py) opens a Zenoh session and hands every query on its key
 to ``ServedInstance.handle``, which answers it from an ``FmuComponent``: the very class a local run
-steps, so a remote vehicle computes what a local one would, bit for bit (the inputs and outputs cross
-the wire as the f64 they are). The protocol and its rules are in bridge/fmu_wire.py; this module keeps
+steps (``Fmu3Component`` for an FMI 3.0 FMU: orchestrator/components/fmu3.py), so a remote vehicle
+computes what a local one would, bit for bit (the inputs and outputs cross the wire as the f64 they are). The protocol and its rules are in bridge/fmu_wire.py; this module keeps
 them: one run's token owns the instance, requests execute once and in order.
 
 An instance whose run falls silent (its host killed, a partition) for ``lease`` seconds is freed, so
@@ -21,6 +21,7 @@ from typing import Any, Callable
 from bridge import fmu_wire as wire
 from fmus.errors import ComponentError
 from orchestrator.components.fmu import FmuComponent, UnpackedFmu
+from orchestrator.components.fmu3 import fmu_component
 
 
 @dataclass
@@ -92,7 +93,7 @@ class ServedInstance:
         if not isinstance(request, dict) or not isinstance(request.get("parameters"), dict):
             raise wire.WireError("open: expected {\"name\", \"start\", \"parameters\"}")
         name, start = str(request.get("name") or "remote"), float(request.get("start", 0.0))
-        component = FmuComponent(name, self.fmu, request["parameters"])
+        component = fmu_component(name, self.fmu, request["parameters"])
         try:
             component.initialize(start)
         except ComponentError:
