@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import os
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -31,6 +32,25 @@ _LOG_STARTED = False
 SECURE_PROTOCOLS = ("tls", "quic")  # link protocols that authenticate and encrypt (docs/hil.md)
 LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe", "vsock")  # never leave the machine
 RECIPE = "run `platoon hil-certs` and use tls/ endpoints with its Zenoh configs (docs/hil.md, \"A secure lab\")"
+
+
+# Every Zenoh runtime of the process (app, acceptor, tx, rx, net) on one worker thread: see ``one_zenoh_thread``.
+ONE_THREAD_RUNTIME = ("(app: (worker_threads: 1), acc: (handover: app), tx: (handover: app), rx: (handover: app), "
+                      "net: (handover: app))")
+
+
+def one_zenoh_thread() -> None:
+    """Run this process's Zenoh on one thread instead of its default five runtimes (six or more threads).
+
+    For a process whose Zenoh traffic is many small request/reply pairs (``platoon serve``, a run's remote
+    vehicles): by default a request hops rx -> (the callback) -> tx threads, and the idle runtimes' threads
+    are woken along the way, about ten context switches per request and server on this 2-core machine;
+    on one thread it is about one, and a served step costs half the CPU on both sides (docs/remote.md,
+    "One round trip per step"). Zenoh reads ``ZENOH_RUNTIME`` when its runtime first starts, so this must
+    run before the process's first session opens (later it changes nothing); a ``ZENOH_RUNTIME`` the user
+    set wins.
+    """
+    os.environ.setdefault("ZENOH_RUNTIME", ONE_THREAD_RUNTIME)
 
 
 class SessionError(RuntimeError):

@@ -180,6 +180,23 @@ def test_requests_execute_once_and_in_order(instance: ServedInstance) -> None:
     assert "malformed" in _refused(instance.handle(b"\x04short"))
 
 
+def test_a_step_or_exchange_with_the_wrong_number_of_inputs_is_refused(instance: ServedInstance) -> None:
+    """The server copies the inputs' bytes into its FMU as they came: a request with more or fewer than one f64
+    per input is refused, saying how many it expected, and nothing is set or stepped."""
+    token = b"t" * wire.TOKEN_SIZE
+    opened = wire.parse_json(_ok(instance.handle(wire.request(wire.OPEN, token, 0, wire.json_body(
+        {"name": "vehicle1", "start": 0.0, "parameters": {}})))), "open")
+    _ok(instance.handle(wire.request(wire.END_INIT, token, 1)))
+    n = len(opened["inputs"])
+    short = instance.handle(wire.request(wire.STEP, token, 2, wire.step_body(0.0, 0.01, [0.0] * (n - 1))))
+    assert f"expected {n} f64" in _refused(short) and instance.steps == 0
+    # a refused request is not executed, so the next one keeps its number
+    assert f"expected {n} f64" in _refused(instance.handle(wire.request(wire.EXCHANGE, token, 2, wire.floats([1.0]))))
+    assert "whole f64" in _refused(instance.handle(wire.request(wire.STEP, token, 2, wire.step_body(0.0, 0.01, []) + b"x")))
+    first = _ok(instance.handle(wire.request(wire.STEP, token, 2, wire.step_body(0.0, 0.01, opened["input_defaults"]))))
+    assert len(first) == 8 * len(opened["outputs"]) and instance.steps == 1
+
+
 def test_a_silent_run_loses_its_instance_after_the_lease(fmu_dir: Path) -> None:
     now = [0.0]
     fmu = UnpackedFmu.open(fmu_dir / "Vehicle.fmu")

@@ -15,6 +15,7 @@ attrs, lxml: ~0.05 s of start-up, docs/performance.md "Whole runs").
 from __future__ import annotations
 
 import shutil
+import sys
 from collections import deque
 from ctypes import PYFUNCTYPE, byref, c_double, c_int, c_size_t, c_void_p, cast
 from dataclasses import dataclass
@@ -41,6 +42,7 @@ _RAW_FMI2_CALL = PYFUNCTYPE(c_int)
 _RAW_CALLS: dict[int, Any] = {}
 
 _FMI2_WARNING = 1  # fmi2Warning: a status above it is a failure (FMI 2.0, fmi2Status)
+_WIRE_IS_NATIVE = sys.byteorder == "little"  # the served-FMU protocol's f64 are little-endian (bridge/fmu_wire.py)
 _FMPY: SimpleNamespace | None = None
 
 
@@ -245,6 +247,7 @@ class FmuComponent:
         # (ctypes' own slicing converts and checks element by element, several times slower).
         self._pack_inputs = Struct(f"{len(self.inputs)}d").pack_into
         self._output_view = memoryview(self._out_values).cast("B").cast("d")
+        self._input_bytes = memoryview(self._in_values).cast("B")  # set_input_bytes copies into it
         self._instantiated = False
         self._set_real: Callable[[], int] = _not_instantiated
         self._get_real: Callable[[], int] = _not_instantiated
@@ -340,6 +343,29 @@ class FmuComponent:
         if status > _FMI2_WARNING:
             self._raise(self._GET_CALL, status)
         return self._output_view.tolist()
+
+    def set_input_bytes(self, data: Any) -> None:
+        """``set_inputs`` from the inputs packed as little-endian f64 (``data``: bytes or a memoryview), as a
+        server receives them (bridge/fmu_wire.py): copied into the input array as they are, no Python float
+        made on the way (the same doubles, bit for bit). ValueError when ``data`` is not one f64 per input."""
+        if len(data) != 8 * len(self.inputs):
+            raise ValueError(f"{len(data)} bytes of inputs, expected {len(self.inputs)} f64 ({8 * len(self.inputs)} bytes)")
+        if _WIRE_IS_NATIVE:
+            self._input_bytes[:] = data
+        else:
+            self._pack_inputs(self._in_values, 0, *Struct(f"<{len(self.inputs)}d").unpack(data))
+        status = self._set_real()
+        if status > _FMI2_WARNING:
+            self._raise(self._SET_CALL, status)
+
+    def output_bytes(self) -> bytes:
+        """``get_outputs`` as little-endian f64 packed, as a server sends them (the array's bytes as they are)."""
+        status = self._get_real()
+        if status > _FMI2_WARNING:
+            self._raise(self._GET_CALL, status)
+        if _WIRE_IS_NATIVE:
+            return bytes(self._out_values)
+        return Struct(f"<{len(self.outputs)}d").pack(*self._output_view.tolist())
 
     def step(self, time: float, step: float) -> None:
         self._time = time

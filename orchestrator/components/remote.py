@@ -54,6 +54,9 @@ def remote_components(config: Config, scenario: "Scenario", fmus: dict[str, "Unp
         return {}
     from bridge.fmu_client import RemoteComponent, RemoteHost
     from bridge.fmu_wire import fmu_key
+    from bridge.session import one_zenoh_thread
+
+    one_zenoh_thread()  # before the run's first session: a remote step's CPU halves (bridge/session.py)
 
     overrides = {k: config.override(k) for k in remote}
     connect = tuple(dict.fromkeys(e for o in overrides.values() for e in o.connect or ()))

@@ -109,17 +109,16 @@ class ServedInstance:
 
     def _execute(self, held: _Held, op: int, body: bytes) -> bytes:
         component = held.component
-        if op == wire.STEP:
+        if op == wire.STEP:  # the inputs and outputs stay the f64 bytes they are on the wire (no Python floats)
             time_, step, inputs = wire.parse_step(body)
-            component.set_inputs(inputs)
+            component.set_input_bytes(inputs)
             component.step(time_, step)
             self.steps += 1
-            return wire.reply_ok(wire.floats(component.get_outputs()))
+            return wire.reply_ok(component.output_bytes())
         if op == wire.EXCHANGE:
-            inputs = wire.unpack_floats(body, "exchange")
-            if inputs:
-                component.set_inputs(inputs)
-            return wire.reply_ok(wire.floats(component.get_outputs()))
+            if body:
+                component.set_input_bytes(memoryview(body))
+            return wire.reply_ok(component.output_bytes())
         if op == wire.END_INIT:
             component.end_initialization()
             return wire.reply_ok()
@@ -148,7 +147,8 @@ def serve(instance: ServedInstance, session: Any, key: str, stop: threading.Even
         payload = query.payload.to_bytes() if query.payload is not None else b""
         query.reply(query.key_expr, instance.handle(payload))
 
-    queryable = session.declare_queryable(key, answer)
+    import zenoh
+    queryable = session.declare_queryable(key, zenoh.handlers.Callback(answer, indirect=False))
     try:
         while not stop.wait(min(1.0, instance.lease / 4)):
             instance.expire()
