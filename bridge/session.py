@@ -50,7 +50,8 @@ def one_zenoh_thread() -> None:
     run before the process's first session opens (later it changes nothing); a ``ZENOH_RUNTIME`` the user
     set wins.
     """
-    os.environ.setdefault("ZENOH_RUNTIME", ONE_THREAD_RUNTIME)
+    if not os.environ.get("ZENOH_RUNTIME"):  # unset or empty (Zenoh's defaults)
+        os.environ["ZENOH_RUNTIME"] = ONE_THREAD_RUNTIME
 
 
 class SessionError(RuntimeError):
