@@ -94,7 +94,7 @@ class _Fleet:
         from bridge.fmu_wire import fmu_key
         from orchestrator.components.fmu import FmuComponent
 
-        self.host = RemoteHost(tuple(endpoints[:n]))
+        self.host = RemoteHost(tuple(endpoints[:n]), one_thread=True)  # as a run's (orchestrator/components/remote.py)
         self.key = fmu_key("platoon", "vehicle1")
         inputs = [v.name for v in fmu.description.modelVariables if v.causality == "input"]
         outputs = [v.name for v in fmu.description.modelVariables if v.causality == "output"]
@@ -117,9 +117,6 @@ def run(counts: list[int], steps: int = 500, rounds: int = 3, progress: Progress
     from orchestrator.components.kinds import ensure_fmus
     from fmus.builders import DEFAULT_OUT
 
-    from bridge.session import one_zenoh_thread
-
-    one_zenoh_thread()  # as a run with remote vehicles does (orchestrator/components/remote.py)
     started = time.perf_counter()
     fmu = UnpackedFmu.open(ensure_fmus(DEFAULT_OUT, "native", ("Vehicle",))["Vehicle"])  # built once, before the servers
     with tempfile.TemporaryDirectory(prefix="bench-remote-") as scratch, ExitStack() as stack:

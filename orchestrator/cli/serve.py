@@ -84,10 +84,10 @@ def serve(
     key = fmu_key(prefix, name)
     stop = threading.Event()
     stop_on_signals(stop)
-    one_zenoh_thread()  # a served step's CPU halves (bridge/session.py)
     try:
-        session = open_session(make_config(connect, listen, str(zenoh_config) if zenoh_config else None,
-                                           allow_insecure=allow_insecure), f"platoon serve {name}")
+        with one_zenoh_thread():  # a served step's CPU halves (bridge/session.py)
+            session = open_session(make_config(connect, listen, str(zenoh_config) if zenoh_config else None,
+                                               allow_insecure=allow_insecure), f"platoon serve {name}")
     except SessionError as error:
         unpacked.cleanup()
         fail(2, str(error))

@@ -54,15 +54,13 @@ def remote_components(config: Config, scenario: "Scenario", fmus: dict[str, "Unp
         return {}
     from bridge.fmu_client import RemoteComponent, RemoteHost
     from bridge.fmu_wire import fmu_key
-    from bridge.session import one_zenoh_thread
-
-    one_zenoh_thread()  # before the run's first session: a remote step's CPU halves (bridge/session.py)
 
     overrides = {k: config.override(k) for k in remote}
     connect = tuple(dict.fromkeys(e for o in overrides.values() for e in o.connect or ()))
     listen = tuple(dict.fromkeys(e for o in overrides.values() for e in o.listen or ()))
     files = [o.zenoh_config for o in overrides.values() if o.zenoh_config]
-    host = RemoteHost(connect, listen, files[0] if files else None, config.hil.allow_insecure)
+    host = RemoteHost(connect, listen, files[0] if files else None, config.hil.allow_insecure,
+                      one_thread=True)  # Zenoh on one thread, if the run's first session: bridge/session.py
     specs = {spec.name: spec for spec in scenario.components}
     components: dict[str, Component] = {}
     for vehicle, override in overrides.items():
