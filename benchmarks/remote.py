@@ -12,11 +12,15 @@ Zenoh session) and times a macro step of N vehicles four ways, interleaved, in t
 * ``round trip``: a bare ping to one server (the protocol's PING: Zenoh there and back, no FMU).
 
 Each server's own work (a native step is about a microsecond) is small against a round trip, so
-lockstep/one-by-one shows how much of the N round trips overlap. Times in the JSON are seconds.
+lockstep/one-by-one shows how much of the N round trips overlap. Beside each remote variant, the CPU
+it cost per macro step, this process's (``time.process_time``) and the N servers' together (their
+/proc/<pid>/stat, Linux): on 2 cores a lockstep step cannot take less wall time than half their sum, so
+the CPU columns say whether the step is bound by CPU or by waiting. Times in the JSON are seconds.
 """
 
 from __future__ import annotations
 
+import os
 import statistics
 import sys
 import tempfile
@@ -56,6 +60,18 @@ def _per_step(components: list[Any], steps: int, lockstep: bool) -> float:
     return (time.perf_counter() - started) / steps
 
 
+def _cpu_seconds(pids: list[int]) -> float:
+    """CPU seconds (user + system) the processes ``pids`` have used so far (0 where /proc cannot say)."""
+    total = 0
+    for pid in pids:
+        try:
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            return 0.0
+        total += int(fields[11]) + int(fields[12])  # utime, stime (fields 14 and 15 of stat)
+    return total / os.sysconf("SC_CLK_TCK")
+
+
 def _round_trip(host: Any, key: str, count: int) -> float:
     """Median seconds of ``count`` bare pings to the server at ``key``."""
     from bridge import fmu_wire as wire
@@ -78,7 +94,7 @@ class _Fleet:
         from bridge.fmu_wire import fmu_key
         from orchestrator.components.fmu import FmuComponent
 
-        self.host = RemoteHost(tuple(endpoints[:n]))
+        self.host = RemoteHost(tuple(endpoints[:n]), one_thread=True)  # as a run's (orchestrator/components/remote.py)
         self.key = fmu_key("platoon", "vehicle1")
         inputs = [v.name for v in fmu.description.modelVariables if v.causality == "input"]
         outputs = [v.name for v in fmu.description.modelVariables if v.causality == "output"]
@@ -105,8 +121,8 @@ def run(counts: list[int], steps: int = 500, rounds: int = 3, progress: Progress
     fmu = UnpackedFmu.open(ensure_fmus(DEFAULT_OUT, "native", ("Vehicle",))["Vehicle"])  # built once, before the servers
     with tempfile.TemporaryDirectory(prefix="bench-remote-") as scratch, ExitStack() as stack:
         ports = [free_port() for _ in range(max(counts))]
-        for i, port in enumerate(ports):
-            stack.enter_context(served(f"vehicle{i + 1}", port, Path(scratch)))
+        servers = [stack.enter_context(served(f"vehicle{i + 1}", port, Path(scratch))) for i, port in enumerate(ports)]
+        pids = [server.process.pid for server in servers]
         endpoints = [f"tcp/127.0.0.1:{port}" for port in ports]
         fleets: dict[int, _Fleet] = {}
 
@@ -118,13 +134,18 @@ def run(counts: list[int], steps: int = 500, rounds: int = 3, progress: Progress
                 fleets[n] = _Fleet(n, endpoints, fmu)
             fleet = fleets[n]
             if variant == "round trip":
-                seconds = _round_trip(fleet.host, fleet.key, steps)
-            else:
-                seconds = _per_step(fleet.local if variant == "local" else fleet.remote, steps, variant == "lockstep")
-            return {"n": n, "variant": variant, "seconds": seconds}
+                return {"n": n, "variant": variant, "seconds": _round_trip(fleet.host, fleet.key, steps)}
+            if variant == "local":
+                return {"n": n, "variant": variant, "seconds": _per_step(fleet.local, steps, False)}
+            run_cpu, servers_cpu = time.process_time(), _cpu_seconds(pids[:n])
+            seconds = _per_step(fleet.remote, steps, variant == "lockstep")
+            return {"n": n, "variant": variant, "seconds": seconds, "run_cpu": (time.process_time() - run_cpu) / steps,
+                    "servers_cpu": (_cpu_seconds(pids[:n]) - servers_cpu) / steps}
 
         def describe(sample: dict[str, Any]) -> str:
-            return f"N = {sample['n']:>3}  {sample['variant']:<11} {sample['seconds'] * 1e3:8.3f} ms"
+            cpu = (f"  (CPU: run {sample['run_cpu'] * 1e3:.3f}, servers {sample['servers_cpu'] * 1e3:.3f} ms)"
+                   if "run_cpu" in sample else "")
+            return f"N = {sample['n']:>3}  {sample['variant']:<11} {sample['seconds'] * 1e3:8.3f} ms{cpu}"
 
         try:
             samples = interleaved(rounds, counts, VARIANTS, measure, describe, progress)
@@ -134,7 +155,9 @@ def run(counts: list[int], steps: int = 500, rounds: int = 3, progress: Progress
     fmu.cleanup()
     medians = {n: {v: statistics.median(s["seconds"] for s in samples if s["n"] == n and s["variant"] == v)
                    for v in VARIANTS} for n in counts}
-    return {"steps": steps, "rounds": rounds, "counts": counts, "medians": medians,
+    cpu = {n: {f"{v} {side}": statistics.median(s[side] for s in samples if s["n"] == n and s["variant"] == v)
+               for v in ("lockstep", "one by one") for side in ("run_cpu", "servers_cpu")} for n in counts}
+    return {"steps": steps, "rounds": rounds, "counts": counts, "medians": medians, "cpu": cpu,
             "lockstep_over_one_by_one": {n: m["lockstep"] / m["one by one"] for n, m in medians.items()},
             "samples": samples, "wall_s": time.perf_counter() - started}
 
@@ -146,10 +169,14 @@ def render(result: dict[str, Any]) -> Any:
                         "servers on 127.0.0.1, native Vehicle FMUs)", title_justify="left",
                   caption="lockstep: every remote vehicle asked at once (the Jacobi master); one by one: each "
                           "answered before the next is asked; local: the FMUs in this process; round trip: a bare "
-                          "Zenoh query to one server and its reply", caption_justify="left")
-    for column in ("N", *VARIANTS, "lockstep / one by one"):
+                          "Zenoh query to one server and its reply; lockstep CPU: ms of CPU per lockstep step, this "
+                          "process's and the servers' together (on 2 cores the step takes at least half their sum)",
+                  caption_justify="left")
+    for column in ("N", *VARIANTS, "lockstep / one by one", "lockstep CPU: run + servers"):
         table.add_column(column, justify="right")
     for n, values in result["medians"].items():
+        cpu = result["cpu"][n]
         table.add_row(str(n), *(f"{values[v] * 1e3:.3f}" for v in VARIANTS),
-                      f"{result['lockstep_over_one_by_one'][n]:.2f}")
+                      f"{result['lockstep_over_one_by_one'][n]:.2f}",
+                      f"{cpu['lockstep run_cpu'] * 1e3:.2f} + {cpu['lockstep servers_cpu'] * 1e3:.2f}")
     return table

@@ -17,13 +17,15 @@ from __future__ import annotations
 import secrets
 import threading
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass, field
+from struct import Struct
 from typing import Any, Sequence
 
 import zenoh
 
 from bridge import fmu_wire as wire
-from bridge.session import open_session, zenoh_config
+from bridge.session import one_zenoh_thread, open_session, zenoh_config
 from fmus.component import ComponentError
 
 CLOSE_TIMEOUT = 0.3  # s to wait for a server to confirm a free: a dead server must not hold the run's exit
@@ -37,6 +39,7 @@ class RemoteHost:
     listen: tuple[str, ...] = ()
     zenoh_config: str | None = None
     allow_insecure: bool = False
+    one_thread: bool = False  # open the session in ``one_zenoh_thread`` (a run's, a benchmark's remote vehicles)
     _session: Any = None
     _users: int = 0
     _frees: list[Any] = field(default_factory=list)  # the frees sent, answered (or timed out) before closing
@@ -47,7 +50,8 @@ class RemoteHost:
         with self._lock:
             if self._session is None:
                 config = zenoh_config(self.connect, self.listen, self.zenoh_config, allow_insecure=self.allow_insecure)
-                self._session = open_session(config, "the run's remote vehicles")
+                with one_zenoh_thread() if self.one_thread else nullcontext():
+                    self._session = open_session(config, "the run's remote vehicles")
             self._users += 1
             return self._session
 
@@ -132,6 +136,8 @@ class RemoteComponent:
     _pending: Any = None
     _session: Any = None
     _querier: Any = None
+    _step_layout: Any = None  # the STEP request's Struct (wire.step_layout), made once the inputs are known
+    _output_layout: Any = None  # the outputs' Struct
 
     def _fail(self, reason: str) -> ComponentError:
         return ComponentError(self.name, self._time, f"{reason} (server {self.key} at {self.where})")
@@ -158,8 +164,11 @@ class RemoteComponent:
 
     def _outputs(self, handle: Any, what: str) -> list[float]:
         """The outputs a reply carries; a reply that is not a whole number of f64 fails the run, naming the server."""
+        body = self._wait(handle, what)
+        if self._output_layout is not None and len(body) == self._output_layout.size:
+            return list(self._output_layout.unpack(body))
         try:
-            return wire.unpack_floats(self._wait(handle, what), "outputs")
+            return wire.unpack_floats(body, "outputs")
         except wire.WireError as error:
             raise self._fail(f"{what}: {error}") from None
 
@@ -190,6 +199,8 @@ class RemoteComponent:
         if not isinstance(self.served, dict):
             raise self._fail("open reply: not a JSON object")
         self._querier = self.host.querier(self.key, self.step_timeout)
+        self._step_layout = wire.step_layout(len(self.inputs))
+        self._output_layout = Struct(f"<{len(self.outputs)}d")
         if self.served.get("inputs") != self.inputs or self.served.get("outputs") != self.outputs:
             self._seq, self._token = -1, b""  # not ours to use: the lease frees it
             raise self._fail(f"serves {self.served.get('fmu')} with other variables than this vehicle's FMU")
@@ -212,7 +223,12 @@ class RemoteComponent:
         """Send the step; its reply (the outputs at ``time + step``) is collected by ``get_outputs``."""
         self._time = time
         self._dirty = False
-        self._pending = self._call(wire.STEP, wire.step_body(time, step, self._inputs))
+        if self._querier is None or len(self._inputs) != len(self.inputs):
+            self._pending = self._call(wire.STEP, wire.step_body(time, step, self._inputs))
+            return
+        self._seq += 1  # _call's numbering, with the request packed in one Struct call
+        self._pending = self._querier.get(payload=self._step_layout.pack(wire.STEP, self._token, self._seq, time,
+                                                                          step, *self._inputs))
 
     def close(self) -> None:
         """Free the instance; the host waits for the reply (a dead server: ``CLOSE_TIMEOUT`` at most, for all of them)."""

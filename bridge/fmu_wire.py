@@ -79,11 +79,19 @@ def step_body(time: float, step: float, inputs: Any) -> bytes:
     return _STEP.pack(time, step) + floats(inputs)
 
 
-def parse_step(body: bytes) -> tuple[float, float, list[float]]:
-    if len(body) < _STEP.size:
-        raise WireError(f"a step of {len(body)} bytes (at least {_STEP.size}: t and h)")
+def step_layout(inputs: int) -> Struct:
+    """The whole STEP request of ``inputs`` inputs as one Struct: ``pack(STEP, token, seq, t, h, *inputs)``
+    gives ``request(STEP, token, seq, step_body(t, h, inputs))`` in one call (a run packs one per vehicle
+    and step)."""
+    return Struct(f"<B{TOKEN_SIZE}sQdd{inputs}d")
+
+
+def parse_step(body: bytes) -> tuple[float, float, memoryview]:
+    """(t, h, the inputs' f64 bytes as they came): for a server that copies them into its FMU's array."""
+    if len(body) < _STEP.size or (len(body) - _STEP.size) % 8:
+        raise WireError(f"a step of {len(body)} bytes (t and h, then whole f64 inputs)")
     time, step = _STEP.unpack_from(body)
-    return time, step, unpack_floats(body[_STEP.size:], "step inputs")
+    return time, step, memoryview(body)[_STEP.size:]
 
 
 def json_body(value: Any) -> bytes:

@@ -149,6 +149,21 @@ def native_fmu_dir() -> Path:
     return out
 
 
+@pytest.fixture(scope="session")
+def fmi3_fmu_dir() -> Path:
+    """The native FMI 3.0 FMUs (Vehicle, VirtualTarget), built (or found up to date) in build/fmus/fmi3;
+    skipped without a C compiler."""
+    from fmus.builders import FMI3_OUT, NATIVE_FMI3, NoCompiler
+
+    out = REPO / FMI3_OUT
+    try:
+        with shared_build():
+            NATIVE_FMI3.build(out, names=FMU_NAMES)
+    except NoCompiler as error:
+        pytest.skip(str(error))
+    return out
+
+
 def make_config(**sections: Any) -> Config:
     raw: dict[str, Any] = {"name": "test"}
     raw.update(sections)

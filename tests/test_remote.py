@@ -33,11 +33,12 @@ PAPER = REPO / "configs" / "paper" / "platoon.toml"
 
 
 @contextmanager
-def server(name: str, port: int, kind: str, scratch: Path) -> Iterator[subprocess.Popen]:
-    """`platoon serve Vehicle` as ``name`` on 127.0.0.1:``port``, ready (its "ready" line seen); always stopped."""
+def server(name: str, port: int, kind: str, scratch: Path, fmu: str = "Vehicle") -> Iterator[subprocess.Popen]:
+    """`platoon serve Vehicle` (or the FMU file ``fmu``) as ``name`` on 127.0.0.1:``port``, ready (its "ready"
+    line seen); always stopped."""
     log = scratch / f"serve-{name}.log"
     with open(log, "w") as stream:
-        process = subprocess.Popen([str(PLATOON), "serve", "Vehicle", "--name", name, "--fmus", kind,
+        process = subprocess.Popen([str(PLATOON), "serve", fmu, "--name", name, "--fmus", kind,
                                     "--listen", f"tcp/127.0.0.1:{port}"], cwd=REPO, env=_env(),
                                    stdout=stream, stderr=subprocess.STDOUT)
     try:
@@ -95,12 +96,17 @@ def test_every_vehicle_remote_gives_the_local_numbers_bit_for_bit(kind: str, tmp
         assert np.array_equal(here[name], there[name]), name  # bit for bit, not to a tolerance
 
 
-def test_a_killed_server_ends_the_run_within_its_timeout(tmp_path: Path, native_fmu_dir: Path) -> None:
+@pytest.mark.parametrize("fmi", ["2.0", "3.0"])
+def test_a_killed_server_ends_the_run_within_its_timeout(fmi: str, tmp_path: Path, native_fmu_dir: Path,
+                                                         request: pytest.FixtureRequest) -> None:
     """kill -9 of vehicle 2's server mid-run: exit 1 within step_timeout + 1 s, one line naming vehicle 2 and
-    its server, and the trace loads up to the last step before the kill."""
+    its server, and the trace loads up to the last step before the kill. The same whether the servers step
+    the native FMI 2.0 or FMI 3.0 Vehicle FMU."""
+    fmu = "Vehicle" if fmi == "2.0" else str(request.getfixturevalue("fmi3_fmu_dir") / "Vehicle.fmu")
     ports = {1: free_port(), 2: free_port()}
     trace = tmp_path / "killed.mcap"
-    with server("vehicle1", ports[1], "native", tmp_path), server("vehicle2", ports[2], "native", tmp_path) as victim:
+    with server("vehicle1", ports[1], "native", tmp_path, fmu), \
+            server("vehicle2", ports[2], "native", tmp_path, fmu) as victim:
         process = platoon_run(PAPER, trace, "native", "--set", "platoon.count=2", "--set", "simulation.stop_time=5000",
                               "--set", "remote.step_timeout=1.0", *remote_sets(ports))
         partial = trace.with_name(trace.name + ".partial")
@@ -122,9 +128,11 @@ def test_a_killed_server_ends_the_run_within_its_timeout(tmp_path: Path, native_
     assert len(times) > 100 and np.all(np.diff(times) > 0)
 
 
-@pytest.fixture
-def instance(fmu_dir: Path) -> Iterator[ServedInstance]:
-    fmu = UnpackedFmu.open(fmu_dir / "Vehicle.fmu")
+@pytest.fixture(params=["python", "fmi3"])
+def instance(request: pytest.FixtureRequest) -> Iterator[ServedInstance]:
+    """A served Vehicle: the pythonfmu FMI 2.0 one, and the native FMI 3.0 one (the rules are the server's)."""
+    folder = request.getfixturevalue("fmu_dir" if request.param == "python" else "fmi3_fmu_dir")
+    fmu = UnpackedFmu.open(folder / "Vehicle.fmu")
     served = ServedInstance(fmu)
     yield served
     served.close()
@@ -170,6 +178,23 @@ def test_requests_execute_once_and_in_order(instance: ServedInstance) -> None:
     second = _ok(instance.handle(wire.request(wire.STEP, token, 3, wire.step_body(0.01, 0.01, opened["input_defaults"]))))
     assert instance.steps == 2 and second != first
     assert "malformed" in _refused(instance.handle(b"\x04short"))
+
+
+def test_a_step_or_exchange_with_the_wrong_number_of_inputs_is_refused(instance: ServedInstance) -> None:
+    """The server copies the inputs' bytes into its FMU as they came: a request with more or fewer than one f64
+    per input is refused, saying how many it expected, and nothing is set or stepped."""
+    token = b"t" * wire.TOKEN_SIZE
+    opened = wire.parse_json(_ok(instance.handle(wire.request(wire.OPEN, token, 0, wire.json_body(
+        {"name": "vehicle1", "start": 0.0, "parameters": {}})))), "open")
+    _ok(instance.handle(wire.request(wire.END_INIT, token, 1)))
+    n = len(opened["inputs"])
+    short = instance.handle(wire.request(wire.STEP, token, 2, wire.step_body(0.0, 0.01, [0.0] * (n - 1))))
+    assert f"expected {n} f64" in _refused(short) and instance.steps == 0
+    # a refused request is not executed, so the next one keeps its number
+    assert f"expected {n} f64" in _refused(instance.handle(wire.request(wire.EXCHANGE, token, 2, wire.floats([1.0]))))
+    assert "whole f64" in _refused(instance.handle(wire.request(wire.STEP, token, 2, wire.step_body(0.0, 0.01, []) + b"x")))
+    first = _ok(instance.handle(wire.request(wire.STEP, token, 2, wire.step_body(0.0, 0.01, opened["input_defaults"]))))
+    assert len(first) == 8 * len(opened["outputs"]) and instance.steps == 1
 
 
 def test_a_silent_run_loses_its_instance_after_the_lease(fmu_dir: Path) -> None:

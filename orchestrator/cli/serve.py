@@ -43,7 +43,7 @@ def _fmu_path(fmu: str, kind: Optional[str]) -> Path:
 
 
 def serve(
-    fmu: Annotated[Path, typer.Argument(metavar="FMU", help="an FMU file (FMI 2.0 co-simulation), or Vehicle, "
+    fmu: Annotated[Path, typer.Argument(metavar="FMU", help="an FMU file (FMI 2.0 or 3.0 co-simulation), or Vehicle, "
                                                            "VirtualTarget or Link (ours, built if stale)")],
     name: Annotated[str, typer.Option("--name", metavar="NAME", help="the name runs reach it by: key <prefix>/fmu/<name> "
                                                      "([vehicles.K] server in the run's config)")],
@@ -59,9 +59,10 @@ def serve(
     """Serve one FMU instance on Zenoh for a run whose vehicle is remote (until Ctrl-C)."""
     from bridge.fmu_wire import fmu_key
     from bridge.protocol import check_prefix
-    from bridge.session import SessionError, open_session, zenoh_config as make_config
+    from bridge.session import SessionError, one_zenoh_thread, open_session, zenoh_config as make_config
 
     from orchestrator.components.fmu import UnpackedFmu
+    from orchestrator.components.fmu3 import unsupported
     from orchestrator.components.served import ServedInstance, serve as answer
 
     problems = check_prefix(prefix) or check_prefix(name)
@@ -76,12 +77,17 @@ def serve(
         unpacked = UnpackedFmu.open(path)
     except Exception as error:  # not a zip, no model description: the user's file
         fail(2, f"{path}: not an FMU ({error})")
+    problem = unsupported(unpacked.description)
+    if problem:
+        unpacked.cleanup()
+        fail(2, f"{path}: cannot be served: {problem}")
     key = fmu_key(prefix, name)
     stop = threading.Event()
     stop_on_signals(stop)
     try:
-        session = open_session(make_config(connect, listen, str(zenoh_config) if zenoh_config else None,
-                                           allow_insecure=allow_insecure), f"platoon serve {name}")
+        with one_zenoh_thread():  # a served step's CPU halves (bridge/session.py)
+            session = open_session(make_config(connect, listen, str(zenoh_config) if zenoh_config else None,
+                                               allow_insecure=allow_insecure), f"platoon serve {name}")
     except SessionError as error:
         unpacked.cleanup()
         fail(2, str(error))

@@ -15,6 +15,7 @@ attrs, lxml: ~0.05 s of start-up, docs/performance.md "Whole runs").
 from __future__ import annotations
 
 import shutil
+import sys
 from collections import deque
 from ctypes import PYFUNCTYPE, byref, c_double, c_int, c_size_t, c_void_p, cast
 from dataclasses import dataclass
@@ -41,6 +42,7 @@ _RAW_FMI2_CALL = PYFUNCTYPE(c_int)
 _RAW_CALLS: dict[int, Any] = {}
 
 _FMI2_WARNING = 1  # fmi2Warning: a status above it is a failure (FMI 2.0, fmi2Status)
+_WIRE_IS_NATIVE = sys.byteorder == "little"  # the served-FMU protocol's f64 are little-endian (bridge/fmu_wire.py)
 _FMPY: SimpleNamespace | None = None
 
 
@@ -72,6 +74,15 @@ def _raw_fmi2_call(address: int) -> Any:
     if call is None:
         call = _RAW_CALLS[address] = _RAW_FMI2_CALL(address)
     return call
+
+
+def raw_call(slave: Any, name: str) -> Callable[..., int]:
+    """The FMI function ``name`` of FMPy's ``slave`` as a ``_RAW_FMI2_CALL`` (FmuComponent._bind_hot_calls),
+    or FMPy's wrapper returning the status where FMPy did not keep the function."""
+    function = resolved_functions(slave).get(name)
+    if function is None:
+        return _status_returning(getattr(slave, name))
+    return _raw_fmi2_call(cast(function, c_void_p).value)
 
 
 def resolved_functions(slave: Any) -> dict[str, Any]:
@@ -178,9 +189,10 @@ class UnpackedFmu:
 
 
 def _typed(kind: str, text: Any) -> Any:
-    if kind == "Real":
+    """A start value as the Python value of its FMI 2.0 or FMI 3.0 type."""
+    if kind in ("Real", "Float64", "Float32"):
         return float(text)
-    if kind == "Integer":
+    if kind == "Integer" or kind.startswith(("Int", "UInt")):
         return int(text)
     if kind == "Boolean":
         return text in (True, "true", "1", 1)
@@ -204,6 +216,9 @@ def parameters_by_type(variables: dict[str, Any], parameters: dict[str, Any]) ->
 class FmuComponent:
     """One FMU instance behind the Component interface."""
 
+    # named in failures (FMI 3.0: Fmu3Component)
+    _SET_CALL, _GET_CALL, _STEP_CALL = "fmi2SetReal", "fmi2GetReal", "fmi2DoStep"
+
     def __init__(
         self, name: str, fmu: UnpackedFmu, parameters: dict[str, Any], inputs: list[str] | None = None
     ) -> None:
@@ -222,20 +237,7 @@ class FmuComponent:
         self.messages: deque[str] = deque(maxlen=50)  # the latest FMU log lines, for error reports
         self._time = 0.0
         api = _fmpy()
-        self._slave = api.FMU2Slave(
-            guid=fmu.guid,
-            unzipDirectory=str(fmu.directory),
-            modelIdentifier=fmu.description.coSimulation.modelIdentifier,
-            instanceName=name,
-        )
-        self._callbacks = api.fmi2CallbackFunctions()
-        self._environment = next(_ENVIRONMENTS)
-        _MESSAGES_BY_ENVIRONMENT[self._environment] = self.messages
-        self._callbacks.logger = api.logger
-        self._callbacks.componentEnvironment = self._environment
-        self._callbacks.allocateMemory = api.allocate
-        self._callbacks.freeMemory = api.free
-        api.addLoggerProxy(byref(self._callbacks))
+        self._slave = self._open_slave()
         self._in_refs = (api.fmi2ValueReference * len(self.inputs))(*[variables[n].valueReference for n in self.inputs])
         self._in_values = (api.fmi2Real * len(self.inputs))()
         self._out_refs = (api.fmi2ValueReference * len(self.outputs))(*[variables[n].valueReference for n in self.outputs])
@@ -245,11 +247,31 @@ class FmuComponent:
         # (ctypes' own slicing converts and checks element by element, several times slower).
         self._pack_inputs = Struct(f"{len(self.inputs)}d").pack_into
         self._output_view = memoryview(self._out_values).cast("B").cast("d")
+        self._input_bytes = memoryview(self._in_values).cast("B")  # set_input_bytes copies into it
         self._instantiated = False
         self._set_real: Callable[[], int] = _not_instantiated
         self._get_real: Callable[[], int] = _not_instantiated
         self._do_step: Callable[[], int] = _not_instantiated
         self._step_from, self._step_size = c_double(), c_double()  # fmi2DoStep's arguments, set per step
+
+    def _open_slave(self) -> Any:
+        """FMPy's slave of the FMU (not instantiated yet), its log routed to ``messages``."""
+        api = _fmpy()
+        slave = api.FMU2Slave(
+            guid=self.fmu.guid,
+            unzipDirectory=str(self.fmu.directory),
+            modelIdentifier=self.fmu.description.coSimulation.modelIdentifier,
+            instanceName=self.name,
+        )
+        self._callbacks = api.fmi2CallbackFunctions()
+        self._environment = next(_ENVIRONMENTS)
+        _MESSAGES_BY_ENVIRONMENT[self._environment] = self.messages
+        self._callbacks.logger = api.logger
+        self._callbacks.componentEnvironment = self._environment
+        self._callbacks.allocateMemory = api.allocate
+        self._callbacks.freeMemory = api.free
+        api.addLoggerProxy(byref(self._callbacks))
+        return slave
 
     def _bind_hot_calls(self) -> None:
         """fmi2SetReal, fmi2GetReal and fmi2DoStep with every argument but time bound once.
@@ -264,14 +286,8 @@ class FmuComponent:
         The status is checked here instead, with FMPy's own exception. Falls back to FMPy's wrapper
         if FMPy ever stops keeping its functions in ``_functions``.
         """
-        slave, functions = self._slave, resolved_functions(self._slave)
-
-        def raw(name: str) -> Callable[..., int]:
-            function = functions.get(name)
-            if function is None:
-                return _status_returning(getattr(slave, name))
-            return _raw_fmi2_call(cast(function, c_void_p).value)
-
+        slave = self._slave
+        raw = partial(raw_call, slave)
         instance = c_void_p(slave.component)
         self._set_real = partial(raw("fmi2SetReal"), instance, self._in_refs, c_size_t(len(self.inputs)),
                                  self._in_values)
@@ -320,13 +336,36 @@ class FmuComponent:
         self._pack_inputs(self._in_values, 0, *values)
         status = self._set_real()
         if status > _FMI2_WARNING:
-            self._raise("fmi2SetReal", status)
+            self._raise(self._SET_CALL, status)
 
     def get_outputs(self) -> list[float]:
         status = self._get_real()
         if status > _FMI2_WARNING:
-            self._raise("fmi2GetReal", status)
+            self._raise(self._GET_CALL, status)
         return self._output_view.tolist()
+
+    def set_input_bytes(self, data: Any) -> None:
+        """``set_inputs`` from the inputs packed as little-endian f64 (``data``: bytes or a memoryview), as a
+        server receives them (bridge/fmu_wire.py): copied into the input array as they are, no Python float
+        made on the way (the same doubles, bit for bit). ValueError when ``data`` is not one f64 per input."""
+        if len(data) != 8 * len(self.inputs):
+            raise ValueError(f"{len(data)} bytes of inputs, expected {len(self.inputs)} f64 ({8 * len(self.inputs)} bytes)")
+        if _WIRE_IS_NATIVE:
+            self._input_bytes[:] = data
+        else:
+            self._pack_inputs(self._in_values, 0, *Struct(f"<{len(self.inputs)}d").unpack(data))
+        status = self._set_real()
+        if status > _FMI2_WARNING:
+            self._raise(self._SET_CALL, status)
+
+    def output_bytes(self) -> bytes:
+        """``get_outputs`` as little-endian f64 packed, as a server sends them (the array's bytes as they are)."""
+        status = self._get_real()
+        if status > _FMI2_WARNING:
+            self._raise(self._GET_CALL, status)
+        if _WIRE_IS_NATIVE:
+            return bytes(self._out_values)
+        return Struct(f"<{len(self.outputs)}d").pack(*self._output_view.tolist())
 
     def step(self, time: float, step: float) -> None:
         self._time = time
@@ -334,7 +373,7 @@ class FmuComponent:
         self._step_size.value = step
         status = self._do_step()
         if status > _FMI2_WARNING:
-            self._raise("fmi2DoStep", status)
+            self._raise(self._STEP_CALL, status)
 
     def _raise(self, function: str, status: int) -> None:
         """Fail a call whose status is above fmi2Warning, with the exception FMPy's wrapper would raise."""

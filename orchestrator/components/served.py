@@ -2,8 +2,8 @@
 
 ``platoon serve`` (orchestrator/cli/serve.py) opens a Zenoh session and hands every query on its key
 to ``ServedInstance.handle``, which answers it from an ``FmuComponent``: the very class a local run
-steps, so a remote vehicle computes what a local one would, bit for bit (the inputs and outputs cross
-the wire as the f64 they are). The protocol and its rules are in bridge/fmu_wire.py; this module keeps
+steps (``Fmu3Component`` for an FMI 3.0 FMU: orchestrator/components/fmu3.py), so a remote vehicle
+computes what a local one would, bit for bit (the inputs and outputs cross the wire as the f64 they are). The protocol and its rules are in bridge/fmu_wire.py; this module keeps
 them: one run's token owns the instance, requests execute once and in order.
 
 An instance whose run falls silent (its host killed, a partition) for ``lease`` seconds is freed, so
@@ -12,6 +12,7 @@ the server can serve the next run; ``expire`` is called by the serving loop.
 
 from __future__ import annotations
 
+import ctypes
 import hmac
 import threading
 import time
@@ -21,6 +22,7 @@ from typing import Any, Callable
 from bridge import fmu_wire as wire
 from fmus.errors import ComponentError
 from orchestrator.components.fmu import FmuComponent, UnpackedFmu
+from orchestrator.components.fmu3 import fmu_component
 
 
 @dataclass
@@ -92,7 +94,7 @@ class ServedInstance:
         if not isinstance(request, dict) or not isinstance(request.get("parameters"), dict):
             raise wire.WireError("open: expected {\"name\", \"start\", \"parameters\"}")
         name, start = str(request.get("name") or "remote"), float(request.get("start", 0.0))
-        component = FmuComponent(name, self.fmu, request["parameters"])
+        component = fmu_component(name, self.fmu, request["parameters"])
         try:
             component.initialize(start)
         except ComponentError:
@@ -108,17 +110,16 @@ class ServedInstance:
 
     def _execute(self, held: _Held, op: int, body: bytes) -> bytes:
         component = held.component
-        if op == wire.STEP:
+        if op == wire.STEP:  # the inputs and outputs stay the f64 bytes they are on the wire (no Python floats)
             time_, step, inputs = wire.parse_step(body)
-            component.set_inputs(inputs)
+            component.set_input_bytes(inputs)
             component.step(time_, step)
             self.steps += 1
-            return wire.reply_ok(wire.floats(component.get_outputs()))
+            return wire.reply_ok(component.output_bytes())
         if op == wire.EXCHANGE:
-            inputs = wire.unpack_floats(body, "exchange")
-            if inputs:
-                component.set_inputs(inputs)
-            return wire.reply_ok(wire.floats(component.get_outputs()))
+            if body:
+                component.set_input_bytes(memoryview(body))
+            return wire.reply_ok(component.output_bytes())
         if op == wire.END_INIT:
             component.end_initialization()
             return wire.reply_ok()
@@ -141,13 +142,37 @@ class ServedInstance:
             self._free("freed: the server stops")
 
 
+def _keep_thread_state(threads: set[int]) -> None:
+    """Keep a Python thread state for the calling thread (a Zenoh thread, running ``answer``) for its life.
+
+    Zenoh calls ``answer`` from a thread Python did not start; every call takes the GIL with
+    PyGILState_Ensure, which, for a thread without a thread state, makes one and deletes it again when
+    the call ends (a new frame stack each time). One extra PyGILState_Ensure that is never released
+    keeps the state alive, so a call only takes and drops the GIL: a served request costs about a fifth
+    less of the server's CPU (docs/remote.md, "One round trip per step"). The thread still drops the GIL
+    after each call (PyGILState_Release of an unlocked state saves the thread)."""
+    thread = threading.get_ident()
+    if thread not in threads:
+        threads.add(thread)
+        ctypes.pythonapi.PyGILState_Ensure()
+
+
 def serve(instance: ServedInstance, session: Any, key: str, stop: threading.Event) -> None:
-    """Answer queries on ``key`` until ``stop`` is set; the instance is freed on the way out."""
+    """Answer queries on ``key`` until ``stop`` is set; the instance is freed on the way out.
+
+    ``answer`` runs on Zenoh's own thread (``indirect=False``), not handed to a Python thread of zenoh's
+    (one thread switch less per request); with ``one_zenoh_thread`` (bridge/session.py) that is the only
+    thread the server's Zenoh has."""
+    import zenoh
+
+    threads: set[int] = set()
+
     def answer(query: Any) -> None:
+        _keep_thread_state(threads)
         payload = query.payload.to_bytes() if query.payload is not None else b""
         query.reply(query.key_expr, instance.handle(payload))
 
-    queryable = session.declare_queryable(key, answer)
+    queryable = session.declare_queryable(key, zenoh.handlers.Callback(answer, indirect=False))
     try:
         while not stop.wait(min(1.0, instance.lease / 4)):
             instance.expire()
