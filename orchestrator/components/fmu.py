@@ -106,7 +106,7 @@ def _route_log(env: Any, instance: bytes, status: int, category: bytes, message:
         messages.append(message.decode("utf-8", "replace") if message else "")
 
 
-def _not_instantiated(*args: Any) -> int:
+def not_instantiated(*args: Any) -> int:
     raise RuntimeError("the FMU is not instantiated (initialize it first; a closed component cannot step)")
 
 
@@ -249,9 +249,9 @@ class FmuComponent:
         self._output_view = memoryview(self._out_values).cast("B").cast("d")
         self._input_bytes = memoryview(self._in_values).cast("B")  # set_input_bytes copies into it
         self._instantiated = False
-        self._set_real: Callable[[], int] = _not_instantiated
-        self._get_real: Callable[[], int] = _not_instantiated
-        self._do_step: Callable[[], int] = _not_instantiated
+        self._set_real: Callable[[], int] = not_instantiated
+        self._get_real: Callable[[], int] = not_instantiated
+        self._do_step: Callable[[], int] = not_instantiated
         self._step_from, self._step_size = c_double(), c_double()  # fmi2DoStep's arguments, set per step
 
     def _open_slave(self) -> Any:
@@ -390,5 +390,5 @@ class FmuComponent:
             # at interpreter exit. The library is loaded once per process anyway.
             self._slave.fmi2FreeInstance(self._slave.component)
             self._instantiated = False
-            self._set_real = self._get_real = self._do_step = _not_instantiated
+            self._set_real = self._get_real = self._do_step = not_instantiated
         _MESSAGES_BY_ENVIRONMENT.pop(self._environment, None)

@@ -20,7 +20,7 @@ from functools import partial
 from typing import Any
 
 from fmus.errors import ComponentError
-from orchestrator.components.fmu import (FmuComponent, UnpackedFmu, _not_instantiated, parameters_by_type,
+from orchestrator.components.fmu import (FmuComponent, UnpackedFmu, not_instantiated, parameters_by_type,
                                          raw_call)
 
 # What the wire carries: one 8-byte double per input and output (FMI 2.0 Real, FMI 3.0 Float64).
@@ -140,4 +140,4 @@ class Fmu3Component(FmuComponent):
                 pass
             self._slave.fmi3FreeInstance(self._slave.component)  # the library stays loaded (see FmuComponent.close)
             self._instantiated = False
-            self._set_real = self._get_real = self._do_step = _not_instantiated
+            self._set_real = self._get_real = self._do_step = not_instantiated
