@@ -10,10 +10,11 @@ and calls ``report_command``; orchestrator/cli/common.py re-exports the helpers.
 from __future__ import annotations
 
 import json
+import threading
 import warnings
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Any, Iterator, Optional
 
 from orchestrator.cli.plain import console, fail, output_rule
 from orchestrator.cli.tables import summary_table
@@ -63,12 +64,47 @@ def load_trace(trace: Path, **selection):
         fail(2, f"trace {trace}: not a readable MCAP trace ({error}); try `platoon trace recover {trace}`")
 
 
-def trace_and_config(trace: Path, **selection):
-    """The trace read back (``selection``: what ``load`` reads of it), its config and the keys that were
-    not finite; exit 2 naming what is wrong."""
+class _Reading(threading.Thread):
+    """``load_trace`` on a thread of its own, started before the analysis and the config models are imported:
+    the chunks' decompression and decoding release the GIL, so on a second core they overlap those imports
+    (reading the README's trace is about 0.09 s of CPU, the config models' import about twice that). Whatever it raises (``fail``'s SystemExit) is raised again by
+    ``result``, in the command's thread, as if the trace had been read there."""
+
+    def __init__(self, trace: Path, selection: dict[str, Any]) -> None:
+        super().__init__(name="reading the trace", daemon=True)
+        self.trace, self.selection = trace, selection
+        self.loaded: Any = None
+        self.error: BaseException | None = None
+        # what the reading imports, imported here first: the thread then imports nothing as it reads a trace
+        # of ours (a progress bar after a second of reading, or another writer's lz4 chunks, import more)
+        try:
+            import zstandard  # noqa: F401  (the chunks' decompression)
+        except ImportError:  # a trace compressed with it is then refused, by the reader, as before
+            pass
+        from orchestrator.observers.progress import late_progress  # noqa: F401
+        from orchestrator.trace import load  # noqa: F401
+
+        self.start()
+
+    def run(self) -> None:
+        try:
+            self.loaded = load_trace(self.trace, **self.selection)
+        except BaseException as error:  # noqa: BLE001  (raised again in the command's thread)
+            self.error = error
+
+    def result(self) -> Any:
+        self.join()
+        if self.error is not None:
+            raise self.error
+        return self.loaded
+
+
+def trace_and_config(trace: Path, reading: _Reading | None = None, **selection):
+    """The trace read back (``selection``: what ``load`` reads of it; or what ``reading`` read), its config and
+    the keys that were not finite; exit 2 naming what is wrong."""
     from orchestrator.scenario.stored_config import stored_config
 
-    loaded = load_trace(trace, **selection)
+    loaded = reading.result() if reading is not None else load_trace(trace, **selection)
     if loaded.config is None:
         fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
     try:
@@ -81,10 +117,6 @@ def trace_and_config(trace: Path, **selection):
 def report_command(trace: Path, as_json: bool, plots: Optional[Path], overwrite: bool) -> None:
     """`platoon report` (orchestrator/cli/trace.py declares its options): the summary of a trace, as a table
     or JSON, and the paper's panels."""
-    from orchestrator.analysis.link_stats import link_rows, link_stats_of_trace
-    from orchestrator.analysis.metrics import report_json, summarize
-    from orchestrator.analysis.validity import departures_lines, departures_of_trace
-
     if plots is not None:  # every panel's target checked before the trace is read
         from orchestrator.analysis.plots import check_plot_targets
 
@@ -92,7 +124,15 @@ def report_command(trace: Path, as_json: bool, plots: Optional[Path], overwrite:
             check_plot_targets(plots, overwrite, [trace])
     # the recorded /platoon/errors are not read: the summary computes its errors from the bodies, as the run did
     # (half of the reading, like the 3D scene's chunks, which no reader decodes)
-    loaded, config, non_finite = trace_and_config(trace, errors=False)
+    from orchestrator.support.startup import loading_a_run
+
+    with loading_a_run():  # no garbage collection while the modules load (as a run's: orchestrator/support/startup.py)
+        reading = _Reading(trace, {"errors": False})  # read while the modules below load
+        from orchestrator.analysis.link_stats import link_rows, link_stats_of_trace
+        from orchestrator.analysis.metrics import report_json, summarize
+        from orchestrator.analysis.validity import departures_lines, departures_of_trace
+
+    loaded, config, non_finite = trace_and_config(trace, reading)
     out, err = console(), console(stderr=True)
     note = (err.print if as_json else out.print)
     if non_finite:
