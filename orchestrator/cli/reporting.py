@@ -47,9 +47,10 @@ def note_recovery(loaded, note) -> None:
          highlight=False, soft_wrap=True)
 
 
-def load_trace(trace: Path, **selection):
+def load_trace(trace: Path, stop: threading.Event | None = None, **selection):
     """The trace read back (``selection``: ``load``'s components, start, end, errors), with a progress bar
-    or lines on stderr when reading takes more than a second; exit 2 with one line when it cannot be read."""
+    or lines on stderr when reading takes more than a second; exit 2 with one line when it cannot be read.
+    ``stop``, once set, interrupts the reading at its next chunk, as Ctrl-C would (``_Reading``)."""
     from orchestrator.observers.progress import late_progress
     from orchestrator.trace import TraceError, load
 
@@ -57,24 +58,36 @@ def load_trace(trace: Path, **selection):
         fail(2, f"trace {trace}: no such file")
     try:
         with late_progress(f"reading {trace.name}", console(stderr=True), "chunks") as shown:
-            return load(trace, progress=shown, **selection)
+            return load(trace, progress=shown if stop is None else _stoppable(shown, stop), **selection)
     except TraceError as error:  # says what is wrong and what to do (e.g. `platoon trace recover`)
         fail(2, f"trace {trace}: not a readable MCAP trace: {error}")
     except Exception as error:  # any other reader failure means the file is not a usable trace
         fail(2, f"trace {trace}: not a readable MCAP trace ({error}); try `platoon trace recover {trace}`")
 
 
+def _stoppable(shown, stop: threading.Event):
+    def tick(done: int, total: int) -> None:
+        if stop.is_set():
+            raise KeyboardInterrupt  # unwinds the progress bar as an interrupt in this thread would
+        shown(done, total)
+
+    return tick
+
+
 class _Reading(threading.Thread):
     """``load_trace`` on a thread of its own, started before the analysis and the config models are imported:
     the chunks' decompression and decoding release the GIL, so on a second core they overlap those imports
     (reading the README's trace is about 0.09 s of CPU, the config models' import about twice that). Whatever it raises (``fail``'s SystemExit) is raised again by
-    ``result``, in the command's thread, as if the trace had been read there."""
+    ``result``, in the command's thread, as if the trace had been read there. Used as a context: if the
+    command's thread is interrupted (Ctrl-C) or fails meanwhile, the reading stops at its next chunk and its
+    progress bar is taken down before the command exits, as in one thread."""
 
     def __init__(self, trace: Path, selection: dict[str, Any]) -> None:
         super().__init__(name="reading the trace", daemon=True)
         self.trace, self.selection = trace, selection
         self.loaded: Any = None
         self.error: BaseException | None = None
+        self.stop = threading.Event()
         # what the reading imports, imported here first: the thread then imports nothing as it reads a trace
         # of ours (a progress bar after a second of reading, or another writer's lz4 chunks, import more)
         try:
@@ -88,7 +101,7 @@ class _Reading(threading.Thread):
 
     def run(self) -> None:
         try:
-            self.loaded = load_trace(self.trace, **self.selection)
+            self.loaded = load_trace(self.trace, self.stop, **self.selection)
         except BaseException as error:  # noqa: BLE001  (raised again in the command's thread)
             self.error = error
 
@@ -97,6 +110,14 @@ class _Reading(threading.Thread):
         if self.error is not None:
             raise self.error
         return self.loaded
+
+    def __enter__(self) -> "_Reading":
+        return self
+
+    def __exit__(self, kind, error, traceback) -> None:
+        if kind is not None:
+            self.stop.set()
+            self.join()
 
 
 def trace_and_config(trace: Path, reading: _Reading | None = None, **selection):
@@ -126,13 +147,13 @@ def report_command(trace: Path, as_json: bool, plots: Optional[Path], overwrite:
     # (half of the reading, like the 3D scene's chunks, which no reader decodes)
     from orchestrator.support.startup import loading_a_run
 
-    with loading_a_run():  # no garbage collection while the modules load (as a run's: orchestrator/support/startup.py)
-        reading = _Reading(trace, {"errors": False})  # read while the modules below load
+    # read while the modules below load, which load without garbage collection (as a run's: support/startup.py)
+    with loading_a_run(), _Reading(trace, {"errors": False}) as reading:
         from orchestrator.analysis.link_stats import link_rows, link_stats_of_trace
         from orchestrator.analysis.metrics import report_json, summarize
         from orchestrator.analysis.validity import departures_lines, departures_of_trace
 
-    loaded, config, non_finite = trace_and_config(trace, reading)
+        loaded, config, non_finite = trace_and_config(trace, reading)
     out, err = console(), console(stderr=True)
     note = (err.print if as_json else out.print)
     if non_finite:
