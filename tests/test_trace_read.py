@@ -181,6 +181,26 @@ def test_every_number_text_reads_as_pythons_float(tmp_path: Path, decoder: str) 
     assert_loads_as_reference(tmp_path / "numbers.mcap")
 
 
+def test_long_digits_and_ties_read_as_pythons_float(tmp_path: Path, decoder: str) -> None:
+    """16 to 19 significant digits within 1e±27 of an integer: the C decoder's extended-precision path, and
+    the decimal points exactly halfway between two doubles (and their neighbours), which that path hands
+    to strtod so that ties round to even."""
+    from decimal import Decimal
+
+    rng = random.Random(57)
+    texts = []
+    for _ in range(600):
+        x = rng.uniform(-1e3, 1e3) * 10.0 ** rng.randint(-27, 27)
+        y = math.nextafter(x, math.inf)
+        half = (Decimal(x) + Decimal(y)) / 2  # exact: the point where rounding turns from x to y
+        texts += [repr(x), f"{x:.17g}", f"{x:.19g}", f"{half:.15e}", f"{half:.17e}", f"{half:.18e}"]
+    texts += ["9007199254740993", "9007199254740995", "1.7976931348623157e27", "123456789012345678e-27"]
+    messages = [("/platoon/target", k, f'{{"t":{k},"x":{text}}}'.encode()) for k, text in enumerate(texts)]
+    write_trace(tmp_path / "ties.mcap", messages)
+    read = load(tmp_path / "ties.mcap").component("target")["x"]
+    assert [struct.pack("<d", value) for value in read] == [struct.pack("<d", float(text)) for text in texts]
+
+
 def test_messages_unlike_the_first_are_read_as_json_reads_them(tmp_path: Path, decoder: str) -> None:
     messages = [
         ("/platoon/vehicle1", 0, b'{"t":0.0,"x":1.5,"gap":75.0}'),

@@ -10,10 +10,11 @@ and calls ``report_command``; orchestrator/cli/common.py re-exports the helpers.
 from __future__ import annotations
 
 import json
+import threading
 import warnings
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Any, Iterator, Optional
 
 from orchestrator.cli.plain import console, fail, output_rule
 from orchestrator.cli.tables import summary_table
@@ -46,9 +47,10 @@ def note_recovery(loaded, note) -> None:
          highlight=False, soft_wrap=True)
 
 
-def load_trace(trace: Path, **selection):
+def load_trace(trace: Path, stop: threading.Event | None = None, **selection):
     """The trace read back (``selection``: ``load``'s components, start, end, errors), with a progress bar
-    or lines on stderr when reading takes more than a second; exit 2 with one line when it cannot be read."""
+    or lines on stderr when reading takes more than a second; exit 2 with one line when it cannot be read.
+    ``stop``, once set, interrupts the reading at its next chunk, as Ctrl-C would (``_Reading``)."""
     from orchestrator.observers.progress import late_progress
     from orchestrator.trace import TraceError, load
 
@@ -56,19 +58,74 @@ def load_trace(trace: Path, **selection):
         fail(2, f"trace {trace}: no such file")
     try:
         with late_progress(f"reading {trace.name}", console(stderr=True), "chunks") as shown:
-            return load(trace, progress=shown, **selection)
+            return load(trace, progress=shown if stop is None else _stoppable(shown, stop), **selection)
     except TraceError as error:  # says what is wrong and what to do (e.g. `platoon trace recover`)
         fail(2, f"trace {trace}: not a readable MCAP trace: {error}")
     except Exception as error:  # any other reader failure means the file is not a usable trace
         fail(2, f"trace {trace}: not a readable MCAP trace ({error}); try `platoon trace recover {trace}`")
 
 
-def trace_and_config(trace: Path, **selection):
-    """The trace read back (``selection``: what ``load`` reads of it), its config and the keys that were
-    not finite; exit 2 naming what is wrong."""
+def _stoppable(shown, stop: threading.Event):
+    def tick(done: int, total: int) -> None:
+        if stop.is_set():
+            raise KeyboardInterrupt  # unwinds the progress bar as an interrupt in this thread would
+        shown(done, total)
+
+    return tick
+
+
+class _Reading(threading.Thread):
+    """``load_trace`` on a thread of its own, started before the analysis and the config models are imported:
+    the chunks' decompression and decoding release the GIL, so on a second core they overlap those imports
+    (reading the README's trace is about 0.09 s of CPU, the config models' import about twice that). Whatever it raises (``fail``'s SystemExit) is raised again by
+    ``result``, in the command's thread, as if the trace had been read there. Used as a context: if the
+    command's thread is interrupted (Ctrl-C) or fails meanwhile, the reading stops at its next chunk and its
+    progress bar is taken down before the command exits, as in one thread."""
+
+    def __init__(self, trace: Path, selection: dict[str, Any]) -> None:
+        super().__init__(name="reading the trace", daemon=True)
+        self.trace, self.selection = trace, selection
+        self.loaded: Any = None
+        self.error: BaseException | None = None
+        self.stop = threading.Event()
+        # what the reading imports, imported here first: the thread then imports nothing as it reads a trace
+        # of ours (a progress bar after a second of reading, or another writer's lz4 chunks, import more)
+        try:
+            import zstandard  # noqa: F401  (the chunks' decompression)
+        except ImportError:  # a trace compressed with it is then refused, by the reader, as before
+            pass
+        from orchestrator.observers.progress import late_progress  # noqa: F401
+        from orchestrator.trace import load  # noqa: F401
+
+        self.start()
+
+    def run(self) -> None:
+        try:
+            self.loaded = load_trace(self.trace, self.stop, **self.selection)
+        except BaseException as error:  # noqa: BLE001  (raised again in the command's thread)
+            self.error = error
+
+    def result(self) -> Any:
+        self.join()
+        if self.error is not None:
+            raise self.error
+        return self.loaded
+
+    def __enter__(self) -> "_Reading":
+        return self
+
+    def __exit__(self, kind, error, traceback) -> None:
+        if kind is not None:
+            self.stop.set()
+            self.join()
+
+
+def trace_and_config(trace: Path, reading: _Reading | None = None, **selection):
+    """The trace read back (``selection``: what ``load`` reads of it; or what ``reading`` read), its config and
+    the keys that were not finite; exit 2 naming what is wrong."""
     from orchestrator.scenario.stored_config import stored_config
 
-    loaded = load_trace(trace, **selection)
+    loaded = reading.result() if reading is not None else load_trace(trace, **selection)
     if loaded.config is None:
         fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
     try:
@@ -81,10 +138,6 @@ def trace_and_config(trace: Path, **selection):
 def report_command(trace: Path, as_json: bool, plots: Optional[Path], overwrite: bool) -> None:
     """`platoon report` (orchestrator/cli/trace.py declares its options): the summary of a trace, as a table
     or JSON, and the paper's panels."""
-    from orchestrator.analysis.link_stats import link_rows, link_stats_of_trace
-    from orchestrator.analysis.metrics import report_json, summarize
-    from orchestrator.analysis.validity import departures_lines, departures_of_trace
-
     if plots is not None:  # every panel's target checked before the trace is read
         from orchestrator.analysis.plots import check_plot_targets
 
@@ -92,7 +145,15 @@ def report_command(trace: Path, as_json: bool, plots: Optional[Path], overwrite:
             check_plot_targets(plots, overwrite, [trace])
     # the recorded /platoon/errors are not read: the summary computes its errors from the bodies, as the run did
     # (half of the reading, like the 3D scene's chunks, which no reader decodes)
-    loaded, config, non_finite = trace_and_config(trace, errors=False)
+    from orchestrator.support.startup import loading_a_run
+
+    # read while the modules below load, which load without garbage collection (as a run's: support/startup.py)
+    with loading_a_run(), _Reading(trace, {"errors": False}) as reading:
+        from orchestrator.analysis.link_stats import link_rows, link_stats_of_trace
+        from orchestrator.analysis.metrics import report_json, summarize
+        from orchestrator.analysis.validity import departures_lines, departures_of_trace
+
+        loaded, config, non_finite = trace_and_config(trace, reading)
     out, err = console(), console(stderr=True)
     note = (err.print if as_json else out.print)
     if non_finite:
