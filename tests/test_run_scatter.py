@@ -165,3 +165,26 @@ def test_held_lossy_runs_scatter_as_predicted(tmp_path):
         assert abs(mean - centre) <= 0.003 * centre + 4 * sigma / math.sqrt(6), (w, mean, centre, sigma)
         if w in buried:
             assert abs(mean - cascade[k]) > 4 * sigma / math.sqrt(6)  # the floor's test would fail there
+
+
+@pytest.mark.parametrize("period", [0.1, 0.02])
+def test_a_block_of_steps_is_its_steps_one_by_one(period):
+    """moment_blocks: the second moment over a block of five steps, regrouped, is the five steps' one by one (each
+    a block of one), also where a later jump of the block reads what an earlier one put (beacons every step)."""
+    from orchestrator.analysis.run_scatter import _Maps
+
+    config = _config("paper", "hold")
+    config = config.model_copy(update={"links": config.links.model_copy(update={"period": period})})
+    model = LinearString(config, list(range(2, 7)))
+    maps = _Maps(model, 5)
+    rng = np.random.default_rng(3)
+    root = rng.standard_normal((model.size, model.size))
+    q0 = root @ root.T
+    for start in (100, 103):
+        q = q0
+        for k in range(start, start + 5):
+            q = maps.block(k, 1).second_moment(q)
+        block = maps.block(start, 5)
+        assert sum(len(s) for s in block.spans) > 0
+        assert bool(block.couplings) == (period == 0.02)
+        assert block.second_moment(q0) == pytest.approx(q, rel=1e-9, abs=1e-9 * np.abs(q).max())

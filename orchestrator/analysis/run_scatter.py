@@ -45,6 +45,7 @@ import numpy as np
 from scipy import sparse
 
 from orchestrator.analysis.loop_moments import shift_view
+from orchestrator.analysis.moment_blocks import Block, compose
 from orchestrator.analysis.sampled_chain import exact_applies, step_maps, timing_of, vehicle_of
 
 if TYPE_CHECKING:
@@ -346,16 +347,35 @@ def _design(times: np.ndarray, frequencies: list[float]) -> np.ndarray:
 class _Maps:
     """The step maps by phase (they repeat with the beacons and the slots)."""
 
-    def __init__(self, model: LinearString) -> None:
-        self.model = model
+    def __init__(self, model: LinearString, every: int) -> None:
+        self.model, self.every = model, every  # every: the records' steps, the blocks' length
         self.period = math.lcm(1, *(c.every * len(c.slots) for c in model.channels))
         self._by_phase: dict[int, _StepMaps] = {}
+        self._blocks: dict[tuple[int, int], Block] = {}
 
     def __call__(self, k: int) -> _StepMaps:
         phase = k % self.period
         if phase not in self._by_phase:
             self._by_phase[phase] = _step_maps(self.model, k)
         return self._by_phase[phase]
+
+    def block(self, k: int, length: int) -> Block:
+        """Steps k .. k + length - 1 as one map of the second moment (``moment_blocks``)."""
+        key = (k % self.period, length)
+        if key not in self._blocks:
+            self._blocks[key] = compose([self(k + i) for i in range(length)])
+        return self._blocks[key]
+
+
+def _blocks(start: int, stop: int, every: int) -> list[tuple[int, int]]:
+    """(first step, steps) of blocks covering steps start .. stop - 1, each within one stretch of ``every`` steps
+    from a multiple of it (the records' steps: a block never passes one)."""
+    found, k = [], start
+    while k < stop:
+        end = min(stop, (k // every + 1) * every)
+        found.append((k, end - k))
+        k = end
+    return found
 
 
 def predicted_scatter(config: "Config", stretch: Stretch) -> Scatter | str:
@@ -386,7 +406,7 @@ def predicted_scatter(config: "Config", stretch: Stretch) -> Scatter | str:
     if model.size > MOST_STATE or work > MOST_WORK:
         return (f"not predicted: a state of {model.size} over {stepped} steps (at most {MOST_STATE}, and "
                 f"{MOST_WORK:.0e} state^2 x steps: the study's is 6e8, 2-7 s)")
-    maps = _Maps(model)
+    maps = _Maps(model, stretch.every)
     if maps.period > MOST_PHASES:
         return f"not predicted: its step maps repeat only every {maps.period} steps (at most {MOST_PHASES} are kept)"
     fit = _design(np.array(records) * model.h, stretch.frequencies)
@@ -447,22 +467,14 @@ def _start(model: LinearString, maps: _Maps, first: int, square: bool) -> tuple[
         return pushes, (np.outer(pushes, pushes) if square else None)
     m = model.at_rest()
     q = np.outer(m, m) if square else None
-    for k in range(first):
-        step = maps(k)
+    for k, length in _blocks(0, first, maps.every):
+        block = maps.block(k, length)
         if square:
-            q = _second_moment_step(step, q)
-        m = step.mean @ m
+            q = block.second_moment(q)
+        m = block.mean @ m
     if square:
         q = q + np.outer(m, pushes) + np.outer(pushes, m) + np.outer(pushes, pushes)
     return m + pushes, q
-
-
-def _second_moment_step(step: _StepMaps, q: np.ndarray) -> np.ndarray:
-    """E[z z^T] one step on: M q M^T (q is symmetric) plus each lossy link's jump, p (1 - p) Delta q Delta^T."""
-    q_next = step.mean @ (step.mean @ q).T
-    for weight, through, rows in step.noises:  # the noise is through @ rows @ z: of rank <= the view's width
-        q_next += weight * (through @ (rows @ q @ rows.T) @ through.T)
-    return q_next
 
 
 def _mean_records(model: LinearString, maps: _Maps, first: int, records: list[int],
@@ -486,15 +498,16 @@ def _fit_moments(model: LinearString, maps: _Maps, first: int, records: list[int
     m, q = _start(model, maps, first, True)
     total_mean, cross, total_square = np.zeros(count), np.zeros((count, n)), np.zeros((count, count))
     index = {k: r for r, k in enumerate(records)}
-    for k in range(first, records[-1] + 1):
+    for k, length in [*_blocks(first, records[-1], maps.every), (records[-1], 0)]:
         if k in index:  # the functionals take this record: g^T z, with z's moments m and q
             g = np.vstack([fit[:, index[k]][:, None] * speeds[i][None, :] for i in speeds])  # count x n
             total_square += g @ q @ g.T + cross @ g.T + g @ cross.T
             cross += g @ q
             total_mean += g @ m
-        step = maps(k)
-        cross = (step.mean @ cross.T).T
-        # the functionals' cross moment with the state picks up the noise too, but only through the state: the
-        # noise of step k is independent of everything before, so E[total * noise] = 0
-        q, m = _second_moment_step(step, q), step.mean @ m
+        if length:
+            block = maps.block(k, length)
+            cross = (block.mean @ cross.T).T
+            # the functionals' cross moment with the state picks up the noise too, but only through the state: the
+            # noise of a step is independent of everything before, so E[total * noise] = 0
+            q, m = block.second_moment(q), block.mean @ m
     return total_mean, total_square
