@@ -53,7 +53,7 @@ if TYPE_CHECKING:
 
 
 # The second moment is a state x state matrix stepped over every step of the run: the study (7 vehicles, 190 states,
-# 15 566 steps) costs 6e8 state^2 x steps, 2-7 s on a 2-core machine. Beyond these the scatter is not predicted
+# 15 566 steps) costs 6e8 state^2 x steps, 2-3 s on a 2-core machine (blocks of steps, moment_blocks). Beyond these the scatter is not predicted
 # (the measured one stands in), rather than a command that runs for hours or fills the memory.
 MOST_STATE = 1000
 MOST_WORK = 2e10
@@ -405,7 +405,7 @@ def predicted_scatter(config: "Config", stretch: Stretch) -> Scatter | str:
     work = stepped * model.size**2
     if model.size > MOST_STATE or work > MOST_WORK:
         return (f"not predicted: a state of {model.size} over {stepped} steps (at most {MOST_STATE}, and "
-                f"{MOST_WORK:.0e} state^2 x steps: the study's is 6e8, 2-7 s)")
+                f"{MOST_WORK:.0e} state^2 x steps: the study's is 6e8, 2-3 s)")
     maps = _Maps(model, stretch.every)
     if maps.period > MOST_PHASES:
         return f"not predicted: its step maps repeat only every {maps.period} steps (at most {MOST_PHASES} are kept)"
