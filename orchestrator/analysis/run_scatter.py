@@ -53,8 +53,9 @@ if TYPE_CHECKING:
 
 
 # The second moment is a state x state matrix stepped over every step of the run: the study (7 vehicles, 190 states,
-# 15 566 steps) costs 6e8 state^2 x steps, 2-3 s on a 2-core machine (blocks of steps, moment_blocks). Beyond these the scatter is not predicted
-# (the measured one stands in), rather than a command that runs for hours or fills the memory.
+# 15 566 steps) costs 6e8 state^2 x steps, 2-3 s on a 2-core machine (blocks of steps, moment_blocks). Beyond these
+# the scatter is not predicted (the measured one stands in), rather than a command that runs for hours or fills the
+# memory.
 MOST_STATE = 1000
 MOST_WORK = 2e10
 MOST_PHASES = 5000  # step maps kept (a state x state mean map and the noises' columns each)
