@@ -48,10 +48,12 @@ def _monte_carlo(config, stretch: Stretch, draws: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     first = int(math.ceil(2.0 / model.h - 1e-9))
     records = _record_steps(model, stretch, first)
-    z = np.repeat(model.initial(first)[:, None], draws, axis=1)
+    z = np.repeat(model.at_rest()[:, None], draws, axis=1)  # from the run's start: held links stir it from there
     speeds = {i: [] for i in stretch.vehicles}
     wanted = set(records)
-    for k in range(first, records[-1] + 1):
+    for k in range(0, records[-1] + 1):
+        if k == first:
+            z += model.initial(first)[:, None]
         if k in wanted:
             for i in speeds:
                 speeds[i].append(model.outputs(z, i)[1])
@@ -87,17 +89,17 @@ def test_the_predicted_mean_is_the_cascade_and_its_scatter_a_monte_carlo(law, co
     names = [f"vehicle{i}" for i in range(1, 7)]
     cascade = [math.prod(row) ** (1.0 / len(row)) for row in
                predicted_gains(config, names, [f"vehicle{i}" for i in stretch.vehicles], stretch.frequencies)]
-    assert predicted.growth == pytest.approx(cascade, rel=1e-4)  # the held loop keeps 2.5e-5 of its transient
+    # the held loop keeps 2.5e-5 of its transient; held positions' staleness stirs the mean from the run's start on
+    # (1e-6 m/s still at 82-101 s, 0.3 % of the last vehicle's 3 rad/s), as it does a run's
+    assert predicted.growth == pytest.approx(cascade, rel=1e-4 if coupling == "extrapolate" else 5e-3)
     runs = _monte_carlo(config, stretch, draws=600, seed=7)
     spread = runs.std(axis=0, ddof=1)
     for k in range(len(PROBES)):
         assert predicted.sigma[k] > 1e-4  # losses make a run's growth a random variable
-        if predicted.sigma[k] < 0.1 * predicted.growth[k]:
-            # 600 draws: the sample standard deviation is within 3 % (one sigma) of the true one
-            assert spread[k] == pytest.approx(predicted.sigma[k], rel=0.1), (k, spread, predicted.sigma)
-            assert runs[:, k].mean() == pytest.approx(predicted.growth[k], abs=4 * spread[k] / math.sqrt(600))
-        else:  # first order in the deviations: where they are a fair part of the amplitudes it overstates them
-            assert spread[k] < predicted.sigma[k]
+        # 600 draws: the sample standard deviation is within 3 % (one sigma) of the true one; the coefficients
+        # taken Gaussian (run_scatter._growth_draws), also where the noise is most of an amplitude (held links)
+        assert spread[k] == pytest.approx(predicted.sigma[k], rel=0.12), (k, spread, predicted.sigma)
+        assert runs[:, k].mean() == pytest.approx(predicted.expected[k], abs=4 * spread[k] / math.sqrt(600))
 
 
 def test_without_losses_a_run_is_its_mean():
@@ -128,3 +130,61 @@ def test_stability_and_analyze_print_the_predicted_scatter_of_a_real_run(tmp_pat
     assert "(predicted: a run's standard deviation over its losses; measured " in headline
     (line,) = scatter_lines(config)
     assert "vehicle3 -> vehicle4 -> vehicle5 -> vehicle6" in line and "3 rad/s 1.0638 +- 0.0088" in line
+
+
+def test_held_lossy_runs_scatter_as_predicted(tmp_path):
+    """The study's paper law with held 0.2 s links at 40 % loss, six seeds of real runs (native FMUs): a held
+    position is V_c times its random age stale, metres of gap noise the losses make whatever the probe. The
+    analysis predicts it: at every probe it judges, the seeds' mean is within 0.3 % + 4 sigma / sqrt(6) of the
+    cascade and their spread within 0.3-2.5 sigma (without the stale term sigma was 100 times too small); the
+    probe it says is buried in that noise (3 rad/s: the cascade's 0.30, where runs measure their noise, ~1) is
+    where the runs centre, not the cascade."""
+    from orchestrator.analysis.error_gains import predicted_run_scatter, probe_growths
+    from orchestrator.execution.run import run_scenario
+    from orchestrator.scenario.config import load_config
+    from orchestrator.trace import load
+
+    base = ["platoon.speed_law=paper", "links.delay=0.2", "links.loss=0.4", "simulation.coupling=hold",
+            "simulation.trace_every=5"]
+    growths = []
+    for seed in range(6):
+        config, _ = load_config("configs/study/string_stability.toml", [*base, f"links.seed={seed}"])
+        trace = load(run_scenario(config, "", tmp_path / f"{seed}.mcap", foxglove=False).trace)
+        clean, window, growth = probe_growths(config, trace)
+        growths.append(growth)
+    growths, names, probes = np.array(growths), trace.vehicles(), probe_frequencies(config)
+    scatter = predicted_run_scatter(config, clean, window)
+    cascade = [math.prod(row) ** (1.0 / len(row)) for row in predicted_gains(config, names, clean, probes)]
+    assert scatter.growth == pytest.approx(cascade, rel=1e-3)  # the run's start transient (held links, losses)
+    buried = scatter.buried()
+    assert list(buried) == [3.0], buried
+    for k, w in enumerate(probes):
+        mean, spread, sigma = growths[:, k].mean(), growths[:, k].std(ddof=1), scatter.sigma[k]
+        assert 0.3 * sigma <= spread <= 2.5 * sigma, (w, spread, sigma)
+        centre = scatter.expected[k] if w in buried else cascade[k]
+        assert abs(mean - centre) <= 0.003 * centre + 4 * sigma / math.sqrt(6), (w, mean, centre, sigma)
+        if w in buried:
+            assert abs(mean - cascade[k]) > 4 * sigma / math.sqrt(6)  # the floor's test would fail there
+
+
+@pytest.mark.parametrize("period", [0.1, 0.02])
+def test_a_block_of_steps_is_its_steps_one_by_one(period):
+    """moment_blocks: the second moment over a block of five steps, regrouped, is the five steps' one by one (each
+    a block of one), also where a later jump of the block reads what an earlier one put (beacons every step)."""
+    from orchestrator.analysis.run_scatter import _Maps
+
+    config = _config("paper", "hold")
+    config = config.model_copy(update={"links": config.links.model_copy(update={"period": period})})
+    model = LinearString(config, list(range(2, 7)))
+    maps = _Maps(model, 5)
+    rng = np.random.default_rng(3)
+    root = rng.standard_normal((model.size, model.size))
+    q0 = root @ root.T
+    for start in (100, 103):
+        q = q0
+        for k in range(start, start + 5):
+            q = maps.block(k, 1).second_moment(q)
+        block = maps.block(start, 5)
+        assert sum(len(s) for s in block.spans) > 0
+        assert bool(block.couplings) == (period == 0.02)
+        assert block.second_moment(q0) == pytest.approx(q, rel=1e-9, abs=1e-9 * np.abs(q).max())

@@ -2,7 +2,8 @@
 
 Per lossy point of the study (extra --set overrides after SEEDS, e.g. simulation.coupling=hold), SEEDS seeds of real runs (native FMUs): per probe the
 headline growth over the clean links, its mean over seeds against the cascade (within 0.3 % + 4 sigma/sqrt(6)),
-the seeds' spread against 2.5 sigma, sigma the analysis' predicted scatter of one run."""
+the seeds' spread against 2.5 sigma, sigma the analysis' predicted scatter of one run; a probe the analysis says is
+buried in the noise of the losses is marked (not judged: docs/model.md)."""
 import math
 import sys
 import tempfile
@@ -10,9 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from orchestrator.analysis.error_gains import (clean_order, predicted_gains, predicted_run_scatter, probe_frequencies,
-                                               steady_window, vehicle_errors)
-from orchestrator.analysis.headline import probe_amplitudes
+from orchestrator.analysis.error_gains import predicted_gains, predicted_run_scatter, probe_frequencies, probe_growths
 from orchestrator.execution.run import run_scenario
 from orchestrator.scenario.config import load_config
 from orchestrator.trace import load
@@ -25,19 +24,19 @@ for seed in range(seeds):
     config, _ = load_config("configs/study/string_stability.toml", base + [f"links.seed={seed}"])
     result = run_scenario(config, "", Path(scratch) / f"{seed}.mcap", foxglove=False)
     trace = load(result.trace)
-    names = trace.vehicles()
-    clean, probes = clean_order(config, names), probe_frequencies(config)
-    window = steady_window(config, config.simulation.stop_time)
-    a = probe_amplitudes(vehicle_errors(trace, config), clean, probes, window)
-    growths.append((a[-1] / a[0]) ** (1.0 / (len(clean) - 1)))
-growths = np.array(growths)
+    clean, window, growth = probe_growths(config, trace)
+    growths.append(growth)
+growths, names, probes = np.array(growths), trace.vehicles(), probe_frequencies(config)
 scatter = predicted_run_scatter(config, clean, window)
 cascade = [math.prod(row) ** (1.0 / len(row)) for row in predicted_gains(config, names, clean, probes)]
 print(f"{law} {delay} s {loss} loss, {seeds} seeds ({' -> '.join(clean)}):")
+buried = scatter.buried()  # probes the analysis does not judge (docs/model.md): the floor is not held there
 for k, w in enumerate(probes):
     mean, spread, sigma = growths[:, k].mean(), growths[:, k].std(ddof=1), scatter.sigma[k]
     bound = 0.003 * cascade[k] + 4 * sigma / math.sqrt(seeds)
     print(f"  {w:g} rad/s: cascade {cascade[k]:.4f}, model mean {scatter.growth[k]:.4f}, predicted sigma {sigma:.2g}; "
           f"seeds mean {mean:.4f} (|diff| {abs(mean - cascade[k]):.2g} <= {bound:.2g}: {abs(mean - cascade[k]) <= bound}), "
-          f"spread {spread:.2g} (<= 2.5 sigma = {2.5 * sigma:.2g}: {spread <= 2.5 * sigma})  runs "
+          f"spread {spread:.2g} (<= 2.5 sigma = {2.5 * sigma:.2g}: {spread <= 2.5 * sigma})  "
+          + (f"BURIED, not judged (runs predicted to centre on {scatter.expected[k]:.4f}) " if w in buried else "")
+          + "runs "
           + " ".join(f"{g:.4f}" for g in growths[:, k]))

@@ -346,8 +346,18 @@ def run_headline(config: Config, errors: dict[str, dict[str, np.ndarray]], clean
         mixing = Mixing(config.platoon.speed, {name: equilibrium_gap(config, int(name[len("vehicle"):]))
                                                for name in clean if name != TARGET})
     scatter = predicted_run_scatter(config, clean, steady)
+    predicted = None if isinstance(scatter, str) else scatter
     return measured_headline(errors, clean, frequencies, steady, 2.0 * math.pi / min(frequencies), mixing,
-                             None if isinstance(scatter, str) else scatter.sigma)
+                             predicted and predicted.sigma, predicted and predicted.buried())
+
+
+def probe_growths(config: Config, trace) -> tuple[list[str], tuple[float, float], np.ndarray]:
+    """A whole run's growth per link over its clean stretch at each probe (weak probes included), with the stretch
+    and the fitting window: what a run's predicted scatter (``predicted_run_scatter``) is the scatter of."""
+    clean = clean_order(config, trace.vehicles())
+    window = steady_window(config, config.simulation.stop_time)
+    amplitudes = probe_amplitudes(vehicle_errors(trace, config), clean, probe_frequencies(config), window)
+    return clean, window, (amplitudes[-1] / amplitudes[0]) ** (1.0 / (len(clean) - 1))
 
 
 def predicted_run_scatter(config: Config, clean: list[str], window: tuple[float, float]) -> "Scatter | str":
@@ -379,8 +389,9 @@ def scatter_lines(config: Config) -> list[str]:
     head = f"a single run's growth per link over {' -> '.join(clean)} (fitted over {window[0]:g} to {window[1]:g} s)"
     if isinstance(scatter, str):
         return [f"{head}: its scatter {scatter}"]
-    values = "; ".join(f"{w:g} rad/s {g:.4f} +- {s:.2g}" for w, g, s in zip(scatter.frequencies, scatter.growth,
-                                                                            scatter.sigma))
+    buried = scatter.buried()
+    values = "; ".join(f"{w:g} rad/s " + (buried[w] if w in buried else f"{g:.4f} +- {s:.2g}")
+                       for w, g, s in zip(scatter.frequencies, scatter.growth, scatter.sigma))
     return [f"{head}, its mean over the losses +- its predicted standard deviation: {values} (a single run's verdict "
             f"stands where |growth - 1| is more than {CONFIDENCE:g} of them)"]
 

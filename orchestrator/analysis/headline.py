@@ -10,7 +10,7 @@ fit over the window is, to first order, the mean of the periods' fits). A verdic
 stands only where |growth - 1| is more than ``CONFIDENCE`` standard deviations from 1: the analysis' own
 prediction of a single run's scatter over its delivery patterns where it is given (``run_scatter``: the
 driven cascade's second moment), or the measured standard error where that is larger (the run then
-scatters beyond what the linear model predicts, e.g. a held lossy platoon whose gap noise is metres), else
+scatters beyond what the linear model predicts), else
 the measured one; elsewhere the run is "inside the noise". Both are printed. With three or fewer periods
 no measured scatter is given.
 
@@ -23,7 +23,9 @@ below what can be told from other signals:
   onto their sums and differences. A probe that such a sum of two probes reaches gets the second-order term,
   V_c (s/d)^2, every other the third, V_c (s/d)^3, with s the rms of that vehicle's gap error over the
   window and d the equilibrium gap: below it, the probe may be the others' mixing (the held lossy runs,
-  metres of gap noise).
+  metres of gap noise);
+- where the analysis predicts it (``run_scatter``), a probe buried in the noise of the losses: a run's growth
+  there centres off the cascade's by more than its own standard deviation.
 """
 
 from __future__ import annotations
@@ -81,8 +83,8 @@ class Headline:
     @property
     def confidence_sigma(self) -> float | None:
         """The scatter the verdict is held to: the predicted one where the analysis gives it, or the measured one
-        where that is larger (a run that scatters more than the linear model predicts has left its regime: the
-        held paper law at 40 % loss scatters 100 times its prediction), else the measured one."""
+        where that is larger (a run that scatters more than the linear model predicts has left its regime), else
+        the measured one."""
         if self.predicted is None:
             return self.sigma
         return self.predicted if self.sigma is None else max(self.predicted, self.sigma)
@@ -156,12 +158,14 @@ def _growths(amplitudes: np.ndarray) -> np.ndarray:
 
 
 def measured_headline(errors: dict, clean: list[str], frequencies: list[float], window: tuple[float, float],
-                      lowest_period: float, mixing: Mixing | None, predicted: list[float] | None = None) -> Headline:
+                      lowest_period: float, mixing: Mixing | None, predicted: list[float] | None = None,
+                      buried: dict[float, str] | None = None) -> Headline:
     """The headline of the stretch ``clean`` over ``window`` (whole periods of ``lowest_period`` s);
     ``mixing``: the paper law's (None for acc and cacc, linear in the gap); ``predicted``: per frequency, the
-    analysis' standard deviation of a single run's growth (``run_scatter``), which the verdict is held to."""
+    analysis' standard deviation of a single run's growth (``run_scatter``), which the verdict is held to;
+    ``buried``: the probes the analysis predicts a run measures its noise at (``Scatter.buried``), weak too."""
     amplitudes = probe_amplitudes(errors, clean, frequencies, window)
-    weak = _weak_probes(mixing, errors, clean, frequencies, window, amplitudes)
+    weak = {**_weak_probes(mixing, errors, clean, frequencies, window, amplitudes), **(buried or {})}
     judged = [k for k, w in enumerate(frequencies) if w not in weak]
     if not judged:
         return Headline(math.nan, math.nan, None, 0, weak)

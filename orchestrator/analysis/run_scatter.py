@@ -18,11 +18,17 @@ linearized string in time from the first push to the end of the fitting window:
   Q = E[z z^T] exactly by Q -> M_mean Q M_mean^T + sum_L p_L (1 - p_L) Delta_L Q Delta_L^T (independent
   jumps: Costa, Fragoso and Marques, *Discrete-Time Markov Jump Linear Systems*, 2005, ch. 3). Not the mean's
   square: each lost beacon's noise enters, and is carried on by the mean dynamics of everything after it.
+- held links: a held position is V_c times its age behind the steady state the model's deviations are taken
+  from. Where one crosses a lossy link (the paper's law) its age is random, an affine forcing the losses make
+  whatever the probe (metres of gap noise at 40 % loss): the state then carries a constant 1, and the string
+  is stepped from the run's start (at rest), as the run is, the pushes' phasors added at the first push;
 - a run's headline at a probe is (amplitude of the stretch's last vehicle / its first) ** (1 / links), the
-  amplitudes fitted by least squares over the window (``headline.probe_amplitudes``). To first order in the
-  deviations from the mean, its logarithm is a fixed linear functional of the recorded speeds; accumulated
-  in the state, its variance is read from Q at the end: the predicted standard deviation of a single run's
-  headline is growth x sqrt(that variance).
+  amplitudes fitted by least squares over the window (``headline.probe_amplitudes``). The fitted (cos, sin)
+  coefficients are linear in the records: accumulated beside the state, their mean and covariance are read
+  exactly. The ratio is not linear in them: the coefficients are taken Gaussian (sums over hundreds of the
+  noise's correlation times), and the growth's mean and standard deviation are those of fixed draws of them.
+  Where the noise is most of an amplitude (held paper law) a run's growth centres off the mean run's: such a
+  probe is *buried* (``Scatter.buried``), not judged.
 
 This is the scatter of one run of this config over its delivery patterns, predicted, not measured; a run's
 batch means (``headline``) measure the same from the run itself. Pure computation (numpy), no I/O.
@@ -30,6 +36,7 @@ batch means (``headline``) measure the same from the run itself. Pure computatio
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -38,6 +45,7 @@ import numpy as np
 from scipy import sparse
 
 from orchestrator.analysis.loop_moments import shift_view
+from orchestrator.analysis.moment_blocks import Block, compose
 from orchestrator.analysis.sampled_chain import exact_applies, step_maps, timing_of, vehicle_of
 
 if TYPE_CHECKING:
@@ -45,11 +53,14 @@ if TYPE_CHECKING:
 
 
 # The second moment is a state x state matrix stepped over every step of the run: the study (7 vehicles, 190 states,
-# 15 566 steps) costs 6e8 state^2 x steps, 2-7 s on a 2-core machine. Beyond these the scatter is not predicted
-# (the measured one stands in), rather than a command that runs for hours or fills the memory.
+# 15 566 steps) costs 6e8 state^2 x steps, 2-3 s on a 2-core machine (blocks of steps, moment_blocks). Beyond these
+# the scatter is not predicted (the measured one stands in), rather than a command that runs for hours or fills the
+# memory.
 MOST_STATE = 1000
 MOST_WORK = 2e10
 MOST_PHASES = 5000  # step maps kept (a state x state mean map and the noises' columns each)
+BURIED = 1.0  # a probe whose runs centre off the cascade by more than this many of their sigmas is buried in noise
+DRAWS = 200_000  # of the fitted coefficients (_growth_draws): the growth's standard deviation to 0.2 % of it
 
 
 @dataclass(frozen=True)
@@ -87,6 +98,22 @@ class Scatter:
     frequencies: list[float]
     growth: list[float]
     sigma: list[float]
+    noise: list[float] | None = None  # per probe: the fitted amplitude's noise over the amplitude, the larger end's
+    expected: list[float] | None = None  # per probe: a run's growth averaged over the losses (not the mean run's)
+
+    def buried(self) -> dict[float, str]:
+        """The probes a run measures its noise at, not the probe: where a run's growth centres off the mean
+        run's (the cascade's) by more than its own standard deviation (``BURIED``). There the fitted amplitude
+        at an end of the stretch is mostly noise (its noise over it given), the headline's ratio of two such
+        amplitudes is biased towards the noise's own, and "mean +- sigma" no longer describes a run."""
+        found = {}
+        for k, w in enumerate(self.frequencies):
+            if self.expected is None or abs(self.expected[k] - self.growth[k]) <= BURIED * self.sigma[k]:
+                continue
+            found[w] = (f"buried in the noise of the losses: a run's growth centres on {self.expected[k]:.3g}, not "
+                        f"the cascade's {self.growth[k]:.3g} (sigma {self.sigma[k]:.2g}; the fitted amplitude's noise "
+                        f"is {self.noise[k]:.2g} times the probe's at an end of the stretch)")
+        return found
 
 
 class LinearString:
@@ -104,7 +131,16 @@ class LinearString:
                        if d.kind == "speed" and d.vehicle in vehicles]
         self.pushed_before = {i: rows.take(1)[0] for i in vehicles}  # p(k - 1)
         self.channels = [self._channel(rows, *wanted) for wanted in self._wanted()]
+        # held links: a held position is V_c times its age behind the sender's steady state, an affine forcing
+        # whose random part the losses create whatever the probe; a constant state carries it (a row of ones)
+        self.one = rows.take(1)[0] if self.stale_positions() else None
+        self.speed = config.platoon.speed
         self.size = rows.size
+
+    def stale_positions(self) -> bool:
+        """Whether a position is held across a lossy link (the paper law's gaps through held links): its age is
+        then random, and V_c times it a noise in the gap the linear deviations alone do not have."""
+        return not self.extrapolate and any(c.role == "seen" and c.loss > 0.0 for c in self.channels)
 
     def _wanted(self) -> list[tuple[str, str, int, int, object]]:
         """(kind, role, sender, receiver, the link's (direction, vehicle) or "plain") of every input of the model."""
@@ -153,13 +189,22 @@ class LinearString:
             gap = x_seen + self.h * v_seen + 0.5 * self.h * self.h * a_seen - x
             gap_rate = v_seen + self.h * a_seen - speed
         else:
-            gap, gap_rate = x_seen - x, v_seen - speed
+            gap, gap_rate = self._stale(x_seen, z, 1) - x, v_seen - speed
         return [speed, rate, gap, gap_rate]
 
-    def _aged(self, view: list[np.ndarray], kind: str, steps: int) -> list[np.ndarray]:
-        """A view moved ``steps`` steps on (held: as it is)."""
-        if not self.extrapolate or steps == 0:
+    def _stale(self, x: np.ndarray, z: np.ndarray, steps: int) -> np.ndarray:
+        """A held position ``steps`` steps older against the steady state it is a deviation from: V_c steps h
+        behind (nothing where the model keeps no row of ones: no held position crosses a lossy link)."""
+        if self.one is None:
+            return x
+        return x - self.speed * steps * self.h * z[self.one]
+
+    def _aged(self, z: np.ndarray, view: list[np.ndarray], kind: str, steps: int) -> list[np.ndarray]:
+        """A view moved ``steps`` steps on (held: as it is, its position ``steps`` steps older)."""
+        if steps == 0:
             return view
+        if not self.extrapolate:
+            return [self._stale(view[0], z, steps), *view[1:]] if kind == "motion" else view
         if kind == "motion":  # x, speed, rate: order 2
             return shift_view(view, steps, self.h)
         return shift_view(view[:2], steps, self.h) + shift_view(view[2:], steps, self.h)  # speed and gap: order 1
@@ -181,11 +226,11 @@ class LinearString:
     def delivered(self, z: np.ndarray, c: Channel, k: int) -> list[np.ndarray]:
         """The view of ``c`` at step k if its due beacon arrives."""
         slot = c.slots[((k - c.lag) // c.every) % len(c.slots)]
-        return self._aged([z[r] for r in slot], c.kind, c.lag)
+        return self._aged(z, [z[r] for r in slot], c.kind, c.lag)
 
     def kept(self, z: np.ndarray, c: Channel) -> list[np.ndarray]:
         """The view of ``c`` at step k if no beacon arrives: the one of the step before, aged a step."""
-        return self._aged([z[r] for r in c.view], c.kind, 1)
+        return self._aged(z, [z[r] for r in c.view], c.kind, 1)
 
     def advance(self, z: np.ndarray, k: int) -> np.ndarray:
         """The inputs over step k from the views, then the exact step of every vehicle and push."""
@@ -231,8 +276,15 @@ class LinearString:
                 total = total + z[s]
         return total
 
+    def at_rest(self) -> np.ndarray:
+        """The state at the run's start: every vehicle at its steady state (and the row of ones at 1)."""
+        z = np.zeros(self.size)
+        if self.one is not None:
+            z[self.one] = 1.0
+        return z
+
     def initial(self, k: int) -> np.ndarray:
-        """The deviation state at step k, before which nothing was pushed: the pushes' phasors only."""
+        """The pushes' phasors at step k (the rest zero): what the pushes started before step k add to the state."""
         z = np.zeros(self.size)
         for _, w, value, start, (c, s) in self.pushes:
             phase = w * (k * self.h - start)
@@ -296,16 +348,35 @@ def _design(times: np.ndarray, frequencies: list[float]) -> np.ndarray:
 class _Maps:
     """The step maps by phase (they repeat with the beacons and the slots)."""
 
-    def __init__(self, model: LinearString) -> None:
-        self.model = model
+    def __init__(self, model: LinearString, every: int) -> None:
+        self.model, self.every = model, every  # every: the records' steps, the blocks' length
         self.period = math.lcm(1, *(c.every * len(c.slots) for c in model.channels))
         self._by_phase: dict[int, _StepMaps] = {}
+        self._blocks: dict[tuple[int, int], Block] = {}
 
     def __call__(self, k: int) -> _StepMaps:
         phase = k % self.period
         if phase not in self._by_phase:
             self._by_phase[phase] = _step_maps(self.model, k)
         return self._by_phase[phase]
+
+    def block(self, k: int, length: int) -> Block:
+        """Steps k .. k + length - 1 as one map of the second moment (``moment_blocks``)."""
+        key = (k % self.period, length)
+        if key not in self._blocks:
+            self._blocks[key] = compose([self(k + i) for i in range(length)])
+        return self._blocks[key]
+
+
+def _blocks(start: int, stop: int, every: int) -> list[tuple[int, int]]:
+    """(first step, steps) of blocks covering steps start .. stop - 1, each within one stretch of ``every`` steps
+    from a multiple of it (the records' steps: a block never passes one)."""
+    found, k = [], start
+    while k < stop:
+        end = min(stop, (k // every + 1) * every)
+        found.append((k, end - k))
+        k = end
+    return found
 
 
 def predicted_scatter(config: "Config", stretch: Stretch) -> Scatter | str:
@@ -331,28 +402,86 @@ def predicted_scatter(config: "Config", stretch: Stretch) -> Scatter | str:
     records = _record_steps(model, stretch, first)
     if not records:
         return "not predicted: no record inside the fitting window"
-    work = (records[-1] - first) * model.size**2
+    stepped = records[-1] - (first if model.one is None else 0)  # stale positions: from the run's start (_start)
+    work = stepped * model.size**2
     if model.size > MOST_STATE or work > MOST_WORK:
-        return (f"not predicted: a state of {model.size} over {records[-1] - first} steps (at most {MOST_STATE}, and "
-                f"{MOST_WORK:.0e} state^2 x steps: the study's is 6e8, 2-7 s)")
-    maps = _Maps(model)
+        return (f"not predicted: a state of {model.size} over {stepped} steps (at most {MOST_STATE}, and "
+                f"{MOST_WORK:.0e} state^2 x steps: the study's is 6e8, 2-3 s)")
+    maps = _Maps(model, stretch.every)
     if maps.period > MOST_PHASES:
         return f"not predicted: its step maps repeat only every {maps.period} steps (at most {MOST_PHASES} are kept)"
     fit = _design(np.array(records) * model.h, stretch.frequencies)
     ends = (stretch.vehicles[0], stretch.vehicles[-1])
     speeds = {i: model.outputs(np.eye(model.size), i)[1] for i in ends}  # rows: the recorded speed
-    mean = _mean_records(model, maps, first, records, speeds)
-    weights, growth = _log_growth_weights(fit, mean, ends, len(stretch.vehicles) - 1, len(stretch.frequencies))
+    links, probes = len(stretch.vehicles) - 1, len(stretch.frequencies)
     if not any(c.loss > 0.0 for c in model.channels):  # nothing random: a run is its mean
-        return Scatter(list(stretch.frequencies), growth, [0.0] * len(growth))
-    variance = _log_growth_variance(model, maps, first, records, speeds, weights)
-    return Scatter(list(stretch.frequencies), growth, [g * math.sqrt(max(v, 0.0)) for g, v in zip(growth, variance)])
+        mean = _mean_records(model, maps, first, records, speeds)
+        amplitude = {i: fit[:2 * probes] @ mean[i] for i in ends}
+        growth = [_growth(amplitude[ends[0]][2 * k:2 * k + 2], amplitude[ends[1]][2 * k:2 * k + 2], links)
+                  for k in range(probes)]
+        return Scatter(list(stretch.frequencies), growth, [0.0] * probes)
+    mean, second = _fit_moments(model, maps, first, records, speeds, fit[:2 * probes])
+    growth, sigma, noise, expected = [], [], [], []
+    for k in range(probes):
+        wanted = [2 * k, 2 * k + 1, 2 * probes + 2 * k, 2 * probes + 2 * k + 1]  # (cos, sin) of the first, the last
+        mu, covariance = mean[wanted], second[np.ix_(wanted, wanted)] - np.outer(mean[wanted], mean[wanted])
+        growth.append(_growth(mu[:2], mu[2:], links))
+        average, deviation = _growth_draws(mu, covariance, links)
+        sigma.append(deviation)
+        expected.append(average)
+        noise.append(max(math.sqrt(max(np.trace(covariance[e:e + 2, e:e + 2]), 0.0) / 2.0) / np.hypot(*mu[e:e + 2])
+                         for e in (0, 2)))
+    return Scatter(list(stretch.frequencies), growth, sigma, noise, expected)
+
+
+@functools.cache
+def _normals() -> np.ndarray:
+    return np.random.default_rng(52).standard_normal((DRAWS, 4))
+
+
+def _growth(first: np.ndarray, last: np.ndarray, links: int) -> float:
+    """The headline at one probe from the (cos, sin) coefficients of the stretch's first and last vehicle."""
+    return float((np.hypot(*last) / np.hypot(*first)) ** (1.0 / links))
+
+
+def _growth_draws(mu: np.ndarray, covariance: np.ndarray, links: int) -> tuple[float, float]:
+    """The mean and standard deviation of (|c_last| / |c_first|) ^ (1 / links), c = the fitted (cos, sin) coefficients,
+    whose mean ``mu`` and covariance (4 x 4) are exact. A fit over the window is a sum over hundreds of the
+    noise's correlation times: the coefficients are taken Gaussian, and the growth's deviation is drawn, not
+    linearized (to first order it is growth x the gradient of its log; that overstates it where the noise is a
+    fair part of an amplitude: the held paper law's at 0.3 rad/s, 0.97 against 0.24 measured over six seeds).
+    Fixed draws: the same config gives the same number, to 0.2 % of it."""
+    values, vectors = np.linalg.eigh(0.5 * (covariance + covariance.T))
+    root = vectors * np.sqrt(np.clip(values, 0.0, None))
+    draws = mu + _normals() @ root.T
+    growth = (np.hypot(draws[:, 2], draws[:, 3]) / np.hypot(draws[:, 0], draws[:, 1])) ** (1.0 / links)
+    return float(growth.mean()), float(growth.std())
+
+
+def _start(model: LinearString, maps: _Maps, first: int, square: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """The state's mean and (``square``) second moment at the first push's step. Without stale held positions
+    nothing moves before it: the pushes' phasors. With them the losses stir the string from the run's start
+    (step 0, at rest) on, and the first push meets that stirred string: stepped from step 0, the phasors (not
+    random) added at the push."""
+    pushes = model.initial(first)
+    if model.one is None:
+        return pushes, (np.outer(pushes, pushes) if square else None)
+    m = model.at_rest()
+    q = np.outer(m, m) if square else None
+    for k, length in _blocks(0, first, maps.every):
+        block = maps.block(k, length)
+        if square:
+            q = block.second_moment(q)
+        m = block.mean @ m
+    if square:
+        q = q + np.outer(m, pushes) + np.outer(pushes, m) + np.outer(pushes, pushes)
+    return m + pushes, q
 
 
 def _mean_records(model: LinearString, maps: _Maps, first: int, records: list[int],
                   speeds: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
     """The mean run's recorded speeds of the stretch's ends."""
-    m, found, wanted = model.initial(first), {i: [] for i in speeds}, set(records)
+    m, found, wanted = _start(model, maps, first, False)[0], {i: [] for i in speeds}, set(records)
     for k in range(first, records[-1] + 1):
         if k in wanted:
             for i, row in speeds.items():
@@ -361,44 +490,25 @@ def _mean_records(model: LinearString, maps: _Maps, first: int, records: list[in
     return {i: np.array(values) for i, values in found.items()}
 
 
-def _log_growth_weights(fit: np.ndarray, mean: dict[int, np.ndarray], ends: tuple[int, int], links: int,
-                        probes: int) -> tuple[dict[int, np.ndarray], list[float]]:
-    """Per end vehicle, (probes x records) weights whose product with its recorded speeds is, to first order,
-    the deviation of log(growth) at each probe; and the mean run's growth at each probe."""
-    weights, amplitude = {}, {}
-    for sign, i in zip((-1.0, 1.0), ends):
-        coefficients = fit @ mean[i]
-        rows = []
-        for k in range(probes):
-            a, b = coefficients[2 * k], coefficients[2 * k + 1]
-            amplitude.setdefault(i, []).append(math.hypot(a, b))
-            rows.append(sign * (a * fit[2 * k] + b * fit[2 * k + 1]) / (a * a + b * b) / links)
-        weights[i] = np.array(rows)
-    growth = [(amplitude[ends[1]][k] / amplitude[ends[0]][k]) ** (1.0 / links) for k in range(probes)]
-    return weights, growth
-
-
-def _log_growth_variance(model: LinearString, maps: _Maps, first: int, records: list[int],
-                         speeds: dict[int, np.ndarray], weights: dict[int, np.ndarray]) -> list[float]:
-    """The variance over the delivery patterns of each probe's log-growth functional: the state's second
-    moment, stepped exactly, with the functionals accumulated beside the state."""
-    n, probes = model.size, len(next(iter(weights.values())))
-    m = model.initial(first)
-    q = np.outer(m, m)
-    total_mean, cross, total_square = np.zeros(probes), np.zeros((probes, n)), np.zeros((probes, probes))
+def _fit_moments(model: LinearString, maps: _Maps, first: int, records: list[int], speeds: dict[int, np.ndarray],
+                 fit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mean and second moment over the delivery patterns of the fitted coefficients (``fit`` @ the records of
+    each end vehicle, the first's then the last's): the state's second moment stepped exactly, the coefficients
+    (linear functionals of the records) accumulated beside the state."""
+    n, count = model.size, 2 * len(fit)
+    m, q = _start(model, maps, first, True)
+    total_mean, cross, total_square = np.zeros(count), np.zeros((count, n)), np.zeros((count, count))
     index = {k: r for r, k in enumerate(records)}
-    for k in range(first, records[-1] + 1):
+    for k, length in [*_blocks(first, records[-1], maps.every), (records[-1], 0)]:
         if k in index:  # the functionals take this record: g^T z, with z's moments m and q
-            g = sum(weights[i][:, index[k]][:, None] * speeds[i][None, :] for i in speeds)  # probes x n
+            g = np.vstack([fit[:, index[k]][:, None] * speeds[i][None, :] for i in speeds])  # count x n
             total_square += g @ q @ g.T + cross @ g.T + g @ cross.T
             cross += g @ q
             total_mean += g @ m
-        step = maps(k)
-        cross = (step.mean @ cross.T).T
-        q_next = step.mean @ (step.mean @ q).T  # q is symmetric: M q M^T
-        for weight, through, rows in step.noises:  # the noise is through @ rows @ z: of rank <= the view's width
-            q_next += weight * (through @ (rows @ q @ rows.T) @ through.T)
-        # the functionals' cross moment with the state picks up the noise too, but only through the state: the
-        # noise of step k is independent of everything before, so E[total * noise] = 0
-        q, m = q_next, step.mean @ m
-    return list(np.diag(total_square) - total_mean**2)
+        if length:
+            block = maps.block(k, length)
+            cross = (block.mean @ cross.T).T
+            # the functionals' cross moment with the state picks up the noise too, but only through the state: the
+            # noise of a step is independent of everything before, so E[total * noise] = 0
+            q, m = block.second_moment(q), block.mean @ m
+    return total_mean, total_square
