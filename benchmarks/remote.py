@@ -94,7 +94,7 @@ class _Fleet:
         from bridge.fmu_wire import fmu_key
         from orchestrator.components.fmu import FmuComponent
 
-        self.host = RemoteHost(tuple(endpoints[:n]), one_thread=True)  # as a run's (orchestrator/components/remote.py)
+        self.host = RemoteHost(tuple(endpoints[:n]))  # as a run's (orchestrator/components/remote.py)
         self.key = fmu_key("platoon", "vehicle1")
         inputs = [v.name for v in fmu.description.modelVariables if v.causality == "input"]
         outputs = [v.name for v in fmu.description.modelVariables if v.causality == "output"]

@@ -17,7 +17,6 @@ from __future__ import annotations
 import secrets
 import threading
 import time
-from contextlib import nullcontext
 from dataclasses import dataclass, field
 from struct import Struct
 from typing import Any, Sequence
@@ -25,7 +24,7 @@ from typing import Any, Sequence
 import zenoh
 
 from bridge import fmu_wire as wire
-from bridge.session import one_zenoh_thread, open_session, zenoh_config
+from bridge.session import open_session, zenoh_config
 from fmus.component import ComponentError
 
 CLOSE_TIMEOUT = 0.3  # s to wait for a server to confirm a free: a dead server must not hold the run's exit
@@ -39,7 +38,6 @@ class RemoteHost:
     listen: tuple[str, ...] = ()
     zenoh_config: str | None = None
     allow_insecure: bool = False
-    one_thread: bool = False  # open the session in ``one_zenoh_thread`` (a run's, a benchmark's remote vehicles)
     _session: Any = None
     _users: int = 0
     _frees: list[Any] = field(default_factory=list)  # the frees sent, answered (or timed out) before closing
@@ -50,8 +48,7 @@ class RemoteHost:
         with self._lock:
             if self._session is None:
                 config = zenoh_config(self.connect, self.listen, self.zenoh_config, allow_insecure=self.allow_insecure)
-                with one_zenoh_thread() if self.one_thread else nullcontext():
-                    self._session = open_session(config, "the run's remote vehicles")
+                self._session = open_session(config, "the run's remote vehicles")
             self._users += 1
             return self._session
 

@@ -22,10 +22,8 @@ from __future__ import annotations
 
 import ipaddress
 import json
-import os
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Sequence
 
 import zenoh
 
@@ -33,35 +31,6 @@ _LOG_STARTED = False
 SECURE_PROTOCOLS = ("tls", "quic")  # link protocols that authenticate and encrypt (docs/hil.md)
 LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe", "vsock")  # never leave the machine
 RECIPE = "run `platoon hil-certs` and use tls/ endpoints with its Zenoh configs (docs/hil.md, \"A secure lab\")"
-
-
-# Every Zenoh runtime of the process (app, acceptor, tx, rx, net) on one worker thread: see ``one_zenoh_thread``.
-ONE_THREAD_RUNTIME = ("(app: (worker_threads: 1), acc: (handover: app), tx: (handover: app), rx: (handover: app), "
-                      "net: (handover: app))")
-
-
-@contextmanager
-def one_zenoh_thread() -> Iterator[None]:
-    """Open the sessions of this block with the process's Zenoh on one thread, not its default five
-    runtimes (six or more threads).
-
-    For a process whose Zenoh traffic is many small request/reply pairs (``platoon serve``, a run's remote
-    vehicles): by default a request hops rx -> (the callback) -> tx threads, and the idle runtimes' threads
-    are woken along the way, about ten context switches per request and server on this 2-core machine;
-    on one thread it is about one, and a served step costs about half the CPU on both sides
-    (docs/remote.md, "One round trip per step"). Zenoh reads ``ZENOH_RUNTIME`` once, when its runtime
-    starts (the process's first session): so this only acts if that happens in the block, and the
-    variable is removed again afterwards (child processes keep Zenoh's defaults). A ``ZENOH_RUNTIME``
-    the user set wins.
-    """
-    if os.environ.get("ZENOH_RUNTIME"):  # the user's (an empty one counts as unset: Zenoh's defaults)
-        yield
-        return
-    os.environ["ZENOH_RUNTIME"] = ONE_THREAD_RUNTIME
-    try:
-        yield
-    finally:
-        os.environ.pop("ZENOH_RUNTIME", None)
 
 
 class SessionError(RuntimeError):

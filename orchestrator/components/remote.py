@@ -59,8 +59,7 @@ def remote_components(config: Config, scenario: "Scenario", fmus: dict[str, "Unp
     connect = tuple(dict.fromkeys(e for o in overrides.values() for e in o.connect or ()))
     listen = tuple(dict.fromkeys(e for o in overrides.values() for e in o.listen or ()))
     files = [o.zenoh_config for o in overrides.values() if o.zenoh_config]
-    host = RemoteHost(connect, listen, files[0] if files else None, config.hil.allow_insecure,
-                      one_thread=True)  # Zenoh on one thread, if the run's first session: bridge/session.py
+    host = RemoteHost(connect, listen, files[0] if files else None, config.hil.allow_insecure)
     specs = {spec.name: spec for spec in scenario.components}
     components: dict[str, Component] = {}
     for vehicle, override in overrides.items():

@@ -12,7 +12,6 @@ the server can serve the next run; ``expire`` is called by the serving loop.
 
 from __future__ import annotations
 
-import ctypes
 import hmac
 import threading
 import time
@@ -142,37 +141,17 @@ class ServedInstance:
             self._free("freed: the server stops")
 
 
-def _keep_thread_state(threads: set[int]) -> None:
-    """Keep a Python thread state for the calling thread (a Zenoh thread, running ``answer``) for its life.
-
-    Zenoh calls ``answer`` from a thread Python did not start; every call takes the GIL with
-    PyGILState_Ensure, which, for a thread without a thread state, makes one and deletes it again when
-    the call ends (a new frame stack each time). One extra PyGILState_Ensure that is never released
-    keeps the state alive, so a call only takes and drops the GIL: a served request costs about a fifth
-    less of the server's CPU (docs/remote.md, "One round trip per step"). The thread still drops the GIL
-    after each call (PyGILState_Release of an unlocked state saves the thread)."""
-    thread = threading.get_ident()
-    if thread not in threads:
-        threads.add(thread)
-        ctypes.pythonapi.PyGILState_Ensure()
-
-
 def serve(instance: ServedInstance, session: Any, key: str, stop: threading.Event) -> None:
     """Answer queries on ``key`` until ``stop`` is set; the instance is freed on the way out.
 
-    ``answer`` runs on Zenoh's own thread (``indirect=False``), not handed to a Python thread of zenoh's
-    (one thread switch less per request); with ``one_zenoh_thread`` (bridge/session.py) that is the only
-    thread the server's Zenoh has."""
-    import zenoh
-
-    threads: set[int] = set()
-
+    Zenoh's default threads and callback hand-over, not one thread answering on Zenoh's own (tried: about
+    half the CPU per served step, but in the suite's parallel phase a libcosim host then took 4.5-5 s to
+    exit after freeing its client FMUs, against 0.05-0.3 s: docs/remote.md, "One round trip per step")."""
     def answer(query: Any) -> None:
-        _keep_thread_state(threads)
         payload = query.payload.to_bytes() if query.payload is not None else b""
         query.reply(query.key_expr, instance.handle(payload))
 
-    queryable = session.declare_queryable(key, zenoh.handlers.Callback(answer, indirect=False))
+    queryable = session.declare_queryable(key, answer)
     try:
         while not stop.wait(min(1.0, instance.lease / 4)):
             instance.expire()
