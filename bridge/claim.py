@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import secrets
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import threading
 from typing import Callable
@@ -120,6 +120,9 @@ class RobotClaim:
     lease: float = CLAIM_LEASE  # s the owner's claim holds without a renewal (with a lab key)
     renewed: float = 0.0  # when the owner last renewed its claim
     lease_ended: bool = False  # the released claim ended because its lease ran out (a status flag)
+    # the status that says the last claim ended, until a status said it: a waiting claim can be granted in the same
+    # breath (its request arrives as the lease runs out), and the ended claim's run, or a bystander, must still hear
+    unsaid_end: Status | None = None
 
     def host_appeared(self, claim: int, now: float = 0.0) -> bool:
         """A host's token appeared; True if that claim is now the owner (the robot was free and, with a lab
@@ -142,6 +145,7 @@ class RobotClaim:
         claim = self.owner
         self.owner, self.released, self.lease_ended = 0, claim, lease_ended
         self.ended.append(claim)
+        self.unsaid_end = self.status(0, 0.0)
         return claim
 
     def host_left(self, claim: int) -> bool:
@@ -246,6 +250,14 @@ class RobotClaim:
 
     def record_applied(self, seq: int) -> None:
         self.applied = max(self.applied, seq)
+
+    def statuses(self, seq: int, now: float, flags: int = 0) -> list[Status]:
+        """The statuses due now, numbered from ``seq``: the end of the last claim first if no status said it yet
+        (another claim was granted before one went out), then the robot side's current one."""
+        said = [] if self.unsaid_end is None or not self.owner else [
+            replace(self.unsaid_end, seq=seq, stamp=now, flags=self.unsaid_end.flags | flags)]
+        self.unsaid_end = None
+        return said + [self.status(seq + len(said), now, flags)]
 
     def status(self, seq: int, now: float, flags: int = 0) -> Status:
         if self.lease_ended and not self.owner:

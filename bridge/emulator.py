@@ -82,6 +82,11 @@ class EmulatorSettings:
     flying_start: bool = True
     seed: int | None = None
     lab_key: LabKey | None = None  # the runs' commands must carry its MAC (bridge.lab_key); None: tokens claim
+    # s, the runs' command validity (deadline = send time + it): when given, a steady radio: each command is applied
+    # command_latency after it was SENT (or on arrival, if later), so the host's own delivery jitter (the Zenoh hop,
+    # milliseconds on a loaded machine) does not reach the wheels. A test bench's choice (the calibration tests: their
+    # truth is the robot's, not the machine's); by default, as a radio does, command_latency counts from arrival
+    steady_radio_validity: float | None = None
 
 
 SLACK_KEPT = 10_000  # commands whose deadline slack the end-of-run line summarises (100 s at 100 Hz)
@@ -232,11 +237,16 @@ class EmulatedRobot:
                      "are only counted)")
 
     def queue(self, command: WheelCommand, now: float) -> None:
-        """An accepted command: apply it ``command_latency`` from now (the radio)."""
+        """An accepted command: apply it ``command_latency`` from now (the radio), or from its send time with a
+        steady radio (``EmulatorSettings.steady_radio_validity``)."""
         self.counters.accept()
         self.last_valid = now
         self.advance(now)
-        self.pending.append((now + self.command_latency, command))
+        validity = self.settings.steady_radio_validity
+        if validity is None:
+            self.pending.append((now + self.command_latency, command))
+        else:  # its send time (never later than now: the deadline is the sender's word), or on arrival if later
+            self.pending.append((max(min(command.deadline - validity, now) + self.command_latency, now), command))
         self.advance(now)
 
     def host_arrived(self, claim: int, now: float) -> None:
@@ -297,13 +307,15 @@ class EmulatedRobot:
         # stamped as a motion capture that hands a frame over pose_latency after it saw the robot stamps it
         return Pose(self.pose_seq, self.command_seq, now + self.pose_latency, x, y, heading, self.claim.owner)
 
-    def status(self, now: float) -> bytes | None:
-        """The status message if one is due (every ``STATUS_PERIOD``, or at once after a claim change)."""
+    def statuses(self, now: float) -> list[bytes]:
+        """The status messages due (every ``STATUS_PERIOD``, or at once after a claim change; a claim's end is
+        said even when another claim was granted before a status went out)."""
         if not self.claim_changed and now - self.claim_status_time < STATUS_PERIOD:
-            return None
+            return []
         self.claim_changed, self.claim_status_time = False, now
-        self.status_seq += 1
-        return encode_status(self.claim.status(self.status_seq, now, STATUS_POSES if self.echoes_poses else 0))
+        due = self.claim.statuses(self.status_seq + 1, now, STATUS_POSES if self.echoes_poses else 0)
+        self.status_seq += len(due)
+        return [encode_status(status) for status in due]
 
 
 class Emulator:
@@ -386,11 +398,12 @@ class Emulator:
                         due = []
                         while self._outbox and self._outbox[0][0] <= now:
                             due.append(heapq.heappop(self._outbox))
-                        reports = [(index, robot.status(now)) for index, robot in enumerate(self.robots)]
+                        reports = [(index, report) for index, robot in enumerate(self.robots)
+                                   for report in robot.statuses(now)]
                     for _, _, index, payload in due:
                         publishers[index].put(payload)
                     for index, report in reports:
-                        if report is not None and statuses[index] is not None:
+                        if statuses[index] is not None:
                             statuses[index].put(report)
                     wake = min(next_sample, self._outbox[0][0] if self._outbox else next_sample)
                     self.stop_event.wait(max(0.0, min(wake - self.clock(), 0.01)))

@@ -405,12 +405,12 @@ class SerialEndpoint:
                     self._watch_once()
                     self._expire(now)
                     due = self._claim_changed or now - reported >= STATUS_PERIOD
+                    said = self._claim.statuses(status_seq + 1, now) if due else []
                     if due:
-                        status_seq += 1
-                        status = encode_status(self._claim.status(status_seq, now))
+                        status_seq += len(said)
                         self._claim_changed, reported = False, now
-                if due:
-                    publisher.put(status)
+                for status in said:
+                    publisher.put(encode_status(status))
                 stop_event.wait(WATCHDOG_PERIOD)
 
     def _shutdown(self, reason: str, failed: bool) -> SerialEndpointError | None:

@@ -121,13 +121,14 @@ def test_sequence_and_age_checks_name_the_problem() -> None:
 
 # -- emulator physics and watchdog, no network -----------------------------------------------------
 
-def _robot(command_latency: float = 0.0, flying_start: bool = True):
+def _robot(command_latency: float = 0.0, flying_start: bool = True, steady_radio_validity: float | None = None):
     from bridge.emulator import EmulatedRobot, EmulatorSettings, RobotSpec
     from fmus.model.dynamics import M3piDynamics
 
     said: list[str] = []
     spec = RobotSpec(KEYS, 0.0, 0.0, 0.0, 0.3, M3piDynamics(0.5))
-    settings = EmulatorSettings(command_latency=command_latency, command_timeout=0.25, flying_start=flying_start)
+    settings = EmulatorSettings(command_latency=command_latency, command_timeout=0.25, flying_start=flying_start,
+                                steady_radio_validity=steady_radio_validity)
     robot = EmulatedRobot(spec, replace(settings, lab_key=LAB_KEY), said.append)
     robot.time = 100.0
     claim(robot, CLAIM, 100.0)
@@ -179,6 +180,25 @@ def test_emulated_robot_applies_a_command_after_the_radio_latency_and_refuses_la
     assert robot.counters.dropped["malformed"] == 1 and robot.command == (0.2, 0.4)
 
 
+def test_a_steady_radio_applies_each_command_its_latency_after_it_was_sent_or_on_arrival_if_later() -> None:
+    """``--steady-radio`` (the calibration tests' bench): the latency counts from the send time the deadline gives
+    (deadline less the validity), so how long this host took to deliver the command does not move the wheels'
+    timing; a command that arrives later than its latency after sending is applied on arrival."""
+    robot, _ = _robot(command_latency=0.02, flying_start=False, steady_radio_validity=0.5)
+    robot.receive(wheels(1, 100.5, 0.2, 0.4), 100.004)  # sent at 100.0, delivered 4 ms later
+    robot.advance(100.0195)
+    assert robot.command == (0.0, 0.0)
+    robot.advance(100.0205)
+    assert robot.command == (0.2, 0.4)  # 20 ms after sending, not 24 ms
+    robot.receive(wheels(2, 100.53, 0.1, 0.1), 100.06)  # sent at 100.03, delivered 30 ms later: applied at once
+    assert robot.command == (0.1, 0.1) and robot.command_seq == 2
+    robot.receive(wheels(3, 100.9, 0.3, 0.3), 100.07)  # a deadline that says "sent at 100.4", in the future
+    robot.advance(100.0895)
+    assert robot.command == (0.1, 0.1)  # its latency counts from its arrival: a sender's word moves nothing later
+    robot.advance(100.0905)
+    assert robot.command == (0.3, 0.3)
+
+
 def test_only_the_claim_holding_the_robot_moves_it_and_nothing_sent_before_a_claim_counts() -> None:
     """The lock a stranger tried: a stop with sequence number 2^32 - 1 sent to an idle robot, then commands of
     another claim (any number) during a run: refused and counted; the next claim drives from 1."""
@@ -194,7 +214,7 @@ def test_only_the_claim_holding_the_robot_moves_it_and_nothing_sent_before_a_cla
     robot.receive(wheels(2**32 - 1, 100.1, 0.9, -0.9, claim=OTHER), 100.02)  # the stranger, during the run
     robot.receive(wheels(2, 100.1, 0.3, 0.3, claim=OTHER + 1), 100.03)
     assert robot.command == (0.3, 0.3) and robot.command_seq == 2
-    status = decode_status(robot.status(100.04))
+    status = decode_status(robot.statuses(100.04)[-1])
     assert (status.owner, status.applied, status.accepted, status.dropped) == (OTHER + 1, 2, 2, 0)
     assert (status.foreign, status.foreign_claim, status.flags & STATUS_POSES) == (2, OTHER, STATUS_POSES)  # its request, command
     assert status.refusal is Drop.FOREIGN  # the robot side says why: another claim holds it
@@ -238,9 +258,9 @@ def test_a_stop_of_the_claim_is_applied_whatever_its_number_even_after_the_claim
     robot.receive(wheels(2, 100.02, 0.0, 0.0), 100.03)  # the run's stop, numbered lower, its deadline passed
     robot.advance(100.04)
     assert robot.command == (0.0, 0.0) and robot.link.state.value == "stopped"
-    assert decode_status(robot.status(100.2)).applied == 2**31
+    assert decode_status(robot.statuses(100.2)[-1]).applied == 2**31
     robot.host_gone(CLAIM, 100.3)
-    released = decode_status(robot.status(100.4))
+    released = decode_status(robot.statuses(100.4)[-1])
     assert (released.owner, released.released, released.applied) == (0, CLAIM, 2**31)
     robot.command = (0.5, 0.5)  # as if still turning: a late stop of the ended claim stops it, a drive does not
     robot.receive(wheels(3, 100.9, 0.0, 0.0), 100.5)
@@ -269,7 +289,7 @@ def test_a_copied_token_holds_nothing_the_run_s_mac_d_release_or_its_lease_ends_
     assert robot.claim.owner == CLAIM and robot.counters.dropped["unauthenticated"] == 1
     robot.receive(release(CLAIM, 100.3), 100.2)  # the run's own
     assert robot.claim.owner == 0 and robot.command == (0.0, 0.0)
-    status = decode_status(robot.status(100.21))
+    status = decode_status(robot.statuses(100.21)[-1])
     assert (status.owner, status.released, status.flags & STATUS_LEASE_ENDED) == (0, CLAIM, 0)
     assert "released (its run released it)" in " ".join(said)
     robot.receive(release(CLAIM, 100.3), 100.22)  # its repeat: nothing more, nothing counted
@@ -282,11 +302,32 @@ def test_a_copied_token_holds_nothing_the_run_s_mac_d_release_or_its_lease_ends_
     assert robot.claim.owner == OTHER
     robot.expire(101.1 + CLAIM_LEASE + 0.01)  # ... and not longer
     assert robot.claim.owner == 0 and robot.command == (0.0, 0.0)
-    status = decode_status(robot.status(103.2))
+    status = decode_status(robot.statuses(103.2)[-1])
     assert (status.released, status.flags & STATUS_LEASE_ENDED) == (OTHER, STATUS_LEASE_ENDED)
     assert f"released (its lease of {CLAIM_LEASE:g} s ran out)" in " ".join(said)
     claim(robot, OTHER + 1, 103.2)
     assert robot.claim.owner == OTHER + 1
+
+
+def test_a_claim_s_end_is_said_even_when_the_waiting_claim_is_granted_before_a_status_goes_out() -> None:
+    """A run waits for the robot (its token there, its requests arriving) while the owner's run is gone: the
+    request that arrives as the owner's lease runs out both ends that claim and is granted. The robot side's
+    next statuses still say the old claim ended, and why (its lease), before naming the new owner: the old run,
+    or anyone watching, must hear it (the counts in a status are its owner's, so one status cannot say both)."""
+    from bridge.claim import CLAIM_LEASE
+
+    robot, _ = _robot()
+    robot.receive(wheels(1, 100.2, 0.3, 0.3), 100.1)  # the owner's last message: then it is killed
+    assert len(robot.statuses(100.1)) == 1  # said: CLAIM owns the robot
+    robot.host_arrived(OTHER, 100.5)  # the next run's token: the robot is not free
+    late = 100.1 + CLAIM_LEASE + 0.01
+    robot.receive(wheels(0, late + 1.0, 0.0, 0.0, OTHER), late)  # its request, as the lease runs out
+    assert robot.claim.owner == OTHER
+    ended, current = (decode_status(s) for s in robot.statuses(late))
+    assert (ended.owner, ended.released, ended.flags & STATUS_LEASE_ENDED) == (0, CLAIM, STATUS_LEASE_ENDED)
+    assert ended.applied == 1 and ended.flags & STATUS_POSES  # its own final counts, and the robot side's flags
+    assert (current.owner, current.released, current.seq) == (OTHER, 0, ended.seq + 1)
+    assert [decode_status(s).owner for s in robot.statuses(late + 0.1)] == [OTHER]  # the end is said once
 
 
 def test_only_fresh_messages_of_the_run_renew_its_lease() -> None:
@@ -327,7 +368,7 @@ def test_the_run_is_told_when_the_robot_side_ended_its_claim_and_why_its_request
     for skew, reason, words in ((2.0, Drop.LATE, "ahead of this host's by more than 1 s"),
                                 (-7.0, Drop.FUTURE, "behind this host's by more than 5 s")):
         robot.receive(wheels(0, 101.0, 0.0, 0.0, claim=OTHER + 5), 100.0 + skew)  # sent at 100.0, valid 1 s
-        status = decode_status(robot.status(101.0 + abs(skew)))
+        status = decode_status(robot.statuses(101.0 + abs(skew))[-1])
         assert (status.foreign_claim, status.refusal) == (OTHER + 5, reason)
         waiting = HostClaim(claim=OTHER + 5)
         waiting.robot_status(status, sent=0)
