@@ -187,6 +187,9 @@ def m3pi_emulator(
     command_latency: Annotated[float, typer.Option(metavar="SECONDS", help="s from receiving a command to applying it (the radio)")] = 0.0,
     command_timeout: Annotated[float, typer.Option(metavar="SECONDS", help="s without a valid command before the wheels stop")] = 0.25,
     standing_start: Annotated[bool, typer.Option("--standing-start", help="start from rest, not at the config's initial speed")] = False,
+    steady_radio: Annotated[bool, typer.Option("--steady-radio", help="count each command's latency from its send time "
+                            "(deadline less the config's hil.command_validity), not from its arrival: this host's "
+                            "delivery jitter does not reach the wheels (a test bench's choice, docs/hil.md)")] = False,
     seed: Annotated[Optional[int], typer.Option(help="noise seed (default: different every run)")] = None,
     listen: Endpoints = [],
     connect: Endpoints = [],
@@ -232,7 +235,8 @@ def m3pi_emulator(
             return RosEmulator(robots, settings, zenoh_config, links)
     default_listen, default_connect = emulator_endpoints(parsed)
     settings = EmulatorSettings(rate, noise_position, math.radians(noise_heading), latency, command_latency,
-                                command_timeout, not standing_start, seed, robot_side_key(lab_key or parsed.hil.lab_key))
+                                command_timeout, not standing_start, seed, robot_side_key(lab_key or parsed.hil.lab_key),
+                                parsed.hil.command_validity if steady_radio else None)
     stop = threading.Event()
     stop_on_signals(stop)
     try:
