@@ -30,6 +30,7 @@ from orchestrator.scenario.config import TARGET_VEHICLE, Config
 from orchestrator.scenario.wiring import TARGET
 
 if TYPE_CHECKING:
+    from orchestrator.analysis.chain_model import ChainModel
     from orchestrator.analysis.run_scatter import Scatter
     from orchestrator.trace.reader import Trace
 
@@ -312,16 +313,18 @@ def frequency_gains(errors: dict[str, dict[str, np.ndarray]], order: list[str], 
 def predicted_gains(config: Config, names: list[str], clean: list[str], frequencies: list[float]) -> list[list[float]] | None:
     """Per frequency, per link along ``clean``: the gain the sampled-data cascade predicts for this run
     (its pushes, its links, its records); None where the cascade does not apply."""
-    from orchestrator.analysis.sampled_chain import cascade_speeds, exact_applies
+    from orchestrator.analysis.chain_model import chain_model
+    from orchestrator.analysis.sampled_chain import cascade_speeds
 
-    if exact_applies(config) is not None:
+    chain = chain_model(config)
+    if chain.missing is not None:
         return None
     source = source_vehicle(config)
     order = [component_index(name, names) for name in propagation(config, names, source)]
     order = order if law_of(config, source) != "paper" else list(range(config.platoon.count, order[-1] - 1, -1))
     result = []
     for w in frequencies:
-        speeds = dict(zip(order, cascade_speeds(config, order, w, config.simulation.trace_every)))
+        speeds = dict(zip(order, cascade_speeds(chain, order, w, config.simulation.trace_every)))
         amplitudes = [abs(speeds[component_index(name, names)]) for name in clean]
         result.append([ratio(b, a) for a, b in zip(amplitudes, amplitudes[1:])])
     return result
@@ -360,20 +363,24 @@ def probe_growths(config: Config, trace) -> tuple[list[str], tuple[float, float]
     return clean, window, (amplitudes[-1] / amplitudes[0]) ** (1.0 / (len(clean) - 1))
 
 
-def predicted_run_scatter(config: Config, clean: list[str], window: tuple[float, float]) -> "Scatter | str":
+def predicted_run_scatter(config: Config, clean: list[str], window: tuple[float, float],
+                          chain: "ChainModel | None" = None) -> "Scatter | str":
     """The analysis' mean and standard deviation of a single run's growth per link over ``clean``, per probe, over
-    its delivery patterns (orchestrator/analysis/run_scatter.py), or why it is not predicted."""
+    its delivery patterns (orchestrator/analysis/run_scatter.py), or why it is not predicted; ``chain``: the
+    config's ``chain_model`` where the caller has it."""
+    from orchestrator.analysis.chain_model import chain_model
     from orchestrator.analysis.run_scatter import Stretch, predicted_scatter
 
     names = [component_name(i) for i in range(1, config.platoon.count + 1)]
     stretch = Stretch([component_index(name, names) for name in clean], probe_frequencies(config), window,
                       config.simulation.trace_every)
-    return predicted_scatter(config, stretch)
+    return predicted_scatter(chain or chain_model(config), stretch)
 
 
-def scatter_lines(config: Config) -> list[str]:
+def scatter_lines(config: Config, chain: "ChainModel | None" = None) -> list[str]:
     """`platoon analyze`'s lines on a single run's headline: per probe, the cascade's growth over the links that
-    measure propagation and the predicted standard deviation of one run's value (none without sinusoids)."""
+    measure propagation and the predicted standard deviation of one run's value (none without sinusoids);
+    ``chain``: the config's ``chain_model`` where the caller has it."""
     frequencies = probe_frequencies(config)
     if not frequencies:  # no sinusoid: no probe, and no run's headline to predict
         return []
@@ -385,7 +392,7 @@ def scatter_lines(config: Config) -> list[str]:
         window = steady_window(config, config.simulation.stop_time)
     except ValueError:
         return []
-    scatter = predicted_run_scatter(config, clean, window)
+    scatter = predicted_run_scatter(config, clean, window, chain)
     head = f"a single run's growth per link over {' -> '.join(clean)} (fitted over {window[0]:g} to {window[1]:g} s)"
     if isinstance(scatter, str):
         return [f"{head}: its scatter {scatter}"]

@@ -113,10 +113,12 @@ def _check_disturbances(config: "Config") -> None:
 
 
 def _check_lifting(config: "Config") -> None:
-    """The exact cascade's size, where it is computed (``sampled_chain.exact_applies``)."""
-    from orchestrator.analysis.sampled_chain import COARSE_FREQUENCIES, exact_applies, lifting_period
+    """The exact cascade's size, where it is computed (``chain_model.ChainModel.missing`` None)."""
+    from orchestrator.analysis.chain_model import chain_model
+    from orchestrator.analysis.sampled_chain import COARSE_FREQUENCIES
 
-    if exact_applies(config) is not None:
+    chain = chain_model(config)
+    if chain.missing is not None:
         return
     for direction, vehicle, link in _links(config):
         terms = loss_terms(link.loss, link.burst)
@@ -126,7 +128,7 @@ def _check_lifting(config: "Config") -> None:
                 f"{link_key(config, direction, vehicle, 'burst')} = {link.burst:g}: a receiver may be using any of "
                 f"the last {terms:,} beacons, more than the {MAX_LOSS_TERMS:,} the sampled-data cascade sums over "
                 "this machine's memory and a minute; lower the loss or the burst")
-    period = lifting_period(config)
+    period = chain.lifting_period()
     need = BYTES_PER_LIFTED * COARSE_FREQUENCIES * period**2
     if need > LIFTED_BYTES:
         step = config.simulation.step

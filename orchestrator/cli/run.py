@@ -172,13 +172,14 @@ def analyze(
             f"platoon.speed_law = {parsed.platoon.speed_law!r} (it knows only the paper's law)")
         out.print(f"eigenvalues: not for {why}; the speed chain:", highlight=False, soft_wrap=True)
     if parsed.platoon.count > 1:
+        from orchestrator.analysis.chain_model import chain_model
+        from orchestrator.analysis.error_gains import scatter_lines
         from orchestrator.analysis.verdict import closed_form_verdict
 
-        out.print(chain_report(parsed), highlight=False, soft_wrap=True)
-        out.print(closed_form_verdict(parsed).line(), highlight=False, soft_wrap=True)  # as stability and the map say it
-        from orchestrator.analysis.error_gains import scatter_lines
-
-        for line in scatter_lines(parsed):  # a single run's predicted scatter about that mean
+        chain = chain_model(parsed)  # the chain the cascade, the loop and the scatter below all read
+        out.print(chain_report(parsed, chain), highlight=False, soft_wrap=True)
+        out.print(closed_form_verdict(parsed, chain=chain).line(), highlight=False, soft_wrap=True)  # as stability and the map say it
+        for line in scatter_lines(parsed, chain):  # a single run's predicted scatter about that mean
             out.print(line, highlight=False, soft_wrap=True)
     if string_stability:
         from orchestrator.observers.progress import progress

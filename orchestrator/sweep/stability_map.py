@@ -35,8 +35,8 @@ from orchestrator.analysis.error_gains import (clean_order, frequency_gains, pre
                                                run_headline, steady_window, vehicle_errors)
 from orchestrator.analysis.headline import Headline  # noqa: E402
 from orchestrator.analysis.sizing import AnalysisRefused, check_analysis, nothing_arrives  # noqa: E402
-from orchestrator.analysis.sampled_chain import (GROWTH_TOLERANCE, Growth, exact_applies,  # noqa: E402
-                                                 growth_per_link, lifting_period, peak_growth, vehicle_of)
+from orchestrator.analysis.chain_model import chain_model  # noqa: E402
+from orchestrator.analysis.sampled_chain import GROWTH_TOLERANCE, PeakGrowth, growth_per_link, peak_growth  # noqa: E402
 from orchestrator.analysis.string_stability import interior_vehicle  # noqa: E402
 from orchestrator.analysis.validity import departures_cell, departures_of_trace, split_at  # noqa: E402
 from orchestrator.analysis.verdict import NOT_COMPUTED, ClosedFormVerdict, closed_form_verdict  # noqa: E402
@@ -77,14 +77,13 @@ def measured_gains(config: Config, trace_path: Path) -> tuple[np.ndarray, np.nda
     return measured, None if predicted is None else np.array(predicted), run_headline(config, errors, order, window)
 
 
-def _analytic(config: Config, delay: float, loss: float) -> tuple[float, float, float]:
-    """(peak growth per link, the frequency of that peak, largest growth at the probe frequencies) of the
+def _analytic(config: Config, delay: float, loss: float) -> tuple[PeakGrowth, float]:
+    """(the peak growth per link and its frequency, the largest growth at the probe frequencies) of the
     sampled-data cascade of ``config`` with every link's delay and loss set."""
     changed = _with_link(config, delay, loss)
-    vehicle = interior_vehicle(changed)
-    probes = growth_per_link(changed, vehicle, np.array(probe_frequencies(config))).max()
-    peak = peak_growth(changed, vehicle)
-    return peak.gain, peak.frequency, float(probes)
+    chain, vehicle = chain_model(changed), interior_vehicle(changed)
+    probes = growth_per_link(chain, vehicle, np.array(probe_frequencies(config))).max()
+    return peak_growth(chain, vehicle), float(probes)
 
 
 def _points(folder: Path) -> list[dict[str, Any]]:
@@ -99,7 +98,7 @@ def _points(folder: Path) -> list[dict[str, Any]]:
             raise PlotError(f"run {record['id']}: no {', '.join(k for k, v in where.items() if v is None)} (not a "
                             "string-stability sweep: configs/sweeps/string_stability.toml)")
         config = config_from_mapping(record["config"])
-        missing = exact_applies(config)
+        missing = chain_model(config).missing
         if missing is not None:
             raise PlotError(f"run {record['id']}: the sampled-data cascade does not model {missing}")
         try:  # sized before any work (analysis/sizing.py); links that deliver nothing make no chain to map
@@ -159,7 +158,8 @@ def grid_axis(values: list[float], most: int) -> np.ndarray:
 def _chain_key(config: Config) -> tuple:
     """What the closed form's peak depends on: the interior vehicle as the cascade sees it, the step and
     the lifting period (runs and grid cells with the same key have the same verdict)."""
-    return (vehicle_of(config, interior_vehicle(config)), config.simulation.step, lifting_period(config))
+    chain = chain_model(config)
+    return (chain.vehicle(interior_vehicle(config)), chain.step, chain.lifting_period())
 
 
 def _with_link(config: Config, delay: float, loss: float) -> Config:
@@ -213,10 +213,10 @@ def age_label(config: Config, delay: float) -> str:
     return f"{delay:g}\n{first:.2g}-{first + period:.2g}"
 
 
-def _analytic_row(raw: dict[str, Any], delays: np.ndarray, loss: float) -> np.ndarray:
-    """``_analytic`` along the delays at one loss (a task of a worker process): rows (peaks, probes)."""
+def _analytic_row(raw: dict[str, Any], delays: np.ndarray, loss: float) -> list[tuple[PeakGrowth, float]]:
+    """``_analytic`` along the delays at one loss (a task of a worker process)."""
     config = config_from_mapping(raw)
-    return np.array([_analytic(config, float(delay), loss) for delay in delays]).T
+    return [_analytic(config, float(delay), loss) for delay in delays]
 
 
 def tasks(points: list[dict[str, Any]], laws: list[str], losses: np.ndarray) -> int:
@@ -257,14 +257,14 @@ def _compute(points: list[dict[str, Any]], laws: list[str], delays: np.ndarray, 
             done += 1
             if tick is not None:
                 tick(done)
-        grids = {}
-        for law, law_rows in rows.items():
-            stacked = np.array([task.result() for task in law_rows])  # loss x (peaks, probes, peak frequencies) x delay
-            grids[law] = (stacked[:, 0, :], stacked[:, 2, :], stacked[:, 1, :])
+        cells = {law: [task.result() for task in law_rows] for law, law_rows in rows.items()}  # loss x delay
+    grids = {law: (np.array([[peak.gain for peak, _ in row] for row in found]),
+                   np.array([[probes for _, probes in row] for row in found]),
+                   np.array([[peak.frequency for peak, _ in row] for row in found])) for law, found in cells.items()}
     for p in points:
         if from_grid[id(p)] is not None:
             law, i, j = from_grid[id(p)]
-            peak = Growth(float(grids[law][0][i, j]), float(grids[law][2][i, j]))  # the cell's peak, computed
+            peak = cells[law][i][j][0]  # the cell's peak, as peak_growth gave it for the run's chain key
             stable[p[LAW]][(p[DELAY], p[LOSS])] = closed_form_verdict(p["config"], peak, mean_square=False)
     return grids, stable
 
