@@ -35,7 +35,7 @@ from orchestrator.analysis.error_gains import (clean_order, frequency_gains, pre
                                                run_headline, steady_window, vehicle_errors)
 from orchestrator.analysis.headline import Headline  # noqa: E402
 from orchestrator.analysis.sizing import AnalysisRefused, check_analysis, nothing_arrives  # noqa: E402
-from orchestrator.analysis.chain_model import chain_model  # noqa: E402
+from orchestrator.analysis.chain_model import ChainModel, chain_model  # noqa: E402
 from orchestrator.analysis.sampled_chain import GROWTH_TOLERANCE, PeakGrowth, growth_per_link, peak_growth  # noqa: E402
 from orchestrator.analysis.string_stability import interior_vehicle  # noqa: E402
 from orchestrator.analysis.validity import departures_cell, departures_of_trace, split_at  # noqa: E402
@@ -49,10 +49,11 @@ from orchestrator.sweep.results import lookup, read_records  # noqa: E402  (the 
 LAW, DELAY, LOSS = "platoon.speed_law", "links.delay", "links.loss"
 
 
-def measured_gains(config: Config, trace_path: Path) -> tuple[np.ndarray, np.ndarray | None, Headline]:
+def measured_gains(config: Config, trace_path: Path, chain: ChainModel) -> tuple[np.ndarray, np.ndarray | None, Headline]:
     """Per probe frequency, per link that measures propagation: the run's gains, and the sampled-data
     cascade's prediction for the same links of the same run (None where it does not apply); the run's
-    headline (``error_gains.run_headline``: its growth, scatter and weak probes)."""
+    headline (``error_gains.run_headline``: its growth, scatter and weak probes). ``chain``: the config's
+    ``chain_model``."""
     from orchestrator.trace import load
 
     frequencies = probe_frequencies(config)
@@ -73,8 +74,9 @@ def measured_gains(config: Config, trace_path: Path) -> tuple[np.ndarray, np.nda
         trace = load(trace_path, components=components, errors=False)
     errors = vehicle_errors(trace, config)
     measured = np.array(frequency_gains(errors, order, frequencies, window))
-    predicted = predicted_gains(config, names, order, frequencies)
-    return measured, None if predicted is None else np.array(predicted), run_headline(config, errors, order, window)
+    predicted = predicted_gains(config, names, order, frequencies, chain)
+    return (measured, None if predicted is None else np.array(predicted),
+            run_headline(config, errors, order, window, chain))
 
 
 def _analytic(config: Config, delay: float, loss: float) -> tuple[PeakGrowth, float]:
@@ -124,7 +126,8 @@ def _point(raw: dict[str, Any], trace: Path | None,
     its peak; where it left the model from the first disturbance on, "" if it did not, and then no gains;
     where it left it while it settled, before), from its config's mapping (a task of a worker process)."""
     config = config_from_mapping(raw)
-    stable = closed_form_verdict(config, mean_square=False) if verdict else None
+    chain = chain_model(config)
+    stable = closed_form_verdict(config, mean_square=False, chain=chain) if verdict else None
     if trace is None:
         return None, math.nan, stable, "", ""
     from orchestrator.trace import load
@@ -134,7 +137,7 @@ def _point(raw: dict[str, Any], trace: Path | None,
     settling, departures = (departures_cell(part) for part in split_at(found, start))
     if departures:
         return None, math.nan, stable, departures, settling
-    measured, predicted, headline = measured_gains(config, trace)
+    measured, predicted, headline = measured_gains(config, trace, chain)
     return headline, float(np.abs(measured / predicted - 1.0).max()), stable, "", settling
 
 
