@@ -100,11 +100,11 @@ def _points(folder: Path) -> list[dict[str, Any]]:
             raise PlotError(f"run {record['id']}: no {', '.join(k for k, v in where.items() if v is None)} (not a "
                             "string-stability sweep: configs/sweeps/string_stability.toml)")
         config = config_from_mapping(record["config"])
-        missing = chain_model(config).missing
-        if missing is not None:
-            raise PlotError(f"run {record['id']}: the sampled-data cascade does not model {missing}")
+        chain = chain_model(config)
+        if chain.missing is not None:
+            raise PlotError(f"run {record['id']}: the sampled-data cascade does not model {chain.missing}")
         try:  # sized before any work (analysis/sizing.py); links that deliver nothing make no chain to map
-            check_analysis(config)
+            check_analysis(config, chain=chain)
             cut = nothing_arrives(config)
         except AnalysisRefused as error:
             cut = str(error)
