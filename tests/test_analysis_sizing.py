@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from orchestrator.analysis.sampled_chain import (COARSE_FREQUENCIES, Lifted, lifting_period, loss_weights,
-                                                 receiver_maps, vehicle_of)
+from orchestrator.analysis.chain_model import chain_model, loss_weights
+from orchestrator.analysis.sampled_chain import COARSE_FREQUENCIES, Lifted, receiver_maps
 from orchestrator.analysis.sizing import BYTES_PER_LIFTED, loss_terms
 from orchestrator.scenario.config import load_config
 
@@ -34,12 +34,13 @@ def test_the_lifting_estimate_covers_the_memory_it_takes() -> None:
     """tracemalloc's peak of ``receiver_maps`` on the peak search's frequencies, lifted over 20 steps (0.4 s
     beacons on 0.02 s steps): the estimate is above it, and not far (the bound must not refuse what fits)."""
     config, _ = load_config(STUDY, ["links.period=0.4"])
-    period = lifting_period(config)
+    chain = chain_model(config)
+    period = chain.lifting_period()
     assert period == 20
     w = np.geomspace(1e-3, 1.0, COARSE_FREQUENCIES)
     tracemalloc.start()
     try:
-        receiver_maps(Lifted(w, config.simulation.step, period), vehicle_of(config, 1))
+        receiver_maps(Lifted(w, config.simulation.step, period), chain.vehicle(1))
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from orchestrator.analysis.loop_moments import LoopLink, _second_moment_radius, loop_growth, loop_lines, period_maps
+from orchestrator.analysis.chain_model import Timing, chain_model
+from orchestrator.analysis.loop_moments import PaperLoop, _second_moment_radius, loop_lines, loop_radii, period_maps
 from orchestrator.execution.run import run_scenario
 from orchestrator.scenario.config import load_config
 from orchestrator.trace import load
@@ -66,7 +67,7 @@ def test_a_held_loops_decay_is_the_mean_maps_rate(native_fmu_dir, tmp_path):
     oscillation peaks (one every ~11 s, from 1e-3 m/s down to 1e-10, above the rounding floor of 1e-13)
     fall on a line of that slope to 1 %."""
     config = _pair(tmp_path, "hold", 0.4, 90.0, 1e-3)
-    growth = loop_growth(config, 1)
+    growth = loop_radii(chain_model(config), 1)
     rate = growth.per_second(growth.mean)
     assert growth.mean_stable and rate == pytest.approx(-0.2963, abs=1e-3)
     t, dv = _speed_deviation(config, tmp_path)
@@ -87,9 +88,9 @@ def test_runs_start_to_grow_where_the_extrapolated_loop_does(native_fmu_dir, tmp
     faster modes add to it early on) and rises at 1.40 s at the analysis's rate to 15 %, fitted over the
     windows between the rounding floor (1e-11 m/s at 25 m/s) and where the law's 1/d bends (1e-3 m/s)."""
     config = _pair(tmp_path, "extrapolate", delay, 600.0, 1e-7)
-    growth = loop_growth(config, 1)
+    growth = loop_radii(chain_model(config), 1)
     assert growth.mean_stable is not grows
-    assert ("GROWS" in loop_lines(config, 1)[0]) is grows
+    assert ("GROWS" in loop_lines(chain_model(config), 1)[0]) is grows
     t, dv = _speed_deviation(config, tmp_path)
     starts = np.arange(100.0, 600.0, 100.0)
     rms = np.array([np.sqrt(np.mean(dv[(t >= a) & (t < a + 100.0)] ** 2)) for a in starts])
@@ -107,8 +108,8 @@ def test_the_second_moment_is_the_means_square_without_losses_and_above_it_with(
     """E[z]^2 <= E[z^2] (Jensen): the mean square's radius is at least the mean's squared, and equal
     when every beacon arrives; and a lossless period has one delivery pattern."""
     def radii(loss: float) -> tuple[float, float]:
-        link = LoopLink(lag=20, every=5, loss=loss)
-        maps = period_maps(1.0, 1.0 / 3.0, 0.02, extrapolate, link, link, 5)
+        link = Timing(lag=20, every=5, loss=loss)
+        maps = period_maps(PaperLoop(1.0, 1.0 / 3.0, 0.02, extrapolate, to_follower=link, from_follower=link))
         assert math.isclose(sum(p for p, _ in maps), 1.0, rel_tol=1e-12)
         mean = float(np.abs(np.linalg.eigvals(sum(p * phi for p, phi in maps))).max())
         return mean, _second_moment_radius(maps)

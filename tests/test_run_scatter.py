@@ -11,6 +11,7 @@ import pytest
 from orchestrator.analysis.error_gains import (clean_order, component_index, predicted_gains, probe_frequencies,
                                                steady_window)
 from orchestrator.analysis.headline import probe_amplitudes
+from orchestrator.analysis.chain_model import chain_model
 from orchestrator.analysis.run_scatter import LinearString, Stretch, _record_steps, predicted_scatter
 from orchestrator.scenario.config import config_from_mapping
 
@@ -44,7 +45,7 @@ def _monte_carlo(config, stretch: Stretch, draws: int, seed: int) -> np.ndarray:
     pattern, stepped with the model's own step functions on the state (no moment algebra): draws x probes."""
     law = config.speed_law_of(1)
     span = range(0, max(stretch.vehicles) + 1) if law != "paper" else range(min(stretch.vehicles), 7)
-    model = LinearString(config, list(span))
+    model = LinearString(chain_model(config), list(span))
     rng = np.random.default_rng(seed)
     first = int(math.ceil(2.0 / model.h - 1e-9))
     records = _record_steps(model, stretch, first)
@@ -85,7 +86,7 @@ def _monte_carlo(config, stretch: Stretch, draws: int, seed: int) -> np.ndarray:
 def test_the_predicted_mean_is_the_cascade_and_its_scatter_a_monte_carlo(law, coupling):
     config = _config(law, coupling)
     stretch = _stretch(config)
-    predicted = predicted_scatter(config, stretch)
+    predicted = predicted_scatter(chain_model(config), stretch)
     names = [f"vehicle{i}" for i in range(1, 7)]
     cascade = [math.prod(row) ** (1.0 / len(row)) for row in
                predicted_gains(config, names, [f"vehicle{i}" for i in stretch.vehicles], stretch.frequencies)]
@@ -104,13 +105,13 @@ def test_the_predicted_mean_is_the_cascade_and_its_scatter_a_monte_carlo(law, co
 
 def test_without_losses_a_run_is_its_mean():
     config = _config("cacc", loss=0.0)
-    assert predicted_scatter(config, _stretch(config)).sigma == [0.0, 0.0]
+    assert predicted_scatter(chain_model(config), _stretch(config)).sigma == [0.0, 0.0]
 
 
 def test_what_it_does_not_model_it_says():
     config = _config("cacc")
     burst = config.model_copy(update={"links": config.links.model_copy(update={"burst": 3.0})})
-    assert predicted_scatter(burst, _stretch(burst)) == ("not predicted for burst losses (a beacon's loss depends on "
+    assert predicted_scatter(chain_model(burst), _stretch(burst)) == ("not predicted for burst losses (a beacon's loss depends on "
                                                          "the one before)")
 
 
@@ -175,7 +176,7 @@ def test_a_block_of_steps_is_its_steps_one_by_one(period):
 
     config = _config("paper", "hold")
     config = config.model_copy(update={"links": config.links.model_copy(update={"period": period})})
-    model = LinearString(config, list(range(2, 7)))
+    model = LinearString(chain_model(config), list(range(2, 7)))
     maps = _Maps(model, 5)
     rng = np.random.default_rng(3)
     root = rng.standard_normal((model.size, model.size))

@@ -19,7 +19,8 @@ import pytest
 from orchestrator.analysis.error_gains import (clean_order, component_index, frequency_gains, probe_frequencies,
                                                propagation, source_vehicle, steady_window, stretch_growth,
                                                vehicle_errors)
-from orchestrator.analysis.sampled_chain import cascade_speeds, largest_stable_delay, loss_weights
+from orchestrator.analysis.chain_model import chain_model, loss_weights
+from orchestrator.analysis.sampled_chain import cascade_speeds, largest_stable_delay
 from orchestrator.analysis.string_stability import Channel, _hold, interior_vehicle
 from orchestrator.execution.run import run_scenario
 from orchestrator.scenario.config import load_config
@@ -56,7 +57,7 @@ def _measured_and_predicted(overrides: list[str], tmp_path: Path):
     numbers = [component_index(name, names) for name in order]
     predicted = []
     for w in frequencies:
-        amplitudes = np.abs(cascade_speeds(config, numbers, w, config.simulation.trace_every))
+        amplitudes = np.abs(cascade_speeds(chain_model(config), numbers, w, config.simulation.trace_every))
         predicted.append(amplitudes[1:] / amplitudes[:-1])
     return config, trace, measured, np.array(predicted)
 
@@ -102,7 +103,10 @@ def test_the_cacc_delay_boundary_is_where_runs_start_to_grow(native_fmu_dir, tmp
     0.38 s; the co-simulation at 0.38 s does not grow on the links that measure propagation, at 0.39 s
     (0.40 s on the step grid) it does (at the 3 rad/s probe, near the cascade's peak at 2.8 rad/s)."""
     config, _ = load_config(STUDY, ["platoon.speed_law=cacc"])
-    assert largest_stable_delay(config, interior_vehicle(config), longest=0.6) == pytest.approx(0.38)
+    def with_delay(delay: float):
+        return chain_model(config.model_copy(update={"links": config.links.model_copy(update={"delay": delay})}))
+
+    assert largest_stable_delay(with_delay, interior_vehicle(config), config.simulation.step, longest=0.6) == pytest.approx(0.38)
     for delay, grows in ((0.38, False), (0.39, True)):
         run, _ = load_config(STUDY, ["platoon.speed_law=cacc", f"links.delay={delay}"])
         result = run_scenario(run, "", tmp_path / f"{delay}.mcap", foxglove=False)

@@ -86,6 +86,7 @@ def test_a_late_progress_shows_only_work_that_takes_long(tmp_path: Path, monkeyp
 def test_the_grid_holds_the_runs_values_and_gives_their_verdicts(sweep: Path) -> None:
     """Each run's closed-form verdict is read off the analytic grid's cell at its (delay, loss) when the
     grid holds it: the same verdict as the run's own peak growth."""
+    from orchestrator.analysis.chain_model import chain_model
     from orchestrator.analysis.sampled_chain import peak_growth
     from orchestrator.analysis.string_stability import interior_vehicle
     from orchestrator.analysis.verdict import closed_form_verdict
@@ -102,7 +103,7 @@ def test_the_grid_holds_the_runs_values_and_gives_their_verdicts(sweep: Path) ->
         config = p["config"]
         verdict = verdicts[p[LAW]][(p[DELAY], p[LOSS])]
         assert verdict == closed_form_verdict(config, mean_square=False)  # the cell's peak is the run's own
-        assert verdict.peak_growth_per_link == peak_growth(config, interior_vehicle(config)).gain
+        assert verdict.peak_growth_per_link == peak_growth(chain_model(config), interior_vehicle(config)).gain
     assert {verdicts[p[LAW]][(p[DELAY], p[LOSS])].string_stable for p in points} == {True, False}  # both are checked
 
 

@@ -17,6 +17,7 @@ import pytest
 
 from fmus.model.link import LinkParameters, LinkStepper
 from orchestrator.analysis.error_gains import link_gains, propagation, vehicle_errors
+from orchestrator.analysis.chain_model import chain_model
 from orchestrator.analysis.sampled_chain import cascade_speeds, growth_per_link
 from orchestrator.analysis.string_stability import (Chain, Channel, chain_of, interior_vehicle, peak_gain,
                                                     smallest_time_gap)
@@ -141,13 +142,13 @@ def test_the_measured_l2_gain_is_the_analytic_gain_at_the_peak_frequency(law, ke
     # of those first links also holds the ripple it makes, which the fit at w leaves out)
     gains = [g.l2["speed"] for g in link_gains(vehicle_errors(trace, config), order, window)[2:]]
     numbers = [trace.vehicles().index(name) + 1 for name in order]
-    amplitudes = np.abs(cascade_speeds(config, numbers, frequency, 1))
+    amplitudes = np.abs(cascade_speeds(chain_model(config), numbers, frequency, 1))
     expected = (amplitudes[1:] / amplitudes[:-1])[2:]
     assert np.abs(np.array(gains) / expected - 1.0).max() < TOLERANCE, (gains, expected)
     # far enough down the string every link grows by the cascade's spectral radius: the last link measured
     # is on its side of 1 (an earlier one need not be: cacc h = 0.5 s with a 0.5 s delay measures 1.0017,
     # then 0.9975 against a growth of 0.9975 at 0.3 rad/s)
-    growth = growth_per_link(config, interior_vehicle(config), np.array([frequency]))[0]
+    growth = growth_per_link(chain_model(config), interior_vehicle(config), np.array([frequency]))[0]
     assert (gains[-1] > 1.0) == (growth > 1.0), (gains, growth)
 
 

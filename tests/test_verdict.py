@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from orchestrator.analysis.loop_moments import LoopLink, _Layout, _one_period, loop_growth
+from orchestrator.analysis.chain_model import chain_model
+from orchestrator.analysis.loop_moments import _Layout, _one_period, loop_radii, paper_loop
 from orchestrator.analysis.verdict import GROWS, NO_LOOP, NOT_COMPUTED, SETTLES, closed_form_verdict
 from orchestrator.scenario.config import load_config
 from orchestrator.sweep.stability_map import _point
@@ -22,18 +23,14 @@ def _drawn_operator(config, rng: np.random.Generator, draws: int) -> np.ndarray:
     """E[Phi (x) Phi] estimated from ``draws`` periods whose deliveries are drawn beacon by beacon (each lost
     with the link's probability), each Phi stepped from its drawn pattern: no enumeration, no pi(delta).
     (A pattern drawn again reuses its Phi (x) Phi: the estimate is the drawn patterns' frequencies.)"""
-    from orchestrator.analysis.sampled_chain import timing_of, vehicle_of
-
-    v = vehicle_of(config, 1)
-    q, f = (LoopLink(t.lag, t.every, config.links.loss) for t in (timing_of(config, d, 2) for d in ("backward", "forward")))
-    period = math.lcm(q.every, f.every)
-    layout = _Layout(q, f)
+    loop = paper_loop(chain_model(config), 1)
+    layout = _Layout(loop)
     products: dict[tuple, np.ndarray] = {}
     counts: dict[tuple, int] = {}
     for _ in range(draws):
         lost: dict[tuple, bool] = {}
         drawn = lambda arrival: lost.setdefault(arrival, rng.random() >= config.links.loss)  # noqa: E731
-        phi = _one_period(v.k_v, v.c, config.simulation.step, v.extrapolate, q, f, period, layout, drawn)
+        phi = _one_period(loop, layout, drawn)
         key = tuple(sorted(lost.items()))
         if key not in products:
             products[key] = np.kron(phi, phi)
@@ -48,12 +45,12 @@ def test_the_loops_second_moment_is_a_monte_carlo_over_delivery_patterns(tmp_pat
     the mean's square, which a mean square "computed as the mean's square" would give."""
     config = _pair(tmp_path, "extrapolate", 0.2, 30.0, 1e-3)
     config = config.model_copy(update={"links": config.links.model_copy(update={"loss": 0.8})})
-    growth = loop_growth(config, 1)
-    assert growth.square is not None and growth.mean_stable
+    growth = loop_radii(chain_model(config), 1)
+    assert growth.mean_square is not None and growth.mean_stable
     rng = np.random.default_rng(52)
     batches = [float(np.abs(np.linalg.eigvals(_drawn_operator(config, rng, 500))).max()) for _ in range(8)]
     estimate, error = float(np.mean(batches)), float(np.std(batches, ddof=1) / math.sqrt(len(batches)))
-    assert abs(growth.square - estimate) < 4 * error, (growth.square, batches)
+    assert abs(growth.mean_square - estimate) < 4 * error, (growth.mean_square, batches)
     assert abs(growth.mean**2 - estimate) > 10 * error, (growth.mean**2, estimate, error)
 
 

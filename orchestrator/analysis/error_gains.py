@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
+from orchestrator.analysis.chain_model import ChainModel, chain_model
 from orchestrator.analysis.headline import CONFIDENCE, Headline, Mixing, measured_headline, probe_amplitudes
 from orchestrator.scenario.config import TARGET_VEHICLE, Config
 from orchestrator.scenario.wiring import TARGET
@@ -309,19 +310,22 @@ def frequency_gains(errors: dict[str, dict[str, np.ndarray]], order: list[str], 
     return [[ratio(b[k], a[k]) for a, b in zip(amplitudes, amplitudes[1:])] for k in range(len(frequencies))]
 
 
-def predicted_gains(config: Config, names: list[str], clean: list[str], frequencies: list[float]) -> list[list[float]] | None:
+def predicted_gains(config: Config, names: list[str], clean: list[str], frequencies: list[float],
+                    chain: ChainModel | None = None) -> list[list[float]] | None:
     """Per frequency, per link along ``clean``: the gain the sampled-data cascade predicts for this run
-    (its pushes, its links, its records); None where the cascade does not apply."""
-    from orchestrator.analysis.sampled_chain import cascade_speeds, exact_applies
+    (its pushes, its links, its records); None where the cascade does not apply. ``chain``: the config's
+    ``chain_model`` where the caller has it."""
+    from orchestrator.analysis.sampled_chain import cascade_speeds
 
-    if exact_applies(config) is not None:
+    chain = chain or chain_model(config)
+    if chain.missing is not None:
         return None
     source = source_vehicle(config)
     order = [component_index(name, names) for name in propagation(config, names, source)]
     order = order if law_of(config, source) != "paper" else list(range(config.platoon.count, order[-1] - 1, -1))
     result = []
     for w in frequencies:
-        speeds = dict(zip(order, cascade_speeds(config, order, w, config.simulation.trace_every)))
+        speeds = dict(zip(order, cascade_speeds(chain, order, w, config.simulation.trace_every)))
         amplitudes = [abs(speeds[component_index(name, names)]) for name in clean]
         result.append([ratio(b, a) for a, b in zip(amplitudes, amplitudes[1:])])
     return result
@@ -337,15 +341,16 @@ def stretch_growth(gains: "list[list[float]] | np.ndarray") -> float:
 
 
 def run_headline(config: Config, errors: dict[str, dict[str, np.ndarray]], clean: list[str],
-                 steady: tuple[float, float]) -> Headline:
+                 steady: tuple[float, float], chain: ChainModel | None = None) -> Headline:
     """The run's headline over the stretch ``clean`` (orchestrator/analysis/headline.py): its growth per link at
-    the probes, the scatter of a single run's value, the weak probes (the paper law's V d*/d mixes probes)."""
+    the probes, the scatter of a single run's value, the weak probes (the paper law's V d*/d mixes probes).
+    ``chain``: the config's ``chain_model`` where the caller has it."""
     frequencies = probe_frequencies(config)
     mixing = None
     if law_of(config, source_vehicle(config)) == "paper":
         mixing = Mixing(config.platoon.speed, {name: equilibrium_gap(config, int(name[len("vehicle"):]))
                                                for name in clean if name != TARGET})
-    scatter = predicted_run_scatter(config, clean, steady)
+    scatter = predicted_run_scatter(config, clean, steady, chain)
     predicted = None if isinstance(scatter, str) else scatter
     return measured_headline(errors, clean, frequencies, steady, 2.0 * math.pi / min(frequencies), mixing,
                              predicted and predicted.sigma, predicted and predicted.buried())
@@ -360,20 +365,23 @@ def probe_growths(config: Config, trace) -> tuple[list[str], tuple[float, float]
     return clean, window, (amplitudes[-1] / amplitudes[0]) ** (1.0 / (len(clean) - 1))
 
 
-def predicted_run_scatter(config: Config, clean: list[str], window: tuple[float, float]) -> "Scatter | str":
+def predicted_run_scatter(config: Config, clean: list[str], window: tuple[float, float],
+                          chain: ChainModel | None = None) -> "Scatter | str":
     """The analysis' mean and standard deviation of a single run's growth per link over ``clean``, per probe, over
-    its delivery patterns (orchestrator/analysis/run_scatter.py), or why it is not predicted."""
+    its delivery patterns (orchestrator/analysis/run_scatter.py), or why it is not predicted; ``chain``: the
+    config's ``chain_model`` where the caller has it."""
     from orchestrator.analysis.run_scatter import Stretch, predicted_scatter
 
     names = [component_name(i) for i in range(1, config.platoon.count + 1)]
     stretch = Stretch([component_index(name, names) for name in clean], probe_frequencies(config), window,
                       config.simulation.trace_every)
-    return predicted_scatter(config, stretch)
+    return predicted_scatter(chain or chain_model(config), stretch)
 
 
-def scatter_lines(config: Config) -> list[str]:
+def scatter_lines(config: Config, chain: ChainModel | None = None) -> list[str]:
     """`platoon analyze`'s lines on a single run's headline: per probe, the cascade's growth over the links that
-    measure propagation and the predicted standard deviation of one run's value (none without sinusoids)."""
+    measure propagation and the predicted standard deviation of one run's value (none without sinusoids);
+    ``chain``: the config's ``chain_model`` where the caller has it."""
     frequencies = probe_frequencies(config)
     if not frequencies:  # no sinusoid: no probe, and no run's headline to predict
         return []
@@ -385,7 +393,7 @@ def scatter_lines(config: Config) -> list[str]:
         window = steady_window(config, config.simulation.stop_time)
     except ValueError:
         return []
-    scatter = predicted_run_scatter(config, clean, window)
+    scatter = predicted_run_scatter(config, clean, window, chain)
     head = f"a single run's growth per link over {' -> '.join(clean)} (fitted over {window[0]:g} to {window[1]:g} s)"
     if isinstance(scatter, str):
         return [f"{head}: its scatter {scatter}"]
@@ -397,7 +405,7 @@ def scatter_lines(config: Config) -> list[str]:
 
 
 def _frequency_lines(config: Config, errors: dict[str, dict[str, np.ndarray]], names: list[str], clean: list[str],
-                     window: tuple[float, float]) -> tuple[list[str], Headline | None]:
+                     window: tuple[float, float], chain: ChainModel) -> tuple[list[str], Headline | None]:
     """Per probe frequency, the measured gains along the clean links beside the cascade's prediction;
     and the run's headline (``run_headline``; None without sinusoids or clean links)."""
     frequencies = probe_frequencies(config)
@@ -408,12 +416,12 @@ def _frequency_lines(config: Config, errors: dict[str, dict[str, np.ndarray]], n
     except ValueError as error:
         return [f"  (no gains per frequency: {error})"], None
     measured = frequency_gains(errors, clean, frequencies, steady)
-    predicted = predicted_gains(config, names, clean, frequencies)
+    predicted = predicted_gains(config, names, clean, frequencies, chain)
     lines = [f"  per frequency, {' -> '.join(clean)} (fitted over {steady[0]:g} to {steady[1]:g} s):"]
     for k, w in enumerate(frequencies):
         expected = "" if predicted is None else "predicted " + ", ".join(f"{g:.4f}" for g in predicted[k]) + "; "
         lines.append(f"    {w:g} rad/s: {expected}measured " + ", ".join(f"{g:.4f}" for g in measured[k]))
-    return lines, run_headline(config, errors, clean, steady)
+    return lines, run_headline(config, errors, clean, steady, chain)
 
 
 def stability_report(trace: "Trace", config: Config, reference: "Trace | None", window: tuple[float, float]) -> str:
@@ -433,7 +441,8 @@ def stability_report(trace: "Trace", config: Config, reference: "Trace | None", 
     source = source_vehicle(config)
     order = propagation(config, names, source)
     law = law_of(config, source)
-    verdict = closed_form_verdict(config)
+    chain = chain_model(config)  # the one chain the verdict, the predicted gains and the scatter read
+    verdict = closed_form_verdict(config, chain=chain)
     start = min(d.start for d in config.disturbance)
     settling, departures = split_at(departures_of_trace(trace, config), min(start, window[0]))
     if departures:  # no gains: the run is no linear chain's, whatever its numbers
@@ -452,7 +461,7 @@ def stability_report(trace: "Trace", config: Config, reference: "Trace | None", 
     gains = link_gains(errors, order, window)
     lines += gains_lines(gains)[:-1] if gains else gains_lines(gains)
     clean = clean_order(config, names)
-    per_frequency, headline = _frequency_lines(config, errors, names, clean, window)
+    per_frequency, headline = _frequency_lines(config, errors, names, clean, window, chain)
     stretch = " -> ".join(clean)
     if headline is not None:
         lines.append(f"  largest growth per link at the probe frequencies over the links that measure propagation "

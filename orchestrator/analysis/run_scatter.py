@@ -3,7 +3,7 @@
 With losses a run's gain is a random variable: which beacon each receiver uses is a draw. The sampled-data
 cascade (``sampled_chain``) gives its mean, the periodic steady state of the mean over the losses. This module
 gives its scatter, for the same semantics (a line, kinematic vehicles, the Jacobi master, beacon periods that
-are multiples of the step, no jitter; ``sampled_chain.exact_applies``) and independent losses, by stepping the
+are multiples of the step, no jitter; ``chain_model.ChainModel.missing``) and independent losses, by stepping the
 linearized string in time from the first push to the end of the fitting window:
 
 - the state z holds every modelled vehicle's (x, V_s), its inputs of the step before (the speed rate it
@@ -39,17 +39,14 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import sparse
 
+from orchestrator.analysis.chain_model import PLAIN, ChainModel, Timing
 from orchestrator.analysis.loop_moments import shift_view
 from orchestrator.analysis.moment_blocks import Block, compose
-from orchestrator.analysis.sampled_chain import exact_applies, step_maps, timing_of, vehicle_of
-
-if TYPE_CHECKING:
-    from orchestrator.scenario.config import Config
+from orchestrator.analysis.sampled_chain import step_maps
 
 
 # The second moment is a state x state matrix stepped over every step of the run: the study (7 vehicles, 190 states,
@@ -117,24 +114,24 @@ class Scatter:
 
 
 class LinearString:
-    """The linearized string of one config in time (module docstring), from the step of the first push on."""
+    """The linearized string of one chain in time (module docstring), from the step of the first push on:
+    ``vehicles`` (0: the virtual target) of ``chain``."""
 
-    def __init__(self, config: "Config", vehicles: list[int]) -> None:
-        self.config, self.h = config, config.simulation.step
-        self.extrapolate = config.simulation.coupling == "extrapolate"
+    def __init__(self, chain: ChainModel, vehicles: list[int]) -> None:
+        self.h, self.extrapolate = chain.step, chain.extrapolate
         rows = _Rows()
-        self.vehicles = {i: vehicle_of(config, i) for i in vehicles if i > 0}
+        self.vehicles = {i: chain.vehicle(i) for i in vehicles if i > 0}
         self.x = {i: rows.take(1)[0] for i in vehicles}  # position (the target: under acc and cacc)
         self.v = {i: rows.take(1)[0] for i in self.vehicles}  # speed loop state V_s
         self.before = {i: rows.take(3) for i in self.vehicles}  # the inputs of the step before (tau^0..2)
-        self.pushes = [(d.vehicle, d.frequency, d.value, d.start, rows.take(2)) for d in config.disturbance
+        self.pushes = [(d.vehicle, d.frequency, d.value, d.start, rows.take(2)) for d in chain.pushes
                        if d.kind == "speed" and d.vehicle in vehicles]
         self.pushed_before = {i: rows.take(1)[0] for i in vehicles}  # p(k - 1)
         self.channels = [self._channel(rows, *wanted) for wanted in self._wanted()]
         # held links: a held position is V_c times its age behind the sender's steady state, an affine forcing
         # whose random part the losses create whatever the probe; a constant state carries it (a row of ones)
         self.one = rows.take(1)[0] if self.stale_positions() else None
-        self.speed = config.platoon.speed
+        self.speed = chain.speed
         self.size = rows.size
 
     def stale_positions(self) -> bool:
@@ -142,29 +139,24 @@ class LinearString:
         then random, and V_c times it a noise in the gap the linear deviations alone do not have."""
         return not self.extrapolate and any(c.role == "seen" and c.loss > 0.0 for c in self.channels)
 
-    def _wanted(self) -> list[tuple[str, str, int, int, object]]:
-        """(kind, role, sender, receiver, the link's (direction, vehicle) or "plain") of every input of the model."""
-        wanted: list[tuple[str, str, int, int, object]] = []
+    def _wanted(self) -> list[tuple[str, str, int, int, Timing]]:
+        """(kind, role, sender, receiver, the link's timing) of every input of the model: the links each
+        vehicle's law reads through (``chain_model.Vehicle``)."""
+        wanted: list[tuple[str, str, int, int, Timing]] = []
         for i, v in self.vehicles.items():
             if v.law in ("acc", "cacc"):
-                wanted.append(("motion", "sensor", i - 1, i, "plain"))
+                wanted.append(("motion", "sensor", i - 1, i, PLAIN))
                 if v.law == "cacc":
-                    wanted.append(("motion", "speed", i - 1, i, ("backward", i)))
+                    wanted.append(("motion", "speed", i - 1, i, v.comm))
             elif not v.last:
-                wanted.append(("paper", "paper", i + 1, i, ("forward", i + 1)))
-                wanted.append(("motion", "seen", i, i + 1, ("backward", i + 1)))  # the follower's view of i: its gap
+                wanted.append(("paper", "paper", i + 1, i, v.comm))
+                wanted.append(("motion", "seen", i, i + 1, v.gap_link))  # the follower's view of i: its gap
         return wanted
 
-    def _channel(self, rows: _Rows, kind: str, role: str, sender: int, receiver: int, link) -> Channel:
-        if link == "plain":
-            lag, every, loss = 0, 1, 0.0
-        else:
-            timing, resolved = timing_of(self.config, *link), self.config.resolve_link(*link)
-            lag, every = timing.lag, timing.every
-            loss = 0.0 if resolved.perfect else resolved.loss
+    def _channel(self, rows: _Rows, kind: str, role: str, sender: int, receiver: int, link: Timing) -> Channel:
         width = 3 if kind == "motion" else 4
-        slots = tuple(rows.take(width) for _ in range(lag // every + 1))
-        return Channel(kind, role, sender, receiver, lag, every, loss, slots, rows.take(width))
+        slots = tuple(rows.take(width) for _ in range(link.lag // link.every + 1))
+        return Channel(kind, role, sender, receiver, link.lag, link.every, link.loss, slots, rows.take(width))
 
     # --- the step, on symbolic rows (each a vector over the state at the step's start) -------------------
 
@@ -379,25 +371,22 @@ def _blocks(start: int, stop: int, every: int) -> list[tuple[int, int]]:
     return found
 
 
-def predicted_scatter(config: "Config", stretch: Stretch) -> Scatter | str:
+def predicted_scatter(chain: ChainModel, stretch: Stretch) -> Scatter | str:
     """The mean run's headline growth per probe over ``stretch`` and its predicted standard deviation over the
     delivery patterns (module docstring), or why it is not predicted."""
-    missing = exact_applies(config)
-    if missing is not None:
-        return f"not predicted for {missing}"
-    if any(not link.perfect and link.loss > 0.0 and link.burst > 1.0
-           for link in (config.resolve_link(d, i) for d in ("backward", "forward")
-                        for i in range(1, config.platoon.count + 1))):
+    if chain.missing is not None:
+        return f"not predicted for {chain.missing}"
+    if chain.bursty:
         return "not predicted for burst losses (a beacon's loss depends on the one before)"
-    starts = {d.start for d in config.disturbance}
-    if len(starts) != 1 or any(d.kind != "speed" for d in config.disturbance):
+    starts = {d.start for d in chain.pushes}
+    if len(starts) != 1 or any(d.kind != "speed" for d in chain.pushes):
         return "not predicted for pushes other than speed sinusoids that all start together"
-    law = config.speed_law_of(max(1, min(stretch.vehicles)))
-    if any(config.speed_law_of(i) != law for i in range(1, config.platoon.count + 1)):
+    law = chain.law(max(1, min(stretch.vehicles)))
+    if any(chain.law(i) != law for i in range(1, chain.count + 1)):
         return "not predicted for a platoon of mixed speed laws"
     span = (range(0, max(stretch.vehicles) + 1) if law in ("acc", "cacc")
-            else range(min(stretch.vehicles), config.platoon.count + 1))
-    model = LinearString(config, list(span))
+            else range(min(stretch.vehicles), chain.count + 1))
+    model = LinearString(chain, list(span))
     first = int(math.ceil(starts.pop() / model.h - 1e-9))
     records = _record_steps(model, stretch, first)
     if not records:
@@ -417,7 +406,7 @@ def predicted_scatter(config: "Config", stretch: Stretch) -> Scatter | str:
     if not any(c.loss > 0.0 for c in model.channels):  # nothing random: a run is its mean
         mean = _mean_records(model, maps, first, records, speeds)
         amplitude = {i: fit[:2 * probes] @ mean[i] for i in ends}
-        growth = [_growth(amplitude[ends[0]][2 * k:2 * k + 2], amplitude[ends[1]][2 * k:2 * k + 2], links)
+        growth = [_headline_growth(amplitude[ends[0]][2 * k:2 * k + 2], amplitude[ends[1]][2 * k:2 * k + 2], links)
                   for k in range(probes)]
         return Scatter(list(stretch.frequencies), growth, [0.0] * probes)
     mean, second = _fit_moments(model, maps, first, records, speeds, fit[:2 * probes])
@@ -425,7 +414,7 @@ def predicted_scatter(config: "Config", stretch: Stretch) -> Scatter | str:
     for k in range(probes):
         wanted = [2 * k, 2 * k + 1, 2 * probes + 2 * k, 2 * probes + 2 * k + 1]  # (cos, sin) of the first, the last
         mu, covariance = mean[wanted], second[np.ix_(wanted, wanted)] - np.outer(mean[wanted], mean[wanted])
-        growth.append(_growth(mu[:2], mu[2:], links))
+        growth.append(_headline_growth(mu[:2], mu[2:], links))
         average, deviation = _growth_draws(mu, covariance, links)
         sigma.append(deviation)
         expected.append(average)
@@ -439,7 +428,7 @@ def _normals() -> np.ndarray:
     return np.random.default_rng(52).standard_normal((DRAWS, 4))
 
 
-def _growth(first: np.ndarray, last: np.ndarray, links: int) -> float:
+def _headline_growth(first: np.ndarray, last: np.ndarray, links: int) -> float:
     """The headline at one probe from the (cos, sin) coefficients of the stretch's first and last vehicle."""
     return float((np.hypot(*last) / np.hypot(*first)) ** (1.0 / links))
 

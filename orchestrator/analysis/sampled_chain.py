@@ -26,96 +26,22 @@ spectral radius of T(w) is the growth per link far down a long string; the casca
 own pushes is what a run measures, link by link.
 
 Pure computation (numpy), no I/O. The limits: a line, kinematic vehicles, the Jacobi master, no
-jitter, beacon periods that are whole multiples of the step; ``exact_applies`` says which is missing.
+jitter, beacon periods that are whole multiples of the step; ``chain_model.ChainModel.missing`` says which is
+missing. The chain it lifts (vehicles, links, laws) is ``chain_model``'s.
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, replace
+from typing import Callable
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from orchestrator.scenario.config import Config
+from orchestrator.analysis.chain_model import ChainModel, Timing, Vehicle
 
 KINDS = ("x", "speed", "rate")  # a broadcast's signals: position, speed over ground, speed rate
-_TAIL = 1e-15  # loss weights are summed until what is left is below this
-
-
-@dataclass(frozen=True)
-class Timing:
-    """When a receiver's sample of a sender is taken and how it is used (steps of h).
-
-    ``lag`` a0/h (0 for a plain connection), ``every`` n = T/h (beacon period in steps), ``weights`` the
-    probabilities that the beacon in use is the newest deliverable one, the one before, ... (1.0 alone
-    without losses)."""
-
-    lag: int
-    every: int
-    weights: tuple[float, ...] = (1.0,)
-
-
-PLAIN = Timing(0, 1)
-
-
-def loss_weights(loss: float, burst: float) -> tuple[float, ...]:
-    """P(the newest delivered beacon is j beacons old), j = 0, 1, ...: geometric for independent losses;
-    for Gilbert-Elliott with mean burst b the renewal law of ``string_stability.Channel`` (the first
-    beacon back lost with q = p r/(1 - p), each one before with 1 - r, r = 1/b)."""
-    if loss <= 0.0:
-        return (1.0,)
-    if burst <= 1.0:
-        first, ratio = 1.0 - loss, loss
-        head: list[float] = []
-    else:
-        r = 1.0 / burst
-        q = loss * r / (1.0 - loss)
-        norm = 1.0 + q / r
-        head, first, ratio = [1.0 / norm], q / norm, 1.0 - r
-    weights, term = list(head), first
-    while term > _TAIL or len(weights) < 2:
-        weights.append(term)
-        term *= ratio
-    return tuple(weights)
-
-
-@dataclass(frozen=True)
-class Vehicle:
-    """One vehicle of the cascade, linearized on a line.
-
-    ``law``: paper, acc, cacc; ``last``: the paper law's last vehicle (commands V_c); ``c`` = V_c/d*
-    (paper); ``time_gap``, ``cacc_gain`` (acc, cacc); ``extrapolate``: the coupling mode; ``sensor``,
-    ``comm``: the timing of the sensed position (acc, cacc) and of the communicated message (cacc: the
-    backward link; paper: the forward link its follower's speed and gap come through); ``gap_link``:
-    the paper's law only, the follower's own backward link, through which the follower sees this vehicle
-    when it computes the gap it sends."""
-
-    law: str
-    k_v: float
-    time_gap: float = 1.0
-    cacc_gain: float = 0.2
-    c: float = 0.0
-    last: bool = False
-    extrapolate: bool = True
-    sensor: Timing = PLAIN
-    comm: Timing = PLAIN
-    gap_link: Timing = PLAIN
-
-    def loop(self) -> tuple[np.ndarray, dict[str, float], np.ndarray]:
-        """(A, the input gains on dV_s/dt, the push's vector): x' = V_s + p, V_s' = A[1] s + inputs."""
-        h, k_v = self.time_gap, self.k_v
-        if self.law == "acc":
-            return np.array([[0.0, 1.0], [-k_v / h, -k_v]]), {"sensor": k_v / h}, np.array([1.0, 0.0])
-        if self.law == "cacc":
-            kp = self.cacc_gain
-            damping = (1.0 + kp * h) / h
-            return (np.array([[0.0, 1.0], [-kp / h, -damping]]), {"sensor": kp / h, "speed": 1.0 / h},
-                    np.array([1.0, -damping]))
-        gains = {} if self.last else {"speed": k_v, "gap": -k_v * self.c}
-        return np.array([[0.0, 1.0], [0.0, -k_v]]), gains, np.array([1.0, 0.0])
 
 
 def _expm(a: np.ndarray) -> np.ndarray:
@@ -228,11 +154,17 @@ class Lifted:
         """``build``'s rows for step k from those of step k mod P: one period later every sample is one
         period later, so the rows are the same times e^{j w P h} (computed once per step of the period)."""
         turns, first = divmod(k, self.p)
-        key = (build.__name__, owner, timing, first, extrapolate)
-        if key not in self._memo:
-            self._memo[key] = build(owner, timing, first, extrapolate)
+        rows = self.remembered((build.__name__, owner, timing, first, extrapolate),
+                               lambda: build(owner, timing, first, extrapolate))
         factor = self.zeta[:, None] ** turns
-        return [row * factor for row in self._memo[key]]
+        return [row * factor for row in rows]
+
+    def remembered(self, key: tuple, build: Callable[[], list[np.ndarray]]) -> list[np.ndarray]:
+        """``build()``'s rows, computed once per ``key`` for these frequencies (read them, never change them
+        in place): every step whose samples are the same beacons uses the same rows."""
+        if key not in self._memo:
+            self._memo[key] = build()
+        return self._memo[key]
 
     def position(self, owner: str, timing: Timing, k: int, extrapolate: bool) -> list[np.ndarray]:
         """The sender's position as seen over step k, as rows of tau^0, tau^1, tau^2 (along its speed and
@@ -279,11 +211,10 @@ def _gap_message(lift: Lifted, v: Vehicle, k: int) -> list[np.ndarray]:
     return rows
 
 
-def _sent_gap(lift: Lifted, v: Vehicle, b: int) -> tuple[np.ndarray, np.ndarray]:
+def _sent_gap(lift: Lifted, v: Vehicle, b: int) -> list[np.ndarray]:
     """The gap and its rate the follower sends at beacon instant b (rows; not to be changed in place).
     Computed once per instant: every step whose sample is beacon b uses the same rows."""
-    key = ("sent gap", v.gap_link, b, v.extrapolate)
-    if key not in lift._memo:
+    def build() -> list[np.ndarray]:
         seen = lift.position("self", v.gap_link, b - 1, v.extrapolate)
         seen_speed = lift.speed("self", v.gap_link, b - 1, v.extrapolate)
         h = lift.h
@@ -292,9 +223,9 @@ def _sent_gap(lift: Lifted, v: Vehicle, b: int) -> tuple[np.ndarray, np.ndarray]
         (x_column, phase), (speed_column, _) = lift.place("sender", "x", b), lift.place("sender", "speed", b)
         gap[:, x_column] -= phase  # minus the sender's unit rows x and speed at b
         rate[:, speed_column] -= phase
-        lift._memo[key] = [gap, rate]
-    gap, rate = lift._memo[key]
-    return gap, rate
+        return [gap, rate]
+
+    return lift.remembered(("sent gap", v.gap_link, b, v.extrapolate), build)
 
 
 def forcing(lift: Lifted, v: Vehicle) -> dict[int, list[np.ndarray]]:
@@ -360,69 +291,11 @@ def receiver_maps(lift: Lifted, v: Vehicle) -> tuple[np.ndarray, np.ndarray]:
     return solved_n[:, 2 * p:, :], solved_push[:, 2 * p:]
 
 
-def exact_applies(config: "Config") -> str | None:
-    """None when the lifting models this config's co-simulation exactly, else what it leaves out."""
-    sim, p = config.simulation, config.platoon
-    if config.path.kind != "line":
-        return "a circle (the lifting is linearized on a straight line)"
-    if sim.master != "jacobi":
-        return "the Gauss-Seidel master (the lifting follows the Jacobi master's exchange)"
-    if any((config.override(i).dynamics or p.dynamics) != "kinematic" for i in range(1, p.count + 1)):
-        return "m3pi dynamics (the lifting knows the kinematic vehicle)"
-    for i in range(1, p.count + 1):
-        for direction in ("backward", "forward"):
-            link = config.resolve_link(direction, i)
-            if link.jitter > 0.0:
-                return f"jitter on the {direction} link of vehicle {i}"
-            beacons = link.period / sim.step
-            if link.period > sim.step and abs(beacons - round(beacons)) > 1e-9:
-                return f"the {direction} link of vehicle {i}: period {link.period:g} s is not a multiple of the step"
-    return None
-
-
-def timing_of(config: "Config", direction: str, vehicle: int) -> Timing:
-    """How the receiver at the end of ``vehicle``'s ``direction`` link samples its sender (Jacobi)."""
-    link, step = config.resolve_link(direction, vehicle), config.simulation.step
-    if link.perfect:
-        return PLAIN
-    lag = max(1, math.ceil(link.delay / step - 1e-9))
-    every = max(1, round(link.period / step))
-    return Timing(lag, every, loss_weights(link.loss, link.burst))
-
-
-def vehicle_of(config: "Config", index: int) -> Vehicle:
-    """Vehicle ``index`` of the config as a receiver of the speed chain."""
-    p, n = config.platoon, config.platoon.count
-    law = config.speed_law_of(index)
-    k_v = config.override(index).k_v or p.k_v
-    extrapolate = config.simulation.coupling == "extrapolate"
-    # only what the law reads (the rest at its default): vehicles that differ only in what their law ignores
-    # (acc's link, the paper law's time gap) are equal, and share ``lifted_maps``' and ``peak_growth``'s results
-    if law == "paper":
-        if index == n:
-            return Vehicle(law, k_v, c=p.speed / p.d_star, last=True, extrapolate=extrapolate)
-        return Vehicle(law, k_v, c=p.speed / p.d_star, extrapolate=extrapolate,
-                       comm=timing_of(config, "forward", index + 1), gap_link=timing_of(config, "backward", index + 1))
-    if law == "acc":
-        return Vehicle(law, k_v, p.time_gap, extrapolate=extrapolate)
-    return Vehicle(law, k_v=1.0, time_gap=p.time_gap, cacc_gain=p.cacc_gain, extrapolate=extrapolate,  # no k_v in cacc
-                   comm=timing_of(config, "backward", index))
-
-
-def lifting_period(config: "Config", record_every: int = 1) -> int:
-    """P: the steps after which the beacons of every link (and the records) repeat."""
-    period = record_every
-    for i in range(1, config.platoon.count + 1):
-        for direction in ("backward", "forward"):
-            period = math.lcm(period, timing_of(config, direction, i).every)
-    return period
-
-
-def push_phasors(config: "Config", w: float) -> dict[int, complex]:
+def push_phasors(chain: ChainModel, w: float) -> dict[int, complex]:
     """Per vehicle (0: the virtual target), the complex amplitude of its speed pushes at frequency ``w``:
     value sin(w (t - start)) is the imaginary part of value e^{-j w start} e^{j w t}."""
     pushes: dict[int, complex] = {}
-    for d in config.disturbance:
+    for d in chain.pushes:
         if d.kind == "speed" and abs(d.frequency - w) < 1e-12:
             pushes[d.vehicle] = pushes.get(d.vehicle, 0.0) + d.value * complex(math.cos(w * d.start), -math.sin(w * d.start))
     return pushes
@@ -441,37 +314,37 @@ def target_broadcast(lift: Lifted, push: complex) -> np.ndarray:
     return broadcast
 
 
-def cascade_speeds(config: "Config", order: list[int], w: float, record_every: int) -> list[complex]:
+def cascade_speeds(chain: ChainModel, order: list[int], w: float, record_every: int) -> list[complex]:
     """The component at ``w`` of each vehicle's speed (along ``order``, the way the law carries a
-    disturbance from ``order[0]``), driven by the config's sinusoidal pushes, as a least-squares fit over
+    disturbance from ``order[0]``), driven by the chain's sinusoidal pushes, as a least-squares fit over
     records every ``record_every`` steps measures it (the mean of the recorded instants' phasors).
     ``order`` may start at 0, the virtual target (acc, cacc: its speed is V_c plus its own pushes)."""
-    period = lifting_period(config, record_every)
-    lift = Lifted(np.array([w]), config.simulation.step, period)
-    pushes = push_phasors(config, w)
+    period = chain.lifting_period(record_every)
+    lift = Lifted(np.array([w]), chain.step, period)
+    pushes = push_phasors(chain, w)
     broadcast = np.zeros(3 * period, dtype=complex)
     recorded = np.arange(0, period, record_every)
-    demodulate = np.exp(-1j * w * recorded * config.simulation.step)
+    demodulate = np.exp(-1j * w * recorded * chain.step)
     components = []
     if order and order[0] == 0:
         broadcast = target_broadcast(lift, pushes.get(0, 0.0))
         components.append(complex(np.mean(broadcast[3 * recorded + 1] * demodulate)))
         order = order[1:]
     for index in order:
-        t, u = lifted_maps(vehicle_of(config, index), lift.w.tobytes(), lift.h, period)
+        t, u = lifted_maps(chain.vehicle(index), lift.w.tobytes(), lift.h, period)
         broadcast = t[0] @ broadcast + u[0] * pushes.get(index, 0.0)
         components.append(complex(np.mean(broadcast[3 * recorded + 1] * demodulate)))
     return components
 
 
-def growth_per_link(config: "Config", vehicle: int, w: np.ndarray) -> np.ndarray:
+def growth_per_link(chain: ChainModel, vehicle: int, w: np.ndarray) -> np.ndarray:
     """The spectral radius of ``vehicle``'s T(w): how much a disturbance at w grows per link far down a
     long string of vehicles like it (whatever the string's first links do)."""
-    return _growth(vehicle_of(config, vehicle), np.asarray(w, dtype=float), config.simulation.step,
-                   lifting_period(config))
+    return _growth_per_link(chain.vehicle(vehicle), np.asarray(w, dtype=float), chain.step, chain.lifting_period())
 
 
-def _growth(vehicle: Vehicle, w: np.ndarray, step: float, period: int) -> np.ndarray:
+def _growth_per_link(vehicle: Vehicle, w: np.ndarray, step: float, period: int) -> np.ndarray:
+    """``growth_per_link`` of one vehicle at each of ``w``: the spectral radius of T(w)."""
     t, _ = receiver_maps(Lifted(w, step, period), vehicle)
     return np.abs(np.linalg.eigvals(t)).max(axis=-1)
 
@@ -496,8 +369,11 @@ COARSE_FREQUENCIES = 100
 
 
 @dataclass(frozen=True)
-class Growth:
-    gain: float  # max over w of the growth per link (spectral radius of T(w))
+class PeakGrowth:
+    """The cascade's peak: the largest growth per link far down the string (the spectral radius of T(w))
+    over all frequencies, and where."""
+
+    gain: float  # max over w of the growth per link
     frequency: float  # rad/s where it is reached (0: the supremum is the limit w -> 0, where it is 1)
 
     @property
@@ -505,51 +381,53 @@ class Growth:
         return self.gain <= 1.0 + GROWTH_TOLERANCE
 
 
-def peak_growth(config: "Config", vehicle: int) -> Growth:
+def peak_growth(chain: ChainModel, vehicle: int) -> PeakGrowth:
     """The largest growth per link over w. T depends on w only through e^{j w P h}, so w in (0, pi/(P h)]
     covers every frequency; ``COARSE_FREQUENCIES`` log-spaced points from 1e-3 rad/s, refined four times
     around the best."""
-    return _peak_growth(vehicle_of(config, vehicle), config.simulation.step, lifting_period(config))
+    return _peak_growth(chain.vehicle(vehicle), chain.step, chain.lifting_period())
 
 
 @functools.lru_cache(maxsize=256)
-def _peak_growth(vehicle: Vehicle, step: float, period: int) -> Growth:
+def _peak_growth(vehicle: Vehicle, step: float, period: int) -> PeakGrowth:
     """``peak_growth`` of one vehicle, remembered: a map's runs repeat its grid's vehicles, and acc's
     vehicle is the same at every delay and loss (its sensor is a plain connection)."""
     top = math.pi / (period * step)
     w = np.geomspace(1e-3, top, COARSE_FREQUENCIES)
     for _ in range(4):
-        gain = _growth(vehicle, w, step, period)
+        gain = _growth_per_link(vehicle, w, step, period)
         best = int(np.argmax(gain))
         if best == 0 and gain[0] <= 1.0 + GROWTH_TOLERANCE:
-            return Growth(1.0, 0.0)
+            return PeakGrowth(1.0, 0.0)
         top_w, top_gain = w[best], gain[best]
         w = np.linspace(w[max(best - 1, 0)], w[min(best + 1, len(w) - 1)], 21)
-    return Growth(float(top_gain), float(top_w))
+    return PeakGrowth(float(top_gain), float(top_w))
 
 
-def largest_stable_delay(config: "Config", vehicle: int, longest: float = 2.0) -> float | None:
-    """The delay (s, on the step grid) of every link up to which the string is stable at every delay of the
-    grid, scanning from 0 up to ``longest`` (not a bisection: the growth jumps as the delay crosses the
-    beacon grid); None if unstable even without delay, ``longest`` if stable up to there."""
-    step = config.simulation.step
+def largest_stable_delay(with_delay: Callable[[float], ChainModel], vehicle: int, step: float,
+                         longest: float = 2.0) -> float | None:
+    """The delay (s, on the grid of ``step``) of every link up to which the string is stable at every delay of
+    the grid, scanning from 0 up to ``longest`` (not a bisection: the growth jumps as the delay crosses the
+    beacon grid); None if unstable even without delay, ``longest`` if stable up to there. ``with_delay(d)``:
+    the chain with every link's delay d (``chain_model`` of the config so changed)."""
     stable = None
     for steps in range(0, int(round(longest / step)) + 1):
         delay = steps * step
-        links = config.links.model_copy(update={"delay": delay})
-        if not peak_growth(config.model_copy(update={"links": links}), vehicle).string_stable:
+        if not peak_growth(with_delay(delay), vehicle).string_stable:
             return stable
         stable = delay
     return longest
 
 
-def smallest_stable_time_gap(config: "Config", vehicle: int, longest: float = 100.0) -> float | None:
+def smallest_stable_time_gap(chain: ChainModel, vehicle: int, longest: float = 100.0) -> float | None:
     """The smallest time gap h (s, to 1e-4 relative) from which the cascade is string stable (acc, cacc; the
     rest kept), by bisection: the peak falls as h grows. None if not stable up to ``longest``; 1e-3 if
     stable from there."""
+    receiver = chain.vehicle(vehicle)
+    period = chain.lifting_period()
+
     def stable(time_gap: float) -> bool:
-        platoon = config.platoon.model_copy(update={"time_gap": time_gap})
-        return peak_growth(config.model_copy(update={"platoon": platoon}), vehicle).string_stable
+        return _peak_growth(replace(receiver, time_gap=time_gap), chain.step, period).string_stable
 
     low, high = 1e-3, longest
     if not stable(high):
@@ -562,25 +440,25 @@ def smallest_stable_time_gap(config: "Config", vehicle: int, longest: float = 10
     return high
 
 
-def exact_lines(config: "Config", vehicle: int) -> list[str]:
-    """`platoon analyze`'s lines for the sampled-data cascade, or the reason it does not apply."""
-    missing = exact_applies(config)
-    if missing is not None:
-        return [f"  sampled-data cascade: not computed for {missing}; the verdict is the phase-averaged model's"]
-    period = lifting_period(config)
-    growth = peak_growth(config, vehicle)
+def exact_lines(chain: ChainModel, vehicle: int, with_delay: Callable[[float], ChainModel]) -> list[str]:
+    """`platoon analyze`'s lines for the sampled-data cascade of ``chain``, or the reason it does not apply;
+    ``with_delay``: as ``largest_stable_delay`` takes it (cacc's scan of the link delay)."""
+    if chain.missing is not None:
+        return [f"  sampled-data cascade: not computed for {chain.missing}; the verdict is the phase-averaged model's"]
+    period = chain.lifting_period()
+    growth = peak_growth(chain, vehicle)
     where = f"at {growth.frequency:.4g} rad/s" if growth.frequency > 0 else "as w -> 0 (<= 1 everywhere)"
     verdict = "string stable" if growth.string_stable else "NOT string stable"
-    lines = [f"  sampled-data cascade, exact on the {config.simulation.step:g} s step grid (lifted over "
+    lines = [f"  sampled-data cascade, exact on the {chain.step:g} s step grid (lifted over "
              f"{period} step(s)): growth per link far down the string peaks at {growth.gain:.4f} {where}: {verdict}"]
-    law = config.speed_law_of(vehicle)
-    if law in ("acc", "cacc"):
-        least = smallest_stable_time_gap(config, vehicle)
+    receiver = chain.vehicle(vehicle)
+    if receiver.law in ("acc", "cacc"):
+        least = smallest_stable_time_gap(chain, vehicle)
         lines.append("  (cascade) not string stable for any time_gap up to 100 s with these links" if least is None else
                      f"  (cascade) string stable for time_gap >= {least:.4g} s with these links")
-    if law == "cacc":
-        most = largest_stable_delay(config, vehicle)
-        lines.append(f"  (cascade) with time_gap = {config.platoon.time_gap:g} s not string stable even without a link "
-                     "delay" if most is None else f"  (cascade) with time_gap = {config.platoon.time_gap:g} s string "
+    if receiver.law == "cacc":
+        most = largest_stable_delay(with_delay, vehicle, chain.step)
+        lines.append(f"  (cascade) with time_gap = {receiver.time_gap:g} s not string stable even without a link "
+                     "delay" if most is None else f"  (cascade) with time_gap = {receiver.time_gap:g} s string "
                      f"stable for every link delay on the step grid up to {most:.4g} s")
     return lines

@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING
 from orchestrator.scenario.config import ConfigError
 
 if TYPE_CHECKING:
+    from orchestrator.analysis.chain_model import ChainModel
     from orchestrator.scenario.config import Config
 
 LIFTED_BYTES = 768 * 2**20
@@ -112,11 +113,11 @@ def _check_disturbances(config: "Config") -> None:
                                   "so there is nothing to measure; start it earlier or run longer")
 
 
-def _check_lifting(config: "Config") -> None:
-    """The exact cascade's size, where it is computed (``sampled_chain.exact_applies``)."""
-    from orchestrator.analysis.sampled_chain import COARSE_FREQUENCIES, exact_applies, lifting_period
+def _check_lifting(config: "Config", chain: "ChainModel") -> None:
+    """The exact cascade's size, where it is computed (``chain.missing`` None)."""
+    from orchestrator.analysis.sampled_chain import COARSE_FREQUENCIES
 
-    if exact_applies(config) is not None:
+    if chain.missing is not None:
         return
     for direction, vehicle, link in _links(config):
         terms = loss_terms(link.loss, link.burst)
@@ -126,7 +127,7 @@ def _check_lifting(config: "Config") -> None:
                 f"{link_key(config, direction, vehicle, 'burst')} = {link.burst:g}: a receiver may be using any of "
                 f"the last {terms:,} beacons, more than the {MAX_LOSS_TERMS:,} the sampled-data cascade sums over "
                 "this machine's memory and a minute; lower the loss or the burst")
-    period = lifting_period(config)
+    period = chain.lifting_period()
     need = BYTES_PER_LIFTED * COARSE_FREQUENCIES * period**2
     if need > LIFTED_BYTES:
         step = config.simulation.step
@@ -145,10 +146,14 @@ def _longest_period(step: float) -> float:
     return math.isqrt(LIFTED_BYTES // (BYTES_PER_LIFTED * COARSE_FREQUENCIES)) * step
 
 
-def check_analysis(config: "Config", measured: bool = False, closed_form: bool = True) -> None:
+def check_analysis(config: "Config", measured: bool = False, closed_form: bool = True,
+                   chain: "ChainModel | None" = None) -> None:
     """Raise ``AnalysisRefused`` for what an analysis of ``config`` cannot do: the closed form's work above its
-    bounds (``closed_form``), a measurement (``measured``) of a disturbance that never acts."""
+    bounds (``closed_form``), a measurement (``measured``) of a disturbance that never acts. ``chain``: the
+    config's ``chain_model`` where the caller has it."""
     if measured:
         _check_disturbances(config)
     if closed_form and not cut_links(config):  # else answered: nothing to size
-        _check_lifting(config)
+        from orchestrator.analysis.chain_model import chain_model
+
+        _check_lifting(config, chain or chain_model(config))

@@ -33,10 +33,12 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
+from orchestrator.analysis.chain_model import chain_model
 from orchestrator.analysis.loop_moments import loop_lines
-from orchestrator.analysis.sampled_chain import exact_applies, exact_lines
+from orchestrator.analysis.sampled_chain import exact_lines
 
 if TYPE_CHECKING:
+    from orchestrator.analysis.chain_model import ChainModel
     from orchestrator.scenario.config import Config, Simulation
 
 SPEED_LAWS = ("paper", "acc", "cacc")
@@ -385,8 +387,18 @@ def _condition_lines(config: "Config", chain: Chain) -> list[str]:
     return lines
 
 
-def chain_report(config: "Config") -> str:
-    """`platoon analyze`'s string-stability section: G(s), its peak, the conditions."""
+def _delayed(config: "Config") -> Callable[[float], "ChainModel"]:
+    """d -> the chain of ``config`` with every link's delay d (the cascade's scan of the delay)."""
+    def with_delay(delay: float) -> "ChainModel":
+        return chain_model(config.model_copy(update={"links": config.links.model_copy(update={"delay": delay})}))
+
+    return with_delay
+
+
+def chain_report(config: "Config", sampled: "ChainModel | None" = None) -> str:
+    """`platoon analyze`'s string-stability section: G(s), its peak, the conditions; then the sampled-data
+    cascade and the vehicle's own loop of ``sampled`` (the config's ``chain_model``, built here if not given)."""
+    sampled = sampled or chain_model(config)
     chain = chain_of(config)
     n = config.platoon.count
     arrow = "vehicle i+1 to vehicle i" if chain.direction == "forward" else "vehicle i-1 to vehicle i"
@@ -396,7 +408,7 @@ def chain_report(config: "Config") -> str:
              + f", {config.simulation.master}, {config.simulation.coupling}, step {config.simulation.step:g} s"]
     lines += _law_lines(chain)
     peak = peak_gain(chain)
-    exact = exact_applies(config) is None
+    exact = sampled.missing is None
     if peak.unstable_roots and not exact:
         lines.append(f"  the vehicle's own loop has {peak.unstable_roots} root(s) in the right half plane: the platoon "
                      "itself is unstable (a link delay inside the paper's loop), string stability is moot")
@@ -409,10 +421,10 @@ def chain_report(config: "Config") -> str:
     lines.append(f"  peak |G(jw)| = {peak.gain:.4f} {where}, {arrow}: {verdict}{links} (phase-averaged)")
     vehicle = interior_vehicle(config)
     if not exact:
-        return "\n".join(lines + _condition_lines(config, chain) + exact_lines(config, vehicle))
+        return "\n".join(lines + _condition_lines(config, chain) + exact_lines(sampled, vehicle, _delayed(config)))
     # the cascade's bounds are the runs' (the averaged ones leave out the aliases the beacons fold back, and
     # are optimistic for extrapolated links: a cacc case, 0.46 s averaged against 0.38 s by the cascade and runs)
-    lines += exact_lines(config, vehicle) + loop_lines(config, vehicle)
+    lines += exact_lines(sampled, vehicle, _delayed(config)) + loop_lines(sampled, vehicle)
     if chain.law != "paper":
         lines.append("  for comparison only, the phase-averaged model's bounds (not the runs'; the cascade's above are):")
         lines += [f"  {line}" for line in _condition_lines(config, chain)]

@@ -23,8 +23,9 @@ import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from orchestrator.analysis.loop_moments import LoopGrowth, loop_growth
-from orchestrator.analysis.sampled_chain import GROWTH_TOLERANCE, Growth, exact_applies, peak_growth
+from orchestrator.analysis.chain_model import ChainModel, chain_model
+from orchestrator.analysis.loop_moments import LoopRadii, loop_radii
+from orchestrator.analysis.sampled_chain import GROWTH_TOLERANCE, PeakGrowth, peak_growth
 from orchestrator.analysis.string_stability import GAIN_TOLERANCE, chain_of, interior_vehicle, peak_gain
 
 if TYPE_CHECKING:
@@ -90,23 +91,27 @@ class ClosedFormVerdict:
                 f"{self.peak_growth_per_link:.4f} {where}; {self.loop.text()}: {word}")
 
 
-def _loop_state(growth: LoopGrowth | None) -> LoopState:
-    if growth is None:
+def _loop_state(radii: LoopRadii | None) -> LoopState:
+    if radii is None:
         return LoopState(NO_LOOP)
-    seconds = growth.period * growth.step
-    if math.isnan(growth.mean):
-        return LoopState(NOT_COMPUTED, period_seconds=seconds, reason=growth.reason)
-    return LoopState(SETTLES if growth.mean_stable else GROWS, growth.mean, growth.square, seconds, growth.reason)
+    seconds = radii.period * radii.step
+    if math.isnan(radii.mean):
+        return LoopState(NOT_COMPUTED, period_seconds=seconds, reason=radii.reason)
+    return LoopState(SETTLES if radii.mean_stable else GROWS, radii.mean, radii.mean_square, seconds, radii.reason)
 
 
-def closed_form_verdict(config: "Config", peak: Growth | None = None, mean_square: bool = True) -> ClosedFormVerdict:
+def closed_form_verdict(config: "Config", peak: PeakGrowth | None = None, mean_square: bool = True,
+                        chain: ChainModel | None = None) -> ClosedFormVerdict:
     """The verdict for ``config``'s interior vehicle (``string_stability.interior_vehicle``). ``peak``: its
-    cascade's peak where the caller computed it already (a map's grid cell), else computed here;
-    ``mean_square``: the loop's second moment too (the verdict does not need it: up to 1.3 s a loop)."""
+    cascade's peak where the caller computed it already (a map's grid cell: ``peak_growth`` of a chain with
+    the same interior vehicle, step and lifting period), else computed here; ``mean_square``: the loop's
+    second moment too (the verdict does not need it: up to 1.3 s a loop); ``chain``: the config's
+    ``chain_model`` where the caller has it."""
     vehicle = interior_vehicle(config)
-    if exact_applies(config) is None:
-        peak = peak or peak_growth(config, vehicle)
-        loop = loop_growth(config, vehicle, square=mean_square)
+    chain = chain or chain_model(config)
+    if chain.missing is None:
+        peak = peak or peak_growth(chain, vehicle)
+        loop = loop_radii(chain, vehicle, mean_square)
         return ClosedFormVerdict(CASCADE, peak.gain, peak.frequency, _loop_state(loop))
     averaged = peak_gain(chain_of(config))
     loop = LoopState(GROWS if averaged.unstable_roots else SETTLES)

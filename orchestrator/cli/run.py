@@ -141,6 +141,7 @@ def analyze(
     its eigenvalues next to the paper's eq. 9; for every law, on a circle or a line, the speed chain's G(jw)
     (peak gain, the time gap and delay that keep it string stable); with a [[disturbance]], the l2 and l_inf
     gains measured from vehicle to vehicle."""
+    from orchestrator.analysis.chain_model import chain_model
     from orchestrator.analysis.error_gains import string_stability_report
     from orchestrator.analysis.linear import eigen_report
     from orchestrator.analysis.sizing import check_analysis, nothing_arrives
@@ -150,8 +151,9 @@ def analyze(
     string_stability = measure if old_measure is None else old_measure
     parsed, text = load_config(config, overrides)
     measured = string_stability and bool(parsed.disturbance)  # only then is the scenario run (twice)
+    chain = chain_model(parsed)  # the chain the sizing, the cascade, the loop and the scatter below all read
     try:
-        check_analysis(parsed, measured, closed_form=not allow_long)  # sized before any work (analysis/sizing.py)
+        check_analysis(parsed, measured, closed_form=not allow_long, chain=chain)  # sized before any work (analysis/sizing.py)
         if not allow_long:
             check_analyze_size(parsed)
             if measured:
@@ -172,13 +174,12 @@ def analyze(
             f"platoon.speed_law = {parsed.platoon.speed_law!r} (it knows only the paper's law)")
         out.print(f"eigenvalues: not for {why}; the speed chain:", highlight=False, soft_wrap=True)
     if parsed.platoon.count > 1:
+        from orchestrator.analysis.error_gains import scatter_lines
         from orchestrator.analysis.verdict import closed_form_verdict
 
-        out.print(chain_report(parsed), highlight=False, soft_wrap=True)
-        out.print(closed_form_verdict(parsed).line(), highlight=False, soft_wrap=True)  # as stability and the map say it
-        from orchestrator.analysis.error_gains import scatter_lines
-
-        for line in scatter_lines(parsed):  # a single run's predicted scatter about that mean
+        out.print(chain_report(parsed, chain), highlight=False, soft_wrap=True)
+        out.print(closed_form_verdict(parsed, chain=chain).line(), highlight=False, soft_wrap=True)  # as stability and the map say it
+        for line in scatter_lines(parsed, chain):  # a single run's predicted scatter about that mean
             out.print(line, highlight=False, soft_wrap=True)
     if string_stability:
         from orchestrator.observers.progress import progress

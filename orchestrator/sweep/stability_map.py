@@ -35,8 +35,8 @@ from orchestrator.analysis.error_gains import (clean_order, frequency_gains, pre
                                                run_headline, steady_window, vehicle_errors)
 from orchestrator.analysis.headline import Headline  # noqa: E402
 from orchestrator.analysis.sizing import AnalysisRefused, check_analysis, nothing_arrives  # noqa: E402
-from orchestrator.analysis.sampled_chain import (GROWTH_TOLERANCE, Growth, exact_applies,  # noqa: E402
-                                                 growth_per_link, lifting_period, peak_growth, vehicle_of)
+from orchestrator.analysis.chain_model import ChainModel, chain_model  # noqa: E402
+from orchestrator.analysis.sampled_chain import GROWTH_TOLERANCE, PeakGrowth, growth_per_link, peak_growth  # noqa: E402
 from orchestrator.analysis.string_stability import interior_vehicle  # noqa: E402
 from orchestrator.analysis.validity import departures_cell, departures_of_trace, split_at  # noqa: E402
 from orchestrator.analysis.verdict import NOT_COMPUTED, ClosedFormVerdict, closed_form_verdict  # noqa: E402
@@ -49,10 +49,11 @@ from orchestrator.sweep.results import lookup, read_records  # noqa: E402  (the 
 LAW, DELAY, LOSS = "platoon.speed_law", "links.delay", "links.loss"
 
 
-def measured_gains(config: Config, trace_path: Path) -> tuple[np.ndarray, np.ndarray | None, Headline]:
+def measured_gains(config: Config, trace_path: Path, chain: ChainModel) -> tuple[np.ndarray, np.ndarray | None, Headline]:
     """Per probe frequency, per link that measures propagation: the run's gains, and the sampled-data
     cascade's prediction for the same links of the same run (None where it does not apply); the run's
-    headline (``error_gains.run_headline``: its growth, scatter and weak probes)."""
+    headline (``error_gains.run_headline``: its growth, scatter and weak probes). ``chain``: the config's
+    ``chain_model``."""
     from orchestrator.trace import load
 
     frequencies = probe_frequencies(config)
@@ -73,18 +74,18 @@ def measured_gains(config: Config, trace_path: Path) -> tuple[np.ndarray, np.nda
         trace = load(trace_path, components=components, errors=False)
     errors = vehicle_errors(trace, config)
     measured = np.array(frequency_gains(errors, order, frequencies, window))
-    predicted = predicted_gains(config, names, order, frequencies)
-    return measured, None if predicted is None else np.array(predicted), run_headline(config, errors, order, window)
+    predicted = predicted_gains(config, names, order, frequencies, chain)
+    return (measured, None if predicted is None else np.array(predicted),
+            run_headline(config, errors, order, window, chain))
 
 
-def _analytic(config: Config, delay: float, loss: float) -> tuple[float, float, float]:
-    """(peak growth per link, the frequency of that peak, largest growth at the probe frequencies) of the
+def _analytic(config: Config, delay: float, loss: float) -> tuple[PeakGrowth, float]:
+    """(the peak growth per link and its frequency, the largest growth at the probe frequencies) of the
     sampled-data cascade of ``config`` with every link's delay and loss set."""
     changed = _with_link(config, delay, loss)
-    vehicle = interior_vehicle(changed)
-    probes = growth_per_link(changed, vehicle, np.array(probe_frequencies(config))).max()
-    peak = peak_growth(changed, vehicle)
-    return peak.gain, peak.frequency, float(probes)
+    chain, vehicle = chain_model(changed), interior_vehicle(changed)
+    probes = growth_per_link(chain, vehicle, np.array(probe_frequencies(config))).max()
+    return peak_growth(chain, vehicle), float(probes)
 
 
 def _points(folder: Path) -> list[dict[str, Any]]:
@@ -99,11 +100,11 @@ def _points(folder: Path) -> list[dict[str, Any]]:
             raise PlotError(f"run {record['id']}: no {', '.join(k for k, v in where.items() if v is None)} (not a "
                             "string-stability sweep: configs/sweeps/string_stability.toml)")
         config = config_from_mapping(record["config"])
-        missing = exact_applies(config)
-        if missing is not None:
-            raise PlotError(f"run {record['id']}: the sampled-data cascade does not model {missing}")
+        chain = chain_model(config)
+        if chain.missing is not None:
+            raise PlotError(f"run {record['id']}: the sampled-data cascade does not model {chain.missing}")
         try:  # sized before any work (analysis/sizing.py); links that deliver nothing make no chain to map
-            check_analysis(config)
+            check_analysis(config, chain=chain)
             cut = nothing_arrives(config)
         except AnalysisRefused as error:
             cut = str(error)
@@ -125,7 +126,8 @@ def _point(raw: dict[str, Any], trace: Path | None,
     its peak; where it left the model from the first disturbance on, "" if it did not, and then no gains;
     where it left it while it settled, before), from its config's mapping (a task of a worker process)."""
     config = config_from_mapping(raw)
-    stable = closed_form_verdict(config, mean_square=False) if verdict else None
+    chain = chain_model(config)
+    stable = closed_form_verdict(config, mean_square=False, chain=chain) if verdict else None
     if trace is None:
         return None, math.nan, stable, "", ""
     from orchestrator.trace import load
@@ -135,7 +137,7 @@ def _point(raw: dict[str, Any], trace: Path | None,
     settling, departures = (departures_cell(part) for part in split_at(found, start))
     if departures:
         return None, math.nan, stable, departures, settling
-    measured, predicted, headline = measured_gains(config, trace)
+    measured, predicted, headline = measured_gains(config, trace, chain)
     return headline, float(np.abs(measured / predicted - 1.0).max()), stable, "", settling
 
 
@@ -159,7 +161,8 @@ def grid_axis(values: list[float], most: int) -> np.ndarray:
 def _chain_key(config: Config) -> tuple:
     """What the closed form's peak depends on: the interior vehicle as the cascade sees it, the step and
     the lifting period (runs and grid cells with the same key have the same verdict)."""
-    return (vehicle_of(config, interior_vehicle(config)), config.simulation.step, lifting_period(config))
+    chain = chain_model(config)
+    return (chain.vehicle(interior_vehicle(config)), chain.step, chain.lifting_period())
 
 
 def _with_link(config: Config, delay: float, loss: float) -> Config:
@@ -213,10 +216,10 @@ def age_label(config: Config, delay: float) -> str:
     return f"{delay:g}\n{first:.2g}-{first + period:.2g}"
 
 
-def _analytic_row(raw: dict[str, Any], delays: np.ndarray, loss: float) -> np.ndarray:
-    """``_analytic`` along the delays at one loss (a task of a worker process): rows (peaks, probes)."""
+def _analytic_row(raw: dict[str, Any], delays: np.ndarray, loss: float) -> list[tuple[PeakGrowth, float]]:
+    """``_analytic`` along the delays at one loss (a task of a worker process)."""
     config = config_from_mapping(raw)
-    return np.array([_analytic(config, float(delay), loss) for delay in delays]).T
+    return [_analytic(config, float(delay), loss) for delay in delays]
 
 
 def tasks(points: list[dict[str, Any]], laws: list[str], losses: np.ndarray) -> int:
@@ -257,14 +260,14 @@ def _compute(points: list[dict[str, Any]], laws: list[str], delays: np.ndarray, 
             done += 1
             if tick is not None:
                 tick(done)
-        grids = {}
-        for law, law_rows in rows.items():
-            stacked = np.array([task.result() for task in law_rows])  # loss x (peaks, probes, peak frequencies) x delay
-            grids[law] = (stacked[:, 0, :], stacked[:, 2, :], stacked[:, 1, :])
+        cells = {law: [task.result() for task in law_rows] for law, law_rows in rows.items()}  # loss x delay
+    grids = {law: (np.array([[peak.gain for peak, _ in row] for row in found]),
+                   np.array([[probes for _, probes in row] for row in found]),
+                   np.array([[peak.frequency for peak, _ in row] for row in found])) for law, found in cells.items()}
     for p in points:
         if from_grid[id(p)] is not None:
             law, i, j = from_grid[id(p)]
-            peak = Growth(float(grids[law][0][i, j]), float(grids[law][2][i, j]))  # the cell's peak, computed
+            peak = cells[law][i][j][0]  # the cell's peak, as peak_growth gave it for the run's chain key
             stable[p[LAW]][(p[DELAY], p[LOSS])] = closed_form_verdict(p["config"], peak, mean_square=False)
     return grids, stable
 
