@@ -22,8 +22,10 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import os
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
 
 import zenoh
 
@@ -31,6 +33,36 @@ _LOG_STARTED = False
 SECURE_PROTOCOLS = ("tls", "quic")  # link protocols that authenticate and encrypt (docs/hil.md)
 LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe", "vsock")  # never leave the machine
 RECIPE = "run `platoon hil-certs` and use tls/ endpoints with its Zenoh configs (docs/hil.md, \"A secure lab\")"
+
+
+# Every Zenoh runtime of the process (app, acceptor, tx, rx, net) on one worker thread: ``one_zenoh_thread``.
+ONE_THREAD_RUNTIME = ("(app: (worker_threads: 1), acc: (handover: app), tx: (handover: app), rx: (handover: app), "
+                      "net: (handover: app))")
+
+
+@contextmanager
+def one_zenoh_thread() -> Iterator[None]:
+    """Open the session of this block with the process's Zenoh on one thread, not its default five
+    runtimes (rx-0, rx-1, tx-0, net-0, acc-0).
+
+    For ``platoon serve``, whose whole Zenoh traffic is one small request and its reply at a time: with
+    the default runtimes a request is read on an rx thread, answered on the callback's Python thread,
+    written on the tx thread, and the idle net and acc threads are woken too, about eleven context
+    switches per request; on one thread half of those, and about 30 % less of the server's CPU, which is
+    what a lockstep step of many servers on 2 cores is bound by (docs/remote.md, "One round trip per
+    step"). Only the server's process: a run's, or an FMI importer's hosting the client FMU, keep Zenoh's
+    defaults. Zenoh reads ``ZENOH_RUNTIME`` once, when its runtime starts (the process's first session),
+    so this acts only if that happens in the block; the variable is removed again afterwards (child
+    processes keep the defaults). A ``ZENOH_RUNTIME`` the user set wins (an empty one counts as unset).
+    """
+    if os.environ.get("ZENOH_RUNTIME"):
+        yield
+        return
+    os.environ["ZENOH_RUNTIME"] = ONE_THREAD_RUNTIME
+    try:
+        yield
+    finally:
+        os.environ.pop("ZENOH_RUNTIME", None)
 
 
 class SessionError(RuntimeError):

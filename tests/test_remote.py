@@ -8,6 +8,7 @@ instance obeys only the run that opened it, once per request and in order.
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -67,6 +68,12 @@ def platoon_run(config: Path, trace: Path, kind: str, *options: str) -> subproce
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
+def thread_names(pid: int) -> set[str]:
+    """The names of the threads of process ``pid`` (Linux /proc)."""
+    return {(Path("/proc") / str(pid) / "task" / task / "comm").read_text().strip()
+            for task in os.listdir(f"/proc/{pid}/task")}
+
+
 def outputs(trace: Path) -> dict[str, np.ndarray]:
     loaded = load(trace)
     return {f"{component}.{name}": np.asarray(values) for component, channel in loaded.channels.items()
@@ -85,7 +92,10 @@ def test_every_vehicle_remote_gives_the_local_numbers_bit_for_bit(kind: str, tmp
     ports = {vehicle: free_port() for vehicle in (1, 2, 3, 4)}
     with ExitStack() as stack:
         for vehicle, port in ports.items():
-            stack.enter_context(server(f"vehicle{vehicle}", port, kind, tmp_path))
+            serving = stack.enter_context(server(f"vehicle{vehicle}", port, kind, tmp_path))
+            # its Zenoh on one thread (bridge.session.one_zenoh_thread): none of the default runtimes' threads
+            threads = thread_names(serving.pid)
+            assert "app-0" in threads and not threads & {"rx-0", "rx-1", "tx-0", "net-0", "acc-0"}, threads
         remote = tmp_path / "remote.mcap"
         process = platoon_run(PAPER, remote, kind, *stop, *remote_sets(ports))
         _, err = process.communicate(timeout=300)

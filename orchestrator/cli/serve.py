@@ -59,7 +59,7 @@ def serve(
     """Serve one FMU instance on Zenoh for a run whose vehicle is remote (until Ctrl-C)."""
     from bridge.fmu_wire import fmu_key
     from bridge.protocol import check_prefix
-    from bridge.session import SessionError, open_session, zenoh_config as make_config
+    from bridge.session import SessionError, one_zenoh_thread, open_session, zenoh_config as make_config
 
     from orchestrator.components.fmu import UnpackedFmu
     from orchestrator.components.fmu3 import unsupported
@@ -85,8 +85,9 @@ def serve(
     stop = threading.Event()
     stop_on_signals(stop)
     try:
-        session = open_session(make_config(connect, listen, str(zenoh_config) if zenoh_config else None,
-                                           allow_insecure=allow_insecure), f"platoon serve {name}")
+        with one_zenoh_thread():  # about 30 % less CPU per served request (bridge/session.py)
+            session = open_session(make_config(connect, listen, str(zenoh_config) if zenoh_config else None,
+                                               allow_insecure=allow_insecure), f"platoon serve {name}")
     except SessionError as error:
         unpacked.cleanup()
         fail(2, str(error))

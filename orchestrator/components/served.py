@@ -144,9 +144,10 @@ class ServedInstance:
 def serve(instance: ServedInstance, session: Any, key: str, stop: threading.Event) -> None:
     """Answer queries on ``key`` until ``stop`` is set; the instance is freed on the way out.
 
-    Zenoh's default threads and callback hand-over, not one thread answering on Zenoh's own (tried: about
-    half the CPU per served step, but in the suite's parallel phase a libcosim host then took 4.5-5 s to
-    exit after freeing its client FMUs, against 0.05-0.3 s: docs/remote.md, "One round trip per step")."""
+    ``answer`` runs on zenoh-python's callback thread (the default hand-over), not on Zenoh's own: ``platoon
+    serve`` runs Zenoh on one thread (bridge/session.py, ``one_zenoh_thread``), which must never wait for the
+    GIL or an FMU's step, or every link of the process would wait with it (answering on Zenoh's thread was
+    tried together with a run on one Zenoh thread and taken out: docs/remote.md, "One round trip per step")."""
     def answer(query: Any) -> None:
         payload = query.payload.to_bytes() if query.payload is not None else b""
         query.reply(query.key_expr, instance.handle(payload))
