@@ -102,6 +102,12 @@ def test_an_entry_of_other_code_is_not_used(cache: Path) -> None:
     stored["modules"][module][1] -= 1  # the models' file changed since
     entry.write_text(json.dumps(stored))
     assert config_records.cached_config(raw) is None
+    stored["modules"][module][1] += 1
+    entry.write_text(json.dumps(stored))
+    assert config_records.cached_config(raw) is not None
+    stored["key"] = stored["key"].replace("platoon", "plat00n")  # another mapping whose file name would be the same
+    entry.write_text(json.dumps(stored))
+    assert config_records.cached_config(raw) is None
     entry.write_text("{")  # a damaged entry: validated again
     assert config_records.cached_config(raw) is None
 

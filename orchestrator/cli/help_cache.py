@@ -19,7 +19,6 @@ before. Standard library only, and little of it: this runs before every `platoon
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import re
@@ -123,4 +122,6 @@ def _entry(args: list[str]) -> Path:
     key = json.dumps([args, sys.executable, sys.version, [getattr(stream, "encoding", None) for stream in
                                                           (sys.stdout, sys.stderr)],
                       [_terminal(descriptor) for descriptor in (0, 1, 2)], sorted(environment.items())])
+    import hashlib  # here: OpenSSL's loading is ~2 % of the commands that show no help
+
     return cache_folder("help") / f"{hashlib.sha256(key.encode()).hexdigest()[:32]}.json"

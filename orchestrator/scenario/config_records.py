@@ -21,11 +21,11 @@ is not stored. Standard library only, and no pydantic.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import os
 import sys
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -108,20 +108,23 @@ def _dump(value: Any, exclude_none: bool) -> Any:
 
 
 def _key(raw: dict[str, Any]) -> str:
-    """The entry's name: a hash of the raw mapping (TypeError or ValueError when it is not plain JSON)."""
-    text = json.dumps([FORMAT, sys.version, raw], allow_nan=False)
-    return hashlib.sha256(text.encode()).hexdigest()[:32]
+    """The raw mapping as the entry holds it (TypeError or ValueError when it is not plain JSON)."""
+    return json.dumps([FORMAT, sys.version, raw], allow_nan=False)
 
 
 def _entry(key: str) -> Path:
-    return cache_folder("configs") / f"{key}.json"
+    """The entry's file: named by two checksums of its key (zlib's, loaded anyway; OpenSSL's hashes cost a short
+    run ~2 % to load), which the entry holds whole and is compared with, so two keys never share a verdict."""
+    data = key.encode()
+    return cache_folder("configs") / f"{zlib.crc32(data):08x}{zlib.adler32(data):08x}{len(data):x}.json"
 
 
 def cached_config(raw: dict[str, Any]) -> Any:
     """The config validated from ``raw`` before, as records; None when there is none, or the code changed."""
     try:
-        entry = json.loads(_entry(_key(raw)).read_text(encoding="utf-8"))
-        if entry["format"] != FORMAT or entry["modules"] != stamps(entry["modules"]):
+        key = _key(raw)
+        entry = json.loads(_entry(key).read_text(encoding="utf-8"))
+        if entry["format"] != FORMAT or entry["key"] != key or entry["modules"] != stamps(entry["modules"]):
             return None
         return _records(entry)
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
@@ -141,7 +144,7 @@ def store_config(raw: dict[str, Any], config: Any) -> None:
         while len(specs) < len(classes):  # a model's defaults may hold models of their own
             for name, model in list(classes.items()):
                 specs.setdefault(name, _class_entry(model, classes))
-        entry = {"format": FORMAT, "config": tree, "classes": specs,
+        entry = {"format": FORMAT, "key": key, "config": tree, "classes": specs,
                  "json": {form: config.model_dump_json(**options) for form, options in _JSON_FORMS.items()}}
         entry["modules"] = stamps(loaded_files())
         text = json.dumps(entry, allow_nan=False)
