@@ -17,21 +17,19 @@ config_text.py.
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 from typing import Any
 
 from pydantic import Field, ValidationError, model_validator
 
-from fmus.model.guidance import SENSING_LAWS
 from fmus.model.integrate import substep_count
 from fmus.model.link import CAPACITY as LINK_CAPACITY
-from fmus.model.link import LinkParameters, messages_held
+from fmus.model.link import messages_held
 from fmus.model.link import parameter_errors as link_parameter_errors
 from fmus.model.robot_loop import COMMAND_CAPACITY
 
 from .config_errors import explain, unit_of
-from .config_logic import FILE_KEYS, ConfigLogic  # noqa: F401  (FILE_KEYS re-exported)
+from .config_logic import ConfigLogic
 from .config_tables import TARGET_VEHICLE  # noqa: F401  (re-exported: the analyses name the target by it)
 from .config_tables import (Disturbance, Hil, Initial, M3pi, PathConfig, Platoon, Remote, Simulation, Validity,
                             VehicleOverride)
@@ -39,7 +37,7 @@ from .config_types import COUNT_LIMIT, RK4_STABILITY, Name, Text, rule, RuleErro
 from .link_config import LINK_DIRECTIONS, Links
 from .raw_config import ConfigError, apply_override, read_config_text, step_count  # noqa: F401  (re-exported)
 from .raw_config import parse_value  # noqa: F401  (re-exported: a --set value's parser, where it always was)
-from .raw_config import raw_mapping, resolve_named_files  # noqa: F401  (re-exported)
+from .raw_config import FILE_KEYS, raw_mapping, resolve_named_files  # noqa: F401  (re-exported)
 from .ros2_config import RunRos2
 
 
@@ -187,7 +185,7 @@ class Config(ConfigLogic, StrictModel):
         for key in self.links.vehicles:
             if not key.isdigit() or key != str(int(key)) or not 1 <= int(key) <= count:
                 raise rule(f"links.vehicles.{key}", key, f"a vehicle number from 1 to platoon.count = {count}")
-        if self.links == Links():
+        if self.links == self._no_links():
             return  # no link: nothing to check for any of the vehicles
         for vehicle in range(1, count + 1):
             for direction in LINK_DIRECTIONS:
