@@ -57,7 +57,7 @@ def load_trace(trace: Path, stop: threading.Event | None = None, **selection):
     if not trace.is_file():
         fail(2, f"trace {trace}: no such file")
     try:
-        with late_progress(f"reading {trace.name}", console(stderr=True), "chunks") as shown:
+        with late_progress(f"reading {trace.name}", lambda: console(stderr=True), "chunks") as shown:
             return load(trace, progress=shown if stop is None else _stoppable(shown, stop), **selection)
     except TraceError as error:  # says what is wrong and what to do (e.g. `platoon trace recover`)
         fail(2, f"trace {trace}: not a readable MCAP trace: {error}")
@@ -168,6 +168,11 @@ def report_command(trace: Path, as_json: bool, plots: Optional[Path], overwrite:
         from orchestrator.analysis.link_stats import link_rows, link_stats_of_trace
         from orchestrator.analysis.metrics import report_json, summarize
         from orchestrator.analysis.validity import departures_lines, departures_of_trace
+
+        # what prints the report, loaded while the trace is read (the reading, in C, outlasts these imports)
+        console(), console(stderr=True)
+        if not as_json:
+            import rich.table  # noqa: F401
 
         # a config seen before comes back without pydantic; --plots is not written for it
         loaded, config, non_finite = trace_and_config(trace, reading, cached=plots is None)
