@@ -83,6 +83,30 @@ def test_a_late_progress_shows_only_work_that_takes_long(tmp_path: Path, monkeyp
     assert lines[0].startswith("reading x.mcap: 10% (1/10 chunks)") and lines[-1].startswith("reading x.mcap: 100% (10/10")
 
 
+def test_a_late_progress_makes_its_console_only_to_show_it(tmp_path: Path, monkeypatch) -> None:
+    """Given a function for its console (`platoon report`: rich then loads in the command's thread, while the
+    trace is read), a quick read never calls it; a long one calls it once and shows the same lines."""
+    from rich.console import Console
+
+    monkeypatch.setenv("PLATOON_PROGRESS_SECONDS", "0")
+    made: list[Console] = []
+    with open(tmp_path / "slow.txt", "w") as stream:
+        def make() -> Console:
+            made.append(Console(file=stream))
+            return made[-1]
+
+        with late_progress("reading x.mcap", make, "chunks", after=3600.0) as tick:
+            for done in range(1, 11):
+                tick(done, 10)
+        assert made == []
+        with late_progress("reading x.mcap", make, "chunks", after=0.0) as tick:
+            for done in range(1, 11):
+                tick(done, 10)
+    assert len(made) == 1
+    lines = (tmp_path / "slow.txt").read_text().splitlines()
+    assert lines[0].startswith("reading x.mcap: 10% (1/10 chunks)") and lines[-1].startswith("reading x.mcap: 100% (10/10")
+
+
 def test_the_grid_holds_the_runs_values_and_gives_their_verdicts(sweep: Path) -> None:
     """Each run's closed-form verdict is read off the analytic grid's cell at its (delay, loss) when the
     grid holds it: the same verdict as the run's own peak growth."""

@@ -32,11 +32,15 @@ _PROBE = """
 import gc, json, sys
 full = []
 gc.callbacks.append(lambda phase, info: full.append(1) if phase == "stop" and info["generation"] == 2 else None)
-from orchestrator.cli.launch import plain_run_options
+from orchestrator.cli.launch import plain_report_options, plain_run_options
 sys.argv = ["platoon", *sys.argv[1:]]
 options = plain_run_options(sys.argv[1:])  # what the console script does (launch.main), without its os._exit
 try:
-    if options is None:
+    if options is None and (report := plain_report_options(sys.argv[1:])) is not None:
+        from orchestrator.cli.reporting import report_command
+
+        report_command(**report)
+    elif options is None:
         from orchestrator.cli.app import app
 
         app()
@@ -133,6 +137,20 @@ def test_a_plain_run_loads_neither_typer_nor_rich(tmp_path: Path, fmu_dir: Path)
     assert "orchestrator.execution.run" in modules  # it did run
     assert [name for name in modules if name.split(".")[0] in ("typer", "rich", "click")] == []
     assert "orchestrator.cli.app" not in modules
+
+
+def test_a_run_and_a_report_of_a_config_seen_before_load_no_pydantic(tmp_path: Path, fmu_dir: Path) -> None:
+    """pydantic and the config models were half of a short run's start-up: a config validated before comes back
+    from the cache of validated configs (orchestrator/scenario/config_records.py; tests/test_config_cache.py holds
+    it to the models). The first run and report validate, and load pydantic; the second ones do not."""
+    cache = {"XDG_CACHE_HOME": str(tmp_path / "cache")}
+    runs = [probe(*quiet_run(tmp_path), "--overwrite", cwd=REPO, env=cache)["modules"] for _ in range(2)]
+    assert "pydantic" in runs[0] and "orchestrator.execution.run" in runs[1]
+    assert [name for name in runs[1] if name.split(".")[0] in ("pydantic", "pydantic_core")] == []
+    assert "orchestrator.scenario.config" not in runs[1]
+    reports = [probe("report", str(tmp_path / "t.mcap"), cwd=REPO, env=cache)["modules"] for _ in range(2)]
+    assert "pydantic" in reports[0] and "orchestrator.analysis.metrics" in reports[1]
+    assert [name for name in reports[1] if name.split(".")[0] in ("pydantic", "pydantic_core")] == []
 
 
 def test_the_cli_alone_imports_none_of_it(tmp_path: Path) -> None:

@@ -14,12 +14,12 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from orchestrator.scenario.config import Config
 from orchestrator.scenario.scenario import path_of
 from orchestrator.trace.format import vehicle_names
 
 if TYPE_CHECKING:  # a run accumulates its summary without the trace reader (mcap's reader: start-up time)
     from orchestrator.analysis.validity import Departure
+    from orchestrator.scenario.config import Config
     from orchestrator.trace import Trace
 
 STEADY_FRACTION = 0.1

@@ -30,11 +30,11 @@ import math
 from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Iterable, Sequence
 
-from orchestrator.scenario.config import Config
 from orchestrator.scenario.wiring import TARGET
 from orchestrator.trace.format import vehicle_names
 
 if TYPE_CHECKING:
+    from orchestrator.scenario.config import Config
     import numpy as np
 
     from orchestrator.trace import Trace

@@ -19,7 +19,6 @@ before. Standard library only, and little of it: this runs before every `platoon
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import re
@@ -27,13 +26,14 @@ import sys
 from pathlib import Path
 from typing import Any, Callable, NoReturn
 
+from orchestrator.support.cache_files import cache_folder, loaded_files, stamps, write_whole
+
 _WORD = re.compile(r"[a-z][a-z0-9-]*")  # a command's name (a help request names commands, then --help)
 _ENVIRONMENT = ("NO_COLOR", "FORCE_COLOR", "PY_COLORS", "TERM", "COLORTERM", "COLUMNS", "LINES", "TERMINAL_WIDTH",
                 "TTY_COMPATIBLE", "TTY_INTERACTIVE", "JUPYTER_COLUMNS", "JUPYTER_LINES", "GITHUB_ACTIONS",
                 "DATABRICKS_RUNTIME_VERSION", "UNICODE_VERSION", "PYTHONIOENCODING", "PYTHONUTF8", "LANG", "LC_ALL",
                 "LC_CTYPE", "TYPER_USE_RICH")
 _PREFIXES = ("_TYPER", "TYPER_", "COMP_")  # typer's switches, shell completion
-_STDLIB = os.path.dirname(os.__file__)
 
 
 def is_help_request(args: list[str]) -> bool:
@@ -46,7 +46,7 @@ def replay(args: list[str]) -> None:
     return otherwise (typer then renders it)."""
     try:
         stored = json.loads(_entry(args).read_text(encoding="utf-8"))
-        if stored["modules"] != _stamps(stored["modules"]):
+        if stored["modules"] != stamps(stored["modules"]):
             return
     except (OSError, ValueError, KeyError, TypeError):
         return
@@ -103,29 +103,8 @@ def _write(stream: Any, text: str) -> None:
 
 
 def _store(args: list[str], code: int, stdout: str, stderr: str) -> None:
-    modules = sorted({file for module in list(sys.modules.values())
-                      if isinstance(file := getattr(module, "__file__", None), str) and not file.startswith(_STDLIB)})
-    entry = _entry(args)
-    try:
-        entry.parent.mkdir(parents=True, exist_ok=True)
-        partial = entry.with_name(f"{entry.name}.{os.getpid()}.part")
-        partial.write_text(json.dumps({"code": code, "stdout": stdout, "stderr": stderr,
-                                       "modules": _stamps(dict.fromkeys(modules))}), encoding="utf-8")
-        os.replace(partial, entry)  # whole or not at all: two `platoon --help` at once each write their own
-    except OSError:
-        pass  # no cache folder we may write: the page is rendered each time, as before
-
-
-def _stamps(files: dict[str, Any]) -> dict[str, list[int] | None]:
-    """Each file's size and modification time (None: gone)."""
-    stamps: dict[str, list[int] | None] = {}
-    for file in files:
-        try:
-            status = os.stat(file)
-            stamps[file] = [status.st_size, status.st_mtime_ns]
-        except OSError:
-            stamps[file] = None
-    return stamps
+    write_whole(_entry(args), json.dumps({"code": code, "stdout": stdout, "stderr": stderr,
+                                          "modules": stamps(loaded_files())}))
 
 
 def _terminal(descriptor: int) -> list[Any]:
@@ -143,5 +122,6 @@ def _entry(args: list[str]) -> Path:
     key = json.dumps([args, sys.executable, sys.version, [getattr(stream, "encoding", None) for stream in
                                                           (sys.stdout, sys.stderr)],
                       [_terminal(descriptor) for descriptor in (0, 1, 2)], sorted(environment.items())])
-    home = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(home) / "platoon-cosim" / "help" / f"{hashlib.sha256(key.encode()).hexdigest()[:32]}.json"
+    import hashlib  # here: OpenSSL's loading is ~2 % of the commands that show no help
+
+    return cache_folder("help") / f"{hashlib.sha256(key.encode()).hexdigest()[:32]}.json"

@@ -96,9 +96,8 @@ def main() -> None:
         from orchestrator.trace.worker import prestart
 
         prestart()
-    with loading_a_run():  # pydantic and the config models, built without garbage collection (~2 % of a start-up)
-        import orchestrator.cli.running  # noqa: F401
-        import orchestrator.scenario.config  # noqa: F401  (read by the run's load_config)
+    with loading_a_run():  # without garbage collection (~2 % of a start-up); pydantic and the config models
+        import orchestrator.cli.running  # noqa: F401  (load likewise when a config is not in the cache, plain.py)
 
     run_and_exit(lambda: _run(options), without_typer=True)
 

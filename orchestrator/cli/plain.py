@@ -69,15 +69,19 @@ def check_choice(option: str, value: str | None, choices: tuple[str, ...]) -> No
     fail(2, f"{option} {value!r}: expected {' or '.join(choices)}{did_you_mean(value, choices)}")
 
 
-def load_config(config: Path, overrides: list[str], allow_long: bool = True) -> tuple["Config", str]:
+def load_config(config: Path, overrides: list[str], allow_long: bool = True,
+                cached: bool = False) -> tuple["Config", str]:
     """The validated config and its text as read (stored in the trace); exit 2 naming the problem.
-    ``allow_long=False`` also refuses a run above the size limits (orchestrator/scenario/limits.py)."""
-    from orchestrator.scenario.config import parse_config  # the pydantic models: loaded when a config is read
+    ``allow_long=False`` also refuses a run above the size limits (orchestrator/scenario/limits.py).
+    ``cached``: a config validated before may come back from the cache of validated configs, without
+    pydantic (orchestrator/scenario/config_records.py); for the paths written for it (a plain `platoon run`)."""
     from orchestrator.scenario.limits import check_run_size
+    from orchestrator.scenario.raw_config import raw_mapping
 
     try:
         text = read_config_text(config)
-        parsed, _ = parse_config(text, config.stem, overrides, config.parent)
+        raw = raw_mapping(text, config.stem, overrides, config.parent)
+        parsed = _validated(raw, cached)
         if not allow_long:
             check_run_size(parsed)
     except ConfigError as error:
@@ -87,6 +91,27 @@ def load_config(config: Path, overrides: list[str], allow_long: bool = True) -> 
     for warning in config_warnings(parsed):  # valid, but probably not what was meant: the run still goes
         say(f"warning: config {config}: {warning}", stderr=True)
     return parsed, text
+
+
+def _validated(raw: dict, cached: bool) -> "Config":
+    """``raw`` validated by the config's models (then kept, with ``cached``), or as validated before."""
+    if cached:
+        from orchestrator.scenario.config_records import cached_config
+
+        found = cached_config(raw)
+        if found is not None:
+            return found
+    from orchestrator.support.startup import loading_a_run
+
+    with loading_a_run():  # the pydantic models, built without garbage collection: loaded when a config is read
+        from orchestrator.scenario.config import config_from_mapping
+
+    parsed = config_from_mapping(raw)
+    if cached:
+        from orchestrator.scenario.config_records import store_config
+
+        store_config(raw, parsed)
+    return parsed
 
 
 @contextmanager

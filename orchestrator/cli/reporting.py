@@ -57,7 +57,7 @@ def load_trace(trace: Path, stop: threading.Event | None = None, **selection):
     if not trace.is_file():
         fail(2, f"trace {trace}: no such file")
     try:
-        with late_progress(f"reading {trace.name}", console(stderr=True), "chunks") as shown:
+        with late_progress(f"reading {trace.name}", lambda: console(stderr=True), "chunks") as shown:
             return load(trace, progress=shown if stop is None else _stoppable(shown, stop), **selection)
     except TraceError as error:  # says what is wrong and what to do (e.g. `platoon trace recover`)
         fail(2, f"trace {trace}: not a readable MCAP trace: {error}")
@@ -120,19 +120,35 @@ class _Reading(threading.Thread):
             self.join()
 
 
-def trace_and_config(trace: Path, reading: _Reading | None = None, **selection):
+def trace_and_config(trace: Path, reading: _Reading | None = None, cached: bool = False, **selection):
     """The trace read back (``selection``: what ``load`` reads of it; or what ``reading`` read), its config and
-    the keys that were not finite; exit 2 naming what is wrong."""
-    from orchestrator.scenario.stored_config import stored_config
-
+    the keys that were not finite; exit 2 naming what is wrong. ``cached``: a config validated before may come
+    back from the cache of validated configs, without pydantic (for the paths written for it: `platoon report`)."""
     loaded = reading.result() if reading is not None else load_trace(trace, **selection)
     if loaded.config is None:
         fail(2, f"trace {trace}: has no platoon.config metadata (not written by platoon run?)")
+    config, non_finite = _stored_config(trace, loaded.config, cached)
+    return loaded, config, non_finite
+
+
+def _stored_config(trace: Path, raw: dict[str, Any], cached: bool) -> tuple[Any, list[str]]:
+    """The trace's stored config and its keys that were not finite: as validated before, from the cache of
+    validated configs (no pydantic: orchestrator/scenario/config_records.py), else validated and then kept when
+    every value was finite (a config with nulls is rebuilt each time: scenario/stored_config.py)."""
+    from orchestrator.scenario.config_records import cached_config, store_config
+
+    found = cached_config(raw) if cached else None
+    if found is not None:
+        return found, []
+    from orchestrator.scenario.stored_config import stored_config
+
     try:
-        config, non_finite = stored_config(loaded.config)
+        config, non_finite = stored_config(raw)
     except ConfigError as error:
         fail(2, f"trace {trace}: its stored config is not valid: {error}")
-    return loaded, config, non_finite
+    if cached and not non_finite:
+        store_config(raw, config)
+    return config, non_finite
 
 
 def report_command(trace: Path, as_json: bool, plots: Optional[Path], overwrite: bool) -> None:
@@ -153,7 +169,13 @@ def report_command(trace: Path, as_json: bool, plots: Optional[Path], overwrite:
         from orchestrator.analysis.metrics import report_json, summarize
         from orchestrator.analysis.validity import departures_lines, departures_of_trace
 
-        loaded, config, non_finite = trace_and_config(trace, reading)
+        # what prints the report, loaded while the trace is read (the reading, in C, outlasts these imports)
+        console(), console(stderr=True)
+        if not as_json:
+            import rich.table  # noqa: F401
+
+        # a config seen before comes back without pydantic; --plots is not written for it
+        loaded, config, non_finite = trace_and_config(trace, reading, cached=plots is None)
     out, err = console(), console(stderr=True)
     note = (err.print if as_json else out.print)
     if non_finite:

@@ -40,7 +40,9 @@ def run_command(options: RunOptions) -> None:
     check_choice("--fmus", options.fmu_kind, FMU_KINDS)
     if options.fmu_kind is not None:
         overrides = [*overrides, f"simulation.fmus={json.dumps(options.fmu_kind)}"]
-    parsed, text = load_config(config, overrides, options.allow_long)
+    # a config validated before comes back without pydantic, except for the paths not written for it
+    cached = not (options.live or options.monolithic or options.compare)
+    parsed, text = load_config(config, overrides, options.allow_long, cached)
     loaded = seconds_since_process_start()
     with loading_a_run():  # one BLAS thread, no garbage collection while the run's modules load
         from orchestrator.execution.run import default_trace_path

@@ -9,12 +9,15 @@ knows Zenoh, not the trace.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
 
 from orchestrator.components.fmu import UnpackedFmu
-from orchestrator.scenario.config import Config
 from fmus.component import Component
 from orchestrator.scenario.scenario import ComponentSpec
 from orchestrator.scenario.wiring import vehicle_name
+
+if TYPE_CHECKING:
+    from orchestrator.scenario.config import Config
 
 
 

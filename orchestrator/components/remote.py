@@ -10,10 +10,10 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from orchestrator.scenario.config import Config
 from orchestrator.scenario.wiring import vehicle_name
 
 if TYPE_CHECKING:
+    from orchestrator.scenario.config import Config
     from fmus.component import Component
     from orchestrator.components.fmu import UnpackedFmu
     from orchestrator.scenario.scenario import Scenario

@@ -27,7 +27,6 @@ from orchestrator.execution.signals import StopRequest
 from orchestrator.observers.base import Observers, WaitClock
 from orchestrator.observers.progress import ProgressDisplay
 from orchestrator.observers.trace import TraceObserver, choose_trace_writer, open_trace_writer, signal_text
-from orchestrator.scenario.config import Config
 from orchestrator.scenario.scenario import build_scenario, step_count
 from orchestrator.scenario.raw_config import recorded_rows
 from orchestrator.support.versions import tool_versions
@@ -39,6 +38,7 @@ from orchestrator.trace.writer_base import NullTraceWriter, TraceWriteError
 from orchestrator.scenario.config_text import header_text
 
 if TYPE_CHECKING:
+    from orchestrator.scenario.config import Config
     from orchestrator.analysis.link_stats import LinkStats
     from orchestrator.analysis.metrics import VehicleSummary
     from orchestrator.analysis.validity import Departure

@@ -16,12 +16,12 @@ from fmus.builders import DEFAULT_OUT
 from orchestrator.execution.engine import default_engine, engine_names
 from orchestrator.execution.execution import Execution, RunResult, Tick
 from orchestrator.observers.trace import TRACE_WRITERS, WORKER_MESSAGES, choose_trace_writer, open_trace_writer
-from orchestrator.scenario.config import Config
 from orchestrator.support.versions import tool_versions
 from orchestrator.trace.foxglove import SCENE_RATE
 from orchestrator.trace.output import Claim, claim_new
 
 if TYPE_CHECKING:
+    from orchestrator.scenario.config import Config
     from orchestrator.observers.foxglove_view import FoxgloveView
 
 __all__ = ["ENGINES", "TRACE_WRITERS", "WORKER_MESSAGES", "RunResult", "choose_trace_writer", "default_engine",

@@ -4,11 +4,13 @@ struck and what struck it, next to the link and run lines."""
 
 from __future__ import annotations
 
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from orchestrator.observers.base import Observer
-from orchestrator.scenario.config import Config
 from orchestrator.support.rows import RowBlock
+
+if TYPE_CHECKING:
+    from orchestrator.scenario.config import Config
 
 Log = Callable[[float, str, str], None]
 

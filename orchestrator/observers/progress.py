@@ -184,7 +184,9 @@ def progress(total: int, label: str, console, quiet: bool = False,
 
 class LateProgress:
     """``tick(done, total)`` for work whose size is known only once it starts (a trace's chunks): shows
-    nothing while the work is done within ``after`` seconds (most reads), then what ``progress`` shows."""
+    nothing while the work is done within ``after`` seconds (most reads), then what ``progress`` shows.
+    ``console``: a rich Console, or a function that makes one when it is first needed (rich then loads only
+    for a read that shows a bar)."""
 
     def __init__(self, label: str, console, unit: str, after: float = 1.0) -> None:
         self.label, self.console, self.unit, self.after = label, console, unit, after
@@ -196,7 +198,8 @@ class LateProgress:
         if self.display is None:
             if time.perf_counter() - self.started < self.after or done >= total:
                 return
-            self.shown = progress(total, self.label, self.console, unit=self.unit)
+            console = self.console if hasattr(self.console, "is_terminal") else self.console()
+            self.shown = progress(total, self.label, console, unit=self.unit)
             self.display = self.shown.__enter__()
         self.display(done)
 

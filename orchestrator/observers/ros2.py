@@ -16,14 +16,16 @@ first one is logged, the rest counted.
 from __future__ import annotations
 
 import time
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
-from orchestrator.scenario.config import Config
 from orchestrator.scenario.wiring import vehicle_name
 
 from .base import Observer
+
+if TYPE_CHECKING:
+    from orchestrator.scenario.config import Config
 
 
 class Ros2RunPublisher(Observer):

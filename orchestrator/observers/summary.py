@@ -19,9 +19,9 @@ import threading
 from typing import TYPE_CHECKING, Any, Sequence
 
 from orchestrator.observers.base import Observer
-from orchestrator.scenario.config import Config
 
 if TYPE_CHECKING:
+    from orchestrator.scenario.config import Config
     from orchestrator.analysis.metrics import RunningSummary, VehicleSummary
 
 PENDING_BLOCKS = 8  # copied blocks that may wait for the folding thread

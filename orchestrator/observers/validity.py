@@ -18,11 +18,11 @@ import sys
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from orchestrator.observers.base import Observer
-from orchestrator.scenario.config import Config
 from orchestrator.scenario.raw_config import recorded_rows, step_count
 from orchestrator.support.rows import RowBlock
 
 if TYPE_CHECKING:
+    from orchestrator.scenario.config import Config
     from orchestrator.analysis.validity import Departure, ValidityWatch
 
 Log = Callable[[float, str, str], None]

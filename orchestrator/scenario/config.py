@@ -17,31 +17,31 @@ config_text.py.
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 from typing import Any
 
 from pydantic import Field, ValidationError, model_validator
 
-from fmus.model.guidance import SENSING_LAWS
 from fmus.model.integrate import substep_count
 from fmus.model.link import CAPACITY as LINK_CAPACITY
-from fmus.model.link import LinkParameters, messages_held
+from fmus.model.link import messages_held
 from fmus.model.link import parameter_errors as link_parameter_errors
 from fmus.model.robot_loop import COMMAND_CAPACITY
 
 from .config_errors import explain, unit_of
+from .config_logic import ConfigLogic
 from .config_tables import TARGET_VEHICLE  # noqa: F401  (re-exported: the analyses name the target by it)
 from .config_tables import (Disturbance, Hil, Initial, M3pi, PathConfig, Platoon, Remote, Simulation, Validity,
                             VehicleOverride)
 from .config_types import COUNT_LIMIT, RK4_STABILITY, Name, Text, rule, RuleError, StrictModel
-from .link_config import LINK_DIRECTIONS, Links, resolve_link
+from .link_config import LINK_DIRECTIONS, Links
 from .raw_config import ConfigError, apply_override, read_config_text, step_count  # noqa: F401  (re-exported)
 from .raw_config import parse_value  # noqa: F401  (re-exported: a --set value's parser, where it always was)
+from .raw_config import FILE_KEYS, raw_mapping, resolve_named_files  # noqa: F401  (re-exported)
 from .ros2_config import RunRos2
 
 
-class Config(StrictModel):
+class Config(ConfigLogic, StrictModel):
     name: Name = "scenario"
     description: Text = ""
     simulation: Simulation = Simulation()
@@ -103,14 +103,6 @@ class Config(StrictModel):
             raise rule("simulation.trace_every", sim.trace_every, f"at most the run's {self.steps} steps "
                         "(stop_time / step), so that a point after t = 0 is recorded")
         return self
-
-    def speed_law_of(self, vehicle: int) -> str:
-        """Vehicle ``vehicle``'s speed law: its [vehicles.K] override, else platoon.speed_law."""
-        return self.override(vehicle).speed_law or self.platoon.speed_law
-
-    def sensing_vehicles(self) -> list[int]:
-        """Numbers of the vehicles whose speed law reads the on-board sensor (acc, cacc), front to back."""
-        return [i for i in range(1, self.platoon.count + 1) if self.speed_law_of(i) in SENSING_LAWS]
 
     def _check_speed_laws(self) -> None:
         """acc and cacc need a standstill gap r >= 0; the default r = d* - h V_c is negative for h > d*/V_c.
@@ -193,7 +185,7 @@ class Config(StrictModel):
         for key in self.links.vehicles:
             if not key.isdigit() or key != str(int(key)) or not 1 <= int(key) <= count:
                 raise rule(f"links.vehicles.{key}", key, f"a vehicle number from 1 to platoon.count = {count}")
-        if self.links == Links():
+        if self.links == self._no_links():
             return  # no link: nothing to check for any of the vehicles
         for vehicle in range(1, count + 1):
             for direction in LINK_DIRECTIONS:
@@ -209,62 +201,11 @@ class Config(StrictModel):
                         f"step {self.simulation.step:g} s and period {link.period:g} s; a link holds at most "
                         f"{LINK_CAPACITY} (shorten the delay, or send beacons less often: links.period)"))
 
-    def linked(self) -> list[tuple[str, int]]:
-        """The (direction, vehicle) pairs whose link is not perfect: the run's Link components."""
-        if self.links == Links():
-            return []
-        return [(direction, vehicle) for vehicle in range(1, self.platoon.count + 1) for direction in LINK_DIRECTIONS
-                if not self.resolve_link(direction, vehicle).perfect]
+    def _no_override(self) -> VehicleOverride:
+        return NO_OVERRIDE
 
-    def resolve_link(self, direction: str, vehicle: int) -> LinkParameters:
-        """The settings of vehicle ``vehicle``'s ``direction`` ("backward": from the component ahead to
-        it; "forward": from it to the component ahead) link; perfect when no table sets a key."""
-        return resolve_link(self.links, direction, vehicle)
-
-    @property
-    def steps(self) -> int:
-        """Number of communication steps of this run."""
-        return step_count(self.simulation.stop_time, self.simulation.step)
-
-    def override(self, vehicle: int) -> VehicleOverride:
-        return self.vehicles.get(str(vehicle), NO_OVERRIDE)
-
-    def dynamics_of(self, vehicle: int) -> str:
-        """Vehicle ``vehicle``'s dynamics: its [vehicles.K] override, else platoon.dynamics."""
-        return self.override(vehicle).dynamics or self.platoon.dynamics
-
-    def m3pi_of(self, vehicle: int) -> M3pi:
-        """Vehicle ``vehicle``'s robot constants: [m3pi], with its [vehicles.K.m3pi] keys over them."""
-        own = self.override(vehicle).m3pi
-        if own is None:
-            return self.m3pi
-        return self.m3pi.model_copy(update=own.model_dump(exclude_none=True))
-
-    def m3pi_key(self, vehicle: int, key: str) -> str:
-        """Where vehicle ``vehicle``'s m3pi ``key`` comes from, for an error: vehicles.K.m3pi.key or m3pi.key."""
-        own = self.override(vehicle).m3pi
-        return f"vehicles.{vehicle}.m3pi.{key}" if own is not None and getattr(own, key) is not None else f"m3pi.{key}"
-
-    def m3pi_vehicles(self) -> list[int]:
-        """The vehicles that are m3pi robots, front to back."""
-        return [i for i in range(1, self.platoon.count + 1) if self.dynamics_of(i) == "m3pi"]
-
-    def named_files(self) -> list[Path]:
-        """The files this config names (``FILE_KEYS`` of [vehicles.K]): inputs of the run, like the config."""
-        return [Path(value) for table in self.vehicles.values() for key in FILE_KEYS
-                if (value := getattr(table, key, None))]
-
-    def live_vehicles(self) -> list[int]:
-        """Numbers of the vehicles that are live robots, front to back."""
-        return sorted(int(k) for k, v in self.vehicles.items() if v.endpoint == "zenoh")
-
-    def remote_vehicles(self) -> list[int]:
-        """Numbers of the vehicles whose FMU runs in a `platoon serve` elsewhere, front to back."""
-        return sorted(int(k) for k, v in self.vehicles.items() if v.endpoint == "remote")
-
-    def robot_id(self, vehicle: int) -> int:
-        robot = self.override(vehicle).robot
-        return vehicle if robot is None else robot
+    def _no_links(self) -> Links:
+        return NO_LINKS
 
 
 def config_from_mapping(raw: dict[str, Any]) -> Config:
@@ -280,44 +221,17 @@ def key_unit(key: str) -> str | None:
     return unit_of(Config, key)
 
 
-FILE_KEYS = ("zenoh_config",)  # keys of [vehicles.K] that name a file
 # A vehicle without a [vehicles.K] table: every key at its default. Constructed, not validated (a default is never
 # validated, so it is the same model), which spares every run building the table's own validator (~1 % of a run).
 NO_OVERRIDE = VehicleOverride.model_construct()
-
-
-def resolve_named_files(raw: dict[str, Any], folder: Path) -> None:
-    """Make the files a config file names relative to that file's ``folder`` (not to the current folder:
-    a config runs the same from anywhere). Values given with ``--set`` stay relative to the current
-    folder, as every path typed on a command line."""
-    hil = raw.get("hil")
-    if isinstance(hil, dict) and isinstance(hil.get("lab_key"), str) and hil["lab_key"]:
-        hil["lab_key"] = str(folder / Path(hil["lab_key"]).expanduser())  # an absolute one stays as it is
-    vehicles = raw.get("vehicles")
-    if not isinstance(vehicles, dict):
-        return  # validation names the problem
-    for table in vehicles.values():
-        if not isinstance(table, dict):
-            continue
-        for key in FILE_KEYS:
-            value = table.get(key)
-            if isinstance(value, str) and value and not Path(value).is_absolute():
-                table[key] = str(folder / value)
+NO_LINKS = Links.model_construct()  # every link perfect: what a config without [links] has
 
 
 def parse_config(text: str, default_name: str, overrides: list[str] | tuple[str, ...] = (),
                  folder: Path | None = None) -> tuple[Config, dict[str, Any]]:
     """Parse, override and validate a config's text; returns the config and the raw mapping. ``folder``:
     the config file's folder, which the files it names are relative to (``resolve_named_files``)."""
-    try:
-        raw = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as error:
-        raise ConfigError(f"not valid TOML: {error}") from None
-    raw.setdefault("name", default_name)
-    if folder is not None:
-        resolve_named_files(raw, folder)
-    for assignment in overrides:
-        apply_override(raw, assignment)
+    raw = raw_mapping(text, default_name, overrides, folder)
     return config_from_mapping(raw), raw
 
 

@@ -13,7 +13,8 @@ from fmus.model.dynamics import (M3PI_MOTOR_TIME_CONSTANT, M3PI_TRACK, M3PI_WHEE
                                  M3PI_WHEEL_SPEED_MAX)
 from fmus.model.robot_loop import LATENCY_MAX, M3PI_COMMAND_LATENCY, M3PI_POSE_LATENCY
 
-from .config_types import (LENGTH_MAX, PULSE_UNITS, SMALL, Angle, Duration, Gain, Length, PositiveLength, Pulse, Speed,
+from .config_logic import TARGET_VEHICLE, DisturbanceLogic, M3piLogic, PlatoonLogic
+from .config_types import (LENGTH_MAX, SMALL, Angle, Duration, Gain, Length, PositiveLength, Pulse, Speed,
                            Text, Unit, rule, StrictModel)
 from .raw_config import DEFAULT_COUNT, DEFAULT_STEP, DEFAULT_STOP_TIME, DEFAULT_TRACE_EVERY
 from .ros2_config import VehicleRos2
@@ -47,7 +48,7 @@ Deadband = Annotated[float, Field(ge=0.0, le=100.0), Unit("m/s")]
 Latency = Annotated[float, Field(ge=0.0, le=LATENCY_MAX), Unit("s")]
 
 
-class M3pi(StrictModel):
+class M3pi(M3piLogic, StrictModel):
     """The m3pi robots' constants (docs/model.md): the nominal robot by default; a calibrated config sets the
     gains, dead-band and latencies `platoon calibrate` identifies, here or per vehicle ([vehicles.N.m3pi])."""
 
@@ -59,16 +60,6 @@ class M3pi(StrictModel):
     wheel_deadband: Deadband = Field(M3PI_WHEEL_DEADBAND, description="m/s: a smaller command does not turn a wheel")
     command_latency: Latency = Field(M3PI_COMMAND_LATENCY, description="s: a command acts this long after it is sent")
     pose_latency: Latency = Field(M3PI_POSE_LATENCY, description="s: a pose is this much older than its stamp")
-
-    @property
-    def samples(self) -> bool:
-        """A robot with latencies: the live run's sampled loop (fmus.model.robot_loop), not the continuous model."""
-        return self.command_latency > 0.0 or self.pose_latency > 0.0
-
-    def parameters(self) -> dict[str, float]:
-        """The Vehicle FMU's ``m3pi.*`` parameters of these constants."""
-        return {f"m3pi.{key}": value for key, value in self.model_dump().items()}
-
 
 class M3piOverride(StrictModel):
     """``[vehicles.N.m3pi]``: the constants of vehicle N's robot that differ from ``[m3pi]`` (each robot is its own)."""
@@ -94,7 +85,7 @@ TimeGap = Annotated[float, Field(ge=SMALL, le=100.0), Unit("s")]
 GapLength = Annotated[float, Field(ge=0.0, le=LENGTH_MAX), Unit("m")]
 
 
-class Platoon(StrictModel):
+class Platoon(PlatoonLogic, StrictModel):
     count: int = Field(DEFAULT_COUNT, ge=1, le=10000)
     law: Law = "sine"
     d_star: PositiveLength = Field(75.0, description="m; on a circle less than 2 path.radius")
@@ -106,14 +97,6 @@ class Platoon(StrictModel):
     standstill_gap: GapLength | None = Field(None, description="r of acc and cacc, m (default d_star - time_gap speed)")
     cacc_gain: Gain = Field(0.2, description="k_p of cacc (Ploeg et al. 2011), 1/s")
     speed_max: Speed | None = Field(None, description="m/s: a kinematic vehicle's speed limit (default: none)")
-
-    @property
-    def resolved_standstill_gap(self) -> float:
-        """r: as given, or the one that makes the acc/cacc equilibrium gap d* at V_c (d* - h V_c)."""
-        if self.standstill_gap is not None:
-            return self.standstill_gap
-        return self.d_star - self.time_gap * self.speed
-
 
 class Validity(StrictModel):
     """Where a run stops being the model's (orchestrator/analysis/validity.py; docs/model.md, section 12): it
@@ -202,10 +185,9 @@ class Hil(StrictModel):
         return self
 
 
-TARGET_VEHICLE = 0  # a disturbance's ``vehicle`` naming the virtual target, the platoon's head
 
 
-class Disturbance(StrictModel):
+class Disturbance(DisturbanceLogic, StrictModel):
     # 1 .. platoon.count, or 0: the virtual target (a speed push only: the head's speed, prescribed)
     vehicle: int = Field(ge=TARGET_VEHICLE)
     kind: Literal["lateral_acceleration", "speed"]
@@ -215,23 +197,3 @@ class Disturbance(StrictModel):
     # 0: a rectangular pulse of height value; > 0: value * sin(frequency (t - start)) over the same window,
     # a sinusoid to measure the speed chain's gain at one frequency (docs/model.md, section 12)
     frequency: Annotated[float, Field(ge=0.0, le=1e4), Unit("rad/s")] = 0.0
-
-    @property
-    def unit(self) -> str:
-        """The unit of ``value``: m/s² for a lateral acceleration, m/s for a speed."""
-        return PULSE_UNITS[self.kind]
-
-    @property
-    def on_target(self) -> bool:
-        """A push on the virtual target (vehicle 0), not on a vehicle."""
-        return self.vehicle == TARGET_VEHICLE
-
-    def what(self) -> str:
-        """The pulse's size and target in words, with its unit: "+5 m/s speed on vehicle 2" ("on the target")."""
-        where = "the target" if self.on_target else f"vehicle {self.vehicle}"
-        return f"{self.value:+g} {self.unit} {self.kind.replace('_', ' ')} on {where}"
-
-    def text(self) -> str:
-        """The whole pulse in words: "+5 m/s speed on vehicle 2 at 30 s for 1 s"."""
-        shape = f", a sinusoid of {self.frequency:g} rad/s," if self.frequency > 0.0 else ""
-        return f"{self.what()}{shape} at {self.start:g} s for {self.duration:g} s"

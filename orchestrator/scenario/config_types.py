@@ -9,6 +9,8 @@ from typing import Annotated, Any
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
+from .config_logic import PULSE_UNITS  # a disturbance's value, by its kind
+
 class StrictModel(BaseModel):
     # defer_build: each model's validator is built when first used, not at import; a run validates one Config,
     # whose validator holds every table, so the tables' own were built for nothing (~0.03 s of a run's start-up)
@@ -49,7 +51,6 @@ PositiveLength = Annotated[float, Field(ge=SMALL, le=LENGTH_MAX), Unit("m")]
 Speed = Annotated[float, Field(ge=SMALL, le=SPEED_MAX), Unit("m/s")]
 Gain = Annotated[float, Field(ge=SMALL, le=GAIN_MAX), Unit("1/s")]
 Angle = Annotated[float, Field(ge=-ANGLE_MAX, le=ANGLE_MAX), Unit("rad")]
-PULSE_UNITS = {"lateral_acceleration": "m/s²", "speed": "m/s"}  # a disturbance's value, by its kind
 Pulse = Annotated[float, Field(ge=-PULSE_MAX, le=PULSE_MAX),
                   UnitNote(", ".join(f'{unit} for kind = "{kind}"' for kind, unit in PULSE_UNITS.items()))]
 

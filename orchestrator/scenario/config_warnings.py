@@ -8,8 +8,10 @@ Such a config runs (someone may want exactly that), so these are not validation 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
-from orchestrator.scenario.config import Config
+if TYPE_CHECKING:
+    from orchestrator.scenario.config import Config
 
 
 def config_warnings(config: Config) -> list[str]:

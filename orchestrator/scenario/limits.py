@@ -24,11 +24,15 @@ no longer exact in double precision).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from fmus.model.integrate import substep_count
 
-from orchestrator.scenario.config import Config, ConfigError
+from orchestrator.scenario.raw_config import ConfigError
 from orchestrator.scenario.wiring import component_names
+
+if TYPE_CHECKING:
+    from orchestrator.scenario.config import Config
 
 MAX_STEPS = 1_000_000
 MAX_SUBSTEPS_PER_STEP = 1_000

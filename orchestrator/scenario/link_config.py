@@ -7,12 +7,10 @@ from typing import Annotated
 
 from pydantic import Field
 
-from fmus.model.link import LinkParameters
-
+from .config_logic import LINK_DIRECTIONS, link_stream, resolve_link  # noqa: F401  (re-exported)
 from .config_types import Unit, StrictModel
 
 LinkTime = Annotated[float, Field(ge=0.0, le=3600.0), Unit("s")]
-LINK_DIRECTIONS = ("backward", "forward")
 
 
 class LinkKeys(StrictModel):
@@ -41,25 +39,3 @@ class Links(LinkKeys):
     backward: LinkKeys = LinkKeys()
     forward: LinkKeys = LinkKeys()
     vehicles: dict[str, VehicleLinks] = Field(default_factory=dict)
-
-
-def _link_layers(links: Links, direction: str, vehicle: int) -> list[LinkKeys]:
-    """The tables that may set a key of one link, narrowest first."""
-    own = links.vehicles.get(str(vehicle))
-    layers = [getattr(own, direction)] if own is not None else []
-    return layers + [getattr(links, direction), links]
-
-
-def link_stream(direction: str, vehicle: int) -> int:
-    """A link's own stream of the seed: 2 (N - 1) for vehicle N's backward link, + 1 for its forward one."""
-    return 2 * (vehicle - 1) + LINK_DIRECTIONS.index(direction)
-
-
-def resolve_link(links: Links, direction: str, vehicle: int) -> LinkParameters:
-    """The settings of vehicle ``vehicle``'s ``direction`` link: each key from the narrowest table that
-    sets it, else the perfect link's."""
-    layers = _link_layers(links, direction, vehicle)
-    default = LinkParameters()
-    values = {key: next((getattr(t, key) for t in layers if getattr(t, key) is not None), getattr(default, key))
-              for key in LinkKeys.model_fields}
-    return LinkParameters(**values, stream=link_stream(direction, vehicle))

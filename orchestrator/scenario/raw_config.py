@@ -18,6 +18,7 @@ DEFAULT_STOP_TIME = 100.0  # s, simulation.stop_time
 DEFAULT_STEP = 0.01  # s, simulation.step
 DEFAULT_TRACE_EVERY = 1  # simulation.trace_every
 DEFAULT_COUNT = 4  # platoon.count
+FILE_KEYS = ("zenoh_config",)  # keys of [vehicles.K] that name a file
 
 
 class ConfigError(ValueError):
@@ -98,3 +99,38 @@ def read_config_text(path: str | Path) -> str:
         line = data[: error.start].count(b"\n") + 1
         raise ConfigError(f"not UTF-8 text: byte 0x{data[error.start]:02x} at line {line} (TOML files are UTF-8; "
                           "save it as UTF-8)") from None
+
+
+def resolve_named_files(raw: dict[str, Any], folder: Path) -> None:
+    """Make the files a config file names relative to that file's ``folder`` (not to the current folder:
+    a config runs the same from anywhere). Values given with ``--set`` stay relative to the current
+    folder, as every path typed on a command line."""
+    hil = raw.get("hil")
+    if isinstance(hil, dict) and isinstance(hil.get("lab_key"), str) and hil["lab_key"]:
+        hil["lab_key"] = str(folder / Path(hil["lab_key"]).expanduser())  # an absolute one stays as it is
+    vehicles = raw.get("vehicles")
+    if not isinstance(vehicles, dict):
+        return  # validation names the problem
+    for table in vehicles.values():
+        if not isinstance(table, dict):
+            continue
+        for key in FILE_KEYS:
+            value = table.get(key)
+            if isinstance(value, str) and value and not Path(value).is_absolute():
+                table[key] = str(folder / value)
+
+
+def raw_mapping(text: str, default_name: str, overrides: list[str] | tuple[str, ...] = (),
+                folder: Path | None = None) -> dict[str, Any]:
+    """A config's text parsed, named, its files resolved (``folder``: the config file's, see
+    ``resolve_named_files``) and ``overrides`` applied: what validation reads (config.py, ``parse_config``)."""
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise ConfigError(f"not valid TOML: {error}") from None
+    raw.setdefault("name", default_name)
+    if folder is not None:
+        resolve_named_files(raw, folder)
+    for assignment in overrides:
+        apply_override(raw, assignment)
+    return raw

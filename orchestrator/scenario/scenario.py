@@ -9,14 +9,17 @@ from __future__ import annotations
 import math
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fmus.model.guidance import SENSING_LAWS
 from fmus.model.paths import make_path
 
-from orchestrator.scenario.config import Config, step_count  # noqa: F401  (step_count re-exported: the engines import it from here)
+from orchestrator.scenario.raw_config import step_count  # noqa: F401  (re-exported: the engines import it from here)
 from orchestrator.scenario.wiring import (LINK_FMU, TARGET, Connection, component_names, link_name, platoon_connections,
                                           vehicle_name)
+
+if TYPE_CHECKING:
+    from orchestrator.scenario.config import Config
 
 DISTURBANCE_INPUTS = {
     "lateral_acceleration": "disturbance.lateral_acceleration",

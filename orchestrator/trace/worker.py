@@ -41,9 +41,8 @@ import subprocess
 import time as clock
 from array import array
 from itertools import chain
-from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 from orchestrator.support.child_python import module_command, module_environment
 from orchestrator.support.rows import RowBlock, float_buffer
@@ -52,6 +51,9 @@ from .format import CHUNK_SIZE, FLUSH_INTERVAL
 from .native_rows import available as native_available
 from .native_rows import first_non_finite
 from .writer_base import non_finite_error
+
+if TYPE_CHECKING:  # imported when a worker starts: multiprocessing (with pickle, tempfile) is ~5 % of a short run's imports
+    from multiprocessing.connection import Connection
 
 WORKER_BLOCK = 64  # rows per hand-over: small, so the worker's backlog when the run ends stays short
 PIPE_BYTES = 1 << 20  # requested pipe capacity (Linux F_SETPIPE_SZ; /proc/sys/fs/pipe-max-size allows 1 MiB)
@@ -143,6 +145,8 @@ def discard_prestarted() -> None:
 def _start_worker() -> tuple[subprocess.Popen[bytes], Connection, Connection, socket.socket]:
     """Start ``python -m orchestrator.trace.serve INBOX STATUS HANDLES``: blocks in, status out, and a Unix
     socket for the descriptors it must hold (``TraceProcess.share``)."""
+    from multiprocessing.connection import Connection
+
     inbox_read, inbox_write = os.pipe()
     status_read, status_write = os.pipe()
     handles, worker_handles = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
