@@ -764,12 +764,15 @@ def test_bad_ros_poses_are_counted_and_ignored(tmp_path: Path) -> None:
                             sent[reason] += 1
                 return not missing
 
+            counting_began = time.monotonic()
             wait_for(counted, lambda: f"the run's trace counts every kind (so far {counters}, sent {dict(sent)})", run)
+            counting_took = time.monotonic() - counting_began
         run.send_signal(signal.SIGINT)
         _, err = run.communicate(timeout=60)
     finally:
         robot.stop()
-    assert run.returncode == 130, err
+    assert run.returncode == 130, (f"the run was to be stopped once every kind was counted ({counting_took:.1f} s; "
+                                   f"counted {counters}, sent {dict(sent)})", err)
     loaded = load(trace)
     stats = json.loads(loaded.metadata["platoon.hil"]["vehicle3"])
     for reason in ("oversized", "malformed", "non_finite", "future"):  # nobody else sends these: at most what we sent
