@@ -12,6 +12,7 @@ from __future__ import annotations
 import importlib
 import os
 import zipfile
+import zlib
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,6 +54,11 @@ class Builder(ABC):
     @abstractmethod
     def expected_guid(self, name: str) -> str:
         """The GUID (instantiationToken) FMU ``name`` gets from the sources in this checkout."""
+
+    @abstractmethod
+    def digest_files(self, name: str) -> list[Path]:
+        """The files whose contents the GUID of FMU ``name`` is a digest of (with pythonfmu's version, and the
+        builder's constants, which live in these files): what a cached verdict on the FMU depends on."""
 
     @abstractmethod
     def required_entries(self, name: str) -> set[str]:
@@ -115,7 +121,7 @@ def fmu_guid(path: Path) -> str | None:
     try:
         with zipfile.ZipFile(path) as archive:
             root = ElementTree.fromstring(archive.read("modelDescription.xml"))
-    except (OSError, KeyError, zipfile.BadZipFile, ElementTree.ParseError):
+    except (OSError, KeyError, zipfile.BadZipFile, zlib.error, ElementTree.ParseError):
         return None
     return root.get("guid") or root.get("instantiationToken")  # FMI 2.0, FMI 3.0
 
@@ -131,7 +137,7 @@ def archive_is_whole(path: Path, guid: str, required: set[str]) -> bool:
         with zipfile.ZipFile(path) as archive:
             sizes = {item.filename: item.file_size for item in archive.infolist()}
             return all(sizes.get(entry, 0) > 0 for entry in required) and archive.testzip() is None
-    except (OSError, zipfile.BadZipFile):
+    except (OSError, zipfile.BadZipFile, zlib.error):  # zlib.error: a damaged deflate stream, before its CRC
         return False
 
 

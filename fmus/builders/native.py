@@ -28,7 +28,6 @@ rebuilt exactly when one of them changes; the archive is written aside and moved
 from __future__ import annotations
 
 import hashlib
-import importlib.metadata
 import json
 import tempfile
 import time
@@ -38,7 +37,7 @@ from xml.etree.ElementTree import Element, SubElement
 
 import fmus
 from fmus.builders.base import DEFAULT_OUT, PACKAGE_DIR, Builder, BuildError, slave_instance
-from fmus.builders.pythonfmu import bundled_sources
+from fmus.builders.pythonfmu import bundled_sources, pythonfmu_version
 from fmus.builders.toolchain import (CFLAGS, FMI_HEADERS, HEADERS, LIBS, NATIVE_SOURCES, compile_binary, fmi_headers,
                                      universal_binary)
 from fmus.modeldescription import fmi2, fmi3
@@ -168,16 +167,20 @@ class NativeBuilder(Builder):
         start (so it must be cheap: a sweep is made of short runs), and FMUs built elsewhere are usable on a machine without a compiler. The
         compiler's identity is not part of it: with -ffp-contract=off every compiler gives the numbers of
         fmus/model (tests/test_native_fmus.py), so the GUID names the model, not the compiler's bytes."""
-        digest = hashlib.sha256(importlib.metadata.version("pythonfmu").encode())
+        digest = hashlib.sha256(pythonfmu_version().encode())
         digest.update(" ".join(CFLAGS + LIBS).encode())
-        files = [NATIVE_SOURCES / file for file in sorted(set(sources_of(name, self.fmi_version) + HEADERS))]
-        files += bundled_sources(name)
-        files += [PACKAGE_DIR / module for module in BUILDER_MODULES]
-        files += [fmi_headers() / file for file in FMI_HEADERS[self.fmi_version]]
-        for path in files:
+        for path in self.digest_files(name):
             digest.update(path.name.encode())
             digest.update(hashlib.sha256(path.read_bytes()).digest())
         return digest.hexdigest()
+
+    def digest_files(self, name: str) -> list[Path]:
+        """The files ``_digest`` reads for FMU ``name``, in its order (the compiler flags are in toolchain.py,
+        one of them)."""
+        files = [NATIVE_SOURCES / file for file in sorted(set(sources_of(name, self.fmi_version) + HEADERS))]
+        files += bundled_sources(name)
+        files += [PACKAGE_DIR / module for module in BUILDER_MODULES]
+        return files + [fmi_headers() / file for file in FMI_HEADERS[self.fmi_version]]
 
     def expected_guid(self, name: str) -> str:
         return instantiation_token(self._digest(name), f"native:{name}", self.fmi_version)

@@ -10,7 +10,6 @@ changes and a trace can name the model version it ran.
 from __future__ import annotations
 
 import hashlib
-import importlib.metadata
 import sys
 import tempfile
 import zipfile
@@ -28,7 +27,8 @@ from fmus.builders.base import (DEFAULT_OUT, LINK_FMU, LIVE_FMU, PACKAGE_DIR, RE
 from fmus.modeldescription.fmi2 import guid_for, model_description
 from fmus.platforms import binary_entry
 
-_BUNDLED_SUBPACKAGES = ("model", "slaves")
+# the folders whose every module an FMU carries: a module added to one changes the GUIDs
+BUNDLED_FOLDERS = (PACKAGE_DIR / "model", PACKAGE_DIR / "slaves")
 # the modules (below fmus/) that shape what this builder writes: a change to one rebuilds the FMUs
 BUILDER_MODULES = ("builders/base.py", "builders/pythonfmu.py", "modeldescription/core.py", "modeldescription/fmi2.py",
                    "documentation.py")
@@ -49,15 +49,29 @@ _EXTRA_SOURCES = {LIVE_FMU: _ZENOH_SOURCES, REMOTE_FMU: _ZENOH_SOURCES}
 def bundled_sources(name: str = "Vehicle") -> list[Path]:
     """The package files FMU ``name`` carries as resources (its code must need nothing else)."""
     files = [PACKAGE_DIR / "__init__.py"]
-    for sub in _BUNDLED_SUBPACKAGES:
-        files += sorted(path for path in (PACKAGE_DIR / sub).glob("*.py") if _ONLY_IN.get(path.name, name) == name)
+    for folder in BUNDLED_FOLDERS:
+        files += sorted(path for path in folder.glob("*.py") if _ONLY_IN.get(path.name, name) == name)
     return files + [ROOT / extra for extra in _SHARED_SOURCES + _EXTRA_SOURCES.get(name, ())]
+
+
+def pythonfmu_version() -> str:
+    """pythonfmu's installed version, as its distribution's metadata says (part of every FMU's GUID: it
+    numbers the variables). importlib.metadata is imported here, when a GUID is computed: a run whose FMUs
+    were found current before does not need it (orchestrator/components/fmu_checks.py)."""
+    import importlib.metadata
+
+    return importlib.metadata.version("pythonfmu")
+
+
+def digest_files(name: str = "Vehicle") -> list[Path]:
+    """The files ``source_digest`` reads for FMU ``name``, in its order."""
+    return bundled_sources(name) + [PACKAGE_DIR / module for module in BUILDER_MODULES]
 
 
 def source_digest(name: str = "Vehicle") -> str:
     """Digest of everything that shapes FMU ``name``: bundled sources, builder modules, pythonfmu version."""
-    digest = hashlib.sha256(importlib.metadata.version("pythonfmu").encode())
-    for path in bundled_sources(name) + [PACKAGE_DIR / module for module in BUILDER_MODULES]:
+    digest = hashlib.sha256(pythonfmu_version().encode())
+    for path in digest_files(name):
         digest.update(str(path.relative_to(PACKAGE_DIR) if path.is_relative_to(PACKAGE_DIR)
                           else path.relative_to(ROOT)).encode())
         digest.update(path.read_bytes())
@@ -89,6 +103,9 @@ class PythonFmuBuilder(Builder):
 
     def expected_guid(self, name: str) -> str:
         return guid_for(source_digest(name), name)
+
+    def digest_files(self, name: str) -> list[Path]:
+        return digest_files(name)
 
     def required_entries(self, name: str) -> set[str]:
         """The binary for this platform, the slave script and every bundled source."""

@@ -79,11 +79,7 @@ def ensure_fmus(fmu_dir: Path, kind: str, names: Sequence[str],
     ``kind`` says.
     """
     from fmus.builders import LIVE_FMU, PYTHONFMU, REMOTE_FMU
-    from fmus.builders.base import source_files
 
-    from orchestrator.support.output import OwnFiles
-
-    rule = OwnFiles(source_files(), "FMU")
     paths: dict[str, Path] = {}
     native = [name for name in names if name not in (LIVE_FMU, REMOTE_FMU)] if kind == "native" else []
     python = [name for name in names if name not in native]
@@ -91,14 +87,32 @@ def ensure_fmus(fmu_dir: Path, kind: str, names: Sequence[str],
         from fmus.builders import NATIVE_FMI2, NoCompiler
 
         try:
-            built = NATIVE_FMI2.build(fmu_folder(fmu_dir, "native"), names=tuple(native), announce=announce, output=rule)
+            built = _current(NATIVE_FMI2, fmu_folder(fmu_dir, "native"), tuple(native), announce)
         except NoCompiler as error:
             raise FmuKindError(f"{error}; run with --fmus python (or simulation.fmus = \"python\")") from None
         paths.update({fmu.name: fmu.path for fmu in built})
     if python:
-        built = PYTHONFMU.build(Path(fmu_dir), names=tuple(python), announce=announce, output=rule)
+        built = _current(PYTHONFMU, Path(fmu_dir), tuple(python), announce)
         paths.update({fmu.name: fmu.path for fmu in built})
     return {name: paths[name] for name in names}
+
+
+def _current(builder, folder: Path, names: tuple[str, ...], announce: Callable[[str, Path], None] | None) -> list:
+    """``builder.build(folder, names=names)`` under the output rule, or its verdict of an earlier run when
+    nothing it depends on changed since (orchestrator/components/fmu_checks.py)."""
+    from fmus.builders.base import source_files
+
+    from orchestrator.components import fmu_checks
+    from orchestrator.support.output import OwnFiles
+
+    known = fmu_checks.known_current(builder, folder, names)
+    if known is not None:
+        return known
+    sources = {name: fmu_checks.sources_stamp(builder, name) for name in names}
+    before = {name: fmu_checks.identity(Path(folder) / f"{name}.fmu") for name in names}
+    built = builder.build(folder, names=names, announce=announce, output=OwnFiles(source_files(), "FMU"))
+    fmu_checks.remember(builder, folder, built, sources, before)
+    return built
 
 
 def run_fmu_names(scenario: "Scenario") -> tuple[str, ...]:
