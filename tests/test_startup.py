@@ -153,6 +153,19 @@ def test_a_run_and_a_report_of_a_config_seen_before_load_no_pydantic(tmp_path: P
     assert [name for name in reports[1] if name.split(".")[0] in ("pydantic", "pydantic_core")] == []
 
 
+def test_a_second_run_checks_no_fmu_and_reads_no_package_metadata(tmp_path: Path, fmu_dir: Path) -> None:
+    """The FMUs' check (GUID digests, archive CRCs) and the installed versions a trace records are kept under the
+    cache folder (orchestrator/components/fmu_checks.py, orchestrator/support/versions.py): a second run imports
+    no importlib.metadata (email and its parsers). Run from a folder of its own, which the run does not write:
+    the versions are kept with the time of every folder of sys.path, the current folder among them."""
+    cache = {"XDG_CACHE_HOME": str(tmp_path / "cache")}
+    here = tmp_path / "here"
+    here.mkdir()
+    runs = [probe(*quiet_run(tmp_path), "--overwrite", cwd=here, env=cache)["modules"] for _ in range(2)]
+    assert "importlib.metadata" in runs[0] and "orchestrator.execution.run" in runs[1]
+    assert "importlib.metadata" not in runs[1]
+
+
 def test_the_cli_alone_imports_none_of_it(tmp_path: Path) -> None:
     modules = imported_by("--version", cwd=tmp_path)
     assert unwanted(modules) == []

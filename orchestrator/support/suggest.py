@@ -6,12 +6,13 @@ a dependency; a cut-off of 0.6 (difflib's default) suggests nothing for a name u
 
 from __future__ import annotations
 
-import difflib
 from typing import Iterable
 
 
 def did_you_mean(name: str, choices: Iterable[str], prefix: str = "") -> str:
     """``" (did you mean platoon.count?)"`` for the choice nearest ``name`` (shown after ``prefix``, e.g. the
     table a key is in: names are compared without it), or "" when none is near."""
+    import difflib  # imported with a mistake to name: every run and report imports this module, few need it
+
     near = difflib.get_close_matches(name, list(choices), n=1)
     return f" (did you mean {prefix}{near[0]}?)" if near else ""
