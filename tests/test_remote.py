@@ -302,3 +302,58 @@ def test_a_reply_that_breaks_the_layout_fails_the_run_naming_the_server(fmu_dir:
             component.close()
             served.close()
             fmu.cleanup()
+
+
+@pytest.mark.parametrize("on_zenoh_thread", [True, False])
+def test_a_server_answers_on_zenohs_thread_only_when_told_and_steps_the_same(on_zenoh_thread: bool, fmu_dir: Path) -> None:
+    """``serve(..., on_zenoh_thread=True)`` (what `platoon serve` passes) answers every request on the Zenoh
+    thread that read it, not on zenoh-python's callback thread (docs/remote.md, "One round trip per step");
+    without it, on a thread of zenoh-python's. Either way the FMU (a pythonfmu one here: Python called from
+    the FMU, on that thread) steps to the local instance's numbers, bit for bit."""
+    import threading
+
+    from bridge.fmu_client import RemoteComponent, RemoteHost
+    from bridge.session import open_session, zenoh_config
+    from orchestrator.components.fmu import FmuComponent
+    from orchestrator.components.served import serve
+
+    answered: list[int] = []
+
+    class Recording(ServedInstance):
+        def handle(self, payload: bytes) -> bytes:
+            answered.append(threading.get_native_id())
+            return super().handle(payload)
+
+    port = free_port()
+    fmu = UnpackedFmu.open(fmu_dir / "Vehicle.fmu")
+    variables = fmu.description.modelVariables
+    inputs = [v.name for v in variables if v.causality == "input"]
+    outputs = [v.name for v in variables if v.causality == "output"]
+    stop = threading.Event()
+    with open_session(zenoh_config(listen=[f"tcp/127.0.0.1:{port}"]), "server") as session:
+        serving = threading.Thread(target=serve, args=(Recording(fmu), session, "platoon/fmu/vehicle1", stop, on_zenoh_thread))
+        serving.start()
+        starts = fmu.start_values()
+        defaults = [float(starts[n]) for n in inputs]
+        remote = RemoteComponent("vehicle1", "platoon/fmu/vehicle1", f"tcp/127.0.0.1:{port}", {}, inputs, outputs,
+                                 defaults, RemoteHost((f"tcp/127.0.0.1:{port}",)))
+        local = FmuComponent("vehicle1", fmu, {})
+        try:
+            for component in (remote, local):
+                component.initialize(0.0)
+                component.end_initialization()
+            for k in range(5):
+                for component in (remote, local):
+                    component.set_inputs([value + 0.1 * k for value in defaults])
+                    component.step(k * 0.01, 0.01)
+                assert remote.get_outputs() == local.get_outputs()
+            names = {(Path("/proc/self/task") / str(native) / "comm").read_text().strip() for native in answered}
+        finally:
+            remote.close()
+            local.close()
+            stop.set()
+            serving.join(10)
+    fmu.cleanup()
+    assert len(answered) >= 7 and threading.main_thread().native_id not in answered
+    zenohs = {name for name in names if name.split("-")[0] in ("rx", "tx", "net", "acc", "app")}  # Zenoh's runtimes
+    assert (zenohs == names) if on_zenoh_thread else not zenohs, names

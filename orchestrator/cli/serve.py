@@ -95,7 +95,7 @@ def serve(
     err.print(f"serving {path.name} ({unpacked.guid}) as {key}, listening on {', '.join(listen) or 'nothing'}"
               f"{', connected to ' + ', '.join(connect) if connect else ''}; ready", highlight=False, soft_wrap=True)
     try:
-        answer(instance, session, key, stop)
+        answer(instance, session, key, stop, on_zenoh_thread=True)  # its Zenoh serves nothing else (served.py)
     finally:
         session.close()
         unpacked.cleanup()

@@ -12,11 +12,14 @@ the server can serve the next run; ``expire`` is called by the serving loop.
 
 from __future__ import annotations
 
+import ctypes
 import hmac
 import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
+
+import zenoh
 
 from bridge import fmu_wire as wire
 from fmus.errors import ComponentError
@@ -141,18 +144,38 @@ class ServedInstance:
             self._free("freed: the server stops")
 
 
-def serve(instance: ServedInstance, session: Any, key: str, stop: threading.Event) -> None:
+def _keep_thread_state() -> None:
+    """Keep the Python thread state of the (non-Python) thread this is called on until the thread ends.
+
+    A Zenoh thread that calls into Python gets a thread state made for the call and deleted after it
+    (``PyGILState_Ensure``/``Release``, pyo3's ``with_gil``); one more ``Ensure`` that is never released
+    keeps it, so the next call only takes the GIL (docs/remote.md, "One round trip per step": about a
+    quarter less of a server's CPU per request). Called once per thread, from the thread itself."""
+    if not getattr(_thread_state_kept, "done", False):
+        ctypes.pythonapi.PyGILState_Ensure()
+        _thread_state_kept.done = True
+
+
+_thread_state_kept = threading.local()
+
+
+def serve(instance: ServedInstance, session: Any, key: str, stop: threading.Event, on_zenoh_thread: bool = False) -> None:
     """Answer queries on ``key`` until ``stop`` is set; the instance is freed on the way out.
 
-    ``answer`` runs on zenoh-python's callback thread (the default hand-over), not on Zenoh's own: ``platoon
-    serve`` runs Zenoh on one thread (bridge/session.py, ``one_zenoh_thread``), which must never wait for the
-    GIL or an FMU's step, or every link of the process would wait with it (answering on Zenoh's thread was
-    tried together with a run on one Zenoh thread and taken out: docs/remote.md, "One round trip per step")."""
+    ``on_zenoh_thread``: answer each query on the Zenoh thread that read it, not on zenoh-python's
+    callback thread it would be handed to (a thread hand-over and about three context switches less per
+    request: 30-40 % less of the server's CPU, docs/remote.md, "One round trip per step"). Only for a process whose Zenoh serves nothing
+    else, ``platoon serve`` (its Zenoh on one thread, bridge/session.py): while the answer runs (the FMU's
+    step) that Zenoh thread reads and writes nothing else, and it waits for the GIL whenever another of
+    the process's threads holds it. Never in a run or in an FMI importer hosting the client FMU."""
     def answer(query: Any) -> None:
+        if on_zenoh_thread:
+            _keep_thread_state()
         payload = query.payload.to_bytes() if query.payload is not None else b""
         query.reply(query.key_expr, instance.handle(payload))
 
-    queryable = session.declare_queryable(key, answer)
+    handler = zenoh.handlers.Callback(answer, indirect=False) if on_zenoh_thread else answer
+    queryable = session.declare_queryable(key, handler)
     try:
         while not stop.wait(min(1.0, instance.lease / 4)):
             instance.expire()
