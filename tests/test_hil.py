@@ -442,6 +442,28 @@ def test_pacer_adds_up_how_far_the_run_fell_behind_once_per_stall() -> None:
     assert sum(pacer.lateness) > summary["behind.total"]  # a stall is late at several points while caught up
 
 
+def test_pacer_counts_late_wake_ups_as_jitter_not_as_falling_behind() -> None:
+    """A master woken up late at every other point (by 0.2 ms: 0.5 ms past the 0.3 ms it sleeps short), its work
+    always done in time, was never behind: the lateness shows in the jitter, not in behind.total (before, each
+    of the 500 rises counted: "0.1 s behind"); a stall among them (20 ms of work in a 10 ms step, 10 ms past its
+    point, caught up at the next) still counts whole."""
+    now, pacer = fake_time(0.0)
+
+    def oversleeping(seconds: float) -> None:
+        now[0] += seconds + 0.0005 * (len(pacer.lateness) % 2)  # every other wake-up 0.5 ms late (a 0.3 ms margin)
+
+    pacer.sleep = oversleeping
+    pacer.start(0.0)
+    for k in range(1, 1001):
+        now[0] += 0.02 if k == 500 else 0.002  # the step's work: 2 ms, once 20 ms
+        pacer.wait_until(0.01 * k)
+    summary = pacer.summary()
+    assert summary["overruns"] == 2  # the stall's point, and the next, 2 ms late: caught up after
+    assert summary["jitter.max"] == pytest.approx(0.010, abs=3e-4)  # the stall: 10 ms past its point
+    assert 1e-4 < summary["jitter.p99"] < 1e-3  # the late wake-ups are there
+    assert summary["behind.total"] == pytest.approx(summary["jitter.max"], abs=3e-4)  # the stall, once; no wake-up
+
+
 # -- real processes on 127.0.0.1 ---------------------------------------------------------------------
 
 def endpoint(port: int) -> str:
