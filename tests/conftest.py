@@ -65,50 +65,9 @@ REQUIRE_REALTIME = "PLATOON_REQUIRE_REALTIME"
 def realtime_not_tested(why: str) -> None:
     """A real-time test could not test its behaviour on this machine's load: skipped, saying ``why``, where a
     developer runs the suite on a busy laptop; a failure where ``PLATOON_REQUIRE_REALTIME=1`` (CI)."""
-    if _scheduling:
-        why = f"{why} (the tests ran {_scheduling})"
     if os.environ.get(REQUIRE_REALTIME, "") not in ("", "0"):
         pytest.fail(f"{why} ({REQUIRE_REALTIME} is set: real-time behaviour must be tested here)")
     pytest.skip(why)
-
-
-# A real-time session (every selected test marked realtime, one process: the README's `-m 'realtime and not
-# slow' -n 0` and CI's slow real-time phase) asks the OS for round-robin real-time scheduling at the lowest
-# real-time priority, handed down to every thread and process a test starts (the run, the emulator, a router):
-# a live run then keeps its wall-clock schedule against whatever else the machine runs. Measured 2026-12-03 on
-# this 2-core machine beside a CPU-bound process (load 6-10): the four tracking tests of the real-time phase
-# passed on their first try under SCHED_RR; at normal priority and at nice -10 every try of all four fell behind
-# (bounds 10-1073 mm over the 9 mm cap; docs/hil.md, "Accuracy"). The kernel's real-time throttling
-# (sched_rt_runtime_us, 95 % by default) keeps a runaway test from taking the whole machine. Where the OS does
-# not allow it (not root, no CAP_SYS_NICE, RLIMIT_RTPRIO 0) the session runs at normal priority and says so.
-REALTIME_PRIORITY = 1
-_scheduling = ""  # how this session's real-time tests run (realtime_scheduling's answer), for their skip lines
-
-
-def realtime_scheduling() -> str:
-    """Round-robin real-time scheduling for this process (and so its later threads and children), or why not."""
-    if not hasattr(os, "sched_setscheduler"):
-        return "at normal priority (this OS has no real-time scheduling policy for processes)"
-    try:
-        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(REALTIME_PRIORITY))
-    except PermissionError:
-        return ("at normal priority: real-time scheduling needs CAP_SYS_NICE (root has it) or an rtprio limit "
-                "(`ulimit -r`); on a busy machine a live run may then fall behind its schedule")
-    except OSError as error:
-        return f"at normal priority: real-time scheduling refused ({error})"
-    return f"at real-time priority (SCHED_RR {REALTIME_PRIORITY}, handed down to the runs and robots the tests start)"
-
-
-def pytest_collection_finish(session: pytest.Session) -> None:
-    items = session.items
-    if hasattr(session.config, "workerinput") or not items:
-        return
-    if all(item.get_closest_marker("realtime") for item in items):
-        global _scheduling
-        _scheduling = realtime_scheduling()
-        reporter = session.config.pluginmanager.get_plugin("terminalreporter")
-        if reporter is not None:
-            reporter.write_line(f"real-time tests {_scheduling}")
 
 
 @contextmanager
