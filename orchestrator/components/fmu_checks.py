@@ -35,7 +35,7 @@ import zlib
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from orchestrator.support.cache_files import cache_folder, stamps, write_whole
+from orchestrator.support.cache_files import cache_folder, modified, stamps, write_whole
 
 if TYPE_CHECKING:
     from fmus.builders import Builder, BuiltFmu
@@ -68,15 +68,19 @@ def sources_stamp(builder: "Builder", name: str) -> dict[str, Any]:
     pythonfmu = sys.modules["pythonfmu"]  # imported by fmus.builders, on purpose (see fmus/builders/pythonfmu.py)
     folders = [*BUNDLED_FOLDERS, Path(pythonfmu.__file__).parent.parent]
     return {"files": stamps(str(path) for path in builder.digest_files(name)),
-            "folders": {str(folder): _folder_time(folder) for folder in folders},
+            "folders": {str(folder): modified(folder) for folder in folders},
             "pythonfmu": getattr(pythonfmu, "__version__", None)}
 
 
-def _folder_time(folder: Path) -> int | None:
+def _stored(path: Path, key: str) -> dict[str, Any] | None:
+    """The entry at ``path`` when it is one of this format for ``key``; None when absent, unreadable or another's."""
     try:
-        return os.stat(folder).st_mtime_ns
-    except OSError:
+        entry = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
         return None
+    if not isinstance(entry, dict) or entry.get("format") != FORMAT or entry.get("key") != key:
+        return None
+    return entry
 
 
 def known_current(builder: "Builder", folder: Path, names: tuple[str, ...]) -> list["BuiltFmu"] | None:
@@ -84,12 +88,8 @@ def known_current(builder: "Builder", folder: Path, names: tuple[str, ...]) -> l
     current and whole before and neither it nor anything its GUID depends on changed since; else None."""
     from fmus.builders import BuiltFmu
 
-    path, key = _entry_path(builder, folder)
-    try:
-        entry = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    if not isinstance(entry, dict) or entry.get("format") != FORMAT or entry.get("key") != key:
+    entry = _stored(*_entry_path(builder, folder))
+    if entry is None:
         return None
     found = []
     for name in names:
@@ -108,12 +108,7 @@ def remember(builder: "Builder", folder: Path, built: list["BuiltFmu"], sources:
     were taken before it checked them. An FMU it found current is kept only if it is still the file it
     checked; one it rebuilt, as written."""
     path, key = _entry_path(builder, folder)
-    try:
-        entry = json.loads(path.read_text(encoding="utf-8"))
-        if not isinstance(entry, dict) or entry.get("format") != FORMAT or entry.get("key") != key:
-            entry = {}
-    except (OSError, ValueError):
-        entry = {}
+    entry = _stored(path, key) or {}
     fmus = entry.get("fmus") if isinstance(entry.get("fmus"), dict) else {}
     for fmu in built:
         now = identity(fmu.path)

@@ -38,6 +38,15 @@ def stamps(files: Any) -> dict[str, list[int] | None]:
     return found
 
 
+def modified(path: str | Path) -> int | None:
+    """A file's or folder's modification time (ns), None when it cannot be read: a folder's changes when an
+    entry is added to or removed from it."""
+    try:
+        return os.stat(path).st_mtime_ns
+    except OSError:
+        return None
+
+
 def write_whole(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` whole or not at all (two processes at once each write their own, then rename);
     a folder that cannot be written is no error: the work is done again next time, as without a cache."""

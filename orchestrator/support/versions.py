@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import json
-import os
 import platform
 import sys
 import zlib
 
 import fmus
 from orchestrator import __version__
-from orchestrator.support.cache_files import cache_folder, write_whole
+from orchestrator.support.cache_files import cache_folder, modified, write_whole
 
 INSTALLED = ("fmpy", "pythonfmu")  # read from their installed metadata: importing them only for a version costs ~80 ms
 
@@ -35,7 +34,7 @@ def installed_versions(names: tuple[str, ...]) -> dict[str, str]:
     hold: installing, upgrading or removing one adds or removes a metadata folder, which changes the
     modification time of the folder holding it. So the answer is kept with ``sys.path`` and the modification
     time of each of its folders, and asked again as soon as any differs."""
-    key = {"names": list(names), "path": [[entry, _modified(entry)] for entry in sys.path]}
+    key = {"names": list(names), "path": [[entry, modified(entry or ".")] for entry in sys.path]}
     entry = cache_folder("versions") / f"installed-{zlib.crc32(json.dumps(sys.path).encode()):08x}.json"  # one a sys.path
     try:
         known = json.loads(entry.read_text(encoding="utf-8"))
@@ -48,13 +47,6 @@ def installed_versions(names: tuple[str, ...]) -> dict[str, str]:
     versions = {name: importlib.metadata.version(name) for name in names}
     write_whole(entry, json.dumps({"key": key, "versions": versions}))
     return versions
-
-
-def _modified(folder: str) -> int | None:
-    try:
-        return os.stat(folder or ".").st_mtime_ns
-    except OSError:
-        return None
 
 
 def version_line() -> str:
