@@ -153,6 +153,19 @@ def test_a_run_and_a_report_of_a_config_seen_before_load_no_pydantic(tmp_path: P
     assert [name for name in reports[1] if name.split(".")[0] in ("pydantic", "pydantic_core")] == []
 
 
+def test_a_report_of_a_run_that_stored_its_summary_loads_neither_numpy_nor_the_reader(tmp_path: Path,
+                                                                                       fmu_dir: Path) -> None:
+    """A run that prints its table stores it in the trace (orchestrator/analysis/stored_summary.py): its report
+    prints it without numpy, the trace reader or the analysis (tests/test_stored_summary.py: the same text)."""
+    cache = {"XDG_CACHE_HOME": str(tmp_path / "cache")}
+    probe(*table_run(tmp_path), "--overwrite", cwd=REPO, env=cache)
+    for _ in range(2):  # the second: its config from the cache of validated configs, without pydantic
+        modules = probe("report", str(tmp_path / "t.mcap"), cwd=REPO, env=cache)["modules"]
+    unwanted = ("numpy", "orchestrator.trace.reader", "orchestrator.trace.columns", "orchestrator.analysis.metrics",
+                "pydantic")
+    assert [name for name in modules if name.split(".")[0] in unwanted or name in unwanted] == []
+
+
 def test_a_second_run_checks_no_fmu_and_reads_no_package_metadata(tmp_path: Path, fmu_dir: Path) -> None:
     """The FMUs' check (GUID digests, archive CRCs) and the installed versions a trace records are kept under the
     cache folder (orchestrator/components/fmu_checks.py, orchestrator/support/versions.py): a second run imports

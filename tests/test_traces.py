@@ -295,7 +295,8 @@ def test_the_encoder_writes_the_messages_mcap_add_message_writes(tmp_path: Path,
 def test_the_file_layer_frames_a_file_as_the_mcap_writer_does(tmp_path: Path) -> None:
     """trace/mcap_file.py decides the records' order, the indexes and the summary as ``mcap.writer.Writer``
     does: given the Writer's compressor and the same calls (schemas, channels, metadata in the middle,
-    messages filling many chunks), the two files are the same, byte for byte."""
+    messages filling many chunks), the two files are the same, byte for byte; the data section's CRC in DataEnd
+    (which `platoon report` checks before it trusts a stored summary) is the Writer's own, with data CRCs on."""
     import io
     import random
 
@@ -321,7 +322,7 @@ def test_the_file_layer_frames_a_file_as_the_mcap_writer_does(tmp_path: Path) ->
         finish()
 
     library, ours = io.BytesIO(), io.BytesIO()
-    writer = Writer(library, chunk_size=4096)
+    writer = Writer(library, chunk_size=4096, enable_data_crcs=True)
     fill(writer, writer.finish)
     layer = McapFile(ours, 4096, zstandard.compress)
     fill(layer, lambda: (layer.write_open_chunk(), layer.finish()))

@@ -9,29 +9,19 @@ when there is none).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
+from orchestrator.analysis.summary_fields import (  # noqa: F401  (re-exported: the summary's fields, without numpy)
+    STEADY_FRACTION, SUMMARY_COLUMNS, SUMMARY_UNITS, SummaryColumn, VehicleSummary, first_disturbance,
+    path_error_interval, report_json, summary_rows)
 from orchestrator.scenario.scenario import path_of
 from orchestrator.trace.format import vehicle_names
 
 if TYPE_CHECKING:  # a run accumulates its summary without the trace reader (mcap's reader: start-up time)
-    from orchestrator.analysis.validity import Departure
     from orchestrator.scenario.config import Config
     from orchestrator.trace import Trace
-
-STEADY_FRACTION = 0.1
-
-
-@dataclass(frozen=True)
-class VehicleSummary:
-    name: str
-    path_offset: float
-    gap: float
-    speed: float
-    path_error_max: float
 
 
 def path_errors(config: Config, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -40,12 +30,15 @@ def path_errors(config: Config, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.asarray(distance(x, y), dtype=float)
 
 
-def first_disturbance(config: Config) -> float | None:
-    return min((d.start for d in config.disturbance), default=None)
-
-
 SUMMARY_OUTPUTS = ("x", "y", "gap", "speed")  # what a vehicle's summary reads
 SUMMARY_BLOCK = 4096  # rows folded at a time when summarizing a loaded trace
+SUM_GROUP = 1024  # the steady window's rows summed at a time (``RunningSummary``)
+
+
+def _group_sum(blocks: list[np.ndarray]) -> np.ndarray:
+    """The sum of one group's rows (rows x vehicles x 3), one contiguous array: the same additions for the
+    same rows, however they were split."""
+    return np.ascontiguousarray(np.concatenate(blocks) if len(blocks) > 1 else blocks[0]).sum(axis=0)
 
 
 class RunningSummary:
@@ -72,9 +65,15 @@ class RunningSummary:
         self._margin = margin
         self._predicted = expected_end - STEADY_FRACTION * (expected_end - start)
         count = len(self.names)
-        self._steady_sums = np.zeros((count, 3))  # path error, gap, speed
+        # the steady window's rows are summed in groups of SUM_GROUP by their index among the recorded rows, and
+        # the groups' sums in the groups' order: the same additions whichever blocks the rows came in (the run's,
+        # or a trace's read back), so `platoon run` and `platoon report` agree to the last bit
+        self._rows_seen = 0
+        self._group_sums: dict[int, np.ndarray] = {}  # complete groups: group -> sum (path error, gap, speed)
+        self._open: dict[int, list[np.ndarray]] = {}  # groups not summed yet: group -> blocks of their rows' values
+        self._first_group: int | None = None  # the first inside row's group: summed at the end, with the boundary's
         self._steady_rows = 0
-        self._boundary: list[tuple[float, np.ndarray]] = []  # rows near the predicted window start: (t, values)
+        self._boundary: list[tuple[int, float, np.ndarray]] = []  # rows near the predicted window start: (index, t, values)
         self._error_max = np.full(count, -np.inf)
         # gap and speed are summed as deviations from d* and V_c: a mean of values near 25 m/s would
         # carry rounding noise (~1e-12 over 10^3 rows) larger than the deviations the table shows
@@ -95,11 +94,21 @@ class RunningSummary:
         values = np.stack([errors, picked[:, :, 2], picked[:, :, 3]], axis=2) - self._reference  # rows x vehicles x 3
         inside = t > self._predicted + self._margin
         near = ~inside & (t >= self._predicted - self._margin)
-        if inside.any():
-            self._steady_sums += values[inside].sum(axis=0)
-            self._steady_rows += int(inside.sum())
+        first = self._rows_seen
+        self._rows_seen += len(t)
         for index in np.flatnonzero(near):
-            self._boundary.append((float(t[index]), values[index]))
+            self._boundary.append((first + int(index), float(t[index]), values[index]))
+        rows_inside = np.flatnonzero(inside)
+        if len(rows_inside):
+            self._steady_rows += len(rows_inside)
+            groups = (first + rows_inside) // SUM_GROUP
+            if self._first_group is None:
+                self._first_group = int(groups[0])
+            cuts = np.flatnonzero(np.diff(groups)) + 1
+            for part in np.split(np.arange(len(rows_inside)), cuts):
+                self._open.setdefault(int(groups[part[0]]), []).append(values[rows_inside[part]])
+            for group in [g for g in self._open if g < groups[-1] and g != self._first_group]:  # complete
+                self._group_sums[group] = _group_sum(self._open.pop(group))
         self.last_time = float(t[-1])
 
     def result(self) -> list[VehicleSummary] | None:
@@ -109,12 +118,17 @@ class RunningSummary:
         threshold = self.last_time - STEADY_FRACTION * (self.last_time - self._start)
         if abs(threshold - self._predicted) >= self._margin:
             return None
-        sums, count = self._steady_sums.copy(), self._steady_rows
-        for t, values in self._boundary:
+        sums, count = dict(self._group_sums), self._steady_rows
+        rest = {group: list(blocks) for group, blocks in self._open.items()}
+        for index, t, values in reversed(self._boundary):  # before every inside row of their group: in index order
             if t >= threshold:
-                sums += values
+                rest.setdefault(index // SUM_GROUP, []).insert(0, values[np.newaxis])
                 count += 1
-        means = sums / count + self._reference
+        sums.update({group: _group_sum(blocks) for group, blocks in rest.items()})
+        total = np.zeros((len(self.names), 3))
+        for group in sorted(sums):
+            total += sums[group]
+        means = total / count + self._reference
         error_max = np.where(np.isfinite(self._error_max), self._error_max, np.nan)
         return [VehicleSummary(name, float(means[i, 0]), float(means[i, 1]), float(means[i, 2]), float(error_max[i]))
                 for i, name in enumerate(self.names)]
@@ -150,54 +164,3 @@ def summarize(trace: Trace, config: Config) -> list[VehicleSummary]:
     result = summary.result()
     assert result is not None  # the predicted end is the real one
     return result
-
-
-@dataclass(frozen=True)
-class SummaryColumn:
-    """One quantity of the summary table: its JSON key, its table header and its unit."""
-
-    key: str
-    label: str
-    unit: str
-
-
-# What the summary table shows, in its order; `platoon report --json` reports each under its key (with
-# the absolute gap and speed besides), so the table and the JSON cannot tell different stories.
-SUMMARY_COLUMNS = (
-    SummaryColumn("path_offset", "path offset", "m"),
-    SummaryColumn("gap_error", "gap - d*", "m"),
-    SummaryColumn("speed_error", "speed - V_c", "m/s"),
-    SummaryColumn("path_error_max", "max |path error|", "m"),
-)
-SUMMARY_UNITS = {"path_offset": "m", "gap": "m", "gap_error": "m", "speed": "m/s", "speed_error": "m/s",
-                 "path_error_max": "m"}
-
-
-def path_error_interval(config: Config) -> tuple[float | None, str]:
-    """Where path_error_max is taken: (start s, or None for the whole run) and how the table says it."""
-    start = first_disturbance(config)
-    return start, ("whole run" if start is None else f"t >= {start:g} s")
-
-
-def summary_rows(summaries: list[VehicleSummary], config: Config) -> list[dict[str, float | str]]:
-    """Per vehicle: the summary's values and the deviations the table shows (gap - d*, speed - V_c)."""
-    return [{"name": s.name, "path_offset": s.path_offset, "gap": s.gap, "gap_error": s.gap - config.platoon.d_star,
-             "speed": s.speed, "speed_error": s.speed - config.platoon.speed, "path_error_max": s.path_error_max}
-            for s in summaries]
-
-
-def report_json(summaries: list[VehicleSummary], config: Config, departures: "list[Departure]") -> dict:
-    """The summary as ``platoon report --json`` prints it: the table's quantities, their units and intervals,
-    and where the run left the model (``validity``: orchestrator/analysis/validity.py)."""
-    from orchestrator.analysis.validity import departures_json
-
-    start, interval = path_error_interval(config)
-    return {
-        "units": SUMMARY_UNITS,
-        "steady_window": {"last_fraction": STEADY_FRACTION,
-                          "quantities": ["path_offset", "gap", "gap_error", "speed", "speed_error"],
-                          "text": f"means over the last {STEADY_FRACTION:.0%} of the recorded time"},
-        "path_error_max_interval": {"from_s": start, "text": interval},
-        "vehicles": summary_rows(summaries, config),
-        "validity": departures_json(departures, config),
-    }

@@ -10,16 +10,21 @@ and calls ``report_command``; orchestrator/cli/common.py re-exports the helpers.
 from __future__ import annotations
 
 import json
+import math
 import threading
 import warnings
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator, Optional
+from typing import TYPE_CHECKING, Any, Iterator, Optional
 
 from orchestrator.cli.plain import console, fail, output_rule
 from orchestrator.cli.tables import summary_table
 from orchestrator.scenario.raw_config import ConfigError
 from orchestrator.scenario.config_text import header_text
+
+if TYPE_CHECKING:
+    from orchestrator.analysis.stored_summary import StoredSummary
+    from orchestrator.scenario.config import Config
 
 
 @contextmanager
@@ -154,6 +159,8 @@ def _stored_config(trace: Path, raw: dict[str, Any], cached: bool) -> tuple[Any,
 def report_command(trace: Path, as_json: bool, plots: Optional[Path], overwrite: bool) -> None:
     """`platoon report` (orchestrator/cli/trace.py declares its options): the summary of a trace, as a table
     or JSON, and the paper's panels."""
+    if plots is None and report_stored(trace, as_json):
+        return
     if plots is not None:  # every panel's target checked before the trace is read
         from orchestrator.analysis.plots import check_plot_targets
 
@@ -165,9 +172,10 @@ def report_command(trace: Path, as_json: bool, plots: Optional[Path], overwrite:
 
     # read while the modules below load, which load without garbage collection (as a run's: support/startup.py)
     with loading_a_run(), _Reading(trace, {"errors": False}) as reading:
-        from orchestrator.analysis.link_stats import link_rows, link_stats_of_trace
-        from orchestrator.analysis.metrics import report_json, summarize
-        from orchestrator.analysis.validity import departures_lines, departures_of_trace
+        from orchestrator.analysis.link_stats import link_stats_of_trace
+        from orchestrator.analysis.metrics import summarize
+        from orchestrator.analysis.stored_summary import StoredSummary
+        from orchestrator.analysis.validity import departures_of_trace
 
         # what prints the report, loaded while the trace is read (the reading, in C, outlasts these imports)
         console(), console(stderr=True)
@@ -198,19 +206,8 @@ def report_command(trace: Path, as_json: bool, plots: Optional[Path], overwrite:
         summaries = summarize(loaded, config)
         links = link_stats_of_trace(loaded)
         departures = departures_of_trace(loaded, config)
-        if as_json:
-            out.print_json(json.dumps({"trace": str(trace), "law": config.platoon.law, "status": status,
-                                        **report_json(summaries, config, departures), "links": link_rows(links)}))
-        else:
-            reached = float(loaded.component(loaded.vehicles()[0])["t"][-1])  # a run that ended early: how far
-            shown = status if status == "completed" else f"{status} at t = {reached:.6g} of {config.simulation.stop_time:g} s"
-            out.print(summary_table(summaries, config, f"{trace.name}: {header_text(config)} ({shown})"))
-            if links:
-                from orchestrator.cli.tables import link_table
-
-                out.print(link_table(links))
-            for line in departures_lines(departures):
-                out.print(line, highlight=False, soft_wrap=True)
+        reached = float(loaded.component(loaded.vehicles()[0])["t"][-1])  # a run that ended early: how far
+        print_summary(trace, config, status, reached, StoredSummary(summaries, links, departures), as_json)
         if plots is not None:
             from orchestrator.analysis.plots import write_plots
 
@@ -218,3 +215,78 @@ def report_command(trace: Path, as_json: bool, plots: Optional[Path], overwrite:
                 written = write_plots(loaded, config, plots, overwrite, [trace])
             for path in written:
                 note(f"wrote {path}")
+
+
+def print_summary(trace: Path, config: Config, status: str, reached: float, summary: StoredSummary,
+                  as_json: bool) -> None:
+    """The report's table (with the links' and the departures' lines) or its JSON, of a summary computed from
+    the rows read back or stored by the run (``report_stored``): one printing for both."""
+    from orchestrator.analysis.link_stats import link_rows
+    from orchestrator.analysis.summary_fields import report_json
+
+    out = console()
+    if as_json:
+        out.print_json(json.dumps({"trace": str(trace), "law": config.platoon.law, "status": status,
+                                   **report_json(summary.vehicles, config, summary.departures),
+                                   "links": link_rows(summary.links)}))
+        return
+    from orchestrator.analysis.validity import departures_lines
+
+    shown = status if status == "completed" else f"{status} at t = {reached:.6g} of {config.simulation.stop_time:g} s"
+    out.print(summary_table(summary.vehicles, config, f"{trace.name}: {header_text(config)} ({shown})"))
+    if summary.links:
+        from orchestrator.cli.tables import link_table
+
+        out.print(link_table(summary.links))
+    for line in departures_lines(summary.departures):
+        out.print(line, highlight=False, soft_wrap=True)
+
+
+def report_stored(trace: Path, as_json: bool) -> bool:
+    """Print the summary the run stored in its trace (orchestrator/analysis/stored_summary.py) and say True;
+    False, having printed nothing, wherever the rows must be read instead: no stored summary or one computed
+    by other code, a run that did not complete, a recovered trace, a config with values that were not finite,
+    a data section whose CRC does not check or was not recorded, anything unreadable (the full reading then
+    says what is wrong, as before). Neither numpy nor the trace's decoding is loaded."""
+    from orchestrator.analysis.stored_summary import RECORD, stored_summary
+    from orchestrator.trace.summary_section import finished_metadata
+
+    try:
+        metadata, summary_start = finished_metadata(trace)
+    except Exception:  # noqa: BLE001  (the full reading reports it, with its own words)
+        return False
+    found = stored_summary(metadata.get(RECORD))
+    run_record, config_record = metadata.get("platoon.run", {}), metadata.get("platoon.config", {})
+    if (found is None or run_record.get("status") != "completed" or "platoon.recovery" in metadata
+            or "resolved" not in config_record):
+        return False
+    # the data section's CRC (a read of the whole file, about 10 ms for the README's trace) on a thread: reading
+    # and zlib release the GIL, so on a second core it overlaps the config and the table's imports
+    verdict: list[bool | None] = []
+    checking = threading.Thread(target=lambda: verdict.append(_intact(trace, summary_start)), daemon=True,
+                                name="checking the trace")
+    checking.start()
+    try:
+        try:
+            raw = json.loads(config_record["resolved"])
+        except ValueError:
+            return False
+        config, non_finite = _stored_config(trace, raw, cached=True)
+        if not as_json:
+            import rich.table  # noqa: F401
+    finally:
+        checking.join()
+    if verdict != [True] or non_finite:  # non-finite values: their warning and nan figures are the reading's
+        return False
+    print_summary(trace, config, "completed", math.nan, found, as_json)
+    return True
+
+
+def _intact(trace: Path, summary_start: int) -> bool | None:
+    """``data_section_intact``, False where the file cannot be read (the full reading then says why)."""
+    from orchestrator.trace.summary_section import data_section_intact
+
+    try:
+        return data_section_intact(trace, summary_start)
+    except OSError:
+        return False

@@ -20,7 +20,7 @@ def summary_table(summaries, config: Config, title: str) -> Table:
     quantities, keys and units as `platoon report --json` (metrics.SUMMARY_COLUMNS, summary_rows)."""
     from rich.table import Table
 
-    from orchestrator.analysis.metrics import STEADY_FRACTION, SUMMARY_COLUMNS, path_error_interval, summary_rows
+    from orchestrator.analysis.summary_fields import STEADY_FRACTION, SUMMARY_COLUMNS, path_error_interval, summary_rows
 
     _, interval = path_error_interval(config)  # max |path error| is taken from the first disturbance on (metrics.py)
     table = Table(title=title, title_justify="left", caption_justify="left",

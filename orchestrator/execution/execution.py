@@ -354,12 +354,26 @@ class Execution:
             if outcome.status == "completed":
                 outcome.fail(f"an observer failed to finish: {type(finishing).__name__}: {finishing}")
         if self.trace is not None:
+            if outcome.status == "completed":
+                self._store_summary()
             self._finalize_trace(outcome, stop, observers)
         if self.trace_process is not None:
             self.trace_process.close()  # only if no writer took it (the writer was never created)
         for fmu in self.fmus.values():
             fmu.cleanup()
         return live_summary
+
+    def _store_summary(self) -> None:
+        """The summary the run computed from its recorded rows, into the trace (``platoon.summary``), for
+        `platoon report` to print without reading the rows back (orchestrator/analysis/stored_summary.py)."""
+        vehicles = self.summary_feed.result() if self.summary_feed is not None else None
+        if vehicles is None or self.trace is None:  # a quiet run computes none; an end not the planned one
+            return
+        from orchestrator.analysis.stored_summary import RECORD, StoredSummary, summary_record
+
+        self.trace.metadata(RECORD, summary_record(StoredSummary(
+            vehicles, self.link_feed.result() if self.link_feed is not None else [],
+            self.validity.result() if self.validity is not None else [])))
 
     def _finalize_trace(self, outcome: _Outcome, stop: StopRequest, observers: Observers) -> None:
         trace = self.trace

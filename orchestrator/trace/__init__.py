@@ -3,7 +3,8 @@
 The format is in docs/trace-format.md. The package's modules, each with one job:
 
 Writing
-* ``format``: topics, channel kinds, chunk groups and sizes, how numbers become JSON text;
+* ``format``: topics, channel kinds, chunk groups and sizes; ``number_text``: how numbers become JSON text
+  (orjson: for writing only);
 * ``encoding``: each channel as a ``ChannelSpec`` and the components' messages, made once for the
   trace file and the live view (``platoon run --live``, orchestrator/observers/foxglove_view.py);
 * ``foxglove``: the derived Foxglove channels (scene, transforms, errors, log); ``viridis`` their colours;
@@ -23,6 +24,8 @@ Reading
   config, metadata, errors and log; ``export_csv`` writes one CSV per component;
 * ``columns`` (+ ``native_decoder.c``): the JSON channels decoded into float64 columns, only the chunks
   and channels asked for;
+* ``summary_section``: a finished trace's metadata and its data section's CRC, without its chunks (what
+  `platoon report` reads of a trace that stores its run's summary);
 * ``recovery``: ``recover`` rewrites the complete chunks of an unfinished or damaged file;
 * ``layout``: a Foxglove/Lichtblick layout fitted to one run.
 
@@ -39,7 +42,7 @@ from typing import Any
 
 _PUBLIC = {
     "TraceError": "format",
-    "number_texts": "format",
+    "number_texts": "number_text",
     "LogLine": "reader",
     "TopicInfo": "reader",
     "Trace": "reader",

@@ -16,7 +16,8 @@ import json
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
-from .format import CHANNEL_PREFIX, KIND_KEY, MESSAGE_ENCODING, SCHEMA_ENCODING, channel_name, number_texts
+from .format import CHANNEL_PREFIX, KIND_KEY, MESSAGE_ENCODING, SCHEMA_ENCODING, channel_name
+from .number_text import number_texts
 
 
 @dataclass(frozen=True)

@@ -81,21 +81,3 @@ def channel_kind(channel: Channel, schema: Schema | None) -> str:
     if channel.topic.startswith(CHANNEL_PREFIX) and channel.message_encoding == MESSAGE_ENCODING:
         return "errors" if channel.topic == ERRORS_TOPIC else "component"
     return "foxglove" if schema is not None and schema.name.startswith("foxglove.") else "other"
-
-
-# How every number is written as JSON text, by the writer and the Foxglove channels alike.
-try:  # orjson writes floats (Rust, ryu) several times faster than float.__repr__, same values
-    import orjson
-
-    def number_texts(values: list[float]) -> list[bytes]:
-        """JSON text of each number: shortest text that reads back as exactly the same float."""
-        try:
-            return orjson.dumps(values)[1:-1].split(b",")
-        except TypeError:  # a number type orjson does not take (e.g. numpy scalar): its float value
-            return orjson.dumps([float(v) for v in values])[1:-1].split(b",")
-
-except ImportError:  # pragma: no cover - orjson is a dependency; this keeps a bare install working
-
-    def number_texts(values: list[float]) -> list[bytes]:
-        """JSON text of each number: shortest text that reads back as exactly the same float."""
-        return [float.__repr__(float(v)).encode() for v in values]

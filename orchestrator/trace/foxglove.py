@@ -27,7 +27,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from .encoding import ChannelSpec, register_mcap, template_of
-from .format import CHANNEL_PREFIX, LINK_PREFIX, SCENE_TOPIC, TF_TOPIC, is_link, number_texts
+from .format import CHANNEL_PREFIX, LINK_PREFIX, SCENE_TOPIC, TF_TOPIC, is_link
+from .number_text import number_texts
 
 
 class _FoxgloveMessages:

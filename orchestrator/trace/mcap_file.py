@@ -121,9 +121,15 @@ class McapFile:
         self.chunk = ChunkBuilder()
         self._chunk_indexes: list[bytes] = []  # framed: a ChunkIndex object with its offsets costs ~10x its bytes
         self._metadata_indexes: list[MetadataIndex] = []
+        self._data_crc = 0  # CRC-32 of the data section so far, recorded in DataEnd (readers may check it)
+
+    def _write_data(self, data: bytes) -> None:
+        """Bytes of the data section: written, and counted into its CRC (about 0.4 ms a MB)."""
+        self._data_crc = zlib.crc32(data, self._data_crc)
+        self._stream.write(data)
 
     def start(self, profile: str = "", library: str = "") -> None:
-        self._stream.write(MAGIC + framed(Header(profile, library)))
+        self._write_data(MAGIC + framed(Header(profile, library)))
 
     def register_schema(self, name: str, encoding: str, data: bytes) -> int:
         schema = Schema(id=len(self.schemas) + 1, data=data, encoding=encoding, name=name)
@@ -163,7 +169,7 @@ class McapFile:
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         offset = self._stream.tell()
         record = framed(Metadata(name=name, metadata=data))
-        self._stream.write(record)
+        self._write_data(record)
         self.statistics.metadata_count += 1
         self._metadata_indexes.append(MetadataIndex(offset=offset, length=len(record), name=name))
 
@@ -182,7 +188,7 @@ class McapFile:
         chunk_start = self._stream.tell()
         chunk = framed(Chunk(compression=COMPRESSION, data=compressed, message_start_time=start_time,
                              message_end_time=end_time, uncompressed_crc=crc, uncompressed_size=len(data)))
-        self._stream.write(chunk)
+        self._write_data(chunk)
         indexes_start = chunk_start + len(chunk)
         builder = RecordBuilder()
         offsets = {}
@@ -190,7 +196,7 @@ class McapFile:
             offsets[channel] = indexes_start + builder.count
             index.write(builder)
         indexes = builder.end()
-        self._stream.write(indexes)
+        self._write_data(indexes)
         self._chunk_indexes.append(framed(ChunkIndex(
             message_start_time=start_time, message_end_time=end_time, chunk_start_offset=chunk_start,
             chunk_length=len(chunk), message_index_offsets=offsets, message_index_length=len(indexes),
@@ -200,7 +206,7 @@ class McapFile:
         """The end of the data section, the summary (schemas, channels, statistics, chunk indexes, the
         attachment indexes' empty group, metadata indexes, the groups' offsets), footer and magic. The
         open chunk is the caller's to write first (``write_open_chunk``)."""
-        self._stream.write(framed(DataEnd(0)))
+        self._stream.write(framed(DataEnd(self._data_crc)))
         summary_start = self._stream.tell()
         summary = RecordBuilder()
         offsets: list[SummaryOffset] = []

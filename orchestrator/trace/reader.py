@@ -13,12 +13,11 @@ import numpy as np
 from mcap.reader import make_reader
 
 from .columns import NO_LIMIT, ChunkDecoder, JsonColumns, RawMessages, Slot, decode_chunks, message_counts
+from .summary_section import check_ends
 
 from .format import (
     CHANNEL_PREFIX,
     LOG_TOPIC,
-    MAGIC,
-    FOOTER_LENGTH,
     TraceError,
     channel_kind,
     vehicle_names,
@@ -93,7 +92,7 @@ def load(path: str | Path, *, components: Iterable[str] | Callable[[str], bool] 
     path = Path(path)
     window = _window(start, end)
     with open(path, "rb") as stream:
-        _check_ends(path, stream)
+        check_ends(path, stream)
         reader = make_reader(stream, validate_crcs=True)
         try:
             summary = reader.get_summary()
@@ -125,19 +124,6 @@ def _window(start: float | None, end: float | None) -> tuple[int, int]:
     if hi < lo:
         raise TraceError(f"the time window is empty: start {start} s is after end {end} s")
     return lo, hi
-
-
-def _check_ends(path: Path, stream: Any) -> None:
-    size = path.stat().st_size
-    head = stream.read(len(MAGIC))
-    stream.seek(max(0, size - len(MAGIC)))
-    tail = stream.read(len(MAGIC))
-    stream.seek(0)
-    if head != MAGIC:
-        raise TraceError("not an MCAP file (no MCAP magic at its start)")
-    if tail != MAGIC or size < 2 * len(MAGIC) + FOOTER_LENGTH:
-        raise TraceError(f"unfinished MCAP file (no footer: the writing process was killed?); "
-                         f"recover its complete chunks with `platoon trace recover {path}`")
 
 
 def _component_of(topic: str) -> str:
