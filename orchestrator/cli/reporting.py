@@ -261,22 +261,24 @@ def report_stored(trace: Path, as_json: bool) -> bool:
             or "resolved" not in config_record):
         return False
     # the data section's CRC (a read of the whole file, about 10 ms for the README's trace) on a thread: reading
-    # and zlib release the GIL, so on a second core it overlaps the config and the table's imports
+    # and zlib release the GIL, so on a second core it overlaps the table's imports
     verdict: list[bool | None] = []
     checking = threading.Thread(target=lambda: verdict.append(_intact(trace, summary_start)), daemon=True,
                                 name="checking the trace")
     checking.start()
     try:
-        try:
-            raw = json.loads(config_record["resolved"])
-        except ValueError:
-            return False
-        config, non_finite = _stored_config(trace, raw, cached=True)
         if not as_json:
             import rich.table  # noqa: F401
     finally:
         checking.join()
-    if verdict != [True] or non_finite:  # non-finite values: their warning and nan figures are the reading's
+    try:
+        raw = json.loads(config_record["resolved"])
+    except ValueError:
+        return False
+    if verdict != [True]:  # damage first: the reading names it, before anything the damage may have caused
+        return False
+    config, non_finite = _stored_config(trace, raw, cached=True)
+    if non_finite:  # their warning and nan figures: the reading's path says them
         return False
     print_summary(trace, config, "completed", math.nan, found, as_json)
     return True
