@@ -50,6 +50,7 @@ import zenoh
 
 from fmus.model.dynamics import M3piDynamics
 from fmus.model.integrate import integrate
+from fmus.realtime import PacingPriority, pacing_helper
 
 from .claim import RobotClaim, claim_from_key, claim_text
 from .lab_key import LabKey
@@ -337,6 +338,7 @@ class Emulator:
 
     def _on_command(self, index: int) -> Callable[[zenoh.Sample], None]:
         def receive(sample: zenoh.Sample) -> None:
+            pacing_helper()  # holds the lock the timing loop needs: not to be preempted holding it
             payload = sample.payload.to_bytes()
             with self._lock:
                 self.robots[index].receive(payload, self.clock())
@@ -373,6 +375,10 @@ class Emulator:
                 for robot in self.robots:
                     robot.time = start
             next_sample = start
+            # this loop samples the poses on time and applies the commands: the robot's clock, raised if asked
+            priority = PacingPriority("m3pi-emulator: the timing loop")
+            if priority.note is not None:
+                self.say(priority.note)
             try:
                 while not self.stop_event.is_set():
                     with self._lock:
@@ -408,6 +414,7 @@ class Emulator:
                     wake = min(next_sample, self._outbox[0][0] if self._outbox else next_sample)
                     self.stop_event.wait(max(0.0, min(wake - self.clock(), 0.01)))
             finally:
+                priority.restore()
                 undeclare_all(resources)
                 for robot in self.robots:
                     c = robot.counters

@@ -43,6 +43,7 @@ from fmus.model.dynamics import M3piDynamics
 from fmus.model.factory import controller_stepper
 from fmus.model.vehicle import VEHICLE_INPUTS
 from fmus.component import ComponentError, LiveEvent, LiveRecord, percentile_summary
+from fmus.realtime import pacing_helper
 
 from .claim import (
     CLAIM_LEASE,
@@ -200,6 +201,7 @@ class LiveVehicle:
     # -- Zenoh callbacks (Zenoh's threads) -------------------------------------------------------
 
     def _on_pose(self, sample: zenoh.Sample) -> None:
+        pacing_helper()  # the stepping thread reads what this thread hands over, under its lock
         if self._releasing:  # the claim is being released: the robot's next poses echo no claim
             return
         received = self.clock()

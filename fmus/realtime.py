@@ -13,11 +13,18 @@ meanwhile is what separates the platoon from an all-simulated one. A point late 
 ``WAKE_UP_JITTER`` is the OS waking the master a little late, not a stall: nothing of it carries to the next
 point, so it adds nothing (counted, it made an undisturbed 20 s run "0.15-0.28 s behind" from sub-millisecond
 rises alone, and a held-out test's 0.2 s limit read that as stall time); its lateness is in the jitter.
+
+``PacingPriority`` puts the one thread that keeps such a schedule (a live run's stepping thread, an emulated
+robot's timing loop) at a real-time priority, when ``PLATOON_REALTIME_PRIORITY`` asks for it: see its docstring;
+``pacing_helper`` puts the threads that hand it poses or commands one level below.
 """
 
 from __future__ import annotations
 
+import os
+import threading
 import time
+from typing import Mapping
 
 from fmus.component import percentile_summary
 
@@ -70,3 +77,103 @@ class Pacer:
         jitter.pop("jitter.count", None)
         return {"points": len(self.lateness), **jitter, "overruns": self.overruns, "overrun.max": self.worst_overrun,
                 "behind.total": self.fell_behind}
+
+
+PRIORITY_VARIABLE = "PLATOON_REALTIME_PRIORITY"  # unset, empty or 0: paced threads keep the normal scheduler
+
+
+class PacingPriority:
+    """The calling thread, and only it, at real-time priority (``SCHED_FIFO``) while it keeps a wall-clock schedule,
+    if ``PLATOON_REALTIME_PRIORITY`` names one (1-99); undone by ``restore``.
+
+    Why one thread and not the process (``chrt -r 1 platoon run``): a paced thread sleeps most of each step, and
+    at the normal scheduler a busy process beside it (a build, a test suite) delays its wake-up by milliseconds to
+    tens of them, so the run falls behind its schedule. A whole process at one real-time priority protects it from
+    those, but not from itself: its other threads (Zenoh's, the trace's) and the other processes started at the same
+    priority do not preempt each other, and a woken pacing thread waited up to a 100 ms round-robin time slice
+    behind one of them (docs/hil.md, "Accuracy"). Here only the thread that keeps time is raised: it preempts every
+    normal thread the moment it wakes, and, as ``SCHED_RESET_ON_FORK`` makes the threads and processes it starts
+    afterwards begin at the normal scheduler, it raises nothing else.
+
+    Not permitted (no root, no ``CAP_SYS_NICE``, no rtprio limit: ``ulimit -r``), not a priority, or an OS
+    without per-thread real-time scheduling: the thread stays as it was and ``note`` says why, in one line, for
+    the caller's log; so does a granted one (its level is ``level``). Unset: nothing happens and ``note`` is None.
+    A paced loop that never sleeps (a run that cannot keep up) keeps one core to itself at this priority: the
+    kernel's real-time throttling (``/proc/sys/kernel/sched_rt_runtime_us``, 95 % by default) still leaves the
+    rest of the machine a share of that core.
+    """
+
+    def __init__(self, what: str, environ: Mapping[str, str] = os.environ) -> None:
+        self.note: str | None = None
+        self.level = "Info"
+        self._thread: int | None = None  # the raised thread's id, for restore from any thread
+        self._previous: tuple[int, int] = (0, 0)  # its policy and priority before
+        wanted = environ.get(PRIORITY_VARIABLE, "").strip()
+        if wanted in ("", "0"):
+            return
+        self.level = "Warning"
+        asked = f"{PRIORITY_VARIABLE}={wanted}"
+        if not hasattr(os, "sched_setscheduler"):
+            self.note = f"{asked}: this OS has no per-thread real-time scheduling; {what} keeps the normal scheduler"
+            return
+        highest = os.sched_get_priority_max(os.SCHED_FIFO)
+        if not wanted.isdigit() or not 1 <= int(wanted) <= highest:
+            self.note = f"{asked}: expected a real-time priority 1-{highest} (or 0: none); {what} keeps the normal scheduler"
+            return
+        priority = int(wanted)
+        previous = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
+        except PermissionError:
+            self.note = (f"{asked}: real-time priority not permitted here (it needs root, CAP_SYS_NICE or an rtprio "
+                         f"limit: `ulimit -r`); {what} keeps the normal scheduler, and may fall behind on a busy machine")
+            return
+        except OSError as error:
+            self.note = f"{asked}: real-time priority refused ({error}); {what} keeps the normal scheduler"
+            return
+        self._thread, self._previous = threading.get_native_id(), previous
+        self.level = "Info"
+        self.note = f"{what} at real-time priority (SCHED_FIFO {priority}, {asked}); the threads it starts are not"
+
+    @property
+    def raised(self) -> bool:
+        return self._thread is not None
+
+    def restore(self) -> None:
+        """The raised thread back at the scheduler it had (from any thread; once raised, once undone): what it
+        does after its schedule (closing links, finalizing) must not hold a core at real-time priority."""
+        thread, self._thread = self._thread, None
+        if thread is None:
+            return
+        policy, priority = self._previous
+        try:
+            os.sched_setscheduler(thread, policy & ~os.SCHED_RESET_ON_FORK, os.sched_param(priority))
+        except ProcessLookupError:  # the thread has ended: nothing holds the priority any more
+            pass
+
+
+_helper = threading.local()  # per thread: whether pacing_helper has looked at it
+
+
+def pacing_helper() -> None:
+    """Called first in a callback the paced thread depends on (Zenoh's thread handing over a pose, a command):
+    that thread, once, one real-time level under ``PLATOON_REALTIME_PRIORITY`` (none asked, or asked 1: left as is).
+
+    Why: the callback holds the lock the paced thread reads the newest pose under, and Python's GIL; at the
+    normal scheduler a busy process beside it can preempt it holding them, and the paced thread, though first
+    in line for a core, then waits for both (measured: docs/hil.md, "Accuracy"). One level under, it is not
+    preempted by anything at the normal scheduler, and it never delays the paced thread on a core. A refusal
+    is silent here: ``PacingPriority`` says it once for the process."""
+    if getattr(_helper, "seen", False):
+        return
+    _helper.seen = True
+    wanted = os.environ.get(PRIORITY_VARIABLE, "").strip()
+    if not wanted.isdigit() or not hasattr(os, "sched_setscheduler"):
+        return
+    level = int(wanted) - 1
+    if not 1 <= level < os.sched_get_priority_max(os.SCHED_FIFO):
+        return
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(level))
+    except OSError:
+        pass

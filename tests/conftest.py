@@ -26,6 +26,7 @@ if "PLATOON_LAB_KEY" not in os.environ:
 
 import fcntl
 import tempfile
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -34,6 +35,7 @@ from typing import Any
 import pytest
 
 from fmus.builders import DEFAULT_OUT, FMU_NAMES, LINK_FMU, PYTHONFMU
+from fmus.realtime import PRIORITY_VARIABLE
 from orchestrator.scenario.config import Config, config_from_mapping
 from orchestrator.execution.run import run_scenario
 from orchestrator.trace import Trace, load
@@ -65,9 +67,59 @@ REQUIRE_REALTIME = "PLATOON_REQUIRE_REALTIME"
 def realtime_not_tested(why: str) -> None:
     """A real-time test could not test its behaviour on this machine's load: skipped, saying ``why``, where a
     developer runs the suite on a busy laptop; a failure where ``PLATOON_REQUIRE_REALTIME=1`` (CI)."""
+    why = f"{why} (paced threads: {_pacing_priority_text()})"
     if os.environ.get(REQUIRE_REALTIME, "") not in ("", "0"):
         pytest.fail(f"{why} ({REQUIRE_REALTIME} is set: real-time behaviour must be tested here)")
     pytest.skip(why)
+
+
+# The real-time priority a real-time test's paced threads get (fmus/realtime.py, PacingPriority: the run's stepping
+# thread, the emulated robot's timing loop; nothing else they start), where this machine permits it: over every
+# thread at the normal scheduler (a busy machine's, the test's own, Zenoh's, the trace writer's) and under the
+# kernel's interrupt threads (SCHED_FIFO 50). Measured 2026-12-03: docs/hil.md, "Accuracy". A value the user set
+# (PLATOON_REALTIME_PRIORITY, 0 for none) is kept.
+TEST_PACING_PRIORITY = 10
+_pacing_permitted: bool | None = None  # found once per test process (_may_raise_pacing)
+
+
+def _may_raise_pacing() -> bool:
+    """Whether a thread of this process may take ``TEST_PACING_PRIORITY``: asked by a thread of its own, which
+    ends at once, so no thread of the test session keeps it."""
+    global _pacing_permitted
+    if _pacing_permitted is None:
+        from fmus.realtime import PacingPriority
+
+        answer: list[bool] = []
+
+        def probe() -> None:
+            priority = PacingPriority("probe", {PRIORITY_VARIABLE: str(TEST_PACING_PRIORITY)})
+            answer.append(priority.raised)
+            priority.restore()
+
+        prober = threading.Thread(target=probe, name="real-time priority probe")
+        prober.start()
+        prober.join()
+        _pacing_permitted = answer == [True]
+    return _pacing_permitted
+
+
+def _pacing_priority_text() -> str:
+    wanted = os.environ.get(PRIORITY_VARIABLE, "")
+    if wanted not in ("", "0"):
+        return f"{PRIORITY_VARIABLE}={wanted}"
+    return ("normal scheduler (real-time priority not permitted here: root, CAP_SYS_NICE or `ulimit -r`)"
+            if _pacing_permitted is False else "normal scheduler")
+
+
+@pytest.fixture(autouse=True)
+def _realtime_pacing_priority(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A real-time test's runs and emulated robots pace at ``TEST_PACING_PRIORITY`` where permitted (handed down
+    in the environment): beside a CPU-bound process their tracking then holds its bound instead of falling behind;
+    a test not marked realtime changes nothing."""
+    if request.node.get_closest_marker("realtime") is None or PRIORITY_VARIABLE in os.environ:
+        return
+    if _may_raise_pacing():
+        monkeypatch.setenv(PRIORITY_VARIABLE, str(TEST_PACING_PRIORITY))
 
 
 @contextmanager

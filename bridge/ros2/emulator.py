@@ -21,6 +21,8 @@ from typing import Any, Callable, Sequence
 
 import zenoh
 
+from fmus.realtime import pacing_helper
+
 from ..emulator import Emulator, EmulatorSettings, RobotSpec
 from ..protocol import MessageError, Pose
 from . import messages, rmw_zenoh
@@ -81,6 +83,7 @@ class RosEmulator(Emulator):
         assert link is not None
 
         def receive(sample: zenoh.Sample) -> None:
+            pacing_helper()  # holds the lock the timing loop needs (bridge.emulator)
             payload = sample.payload.to_bytes()
             with self._lock:
                 now = self.clock()

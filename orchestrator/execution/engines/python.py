@@ -8,7 +8,7 @@ from __future__ import annotations
 from typing import ClassVar
 
 from fmus.component import Component
-from fmus.realtime import Pacer
+from fmus.realtime import Pacer, PacingPriority
 from orchestrator.components.fmu import FmuComponent
 from orchestrator.components.live import live_component
 from orchestrator.components.remote import remote_components
@@ -34,6 +34,7 @@ class Engine:
         self.pacer = Pacer() if setup.live else None
         self.master = Master(self.components, setup.scenario.connections, setup.scenario.schedules, sim.master,
                              pacer=self.pacer)
+        self.priority: PacingPriority | None = None
 
     @property
     def time(self) -> float:
@@ -42,6 +43,10 @@ class Engine:
     def start(self, observers: Observers, check: Check) -> None:
         observers.point(0.0, self.master.initialize(0.0))
         check()
+        if self.pacer is not None:  # the robots are there: from here this thread keeps the wall-clock schedule
+            self.priority = PacingPriority("the run's stepping thread")
+            if self.priority.note is not None:
+                observers.log(0.0, self.priority.level, self.priority.note)
 
     def advance(self, steps: int, observers: Observers, check: Check) -> None:
         def observe(t: float, outputs: list[list[float]]) -> None:
@@ -51,4 +56,6 @@ class Engine:
         self.master.advance(self.step, observe, steps, tick=observers.advanced)
 
     def close(self) -> None:
+        if self.priority is not None:  # the schedule is over: stopping the robots and finalizing need no priority
+            self.priority.restore()
         self.master.close()
