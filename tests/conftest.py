@@ -114,8 +114,8 @@ def _pacing_priority_text() -> str:
 @pytest.fixture(autouse=True)
 def _realtime_pacing_priority(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
     """A real-time test's runs and emulated robots pace at ``TEST_PACING_PRIORITY`` where permitted (handed down
-    in the environment): beside a CPU-bound process their tracking then holds its bound instead of falling behind;
-    a test not marked realtime changes nothing."""
+    in the environment): on a quiet machine their tracking then fell behind less often (docs/hil.md, "Accuracy";
+    beside a CPU-bound process it did not help); a test not marked realtime changes nothing."""
     if request.node.get_closest_marker("realtime") is None or PRIORITY_VARIABLE in os.environ:
         return
     if _may_raise_pacing():
