@@ -231,7 +231,7 @@ def _broken_traces(root: Path) -> None:
 
 SETUP = {("docs/reproduction.md", 54): _sweep_cut_short, ("docs/sweeps.md", 7): _sweep_cut_short,
          ("docs/model.md", 879): _stability_sweep_cut_short,
-         ("docs/trace-format.md", 261): _broken_traces}
+         ("docs/trace-format.md", 273): _broken_traces}
 
 
 @dataclass

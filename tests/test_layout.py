@@ -33,13 +33,15 @@ def imported_modules(path: Path, package: str) -> set[str]:
 
 def bridge_import_violations(root: Path) -> list[str]:
     """What a file of ``root``/bridge (its subpackages too: bridge/ros2/) imports that the bridge may not:
-    of the project only fmus.model and fmus.component, and nothing of FMPy, pythonfmu or the MCAP library."""
+    of the project only fmus.model, fmus.component and fmus.realtime (the wall-clock pacing and the paced threads'
+    real-time priority, which the emulated robot shares with the live vehicle: scheduling, nothing of FMI), and
+    nothing of FMPy, pythonfmu or the MCAP library."""
     found = []
     for path in sorted((root / "bridge").rglob("*.py")):
         package = ".".join(path.relative_to(root).parent.parts)  # relative imports resolve against it
         for name in sorted(imported_modules(path, package)):
             top = name.split(".")[0]
-            if (top in ("fmus", "orchestrator") and not name.startswith(("fmus.model", "fmus.component"))) or \
+            if (top in ("fmus", "orchestrator") and not name.startswith(("fmus.model", "fmus.component", "fmus.realtime"))) or \
                     top in ("fmpy", "pythonfmu", "mcap"):
                 found.append(f"{path.relative_to(root)} imports {name}")
     return found
