@@ -168,6 +168,8 @@ class LiveVehicle:
         self.safety_stops = 0  # commands that expired before the next was sent: the robot side stopped its wheels
         self.longest_gap = 0.0  # s, the longest time without a command (robot-side stops)
         self._time = 0.0
+        self._looked_at: float | None = None  # when the run last checked the link (each step and output read)
+        self._step_size = 0.0  # s of wall time expected between two of those checks (a paced run's step)
         self._warned: set[str] = set()
         self._session: zenoh.Session | None = None
         self._resources: list[Any] = []
@@ -432,10 +434,33 @@ class LiveVehicle:
             raise self._fail(t, f"{self.what} lost: {self._lost}")
         if self._not_driving is not None:
             raise self._fail(t, f"{self.what} does not obey this run: {self._not_driving}")
-        silent = self.clock() - self._latest_received
-        if silent > self.settings.pose_timeout:
-            raise self._fail(t, f"{self.what} lost: no valid pose for {silent:.2f} s (pose_timeout "
-                                f"{self.settings.pose_timeout:g} s; {self.pose_counters.dropped_total} dropped)")
+        now = self.clock()
+        away, self._looked_at = (0.0 if self._looked_at is None else now - self._looked_at), now
+        timeout = self.settings.pose_timeout
+        if away > timeout + self._step_size:
+            raise self._fail(t, self._stalled(away))
+        silent = now - self._latest_received
+        if silent > timeout:
+            raise self._fail(t, f"{self.what} lost: no valid pose for {silent:.2f} s (pose_timeout {timeout:g} s; "
+                                f"{self._drops()})")
+
+    def _drops(self) -> str:
+        """The poses dropped so far, by reason: "286 dropped: late 286" (late ones: a slow path to this host)."""
+        counters = self.pose_counters
+        reasons = ", ".join(f"{reason} {count}" for reason, count in counters.dropped.items() if count)
+        return f"{counters.dropped_total} dropped" + (f": {reasons}" if reasons else "")
+
+    def _stalled(self, away: float) -> str:
+        """Why a run whose own steps came ``away`` s apart ends: for that long the robot had no command (its robot
+        side stopped it when the last one's deadline passed) and the run did not read its poses; those waiting in
+        the network's buffers are too old by now, so the run cannot tell a silent robot from its own stall, and a
+        run that went on would step the rest of the platoon through that time at once, beside a robot that stood.
+        The cause is this host (a load that starved the run, a suspended process, a paused virtual machine), so
+        the message says so instead of blaming the link."""
+        return (f"this run itself stalled: {away:.2f} s between two of its steps (step {self._step_size:g} s), longer "
+                f"than pose_timeout {self.settings.pose_timeout:g} s: {self.what} went that long without a command (its robot side "
+                "stopped it) and its poses went unread (this host was starved by its load, suspended or paused; "
+                f"{self._drops()} so far)")
 
     def _measure(self) -> float:
         """Put the newest measured pose, dead-reckoned to now, into the controller's state; returns its age (s)."""
@@ -456,7 +481,7 @@ class LiveVehicle:
 
     def step(self, time_: float, step: float) -> None:
         """Command the robot for [t, t + h] from its pose now; advance the controller's states."""
-        self._time = time_
+        self._time, self._step_size = time_, step
         self._check_link(time_)
         if self.state.state != LinkState.RUNNING:
             self.state.go(LinkState.RUNNING, "first step")

@@ -26,7 +26,7 @@ import pytest
 from bridge.session import SessionError, open_session, zenoh_config
 from tests.conftest import free_port
 from tests.dds_robot import LOOPBACK_ONLY
-from tests.test_hil import all_fmu_reference, tracked, wait_for
+from tests.test_hil import all_fmu_reference, ran, tracked, wait_for
 from tests.test_ros2 import ROS3, Emulator, _env, _run, endpoint, stop_process
 
 VERSION = "1.10.2"
@@ -130,7 +130,7 @@ def test_a_run_in_client_mode_through_zenohd_tracks_as_against_the_emulator(tmp_
                 out, err = run.communicate(timeout=120)
             finally:
                 logs.append(robot.stop())
-            assert run.returncode == 0, err + logs[-1] + router.log.read_text()[-2000:]
+            ran(run.returncode, err, logs[-1] + router.log.read_text()[-2000:])
             assert "vehicle3" in out
         return trace
 
@@ -197,7 +197,7 @@ def test_a_dds_robot_driven_through_zenohd_and_the_ros2dds_plugin_tracks_as_agai
                 robot.terminate()
                 robot.wait(10)
                 logs.append(robot.log.read_text())  # type: ignore[attr-defined]
-            assert run.returncode == 0, err + logs[-1] + router.log.read_text()[-3000:]
+            ran(run.returncode, err, logs[-1] + router.log.read_text()[-3000:])
         return trace
 
     behind = _track(attempt, reference)
