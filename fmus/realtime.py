@@ -108,7 +108,7 @@ class PacingPriority:
         self.level = "Info"
         self._thread: int | None = None  # the raised thread's id, for restore from any thread
         self._previous: tuple[int, int] = (0, 0)  # its policy and priority before
-        wanted = environ.get(PRIORITY_VARIABLE, "").strip()
+        wanted = _asked(environ)
         if wanted in ("", "0"):
             return
         self.level = "Warning"
@@ -123,7 +123,7 @@ class PacingPriority:
         priority = int(wanted)
         previous = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
         try:
-            os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
+            _calling_thread_to_fifo(priority)
         except PermissionError:
             self.note = (f"{asked}: real-time priority not permitted here (it needs root, CAP_SYS_NICE or an rtprio "
                          f"limit: `ulimit -r`); {what} keeps the normal scheduler, and may fall behind on a busy machine")
@@ -167,13 +167,24 @@ def pacing_helper() -> None:
     if getattr(_helper, "seen", False):
         return
     _helper.seen = True
-    wanted = os.environ.get(PRIORITY_VARIABLE, "").strip()
+    wanted = _asked(os.environ)
     if not wanted.isdigit() or not hasattr(os, "sched_setscheduler"):
         return
     level = int(wanted) - 1
     if not 1 <= level < os.sched_get_priority_max(os.SCHED_FIFO):
         return
     try:
-        os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(level))
+        _calling_thread_to_fifo(level)
     except OSError:
         pass
+
+
+def _asked(environ: Mapping[str, str]) -> str:
+    """What ``PLATOON_REALTIME_PRIORITY`` asks for, as written (stripped): both the paced thread and its helpers read it."""
+    return environ.get(PRIORITY_VARIABLE, "").strip()
+
+
+def _calling_thread_to_fifo(priority: int) -> None:
+    """The calling thread (0: this thread, for Linux's per-thread scheduling) at ``SCHED_FIFO`` ``priority``; what it
+    starts afterwards begins at the normal scheduler (``SCHED_RESET_ON_FORK``). Raises ``OSError`` if refused."""
+    os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
