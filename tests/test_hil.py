@@ -594,9 +594,11 @@ def tracking_bound(live: Any) -> float:
 # m: the largest bound a run may claim. Above it the run fell so far behind (3 mm + V d > 9 mm: d > 17 ms at
 # V = 0.35 m/s) that it did not test tracking, and a pose 1 cm off would pass (under load the uncapped bound
 # reached 64-70 mm): such a run is tried again (FellBehind); a test whose every try fell behind did not test
-# tracking (realtime_not_tested: skipped, saying so, or failed in CI).
+# tracking (realtime_not_tested: skipped, saying so, or failed in CI). Four tries: CI requires the real-time tests
+# (.ci/run), and a try that fell behind tested nothing, so another costs only time (10 s) where a machine was
+# disturbed for a moment; a machine that cannot keep time fails every try anyway.
 TRACKING_CAP = 9e-3
-TRACKING_TRIES = 3
+TRACKING_TRIES = 4
 
 
 class FellBehind(Exception):
