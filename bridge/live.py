@@ -457,10 +457,10 @@ class LiveVehicle:
         run that went on would step the rest of the platoon through that time at once, beside a robot that stood.
         The cause is this host (a load that starved the run, a suspended process, a paused virtual machine), so
         the message says so instead of blaming the link."""
-        return (f"this run itself stalled: {away:.2f} s between two of its steps (step {self._step_size:g} s), longer "
-                f"than pose_timeout {self.settings.pose_timeout:g} s: {self.what} went that long without a command (its robot side "
-                "stopped it) and its poses went unread (this host was starved by its load, suspended or paused; "
-                f"{self._drops()} so far)")
+        return (f"this run itself stalled: {away:.2f} s between two of its steps (step {self._step_size:g} s), "
+                f"longer than pose_timeout {self.settings.pose_timeout:g} s: {self.what} went that long without a "
+                "command (its robot side stopped it) and its poses went unread (this host was starved by its load, "
+                f"suspended or paused; {self._drops()} so far)")
 
     def _measure(self) -> float:
         """Put the newest measured pose, dead-reckoned to now, into the controller's state; returns its age (s)."""

@@ -180,7 +180,7 @@ def pacing_helper() -> None:
 
 
 def _asked(environ: Mapping[str, str]) -> str:
-    """What ``PLATOON_REALTIME_PRIORITY`` asks for, as written (stripped): both the paced thread and its helpers read it."""
+    """What ``PLATOON_REALTIME_PRIORITY`` asks for, as written (stripped): the paced thread and its helpers read it."""
     return environ.get(PRIORITY_VARIABLE, "").strip()
 
 

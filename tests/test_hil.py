@@ -651,8 +651,9 @@ def check_tracking(live: Path, reference: Path) -> Any:
 def tracked(attempt: Callable[[int], Path], reference: Path) -> Any:
     """``attempt(i)`` makes a live trace, checked by ``check_tracking``; the first of ``TRACKING_TRIES`` that
     passes is returned, loaded. Only a try that fell behind (``FellBehind``: its bound over the cap, so it did
-    not test tracking, or its run ended on its own host's stall, ``ran``) is tried again; a try that missed its bound, or whose run failed, fails the test at
-    once: a retry until one passes would hide a fault that shows now and then. Every try fell behind: tracking
+    not test tracking, or its run ended on its own host's stall, ``ran``) is tried again; a try that missed its
+    bound, or whose run failed otherwise, fails the test at once: a retry until one passes would hide a fault that
+    shows now and then. Every try fell behind: tracking
     was not tested, and the test says so (``realtime_not_tested``: a skip, a failure in CI). A machine that
     cannot pace a 10 s live run to within the cap (beside a CPU-bound process, each try here fell 0.3-0.7 s
     behind: bounds of 10-260 mm) cannot test tracking to 1 cm: that is why the real-time tests run alone,
