@@ -446,9 +446,8 @@ class LiveVehicle:
 
     def _drops(self) -> str:
         """The poses dropped so far, by reason: "286 dropped: late 286" (late ones: a slow path to this host)."""
-        counters = self.pose_counters
-        reasons = ", ".join(f"{reason} {count}" for reason, count in counters.dropped.items() if count)
-        return f"{counters.dropped_total} dropped" + (f": {reasons}" if reasons else "")
+        reasons = self.pose_counters.drop_reasons()
+        return f"{self.pose_counters.dropped_total} dropped" + (f": {reasons}" if reasons else "")
 
     def _stalled(self, away: float) -> str:
         """Why a run whose own steps came ``away`` s apart ends: for that long the robot had no command (its robot

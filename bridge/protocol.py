@@ -326,6 +326,10 @@ class LinkCounters:
     def dropped_total(self) -> int:
         return sum(self.dropped.values())
 
+    def drop_reasons(self) -> str:
+        """The drops by reason, those that happened: "late 3, duplicate 1" ("" if none)."""
+        return ", ".join(f"{reason} {count}" for reason, count in self.dropped.items() if count)
+
     def as_dict(self, stream: str) -> dict[str, float]:
         """Flat numbers, e.g. ``pose.received``, ``pose.dropped.late``, for the trace and summaries."""
         values: dict[str, float] = {f"{stream}.received": self.received, f"{stream}.accepted": self.accepted}

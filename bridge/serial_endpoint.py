@@ -436,7 +436,7 @@ class SerialEndpoint:
     def summary(self) -> str:
         """The counters in one line (printed at exit)."""
         c = self.counters
-        drops = ", ".join(f"{reason} {count}" for reason, count in c.dropped.items() if count) or "none"
+        drops = c.drop_reasons() or "none"
         line = (f"wheel commands received {c.received}, accepted {c.accepted}, dropped {c.dropped_total} ({drops}); "
                 f"watchdog stops {self.watchdog_stops}")
         return line + (f"; last problem: {c.last_problem}" if c.last_problem else "")

@@ -96,6 +96,7 @@ def read_run_view(trace: Path) -> RunView:
     from mcap.reader import make_reader
 
     from orchestrator.trace.format import CHANNEL_PREFIX, MAGIC, vehicle_names
+    from orchestrator.trace.summary_section import metadata_records
 
     if not trace.is_file():
         raise ValueError("no such file")
@@ -106,7 +107,7 @@ def read_run_view(trace: Path) -> RunView:
         with open(trace, "rb") as stream:
             reader = make_reader(stream)
             summary = reader.get_summary()
-            metadata = {item.name: dict(item.metadata) for item in reader.iter_metadata()}
+            metadata = metadata_records(reader)
     except Exception as error:  # any reader failure: not a usable trace
         raise ValueError(f"not a readable MCAP trace ({error})") from None
     if summary is None:

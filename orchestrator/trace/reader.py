@@ -13,7 +13,7 @@ import numpy as np
 from mcap.reader import make_reader
 
 from .columns import NO_LIMIT, ChunkDecoder, JsonColumns, RawMessages, Slot, decode_chunks, message_counts
-from .summary_section import check_ends
+from .summary_section import check_ends, metadata_records
 
 from .format import (
     CHANNEL_PREFIX,
@@ -113,7 +113,7 @@ def load(path: str | Path, *, components: Iterable[str] | Callable[[str], bool] 
         except (TraceError, ValueError, TypeError, KeyError, OverflowError, struct.error) as error:  # a bad CRC, chunk, record or message
             raise TraceError(f"damaged MCAP file: a chunk does not check ({error}); recover every intact chunk "
                              f"with `platoon trace recover {path}`") from None
-        metadata = {item.name: dict(item.metadata) for item in reader.iter_metadata()}
+        metadata = metadata_records(reader)
     return _assemble(path, summary, kinds, slots, metadata, topics, start, end)
 
 

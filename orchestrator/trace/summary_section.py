@@ -48,8 +48,12 @@ def finished_metadata(path: Path) -> tuple[dict[str, dict[str, str]], int]:
         opcode, _, summary_start, _, _ = _FOOTER.unpack(stream.read(FOOTER_LENGTH))
         if opcode != 0x02 or summary_start == 0:
             raise TraceError("no summary section")
-        reader: Any = make_reader(stream, validate_crcs=True)
-        return {item.name: dict(item.metadata) for item in reader.iter_metadata()}, summary_start
+        return metadata_records(make_reader(stream, validate_crcs=True)), summary_start
+
+
+def metadata_records(reader: Any) -> dict[str, dict[str, str]]:
+    """Every metadata record an mcap reader finds (through the summary's index where there is one), by name."""
+    return {item.name: dict(item.metadata) for item in reader.iter_metadata()}
 
 
 def data_section_intact(path: Path, summary_start: int) -> bool | None:
