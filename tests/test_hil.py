@@ -594,9 +594,9 @@ def tracking_bound(live: Any) -> float:
 # m: the largest bound a run may claim. Above it the run fell so far behind (3 mm + V d > 9 mm: d > 17 ms at
 # V = 0.35 m/s) that it did not test tracking, and a pose 1 cm off would pass (under load the uncapped bound
 # reached 64-70 mm): such a run is tried again (FellBehind); a test whose every try fell behind did not test
-# tracking (realtime_not_tested: skipped, saying so, or failed in CI). Four tries: CI requires the real-time tests
-# (.ci/run), and a try that fell behind tested nothing, so another costs only time (10 s) where a machine was
-# disturbed for a moment; a machine that cannot keep time fails every try anyway.
+# tracking (realtime_not_tested: skipped, saying so, or failed where PLATOON_REQUIRE_REALTIME=1). Four tries: a try
+# that fell behind tested nothing, so another costs only time (10 s) where a machine was disturbed for a moment; a
+# machine that cannot keep time falls behind in every try anyway.
 TRACKING_CAP = 9e-3
 TRACKING_TRIES = 4
 
@@ -654,7 +654,7 @@ def tracked(attempt: Callable[[int], Path], reference: Path) -> Any:
     not test tracking, or its run ended on its own host's stall, ``ran``) is tried again; a try that missed its
     bound, or whose run failed otherwise, fails the test at once: a retry until one passes would hide a fault that
     shows now and then. Every try fell behind: tracking
-    was not tested, and the test says so (``realtime_not_tested``: a skip, a failure in CI). A machine that
+    was not tested, and the test says so (``realtime_not_tested``: a skip, a failure where required). A machine that
     cannot pace a 10 s live run to within the cap (beside a CPU-bound process, each try here fell 0.3-0.7 s
     behind: bounds of 10-260 mm) cannot test tracking to 1 cm: that is why the real-time tests run alone,
     after the parallel ones (README, "Tests")."""
