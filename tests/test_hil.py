@@ -591,19 +591,20 @@ def tracking_bound(live: Any) -> float:
     return TRACKING + config.platoon.speed * (behind + robot_late)
 
 
-# m: the largest bound a run may claim. Above it the run fell so far behind (3 mm + V d > 9 mm: d > 17 ms at
-# V = 0.35 m/s) that it did not test tracking, and a pose 1 cm off would pass (under load the uncapped bound
-# reached 64-70 mm): such a run is tried again (FellBehind); a test whose every try fell behind did not test
-# tracking (realtime_not_tested: skipped, saying so, or failed where PLATOON_REQUIRE_REALTIME=1). Four tries: a try
-# that fell behind tested nothing, so another costs only time (10 s) where a machine was disturbed for a moment; a
-# machine that cannot keep time falls behind in every try anyway.
+# m: the largest distance a run may be from the all-FMU one and pass, whatever its bound. A run whose bound is
+# over it (3 mm + V d > 9 mm: d > 17 ms at V = 0.35 m/s; under load the uncapped bound reached 64-70 mm) fell so far
+# behind that a distance over the cap may be the lateness, not a fault: such a run is tried again (FellBehind), unless
+# it stayed within the cap anyway (then it tested tracking to the cap, and passes). A pose 1 cm off fails either way.
+# A test whose every try fell behind did not test tracking (realtime_not_tested: skipped, saying so, or failed where
+# PLATOON_REQUIRE_REALTIME=1). Four tries: a try that fell behind tested nothing, so another costs only time (10 s)
+# where a machine was disturbed for a moment; a machine that cannot keep time falls behind in every try anyway.
 TRACKING_CAP = 9e-3
 TRACKING_TRIES = 4
 
 
 class FellBehind(Exception):
-    """The run fell too far behind for its comparison to test tracking (its bound exceeds ``TRACKING_CAP``), or
-    its host stalled so long that the run ended (``ran``)."""
+    """The run fell too far behind for its comparison to test tracking (a vehicle beyond ``TRACKING_CAP``, in a run
+    whose bound exceeds it), or its host stalled so long that the run ended (``ran``)."""
 
 
 STALLED = "this run itself stalled"  # bridge.live: the run's own steps came further apart than the pose timeout
@@ -628,30 +629,45 @@ def all_fmu_reference(config: Path, simulated: Path) -> Path:
 
 
 def check_tracking(live: Path, reference: Path) -> Any:
-    """Every vehicle of the live trace within ``tracking_bound`` of the all-FMU ``reference``, the bound capped
-    at ``TRACKING_CAP`` (``FellBehind`` above it). Returns the live trace, loaded."""
+    """Every vehicle of the live trace within ``tracking_bound`` of the all-FMU ``reference`` and within
+    ``TRACKING_CAP``. A vehicle further off than the cap, in a run whose bound is over the cap, is not a fault
+    shown: the run fell too far behind to tell (``FellBehind``). Any other vehicle over its bound fails. Returns the
+    live trace, loaded.
+
+    Why the distance first, not the bound alone: the bound counts every lateness of the run and of the robot side as
+    if it all moved the platoon (a pose's age includes this run's own wait to read it, and the oldest pose counts in
+    full). Of 35 rmw_zenoh runs on the idle machine (2026-12-03, 11 of them under `perf sched record`), 10 claimed
+    bounds of 9.3-26.9 mm while their platoon was 0.7-8.2 mm from the all-FMU run (9 of them 0.7-4.8 mm, bounds up to
+    13.5 mm); turned away on their bound alone, such tries left a test whose every try "fell behind" (CI, with
+    PLATOON_REQUIRE_REALTIME=1: bounds 11.4-16.2 mm in two of its four tries). Runs stopped 5-250 ms at a time by a
+    sampling profiler were 19 and 72 mm off: those still fall behind."""
     a, b = load(live), load(reference)
     bound = tracking_bound(a)
-    if bound > TRACKING_CAP:
-        raise FellBehind(f"{live.name}: the run fell behind (bound {bound * 1e3:.1f} mm over the cap "
-                         f"{TRACKING_CAP * 1e3:.0f} mm; pacing {a.metadata['platoon.hil']['pacing']})")
-    distances = {}
+    allowed = min(bound, TRACKING_CAP)
+    pacing = a.metadata["platoon.hil"]["pacing"]
+    distances: dict[str, tuple[float, float]] = {}  # vehicle -> (largest distance, when)
     for vehicle in a.vehicles():
         x, y = a.component(vehicle)["x"], a.component(vehicle)["y"]
         assert len(x) == len(b.component(vehicle)["x"]) == 1001
         distance = np.hypot(x - b.component(vehicle)["x"], y - b.component(vehicle)["y"])
-        distances[vehicle] = distance.max()
-        assert distance.max() < bound, (f"{vehicle}: {distance.max():.2e} m at t = {np.argmax(distance) * 0.01:.2f} s "
-                                        f"(bound {bound:.2e} m)", a.metadata["platoon.hil"]["pacing"])
-    print(f"\n[{live.name} vs all-FMU] largest distance: "
-          + ", ".join(f"{name} {value * 1e3:.2f} mm" for name, value in distances.items()) + f" (bound {bound * 1e3:.2f} mm)")
+        distances[vehicle] = (float(distance.max()), float(np.argmax(distance) * 0.01))
+    text = ", ".join(f"{name} {value * 1e3:.2f} mm" for name, (value, _) in distances.items())
+    over = {name: found for name, found in distances.items() if found[0] >= allowed}
+    if over and bound > TRACKING_CAP:  # over the cap, in a run that may have been that late: cannot tell
+        raise FellBehind(f"{live.name}: the run fell behind (bound {bound * 1e3:.1f} mm over the cap "
+                         f"{TRACKING_CAP * 1e3:.0f} mm; largest distances {text}; pacing {pacing})")
+    if over:
+        vehicle, (value, when) = next(iter(over.items()))
+        raise AssertionError(f"{vehicle}: {value:.2e} m at t = {when:.2f} s (bound {allowed:.2e} m)", pacing)
+    print(f"\n[{live.name} vs all-FMU] largest distance: {text} (bound {bound * 1e3:.2f} mm"
+          + (f", capped at {TRACKING_CAP * 1e3:.0f} mm)" if bound > TRACKING_CAP else ")"))
     return a
 
 
 def tracked(attempt: Callable[[int], Path], reference: Path) -> Any:
     """``attempt(i)`` makes a live trace, checked by ``check_tracking``; the first of ``TRACKING_TRIES`` that
-    passes is returned, loaded. Only a try that fell behind (``FellBehind``: its bound over the cap, so it did
-    not test tracking, or its run ended on its own host's stall, ``ran``) is tried again; a try that missed its
+    passes is returned, loaded. Only a try that fell behind (``FellBehind``: a vehicle beyond the cap in a run whose
+    bound is over it, so it did not test tracking, or its run ended on its own host's stall, ``ran``) is tried again; a try that missed its
     bound, or whose run failed otherwise, fails the test at once: a retry until one passes would hide a fault that
     shows now and then. Every try fell behind: tracking
     was not tested, and the test says so (``realtime_not_tested``: a skip, a failure where required). A machine that

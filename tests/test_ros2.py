@@ -12,6 +12,7 @@ import re
 import signal
 import struct
 import subprocess
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -213,6 +214,37 @@ def test_a_bad_ros_pose_is_refused_with_its_reason(payload: bytes, reason: Drop,
     with pytest.raises(MessageError) as refused:
         messages.decode_pose(payload, messages.POSE_STAMPED)
     assert refused.value.reason is reason and text in str(refused.value)
+
+
+_FIRST_MESSAGES = """
+import sys
+from bridge.ros2 import messages
+written = []
+sys.addaudithook(lambda event, args: written.append(event) if event == "compile" else None)
+if sys.argv[1] == "prepared":
+    messages.prepare(messages.TWIST, messages.POSE_STAMPED)
+    written.clear()
+messages.decode_twist(messages.encode_twist(messages.TWIST, 0.3, 0.1), messages.TWIST)
+messages.decode_pose(messages.encode_pose(messages.POSE_STAMPED, 1.0, 0.5, 0.2, 0.1), messages.POSE_STAMPED)
+print(len(written))
+"""
+
+
+@pytest.mark.parametrize("state", ["prepared", "cold"])
+def test_a_prepared_link_writes_no_code_when_its_first_command_and_pose_go_through(state: str) -> None:
+    """``messages.prepare`` makes rosbags write its (de)serializers before a run steps: the first command and
+    pose (in a fresh process, as a run's and an emulator's are) then compile nothing; cold, they compile rosbags'
+    generated code (5-7 ms inside a paced step, or under the emulator's timing lock: ``prepare``'s docstring)."""
+    found = subprocess.run([sys.executable, "-c", _FIRST_MESSAGES, state], cwd=REPO, capture_output=True, text=True,
+                           timeout=60)
+    assert found.returncode == 0, found.stderr
+    compiled = int(found.stdout.split()[-1])
+    assert (compiled == 0) if state == "prepared" else (compiled > 0), compiled
+
+
+def test_prepare_names_a_type_it_cannot_prepare() -> None:
+    with pytest.raises(ValueError, match="tf2_msgs/msg/TFMessage: neither a pose type nor a command type"):
+        messages.prepare(messages.TF_MESSAGE)
 
 
 def test_wheels_and_twist_and_frame_transform_invert_each_other() -> None:

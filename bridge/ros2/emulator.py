@@ -52,6 +52,9 @@ class RosEmulator(Emulator):
         resources.append(node)
         resources.append(session.liveliness().declare_token(keys.alive))
         status = None  # commands on a ROS topic carry no claim: nothing to report
+        # the codecs written now: the first command is decoded under the lock the timing loop waits for
+        messages.prepare(*[typename for topic, typename in ((link.command_topic, link.command_type),
+                                                            (link.pose_topic, link.pose_type)) if topic])
         if link.command_topic:
             commands = link.command_topic
             key = node.subscriber(commands, link.command_type, self._on_twist(index), reliability=rmw_zenoh.RELIABLE,

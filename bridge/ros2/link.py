@@ -105,6 +105,7 @@ class RosLiveVehicle(LiveVehicle):
         if not self.ros.command_topic:
             super()._open_commands(session)
             return
+        messages.prepare(self.ros.command_type)  # its encoder written now, not in the first paced step
         self._ros_publisher = self._ros_node(session).publisher(self.ros.command_topic, self.ros.command_type)
         self._publisher = self._ros_publisher
         self._alive = True  # no token of ours on a ROS robot: its first pose says it is there
@@ -146,6 +147,7 @@ class RosLiveVehicle(LiveVehicle):
         if not self.ros.pose_topic:
             super()._open_poses(session)
             return
+        messages.prepare(self.ros.pose_type)  # its decoder written before the first pose arrives
         self.pose_key = self._ros_node(session).subscriber(self.ros.pose_topic, self.ros.pose_type, self._on_pose)
 
     def _decode_pose(self, sample: zenoh.Sample, received: float) -> Pose:
