@@ -639,8 +639,8 @@ def check_tracking(live: Path, reference: Path) -> Any:
     full). Of 35 rmw_zenoh runs on the idle machine (2026-12-03, 11 of them under `perf sched record`), 10 claimed
     bounds of 9.3-26.9 mm while their platoon was 0.7-8.2 mm from the all-FMU run (9 of them 0.7-4.8 mm, bounds up to
     13.5 mm); turned away on their bound alone, such tries left a test whose every try "fell behind" (CI, with
-    PLATOON_REQUIRE_REALTIME=1: bounds 11.4-16.2 mm in two of its four tries). Runs stopped 5-250 ms at a time by a
-    sampling profiler were 19 and 72 mm off: those still fall behind."""
+    PLATOON_REQUIRE_REALTIME=1: bounds 11.4-16.2 mm in two of its four tries). Runs stopped by a sampling profiler
+    (up to 75 and 254 ms behind) were 19 and 72 mm off: those still fall behind."""
     a, b = load(live), load(reference)
     bound = tracking_bound(a)
     allowed = min(bound, TRACKING_CAP)
@@ -667,10 +667,10 @@ def check_tracking(live: Path, reference: Path) -> Any:
 def tracked(attempt: Callable[[int], Path], reference: Path) -> Any:
     """``attempt(i)`` makes a live trace, checked by ``check_tracking``; the first of ``TRACKING_TRIES`` that
     passes is returned, loaded. Only a try that fell behind (``FellBehind``: a vehicle beyond the cap in a run whose
-    bound is over it, so it did not test tracking, or its run ended on its own host's stall, ``ran``) is tried again; a try that missed its
-    bound, or whose run failed otherwise, fails the test at once: a retry until one passes would hide a fault that
-    shows now and then. Every try fell behind: tracking
-    was not tested, and the test says so (``realtime_not_tested``: a skip, a failure where required). A machine that
+    bound is over it, so it did not test tracking, or its run ended on its own host's stall, ``ran``) is tried
+    again; a try that missed its bound, or whose run failed otherwise, fails the test at once: a retry until one
+    passes would hide a fault that shows now and then. Every try fell behind: tracking was not tested, and the
+    test says so (``realtime_not_tested``: a skip, a failure where required). A machine that
     cannot pace a 10 s live run to within the cap (beside a CPU-bound process, each try here fell 0.3-0.7 s
     behind: bounds of 10-260 mm) cannot test tracking to 1 cm: that is why the real-time tests run alone,
     after the parallel ones (README, "Tests")."""
